@@ -1,0 +1,3 @@
+from dynrecon.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,63 @@
+"""The `dynrecon` command: a thin argparse layer over the stages' `run` functions.
+
+Each package contributes its subcommands through an `add_commands(subparsers)` function in its `cli` module; a
+subcommand sets `func(args) -> int`. User errors (`DynreconError`) are caught here, once, and shown as one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from dynrecon import __version__
+from dynrecon.errors import DynreconError
+
+# Modules whose `add_commands` registers subcommands, in the order they appear in `--help`.
+COMMAND_MODULES = (
+    "reconstruct.cli",
+)
+
+log = logging.getLogger("dynrecon")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dynrecon",
+        description="3D trajectories of moving points from several unsynchronized videos.",
+    )
+    parser.add_argument("--version", action="version", version=f"dynrecon {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for module_name in COMMAND_MODULES:
+        importlib.import_module(module_name).add_commands(subparsers)
+    return parser
+
+
+def configure_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else logging.DEBUG if verbose >= 2 else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname).1s %(name)s: %(message)s", stream=sys.stderr)
+    # Third-party chatter stays at warning level unless the user asks for debug output.
+    if verbose < 2:
+        for noisy in ("PIL", "matplotlib", "urllib3"):
+            logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    configure_logging(args.verbose, args.quiet)
+    try:
+        return int(args.func(args) or 0)
+    except DynreconError as error:
+        print(f"dynrecon {args.command}: error: {error}", file=sys.stderr)  # noqa: T201
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)  # noqa: T201
+        return 130

@@ -1,0 +1,1 @@
+"""Manual keypoint labeling in a local web page."""

@@ -1,0 +1,152 @@
+"""`points3d.csv` (also the layout of a simulation's `truth.csv`) and `sequencing.json` (see docs/formats.md).
+
+`points3d.csv` has one row for every posed (video, frame) and every point name, including unobserved points
+(`observed` = 0). A point that could not be reconstructed has empty x, y, z. Extra numeric columns (e.g. `time`,
+trust measures) may follow the required ones.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dynrecon.atomic import atomic_open, atomic_write_text
+from dynrecon.errors import InputError
+
+POINT_COLUMNS = ("video", "frame", "point", "x", "y", "z", "observed")
+
+
+@dataclass(kw_only=True)
+class FramePoints:
+    """3D points of every frame. Frame i is (videos[i], frames[i])."""
+
+    videos: list[str]
+    frames: np.ndarray  # (F,) int frame numbers
+    point_names: list[str]  # (P,)
+    xyz: np.ndarray  # (F, P, 3), NaN where not reconstructed
+    observed: np.ndarray  # (F, P) bool
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (F, P) floats (NaN = empty)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.videos)
+
+    def index(self) -> dict[tuple[str, int], int]:
+        return {(v, int(f)): i for i, (v, f) in enumerate(zip(self.videos, self.frames, strict=True))}
+
+
+def _format(value: float) -> str:
+    return "" if not math.isfinite(value) else repr(float(value))
+
+
+def write_points(path: str | Path, points: FramePoints) -> Path:
+    path = Path(path)
+    extra_names = list(points.extra)
+    with atomic_open(path, "w", newline="") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow([*POINT_COLUMNS, *extra_names])
+        for i in range(points.num_frames):
+            for p, name in enumerate(points.point_names):
+                x, y, z = points.xyz[i, p]
+                writer.writerow([points.videos[i], int(points.frames[i]), name, _format(x), _format(y), _format(z),
+                                 int(bool(points.observed[i, p])),
+                                 *(_format(points.extra[e][i, p]) for e in extra_names)])
+    return path
+
+
+def read_points(path: str | Path) -> FramePoints:
+    """Read `points3d.csv` or `truth.csv` back into arrays."""
+    path = Path(path)
+    try:
+        handle = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    with handle:
+        reader = csv.reader(handle)
+        header = next(reader, None)
+        if header is None or any(c not in header for c in POINT_COLUMNS):
+            raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
+        col = {name: header.index(name) for name in header}
+        extra_names = [h for h in header if h not in POINT_COLUMNS]
+        frame_index: dict[tuple[str, int], int] = {}
+        point_index: dict[str, int] = {}
+        records: list[tuple[int, int, list[float], bool, list[float]]] = []
+        for row in reader:
+            if not row:
+                continue
+            try:
+                key = (row[col["video"]], int(row[col["frame"]]))
+                values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
+                observed = row[col["observed"]].strip() == "1"
+                extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
+            except (ValueError, IndexError):
+                raise InputError(path, "malformed row", where=f"line {reader.line_num}") from None
+            fi = frame_index.setdefault(key, len(frame_index))
+            pi = point_index.setdefault(row[col["point"]], len(point_index))
+            records.append((fi, pi, values, observed, extras))
+    F, P = len(frame_index), len(point_index)
+    xyz = np.full((F, P, 3), np.nan)
+    observed_arr = np.zeros((F, P), dtype=bool)
+    extra = {name: np.full((F, P), np.nan) for name in extra_names}
+    for fi, pi, values, observed, extras in records:
+        xyz[fi, pi] = values
+        observed_arr[fi, pi] = observed
+        for name, value in zip(extra_names, extras, strict=True):
+            extra[name][fi, pi] = value
+    keys = list(frame_index)
+    return FramePoints(videos=[k[0] for k in keys], frames=np.array([k[1] for k in keys], dtype=np.int64),
+                       point_names=list(point_index), xyz=xyz, observed=observed_arr, extra=extra)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# sequencing.json
+
+
+@dataclass(kw_only=True)
+class Sequencing:
+    """Non-zero coefficients of W: frame i is expressed as sum_k weight[i][k] * shape(neighbours[i][k])."""
+
+    videos: list[str]
+    frames: np.ndarray  # (F,)
+    neighbours: list[np.ndarray]  # F arrays of frame indices into (videos, frames)
+    weights: list[np.ndarray]  # F arrays of coefficients, each summing to 1
+    extra: dict[str, Any] = field(default_factory=dict)  # further top-level keys (e.g. clocks)
+
+
+def write_sequencing(path: str | Path, sequencing: Sequencing) -> Path:
+    frames = []
+    for i in range(len(sequencing.videos)):
+        frames.append({
+            "video": sequencing.videos[i],
+            "frame": int(sequencing.frames[i]),
+            "neighbours": [
+                {"video": sequencing.videos[int(j)], "frame": int(sequencing.frames[int(j)]), "weight": float(w)}
+                for j, w in zip(sequencing.neighbours[i], sequencing.weights[i], strict=True)
+            ],
+        })
+    document = {"frames": frames, **sequencing.extra}
+    atomic_write_text(path, json.dumps(document, indent=1) + "\n")
+    return Path(path)
+
+
+def read_sequencing(path: str | Path) -> Sequencing:
+    path = Path(path)
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        entries = document["frames"]
+        videos = [e["video"] for e in entries]
+        frames = np.array([int(e["frame"]) for e in entries], dtype=np.int64)
+        index = {(v, int(f)): i for i, (v, f) in enumerate(zip(videos, frames, strict=True))}
+        neighbours = [np.array([index[(n["video"], int(n["frame"]))] for n in e["neighbours"]], dtype=np.int64)
+                      for e in entries]
+        weights = [np.array([float(n["weight"]) for n in e["neighbours"]]) for e in entries]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise InputError(path, f"not a valid sequencing.json: {error}") from None
+    extra = {k: v for k, v in document.items() if k != "frames"}
+    return Sequencing(videos=videos, frames=frames, neighbours=neighbours, weights=weights, extra=extra)

@@ -1,0 +1,227 @@
+"""`cameras.json`: every posed frame of every video, in one world frame (see docs/formats.md).
+
+R, t are cam_from_world (x_cam = R X + t, COLMAP's convention). Pixel coordinates follow OpenCV: the centre of the
+top-left pixel is (0, 0). `frame` is the 0-based index of the decoded frame in its video; frames without a pose are
+absent.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dynrecon.atomic import atomic_write_text
+from dynrecon.errors import InputError
+
+ROTATION_TOLERANCE = 1e-5
+
+
+@dataclass(kw_only=True)
+class FrameCamera:
+    """The camera of one decoded frame."""
+
+    frame: int
+    K: np.ndarray  # (3, 3) intrinsics, pixels, OpenCV convention
+    R: np.ndarray  # (3, 3) rotation cam_from_world
+    t: np.ndarray  # (3,) translation cam_from_world
+    time: float | None = None  # seconds from the video's start, as the decoder reports it
+    dist: np.ndarray | None = None  # (4,) or (5,) OpenCV k1, k2, p1, p2[, k3]
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, (3,)."""
+        return -self.R.T @ self.t
+
+
+@dataclass(kw_only=True)
+class VideoCameras:
+    name: str
+    width: int
+    height: int
+    fps: float | None = None
+    frames: list[FrameCamera] = field(default_factory=list)
+
+    def frame_numbers(self) -> np.ndarray:
+        return np.array([f.frame for f in self.frames], dtype=np.int64)
+
+
+@dataclass(kw_only=True)
+class CameraSet:
+    videos: list[VideoCameras] = field(default_factory=list)
+
+    def video(self, name: str) -> VideoCameras:
+        for video in self.videos:
+            if video.name == name:
+                return video
+        raise KeyError(name)
+
+    @property
+    def num_frames(self) -> int:
+        return sum(len(v.frames) for v in self.videos)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Writing
+
+
+def _frame_to_json(frame: FrameCamera) -> dict[str, Any]:
+    entry: dict[str, Any] = {"frame": int(frame.frame)}
+    if frame.time is not None:
+        entry["time"] = float(frame.time)
+    entry["K"] = np.asarray(frame.K, dtype=float).tolist()
+    entry["R"] = np.asarray(frame.R, dtype=float).tolist()
+    entry["t"] = np.asarray(frame.t, dtype=float).tolist()
+    if frame.dist is not None:
+        entry["dist"] = np.asarray(frame.dist, dtype=float).tolist()
+    return entry
+
+
+def cameras_to_json(cameras: CameraSet) -> dict[str, Any]:
+    return {
+        "videos": [
+            {
+                "name": video.name,
+                "fps": None if video.fps is None else float(video.fps),
+                "width": int(video.width),
+                "height": int(video.height),
+                "frames": [_frame_to_json(f) for f in sorted(video.frames, key=lambda f: f.frame)],
+            }
+            for video in cameras.videos
+        ]
+    }
+
+
+def write_cameras(path: str | Path, cameras: CameraSet) -> Path:
+    """Write `cameras.json` atomically. Raises InputError when the content would not read back."""
+    path = Path(path)
+    validate_cameras(cameras, path)
+    atomic_write_text(path, json.dumps(cameras_to_json(cameras), indent=1) + "\n")
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Reading
+
+
+def read_cameras(path: str | Path) -> CameraSet:
+    """Read and validate `cameras.json`; every problem is an InputError naming the video and frame."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, "file not found", fix="run `dynrecon register` or give the right path") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(path, f"cannot read: {error}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise InputError(path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}",
+                         fix="fix the JSON syntax") from None
+    cameras = cameras_from_json(data, path)
+    validate_cameras(cameras, path)
+    return cameras
+
+
+def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
+    if not isinstance(data, dict) or not isinstance(data.get("videos"), list):
+        raise InputError(path, 'top level must be an object with a list "videos"',
+                         fix="see docs/formats.md#camerasjson")
+    videos = []
+    for vi, vdata in enumerate(data["videos"]):
+        where = f"videos[{vi}]"
+        if not isinstance(vdata, dict):
+            raise InputError(path, "each video must be an object", where=where)
+        for key in ("name", "width", "height", "frames"):
+            if key not in vdata:
+                raise InputError(path, f'missing key "{key}"', where=where, fix="see docs/formats.md#camerasjson")
+        name = vdata["name"]
+        if not isinstance(name, str) or not name:
+            raise InputError(path, '"name" must be a non-empty string', where=where)
+        where = f"video {name!r}"
+        fps = vdata.get("fps")
+        if fps is not None and (not isinstance(fps, int | float) or not math.isfinite(fps) or fps <= 0):
+            raise InputError(path, f'"fps" must be a positive number or null, got {fps!r}', where=where)
+        width, height = vdata["width"], vdata["height"]
+        if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+            raise InputError(path, f'"width" and "height" must be positive integers, got {width!r}x{height!r}',
+                             where=where)
+        if not isinstance(vdata["frames"], list):
+            raise InputError(path, '"frames" must be a list', where=where)
+        frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]")
+                  for fi, fdata in enumerate(vdata["frames"])]
+        videos.append(VideoCameras(name=name, fps=None if fps is None else float(fps), width=width,
+                                   height=height, frames=frames))
+    return CameraSet(videos=videos)
+
+
+def _matrix(value: Any, shape: tuple[int, ...], key: str, path: Path | None, where: str) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(path, f'"{key}" must be numbers of shape {shape}', where=where) from None
+    if array.shape != shape:
+        raise InputError(path, f'"{key}" has shape {array.shape}, expected {shape}', where=where)
+    if not np.all(np.isfinite(array)):
+        raise InputError(path, f'"{key}" contains NaN or infinity', where=where,
+                         fix="drop frames without a valid pose")
+    return array
+
+
+def _frame_from_json(fdata: Any, path: Path | None, where: str) -> FrameCamera:
+    if not isinstance(fdata, dict):
+        raise InputError(path, "each frame must be an object", where=where)
+    for key in ("frame", "K", "R", "t"):
+        if key not in fdata:
+            raise InputError(path, f'missing key "{key}"', where=where, fix="see docs/formats.md#camerasjson")
+    number = fdata["frame"]
+    if not isinstance(number, int) or isinstance(number, bool) or number < 0:
+        raise InputError(path, f'"frame" must be a non-negative integer, got {number!r}', where=where)
+    where = f"{where.rsplit(' ', 1)[0]} frame {number}"
+    time = fdata.get("time")
+    if time is not None and (not isinstance(time, int | float) or not math.isfinite(time)):
+        raise InputError(path, f'"time" must be a finite number, got {time!r}', where=where)
+    dist = fdata.get("dist")
+    if dist is not None:
+        dist_array = np.asarray(dist, dtype=float) if isinstance(dist, list) else None
+        if dist_array is None or dist_array.shape not in ((4,), (5,)) or not np.all(np.isfinite(dist_array)):
+            raise InputError(path, '"dist" must be [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]', where=where)
+        dist = dist_array
+    return FrameCamera(
+        frame=number,
+        time=None if time is None else float(time),
+        K=_matrix(fdata["K"], (3, 3), "K", path, where),
+        R=_matrix(fdata["R"], (3, 3), "R", path, where),
+        t=_matrix(fdata["t"], (3,), "t", path, where),
+        dist=dist,
+    )
+
+
+def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
+    """Check the geometric sanity of every frame: proper rotations, usable intrinsics, unique names/frames."""
+    seen_names: set[str] = set()
+    for video in cameras.videos:
+        if video.name in seen_names:
+            raise InputError(path, f"video name {video.name!r} appears twice", fix="video names must be unique")
+        seen_names.add(video.name)
+        seen_frames: set[int] = set()
+        for frame in video.frames:
+            where = f"video {video.name!r} frame {frame.frame}"
+            if frame.frame in seen_frames:
+                raise InputError(path, "frame appears twice", where=where, fix="keep one pose per frame")
+            seen_frames.add(frame.frame)
+            R = frame.R
+            orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
+            if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+                raise InputError(
+                    path, f'"R" is not a rotation (|R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})',
+                    where=where, fix="R must be the orthonormal cam_from_world rotation with det +1")
+            K = frame.K
+            if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9 or np.any(np.abs(K[2, :2]) > 1e-12) \
+                    or abs(K[1, 0]) > 1e-12:
+                raise InputError(path, '"K" must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0',
+                                 where=where)
