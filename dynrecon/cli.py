@@ -17,6 +17,9 @@ from dynrecon.errors import DynreconError
 
 # Modules whose `add_commands` registers subcommands, in the order they appear in `--help`.
 COMMAND_MODULES = (
+    "sfm.cli",
+    "labeling.cli",
+    "tracking.cli",
     "reconstruct.cli",
 )
 

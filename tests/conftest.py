@@ -1,0 +1,24 @@
+"""Shared fixtures. Tests that need the real data beside the checkout (`../shared`) skip when it is absent."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared"))
+
+# Single-threaded BLAS: measured faster than 2 threads on the small matrices of these tests, and the suite may run
+# beside other work on 2 cores.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """`../shared` (real data); skips the test with the reason when it is absent."""
+    if not (SHARED / "data").is_dir():
+        pytest.skip(f"needs the shared data folder {SHARED} (absent in a user's clone)")
+    return SHARED
