@@ -1,0 +1,293 @@
+"""Motion-capture marker trajectories (C3D, TRC) as ground truth for the simulation protocol.
+
+Everything is converted to millimetres. A missing sample is NaN: files store gaps as NaN, as (0, 0, 0) or
+(C3D) as a negative residual, and all three are masked here so that a gap never passes for a position at the
+origin.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from dynrecon.atomic import atomic_write_text
+from dynrecon.errors import InputError
+
+log = logging.getLogger(__name__)
+
+SUFFIXES = (".c3d", ".trc")
+UNIT_TO_MM = {"mm": 1.0, "millimeters": 1.0, "millimetres": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0,
+              "metres": 1000.0}
+
+
+@dataclass(kw_only=True)
+class Mocap:
+    """Marker trajectories sampled at a constant rate.
+
+    `xyz[k]` is the sample at `times[k]` seconds (the file's own clock); NaN marks a missing sample. Windows
+    and cleaning keep `times` exact, so a capture time is always `times[k]` even after frames were dropped.
+    """
+
+    xyz: np.ndarray  # (T, M, 3) millimetres, NaN = missing
+    rate: float  # Hz of the original sampling (before any window step)
+    marker_names: list[str]  # (M,) unique, non-empty
+    times: np.ndarray  # (T,) seconds
+    path: Path | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @property
+    def num_markers(self) -> int:
+        return int(self.xyz.shape[1])
+
+    def missing(self) -> np.ndarray:
+        """(T, M) bool: the sample is missing."""
+        return np.isnan(self.xyz).any(axis=2)
+
+
+def read_mocap(path: str | Path) -> Mocap:
+    """Read a `.c3d` or `.trc` file into millimetres with NaN gaps; any problem is a one-line InputError."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise InputError(path, f"unknown motion-capture format {path.suffix or '(no extension)'!r}",
+                         fix="give a .c3d or .trc file")
+    if not path.is_file():
+        raise InputError(path, "file not found", fix="give the path of a .c3d or .trc file")
+    mocap = _read_c3d(path) if suffix == ".c3d" else _read_trc(path)
+    if mocap.num_markers == 0:
+        raise InputError(path, "the file has no markers", fix="give a file with 3D marker trajectories")
+    if mocap.num_frames == 0:
+        raise InputError(path, "the file has no frames", fix="give a file with at least one frame")
+    if not (math.isfinite(mocap.rate) and mocap.rate > 0):
+        raise InputError(path, f"invalid sampling rate {mocap.rate!r}", fix="the point rate must be positive")
+    if mocap.missing().all():
+        raise InputError(path, "every sample is missing (all zero or NaN)")
+    return mocap
+
+
+def _unique_names(names: list[str], count: int) -> list[str]:
+    """Blank labels become M<index>; repeated labels get a #2, #3 suffix, so names stay usable as ids."""
+    result: list[str] = []
+    seen: dict[str, int] = {}
+    for index in range(count):
+        name = names[index].strip() if index < len(names) else ""
+        name = name or f"M{index}"
+        if name in seen:
+            seen[name] += 1
+            name = f"{name}#{seen[name]}"
+        else:
+            seen[name] = 1
+        result.append(name)
+    return result
+
+
+def _mask_gaps(xyz: np.ndarray) -> np.ndarray:
+    """Set samples that are exactly (0, 0, 0) or partly non-finite to NaN, in place; returns xyz."""
+    gap = (~np.isfinite(xyz)).any(axis=2) | (xyz == 0).all(axis=2)
+    xyz[gap] = np.nan
+    return xyz
+
+
+# ------------------------------------------------------------------------------------------------------------
+# C3D
+
+
+def _read_c3d(path: Path) -> Mocap:
+    import ezc3d  # compiled reader; imported here so the TRC path works without it
+
+    try:
+        c3d = ezc3d.c3d(str(path))
+    except Exception as error:  # ezc3d raises bare RuntimeError/IOError subclasses on corrupt files
+        raise InputError(path, f"not a readable C3D file ({str(error).strip() or type(error).__name__})",
+                         fix="check that the file is complete") from None
+    point = c3d["parameters"].get("POINT", {})
+    points = np.asarray(c3d["data"]["points"], dtype=float)  # (4, M, T)
+    if points.ndim != 3 or points.shape[1] == 0:
+        raise InputError(path, "the file has no markers", fix="give a file with 3D marker trajectories")
+    xyz = np.ascontiguousarray(points[:3].transpose(2, 1, 0))  # (T, M, 3)
+    residuals = c3d["data"].get("meta_points", {}).get("residuals")
+    if residuals is not None and np.shape(residuals)[1:] == (xyz.shape[1], xyz.shape[0]):
+        # A negative residual is C3D's own "invalid sample" flag (ezc3d usually already returns NaN there).
+        xyz[np.asarray(residuals)[0].T < 0] = np.nan
+    _mask_gaps(xyz)
+
+    units = _c3d_value(point, "UNITS", "mm")
+    scale = UNIT_TO_MM.get(str(units).strip().lower())
+    if scale is None:
+        raise InputError(path, f"unknown POINT:UNITS {units!r}", fix="expected mm, cm or m")
+    xyz *= scale
+
+    rate = float(str(_c3d_value(point, "RATE", c3d["header"]["points"].get("frame_rate", 0.0))))
+    labels: list[str] = []
+    # C3D splits long label lists into LABELS2, LABELS3, ...
+    for key in ("LABELS", *(f"LABELS{i}" for i in range(2, 10))):
+        if key in point:
+            labels.extend(str(v) for v in point[key]["value"])
+    names = _unique_names(labels, xyz.shape[1])
+    first = int(c3d["header"]["points"].get("first_frame", 0))
+    times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
+    return Mocap(xyz=xyz, rate=rate, marker_names=names, times=times, path=path)
+
+
+def _c3d_value(group: dict, key: str, default: object) -> object:
+    values = group.get(key, {}).get("value")
+    if values is None or len(values) == 0:
+        return default
+    return values[0]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# TRC (OpenSim): line 1 PathFileType, line 2 header keys, line 3 their values, line 4 marker names,
+# line 5 X1 Y1 Z1, data after it: Frame#, Time, X1, Y1, Z1, ...
+
+
+def _read_trc(path: Path) -> Mocap:
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")  # Windows exports put non-UTF-8 paths in line 1
+    lines = text.splitlines()
+    if len(lines) < 5:
+        raise InputError(path, f"only {len(lines)} line(s); a TRC file has 5 header lines",
+                         fix="check that the file is complete")
+    # Columns of lines 2-3 are padded with extra tabs in some exports: pair the non-empty tokens instead.
+    keys = lines[1].split()
+    values = lines[2].split()
+    header = dict(zip(keys, values, strict=False))
+    try:
+        rate = float(header["DataRate"])
+        declared_markers = int(float(header["NumMarkers"]))
+        declared_frames = int(float(header["NumFrames"]))
+    except (KeyError, ValueError):
+        raise InputError(path, "lines 2-3 lack DataRate, NumFrames or NumMarkers", where="line 3",
+                         fix="see the OpenSim TRC format") from None
+    units = header.get("Units", "mm")
+    scale = UNIT_TO_MM.get(units.strip().lower())
+    if scale is None:
+        raise InputError(path, f"unknown Units {units!r}", where="line 3", fix="expected mm, cm or m")
+    # Marker names follow Frame# and Time; their column spacing varies between exporters: keep the order only.
+    names = [n.strip() for n in lines[3].split("\t")[2:] if n.strip()]
+    if declared_markers == 0 or not names:
+        raise InputError(path, "the file has no markers", where="line 4")
+    if len(names) != declared_markers:
+        raise InputError(path, f"line 4 names {len(names)} markers but NumMarkers is {declared_markers}",
+                         where="line 4", fix="make the marker names and NumMarkers agree")
+    width = 2 + 3 * declared_markers
+    rows: list[list[float]] = []
+    first_time = math.nan
+    for number, line in enumerate(lines[5:], start=6):
+        if not line.strip():
+            continue
+        fields = line.split("\t")
+        if len(fields) < width:
+            raise InputError(path, f"expected {width} tab-separated fields, found {len(fields)}",
+                             where=f"line {number}", fix="the file may be truncated")
+        if any(f.strip() for f in fields[width:]):
+            raise InputError(path, f"more than {width} fields", where=f"line {number}",
+                             fix="make the columns agree with NumMarkers")
+        try:
+            values_row = [float(f) if f.strip() else math.nan for f in fields[2:width]]
+            if not rows:
+                first_time = float(fields[1]) if fields[1].strip() else math.nan
+        except ValueError:
+            raise InputError(path, "a coordinate is not a number", where=f"line {number}") from None
+        rows.append(values_row)
+    if not rows:
+        raise InputError(path, "the file has no frames", fix="data rows start on line 6")
+    if len(rows) < declared_frames:
+        raise InputError(path, f"NumFrames is {declared_frames} but only {len(rows)} data rows were found",
+                         fix="the file may be truncated")
+    xyz = _mask_gaps(np.array(rows, dtype=float).reshape(len(rows), declared_markers, 3)) * scale
+    t0 = first_time if math.isfinite(first_time) else 0.0
+    times = t0 + np.arange(len(rows)) / rate if rate > 0 else np.arange(len(rows), dtype=float)
+    return Mocap(xyz=xyz, rate=rate, marker_names=_unique_names(names, declared_markers), times=times,
+                 path=path)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Writing TRC (tests, and handing a cleaned window to other tools)
+
+
+def write_trc(path: str | Path, mocap: Mocap, *, units: str = "mm") -> Path:
+    """Write an OpenSim TRC file (NaN samples as empty fields)."""
+    path = Path(path)
+    scale = UNIT_TO_MM[units]
+    marker_count = mocap.num_markers
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{mocap.rate!r}\t{mocap.rate!r}\t{mocap.num_frames}\t{marker_count}\t{units}\t{mocap.rate!r}\t1\t"
+        f"{mocap.num_frames}",
+        "Frame#\tTime\t" + "\t\t\t".join(mocap.marker_names),
+        "\t\t" + "\t".join(f"{axis}{i + 1}" for i in range(marker_count) for axis in "XYZ"),
+        "",
+    ]
+    for k in range(mocap.num_frames):
+        coords = (mocap.xyz[k] / scale).ravel()
+        cells = ["" if not math.isfinite(v) else repr(float(v)) for v in coords]
+        lines.append("\t".join([str(k + 1), repr(float(mocap.times[k])), *cells]))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Windows and cleaning
+
+
+def select_window(mocap: Mocap, start: int = 0, length: int | None = None, step: int = 1) -> Mocap:
+    """Samples `start, start + step, ...` below `start + length` (the file's own frames; None = to the end).
+
+    `length` counts original frames, so a window covers the same stretch of motion at any `step`; `rate` stays
+    the file's rate and `times` stays exact (the effective rate of the result is `rate / step`).
+    """
+    if step < 1:
+        raise InputError(mocap.path, f"step must be >= 1, got {step}")
+    if start < 0 or start >= mocap.num_frames:
+        raise InputError(mocap.path, f"window start {start} is outside the file's {mocap.num_frames} frames",
+                         fix=f"use a start between 0 and {mocap.num_frames - 1}")
+    if length is not None and length < 1:
+        raise InputError(mocap.path, f"window length must be >= 1, got {length}")
+    stop = mocap.num_frames if length is None else min(mocap.num_frames, start + length)
+    if length is not None and start + length > mocap.num_frames:
+        log.warning("%s: window %d..%d runs past the last frame %d; using %d frames", mocap.path, start,
+                    start + length - 1, mocap.num_frames - 1, stop - start)
+    index = np.arange(start, stop, step)
+    return replace(mocap, xyz=mocap.xyz[index].copy(), times=mocap.times[index].copy(),
+                   marker_names=list(mocap.marker_names))
+
+
+def drop_incomplete(mocap: Mocap, max_missing: float = 0.1) -> Mocap:
+    """Keep only fully known samples, so a simulation never needs ground truth it does not have.
+
+    1. Drop every marker missing in more than `max_missing` (a fraction) of the frames.
+    2. Drop every frame where one of the kept markers is still missing. Capture times stay in `times`, so the
+       remaining frames keep their true timing (a dropped frame shows up as a longer gap).
+    Raises InputError when nothing is left.
+    """
+    missing = mocap.missing()
+    keep_markers = missing.mean(axis=0) <= max_missing
+    if not keep_markers.any():
+        raise InputError(mocap.path, f"every marker is missing in more than {max_missing:.0%} of the frames",
+                         fix="choose another window or file")
+    keep_frames = ~missing[:, keep_markers].any(axis=1)
+    if not keep_frames.any():
+        raise InputError(mocap.path, "no frame has all the usable markers",
+                         fix="choose another window or file")
+    dropped_markers = [n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if not k]
+    if dropped_markers:
+        log.info("%s: dropped %d marker(s) missing in more than %.0f%% of the frames: %s", mocap.path,
+                 len(dropped_markers), 100 * max_missing, ", ".join(dropped_markers))
+    if not keep_frames.all():
+        log.info("%s: dropped %d of %d frames with a missing marker", mocap.path, int((~keep_frames).sum()),
+                 mocap.num_frames)
+    return replace(mocap, xyz=mocap.xyz[keep_frames][:, keep_markers].copy(),
+                   times=mocap.times[keep_frames].copy(),
+                   marker_names=[n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if k])
