@@ -1,0 +1,38 @@
+"""Options of the label propagation (`tracking.propagate.track_video`) and of `dynrecon track`."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class Method(enum.Enum):
+    """How a point is carried from one frame to the next."""
+
+    LK = "lk"  # pyramidal Lucas-Kanade with a forward-backward check; the track stops where LK fails
+    LK_CSRT = "lk+csrt"  # LK; where it fails, one CSRT step on a patch around the point, refined by LK
+    CSRT = "csrt"  # CSRT for every step, refined by LK where LK agrees (slow; for comparison)
+
+
+class Blend(enum.Enum):
+    """How the forward track (from the earlier label) and the backward one (from the later label) combine."""
+
+    # mean weighted by score and by closeness to each label; the better one where they disagree
+    WEIGHTED = "weighted"
+    BEST = "best"  # the one with the higher score x closeness
+    FORWARD = "forward"  # forward only (backward only before a point's first label); the baseline
+
+
+@dataclass(kw_only=True)
+class TrackOptions:
+    method: Method = Method.LK_CSRT
+    blend: Blend = Blend.WEIGHTED
+    win_size: int = 21  # LK window side, pixels
+    max_level: int = 3  # LK pyramid levels above the full image
+    fb_threshold: float = 1.0  # forward-backward error (pixels) above which an LK step counts as failed
+    min_ncc: float = 0.5  # normalized cross-correlation with the label's patch below which the track stops
+    patch: int = 21  # side of the appearance patch compared with the label's patch, pixels
+    fallback_box: int = 48  # side of the CSRT box around the point, pixels (at 1080p, ~64 is better)
+    agree_px: float = 3.0  # forward and backward tracks farther apart than this disagree: keep the better
+    min_score: float = 0.2  # tracked positions with a lower score are left out (unobserved)
+    margin: float = 2.0  # a point closer than this to the image border stops (it is leaving the frame)

@@ -1,0 +1,224 @@
+"""Carry manual labels through every frame of one video: what the labeling page's "track" button calls.
+
+For each point, a forward sweep starts at every visible label and runs until the point's next label (of any
+kind), a backward sweep does the same in reverse, and the two are combined per frame (`Blend`). A track stops,
+leaving the point unobserved, when a step fails (LK's forward-backward check and, if enabled, the CSRT
+fallback) or when the patch at the tracked position no longer looks like the patch at the label (occlusion,
+drift). Labels always win: a labeled frame returns the label, and every label starts new tracks.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from tracking.frames import FrameSource
+from tracking.options import Blend, Method, TrackOptions
+from tracking.steps import csrt_step, lk_step, ncc, patch_at
+
+log = logging.getLogger(__name__)
+
+# point -> frame -> (x, y), or None where the user marked the point "not visible here"
+Labels = Mapping[str, Mapping[int, tuple[float, float] | None]]
+
+SOURCE_LABEL = "label"
+SOURCE_TRACK = "track"
+
+
+class TrackedPoint(NamedTuple):
+    x: float
+    y: float
+    score: float  # in [0, 1]; 1 for labels
+    source: str  # "label" or "track"
+
+
+@dataclass
+class _Track:
+    """A point being carried by one sweep."""
+
+    xy: np.ndarray  # (2,)
+    template: np.ndarray  # (patch, patch) float32, the patch at the label
+    score: float
+
+
+# per point: frame -> (x, y, score) of one sweep
+_Sweep = dict[str, dict[int, tuple[float, float, float]]]
+
+
+def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | None = None, *,
+                progress: Callable[[int, int], None] | None = None) -> dict[str, dict[int, TrackedPoint]]:
+    """Propagate `labels` through `frames`.
+
+    Returns point -> frame -> `TrackedPoint`, with every visible label (`source="label"`, score 1) and the
+    tracked positions (`source="track"`) whose score is at least `options.min_score`. Frames where a point is
+    marked not visible, lost, or out of reach of any label are absent. Labels outside the video's frames are
+    ignored with a warning. `progress(done, total)` is called after each frame of each of the two sweeps.
+    """
+    options = options or TrackOptions()
+    num_frames = len(frames)
+    clean: dict[str, dict[int, np.ndarray | None]] = {}
+    for point, by_frame in labels.items():
+        clean[point] = {}
+        for frame, xy in by_frame.items():
+            if not 0 <= int(frame) < num_frames:
+                log.warning("label of %r on frame %d is outside the video's %d frames; ignored", point, frame,
+                            num_frames)
+                continue
+            clean[point][int(frame)] = None if xy is None else np.asarray(xy, dtype=float).reshape(2)
+    total = 2 * num_frames
+    done = [0]
+
+    def tick() -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total)
+
+    forward = _sweep(frames, clean, options, +1, tick)
+    backward = _sweep(frames, clean, options, -1, tick)
+    return _combine(clean, forward, backward, options, num_frames)
+
+
+def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]], options: TrackOptions,
+           direction: int, tick: Callable[[], None]) -> _Sweep:
+    """One pass over the frames in `direction` (+1 forward, -1 backward), all points at once."""
+    num_frames = len(frames)
+    out: _Sweep = {point: {} for point in labels}
+    by_frame: dict[int, dict[str, np.ndarray | None]] = {}
+    for point, marks in labels.items():
+        for frame, xy in marks.items():
+            by_frame.setdefault(frame, {})[point] = xy
+    if not by_frame:
+        return out
+    order = range(min(by_frame), num_frames) if direction > 0 else range(max(by_frame), -1, -1)
+    active: dict[str, _Track] = {}
+    prev: np.ndarray | None = None
+    for frame in order:
+        here = by_frame.get(frame, {})
+        # A label of any kind ends the track arriving here; the label itself may start the next one.
+        for name in here:
+            active.pop(name, None)
+        if not active and not any(xy is not None for xy in here.values()):
+            prev = None
+            tick()
+            continue
+        gray = frames.gray(frame)
+        if active and prev is not None:
+            _advance(prev, gray, active, options, out, frame)
+        for name, label in here.items():
+            if label is not None:
+                template = patch_at(gray, label, options.patch)
+                active[name] = _Track(xy=label.copy(), template=template, score=1.0)
+        prev = gray
+        tick()
+    return out
+
+
+def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], options: TrackOptions, out: _Sweep,
+             frame: int) -> None:
+    """Move every active track from `prev` to `cur`; record survivors in `out[point][frame]`, drop others."""
+    names = list(active)
+    xy0 = np.array([active[n].xy for n in names]).reshape(-1, 2)
+    height, width = cur.shape[:2]
+    if options.method is Method.CSRT:
+        xy1 = np.full_like(xy0, np.nan)
+        fb = np.full(len(names), np.inf)
+        needs_fallback = np.ones(len(names), dtype=bool)
+    else:
+        xy1, fb = lk_step(prev, cur, xy0, options)
+        needs_fallback = ~(fb <= options.fb_threshold)
+    step_penalty = np.ones(len(names))
+    if options.method is not Method.LK:
+        for k in np.flatnonzero(needs_fallback):
+            i = int(k)
+            guess = csrt_step(prev, cur, xy0[i], options.fallback_box)
+            if guess is None:
+                continue
+            refined, fb_refined = lk_step(prev, cur, xy0[i:i + 1], options, guess=guess.reshape(1, 2))
+            near = np.linalg.norm(refined[0] - guess) < 0.5 * options.win_size
+            if fb_refined[0] <= options.fb_threshold and near:
+                xy1[i], fb[i] = refined[0], fb_refined[0]
+            else:
+                # CSRT alone: integer precision and no consistency check, so it counts for less.
+                xy1[i], fb[i] = guess, 0.5 * options.fb_threshold
+                step_penalty[i] = 0.5
+    for i, name in enumerate(names):
+        track = active[name]
+        x, y = xy1[i]
+        ok = bool(fb[i] <= options.fb_threshold) and np.isfinite(x) and np.isfinite(y)
+        m = options.margin
+        ok = ok and m <= x <= width - 1 - m and m <= y <= height - 1 - m
+        if not ok:
+            del active[name]
+            continue
+        similarity = ncc(patch_at(cur, xy1[i], options.patch), track.template)
+        s_app = (similarity - options.min_ncc) / (1.0 - options.min_ncc)
+        if s_app <= 0.0:
+            del active[name]
+            continue
+        s_fb = 1.0 - 0.5 * float(fb[i]) / options.fb_threshold
+        track.xy = xy1[i]
+        track.score = float(np.clip(min(s_app, 1.0) * s_fb * step_penalty[i], 0.0, 1.0))
+        out[name][frame] = (float(x), float(y), track.score)
+
+
+def _combine(labels: dict[str, dict[int, np.ndarray | None]], forward: _Sweep, backward: _Sweep,
+             options: TrackOptions, num_frames: int) -> dict[str, dict[int, TrackedPoint]]:
+    result: dict[str, dict[int, TrackedPoint]] = {}
+    for point, marks in labels.items():
+        anchors = sorted(marks)
+        visible = [f for f in anchors if marks[f] is not None]
+        first_visible = visible[0] if visible else num_frames
+        fwd, bwd = forward.get(point, {}), backward.get(point, {})
+        merged: dict[int, TrackedPoint] = {}
+        for frame in sorted(set(fwd) | set(bwd)):
+            f = fwd.get(frame)
+            b = bwd.get(frame)
+            if options.blend is Blend.FORWARD and frame > first_visible:
+                b = None
+            chosen = _blend(f, b, frame, anchors, options)
+            if chosen is not None and chosen[2] >= options.min_score:
+                merged[frame] = TrackedPoint(chosen[0], chosen[1], chosen[2], SOURCE_TRACK)
+        for frame, xy in marks.items():
+            merged.pop(frame, None)
+            if xy is not None:
+                merged[frame] = TrackedPoint(float(xy[0]), float(xy[1]), 1.0, SOURCE_LABEL)
+        result[point] = dict(sorted(merged.items()))
+    return result
+
+
+def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] | None, frame: int,
+           anchors: list[int], options: TrackOptions) -> tuple[float, float, float] | None:
+    if f is None or b is None:
+        return f if b is None else b
+    # Drift grows with the distance from the label a track started at: weight each by closeness to its label.
+    before = max((a for a in anchors if a < frame), default=frame - 1)
+    after = min((a for a in anchors if a > frame), default=frame + 1)
+    closeness_f = (after - frame) / (after - before)
+    closeness_b = (frame - before) / (after - before)
+    wf, wb = closeness_f * f[2], closeness_b * b[2]
+    distance = float(np.hypot(f[0] - b[0], f[1] - b[1]))
+    better = f if wf >= wb else b
+    if distance > options.agree_px:
+        # One of them drifted; which one is a guess, so the score says so.
+        return better[0], better[1], better[2] * options.agree_px / distance
+    score = 1.0 - (1.0 - f[2]) * (1.0 - b[2])  # two tracks that agree are more certain than either
+    if options.blend is Blend.BEST:
+        return better[0], better[1], score
+    if wf + wb <= 0.0:
+        return better[0], better[1], score
+    x = (wf * f[0] + wb * b[0]) / (wf + wb)
+    y = (wf * f[1] + wb * b[1]) / (wf + wb)
+    return x, y, score
+
+
+def run(workspace: str | Path, out: str | Path | None = None, options: TrackOptions | None = None, *,
+        videos: dict[str, Path] | list[Path] | None = None) -> Path:
+    """`tracking.stage.run` (the whole workspace), re-exported here for the labeling page."""
+    from tracking.stage import run as run_stage  # late: stage imports this module
+
+    return run_stage(workspace, out, options, videos=videos)

@@ -1,0 +1,90 @@
+"""`dynrecon track WS`: propagate `WS/labels.csv` through every frame of the workspace's videos into
+`tracks.csv`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from tqdm import tqdm
+
+from tracking.frames import VideoFrames
+from tracking.options import TrackOptions
+from tracking.propagate import SOURCE_LABEL, TrackedPoint, track_video
+from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.workspace import LABELS_NAME, TRACKS_NAME, AllLabels, read_labels, workspace_videos
+
+log = logging.getLogger(__name__)
+
+
+def run(workspace: str | Path, out: str | Path | None = None, options: TrackOptions | None = None, *,
+        videos: dict[str, Path] | list[Path] | None = None) -> Path:
+    """Track the labeled points of `videos` (default: all of the workspace's) and write `out` (default
+    `WS/tracks.csv`). Rows of other videos already in `out` are kept, except where the labels now say
+    otherwise. Returns the path written."""
+    workspace = Path(workspace)
+    options = options or TrackOptions()
+    out = Path(out) if out is not None else workspace / TRACKS_NAME
+    if isinstance(videos, dict):
+        chosen = {name: Path(p) for name, p in videos.items()}
+    else:
+        chosen = workspace_videos(workspace, [Path(p) for p in videos] if videos else None)
+    labels = read_labels(workspace / LABELS_NAME)
+    unknown = sorted(set(labels) - set(chosen)) if videos is None else []
+    if unknown:
+        log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked",
+                    ", ".join(unknown))
+    results: dict[str, dict[str, dict[int, TrackedPoint]]] = {}
+    for name, path in chosen.items():
+        marks = labels.get(name, {})
+        if not any(xy is not None for frames in marks.values() for xy in frames.values()):
+            log.info("%s: no labels; nothing to track", name)
+            results[name] = {}
+            continue
+        frames = VideoFrames(path)
+        try:
+            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False) as bar:
+                results[name] = track_video(frames, marks, options,
+                                            progress=lambda done, total: bar.update(done - bar.n))
+        finally:
+            frames.close()
+        tracked = sum(1 for pts in results[name].values() for p in pts.values() if p.source != SOURCE_LABEL)
+        log.info("%s: %d labels, %d tracked positions", name, sum(len(v) for v in marks.values()), tracked)
+    rows = _rows(results)
+    rows += _kept_rows(out, set(results), labels)
+    return write_tracks(out, _to_tracks(rows))
+
+
+Row = tuple[str, int, str, float, float, str, str]  # video, frame, point, x, y, source, score
+
+
+def _rows(results: dict[str, dict[str, dict[int, TrackedPoint]]]) -> list[Row]:
+    return [(video, frame, point, p.x, p.y, p.source, f"{p.score:.3f}")
+            for video, points in results.items() for point, by_frame in points.items()
+            for frame, p in by_frame.items()]
+
+
+def _kept_rows(out: Path, replaced: set[str], labels: AllLabels) -> list[Row]:
+    """Rows of videos not tracked this time: the current labels, plus old tracked rows the labels don't
+    override."""
+    rows: list[Row] = []
+    others = set(labels) - replaced
+    old = read_tracks(out) if out.is_file() else Tracks()
+    sources = old.extra.get("source", [""] * len(old))
+    scores = old.extra.get("score", [""] * len(old))
+    for i in range(len(old)):
+        video, frame, point = old.video[i], int(old.frame[i]), old.point[i]
+        if video in replaced or sources[i] == SOURCE_LABEL or frame in labels.get(video, {}).get(point, {}):
+            continue
+        others.add(video)
+        rows.append((video, frame, point, float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i]))
+    for video in others:
+        for point, by_frame in labels.get(video, {}).items():
+            for frame, xy in by_frame.items():
+                if xy is not None:
+                    rows.append((video, frame, point, xy[0], xy[1], SOURCE_LABEL, "1.000"))
+    return rows
+
+
+def _to_tracks(rows: list[Row]) -> Tracks:
+    return Tracks.from_rows([r[:5] for r in rows], source=[r[5] for r in rows], score=[r[6] for r in rows])
