@@ -94,6 +94,25 @@ def _first(value: Any) -> Any:
     return value
 
 
+def blueprint_views(path: str | Path) -> list[tuple[str, str]]:
+    """(display name, space origin) of every view in the file's blueprint ([] without a blueprint)."""
+    reader = RrdReader(Path(path))
+    views = []
+    for store in reader.blueprints():
+        for chunk in reader.stream(store=store).to_chunks():
+            batch = chunk.to_record_batch()
+            names = batch.schema.names
+            if "ViewBlueprint:space_origin" not in names:
+                continue
+            origins = batch.column("ViewBlueprint:space_origin").to_pylist()
+            titles = (batch.column("ViewBlueprint:display_name").to_pylist()
+                      if "ViewBlueprint:display_name" in names else [None] * len(origins))
+            for title, origin in zip(titles, origins, strict=True):
+                if origin is not None:
+                    views.append((_first(title) or "", _first(origin)))
+    return views
+
+
 def verify(path: str | Path) -> subprocess.CompletedProcess:
     """Run `rerun rrd verify PATH` (the CLI shipped with rerun-sdk), falling back to `python -m rerun`."""
     exe = shutil.which("rerun")
