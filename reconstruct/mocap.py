@@ -257,7 +257,7 @@ def select_window(mocap: Mocap, start: int = 0, length: int | None = None, step:
         raise InputError(mocap.path, f"window length must be >= 1, got {length}")
     stop = mocap.num_frames if length is None else min(mocap.num_frames, start + length)
     if length is not None and start + length > mocap.num_frames:
-        log.warning("%s: window %d..%d runs past the last frame %d; using %d frames", mocap.path, start,
+        log.info("%s: window %d..%d runs past the last frame %d; using %d frames", mocap.path, start,
                     start + length - 1, mocap.num_frames - 1, stop - start)
     index = np.arange(start, stop, step)
     return replace(mocap, xyz=mocap.xyz[index].copy(), times=mocap.times[index].copy(),
