@@ -24,8 +24,9 @@ import logging
 import os
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,20 @@ TRACK_COLOR = (0, 200, 255)
 OTHER_SOURCE_COLOR = (255, 170, 0)
 
 
+class WorldAxes(Enum):
+    """How the world's axes map to the viewer's up direction."""
+
+    Y_DOWN = "y_down"  # COLMAP / OpenCV reconstructions (the cameras' y points down)
+    Z_UP = "z_up"  # motion capture and OpenSim-style worlds
+    Y_UP = "y_up"
+
+    @property
+    def view_coordinates(self) -> rr.components.ViewCoordinates:
+        return {WorldAxes.Y_DOWN: rr.ViewCoordinates.RIGHT_HAND_Y_DOWN,
+                WorldAxes.Z_UP: rr.ViewCoordinates.RIGHT_HAND_Z_UP,
+                WorldAxes.Y_UP: rr.ViewCoordinates.RIGHT_HAND_Y_UP}[self]
+
+
 @dataclass(kw_only=True)
 class RecordingOptions:
     """Display sizes. Radii are in UI points (screen size), so they do not depend on the world's units."""
@@ -59,6 +74,7 @@ class RecordingOptions:
     # Distance of the drawn image plane from each camera centre, world units; None = 1/10 of the median
     # distance from the cameras to the points, so frusta look right whether the world is in mm or m.
     image_plane_distance: float | None = None
+    world_axes: WorldAxes = WorldAxes.Y_DOWN
     blueprint: bool = True
 
 
@@ -193,8 +209,8 @@ def _auto_plane_distance(cameras: CameraSet, points: FramePoints) -> float:
 
 
 def _log_world(rec: rr.RecordingStream, point_names: Sequence[str],
-               skeleton: Sequence[tuple[str, str]] | None, colors: np.ndarray) -> None:
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)
+               skeleton: Sequence[tuple[str, str]] | None, colors: np.ndarray, axes: WorldAxes) -> None:
+    rec.log("world", axes.view_coordinates, static=True)
     index = {name: i for i, name in enumerate(point_names)}
     connections = [(index[a], index[b]) for a, b in skeleton or ()]
     rec.log("world", rr.AnnotationContext([rr.ClassDescription(
@@ -344,6 +360,35 @@ def _log_tracks(rec: rr.RecordingStream, cameras: CameraSet, tracks: Tracks,
                    columns)
 
 
+def _log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path,
+               lookup: dict[tuple[str, int], float] | None) -> None:
+    """Embed the video file and reference its frame of every posed frame (the image under the camera)."""
+    entity = f"{camera_entity(video.name)}/image"
+    try:
+        asset = rr.AssetVideo(path=file)
+        timestamps = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
+    except (OSError, RuntimeError, ValueError) as error:
+        # A recording without the images is still useful; say why they are missing instead of failing.
+        log.warning("%s: video not embedded in the recording (%s); rerun plays H.264/H.265/AV1/VP8/VP9 "
+                    "in .mp4, re-encode e.g. OpenCV's mp4v as vp09", file, error)
+        return
+    numbers = np.array(sorted(f.frame for f in video.frames), dtype=np.int64)
+    beyond = numbers >= len(timestamps)
+    if beyond.any():
+        log.warning("%s has %d frames but cameras.json poses frame %d of video %r: those have no image",
+                    file, len(timestamps), int(numbers[beyond][0]), video.name)
+        numbers = numbers[~beyond]
+    rec.log(entity, asset, static=True)
+    if len(numbers) == 0:
+        return
+    refs = timestamps[numbers]
+
+    def columns(mask: np.ndarray) -> Columns:
+        return rr.VideoFrameReference.columns_nanos(refs[mask])
+
+    _send_rows(rec, entity, video.name, numbers, _video_global_time(video, numbers, lookup), columns)
+
+
 def _log_residual(rec: rr.RecordingStream, points: FramePoints, residual: np.ndarray,
                   gtime_all: np.ndarray | None) -> None:
     videos = np.array(points.videos, dtype=object)
@@ -390,6 +435,7 @@ def log_recording(
     residual: np.ndarray | None = None,
     global_time: np.ndarray | None = None,
     background: BackgroundCloud | None = None,
+    video_files: Mapping[str, str | Path] | None = None,
     options: RecordingOptions | None = None,
 ) -> None:
     """Log a whole reconstruction into `rec` (any sink: file, viewer, memory).
@@ -398,6 +444,8 @@ def log_recording(
     NaN = not reconstructed. tracks: 2D observations, optional column `source` = label | track.
     skeleton: bones as pairs of point names. residual: (F,) per-frame residual (NaN = unknown).
     global_time: (F,) estimated global time in seconds (NaN = unknown). background: static scene cloud.
+    video_files: video name -> its file, embedded as the camera's image (only codecs rerun plays:
+    H.264/H.265/AV1/VP8/VP9 in .mp4; others are skipped with a warning).
     Raises InputError when the inputs do not fit together.
     """
     options = options or RecordingOptions()
@@ -408,7 +456,7 @@ def log_recording(
         lookup = {(v, int(f)): float(g)
                   for v, f, g in zip(points.videos, points.frames, gtime_all, strict=True)}
     colors = point_colors(len(points.point_names))
-    _log_world(rec, points.point_names, skeleton, colors)
+    _log_world(rec, points.point_names, skeleton, colors, options.world_axes)
     if background is not None and len(background.xyz):
         xyz = np.asarray(background.xyz, dtype=float).reshape(-1, 3)
         keep = np.isfinite(xyz).all(axis=1)
@@ -424,6 +472,13 @@ def log_recording(
         _log_tracks(rec, cameras, tracks, lookup, options)
     if residual is not None:
         _log_residual(rec, points, residual, gtime_all)
+    for name, file in (video_files or {}).items():
+        try:
+            video = cameras.video(name)
+        except KeyError:
+            log.warning("video file %s not recorded: no camera for video %r", file, name)
+            continue
+        _log_video(rec, video, Path(file), lookup)
 
 
 def write_recording(
@@ -436,6 +491,7 @@ def write_recording(
     residual: np.ndarray | None = None,
     global_time: np.ndarray | None = None,
     background: BackgroundCloud | None = None,
+    video_files: Mapping[str, str | Path] | None = None,
     options: RecordingOptions | None = None,
     recording_id: str | None = None,
 ) -> Path:
@@ -454,7 +510,8 @@ def write_recording(
     try:
         rec.save(tmp, default_blueprint=blueprint)  # the sink must exist before the first log call
         log_recording(rec, cameras=cameras, points=points, tracks=tracks, skeleton=skeleton,
-                      residual=residual, global_time=global_time, background=background, options=options)
+                      residual=residual, global_time=global_time, background=background,
+                      video_files=video_files, options=options)
         rec.disconnect()  # flushes and writes the footer, without which readers see a "legacy RRD"
         os.replace(tmp, path)
     except BaseException:

@@ -16,6 +16,7 @@ from reconstruct.recording import (
     TRACK_COLOR,
     BackgroundCloud,
     RecordingOptions,
+    WorldAxes,
     camera_entity,
     point_colors,
     project,
@@ -335,3 +336,46 @@ def test_write_speed_2000_frames_44_points(tmp_path: Path) -> None:
     elapsed = time.perf_counter() - start
     assert elapsed < 5.0, f"{elapsed:.2f} s"
     assert rows_per_timeline(path, "/world/points")["global_time"] == 2000
+
+
+def write_video(path: Path, fourcc: str, num_frames: int, fps: float = 10.0) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (64, 48))
+    assert writer.isOpened(), f"OpenCV cannot write {fourcc}"
+    for i in range(num_frames):
+        writer.write(np.full((48, 64, 3), 10 * i, np.uint8))
+    writer.release()
+    return path
+
+
+def test_video_files_embedded_with_frame_references(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A vp09 video is embedded and each posed frame references its timestamp; mp4v (which rerun cannot play),
+    too-short files and unknown videos are skipped with a warning, and the rest of the recording is intact."""
+    cameras, points = make_scene()  # posed frames: left 0,3,6,9; right 1,4,7,10; top 2,5,8,11
+    files = {"left": write_video(tmp_path / "left.mp4", "vp09", 12),
+             "right": write_video(tmp_path / "right.mp4", "mp4v", 12),
+             "top": write_video(tmp_path / "top.mp4", "vp09", 6),
+             "nobody": tmp_path / "nobody.mp4"}
+    with caplog.at_level("WARNING", logger="reconstruct.recording"):
+        path = write_recording(tmp_path / "video.rrd", cameras=cameras, points=points, video_files=files,
+                               global_time=np.arange(points.num_frames) * 0.1)
+    warnings = caplog.text
+    assert "right.mp4: video not embedded" in warnings and "mp4v" in warnings
+    assert "top.mp4 has 6 frames" in warnings and "'nobody'" in warnings
+    found = rrd_reader.entities(path)
+    assert "/world/cameras/left/image" in found and "/world/cameras/right/image" not in found
+    refs = rrd_reader.component_rows(path, "/world/cameras/left/image", "VideoFrameReference:timestamp",
+                                     "frame:left")
+    assert {f: int(v[0]) for f, v in refs.items()} == {0: 0, 3: 300_000_000, 6: 600_000_000, 9: 900_000_000}
+    top = rrd_reader.component_rows(path, "/world/cameras/top/image", "VideoFrameReference:timestamp",
+                                    "global_time")
+    assert len(top) == 2  # frames 2 and 5; 8 and 11 lie beyond the 6-frame file
+    blob = rrd_reader.static_component(path, "/world/cameras/left/image", "AssetVideo:blob")
+    assert bytes(blob[0]) == files["left"].read_bytes()
+    assert rrd_reader.verify(path).returncode == 0
+
+
+def test_world_axes_option(tmp_path: Path) -> None:
+    cameras, points = make_scene(frames_per_video=2)
+    path = write_recording(tmp_path / "zup.rrd", cameras=cameras, points=points,
+                           options=RecordingOptions(world_axes=WorldAxes.Z_UP))
+    assert rrd_reader.static_component(path, "/world", "ViewCoordinates:xyz") == [[3, 5, 1]]  # R, F, U
