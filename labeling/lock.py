@@ -1,0 +1,106 @@
+"""A lock file that keeps a second labeling server off the same workspace.
+
+`WS/.labeling.lock` holds the owner's pid and URL. A lock whose pid no longer runs (a crashed server) is taken
+over.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import time
+from pathlib import Path
+
+from dynrecon.errors import DynreconError
+
+log = logging.getLogger(__name__)
+
+LOCK_NAME = ".labeling.lock"
+
+
+class WorkspaceLockedError(DynreconError):
+    """Another live labeling server holds this workspace."""
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+class WorkspaceLock:
+    """Create with `acquire()`; `release()` removes the file only if it is still ours."""
+
+    def __init__(self, workspace: Path):
+        self.path = workspace / LOCK_NAME
+        self.token = f"{os.getpid()}-{id(self)}"
+        self.held = False
+
+    def acquire(self, url: str = "") -> None:
+        body = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token})
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                owner = self._read_owner()
+                if owner is None and self._age() < 2.0:  # being written right now: read again once it settles
+                    time.sleep(0.2)
+                    owner = self._read_owner()
+                if self._stale(owner):
+                    log.warning("taking over the stale lock %s (%s)", self.path, owner)
+                    self.path.unlink(missing_ok=True)
+                    continue
+                where = f" at {owner['url']}" if owner and owner.get("url") else ""
+                pid = owner.get("pid") if owner else "?"
+                raise WorkspaceLockedError(  # noqa: B904 (not raised from an exception)
+                    f"{self.path}: another labeling server (pid {pid}){where} is using this workspace "
+                    f"(use that one, or stop it; delete the lock file only if no server is running)")
+            with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                handle.write(body)
+            self.held = True
+            return
+        raise WorkspaceLockedError(f"{self.path}: could not take the lock (a server keeps recreating it)")
+
+    def update_url(self, url: str) -> None:
+        """Record the final URL (known only after binding) for the refusal message of a second server."""
+        if self.held:
+            self.path.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url,
+                                             "token": self.token}), encoding="utf-8")
+
+    def _age(self) -> float:
+        try:
+            return time.time() - self.path.stat().st_mtime
+        except FileNotFoundError:
+            return 0.0
+
+    def _stale(self, owner: dict | None) -> bool:
+        # Unreadable and not fresh: a server killed mid-write. A pid can only be checked on its own host.
+        if owner is None:
+            return self._age() >= 2.0
+        try:
+            pid = int(owner.get("pid", -1))
+        except (TypeError, ValueError):
+            return True
+        return owner.get("host") == socket.gethostname() and not _pid_alive(pid)
+
+    def _read_owner(self) -> dict | None:
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        return data if isinstance(data, dict) else None
+
+    def release(self) -> None:
+        if self.held:
+            owner = self._read_owner()
+            if owner is not None and owner.get("token") == self.token:
+                self.path.unlink(missing_ok=True)
+            self.held = False

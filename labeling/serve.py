@@ -1,0 +1,99 @@
+"""`dynrecon label WS`: open a workspace for labeling and serve the page until interrupted."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dynrecon.errors import InputError
+from labeling.frames import probe_video
+from labeling.lock import WorkspaceLock
+from labeling.server import LabelingApp, make_server
+from labeling.tracker import TrackFunction, track_with_tracking_stage
+from labeling.workspace import Skeleton, load_config, resolve_videos, save_config
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class LabelOptions:
+    videos: list[Path] = field(default_factory=list)  # empty: remembered in labeling.json, else WS/videos/*
+    skeleton: Skeleton = field(default_factory=Skeleton)  # --points / --skeleton, merged into labeling.json
+    host: str = "127.0.0.1"
+    port: int = 0  # 0: any free port
+    cache_mb: int = 256  # bound of the JPEG frame cache
+    jpeg_quality: int = 90
+
+
+class LabelServer:
+    """A running server (in a background thread); `stop()` shuts it down and releases the workspace lock."""
+
+    def __init__(self, workspace: Path, options: LabelOptions,
+                 track: TrackFunction = track_with_tracking_stage):
+        workspace.mkdir(parents=True, exist_ok=True)
+        if not workspace.is_dir():
+            raise InputError(workspace, "workspace is not a directory")
+        self.lock = WorkspaceLock(workspace)
+        self.lock.acquire()
+        try:
+            config = load_config(workspace)
+            videos = resolve_videos(workspace, options.videos, config.videos)
+            config.videos = videos
+            config.skeleton.merge(options.skeleton)
+            infos = {name: probe_video(name, path) for name, path in videos.items()}
+            save_config(workspace, config)
+            self.app = LabelingApp(workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20,
+                                   jpeg_quality=options.jpeg_quality)
+            # Points already labeled (e.g. by hand in labels.csv) appear in the list even if not configured.
+            for (_, _, point) in self.app.labels.snapshot():
+                config.skeleton.add_point(point)
+            self.httpd = make_server(self.app, options.host, options.port)
+        except BaseException:
+            self.lock.release()
+            raise
+        host = options.host if ":" not in options.host else f"[{options.host}]"
+        self.url = f"http://{host}:{self.httpd.server_address[1]}/"
+        self.lock.update_url(self.url)
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> LabelServer:
+        self._thread = threading.Thread(target=self.httpd.serve_forever, name="label-server", daemon=True)
+        self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        try:
+            self.httpd.serve_forever()
+        finally:
+            self.stop()
+
+    def stop(self) -> None:
+        if self._thread is not None:
+            self.httpd.shutdown()
+            self._thread.join()
+            self._thread = None
+        self.httpd.server_close()
+        self.app.close()
+        self.lock.release()
+
+    def __enter__(self) -> LabelServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def run(workspace: Path, options: LabelOptions, on_ready: Callable[[str], None] | None = None) -> Path:
+    """Serve until Ctrl+C; `on_ready(url)` is called once the port is bound. Returns the labels file."""
+    server = LabelServer(workspace, options)
+    log.info("serving %s at %s", workspace, server.url)
+    if on_ready is not None:
+        on_ready(server.url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        log.info("stopped")
+    return workspace / "labels.csv"
