@@ -8,16 +8,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import rerun as rr
 
 from dynrecon.errors import InputError
 from reconstruct.points import FramePoints
 from reconstruct.recording import (
     LABEL_COLOR,
+    OTHER_SOURCE_COLOR,
     TRACK_COLOR,
     BackgroundCloud,
     RecordingOptions,
     WorldAxes,
     camera_entity,
+    log_recording,
     point_colors,
     project,
     write_recording,
@@ -379,3 +382,26 @@ def test_world_axes_option(tmp_path: Path) -> None:
     path = write_recording(tmp_path / "zup.rrd", cameras=cameras, points=points,
                            options=RecordingOptions(world_axes=WorldAxes.Z_UP))
     assert rrd_reader.static_component(path, "/world", "ViewCoordinates:xyz") == [[3, 5, 1]]  # R, F, U
+
+
+def test_log_recording_into_any_stream(tmp_path: Path) -> None:
+    """The core function only needs a RecordingStream: here an in-memory sink, saved and read back."""
+    cameras, points = make_scene(frames_per_video=2)
+    rec = rr.RecordingStream("dynrecon-test")
+    memory = rec.memory_recording()
+    log_recording(rec, cameras=cameras, points=points, residual=np.ones(points.num_frames))
+    rec.flush()
+    path = tmp_path / "memory.rrd"
+    path.write_bytes(memory.drain_as_bytes())
+    assert rows_per_timeline(path, "/metrics/residual") == {f"frame:{v}": 2 for v in VIDEOS}
+    assert rows_per_timeline(path, "/world/points") == {f"frame:{v}": 2 for v in VIDEOS}
+
+
+def test_unknown_track_source_gets_its_own_colour(tmp_path: Path) -> None:
+    cameras, points = make_scene(frames_per_video=1)
+    tracks = make_tracks(cameras, points)
+    tracks.extra["source"] = ["label", "track", "detector"] + ["track"] * (len(tracks) - 3)
+    path = write_recording(tmp_path / "src.rrd", cameras=cameras, points=points, tracks=tracks)
+    colors = rrd_reader.component_rows(path, f"/world/cameras/{VIDEOS[0]}/image/tracks", "Points2D:colors",
+                                       f"frame:{VIDEOS[0]}")[0]
+    assert colors[:3].tolist() == [rgba(LABEL_COLOR), rgba(TRACK_COLOR), rgba(OTHER_SOURCE_COLOR)]
