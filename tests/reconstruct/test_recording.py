@@ -12,18 +12,14 @@ import rerun as rr
 
 from dynrecon.errors import InputError
 from reconstruct.points import FramePoints
-from reconstruct.recording import (
+from reconstruct.recording import BackgroundCloud, RecordingOptions, WorldAxes, log_recording, write_recording
+from reconstruct.recording_parts import (
     LABEL_COLOR,
     OTHER_SOURCE_COLOR,
     TRACK_COLOR,
-    BackgroundCloud,
-    RecordingOptions,
-    WorldAxes,
     camera_entity,
-    log_recording,
     point_colors,
     project,
-    write_recording,
 )
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 
