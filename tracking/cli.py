@@ -1,9 +1,93 @@
-"""Subcommands of the `tracking` stage."""
+"""Subcommands of the `tracking` stage: `track` (propagate labels) and `import-tracks` (other tools'
+points)."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Register this stage's subcommands on the main parser."""
+    _add_track(subparsers)
+    _add_import(subparsers)
+
+
+def _add_track(subparsers: argparse._SubParsersAction) -> None:
+    from tracking.options import Blend, Method, TrackOptions
+
+    defaults = TrackOptions()
+    parser = subparsers.add_parser(
+        "track",
+        help="carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
+        description="Headless version of the labeling page's 'track' button. Videos come from --videos, else "
+                    "WS/labeling.json, else WS/videos/*; a video's name is its file stem.")
+    parser.add_argument("workspace", type=Path, metavar="WS", help="workspace folder with labels.csv")
+    parser.add_argument("--videos", type=Path, nargs="+", metavar="VIDEO", help="track only these videos")
+    parser.add_argument("--out", type=Path, help="output file (default WS/tracks.csv)")
+    parser.add_argument("--method", choices=[m.value for m in Method], default=defaults.method.value,
+                        help=f"step tracker (default {defaults.method.value})")
+    parser.add_argument("--blend", choices=[b.value for b in Blend], default=defaults.blend.value,
+                        help=f"combining forward and backward tracks (default {defaults.blend.value})")
+    parser.add_argument("--min-score", type=float, default=defaults.min_score,
+                        help=f"leave out tracked positions with a lower score (default {defaults.min_score})")
+    parser.add_argument("--fb-threshold", type=float, default=defaults.fb_threshold,
+                        help=f"LK forward-backward error limit in pixels (default {defaults.fb_threshold})")
+    parser.add_argument("--win-size", type=int, default=defaults.win_size,
+                        help=f"LK window side in pixels (default {defaults.win_size})")
+    parser.set_defaults(func=_run_track)
+
+
+def _run_track(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
+    from tracking.options import Blend, Method, TrackOptions
+    from tracking.stage import run
+
+    if not args.workspace.is_dir():
+        raise InputError(args.workspace, "workspace folder not found", fix="give the folder with labels.csv")
+    if not 0.0 <= args.min_score <= 1.0:
+        raise InputError(None, f"--min-score {args.min_score} is outside 0..1")
+    if args.fb_threshold <= 0 or args.win_size < 5:
+        raise InputError(None, "--fb-threshold must be > 0 and --win-size at least 5")
+    options = TrackOptions(method=Method(args.method), blend=Blend(args.blend), min_score=args.min_score,
+                           fb_threshold=args.fb_threshold, win_size=args.win_size)
+    path = run(args.workspace, args.out, options, videos=args.videos)
+    print(path)  # noqa: T201
+    return 0
+
+
+def _add_import(subparsers: argparse._SubParsersAction) -> None:
+    from tracking.importing import Format
+
+    parser = subparsers.add_parser(
+        "import-tracks",
+        help="import DeepLabCut CSV, OpenPose JSON or plain video,frame,point,x,y CSV into tracks.csv",
+        description="Rows of other videos and manual labels already in the output are kept; the imported "
+                    "videos' other rows are replaced.")
+    parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUT",
+                        help="DLC .csv, OpenPose JSON file or folder, or plain .csv")
+    parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
+    parser.add_argument("--format", choices=[f.value for f in Format], default="auto",
+                        help="input format (default: detected from the file)")
+    parser.add_argument("--video", help="video name for DLC/OpenPose input (default: from the file name)")
+    parser.add_argument("--map", default="", metavar="OLD=NEW,...",
+                        help="rename points, e.g. nose=head,Neck=neck")
+    parser.add_argument("--drop-unmapped", action="store_true",
+                        help="with --map, keep only the mapped points")
+    parser.add_argument("--min-score", type=float, default=0.0,
+                        help="leave out detections with a lower confidence (default 0)")
+    parser.add_argument("--person", type=int, default=0, help="OpenPose: index in people[] (default 0)")
+    parser.set_defaults(func=_run_import)
+
+
+def _run_import(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
+    from tracking.importing import Format, ImportOptions, parse_mapping, run_import
+
+    if args.person < 0:
+        raise InputError(None, f"--person {args.person} is negative")
+    options = ImportOptions(format=Format(args.format), video=args.video, mapping=parse_mapping(args.map),
+                            drop_unmapped=args.drop_unmapped, min_score=args.min_score, person=args.person)
+    path = run_import(args.inputs, args.out, options)
+    print(path)  # noqa: T201
+    return 0

@@ -142,7 +142,7 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
             near = np.linalg.norm(refined[0] - guess) < 0.5 * options.win_size
             if fb_refined[0] <= options.fb_threshold and near:
                 xy1[i], fb[i] = refined[0], fb_refined[0]
-            else:
+            elif options.accept_unrefined:
                 # CSRT alone: integer precision and no consistency check, so it counts for less.
                 xy1[i], fb[i] = guess, 0.5 * options.fb_threshold
                 step_penalty[i] = 0.5
@@ -153,11 +153,13 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
         m = options.margin
         ok = ok and m <= x <= width - 1 - m and m <= y <= height - 1 - m
         if not ok:
+            log.debug("%s frame %d: stopped (step failed, fb %.2f px)", name, frame, fb[i])
             del active[name]
             continue
         similarity = ncc(patch_at(cur, xy1[i], options.patch), track.template)
         s_app = (similarity - options.min_ncc) / (1.0 - options.min_ncc)
         if s_app <= 0.0:
+            log.debug("%s frame %d: stopped (ncc %.2f with the label's patch)", name, frame, similarity)
             del active[name]
             continue
         s_fb = 1.0 - 0.5 * float(fb[i]) / options.fb_threshold

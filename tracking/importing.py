@@ -1,0 +1,144 @@
+"""`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
+threshold.
+
+Formats: DeepLabCut CSV, OpenPose JSON per frame, and plain `video,frame,point,x,y[,score]` CSV. Imported rows
+get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
+videos and its manual labels (`source=label`) are kept; the labels win over imported rows on the same frame
+and point.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dynrecon.errors import InputError
+from tracking.detections import Detection
+from tracking.import_dlc import read_dlc, video_name_from_dlc
+from tracking.import_openpose import read_openpose, video_name_from_openpose
+from tracking.propagate import SOURCE_LABEL
+from tracking.tracks import Tracks, read_tracks, write_tracks
+
+log = logging.getLogger(__name__)
+
+SCORE_COLUMNS = ("score", "likelihood", "confidence")
+
+
+class Format(enum.Enum):
+    AUTO = "auto"
+    DLC = "dlc"
+    OPENPOSE = "openpose"
+    CSV = "csv"
+
+
+@dataclass(kw_only=True)
+class ImportOptions:
+    format: Format = Format.AUTO
+    video: str | None = None  # video name for DLC/OpenPose input; default from the file name
+    mapping: dict[str, str] = field(default_factory=dict)  # old point name -> new
+    drop_unmapped: bool = False  # with a mapping, keep only the points it names
+    min_score: float = 0.0  # detections with a lower confidence are left out
+    person: int = 0  # OpenPose: which entry of `people`
+
+
+def parse_mapping(text: str) -> dict[str, str]:
+    """`--map old=new,old2=new2` -> {old: new}."""
+    mapping: dict[str, str] = {}
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        old, sep, new = item.partition("=")
+        if not sep or not old.strip() or not new.strip():
+            raise InputError(None, f"--map: {item!r} is not old=new",
+                             fix="write --map nose=head,lwrist=wrist_l")
+        if old.strip() in mapping:
+            raise InputError(None, f"--map: {old.strip()!r} is mapped twice")
+        mapping[old.strip()] = new.strip()
+    return mapping
+
+
+def detect_format(path: Path) -> Format:
+    if path.is_dir() or path.suffix.lower() == ".json":
+        return Format.OPENPOSE
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        raise InputError(path, "DeepLabCut .h5 files are not read directly",
+                         fix="export it with pandas: pd.read_hdf(p).to_csv('out.csv'), then import the CSV")
+    try:
+        with path.open(encoding="utf-8") as handle:
+            first = handle.readline()
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not UTF-8 text", fix="give a CSV or OpenPose JSON file") from None
+    head = first.split(",")[0].strip().lower()
+    if head in ("scorer", "individuals", "bodyparts"):
+        return Format.DLC
+    return Format.CSV
+
+
+def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[Detection]]:
+    fmt = detect_format(path) if options.format is Format.AUTO else options.format
+    if fmt is Format.DLC:
+        return fmt, read_dlc(path, options.video or video_name_from_dlc(path))
+    if fmt is Format.OPENPOSE:
+        return fmt, read_openpose(path, options.video or video_name_from_openpose(path), options.person)
+    return fmt, _read_plain(path, options.video)
+
+
+def _read_plain(path: Path, video: str | None) -> list[Detection]:
+    tracks = read_tracks(path)
+    score_column = next((c for c in SCORE_COLUMNS if c in tracks.extra), None)
+    detections = []
+    for i in range(len(tracks)):
+        score: float | None = None
+        if score_column is not None and tracks.extra[score_column][i].strip():
+            text = tracks.extra[score_column][i]
+            try:
+                score = float(text)
+            except ValueError:
+                raise InputError(path, f"{score_column} {text!r} is not a number",
+                                 where=tracks.where(i)) from None
+        detections.append(Detection(video=video or tracks.video[i], frame=int(tracks.frame[i]),
+                                    point=tracks.point[i], x=float(tracks.xy[i, 0]), y=float(tracks.xy[i, 1]),
+                                    score=score, where=f"{path.name}:{tracks.where(i)}"))
+    return detections
+
+
+def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
+    """Import every input into `out`; returns `out`."""
+    rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
+    imported_videos: set[str] = set()
+    for path in inputs:
+        fmt, detections = read_detections(Path(path), options)
+        kept = 0
+        for d in detections:
+            point = options.mapping.get(d.point,
+                                        None if options.drop_unmapped and options.mapping else d.point)
+            if point is None or (d.score is not None and d.score < options.min_score):
+                continue
+            key = (d.video, d.frame, point)
+            if key in rows:
+                raise InputError(Path(path), f"two detections of point {point!r} on frame {d.frame} of video "
+                                 f"{d.video!r}", where=d.where,
+                                 fix="check --map: two names were mapped to one")
+            score = "" if d.score is None else f"{d.score:.3f}"
+            rows[key] = (d.x, d.y, fmt.value, score)
+            imported_videos.add(d.video)
+            kept += 1
+        log.info("%s: %d of %d detections imported", path, kept, len(detections))
+        if detections and not kept:
+            log.warning("%s: every detection was dropped (check --min-score and --map)", path)
+    if out.is_file():
+        old = read_tracks(out)
+        sources = old.extra.get("source", [""] * len(old))
+        scores = old.extra.get("score", [""] * len(old))
+        for i in range(len(old)):
+            key = (old.video[i], int(old.frame[i]), old.point[i])
+            if sources[i] == SOURCE_LABEL or old.video[i] not in imported_videos:
+                rows[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i])
+    keys = list(rows)
+    tracks = Tracks.from_rows([(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],
+                              source=[rows[k][2] for k in keys], score=[rows[k][3] for k in keys])
+    return write_tracks(out, tracks)
