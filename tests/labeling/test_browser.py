@@ -50,7 +50,8 @@ def write_scene(path: Path) -> Path:
     yy, xx = np.mgrid[:size, :size]
     inside = (xx - RADIUS) ** 2 + (yy - RADIUS) ** 2 <= RADIUS**2
     # Random blobs of texture (no periodic pattern: LK would lock onto the wrong period).
-    blotches = {p: cv2.resize(rng.random((size // 3, size // 3)).astype(np.float32), (size, size)) for p in POINTS}
+    blotches = {p: cv2.resize(rng.random((size // 3, size // 3)).astype(np.float32), (size, size))
+                for p in POINTS}
     tints = {"head": (60, 200, 255), "hand": (255, 160, 60), "foot": (120, 255, 120)}
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (WIDTH, HEIGHT))
     for frame in range(FRAMES):
@@ -110,7 +111,8 @@ def goto_frame(page, frame: int) -> None:
     page.fill("#frame", str(frame))
     page.press("#frame", "Enter")
     page.wait_for_function(
-        "f => window.dynreconLabel.state.frame === f && window.dynreconLabel.state.imgKey.endsWith('|' + f)", arg=frame)
+        "f => window.dynreconLabel.state.frame === f && window.dynreconLabel.state.imgKey.endsWith('|' + f)",
+        arg=frame)
 
 
 def wait_saved(page) -> None:
@@ -187,7 +189,7 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         assert state is not None and 0 < state["score"] <= 1
         assert "track" in page.inner_text("li[data-point='hand'] .state")
 
-        # Correct frame 10: drag the tracked hand 3 px right. The correction is a label that re-anchors the track.
+        # Correct frame 10: drag the tracked hand 3 px right; the correction is a label that re-anchors.
         page.click("li[data-point='hand']")
         hand = (state["x"], state["y"])
         corrected = (round(truth("hand", 10)[0] + 3.0, 1), round(truth("hand", 10)[1], 1))
@@ -213,7 +215,7 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         assert by_key[(10, "hand")]["source"] == "label"
         assert abs(float(by_key[(10, "hand")]["x"]) - corrected[0]) < tolerance[0]
         assert by_key[(12, "head")]["source"] == "track"
-        # Re-anchored: the frame next to the correction follows it (3 px right of the truth), not the old track.
+        # Re-anchored: the next frame follows the correction (3 px right of the truth), not the old track.
         assert float(by_key[(11, "hand")]["x"]) - truth("hand", 11)[0] > 1.5
 
         # Reload: labels and tracks come back from the files, the place from the URL.

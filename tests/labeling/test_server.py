@@ -1,4 +1,4 @@
-"""HTTP tests of the labeling server on an ephemeral port: label round trip, safety (404/400), the lock file."""
+"""HTTP tests of the labeling server on an ephemeral port: label round trip, safety (404/400), lock file."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import FRAMES, HEIGHT, WIDTH
+from labeling_videos import FRAMES, HEIGHT, WIDTH
 
 from labeling.labels import read_labels
 from labeling.lock import LOCK_NAME, WorkspaceLockedError
@@ -62,7 +62,8 @@ def test_state_lists_videos_points_and_skeleton(server: LabelServer) -> None:
     status, data = request(server, "GET", "/api/state")
     state = json.loads(data)
     assert status == 200
-    assert state["videos"] == [{"name": "cam1", "frames": FRAMES, "width": WIDTH, "height": HEIGHT, "fps": 10.0}]
+    assert state["videos"] == [{"name": "cam1", "frames": FRAMES, "width": WIDTH, "height": HEIGHT,
+                                "fps": 10.0}]
     assert state["points"] == ["head", "tail"]
     assert state["connections"] == [["head", "tail"]]
     assert server.url.startswith("http://127.0.0.1:")
@@ -79,7 +80,7 @@ def test_page_and_static_files_are_served(server: LabelServer) -> None:
 def test_frame_is_the_decoded_video_frame(server: LabelServer, video: Path) -> None:
     cap = cv2.VideoCapture(str(video))
     for _ in range(6):
-        ok, expected = cap.read()
+        _, expected = cap.read()
     cap.release()
     status, data = request(server, "GET", "/frame/cam1/5.jpg")
     assert status == 200 and data[:2] == b"\xff\xd8"
@@ -126,8 +127,8 @@ def test_label_round_trip_and_hidden_and_delete(server: LabelServer, workspace: 
     ]
     status, data = request(server, "GET", "/api/labels?video=cam1")
     labels = json.loads(data)["labels"]
-    assert {(r["frame"], r["point"], r["source"]) for r in labels} == {(3, "head", "label"), (3, "tail", "hidden"),
-                                                                      (7, "head", "label")}
+    assert {(r["frame"], r["point"], r["source"]) for r in labels} == {
+        (3, "head", "label"), (3, "tail", "hidden"), (7, "head", "label")}
     status, _ = post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 7, "point": "head",
                                                           "source": "none"}]})
     assert status == 200
