@@ -19,23 +19,37 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "import-calibration",
         help="write cameras.json from a Qualisys .qca or Pose2Sim/anipose .toml calibration (static cameras)",
         description="Every decoded frame of each video gets its calibrated camera's static pose. Cameras are "
-                    "matched to videos by name (cam01.mp4 <-> cam_01), else in the given order.")
+        "matched to videos by name (cam01.mp4 <-> cam_01), else in the given order.",
+    )
     parser.add_argument("calibration", type=Path, help="calibration file (.qca.txt / .qca / .xml or .toml)")
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
-    parser.add_argument("--out", type=Path, required=True, metavar="WS",
-                        help="workspace folder for cameras.json")
-    parser.add_argument("--format", choices=[f.value for f in CalibrationFormat], default="auto",
-                        help="calibration format (default: from the file name)")
-    parser.add_argument("--scale", type=float, default=1.0,
-                        help="multiply world coordinates (metres) by this factor (default 1)")
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json"
+    )
+    parser.add_argument(
+        "--format",
+        choices=[f.value for f in CalibrationFormat],
+        default="auto",
+        help="calibration format (default: from the file name)",
+    )
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="multiply world coordinates (metres) by this factor (default 1)",
+    )
     parser.set_defaults(func=_run_import)
 
 
 def _run_import(args: argparse.Namespace) -> int:
     from sfm.import_calibration import CalibrationFormat, ImportOptions, run
 
-    path = run(args.calibration, args.videos, args.out,
-               ImportOptions(format=CalibrationFormat(args.format), scale=args.scale))
+    path = run(
+        args.calibration,
+        args.videos,
+        args.out,
+        ImportOptions(format=CalibrationFormat(args.format), scale=args.scale),
+    )
     print(path)  # noqa: T201
     return 0
 

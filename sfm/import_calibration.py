@@ -116,11 +116,21 @@ def read_qca(path: str | Path) -> list[StaticCamera]:
         cy = _attr(intrinsic, "centerPointV", path, where) / QCA_SUBPIXELS - top
         skew = float(intrinsic.get("skew", "0") or 0) / QCA_SUBPIXELS
         K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        dist = np.array([_attr(intrinsic, key, path, where) for key in (
-            "radialDistortion1", "radialDistortion2", "tangentalDistortion1", "tangentalDistortion2",
-            "radialDistortion3")])
-        cameras.append(StaticCamera(name=name, width=width, height=height, K=K, dist=dist, R=R,
-                                    t=-R @ center))
+        dist = np.array(
+            [
+                _attr(intrinsic, key, path, where)
+                for key in (
+                    "radialDistortion1",
+                    "radialDistortion2",
+                    "tangentalDistortion1",
+                    "tangentalDistortion2",
+                    "radialDistortion3",
+                )
+            ]
+        )
+        cameras.append(
+            StaticCamera(name=name, width=width, height=height, K=K, dist=dist, R=R, t=-R @ center)
+        )
     if not cameras:
         raise InputError(path, "no <camera> element found", fix="is this a Qualisys .qca file?")
     return cameras
@@ -134,8 +144,9 @@ def _orthonormalize(R: np.ndarray) -> np.ndarray:
 
 def _toml_array(section: dict, key: str, shape: tuple[int, ...], path: Path, where: str) -> np.ndarray:
     if key not in section:
-        raise InputError(path, f'missing key "{key}"', where=where,
-                         fix="see the Pose2Sim/anipose calib.toml layout")
+        raise InputError(
+            path, f'missing key "{key}"', where=where, fix="see the Pose2Sim/anipose calib.toml layout"
+        )
     try:
         value = np.asarray(section[key], dtype=float)
     except (TypeError, ValueError):
@@ -163,9 +174,12 @@ def read_toml(path: str | Path) -> list[StaticCamera]:
         where = f"[{key}]"
         name = str(section.get("name", key))
         if section.get("fisheye", False):
-            raise InputError(path, "fisheye cameras are not supported (cameras.json holds OpenCV pinhole "
-                             "distortion)", where=where,
-                             fix="undistort the videos first, or calibrate as pinhole")
+            raise InputError(
+                path,
+                "fisheye cameras are not supported (cameras.json holds OpenCV pinhole distortion)",
+                where=where,
+                fix="undistort the videos first, or calibrate as pinhole",
+            )
         size = _toml_array(section, "size", (2,), path, where)
         K = _toml_array(section, "matrix", (3, 3), path, where)
         dist = np.asarray(section.get("distortions", [0.0, 0.0, 0.0, 0.0]), dtype=float).ravel()
@@ -174,11 +188,15 @@ def read_toml(path: str | Path) -> list[StaticCamera]:
         rvec = _toml_array(section, "rotation", (3,), path, where)
         tvec = _toml_array(section, "translation", (3,), path, where)
         R = cv2.Rodrigues(rvec)[0]
-        cameras.append(StaticCamera(name=name, width=round(size[0]), height=round(size[1]), K=K,
-                                    dist=dist, R=R, t=tvec))
+        cameras.append(
+            StaticCamera(name=name, width=round(size[0]), height=round(size[1]), K=K, dist=dist, R=R, t=tvec)
+        )
     if not cameras:
-        raise InputError(path, "no camera table (with a `matrix`) found",
-                         fix="expected [cam_1] name, size, matrix, distortions, rotation, translation")
+        raise InputError(
+            path,
+            "no camera table (with a `matrix`) found",
+            fix="expected [cam_1] name, size, matrix, distortions, rotation, translation",
+        )
     return cameras
 
 
@@ -217,8 +235,11 @@ def read_calibration(path: str | Path, fmt: CalibrationFormat = CalibrationForma
         elif ".qca" in lower or lower.endswith(".xml"):
             fmt = CalibrationFormat.QCA
         else:
-            raise InputError(path, "cannot tell the calibration format from the name",
-                             fix="pass --format qca or --format toml")
+            raise InputError(
+                path,
+                "cannot tell the calibration format from the name",
+                fix="pass --format qca or --format toml",
+            )
     return read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path)
 
 
@@ -238,16 +259,27 @@ def match_cameras(cameras: list[StaticCamera], videos: list[VideoInfo], path: Pa
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
     if len(cameras) == len(videos):
-        log.warning("%s: camera names %s do not match video names %s; matching them in the given order",
-                    path, [c.name for c in cameras], [v.name for v in videos])
+        log.warning(
+            "%s: camera names %s do not match video names %s; matching them in the given order",
+            path,
+            [c.name for c in cameras],
+            [v.name for v in videos],
+        )
         return list(cameras)
-    raise InputError(path, f"{len(cameras)} cameras ({', '.join(c.name for c in cameras)}) cannot be matched "
-                     f"to {len(videos)} videos ({', '.join(v.name for v in videos)})",
-                     fix="name each video after its camera, or give one video per camera in the file's order")
+    raise InputError(
+        path,
+        f"{len(cameras)} cameras ({', '.join(c.name for c in cameras)}) cannot be matched "
+        f"to {len(videos)} videos ({', '.join(v.name for v in videos)})",
+        fix="name each video after its camera, or give one video per camera in the file's order",
+    )
 
 
-def run(calibration: str | Path, videos: list[str | Path], out_dir: str | Path,
-        options: ImportOptions | None = None) -> Path:
+def run(
+    calibration: str | Path,
+    videos: list[str | Path],
+    out_dir: str | Path,
+    options: ImportOptions | None = None,
+) -> Path:
     """Write `out_dir/cameras.json`: every decoded frame of each video with its camera's static pose."""
     options = options or ImportOptions()
     calibration = Path(calibration)
@@ -257,20 +289,38 @@ def run(calibration: str | Path, videos: list[str | Path], out_dir: str | Path,
     names = [info.name for info in infos]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
-        raise InputError(infos[names.index(duplicates[0])].path,
-                         f"video name {duplicates[0]!r} is used twice",
-                         fix="video names (file names without extension) must be unique")
+        raise InputError(
+            infos[names.index(duplicates[0])].path,
+            f"video name {duplicates[0]!r} is used twice",
+            fix="video names (file names without extension) must be unique",
+        )
     cameras = match_cameras(read_calibration(calibration, options.format), infos, calibration)
     result = CameraSet()
     for info, camera in zip(infos, cameras, strict=True):
         if (info.width, info.height) != (camera.width, camera.height):
-            log.warning("%s is %dx%d but camera %r was calibrated at %dx%d; intrinsics are used unchanged",
-                        info.path, info.width, info.height, camera.name, camera.width, camera.height)
-        frames = [FrameCamera(frame=i, time=float(time), K=camera.K.copy(), R=camera.R.copy(),
-                              t=camera.t * options.scale, dist=camera.dist.copy())
-                  for i, time in enumerate(info.times)]
-        result.videos.append(VideoCameras(name=info.name, width=info.width, height=info.height, fps=info.fps,
-                                          frames=frames))
+            log.warning(
+                "%s is %dx%d but camera %r was calibrated at %dx%d; intrinsics are used unchanged",
+                info.path,
+                info.width,
+                info.height,
+                camera.name,
+                camera.width,
+                camera.height,
+            )
+        frames = [
+            FrameCamera(
+                frame=i,
+                time=float(time),
+                K=camera.K.copy(),
+                R=camera.R.copy(),
+                t=camera.t * options.scale,
+                dist=camera.dist.copy(),
+            )
+            for i, time in enumerate(info.times)
+        ]
+        result.videos.append(
+            VideoCameras(name=info.name, width=info.width, height=info.height, fps=info.fps, frames=frames)
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     path = write_cameras(out / "cameras.json", result)

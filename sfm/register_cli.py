@@ -1,9 +1,113 @@
-"""The `dynrecon register` subcommand (placeholder until the pipeline lands)."""
+"""The `dynrecon register` subcommand: a thin layer over `sfm.register.run`."""
 
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
 
 def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     """Register `dynrecon register` on the main parser."""
+    from sfm.register import Localize, Mapper, RegisterOptions
+
+    defaults = RegisterOptions()
+    parser = subparsers.add_parser(
+        "register",
+        help="SfM on the static background: a pose for every frame of every video (cameras.json)",
+        description="Registers unsynchronized videos against the static background with pycolmap and writes "
+        "WS/cameras.json, WS/background.ply and WS/register_report.json. Masks keep the moving subject out: "
+        "from WS/tracks.csv (or --tracks) and/or --masks.",
+    )
+    parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO")
+    parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
+    frames = parser.add_argument_group("frames for SfM")
+    frames.add_argument("--step", type=int, default=defaults.step, help="every Nth decoded frame (0: all)")
+    frames.add_argument("--time-step", type=float, default=None, help="or one frame per this many seconds")
+    frames.add_argument("--max-frames", type=int, default=defaults.max_frames, help="per video, at most")
+    frames.add_argument(
+        "--long-side", type=int, default=defaults.long_side, help="resize frames to this (px)"
+    )
+    sfm = parser.add_argument_group("features, matching, mapping")
+    sfm.add_argument(
+        "--max-features", type=int, default=defaults.max_features, help="SIFT features per frame"
+    )
+    sfm.add_argument("--max-ratio", type=float, default=defaults.max_ratio, help="SIFT ratio test")
+    sfm.add_argument(
+        "--overlap",
+        type=int,
+        default=defaults.sequential_overlap,
+        help="sequential pairs within a video: i with i+1..i+OVERLAP",
+    )
+    sfm.add_argument(
+        "--keyframes",
+        type=int,
+        default=defaults.keyframes,
+        help="keyframes per video matched with all keyframes of the other videos",
+    )
+    sfm.add_argument("--mapper", choices=[m.value for m in Mapper], default=defaults.mapper.value)
+    sfm.add_argument(
+        "--camera-model",
+        default=defaults.camera_model,
+        help="COLMAP camera model (SIMPLE_RADIAL, RADIAL, OPENCV, PINHOLE, ...)",
+    )
+    sfm.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="known intrinsics (cameras.json, calib .toml or .qca); kept fixed",
+    )
+    masks = parser.add_argument_group("masks and localization")
+    masks.add_argument(
+        "--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)"
+    )
+    masks.add_argument(
+        "--masks",
+        type=Path,
+        default=None,
+        help="folder of masks: DIR/<video>/<frame:06d>.png or DIR/<video>.png, black = ignore",
+    )
+    masks.add_argument(
+        "--mask-radius", type=float, default=defaults.mask_radius, help="pixels masked around tracked points"
+    )
+    masks.add_argument("--no-masks", action="store_true", help="do not mask anything")
+    masks.add_argument(
+        "--localize",
+        choices=[m.value for m in Localize],
+        default=defaults.localize.value,
+        help="frames posed by PnP besides the SfM frames (auto: tracked frames, else all)",
+    )
+    masks.add_argument("--min-inliers", type=int, default=defaults.min_inliers, help="PnP inliers needed")
+    parser.add_argument("--threads", type=int, default=defaults.num_threads, help="-1: all cores")
+    parser.set_defaults(func=_run_register)
+
+
+def _run_register(args: argparse.Namespace) -> int:
+    from sfm.register import Localize, Mapper, RegisterOptions, run
+
+    options = RegisterOptions(
+        step=args.step,
+        time_step=args.time_step,
+        max_frames=args.max_frames,
+        long_side=args.long_side,
+        max_features=args.max_features,
+        max_ratio=args.max_ratio,
+        sequential_overlap=args.overlap,
+        keyframes=args.keyframes,
+        mapper=Mapper(args.mapper),
+        camera_model=args.camera_model,
+        intrinsics=args.intrinsics,
+        tracks=args.tracks,
+        masks=args.masks,
+        mask_radius=args.mask_radius,
+        use_masks=not args.no_masks,
+        localize=Localize(args.localize),
+        min_inliers=args.min_inliers,
+        num_threads=args.threads,
+    )
+    path = run(args.videos, args.out, options)
+    report = json.loads((Path(args.out) / "register_report.json").read_text(encoding="utf-8"))
+    for video in report["videos"]:
+        print(f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered")  # noqa: T201
+    print(path)  # noqa: T201
+    return 0

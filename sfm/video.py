@@ -66,8 +66,11 @@ def _open(path: Path) -> cv2.VideoCapture:
         raise InputError(path, "file is empty (0 bytes)", fix="copy the video again")
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
-        raise InputError(path, "OpenCV cannot open this video",
-                         fix="convert it to H.264 MP4 (e.g. ffmpeg -i in -c:v libx264 out.mp4)")
+        raise InputError(
+            path,
+            "OpenCV cannot open this video",
+            fix="convert it to H.264 MP4 (e.g. ffmpeg -i in -c:v libx264 out.mp4)",
+        )
     return capture
 
 
@@ -88,8 +91,9 @@ def probe_video(path: str | Path) -> VideoInfo:
     finally:
         capture.release()
     if not times or not width:
-        raise InputError(path, "no decodable frames",
-                         fix="check the file plays; AV1 is not supported, convert to H.264")
+        raise InputError(
+            path, "no decodable frames", fix="check the file plays; AV1 is not supported, convert to H.264"
+        )
     stamps = np.asarray(times, dtype=float)
     if np.any(np.diff(stamps) <= 0):
         # Some containers report no timestamps (all 0): use the nominal rate rather than invent an order.
@@ -97,14 +101,27 @@ def probe_video(path: str | Path) -> VideoInfo:
             log.warning("%s: decoder timestamps not increasing; using the nominal %.3f fps", path, nominal)
             stamps = np.arange(len(times)) / nominal
         else:
-            raise InputError(path, "decoder timestamps are not increasing and the frame rate is unknown",
-                             fix="re-encode the video with a constant frame rate")
+            raise InputError(
+                path,
+                "decoder timestamps are not increasing and the frame rate is unknown",
+                fix="re-encode the video with a constant frame rate",
+            )
     stamps = stamps - stamps[0]
-    info = VideoInfo(path=path, name=video_name(path), width=width, height=height, times=stamps,
-                     nominal_fps=float(nominal) if nominal and nominal > 0 else None)
+    info = VideoInfo(
+        path=path,
+        name=video_name(path),
+        width=width,
+        height=height,
+        times=stamps,
+        nominal_fps=float(nominal) if nominal and nominal > 0 else None,
+    )
     if info.variable_frame_rate:
-        log.warning("%s: variable frame rate (intervals %.1f-%.1f ms); per-frame decoder timestamps are used",
-                    path, 1000 * np.diff(stamps).min(), 1000 * np.diff(stamps).max())
+        log.warning(
+            "%s: variable frame rate (intervals %.1f-%.1f ms); per-frame decoder timestamps are used",
+            path,
+            1000 * np.diff(stamps).min(),
+            1000 * np.diff(stamps).max(),
+        )
     return info
 
 
@@ -117,8 +134,9 @@ def read_frames(path: Path, frames: np.ndarray) -> Iterator[tuple[int, np.ndarra
         for target in wanted:
             while index < target:
                 if not capture.grab():
-                    raise InputError(path, f"frame {target} cannot be decoded",
-                                     fix="the video may be truncated")
+                    raise InputError(
+                        path, f"frame {target} cannot be decoded", fix="the video may be truncated"
+                    )
                 index += 1
             ok, image = capture.retrieve()
             if not ok:

@@ -33,9 +33,17 @@ def test_toml_round_trip(tmp_path: Path) -> None:
     cameras = []
     for i in range(3):
         K = np.array([[500.0 + 10 * i, 0.0, 31.5], [0.0, 505.0, 23.5], [0.0, 0.0, 1.0]])
-        cameras.append(StaticCamera(name=f"cam_{i + 1:02d}", width=64, height=48, K=K,
-                                    dist=np.array([-0.1, 0.02, 0.001, -0.002]), R=_rotation(rng),
-                                    t=rng.normal(size=3)))
+        cameras.append(
+            StaticCamera(
+                name=f"cam_{i + 1:02d}",
+                width=64,
+                height=48,
+                K=K,
+                dist=np.array([-0.1, 0.02, 0.001, -0.002]),
+                R=_rotation(rng),
+                t=rng.normal(size=3),
+            )
+        )
     toml = write_toml(tmp_path / "calib.toml", cameras)
     videos = []
     for i, frames in enumerate((4, 6, 5)):
@@ -59,8 +67,14 @@ def test_toml_round_trip(tmp_path: Path) -> None:
 def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     empty = tmp_path / "empty.mp4"
     empty.write_bytes(b"")
-    toml = write_toml(tmp_path / "calib.toml", [StaticCamera(name="empty", width=64, height=48, K=np.eye(3),
-                                                            dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))])
+    toml = write_toml(
+        tmp_path / "calib.toml",
+        [
+            StaticCamera(
+                name="empty", width=64, height=48, K=np.eye(3), dist=np.zeros(4), R=np.eye(3), t=np.zeros(3)
+            )
+        ],
+    )
     assert main(["import-calibration", str(toml), str(empty), "--out", str(tmp_path / "ws")]) == 2
     assert "empty.mp4: file is empty" in capsys.readouterr().err
     assert main(["import-calibration", str(toml), str(tmp_path), "--out", str(tmp_path / "ws")]) == 2

@@ -1,0 +1,87 @@
+"""Choosing which decoded frames go to SfM, and writing them (resized) into the workspace.
+
+Frame numbers always refer to the original decoded frame index; the image of frame n of video v is
+`frames/<v>/<n:06d>.jpg`, resized so that its long side is at most `long_side` pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from sfm.video import VideoInfo, read_frames
+
+JPEG_QUALITY = 95
+
+
+def image_name(video: str, frame: int) -> str:
+    """COLMAP image name (relative to the frames folder) of a decoded frame."""
+    return f"{video}/{frame:06d}.jpg"
+
+
+def select_frames(
+    info: VideoInfo, *, step: int = 0, time_step: float | None = None, max_frames: int = 40
+) -> np.ndarray:
+    """Sorted frame numbers for SfM: every `step`-th frame, or one per `time_step` seconds (by decoder
+    timestamps), or all; then thinned evenly to at most `max_frames` (first and last kept)."""
+    count = info.num_frames
+    if time_step:
+        targets = np.arange(0.0, info.times[-1] + 1e-9, time_step)
+        frames = np.unique(np.abs(info.times[None, :] - targets[:, None]).argmin(axis=1))
+    elif step > 0:
+        frames = np.arange(0, count, step)
+    else:
+        frames = np.arange(count)
+    if max_frames > 0 and len(frames) > max_frames:
+        frames = frames[np.unique(np.round(np.linspace(0, len(frames) - 1, max_frames)).astype(int))]
+    return frames.astype(np.int64)
+
+
+@dataclass(kw_only=True)
+class Resize:
+    """Scale from original to SfM pixels. Pixel centres map as x_small = (x + 0.5) * scale - 0.5."""
+
+    scale: float
+    width: int
+    height: int
+
+    @classmethod
+    def for_video(cls, info: VideoInfo, long_side: int) -> Resize:
+        longest = max(info.width, info.height)
+        scale = min(1.0, long_side / longest) if long_side > 0 else 1.0
+        return cls(
+            scale=scale, width=max(1, round(info.width * scale)), height=max(1, round(info.height * scale))
+        )
+
+    def to_small(self, xy: np.ndarray) -> np.ndarray:
+        return (np.asarray(xy, dtype=float) + 0.5) * self.scale - 0.5
+
+
+def write_frames(
+    info: VideoInfo, frames: np.ndarray, frames_dir: Path, resize: Resize, desc: str = "decoding frames"
+) -> list[str]:
+    """Decode `frames` and write them (resized) as JPEG; returns their image names. Existing files are
+    reused."""
+    names = []
+    missing = [int(f) for f in frames if not (frames_dir / image_name(info.name, int(f))).exists()]
+    (frames_dir / info.name).mkdir(parents=True, exist_ok=True)
+    for frame, image in tqdm(
+        read_frames(info.path, np.asarray(missing)),
+        total=len(missing),
+        desc=f"{desc} {info.name}",
+        unit="frame",
+        leave=False,
+    ):
+        if resize.scale != 1.0:
+            image = cv2.resize(image, (resize.width, resize.height), interpolation=cv2.INTER_AREA)
+        path = frames_dir / image_name(info.name, frame)
+        tmp = path.with_name(f".{path.name}.tmp.jpg")
+        cv2.imwrite(str(tmp), image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        tmp.replace(path)
+    for frame in frames:
+        names.append(image_name(info.name, int(frame)))
+    return names

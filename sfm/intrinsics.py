@@ -1,0 +1,37 @@
+"""Known intrinsics per video for `register --intrinsics`: from a cameras.json, a calib .toml or a .qca
+file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dynrecon.errors import InputError
+from sfm.cameras import read_cameras
+from sfm.import_calibration import match_cameras, read_calibration
+from sfm.video import VideoInfo
+
+
+def known_intrinsics(path: Path, infos: list[VideoInfo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
+    if path.suffix.lower() == ".json":
+        cameras = read_cameras(path)
+        result = {}
+        for info in infos:
+            try:
+                video = cameras.video(info.name)
+            except KeyError:
+                continue
+            if not video.frames:
+                raise InputError(path, f"video {info.name!r} has no frames to take intrinsics from")
+            result[info.name] = (video.frames[0].K, video.frames[0].dist)
+        if not result:
+            raise InputError(
+                path,
+                f"none of the videos {[i.name for i in infos]} is in this file",
+                fix="video names must match the file's names",
+            )
+        return result
+    matched = match_cameras(read_calibration(path), infos, path)
+    return {info.name: (camera.K, camera.dist) for info, camera in zip(infos, matched, strict=True)}

@@ -1,0 +1,598 @@
+"""`dynrecon register`: a pose and intrinsics for every frame of every video, from SfM on the static
+background.
+
+Stages: probe videos -> choose and decode SfM frames (+ masks) -> SIFT (one camera per video) -> matching of
+sequential pairs within a video and of keyframes across videos -> mapping (incremental or global), keep the
+largest
+model -> PnP localization of the other frames against it -> cameras.json, background.ply,
+register_report.json.
+pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP error is a clear message.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from dynrecon.atomic import atomic_write_text
+from dynrecon.errors import DynreconError, InputError
+from sfm import colmap_steps
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
+from sfm.export import image_reprojection_errors, opencv_intrinsics, write_ply
+from sfm.frames import Resize, image_name, select_frames, write_frames
+from sfm.intrinsics import known_intrinsics
+from sfm.isolated import run_isolated
+from sfm.localize import Reference, localize, read_features, reference
+from sfm.masks import mask_from_points, track_points, user_mask, write_mask
+from sfm.pairs import build_pairs
+from sfm.video import VideoInfo, probe_video
+from tracking.tracks import Tracks, read_tracks
+
+log = logging.getLogger(__name__)
+
+
+class Mapper(enum.Enum):
+    INCREMENTAL = "incremental"
+    GLOBAL = "global"
+
+
+class Localize(enum.Enum):
+    """Which frames besides the SfM frames get a pose by PnP."""
+
+    AUTO = "auto"  # TRACKED when tracks exist, else ALL
+    ALL = "all"
+    TRACKED = "tracked"
+    NONE = "none"
+
+
+class RegistrationError(DynreconError):
+    """SfM could not put at least two videos into one model."""
+
+
+@dataclass(kw_only=True)
+class RegisterOptions:
+    step: int = 0  # SfM frames: every Nth decoded frame (0: all, then thinned to max_frames)
+    time_step: float | None = None  # or one frame per this many seconds (decoder timestamps)
+    max_frames: int = 40  # SfM frames per video at most
+    long_side: int = 1280  # SfM frames are resized to this long side (pixels)
+    max_features: int = 4096  # SIFT features per frame
+    max_ratio: float = 0.8  # SIFT ratio test
+    sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
+    keyframes: int = 10  # per video; every keyframe is matched with every keyframe of the other videos
+    mapper: Mapper = Mapper.INCREMENTAL
+    camera_model: str = "SIMPLE_RADIAL"
+    intrinsics: Path | None = (
+        None  # cameras.json / calib .toml / .qca with known intrinsics per video (fixed)
+    )
+    tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
+    masks: Path | None = None  # user masks folder (see sfm.masks)
+    mask_radius: float = 40.0  # original pixels around tracked points
+    use_masks: bool = True
+    localize: Localize = Localize.AUTO
+    min_inliers: int = 30  # PnP inliers needed to accept a localized frame
+    num_threads: int = -1
+
+
+@dataclass(kw_only=True)
+class _Video:
+    info: VideoInfo
+    resize: Resize
+    sfm_frames: np.ndarray
+    wanted: np.ndarray  # every frame that should get a pose
+    names: list[str] = field(default_factory=list)
+
+
+def _check_videos(videos: list[Path]) -> None:
+    if len(videos) < 2:
+        raise InputError(
+            videos[0] if videos else None,
+            "register needs at least two videos",
+            fix="give every video of the scene",
+        )
+    names = [v.stem for v in videos]
+    for video, name in zip(videos, names, strict=True):
+        if names.count(name) > 1:
+            raise InputError(
+                video,
+                f"video name {name!r} is used twice",
+                fix="video names (file names without extension) must be unique",
+            )
+
+
+def _tracks(options: RegisterOptions, out: Path) -> Tracks | None:
+    path = options.tracks or (out / "tracks.csv" if (out / "tracks.csv").exists() else None)
+    return read_tracks(path) if path is not None else None
+
+
+def _wanted_frames(
+    info: VideoInfo, sfm_frames: np.ndarray, tracks: Tracks | None, mode: Localize
+) -> np.ndarray:
+    if mode is Localize.AUTO:
+        mode = Localize.TRACKED if tracks is not None else Localize.ALL
+    if mode is Localize.ALL:
+        extra = np.arange(info.num_frames)
+    elif mode is Localize.TRACKED and tracks is not None:
+        rows = np.array([v == info.name for v in tracks.video], dtype=bool)
+        extra = np.unique(tracks.frame[rows])
+        outside = extra[extra >= info.num_frames]
+        if len(outside):
+            raise InputError(
+                tracks.path,
+                f"video {info.name!r} has {info.num_frames} frames but tracks "
+                f"mention frame {int(outside[0])}",
+                fix="tracks.csv belongs to other videos",
+            )
+    else:
+        extra = np.zeros(0, np.int64)
+    return np.union1d(sfm_frames, extra).astype(np.int64)
+
+
+def _write_masks(
+    videos: list[_Video], tracks: Tracks | None, options: RegisterOptions, mask_dir: Path
+) -> int:
+    """Masks for every frame that will have features extracted; returns how many were written."""
+    written = 0
+    for video in videos:
+        per_frame = track_points(tracks, video.info.name) if tracks is not None else {}
+        if tracks is not None and not per_frame:
+            log.warning("no tracks for video %r: its frames are not masked", video.info.name)
+        for frame in video.wanted:
+            mask = (
+                user_mask(options.masks, video.info.name, int(frame), video.resize) if options.masks else None
+            )
+            if int(frame) in per_frame:
+                from_tracks = mask_from_points(per_frame[int(frame)], video.resize, options.mask_radius)
+                mask = from_tracks if mask is None else np.minimum(mask, from_tracks)
+            if mask is not None:
+                write_mask(mask_dir, image_name(video.info.name, int(frame)), mask)
+                written += 1
+    return written
+
+
+def _extract_args(
+    videos: list[_Video], names_of: dict[str, list[str]], intrinsics: dict[str, Any], options: RegisterOptions
+) -> list[dict[str, Any]]:
+    from sfm.export import colmap_params
+
+    args = []
+    for video in videos:
+        model, params = options.camera_model, ""
+        if video.info.name in intrinsics:
+            K, dist = intrinsics[video.info.name]
+            model, values = colmap_params(K, dist, video.resize)
+            params = ",".join(repr(float(v)) for v in values)
+        if names_of[video.info.name]:
+            args.append(
+                {
+                    "name": video.info.name,
+                    "images": names_of[video.info.name],
+                    "camera_model": model,
+                    "camera_params": params,
+                }
+            )
+    return args
+
+
+def run(videos: list[str | Path], out_dir: str | Path, options: RegisterOptions | None = None) -> Path:
+    """Register `videos` into one world frame; returns the path of the written `cameras.json`."""
+    options = options or RegisterOptions()
+    paths = [Path(v) for v in videos]
+    _check_videos(paths)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("cameras.json", "background.ply", "register_report.json"):
+        (out / stale).unlink(missing_ok=True)  # never leave a previous run's result beside this run's report
+    frames_dir, sfm_dir = out / "frames", out / "sfm"
+    if sfm_dir.exists():
+        shutil.rmtree(sfm_dir)
+    sfm_dir.mkdir(parents=True)
+    colmap_log = sfm_dir / "colmap.log"
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+
+    class _WarningCollector(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            warnings.append(record.getMessage())
+
+    collector = _WarningCollector(level=logging.WARNING)
+    for name in ("sfm.video", "sfm.masks", __name__):
+        logging.getLogger(name).addHandler(collector)
+    try:
+        return _run(paths, out, frames_dir, sfm_dir, colmap_log, options, timings, warnings)
+    finally:
+        for name in ("sfm.video", "sfm.masks", __name__):
+            logging.getLogger(name).removeHandler(collector)
+
+
+def _run(
+    paths: list[Path],
+    out: Path,
+    frames_dir: Path,
+    sfm_dir: Path,
+    colmap_log: Path,
+    options: RegisterOptions,
+    timings: dict[str, float],
+    warnings: list[str],
+) -> Path:
+    started = time.perf_counter()
+    infos = [probe_video(p) for p in tqdm(paths, desc="probing videos", unit="video", leave=False)]
+    tracks = _tracks(options, out)
+    intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
+    videos = []
+    for info in infos:
+        sfm_frames = select_frames(
+            info, step=options.step, time_step=options.time_step, max_frames=options.max_frames
+        )
+        videos.append(
+            _Video(
+                info=info,
+                resize=Resize.for_video(info, options.long_side),
+                sfm_frames=sfm_frames,
+                wanted=_wanted_frames(info, sfm_frames, tracks, options.localize),
+            )
+        )
+    timings["probe"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    names_of = {v.info.name: write_frames(v.info, v.sfm_frames, frames_dir, v.resize) for v in videos}
+    mask_dir = sfm_dir / "masks"
+    masked = _write_masks(videos, tracks, options, mask_dir) if options.use_masks else 0
+    timings["decode"] = time.perf_counter() - started
+
+    database = sfm_dir / "database.db"
+    started = time.perf_counter()
+    keypoints = run_isolated(
+        "feature extraction",
+        colmap_steps.extract,
+        {
+            "database": str(database),
+            "image_dir": str(frames_dir),
+            "videos": _extract_args(videos, names_of, intrinsics, options),
+            "mask_dir": str(mask_dir) if masked else None,
+            "max_features": options.max_features,
+            "num_threads": options.num_threads,
+        },
+        colmap_log,
+    )
+    timings["extract"] = time.perf_counter() - started
+    for name, count in keypoints.items():
+        if count < 50:
+            warnings.append(f"{name}: only {count} SIFT features (untextured or blurred frame?)")
+
+    started = time.perf_counter()
+    pairs = build_pairs(names_of, overlap=options.sequential_overlap, keyframes=options.keyframes)
+    matching = run_isolated(
+        "matching",
+        colmap_steps.match,
+        {
+            "database": str(database),
+            "pairs": pairs,
+            "max_ratio": options.max_ratio,
+            "num_threads": options.num_threads,
+        },
+        colmap_log,
+    )
+    timings["match"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    model_dir = sfm_dir / "models"
+    model_dir.mkdir()
+    step = colmap_steps.map_global if options.mapper is Mapper.GLOBAL else colmap_steps.map_incremental
+    fix_intrinsics = bool(intrinsics) and len(intrinsics) == len(videos)
+    if intrinsics and not fix_intrinsics:
+        warnings.append("known intrinsics for only some videos: all intrinsics are refined")
+    models = run_isolated(
+        f"mapping ({options.mapper.value})",
+        step,
+        {
+            "database": str(database),
+            "image_dir": str(frames_dir),
+            "out_dir": str(model_dir),
+            "fix_intrinsics": fix_intrinsics,
+            "num_threads": options.num_threads,
+            "num_images": sum(len(n) for n in names_of.values()),
+        },
+        colmap_log,
+    )
+    timings["map"] = time.perf_counter() - started
+    if not models:
+        _fail(
+            out,
+            videos,
+            {},
+            timings,
+            warnings,
+            options,
+            pairs,
+            matching,
+            None,
+            "SfM found no model: no two frames could be matched and triangulated",
+        )
+    best = max(models, key=lambda k: models[k])
+    rec = pycolmap.Reconstruction(str(model_dir / best))
+    if len(models) > 1:
+        warnings.append(
+            f"{len(models)} models; kept model {best} with {models[best]} images "
+            f"(others: {', '.join(f'{k}: {v}' for k, v in models.items() if k != best)})"
+        )
+
+    started = time.perf_counter()
+    results = _localize_all(
+        videos, rec, database, frames_dir, sfm_dir, mask_dir if masked else None, colmap_log, options
+    )
+    timings["localize"] = time.perf_counter() - started
+
+    registered_videos = [
+        v for v in videos if any(r["pose"] is not None for r in results[v.info.name].values())
+    ]
+    if len(registered_videos) < 2:
+        _fail(
+            out,
+            videos,
+            results,
+            timings,
+            warnings,
+            options,
+            pairs,
+            matching,
+            rec,
+            f"only {len(registered_videos)} of {len(videos)} videos registered "
+            f"({', '.join(v.info.name for v in registered_videos) or 'none'})",
+        )
+
+    started = time.perf_counter()
+    cameras = CameraSet()
+    for video in registered_videos:
+        frames = []
+        for frame, result in sorted(results[video.info.name].items()):
+            if result["pose"] is None:
+                continue
+            K, dist = result["intrinsics"]
+            pose = result["pose"]
+            frames.append(
+                FrameCamera(
+                    frame=frame,
+                    time=float(video.info.times[frame]),
+                    K=K,
+                    R=pose.rotation.matrix(),
+                    t=np.asarray(pose.translation),
+                    dist=dist,
+                )
+            )
+        cameras.videos.append(
+            VideoCameras(
+                name=video.info.name,
+                width=video.info.width,
+                height=video.info.height,
+                fps=video.info.fps,
+                frames=frames,
+            )
+        )
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    rgb = np.array([p.color for p in rec.points3D.values()], dtype=np.uint8).reshape(-1, 3)
+    write_ply(out / "background.ply", xyz, rgb)
+    path = write_cameras(out / "cameras.json", cameras)
+    timings["export"] = time.perf_counter() - started
+    _write_report(out, videos, results, timings, warnings, options, pairs, matching, rec, error=None)
+    return path
+
+
+def _fail(
+    out: Path,
+    videos: list[_Video],
+    results: dict[str, dict[int, dict[str, Any]]],
+    timings: dict[str, float],
+    warnings: list[str],
+    options: RegisterOptions,
+    pairs: list[tuple[str, str]],
+    matching: dict[str, int],
+    rec: pycolmap.Reconstruction | None,
+    what: str,
+) -> None:
+    message = (
+        f"{what}; cameras.json not written. Try: more overlap between the videos' views, more frames "
+        "(--max-frames, --step), known intrinsics (--intrinsics), or --keyframes / --max-features higher. "
+        f"Details: {out / 'register_report.json'}"
+    )
+    _write_report(out, videos, results, timings, warnings, options, pairs, matching, rec, error=message)
+    raise RegistrationError(message)
+
+
+def _localize_all(
+    videos: list[_Video],
+    rec: pycolmap.Reconstruction,
+    database: Path,
+    frames_dir: Path,
+    sfm_dir: Path,
+    mask_dir: Path | None,
+    colmap_log: Path,
+    options: RegisterOptions,
+) -> dict[str, dict[int, dict[str, Any]]]:
+    """Pose of every wanted frame: from the model for registered SfM frames, by PnP for the others."""
+    results: dict[str, dict[int, dict[str, Any]]] = {}
+    # Frames not sent to SfM need features: decode them and extract into a second database.
+    extra_names = {}
+    for video in videos:
+        extra = np.setdiff1d(video.wanted, video.sfm_frames)
+        if len(extra):
+            extra_names[video.info.name] = write_frames(
+                video.info, extra, frames_dir, video.resize, desc="decoding frames to localize"
+            )
+    query_db = sfm_dir / "localize.db"
+    if extra_names:
+        run_isolated(
+            "feature extraction (frames to localize)",
+            colmap_steps.extract,
+            {
+                "database": str(query_db),
+                "image_dir": str(frames_dir),
+                "videos": [
+                    {"name": k, "images": v, "camera_model": "SIMPLE_PINHOLE", "camera_params": ""}
+                    for k, v in extra_names.items()
+                ],
+                "mask_dir": str(mask_dir) if mask_dir else None,
+                "max_features": options.max_features,
+                "num_threads": options.num_threads,
+            },
+            colmap_log,
+        )
+    with pycolmap.Database.open(str(database)) as db:
+        db_ids = {image.name: image.image_id for image in db.read_all_images()}
+        query_ids: dict[str, int] = {}
+        if extra_names:
+            with pycolmap.Database.open(str(query_db)) as qdb:
+                query_ids = {image.name: image.image_id for image in qdb.read_all_images()}
+        for video in tqdm(videos, desc="localizing", unit="video", leave=False):
+            results[video.info.name] = _localize_video(video, rec, db, db_ids, query_db, query_ids, options)
+    return results
+
+
+def _localize_video(
+    video: _Video,
+    rec: pycolmap.Reconstruction,
+    db: pycolmap.Database,
+    db_ids: dict[str, int],
+    query_db: Path,
+    query_ids: dict[str, int],
+    options: RegisterOptions,
+) -> dict[int, dict[str, Any]]:
+    results: dict[int, dict[str, Any]] = {}
+    registered: dict[int, pycolmap.Image] = {}
+    for frame in video.sfm_frames:
+        image = rec.find_image_with_name(image_name(video.info.name, int(frame)))
+        if image is not None and image.has_pose:
+            registered[int(frame)] = image
+    if not registered:
+        for frame in video.wanted:
+            results[int(frame)] = {
+                "pose": None,
+                "source": None,
+                "reason": "video not in the kept model",
+                "error": None,
+            }
+        return results
+    camera = rec.cameras[next(iter(registered.values())).camera_id]
+    intrinsics = opencv_intrinsics(camera, video.resize)
+    for frame, image in registered.items():
+        errors = image_reprojection_errors(rec, image)
+        results[frame] = {
+            "pose": image.cam_from_world(),
+            "source": "sfm",
+            "reason": None,
+            "error": float(errors.mean()) / video.resize.scale if len(errors) else None,
+            "intrinsics": intrinsics,
+        }
+    registered_frames = np.array(sorted(registered))
+    references: dict[int, Reference] = {}
+    todo = [int(f) for f in video.wanted if int(f) not in registered]
+    query = pycolmap.Database.open(str(query_db)) if query_ids else None
+    try:
+        for frame in tqdm(todo, desc=f"localizing {video.info.name}", unit="frame", leave=False):
+            name = image_name(video.info.name, frame)
+            if name in query_ids and query is not None:
+                features = read_features(query, query_ids[name])
+            elif name in db_ids:
+                features = read_features(db, db_ids[name])
+            else:
+                results[frame] = {"pose": None, "source": None, "reason": "no features", "error": None}
+                continue
+            nearest = registered_frames[np.argsort(np.abs(registered_frames - frame), kind="stable")[:2]]
+            refs = []
+            for ref_frame in nearest:
+                if int(ref_frame) not in references:
+                    ref_image = registered[int(ref_frame)]
+                    ref_name = image_name(video.info.name, int(ref_frame))
+                    references[int(ref_frame)] = reference(
+                        rec, ref_image, read_features(db, db_ids[ref_name])
+                    )
+                refs.append(references[int(ref_frame)])
+            located = localize(
+                features, refs, camera, max_ratio=options.max_ratio, min_inliers=options.min_inliers
+            )
+            results[frame] = {
+                "pose": located.cam_from_world,
+                "source": "pnp",
+                "reason": located.reason,
+                "error": None if located.mean_error is None else located.mean_error / video.resize.scale,
+                "intrinsics": intrinsics,
+                "inliers": located.inliers,
+            }
+    finally:
+        if query is not None:
+            query.close()
+    for frame in video.sfm_frames:
+        if int(frame) not in registered and results.get(int(frame), {}).get("pose") is not None:
+            results[int(frame)]["source"] = "pnp (dropped by SfM)"
+    return results
+
+
+def _write_report(
+    out: Path,
+    videos: list[_Video],
+    results: dict[str, dict[int, dict[str, Any]]],
+    timings: dict[str, float],
+    warnings: list[str],
+    options: RegisterOptions,
+    pairs: list[tuple[str, str]],
+    matching: dict[str, int],
+    rec: pycolmap.Reconstruction | None,
+    error: str | None,
+) -> None:
+    report: dict[str, Any] = {
+        "ok": error is None,
+        "error": error,
+        "pycolmap": pycolmap.__version__,
+        "options": {
+            k: (v.value if isinstance(v, enum.Enum) else str(v) if isinstance(v, Path) else v)
+            for k, v in vars(options).items()
+        },
+        "model": None
+        if rec is None
+        else {
+            "images": int(rec.num_reg_images()),
+            "points": int(rec.num_points3D()),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        },
+        "pairs": len(pairs),
+        "matching": matching,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "warnings": warnings,
+        "videos": [],
+    }
+    for video in videos:
+        per_frame = results.get(video.info.name, {})
+        posed = {f: r for f, r in per_frame.items() if r["pose"] is not None}
+        errors = [r["error"] for r in posed.values() if r["error"] is not None]
+        report["videos"].append(
+            {
+                "name": video.info.name,
+                "path": str(video.info.path),
+                "frames_in_video": video.info.num_frames,
+                "frames_given": len(video.wanted),
+                "sfm_frames": len(video.sfm_frames),
+                "registered": len(posed),
+                "registered_by_sfm": sum(1 for r in posed.values() if r["source"] == "sfm"),
+                "registered_by_pnp": sum(1 for r in posed.values() if r["source"] != "sfm"),
+                "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
+                "failed": [
+                    {"frame": int(f), "reason": r["reason"] or "unknown"}
+                    for f, r in sorted(per_frame.items())
+                    if r["pose"] is None
+                ]
+                or ([] if per_frame else [{"frame": None, "reason": "not reached"}]),
+            }
+        )
+    atomic_write_text(out / "register_report.json", json.dumps(report, indent=1) + "\n")
+
+
+__all__ = ["Localize", "Mapper", "RegisterOptions", "RegistrationError", "read_cameras", "run"]
