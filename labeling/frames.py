@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from dynrecon.errors import InputError
 
@@ -43,39 +45,92 @@ def probe_video(name: str, path: Path) -> VideoInfo:
     return VideoInfo(name=name, path=path, frames=max(count, 1), width=width, height=height, fps=fps)
 
 
+def fingerprint(image: np.ndarray) -> int:
+    """Cheap checksum of a subsampled frame: tells a frame from its neighbours after a seek."""
+    return zlib.crc32(np.ascontiguousarray(image[::7, ::7]).tobytes())
+
+
 class _Reader:
-    """One VideoCapture per video; the next frame needs no seek, and scrubbing mostly asks for the next."""
+    """One VideoCapture per video; the next frame needs no seek, and scrubbing mostly asks for the next.
+
+    Seeking (`CAP_PROP_POS_FRAMES`) is not exact for every codec, and a label on the wrong frame would be
+    silently wrong. So a background scan decodes the video once, sequentially, recording each frame's
+    fingerprint and the exact frame count; a seek whose frame does not match the scan switches this video to
+    sequential decoding (slower, always right).
+    """
 
     def __init__(self, info: VideoInfo):
         self.info = info
         self.lock = threading.Lock()
         self.cap: cv2.VideoCapture | None = None
         self.next_index = 0
+        self.fingerprints: list[int] = []  # filled by the scan, in order
+        self.scanned = False  # True once `fingerprints` covers the whole video
+        self.seek_ok = True
 
-    def read(self, index: int) -> cv2.typing.MatLike | None:
+    @property
+    def frames(self) -> int:
+        return len(self.fingerprints) if self.scanned else self.info.frames
+
+    def read(self, index: int) -> np.ndarray | None:
         with self.lock:
-            if self.cap is None:
-                self.cap = cv2.VideoCapture(str(self.info.path))
-                self.next_index = 0
-            # A short forward gap is cheaper to decode through than a seek to the previous keyframe.
-            if not (self.next_index <= index <= self.next_index + 8):
+            frame = self._read(index)
+            if frame is not None and index < len(self.fingerprints) \
+                    and fingerprint(frame) != self.fingerprints[index] and self.seek_ok:
+                log.warning("%s: seeking is not exact for this video; decoding sequentially", self.info.path)
+                self.seek_ok = False
+                self._close()
+                frame = self._read(index)
+            return frame
+
+    def _read(self, index: int) -> np.ndarray | None:
+        if self.cap is None:
+            self.cap = cv2.VideoCapture(str(self.info.path))
+            self.next_index = 0
+        # A short forward gap is cheaper to decode through than a seek to the previous keyframe.
+        if not (self.next_index <= index <= self.next_index + 8):
+            if self.seek_ok:
                 self.cap.set(cv2.CAP_PROP_POS_FRAMES, index)
                 self.next_index = index
-            frame = None
-            while self.next_index <= index:
-                ok, frame = self.cap.read()
+            elif index < self.next_index:
+                self._close()
+                return self._read(index)
+        while self.next_index < index:
+            if not self.cap.grab():
+                self._close()
+                return None
+            self.next_index += 1
+        ok, frame = self.cap.read()
+        if not ok:
+            self._close()
+            return None
+        self.next_index += 1
+        return frame
+
+    def _close(self) -> None:
+        if self.cap is not None:
+            self.cap.release()
+            self.cap = None
+
+    def scan(self, stop: threading.Event) -> None:
+        cap = cv2.VideoCapture(str(self.info.path))
+        try:
+            while not stop.is_set():
+                ok, frame = cap.read()
                 if not ok:
-                    self.cap.release()
-                    self.cap = None
-                    return None
-                self.next_index += 1
-            return frame
+                    break
+                self.fingerprints.append(fingerprint(frame))
+        finally:
+            cap.release()
+        if not stop.is_set():
+            self.scanned = True
+            if len(self.fingerprints) != self.info.frames:
+                log.info("%s: %d frames decoded (the container says %d)", self.info.path,
+                         len(self.fingerprints), self.info.frames)
 
     def close(self) -> None:
         with self.lock:
-            if self.cap is not None:
-                self.cap.release()
-                self.cap = None
+            self._close()
 
 
 class FrameCache:
@@ -91,6 +146,21 @@ class FrameCache:
         self._lock = threading.Lock()
         self.hits = 0
         self.misses = 0
+        self._stop = threading.Event()
+        self._scanner = threading.Thread(target=self._scan_all, name="frame-scan", daemon=True)
+        self._scanner.start()
+
+    def _scan_all(self) -> None:
+        for reader in self._readers.values():
+            reader.scan(self._stop)
+
+    def frame_count(self, video: str) -> int:
+        """Exact once the background scan has finished that video, the container's count before."""
+        return self._readers[video].frames
+
+    def wait_scanned(self, timeout: float | None = None) -> bool:
+        self._scanner.join(timeout)
+        return not self._scanner.is_alive()
 
     @property
     def cached_bytes(self) -> int:
@@ -99,7 +169,7 @@ class FrameCache:
     def jpeg(self, video: str, index: int) -> bytes | None:
         """JPEG of frame `index` (0-based decode order), or None when the video or frame does not exist."""
         reader = self._readers.get(video)
-        if reader is None or index < 0 or index >= reader.info.frames:
+        if reader is None or index < 0 or index >= reader.frames:
             return None
         key = (video, index)
         with self._lock:
@@ -127,5 +197,7 @@ class FrameCache:
         return data
 
     def close(self) -> None:
+        self._stop.set()
+        self._scanner.join()
         for reader in self._readers.values():
             reader.close()

@@ -92,8 +92,8 @@ class LabelingApp:
             connections = [list(c) for c in self.skeleton.connections]
         return {
             "workspace": str(self.workspace),
-            "videos": [{"name": v.name, "frames": v.frames, "width": v.width, "height": v.height,
-                        "fps": v.fps} for v in self.videos.values()],
+            "videos": [{"name": v.name, "frames": self.frames.frame_count(v.name), "width": v.width,
+                        "height": v.height, "fps": v.fps} for v in self.videos.values()],
             "points": points,
             "connections": connections,
             "track": self.track_job.status().as_json(),
@@ -164,8 +164,9 @@ class LabelingApp:
         if info is None:
             raise BadRequestError(f"change {i}: unknown video {video!r}")
         frame = _field(raw, "frame", int)
-        if not 0 <= frame < info.frames:
-            raise BadRequestError(f"change {i}: frame {frame} outside 0..{info.frames - 1}")
+        count = self.frames.frame_count(video)
+        if not 0 <= frame < count:
+            raise BadRequestError(f"change {i}: frame {frame} outside 0..{count - 1}")
         point = _field(raw, "point", str)
         with self._config_lock:
             if point not in self.skeleton.points:
