@@ -23,9 +23,8 @@ def noise_texture(shape: tuple[int, int], rng: np.random.Generator, *, shapes: i
     height, width = shape
     image = np.zeros((height, width, 3), np.float32)
     for sigma, weight in ((24.0, 1.0), (8.0, 0.8), (3.0, 0.6), (1.5, 0.4)):
-        octave = np.asarray(
-            cv2.GaussianBlur(rng.normal(size=(height, width, 3)).astype(np.float32), (0, 0), sigma), np.float32
-        )
+        white = rng.normal(size=(height, width, 3)).astype(np.float32)
+        octave = np.asarray(cv2.GaussianBlur(white, (0, 0), sigma), np.float32)
         image += (weight / (float(octave.std()) + 1e-6)) * octave
     canvas = np.clip(128 + 30 * image, 0, 255).astype(np.uint8)
     for _ in range(shapes):

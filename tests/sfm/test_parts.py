@@ -1,0 +1,121 @@
+"""Pieces of `register`: frame choice, pairs, masks, intrinsics, PLY, crash isolation, evaluation."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras
+from sfm.evaluate import compare
+from sfm.export import colmap_params, opencv_intrinsics, read_ply, write_ply
+from sfm.frames import Resize, select_frames
+from sfm.isolated import ColmapCrashError, run_isolated
+from sfm.masks import mask_from_points
+from sfm.pairs import build_pairs
+from sfm.video import VideoInfo
+
+
+def _info(times: np.ndarray) -> VideoInfo:
+    return VideoInfo(path=Path("v.mp4"), name="v", width=1920, height=1080, times=times, nominal_fps=30.0)
+
+
+def test_select_frames() -> None:
+    info = _info(np.arange(100) / 30.0)
+    assert select_frames(info, step=10, max_frames=0).tolist() == list(range(0, 100, 10))
+    assert select_frames(info, time_step=1.0, max_frames=0).tolist() == [0, 30, 60, 90]
+    thinned = select_frames(info, max_frames=5)
+    assert thinned.tolist() == [0, 25, 50, 74, 99]
+    variable = _info(np.array([0.0, 0.01, 0.5, 0.52, 1.0, 1.6]))  # decoder timestamps, not frame counts
+    assert select_frames(variable, time_step=0.5, max_frames=0).tolist() == [0, 2, 4, 5]
+
+
+def test_build_pairs() -> None:
+    names = {"a": [f"a/{i}" for i in range(6)], "b": [f"b/{i}" for i in range(4)]}
+    pairs = build_pairs(names, overlap=2, keyframes=2)
+    within = [p for p in pairs if p[0][0] == p[1][0]]
+    across = [p for p in pairs if p[0][0] != p[1][0]]
+    assert len(within) == (5 + 4) + (3 + 2)
+    assert sorted(across) == [("a/0", "b/0"), ("a/0", "b/3"), ("a/5", "b/0"), ("a/5", "b/3")]
+    assert len(set(pairs)) == len(pairs)
+
+
+def test_intrinsics_conversion_round_trip() -> None:
+    """OpenCV (original px) -> COLMAP (resized, +0.5 convention) -> OpenCV gives back the same K and dist."""
+    resize = Resize(scale=0.5, width=960, height=540)
+    K = np.array([[1500.0, 0.0, 955.3], [0.0, 1490.0, 541.2], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.1, 0.05, 0.001, -0.002])
+    model, params = colmap_params(K, dist, resize)
+    camera = pycolmap.Camera(model=model, width=960, height=540, params=params)
+    K2, dist2 = opencv_intrinsics(camera, resize)
+    np.testing.assert_allclose(K2, K, atol=1e-9)
+    np.testing.assert_allclose(dist2, dist)
+    # The same 3D point lands on the same pixel, up to the resize, in both conventions.
+    point = np.array([[0.3, -0.2, 2.0]])
+    colmap_px = camera.img_from_cam(point)[0]
+    import cv2
+
+    opencv_px = cv2.projectPoints(point, np.zeros(3), np.zeros(3), K, dist)[0].ravel()
+    np.testing.assert_allclose(colmap_px, (opencv_px + 0.5) * 0.5, atol=1e-9)
+    simple = pycolmap.Camera(model="SIMPLE_RADIAL", width=960, height=540, params=[700.0, 480.0, 270.0, 0.01])
+    K3, dist3 = opencv_intrinsics(simple, resize)
+    np.testing.assert_allclose(K3, [[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]])
+    np.testing.assert_allclose(dist3, [0.01, 0, 0, 0])
+
+
+def test_mask_from_points() -> None:
+    resize = Resize(scale=0.5, width=200, height=100)
+    mask = mask_from_points(np.array([[100.0, 50.0], [300.0, 50.0], [200.0, 150.0]]), resize, radius=20)
+    assert mask.shape == (100, 200)
+    assert mask[50, 100] == 0  # inside the hull (original (200, 100))
+    assert mask[25, 50] == 0 and mask[25, 41] == 0  # within 20 px (10 px resized) of a point
+    assert mask[25, 30] == 255  # 40 px away
+    assert mask[5, 5] == 255 and mask[95, 195] == 255
+
+
+def test_ply_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(50, 3))
+    rgb = rng.integers(0, 256, (50, 3), dtype=np.uint8)
+    write_ply(tmp_path / "b.ply", xyz, rgb)
+    xyz2, rgb2 = read_ply(tmp_path / "b.ply")
+    np.testing.assert_allclose(xyz2, xyz, atol=1e-6)
+    np.testing.assert_array_equal(rgb2, rgb)
+    assert (tmp_path / "b.ply").read_bytes().startswith(b"ply\nformat binary_little_endian 1.0\n")
+
+
+def test_isolated_stage_turns_abort_into_error(tmp_path: Path) -> None:
+    log = tmp_path / "colmap.log"
+    assert run_isolated("dumps", json.dumps, {"obj": [1, 2, 3]}, log) == "[1, 2, 3]"
+    with pytest.raises(ColmapCrashError, match="killed by signal SIGABRT"):
+        run_isolated("abort", os.abort, {}, log)
+    with pytest.raises(ColmapCrashError, match="JSONDecodeError"):
+        run_isolated("bad", json.loads, {"s": "nope"}, log)
+    assert "===== dynrecon stage: abort =====" in log.read_text()
+
+
+def test_compare_recovers_similarity() -> None:
+    rng = np.random.default_rng(1)
+    truth, moved = CameraSet(), CameraSet()
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    A = q if np.linalg.det(q) > 0 else -q
+    scale, shift = 2.5, np.array([1.0, -2.0, 0.5])
+    for name in ("a", "b"):
+        frames, frames_moved = [], []
+        for i in range(4):
+            q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+            R = q if np.linalg.det(q) > 0 else -q
+            center = rng.normal(size=3)
+            frames.append(FrameCamera(frame=i, K=np.eye(3), R=R, t=-R @ center))
+            # The same camera in a world with X' = scale A X + shift.
+            R2 = R @ A.T
+            frames_moved.append(FrameCamera(frame=i, K=np.eye(3), R=R2, t=-R2 @ (scale * A @ center + shift)))
+        truth.videos.append(VideoCameras(name=name, width=10, height=10, frames=frames))
+        moved.videos.append(VideoCameras(name=name, width=10, height=10, frames=frames_moved))
+    result = compare(moved, truth)
+    assert result.center_errors.max() < 1e-9 and result.rotation_errors_deg.max() < 1e-5
+    assert abs(result.scale - 1 / scale) < 1e-9

@@ -1,0 +1,115 @@
+"""`dynrecon register` end to end on the synthetic room (ground truth known), and its failure modes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from sfm.cameras import CameraSet, read_cameras
+from sfm.evaluate import compare
+from sfm.export import read_ply
+from sfm.synthetic.demo import orbiting_spheres, render_demo, three_cameras
+from sfm.synthetic.room import Room
+from tracking.tracks import Tracks, write_tracks
+
+ROOM_DIAGONAL = float(np.linalg.norm(Room(textures=[np.zeros((1, 1, 3), np.uint8)] * 6).size))
+
+
+def _sphere_tracks(videos: list) -> Tracks:
+    """Ground-truth 2D tracks of the moving spheres' centres (what the tracking stage would deliver)."""
+    rows = []
+    for video in videos:
+        for frame in video.cameras.frames:
+            centers = orbiting_spheres(frame.time).centers
+            in_cam = centers @ frame.R.T + frame.t
+            uv = in_cam @ frame.K.T
+            for index, (point, depth) in enumerate(zip(uv, in_cam[:, 2], strict=True)):
+                x, y = point[:2] / point[2]
+                if depth > 0 and 0 <= x < video.cameras.width and 0 <= y < video.cameras.height:
+                    rows.append((video.cameras.name, frame.frame, f"sphere{index}", float(x), float(y)))
+    return Tracks.from_rows(rows)
+
+
+@pytest.mark.slow
+def test_register_synthetic_room(tmp_path: Path) -> None:
+    """3 moving cameras (30/24/18 fps, different focal lengths), 4 moving spheres masked via tracks.csv."""
+    videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))
+    truth = CameraSet(videos=[v.cameras for v in videos])
+    ws = tmp_path / "ws"
+    write_tracks(ws / "tracks.csv", _sphere_tracks(videos))
+    args = [
+        "register",
+        *(str(v.path) for v in videos),
+        "--out",
+        str(ws),
+        "--long-side",
+        "480",
+        "--max-frames",
+        "6",
+        "--max-features",
+        "1500",
+        "--mask-radius",
+        "70",
+    ]
+    assert main(args) == 0
+
+    cameras = read_cameras(ws / "cameras.json")
+    for video in truth.videos:
+        assert cameras.video(video.name).frame_numbers().tolist() == video.frame_numbers().tolist()
+        np.testing.assert_allclose(
+            [f.time for f in cameras.video(video.name).frames], [f.time for f in video.frames], atol=1e-3
+        )
+        # Intrinsics in the original pixels and OpenCV's convention: cx, cy = (w - 1) / 2, (h - 1) / 2 here.
+        K = cameras.video(video.name).frames[0].K
+        assert abs(K[0, 0] / video.frames[0].K[0, 0] - 1) < 0.02
+        assert abs(K[0, 2] - 239.5) < 3 and abs(K[1, 2] - 179.5) < 3
+    errors = compare(cameras, truth)
+    assert len(errors.keys) == truth.num_frames == 24
+    assert errors.center_errors.max() < 0.01 * ROOM_DIAGONAL
+    assert errors.rotation_errors_deg.max() < 0.5
+
+    report = json.loads((ws / "register_report.json").read_text())
+    assert report["ok"] and set(report["timings_s"]) >= {"extract", "match", "map", "localize"}
+    for entry in report["videos"]:
+        assert entry["registered"] == entry["frames_given"] and entry["failed"] == []
+        assert entry["registered_by_sfm"] == 6 and entry["mean_reprojection_error_px"] < 1.5
+    xyz, rgb = read_ply(ws / "background.ply")
+    assert len(xyz) == report["model"]["points"] > 1000 and rgb.shape == (len(xyz), 3)
+    assert (ws / "sfm" / "database.db").exists() and (ws / "sfm" / "colmap.log").stat().st_size > 0
+    assert len(list((ws / "sfm" / "masks" / "cam0").glob("*.png"))) == 10
+    assert len(list((ws / "frames" / "cam0").glob("*.jpg"))) == 10
+
+
+def _flat_video(path: Path, frames: int = 6) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 10.0, (96, 64))
+    for _ in range(frames):
+        writer.write(np.full((64, 96, 3), 90, np.uint8))
+    writer.release()
+    return path
+
+
+def test_untextured_videos_fail_clearly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    videos = [str(_flat_video(tmp_path / f"flat{i}.mp4")) for i in range(2)]
+    assert main(["register", *videos, "--out", str(tmp_path / "ws"), "--max-frames", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "dynrecon register: error:" in err and "cameras.json not written" in err and "Try:" in err
+    report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
+    assert not report["ok"] and any("SIFT features" in w for w in report["warnings"])
+    assert not (tmp_path / "ws" / "cameras.json").exists()
+
+
+def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    video = _flat_video(tmp_path / "a.mp4", frames=2)
+    (tmp_path / "b").mkdir()
+    _flat_video(tmp_path / "b" / "a.mp4", frames=2)
+    assert main(["register", str(video), "--out", str(tmp_path / "ws")]) == 2
+    assert "at least two videos" in capsys.readouterr().err
+    assert main(["register", str(video), str(tmp_path / "b" / "a.mp4"), "--out", str(tmp_path / "ws")]) == 2
+    assert "'a' is used twice" in capsys.readouterr().err
+    assert main(["register", str(video), str(tmp_path / "b"), "--out", str(tmp_path / "ws")]) == 2
+    assert "is a directory" in capsys.readouterr().err
