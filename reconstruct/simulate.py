@@ -190,7 +190,9 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
     if removed:
         observed.reshape(-1)[rng.choice(T * M, size=removed, replace=False)] = False
 
-    times = window.times - window.times[0]  # every virtual camera starts recording at the first capture
+    # Every virtual camera starts recording at the first capture; rounding hides the float noise of the
+    # subtraction (the file's clock can start at an arbitrary offset).
+    times = np.round(window.times - window.times[0], 12)
     # Frame number of each capture inside its own video.
     frame_of = np.empty(T, dtype=np.int64)
     videos = []
