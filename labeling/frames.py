@@ -16,6 +16,8 @@ from dynrecon.errors import InputError
 
 log = logging.getLogger(__name__)
 
+BACK_BLOCK = 8  # frames decoded and cached together when a request goes backwards
+
 
 @dataclass(frozen=True, kw_only=True)
 class VideoInfo:
@@ -178,19 +180,32 @@ class FrameCache:
                 self._cache.move_to_end(key)
                 self.hits += 1
                 return data
-        frame = reader.read(index)
-        if frame is None:
-            log.warning("%s: frame %d could not be decoded", reader.info.path, index)
-            return None
+        with self._lock:
+            self.misses += 1
+        start = index
+        if index < reader.next_index:
+            # Going backwards costs a seek to the previous keyframe and a decode forward from there; keep the
+            # frames decoded on the way, which are the ones someone stepping backwards asks for next.
+            start = max(0, index - BACK_BLOCK + 1)
+        data = None
+        for i in range(start, index + 1):
+            frame = reader.read(i)
+            if frame is None:
+                log.warning("%s: frame %d could not be decoded", reader.info.path, i)
+                return None
+            data = self._store((video, i), frame)
+        return data
+
+    def _store(self, key: tuple[str, int], frame: np.ndarray) -> bytes | None:
         ok, encoded = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         if not ok:
             return None
         data = encoded.tobytes()
         with self._lock:
-            self.misses += 1
             if key not in self._cache:
                 self._cache[key] = data
                 self._bytes += len(data)
+            self._cache.move_to_end(key)
             while self._bytes > self.max_bytes and len(self._cache) > 1:
                 _, dropped = self._cache.popitem(last=False)
                 self._bytes -= len(dropped)

@@ -96,8 +96,20 @@ class LabelingApp:
                         "height": v.height, "fps": v.fps} for v in self.videos.values()],
             "points": points,
             "connections": connections,
-            "track": self.track_job.status().as_json(),
+            "track": self.track_status(),
         }
+
+    def track_status(self) -> dict[str, Any]:
+        """Tracking job status, plus what lets the page notice outside changes: the version of tracks.csv
+        (a `dynrecon track` run from a shell) and the exact frame counts once the frame scan has them."""
+        status = self.track_job.status().as_json()
+        try:
+            st = os.stat(self.workspace / "tracks.csv")
+            status["tracks_version"] = f"{st.st_mtime_ns}-{st.st_size}"
+        except FileNotFoundError:
+            status["tracks_version"] = ""
+        status["frames"] = {name: self.frames.frame_count(name) for name in self.videos}
+        return status
 
     def labels_of(self, video: str) -> list[dict[str, Any]]:
         rows = []
@@ -236,7 +248,7 @@ class LabelingApp:
             raise BadRequestError(f"unknown video {unknown[0]!r}")
         if not self.track_job.start({n: self.videos[n].path for n in names}):
             raise ConflictError("tracking is already running")
-        return self.track_job.status().as_json()
+        return self.track_status()
 
     def close(self) -> None:
         self.frames.close()
@@ -331,7 +343,7 @@ class Handler(BaseHTTPRequestHandler):
             video = self._video_param(query)
             return self._json({"video": video, "tracks": app.tracks_of(video)})
         if seg == ["api", "track"]:
-            return self._json(app.track_job.status().as_json())
+            return self._json(app.track_status())
         return self._not_found()
 
     def _post(self, seg: list[str], query: dict[str, list[str]]) -> None:

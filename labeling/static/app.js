@@ -579,9 +579,21 @@ async function startTracking() {
 }
 
 async function pollTracking() {
+  if (S.polling) return;
+  S.polling = true;
   while (S.trackState === "running") {
     await new Promise((resolve) => setTimeout(resolve, 400));
     try { onTrackStatus(await api("GET", "/api/track"), false); } catch (error) { /* server busy: ask again */ }
+  }
+  S.polling = false;
+}
+
+// While idle, look now and then for changes made outside the page (e.g. `dynrecon track` in a shell).
+async function watchOutside() {
+  for (;;) {
+    await new Promise((resolve) => setTimeout(resolve, 3000));
+    if (document.hidden || S.trackState === "running") continue;
+    try { onTrackStatus(await api("GET", "/api/track"), false); } catch (error) { /* try again later */ }
   }
 }
 
@@ -598,11 +610,28 @@ function onTrackStatus(status, initial) {
   document.body.dataset.trackState = status.state;
   document.body.dataset.trackSeq = String(status.seq);
   if (initial && status.state === "running") pollTracking();
-  if (!initial && status.seq !== previousSeq && status.state !== "running") {
-    if (status.state === "done") for (const v of status.videos) S.staleVideos.delete(v);
-    if (S.video) reloadTracks();
-  }
+  const finished = status.seq !== previousSeq && status.state !== "running";
+  if (!initial && finished && status.state === "done") for (const v of status.videos) S.staleVideos.delete(v);
+  const outside = S.tracksVersion !== undefined && status.tracks_version !== S.tracksVersion;
+  S.tracksVersion = status.tracks_version;
+  if (!initial && (finished || outside) && status.state !== "running" && S.video) reloadTracks();
+  updateFrameCounts(status.frames || {});
   renderTrackInfo();
+}
+
+// The server counts the frames exactly in the background; the container's count may have been off.
+function updateFrameCounts(frames) {
+  for (const v of S.videos) {
+    if (frames[v.name] === undefined || frames[v.name] === v.frames) continue;
+    v.frames = frames[v.name];
+    if (S.video && S.video.name === v.name) {
+      $("slider").max = String(v.frames - 1);
+      $("frame").max = String(v.frames - 1);
+      $("frame-count").textContent = `/ ${v.frames - 1}`;
+      if (S.frame >= v.frames) gotoFrame(v.frames - 1);
+    }
+    renderVideos();
+  }
 }
 
 // ---------------------------------------------------------------- messages
@@ -787,6 +816,7 @@ async function start() {
     resizeCanvas();
     await selectVideo(params.get("video") || (S.videos[0] && S.videos[0].name), Number(params.get("frame")) || 0);
     document.body.dataset.ready = "1";
+    watchOutside();
   } catch (error) {
     flash(`cannot load the workspace: ${error.message}`, true);
   }

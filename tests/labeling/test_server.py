@@ -176,7 +176,12 @@ def test_track_runs_in_background_and_tracks_are_served(server: LabelServer) -> 
     status, data = request(server, "GET", "/api/tracks?video=cam1")
     assert json.loads(data)["tracks"] == [{"frame": 5, "point": "tail", "x": 61.0, "y": 70.0, "score": 0.5}]
     status, data = request(server, "GET", "/api/track")
-    assert json.loads(data)["seq"] == 1
+    after_run = json.loads(data)
+    assert after_run["seq"] == 1 and after_run["frames"] == {"cam1": FRAMES}
+    # A run from a shell (`dynrecon track`) changes the version the page watches.
+    fake_tracker(server.app.workspace, {})
+    status, data = request(server, "GET", "/api/track")
+    assert json.loads(data)["tracks_version"] != after_run["tracks_version"]
 
 
 def test_tracker_failure_is_reported_not_fatal(workspace: Path, video: Path) -> None:
