@@ -183,7 +183,12 @@ class VideoFrames:
             if self._seek_ok:
                 log.info("%s: seeking is not exact for this codec; decoding sequentially", self.path.name)
                 self._seek_ok = False
-                self._seek(self._next)
+                target = self._next
+                # Where the capture really is after the bad seek is unknown: start over from frame 0.
+                self._cap.release()
+                self._cap = self._open()
+                self._next = 0
+                self._seek(target)
                 self._read_next()
                 return
             raise InputError(self.path, f"frame {self._next} decodes differently on a second read",

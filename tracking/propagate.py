@@ -92,9 +92,11 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
     for point, marks in labels.items():
         for frame, xy in marks.items():
             by_frame.setdefault(frame, {})[point] = xy
-    if not by_frame:
-        return out
-    order = range(min(by_frame), num_frames) if direction > 0 else range(max(by_frame), -1, -1)
+    order = range(0)
+    if by_frame:
+        order = range(min(by_frame), num_frames) if direction > 0 else range(max(by_frame), -1, -1)
+    for _ in range(num_frames - len(order)):  # frames no track can reach still count as done
+        tick()
     active: dict[str, _Track] = {}
     prev: np.ndarray | None = None
     for frame in order:
@@ -123,49 +125,55 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
     """Move every active track from `prev` to `cur`; record survivors in `out[point][frame]`, drop others."""
     names = list(active)
     xy0 = np.array([active[n].xy for n in names]).reshape(-1, 2)
-    height, width = cur.shape[:2]
     if options.method is Method.CSRT:
-        xy1 = np.full_like(xy0, np.nan)
-        fb = np.full(len(names), np.inf)
-        needs_fallback = np.ones(len(names), dtype=bool)
+        xy1, fb = np.full_like(xy0, np.nan), np.full(len(names), np.inf)
     else:
         xy1, fb = lk_step(prev, cur, xy0, options)
-        needs_fallback = ~(fb <= options.fb_threshold)
-    step_penalty = np.ones(len(names))
-    if options.method is not Method.LK:
-        for k in np.flatnonzero(needs_fallback):
-            i = int(k)
-            guess = csrt_step(prev, cur, xy0[i], options.fallback_box)
-            if guess is None:
-                continue
-            refined, fb_refined = lk_step(prev, cur, xy0[i:i + 1], options, guess=guess.reshape(1, 2))
-            near = np.linalg.norm(refined[0] - guess) < 0.5 * options.win_size
-            if fb_refined[0] <= options.fb_threshold and near:
-                xy1[i], fb[i] = refined[0], fb_refined[0]
-            elif options.accept_unrefined:
-                # CSRT alone: integer precision and no consistency check, so it counts for less.
-                xy1[i], fb[i] = guess, 0.5 * options.fb_threshold
-                step_penalty[i] = 0.5
     for i, name in enumerate(names):
         track = active[name]
-        x, y = xy1[i]
-        ok = bool(fb[i] <= options.fb_threshold) and np.isfinite(x) and np.isfinite(y)
-        m = options.margin
-        ok = ok and m <= x <= width - 1 - m and m <= y <= height - 1 - m
-        if not ok:
-            log.debug("%s frame %d: stopped (step failed, fb %.2f px)", name, frame, fb[i])
+        step = None if options.method is Method.CSRT else _accept(cur, xy1[i], float(fb[i]), track, options)
+        if step is None and options.method is not Method.LK:
+            # LK failed its own check or landed on something that does not look like the label: try CSRT.
+            step = _fallback(prev, cur, xy0[i], track, options)
+        if step is None:
+            log.debug("%s frame %d: stopped (fb %.2f px)", name, frame, fb[i])
             del active[name]
             continue
-        similarity = ncc(patch_at(cur, xy1[i], options.patch), track.template)
-        s_app = (similarity - options.min_ncc) / (1.0 - options.min_ncc)
-        if s_app <= 0.0:
-            log.debug("%s frame %d: stopped (ncc %.2f with the label's patch)", name, frame, similarity)
-            del active[name]
-            continue
-        s_fb = 1.0 - 0.5 * float(fb[i]) / options.fb_threshold
-        track.xy = xy1[i]
-        track.score = float(np.clip(min(s_app, 1.0) * s_fb * step_penalty[i], 0.0, 1.0))
-        out[name][frame] = (float(x), float(y), track.score)
+        track.xy, track.score = step
+        out[name][frame] = (float(track.xy[0]), float(track.xy[1]), track.score)
+
+
+def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: TrackOptions,
+            penalty: float = 1.0) -> tuple[np.ndarray, float] | None:
+    """The new position and its score, or None when the step fails the forward-backward check, leaves the
+    picture, or the patch there no longer looks like the label's."""
+    height, width = cur.shape[:2]
+    m = options.margin
+    if not (fb <= options.fb_threshold and m <= xy[0] <= width - 1 - m and m <= xy[1] <= height - 1 - m):
+        return None
+    similarity = ncc(patch_at(cur, xy, options.patch), track.template)
+    s_app = (similarity - options.min_ncc) / (1.0 - options.min_ncc)
+    if s_app <= 0.0:
+        return None
+    s_fb = 1.0 - 0.5 * fb / options.fb_threshold
+    return xy.copy(), float(np.clip(min(s_app, 1.0) * s_fb * penalty, 0.0, 1.0))
+
+
+def _fallback(prev: np.ndarray, cur: np.ndarray, xy0: np.ndarray, track: _Track, options: TrackOptions
+              ) -> tuple[np.ndarray, float] | None:
+    """One CSRT step around the point, refined by LK from CSRT's answer."""
+    guess = csrt_step(prev, cur, xy0, options.fallback_box)
+    if guess is None:
+        return None
+    refined, fb = lk_step(prev, cur, xy0.reshape(1, 2), options, guess=guess.reshape(1, 2))
+    if np.linalg.norm(refined[0] - guess) < 0.5 * options.win_size:
+        step = _accept(cur, refined[0], float(fb[0]), track, options)
+        if step is not None:
+            return step
+    if options.accept_unrefined:
+        # CSRT alone: integer precision and no consistency check, so it counts for less.
+        return _accept(cur, guess, 0.5 * options.fb_threshold, track, options, penalty=0.5)
+    return None
 
 
 def _combine(labels: dict[str, dict[int, np.ndarray | None]], forward: _Sweep, backward: _Sweep,
