@@ -13,7 +13,8 @@ from tracking.synthetic import SyntheticVideo
 
 def test_video_frames_match_the_written_frames_in_any_order(small_video: SyntheticVideo) -> None:
     assert small_video.path is not None and small_video.frames is not None
-    # A tiny cache forces re-decoding: backward sweeps, jumps and forward reads must all return the right frame.
+    # A tiny cache forces re-decoding: backward sweeps, jumps and forward reads must all return the right
+    # frame.
     frames = VideoFrames(small_video.path, cache_bytes=5 * 320 * 240, block=4)
     assert len(frames) == len(small_video.frames) == 40
     assert frames.shape == (240, 320)
@@ -57,7 +58,7 @@ def test_missing_and_undecodable_videos_are_input_errors(tmp_path: Path) -> None
         VideoFrames(tmp_path / "nope.mp4")
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(b"not a video at all" * 10)
-    with pytest.raises(InputError, match="junk.mp4"):
+    with pytest.raises(InputError, match=r"junk\.mp4"):
         VideoFrames(junk)
 
 

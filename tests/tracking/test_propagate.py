@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames
 from tracking.options import Blend, Method, TrackOptions
@@ -30,7 +31,8 @@ def test_labels_every_tenth_frame_meet_the_acceptance_bounds(small_video: Synthe
 
 def test_every_blend_is_accurate_and_blending_beats_forward_only(small_video: SyntheticVideo) -> None:
     labels = labels_every(small_video, 10)
-    accuracy = {blend: score(track_video(_frames(small_video), labels, TrackOptions(blend=blend)), small_video)
+    accuracy = {blend: score(track_video(_frames(small_video), labels, TrackOptions(blend=blend)),
+                             small_video)
                 for blend in Blend}
     for blend in Blend:
         assert accuracy[blend].median < 1.0
@@ -48,7 +50,8 @@ def test_csrt_fallback_tracks_the_same_points(small_video: SyntheticVideo) -> No
         for name in labels:
             common = set(lk[name]) & set(other[name])
             assert len(common) >= 0.8 * len(lk[name])
-            gap = max(np.hypot(lk[name][f].x - other[name][f].x, lk[name][f].y - other[name][f].y) for f in common)
+            gap = max(np.hypot(lk[name][f].x - other[name][f].x,
+                               lk[name][f].y - other[name][f].y) for f in common)
             assert gap < 1.0
 
 

@@ -1,0 +1,110 @@
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from tracking.accuracy import labels_every
+from tracking.synthetic import SyntheticVideo
+from tracking.tracks import read_tracks
+
+
+def _workspace(tmp_path: Path, video: SyntheticVideo, every: int = 10) -> Path:
+    assert video.path is not None
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "labeling.json").write_text(json.dumps({"videos": {"cam0": str(video.path)},
+                                                  "points": video.names}))
+    lines = ["video,frame,point,x,y,source"]
+    for name, marks in labels_every(video, every).items():
+        for frame, xy in marks.items():
+            row = ",,hidden" if xy is None else f"{xy[0]},{xy[1]},label"
+            lines.append(f"cam0,{frame},{name},{row}")
+    (ws / "labels.csv").write_text("\n".join(lines) + "\n")
+    return ws
+
+
+def test_track_command_writes_labels_and_accurate_tracks(tmp_path: Path, small_video: SyntheticVideo,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    ws = _workspace(tmp_path, small_video)
+    assert main(["track", str(ws)]) == 0
+    assert capsys.readouterr().out.strip() == str(ws / "tracks.csv")
+    tracks = read_tracks(ws / "tracks.csv")
+    assert set(tracks.video) == {"cam0"}
+    errors = []
+    for i in range(len(tracks)):
+        p, f = small_video.names.index(tracks.point[i]), int(tracks.frame[i])
+        source, score = tracks.extra["source"][i], float(tracks.extra["score"][i])
+        assert small_video.visible[f, p] or source == "track"  # hidden labels never become rows
+        if source == "label":
+            assert f % 10 == 0 and score == 1.0
+            np.testing.assert_allclose(tracks.xy[i], small_video.uv[f, p], atol=1e-9)
+        else:
+            assert source == "track" and 0.0 <= score <= 1.0 and f % 10 != 0
+            errors.append(np.hypot(*(tracks.xy[i] - small_video.uv[f, p])))
+    assert len(errors) > 0.8 * 36 * len(small_video.names)
+    assert np.median(errors) < 1.0 and np.percentile(errors, 95) < 3.0
+
+
+def test_track_only_given_videos_keeps_the_rest(tmp_path: Path, small_video: SyntheticVideo) -> None:
+    ws = _workspace(tmp_path, small_video, every=20)
+    with (ws / "labels.csv").open("a") as handle:
+        handle.write("other,3,m0,5.0,6.0,label\n")
+    (ws / "tracks.csv").write_text("video,frame,point,x,y,source,score\n"
+                                   "other,3,m0,1.0,1.0,track,0.5\nother,4,m0,2.0,2.0,track,0.5\n")
+    assert small_video.path is not None
+    out = tmp_path / "custom.csv"
+    (ws / "tracks.csv").replace(out)
+    assert main(["track", str(ws), "--videos", str(small_video.path), "--out", str(out), "--method", "lk",
+                 "--blend", "best"]) == 0
+    tracks = read_tracks(out)
+    other = {(int(tracks.frame[i]), tracks.extra["source"][i]): tuple(tracks.xy[i])
+             for i in range(len(tracks)) if tracks.video[i] == "other"}
+    assert other == {(3, "label"): (5.0, 6.0), (4, "track"): (2.0, 2.0)}  # the new label replaced the old row
+    assert "cam0" in set(tracks.video)
+
+
+def test_track_command_errors_are_one_line(tmp_path: Path, small_video: SyntheticVideo,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["track", str(tmp_path / "missing")]) == 2
+    assert "workspace folder not found" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["track", str(empty)]) == 2
+    assert "no videos found" in capsys.readouterr().err
+    ws = _workspace(tmp_path, small_video)
+    (ws / "labels.csv").write_text("video,frame,point,x,y,source\ncam0,zero,m0,1,2,label\n")
+    assert main(["track", str(ws)]) == 2
+    err = capsys.readouterr().err
+    assert "labels.csv:line 2: frame 'zero' is not an integer" in err and err.count("\n") == 1
+    (ws / "labeling.json").write_text('{"videos": {"cam0": "nowhere.mp4"}}')
+    assert main(["track", str(ws)]) == 2
+    assert "nowhere.mp4 not found" in capsys.readouterr().err
+    assert main(["track", str(ws), "--min-score", "2"]) == 2
+
+
+def test_track_without_labels_writes_an_empty_file(tmp_path: Path, small_video: SyntheticVideo) -> None:
+    assert small_video.path is not None
+    ws = tmp_path / "ws"
+    (ws / "videos").mkdir(parents=True)
+    (ws / "videos" / "cam9.avi").symlink_to(small_video.path)
+    assert main(["track", str(ws)]) == 0
+    assert len(read_tracks(ws / "tracks.csv")) == 0
+
+
+def test_import_tracks_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "in.csv"
+    src.write_text("video,frame,point,x,y,score\nv,0,Nose,1,2,0.9\nv,1,Nose,1,2,0.1\nv,0,Neck,3,4,0.9\n")
+    out = tmp_path / "ws" / "tracks.csv"
+    assert main(["import-tracks", str(src), "--out", str(out), "--map", "Nose=nose", "--drop-unmapped",
+                 "--min-score", "0.5"]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    tracks = read_tracks(out)
+    assert list(tracks.point) == ["nose"] and tracks.extra["source"] == ["csv"]
+    assert main(["import-tracks", str(src), "--out", str(out), "--map", "broken"]) == 2
+    assert "--map: 'broken' is not old=new" in capsys.readouterr().err
+    assert main(["import-tracks", str(tmp_path / "nope.csv"), "--out", str(out)]) == 2
+    assert "nope.csv: file not found" in capsys.readouterr().err
