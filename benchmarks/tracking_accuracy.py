@@ -36,11 +36,14 @@ SCENARIOS = {
     "fast + long blur, FFV1": (FAST, "FFV1", ".avi"),
     "fast + long blur, mp4v": (FAST, "mp4v", ".mp4"),
     "large jumps, mp4v": (JUMPY, "mp4v", ".mp4"),
+    "fast + auto-exposure flicker, mp4v": ({**FAST, "flicker": 0.15}, "mp4v", ".mp4"),
 }
 VARIANTS = [
     ("lk", TrackOptions(method=Method.LK, blend=Blend.FORWARD)),
     ("lk", TrackOptions(method=Method.LK, blend=Blend.BEST)),
     ("lk", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED)),
+    ("lk, no brightness normalization", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED,
+                                                     normalize=False)),
     ("lk+csrt", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED)),
     ("lk+csrt, unrefined kept", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED,
                                              accept_unrefined=True)),
@@ -56,6 +59,8 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--quick", action="store_true", help="one scenario, no CSRT-only variant")
+    parser.add_argument("--csrt-everywhere", action="store_true",
+                        help="run the slow CSRT-only variant on every scenario, not only the first")
     parser.add_argument("--out-dir", type=Path, help="keep the rendered videos here")
     args = parser.parse_args()
     scenarios = dict(list(SCENARIOS.items())[:1]) if args.quick else SCENARIOS
@@ -75,6 +80,8 @@ def main() -> None:
             frames = VideoFrames(path)
             labels = labels_every(video, args.every)
             for label, options in variants:
+                if options.method is Method.CSRT and seed > 0 and not args.csrt_everywhere:
+                    continue
                 start = time.perf_counter()
                 result = track_video(frames, labels, options)
                 seconds = time.perf_counter() - start

@@ -19,7 +19,7 @@ import numpy as np
 
 from tracking.frames import FrameSource
 from tracking.options import Blend, Method, TrackOptions
-from tracking.steps import csrt_step, lk_step, ncc, patch_at
+from tracking.steps import csrt_step, lk_step, ncc, normalize_brightness, patch_at
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
             prev = None
             tick()
             continue
-        gray = frames.gray(frame)
+        gray = normalize_brightness(frames.gray(frame)) if options.normalize else frames.gray(frame)
         if active and prev is not None:
             _advance(prev, gray, active, options, out, frame)
         for name, label in here.items():

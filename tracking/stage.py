@@ -43,7 +43,8 @@ def run(workspace: str | Path, out: str | Path | None = None, options: TrackOpti
             continue
         frames = VideoFrames(path)
         try:
-            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False) as bar:
+            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False,
+                      disable=None) as bar:
                 results[name] = track_video(frames, marks, options,
                                             progress=lambda done, total: bar.update(done - bar.n))
         finally:

@@ -71,3 +71,14 @@ def csrt_step(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, box: int) -> np
     # Box centres, not corners: CSRT may change the box size (scale estimation) around the same centre.
     shift = np.array([x1 + (w1 - 1) / 2 - (x0 + (box - 1) / 2), y1 + (h1 - 1) / 2 - (y0 + (box - 1) / 2)])
     return np.asarray(xy, dtype=float) + shift
+
+
+def normalize_brightness(gray: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 with the frame's mean and contrast mapped to fixed values.
+
+    LK assumes a point keeps its brightness between frames; a phone's auto exposure changes the gain of the
+    whole frame, which LK would take for motion. A global gain and offset cancel here exactly.
+    """
+    mean, std = cv2.meanStdDev(gray)
+    scale = 48.0 / max(float(std[0, 0]), 1.0)
+    return cv2.convertScaleAbs(gray, alpha=scale, beta=128.0 - scale * float(mean[0, 0]))

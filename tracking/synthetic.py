@@ -37,6 +37,7 @@ class SyntheticOptions:
     occluder: bool = True  # a bar sweeps across the picture during the middle half of the video
     occluder_width: float = 0.08  # bar width as a fraction of the image width
     noise: float = 1.5  # sensor noise, standard deviation in gray levels
+    flicker: float = 0.0  # auto-exposure flicker: standard deviation of a per-frame relative gain change
     fps: float = 30.0
     fourcc: str = "FFV1"  # FFV1 in .avi is lossless; "mp4v" in .mp4 adds compression artefacts
     seed: int = 0
@@ -205,6 +206,8 @@ def render_video(path: str | Path | None, options: SyntheticOptions | None = Non
     offsets = [0.0] if samples == 1 else list(options.exposure * (np.arange(samples) / (samples - 1) - 0.5))
     for f in range(options.frames):
         picture = np.mean([scene.render(f + dt) for dt in offsets], axis=0)
+        if options.flicker > 0:
+            picture *= float(np.clip(1.0 + options.flicker * rng.standard_normal(), 0.3, 2.0))
         picture += rng.normal(0, options.noise, picture.shape).astype(np.float32)
         image = np.clip(np.rint(picture), 0, 255).astype(np.uint8)
         uv[f], visible[f] = scene.truth(f)
