@@ -1,11 +1,13 @@
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames
 from tracking.options import Blend, Method, TrackOptions
 from tracking.propagate import SOURCE_LABEL, SOURCE_TRACK, track_video
+from tracking.steps import normalize_brightness
 from tracking.synthetic import SyntheticVideo
 
 
@@ -104,3 +106,24 @@ def test_a_point_leaving_the_picture_stops() -> None:
     assert max(result) < 8
     for f, point in result.items():
         assert abs(point.x - (40.0 - 6 * f)) < 0.5 and abs(point.y - 60.0) < 0.5
+
+
+def test_brightness_normalization_survives_auto_exposure_flicker() -> None:
+    rng = np.random.default_rng(5)
+    noise = rng.random((200, 400)).astype(np.float32)
+    texture = cv2.GaussianBlur(noise, (0, 0), 2.0)
+    texture = (texture - texture.mean()) / texture.std()
+    frames = []
+    for t in range(12):
+        gain = 1.0 if t % 2 == 0 else 1.35  # every other frame 35% brighter, as auto exposure does
+        window = texture[20:180, 2 * t:2 * t + 200]
+        frames.append(np.clip(gain * (110 + 30 * window), 0, 255).astype(np.uint8))
+    labels = {"p": {0: (100.0, 80.0)}}
+    truth = {t: (100.0 - 2 * t, 80.0) for t in range(12)}
+    with_norm = track_video(ArrayFrames(frames), labels, TrackOptions())["p"]
+    assert set(with_norm) == set(range(12))
+    for t, point in with_norm.items():
+        assert np.hypot(point.x - truth[t][0], point.y - truth[t][1]) < 0.3
+    # The normalized frames themselves no longer flicker.
+    a, b = normalize_brightness(frames[4]), normalize_brightness(frames[5])
+    assert abs(float(a.mean()) - float(b.mean())) < 1.0 and abs(float(a.std()) - float(b.std())) < 1.0
