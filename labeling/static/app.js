@@ -108,7 +108,18 @@ function commit(edits) {
   S.redo = [];
   S.staleVideos.add(S.video.name);
   save(real.map((e) => ({ video: e.video, frame: e.frame, point: e.point, state: e.after })));
+  scheduleAutoTrack();
   refresh();
+}
+
+// Opt-in: a correction re-anchors the track without pressing T (waits for a pause in the clicking).
+let autoTrackTimer = null;
+function scheduleAutoTrack() {
+  if (!$("auto-track").checked) return;
+  clearTimeout(autoTrackTimer);
+  autoTrackTimer = setTimeout(() => {
+    if (S.trackState === "running") scheduleAutoTrack(); else startTracking();
+  }, 1500);
 }
 
 function sameState(a, b) {
@@ -125,6 +136,7 @@ async function undoRedo(from, to, field) {
   for (const e of step) setLocal(e.frame, e.point, e[field]);
   S.staleVideos.add(target.video);
   save(step.map((e) => ({ video: e.video, frame: e.frame, point: e.point, state: e[field] })));
+  scheduleAutoTrack();
   if (S.frame !== target.frame) gotoFrame(target.frame);
   selectPoint(target.point);
   flash(`${field === "before" ? "undid" : "redid"} ${describe(step)}`);
@@ -388,16 +400,19 @@ function drawMarker(point, st, selected) {
   circle(x, y, r);
   ctx.setLineDash([]);
   if (st.kind === "label") {
-    ctx.lineWidth = 1.5;
-    for (const [dx, dy] of [[1, 0], [-1, 0], [0, 1], [0, -1]]) line(x + dx * (r + 2), y + dy * (r + 2), x + dx * (r + 6), y + dy * (r + 6));
-    ctx.fillStyle = c;
-    ctx.fillRect(x - 1, y - 1, 2, 2);
-  } else {
-    ctx.fillStyle = low ? "#ff3b3b" : c;
-    ctx.globalAlpha = 0.35;
-    ctx.beginPath(); ctx.arc(x, y, r, 0, 2 * Math.PI); ctx.fill();
-    ctx.globalAlpha = 1;
+    // Ticks outside the ring point at the clicked pixel without covering it.
+    for (const [dx, dy] of [[1, 0], [-1, 0], [0, 1], [0, -1]]) {
+      const [x0, y0, x1, y1] = [x + dx * (r + 2), y + dy * (r + 2), x + dx * (r + 7), y + dy * (r + 7)];
+      ctx.lineWidth = 4;
+      ctx.strokeStyle = "rgba(0,0,0,0.6)";
+      line(x0, y0, x1, y1);
+      ctx.lineWidth = 2;
+      ctx.strokeStyle = c;
+      line(x0, y0, x1, y1);
+    }
   }
+  ctx.fillStyle = st.kind === "track" && low ? "#ff3b3b" : c;
+  ctx.fillRect(x - 1, y - 1, 2, 2);
   if (selected) {
     ctx.lineWidth = 1;
     ctx.strokeStyle = "#fff";
@@ -472,34 +487,46 @@ function renderVideos() {
 function renderPoints() {
   const ul = $("points");
   if (ul.querySelector("input.rename-input")) return; // do not disturb a rename in progress
-  ul.replaceChildren(...S.points.map((p, i) => {
-    const li = document.createElement("li");
-    li.className = p === S.selected ? "active" : "";
-    li.dataset.point = p;
-    const keyEl = document.createElement("span");
-    keyEl.className = "key";
-    keyEl.textContent = i < 9 ? String(i + 1) : "";
-    const swatch = document.createElement("span");
-    swatch.className = "swatch";
-    swatch.style.background = color(p);
-    const name = document.createElement("span");
-    name.className = "name";
-    name.textContent = p;
-    const state = document.createElement("span");
+  // Rebuild only when the names change; otherwise update in place, so a double click lands on the same element.
+  const signature = S.points.join("\n");
+  if (ul.dataset.signature !== signature) {
+    ul.dataset.signature = signature;
+    ul.replaceChildren(...S.points.map(pointItem));
+  }
+  for (const li of ul.children) {
+    const p = li.dataset.point;
+    li.classList.toggle("active", p === S.selected);
     const st = S.video ? stateAt(S.frame, p) : { kind: "none" };
+    const state = li.querySelector(".state");
     state.className = `state ${st.kind}${isLow(st) ? " low" : ""}`;
     state.textContent = st.kind === "label" ? "label" : st.kind === "hidden" ? "not visible"
       : st.kind === "track" ? `track ${st.score === null ? "" : st.score.toFixed(2)}` : "–";
-    const rename = document.createElement("button");
-    rename.className = "rename";
-    rename.title = "rename";
-    rename.textContent = "✎";
-    rename.addEventListener("click", (e) => { e.stopPropagation(); startRename(li, p); });
-    li.append(keyEl, swatch, name, state, rename);
-    li.addEventListener("click", () => selectPoint(p));
-    li.addEventListener("dblclick", () => startRename(li, p));
-    return li;
-  }));
+  }
+}
+
+function pointItem(p, i) {
+  const li = document.createElement("li");
+  li.dataset.point = p;
+  const keyEl = document.createElement("span");
+  keyEl.className = "key";
+  keyEl.textContent = i < 9 ? String(i + 1) : "";
+  const swatch = document.createElement("span");
+  swatch.className = "swatch";
+  swatch.style.background = color(p);
+  const name = document.createElement("span");
+  name.className = "name";
+  name.textContent = p;
+  const state = document.createElement("span");
+  state.className = "state";
+  const rename = document.createElement("button");
+  rename.className = "rename";
+  rename.title = "rename";
+  rename.textContent = "✎";
+  rename.addEventListener("click", (e) => { e.stopPropagation(); startRename(li, p); });
+  li.append(keyEl, swatch, name, state, rename);
+  li.addEventListener("click", () => selectPoint(p));
+  li.addEventListener("dblclick", () => startRename(li, p));
+  return li;
 }
 
 function startRename(li, old) {
@@ -516,6 +543,7 @@ function startRename(li, old) {
     finished = true;
     const name = input.value.trim();
     input.remove();
+    $("points").dataset.signature = "";
     if (apply && name && name !== old) {
       try {
         const answer = await api("POST", "/api/points", { op: "rename", old, new: name });

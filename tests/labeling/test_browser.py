@@ -7,6 +7,7 @@ The screenshot is written to tmp_path/labeling.png (path printed) and copied to 
 from __future__ import annotations
 
 import csv
+import json
 import shutil
 from pathlib import Path
 
@@ -52,7 +53,8 @@ def write_scene(path: Path) -> Path:
     # Random blobs of texture (no periodic pattern: LK would lock onto the wrong period).
     blotches = {p: cv2.resize(rng.random((size // 3, size // 3)).astype(np.float32), (size, size))
                 for p in POINTS}
-    tints = {"head": (60, 200, 255), "hand": (255, 160, 60), "foot": (120, 255, 120)}
+    # Muted colours, so the page's markers stand out in the screenshot.
+    tints = {"head": (190, 200, 215), "hand": (215, 195, 175), "foot": (185, 215, 190)}
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (WIDTH, HEIGHT))
     for frame in range(FRAMES):
         image = background.copy()
@@ -228,6 +230,11 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         assert state == {"labels": 8, "tracks": sum(1 for r in tracks if r["source"] == "track"),
                          "frame": 10, "selected": "hand"}
         goto_frame(page, 10)
+        middle = np.mean([truth(p, 10) for p in POINTS], axis=0)
+        x, y = page.evaluate("([u, v]) => window.dynreconLabel.toClient(u, v)", [float(m) for m in middle])
+        page.mouse.move(x, y)
+        page.mouse.wheel(0, -300)  # zoom in a little for the picture
+        page.wait_for_function("window.dynreconLabel.state.view.scale > 2")
         page.mouse.move(5, 5)  # no hover effects in the picture
         shot = tmp_path / "labeling.png"
         page.screenshot(path=str(shot))
@@ -236,3 +243,49 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
     images = REPO / "docs" / "images"
     images.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(shot, images / "labeling.png")
+
+
+def test_points_keys_and_auto_track(browser, tmp_path: Path) -> None:
+    """Add and rename a point, navigate with keys, and let a change start tracking by itself."""
+    video = write_scene(tmp_path / "swing.avi")
+    workspace = tmp_path / "ws"
+    with LabelServer(workspace, LabelOptions(videos=[video], skeleton=Skeleton(points=["head"]))) as server:
+        page = browser.new_page(viewport={"width": 1100, "height": 700})
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(server.url)
+        page.wait_for_selector("body[data-ready='1']")
+
+        page.fill("#new-point", "toe")
+        page.press("#new-point", "Enter")
+        page.wait_for_selector("li[data-point='toe'].active")
+        page.dblclick("li[data-point='toe'] .name")
+        page.fill("li[data-point='toe'] input.rename-input", "heel")
+        page.press("li[data-point='toe'] input.rename-input", "Enter")
+        page.wait_for_selector("li[data-point='heel']")
+        assert json.loads((workspace / "labeling.json").read_text())["points"] == ["head", "heel"]
+
+        page.check("#auto-track")
+        page.click("li[data-point='heel']")
+        click_image(page, *truth("foot", 0))
+        page.focus("#canvas")
+        for _ in range(3):
+            page.keyboard.press("Shift+ArrowRight")  # 10 frames each
+        page.wait_for_function("window.dynreconLabel.state.frame === 29")
+        page.click("li[data-point='heel']")
+        click_image(page, *truth("foot", 29))
+        page.wait_for_function("Number(document.body.dataset.trackSeq) >= 1 && "
+                               "document.body.dataset.trackState === 'done'", timeout=120_000)
+        tracks = read_rows(workspace / "tracks.csv")
+        page.wait_for_function("window.dynreconLabel.state.tracks.size > 0")
+        assert {r["point"] for r in tracks} == {"heel"}
+        assert {int(r["frame"]) for r in tracks if r["source"] == "label"} == {0, 29}
+        assert {int(r["frame"]) for r in tracks if r["source"] == "track"} == set(range(1, 29))
+
+        # N jumps to the next frame where the selected point has neither label nor track.
+        page.keyboard.press("Home")
+        page.click("li[data-point='head']")
+        page.focus("#canvas")
+        page.keyboard.press("n")
+        page.wait_for_function("window.dynreconLabel.state.frame === 1")
+        assert not errors, errors
