@@ -81,13 +81,22 @@ def match(database: str, pairs: list[tuple[str, str]], max_ratio: float, num_thr
 
 
 def map_incremental(
-    database: str, image_dir: str, out_dir: str, fix_intrinsics: bool, num_threads: int, num_images: int
+    database: str,
+    image_dir: str,
+    out_dir: str,
+    fix_intrinsics: bool,
+    init_min_inliers: int,
+    num_threads: int,
+    num_images: int,
 ) -> dict[str, int]:
     """Incremental mapping; models go to out_dir/<index>/. Returns registered images per model index."""
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = num_threads
     options.random_seed = 0
     options.min_model_size = 3
+    options.mapper.init_min_num_inliers = init_min_inliers
+    # Registering a frame needs at least as many 2D-3D inliers as a weaker initial pair had.
+    options.mapper.abs_pose_min_num_inliers = min(options.mapper.abs_pose_min_num_inliers, init_min_inliers)
     if fix_intrinsics:
         options.ba_refine_focal_length = False
         options.ba_refine_principal_point = False
@@ -103,7 +112,13 @@ def map_incremental(
 
 
 def map_global(
-    database: str, image_dir: str, out_dir: str, fix_intrinsics: bool, num_threads: int, num_images: int
+    database: str,
+    image_dir: str,
+    out_dir: str,
+    fix_intrinsics: bool,
+    init_min_inliers: int,
+    num_threads: int,
+    num_images: int,
 ) -> dict[str, int]:
     """Global mapping (GLOMAP in pycolmap 4); models go to out_dir/<index>/."""
     options = pycolmap.GlobalPipelineOptions()

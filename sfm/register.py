@@ -80,6 +80,7 @@ class RegisterOptions:
     use_masks: bool = True
     localize: Localize = Localize.AUTO
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
+    init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
     num_threads: int = -1
 
 
@@ -299,6 +300,7 @@ def _run(
             "image_dir": str(frames_dir),
             "out_dir": str(model_dir),
             "fix_intrinsics": fix_intrinsics,
+            "init_min_inliers": options.init_min_inliers,
             "num_threads": options.num_threads,
             "num_images": sum(len(n) for n in names_of.values()),
         },

@@ -45,6 +45,12 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         default=defaults.keyframes,
         help="keyframes per video matched with all keyframes of the other videos",
     )
+    sfm.add_argument(
+        "--init-min-inliers",
+        type=int,
+        default=defaults.init_min_inliers,
+        help="inliers the mapper needs for its initial pair (lower for wide baselines)",
+    )
     sfm.add_argument("--mapper", choices=[m.value for m in Mapper], default=defaults.mapper.value)
     sfm.add_argument(
         "--camera-model",
@@ -103,6 +109,7 @@ def _run_register(args: argparse.Namespace) -> int:
         use_masks=not args.no_masks,
         localize=Localize(args.localize),
         min_inliers=args.min_inliers,
+        init_min_inliers=args.init_min_inliers,
         num_threads=args.threads,
     )
     path = run(args.videos, args.out, options)
