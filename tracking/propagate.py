@@ -19,7 +19,7 @@ import numpy as np
 
 from tracking.frames import FrameSource
 from tracking.options import Blend, Method, TrackOptions
-from tracking.steps import csrt_step, lk_step, ncc, normalize_brightness, patch_at
+from tracking.steps import brightness, csrt_step, lk_step, ncc, normalize_brightness, patch_at
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +99,7 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
         tick()
     active: dict[str, _Track] = {}
     prev: np.ndarray | None = None
+    reference: tuple[float, float] | None = None
     for frame in order:
         here = by_frame.get(frame, {})
         # A label of any kind ends the track arriving here; the label itself may start the next one.
@@ -108,7 +109,11 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
             prev = None
             tick()
             continue
-        gray = normalize_brightness(frames.gray(frame)) if options.normalize else frames.gray(frame)
+        gray = frames.gray(frame)
+        if options.normalize:
+            # Every frame of the sweep gets the brightness of the first one it decoded.
+            reference = reference or brightness(gray)
+            gray = normalize_brightness(gray, reference)
         if active and prev is not None:
             _advance(prev, gray, active, options, out, frame)
         for name, label in here.items():

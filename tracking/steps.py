@@ -73,12 +73,22 @@ def csrt_step(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, box: int) -> np
     return np.asarray(xy, dtype=float) + shift
 
 
-def normalize_brightness(gray: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 with the frame's mean and contrast mapped to fixed values.
+def brightness(gray: np.ndarray) -> tuple[float, float]:
+    """(mean, standard deviation) of a frame's gray levels."""
+    mean, std = cv2.meanStdDev(gray)
+    return float(mean[0, 0]), max(float(std[0, 0]), 1.0)
+
+
+def normalize_brightness(gray: np.ndarray, reference: tuple[float, float]) -> np.ndarray:
+    """(H, W) uint8 with the frame's mean and contrast mapped to `reference` = (mean, std).
 
     LK assumes a point keeps its brightness between frames; a phone's auto exposure changes the gain of the
-    whole frame, which LK would take for motion. A global gain and offset cancel here exactly.
+    whole frame, which LK would take for motion. A global gain and offset cancel here exactly. Frames within
+    2% of the reference are returned as they are: re-quantizing them would only add rounding noise.
     """
-    mean, std = cv2.meanStdDev(gray)
-    scale = 48.0 / max(float(std[0, 0]), 1.0)
-    return cv2.convertScaleAbs(gray, alpha=scale, beta=128.0 - scale * float(mean[0, 0]))
+    mean, std = brightness(gray)
+    scale = reference[1] / std
+    offset = reference[0] - scale * mean
+    if abs(scale - 1.0) < 0.02 and abs(offset) < 0.02 * reference[0]:
+        return gray
+    return cv2.convertScaleAbs(gray, alpha=scale, beta=offset)

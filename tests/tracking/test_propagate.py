@@ -7,7 +7,7 @@ from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames
 from tracking.options import Blend, Method, TrackOptions
 from tracking.propagate import SOURCE_LABEL, SOURCE_TRACK, track_video
-from tracking.steps import normalize_brightness
+from tracking.steps import brightness, normalize_brightness
 from tracking.synthetic import SyntheticVideo
 
 
@@ -125,5 +125,7 @@ def test_brightness_normalization_survives_auto_exposure_flicker() -> None:
     for t, point in with_norm.items():
         assert np.hypot(point.x - truth[t][0], point.y - truth[t][1]) < 0.3
     # The normalized frames themselves no longer flicker.
-    a, b = normalize_brightness(frames[4]), normalize_brightness(frames[5])
+    reference = brightness(frames[0])
+    a, b = normalize_brightness(frames[4], reference), normalize_brightness(frames[5], reference)
+    assert a is frames[4]  # same exposure as the reference: untouched
     assert abs(float(a.mean()) - float(b.mean())) < 1.0 and abs(float(a.std()) - float(b.std())) < 1.0
