@@ -51,6 +51,10 @@ class BadRequestError(Exception):
     """Malformed request: answered with 400 and the message."""
 
 
+class ForbiddenError(Exception):
+    """A request from another web site: 403."""
+
+
 class ConflictError(Exception):
     """Valid request that cannot run now (e.g. tracking already running): 409."""
 
@@ -313,6 +317,8 @@ class Handler(BaseHTTPRequestHandler):
             self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
         except ConflictError as error:
             self._json({"error": str(error)}, HTTPStatus.CONFLICT)
+        except ForbiddenError as error:
+            self._json({"error": str(error)}, HTTPStatus.FORBIDDEN)
         except DynreconError as error:  # a broken file in the workspace: tell the page which and why
             self._json({"error": str(error)}, HTTPStatus.INTERNAL_SERVER_ERROR)
         except (BrokenPipeError, ConnectionResetError):
@@ -364,6 +370,15 @@ class Handler(BaseHTTPRequestHandler):
         return values[0]
 
     def _read_json(self) -> Any:
+        # A JSON content type makes a cross-site POST a "non-simple" request that browsers do not send
+        # without a CORS preflight (which this server never grants); text/plain forms would get through.
+        content_type = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+        if content_type != "application/json":
+            raise BadRequestError("Content-Type must be application/json")
+        origin = self.headers.get("Origin")
+        allowed = self.app.allowed_hosts
+        if origin is not None and allowed is not None and origin not in {f"http://{h}" for h in allowed}:
+            raise ForbiddenError(f"requests from {origin} are not allowed")
         length_text = self.headers.get("Content-Length")
         if length_text is None or not length_text.isdigit():
             raise BadRequestError("Content-Length header missing or invalid")

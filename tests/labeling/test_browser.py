@@ -282,6 +282,16 @@ def test_points_keys_and_auto_track(browser, tmp_path: Path) -> None:
         assert {int(r["frame"]) for r in tracks if r["source"] == "label"} == {0, 29}
         assert {int(r["frame"]) for r in tracks if r["source"] == "track"} == set(range(1, 29))
 
+        # Shift+drag pans the view and places nothing.
+        before = page.evaluate("({...window.dynreconLabel.state.view})")
+        labels_before = page.evaluate("window.dynreconLabel.state.labels.size")
+        page.keyboard.down("Shift")
+        drag_image(page, (300.0, 200.0), (250.0, 150.0))
+        page.keyboard.up("Shift")
+        after = page.evaluate("({...window.dynreconLabel.state.view})")
+        assert after["tx"] < before["tx"] - 20 and after["ty"] < before["ty"] - 20
+        assert page.evaluate("window.dynreconLabel.state.labels.size") == labels_before
+
         # N jumps to the next frame where the selected point has neither label nor track.
         page.keyboard.press("Home")
         page.click("li[data-point='head']")

@@ -92,3 +92,12 @@ def test_video_that_opencv_cannot_read_is_an_input_error(workspace: Path, tmp_pa
     broken.write_bytes(os.urandom(2000))
     assert main(["label", str(workspace), "--videos", str(broken)]) == 2
     assert str(broken) in capsys.readouterr().err
+
+
+def test_broken_labels_file_is_named_with_its_line(workspace: Path, video: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    (workspace / "labels.csv").write_text("video,frame,point,x,y,source\ncam1,zero,head,1,2,label\n")
+    assert main(["label", str(workspace), "--videos", str(video)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "labels.csv:line 2: frame 'zero' is not an integer" in err and "\n" not in err
+    assert not (workspace / LOCK_NAME).exists()

@@ -37,6 +37,8 @@ def request(server: LabelServer, method: str, path: str, body: bytes | str | Non
             headers: dict[str, str] | None = None) -> tuple[int, bytes]:
     host, port = server.httpd.server_address[:2]
     conn = http.client.HTTPConnection(str(host), int(port), timeout=10)
+    if method == "POST":
+        headers = {"Content-Type": "application/json", **(headers or {})}
     try:
         conn.request(method, path, body=body, headers=headers or {})
         response = conn.getresponse()
@@ -46,7 +48,7 @@ def request(server: LabelServer, method: str, path: str, body: bytes | str | Non
 
 
 def post(server: LabelServer, path: str, obj: object) -> tuple[int, dict]:
-    status, data = request(server, "POST", path, json.dumps(obj), {"Content-Type": "application/json"})
+    status, data = request(server, "POST", path, json.dumps(obj))
     return status, json.loads(data)
 
 
@@ -291,6 +293,17 @@ def test_malformed_queries_and_headers_are_400(server: LabelServer) -> None:
 def test_foreign_host_header_is_refused(server: LabelServer) -> None:
     status, _ = request(server, "GET", "/api/state", headers={"Host": "evil.example:80"})
     assert status == 403
+
+
+def test_cross_site_posts_change_nothing(server: LabelServer, workspace: Path) -> None:
+    body = json.dumps({"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label",
+                                    "x": 1, "y": 1}]})
+    # What a form or a no-cors fetch on another site can send: text/plain, and an Origin header.
+    assert request(server, "POST", "/api/labels", body, {"Content-Type": "text/plain"})[0] == 400
+    assert request(server, "POST", "/api/labels", body, {"Origin": "http://evil.example"})[0] == 403
+    assert not (workspace / "labels.csv").exists()
+    port = server.httpd.server_address[1]
+    assert request(server, "POST", "/api/labels", body, {"Origin": f"http://127.0.0.1:{port}"})[0] == 200
 
 
 def test_second_server_on_the_same_workspace_is_refused(server: LabelServer, workspace: Path,
