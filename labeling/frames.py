@@ -193,7 +193,9 @@ class FrameCache:
             if frame is None:
                 log.warning("%s: frame %d could not be decoded", reader.info.path, i)
                 return None
-            data = self._store((video, i), frame)
+            with self._lock:
+                cached = self._cache.get((video, i)) if i != index else None
+            data = cached if cached is not None else self._store((video, i), frame)
         return data
 
     def _store(self, key: tuple[str, int], frame: np.ndarray) -> bytes | None:

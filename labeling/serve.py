@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,9 +34,9 @@ class LabelServer:
 
     def __init__(self, workspace: Path, options: LabelOptions,
                  track: TrackFunction = track_with_tracking_stage):
+        if workspace.exists() and not workspace.is_dir():
+            raise InputError(workspace, "workspace is not a directory", fix="give a folder (made if missing)")
         workspace.mkdir(parents=True, exist_ok=True)
-        if not workspace.is_dir():
-            raise InputError(workspace, "workspace is not a directory")
         self.lock = WorkspaceLock(workspace)
         self.lock.acquire()
         try:
@@ -86,12 +87,19 @@ class LabelServer:
         self.stop()
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(workspace: Path, options: LabelOptions, on_ready: Callable[[str], None] | None = None) -> Path:
     """Serve until Ctrl+C; `on_ready(url)` is called once the port is bound. Returns the labels file."""
     server = LabelServer(workspace, options)
     log.info("serving %s at %s", workspace, server.url)
     if on_ready is not None:
         on_ready(server.url)
+    if threading.current_thread() is threading.main_thread():
+        # `kill` (SIGTERM) stops like Ctrl+C: the lock file is removed and the port released.
+        signal.signal(signal.SIGTERM, _interrupt)
     try:
         server.serve_forever()
     except KeyboardInterrupt:

@@ -1,4 +1,4 @@
-"""`dynrecon label`: starts, prints the URL, serves, refuses a second server, stops cleanly on Ctrl+C."""
+"""`dynrecon label`: starts, prints the URL, serves, refuses a second server, stops cleanly on SIGTERM."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def test_label_command_serves_and_a_second_one_is_refused(workspace: Path, video
         with urllib.request.urlopen(url + "api/state", timeout=10) as response:
             assert response.status == 200
     finally:
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signal.SIGTERM)  # like Ctrl+C: clean stop
         process.wait(timeout=20)
     assert process.returncode == 0
     assert not (workspace / LOCK_NAME).exists()
@@ -101,3 +101,11 @@ def test_broken_labels_file_is_named_with_its_line(workspace: Path, video: Path,
     err = capsys.readouterr().err.strip()
     assert "labels.csv:line 2: frame 'zero' is not an integer" in err and "\n" not in err
     assert not (workspace / LOCK_NAME).exists()
+
+
+def test_workspace_that_is_a_file_is_an_input_error(tmp_path: Path, video: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    not_a_folder = tmp_path / "ws.txt"
+    not_a_folder.write_text("")
+    assert main(["label", str(not_a_folder), "--videos", str(video)]) == 2
+    assert "workspace is not a directory" in capsys.readouterr().err
