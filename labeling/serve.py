@@ -55,6 +55,9 @@ class LabelServer:
         except BaseException:
             self.lock.release()
             raise
+        if options.host not in ("127.0.0.1", "localhost", "::1"):
+            log.warning("serving on %s: anyone who can reach this address can read and change the labels",
+                        options.host)
         host = options.host if ":" not in options.host else f"[{options.host}]"
         self.url = f"http://{host}:{self.httpd.server_address[1]}/"
         self.lock.update_url(self.url)

@@ -158,6 +158,15 @@ function toggleHidden() {
   commit([{ video: S.video.name, frame: S.frame, point: S.selected, before, after }]);
 }
 
+// Enter: the tracked position is right; keep it as a label (an anchor for the next track).
+function acceptTrack() {
+  if (!S.selected) return;
+  const st = stateAt(S.frame, S.selected);
+  if (st.kind !== "track") return;
+  commit([{ video: S.video.name, frame: S.frame, point: S.selected, before: labelAt(S.frame, S.selected),
+    after: { source: "label", x: round3(st.x), y: round3(st.y) } }]);
+}
+
 function removeLabel() {
   if (!S.selected) return;
   const before = labelAt(S.frame, S.selected);
@@ -741,6 +750,7 @@ window.addEventListener("mouseup", () => {
   if (!S.drag) return;
   const d = S.drag;
   S.drag = null;
+  if (d.grabbed && !d.moved) { draw(); return; } // a click on a marker only selects its point
   const after = { source: "label", x: round3(d.x), y: round3(d.y) };
   commit([{ video: S.video.name, frame: S.frame, point: d.point, before: d.before, after }]);
   // A click on empty image (not a drag of an existing marker) moves on to the next point to label.
@@ -799,6 +809,7 @@ window.addEventListener("keydown", (event) => {
   else if (k === "l" || k === "L") nextLow();
   else if (k === "x" || k === "X") toggleHidden();
   else if (k === "Delete" || k === "Backspace") removeLabel();
+  else if (k === "Enter" && tag !== "BUTTON") acceptTrack();
   else if (k === "Tab") selectNextPoint(event.shiftKey ? -1 : 1);
   else if (/^[1-9]$/.test(k) && S.points[Number(k) - 1]) selectPoint(S.points[Number(k) - 1]);
   else if (k === "t" || k === "T") startTracking();

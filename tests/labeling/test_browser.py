@@ -198,7 +198,9 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         drag_image(page, hand, corrected)
         # A second correction on frame 12, which is then undone.
         goto_frame(page, 12)
-        click_image(page, truth("head", 12)[0] + 5.0, truth("head", 12)[1])
+        page.click("li[data-point='head']")
+        # Far enough from the tracked marker not to grab it (a click on a marker only selects).
+        click_image(page, truth("head", 12)[0] + 12.0, truth("head", 12)[1])
         page.wait_for_function("window.dynreconLabel.state.labels.has('12|head')")
         wait_saved(page)
         assert ("swing", 12, "head") in read_labels(workspace / "labels.csv")
@@ -281,6 +283,22 @@ def test_points_keys_and_auto_track(browser, tmp_path: Path) -> None:
         assert {r["point"] for r in tracks} == {"heel"}
         assert {int(r["frame"]) for r in tracks if r["source"] == "label"} == {0, 29}
         assert {int(r["frame"]) for r in tracks if r["source"] == "track"} == set(range(1, 29))
+
+        # Enter keeps a tracked position as a label; Delete removes a label again.
+        tracked_5 = next(r for r in tracks if r["frame"] == "5")
+        goto_frame(page, 5)
+        page.click("li[data-point='heel']")
+        page.focus("#canvas")
+        page.keyboard.press("Enter")
+        page.wait_for_function("window.dynreconLabel.state.labels.has('5|heel')")
+        wait_saved(page)
+        kept = read_labels(workspace / "labels.csv")[("swing", 5, "heel")].xy
+        assert kept is not None
+        assert np.hypot(kept[0] - float(tracked_5["x"]), kept[1] - float(tracked_5["y"])) < 0.01
+        page.keyboard.press("Delete")
+        page.wait_for_function("!window.dynreconLabel.state.labels.has('5|heel')")
+        wait_saved(page)
+        assert ("swing", 5, "heel") not in read_labels(workspace / "labels.csv")
 
         # Shift+drag pans the view and places nothing.
         before = page.evaluate("({...window.dynreconLabel.state.view})")
