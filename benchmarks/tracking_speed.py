@@ -22,11 +22,11 @@ import numpy as np
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tracking.accuracy import labels_every
+from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames, VideoFrames
 from tracking.options import Method, TrackOptions
 from tracking.propagate import track_video
-from tracking.synthetic import SyntheticOptions, render_video
+from tracking.synthetic import SyntheticOptions, SyntheticVideo, render_video
 
 
 def main() -> None:
@@ -51,8 +51,9 @@ def main() -> None:
         decode_s = time.perf_counter() - start
     print(f"{width}x{height}, {args.frames} frames (mp4v); render {render_s:.1f} s, "
           f"decode to gray {decode_s:.2f} s = {args.frames / decode_s:.0f} frames/s\n")
-    print("| method | points | frames | seconds | points x frames / s | positions out |")
-    print("|---|---|---|---|---|---|")
+    print("| method | points | frames | seconds | points x frames / s | positions out "
+          "| median / p95 px (markers) |")
+    print("|---|---|---|---|---|---|---|")
     rng = np.random.default_rng(0)
     marker_labels = labels_every(video, 10)
     for method in (Method.LK, Method.LK_CSRT, Method.CSRT):
@@ -71,7 +72,15 @@ def main() -> None:
             seconds = time.perf_counter() - start
             steps = sum(len(v) for v in result.values())
             print(f"| {method.value} | {count} | {frames} | {seconds:.2f} | {count * frames / seconds:,.0f} "
-                  f"| {steps} |", flush=True)
+                  f"| {steps} | {_accuracy(result, video, frames)} |", flush=True)
+
+
+def _accuracy(result: dict, video: SyntheticVideo, frames: int) -> str:
+    """Median / p95 error of the markers' tracked positions on the first `frames` frames."""
+    clipped = SyntheticVideo(path=None, names=video.names, uv=video.uv[:frames],
+                             visible=video.visible[:frames])
+    accuracy = score({name: result[name] for name in video.names if name in result}, clipped)
+    return f"{accuracy.median:.3f} / {accuracy.p95:.3f}"
 
 
 if __name__ == "__main__":

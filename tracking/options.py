@@ -36,5 +36,6 @@ class TrackOptions:
     accept_unrefined: bool = False  # keep a CSRT step that LK cannot confirm (at half the score)
     fallback_box: int = 48  # side of the CSRT box around the point, pixels (at 1080p, ~64 is better)
     agree_px: float = 3.0  # forward and backward tracks farther apart than this disagree: keep the better
+    score_memory: bool = True  # a track's score never rises again after a doubtful step (fewer drifts)
     min_score: float = 0.2  # tracked positions with a lower score are left out (unobserved)
     margin: float = 2.0  # a point closer than this to the image border stops (it is leaving the frame)

@@ -144,7 +144,8 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
             log.debug("%s frame %d: stopped (fb %.2f px)", name, frame, fb[i])
             del active[name]
             continue
-        track.xy, track.score = step
+        track.xy = step[0]
+        track.score = min(step[1], track.score) if options.score_memory else step[1]
         out[name][frame] = (float(track.xy[0]), float(track.xy[1]), track.score)
 
 
