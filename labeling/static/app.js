@@ -179,7 +179,9 @@ async function loadState() {
   S.videos = state.videos;
   S.points = state.points;
   S.connections = state.connections;
-  $("workspace").textContent = state.workspace;
+  // The folder name; the full path on hover.
+  $("workspace").textContent = state.workspace.split(/[\\/]/).filter(Boolean).pop() || state.workspace;
+  $("workspace").title = state.workspace;
   renderVideos();
   onTrackStatus(state.track, true);
   return state;

@@ -132,7 +132,7 @@ def run_tracking(page, runs_before: int) -> None:
 
 def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
     video = write_scene(tmp_path / "swing.avi")
-    workspace = tmp_path / "ws"
+    workspace = tmp_path / "swing-workspace"
     skeleton = Skeleton(points=list(POINTS), connections=[("head", "hand"), ("head", "foot")])
     with LabelServer(workspace, LabelOptions(videos=[video], skeleton=skeleton)) as server:
         page = browser.new_page(viewport={"width": 1280, "height": 760})
