@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import threading
 import zlib
 from collections import OrderedDict
@@ -153,6 +155,10 @@ class FrameCache:
         self._scanner.start()
 
     def _scan_all(self) -> None:
+        # Background work: on Linux a thread has its own nice value, so the scan yields the CPU to frames
+        # the user is waiting for and to tracking.
+        with contextlib.suppress(AttributeError, OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
         for reader in self._readers.values():
             reader.scan(self._stop)
 
