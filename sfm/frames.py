@@ -51,10 +51,14 @@ class Resize:
 
     @classmethod
     def for_video(cls, info: VideoInfo, long_side: int) -> Resize:
-        longest = max(info.width, info.height)
+        return cls.for_video_size(info.width, info.height, long_side)
+
+    @classmethod
+    def for_video_size(cls, width: int, height: int, long_side: int) -> Resize:
+        longest = max(width, height)
         scale = min(1.0, long_side / longest) if long_side > 0 else 1.0
         return cls(
-            scale=scale, width=max(1, round(info.width * scale)), height=max(1, round(info.height * scale))
+            scale=scale, width=max(1, round(width * scale)), height=max(1, round(height * scale))
         )
 
     def to_small(self, xy: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 
 from dynrecon.cli import main
 from dynrecon.errors import InputError
-from sfm.cameras import read_cameras
+from sfm.cameras import FrameCamera, read_cameras
 from sfm.import_calibration import StaticCamera, read_qca, write_toml
 
 
@@ -113,3 +113,44 @@ def test_qca_pose2sim(shared_dir: Path, tmp_path: Path) -> None:
         # The centre projects near the image middle for every camera: a consistent pose/intrinsics pair.
         uv, _ = cv2.projectPoints(target[None], cv2.Rodrigues(frame.R)[0], frame.t, frame.K, frame.dist)
         assert np.all(np.abs(uv.ravel() - [540, 960]) < [540, 960])
+
+
+def _epipolar_agreement(
+    first: FrameCamera, second: FrameCamera, image_a: np.ndarray, image_b: np.ndarray
+) -> int:
+    """How many SIFT ratio-test matches between two views lie within 3 px of the poses' epipolar lines."""
+    sift = cv2.SIFT_create(8000)
+    ka, da = sift.detectAndCompute(cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY), None)
+    kb, db = sift.detectAndCompute(cv2.cvtColor(image_b, cv2.COLOR_BGR2GRAY), None)
+    matches = [m for m, n in cv2.BFMatcher().knnMatch(da, db, k=2) if m.distance < 0.8 * n.distance]
+    pa = np.array([ka[m.queryIdx].pt for m in matches])[:, None]
+    pb = np.array([kb[m.trainIdx].pt for m in matches])[:, None]
+    na = cv2.undistortPoints(pa, first.K, first.dist).reshape(-1, 2)
+    nb = cv2.undistortPoints(pb, second.K, second.dist).reshape(-1, 2)
+    R = second.R @ first.R.T
+    t = second.t - R @ first.t
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    lines = np.c_[na, np.ones(len(na))] @ E.T
+    distance = np.abs((np.c_[nb, np.ones(len(nb))] * lines).sum(1)) / np.linalg.norm(lines[:, :2], axis=1)
+    return int((distance * second.K[0, 0] < 3).sum())
+
+
+@pytest.mark.shared
+def test_qca_poses_agree_with_image_matches(shared_dir: Path, tmp_path: Path) -> None:
+    """Reprojection consistency between cam01 and cam02 (the pair that shares background): SIFT matches agree
+    with the imported poses' epipolar geometry; the transposed-rotation reading of the QCA matrix does not."""
+    demo = shared_dir / "data" / "videos" / "pose2sim_demo"
+    qca = demo / "calibration" / "Calib.qca.txt"
+    videos = [demo / "videos" / "cam01.mp4", demo / "videos" / "cam02.mp4"]
+    assert main(["import-calibration", str(qca), *map(str, videos), "--out", str(tmp_path)]) == 0
+    cameras = read_cameras(tmp_path / "cameras.json")
+    first, second = (v.frames[0] for v in cameras.videos)
+    images = [cv2.VideoCapture(str(v)).read()[1] for v in videos]
+    agree = _epipolar_agreement(first, second, *images)
+    flip = np.diag([1.0, -1.0, -1.0])
+    for frame in (first, second):  # the other reading: r_ij transposed, same centre
+        center = frame.center
+        frame.R = flip @ (flip @ frame.R).T
+        frame.t = -frame.R @ center
+    wrong = _epipolar_agreement(first, second, *images)
+    assert agree >= 8 and agree >= 4 * max(wrong, 1), (agree, wrong)
