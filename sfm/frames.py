@@ -6,6 +6,7 @@ Frame numbers always refer to the original decoded frame index; the image of fra
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,11 +69,20 @@ class Resize:
 def write_frames(
     info: VideoInfo, frames: np.ndarray, frames_dir: Path, resize: Resize, desc: str = "decoding frames"
 ) -> list[str]:
-    """Decode `frames` and write them (resized) as JPEG; returns their image names. Existing files are
-    reused."""
+    """Decode `frames` and write them (resized) as JPEG; returns their image names.
+
+    Files of an earlier run are reused only when they come from the same video file at the same size (a
+    `.source` stamp in the folder says which); otherwise the folder is emptied first."""
     names = []
+    folder = frames_dir / info.name
+    stat = info.path.stat()
+    stamp = f"{info.path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{resize.width}x{resize.height}\n"
+    marker = folder / ".source"
+    if folder.exists() and (not marker.exists() or marker.read_text(encoding="utf-8") != stamp):
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    marker.write_text(stamp, encoding="utf-8")
     missing = [int(f) for f in frames if not (frames_dir / image_name(info.name, int(f))).exists()]
-    (frames_dir / info.name).mkdir(parents=True, exist_ok=True)
     for frame, image in tqdm(
         read_frames(info.path, np.asarray(missing)),
         total=len(missing),

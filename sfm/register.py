@@ -189,19 +189,11 @@ def run(videos: list[str | Path], out_dir: str | Path, options: RegisterOptions 
     options = options or RegisterOptions()
     paths = [Path(v) for v in videos]
     _check_videos(paths)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("cameras.json", "background.ply", "register_report.json"):
-        (out / stale).unlink(missing_ok=True)  # never leave a previous run's result beside this run's report
-    frames_dir, sfm_dir = out / "frames", out / "sfm"
-    if sfm_dir.exists():
-        shutil.rmtree(sfm_dir)
-    sfm_dir.mkdir(parents=True)
-    colmap_log = sfm_dir / "colmap.log"
-    timings: dict[str, float] = {}
     warnings: list[str] = []
 
     class _WarningCollector(logging.Handler):
+        """Warnings (variable frame rate, unmasked videos, ...) also go into the report."""
+
         def emit(self, record: logging.LogRecord) -> None:
             warnings.append(record.getMessage())
 
@@ -209,14 +201,25 @@ def run(videos: list[str | Path], out_dir: str | Path, options: RegisterOptions 
     for name in ("sfm.video", "sfm.masks", __name__):
         logging.getLogger(name).addHandler(collector)
     try:
-        return _run(paths, out, frames_dir, sfm_dir, colmap_log, options, timings, warnings)
+        started = time.perf_counter()
+        infos = [probe_video(p) for p in tqdm(paths, desc="probing videos", unit="video", leave=False)]
+        timings: dict[str, float] = {"probe": time.perf_counter() - started}
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        for stale in ("cameras.json", "background.ply", "register_report.json"):
+            (out / stale).unlink(missing_ok=True)  # never leave a previous run's result beside this report
+        frames_dir, sfm_dir = out / "frames", out / "sfm"
+        if sfm_dir.exists():
+            shutil.rmtree(sfm_dir)
+        sfm_dir.mkdir(parents=True)
+        return _run(infos, out, frames_dir, sfm_dir, sfm_dir / "colmap.log", options, timings, warnings)
     finally:
         for name in ("sfm.video", "sfm.masks", __name__):
             logging.getLogger(name).removeHandler(collector)
 
 
 def _run(
-    paths: list[Path],
+    infos: list[VideoInfo],
     out: Path,
     frames_dir: Path,
     sfm_dir: Path,
@@ -226,7 +229,6 @@ def _run(
     warnings: list[str],
 ) -> Path:
     started = time.perf_counter()
-    infos = [probe_video(p) for p in tqdm(paths, desc="probing videos", unit="video", leave=False)]
     tracks = _tracks(options, out)
     intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
     videos = []
@@ -242,7 +244,7 @@ def _run(
                 wanted=_wanted_frames(info, sfm_frames, tracks, options.localize),
             )
         )
-    timings["probe"] = time.perf_counter() - started
+    timings["select"] = time.perf_counter() - started
 
     started = time.perf_counter()
     names_of = {v.info.name: write_frames(v.info, v.sfm_frames, frames_dir, v.resize) for v in videos}

@@ -119,3 +119,58 @@ def test_compare_recovers_similarity() -> None:
     result = compare(moved, truth)
     assert result.center_errors.max() < 1e-9 and result.rotation_errors_deg.max() < 1e-5
     assert abs(result.scale - 1 / scale) < 1e-9
+
+
+def test_known_intrinsics_from_toml_and_cameras_json(tmp_path: Path) -> None:
+    from sfm.cameras import write_cameras
+    from sfm.import_calibration import StaticCamera, write_toml
+    from sfm.intrinsics import known_intrinsics
+
+    K = np.array([[900.0, 0.0, 640.0], [0.0, 905.0, 360.0], [0.0, 0.0, 1.0]])
+    dist = np.array([0.1, -0.01, 0.0, 0.0])
+    infos = [
+        VideoInfo(path=Path(f"{n}.mp4"), name=n, width=1280, height=720, times=np.zeros(1), nominal_fps=None)
+        for n in ("cam_1", "cam_2")
+    ]
+    toml = write_toml(
+        tmp_path / "c.toml",
+        [
+            StaticCamera(
+                name=f"cam{i}",
+                width=1280,
+                height=720,
+                K=K * [[1 + i, 1, 1], [1, 1 + i, 1], [1, 1, 1]],
+                dist=dist,
+                R=np.eye(3),
+                t=np.zeros(3),
+            )
+            for i in (1, 2)
+        ],
+    )
+    from_toml = known_intrinsics(toml, infos)
+    assert from_toml["cam_2"][0][0, 0] == 2700.0 and from_toml["cam_1"][1] is not None
+    cameras = CameraSet(
+        videos=[
+            VideoCameras(
+                name="cam_2",
+                width=1280,
+                height=720,
+                frames=[FrameCamera(frame=0, K=K, R=np.eye(3), t=np.zeros(3), dist=dist)],
+            )
+        ]
+    )
+    write_cameras(tmp_path / "cameras.json", cameras)
+    from_json = known_intrinsics(tmp_path / "cameras.json", infos)
+    assert list(from_json) == ["cam_2"] and np.allclose(from_json["cam_2"][0], K)
+
+
+def test_wanted_frames_follow_tracks() -> None:
+    from sfm.register import Localize, _wanted_frames
+    from tracking.tracks import Tracks
+
+    info = _info(np.arange(50) / 30.0)
+    tracks = Tracks.from_rows([("v", 7, "p", 1.0, 2.0), ("v", 31, "p", 1.0, 2.0), ("w", 3, "p", 0.0, 0.0)])
+    sfm = np.array([0, 10, 20])
+    assert _wanted_frames(info, sfm, tracks, Localize.AUTO).tolist() == [0, 7, 10, 20, 31]
+    assert _wanted_frames(info, sfm, None, Localize.AUTO).tolist() == list(range(50))
+    assert _wanted_frames(info, sfm, tracks, Localize.NONE).tolist() == [0, 10, 20]
