@@ -130,7 +130,13 @@ def run_tracking(page, runs_before: int) -> None:
     assert page.evaluate("document.body.dataset.trackState") == "done", page.inner_text("#track-status")
 
 
-def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
+def show(capsys: pytest.CaptureFixture[str], text: str) -> None:
+    """A line in the test output even when pytest captures stdout (the screenshot's path, the numbers)."""
+    with capsys.disabled():
+        print(f"\n{text}")
+
+
+def test_label_track_correct_undo_reload(browser, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     video = write_scene(tmp_path / "swing.avi")
     workspace = tmp_path / "swing-workspace"
     skeleton = Skeleton(points=list(POINTS), connections=[("head", "hand"), ("head", "foot")])
@@ -182,8 +188,8 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         assert {int(r["frame"]) for r in tracked if r["point"] == "head"} >= set(range(1, 20))
         errors_px = [np.hypot(float(r["x"]) - truth(r["point"], int(r["frame"]))[0],
                               float(r["y"]) - truth(r["point"], int(r["frame"]))[1]) for r in tracked]
-        print(f"tracked positions: {len(tracked)}, median error {np.median(errors_px):.2f} px, "
-              f"max {np.max(errors_px):.2f} px")
+        show(capsys, f"tracked positions: {len(tracked)}, median error {np.median(errors_px):.2f} px, "
+                      f"max {np.max(errors_px):.2f} px")
         assert np.median(errors_px) < 1.0
         assert not [r for r in tracks if r["point"] == "foot" and int(r["frame"]) == 25]
         goto_frame(page, 10)
@@ -240,7 +246,7 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path) -> None:
         page.mouse.move(5, 5)  # no hover effects in the picture
         shot = tmp_path / "labeling.png"
         page.screenshot(path=str(shot))
-        print(f"screenshot: {shot}")
+        show(capsys, f"labeling page screenshot: {shot}")
         assert not errors, errors
     images = REPO / "docs" / "images"
     images.mkdir(parents=True, exist_ok=True)
