@@ -45,6 +45,7 @@ VARIANTS = [
     ("lk, no brightness normalization", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED,
                                                      normalize=False)),
     ("lk, no score memory", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED, score_memory=False)),
+    ("lk, no closure check", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED, closure_check=False)),
     ("lk+csrt", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED)),
     ("lk+csrt, unrefined kept", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED,
                                              accept_unrefined=True)),

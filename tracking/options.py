@@ -35,6 +35,8 @@ class TrackOptions:
     patch: int = 21  # side of the appearance patch compared with the label's patch, pixels
     accept_unrefined: bool = False  # keep a CSRT step that LK cannot confirm (at half the score)
     fallback_box: int = 48  # side of the CSRT box around the point, pixels (at 1080p, ~64 is better)
+    closure_check: bool = True  # drop a track that reaches the next label far from it, unless confirmed
+    keep_disagreeing: bool = True  # where they disagree, keep the likelier one (False: leave the frame out)
     agree_px: float = 3.0  # forward and backward tracks farther apart than this disagree: keep the better
     score_memory: bool = True  # a track's score never rises again after a doubtful step (fewer drifts)
     min_score: float = 0.2  # tracked positions with a lower score are left out (unobserved)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
@@ -44,10 +44,13 @@ class _Track:
     xy: np.ndarray  # (2,)
     template: np.ndarray  # (patch, patch) float32, the patch at the label
     score: float
+    frames: list[int] = field(default_factory=list)  # frames it has written to the sweep's output
 
 
 # per point: frame -> (x, y, score) of one sweep
 _Sweep = dict[str, dict[int, tuple[float, float, float]]]
+# per point: frames of tracks that reached the point's next label more than `agree_px` away from it
+_Failed = dict[str, set[int]]
 
 
 def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | None = None, *,
@@ -78,16 +81,33 @@ def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | Non
         if progress is not None:
             progress(done[0], total)
 
-    forward = _sweep(frames, clean, options, +1, tick)
-    backward = _sweep(frames, clean, options, -1, tick)
+    forward, failed_forward = _sweep(frames, clean, options, +1, tick)
+    backward, failed_backward = _sweep(frames, clean, options, -1, tick)
+    if options.closure_check:
+        # A track that arrives at the next label far from it drifted somewhere on the way: its positions count
+        # only where the track from the other side confirms them.
+        forward = _confirmed_only(forward, failed_forward, backward, options)
+        backward = _confirmed_only(backward, failed_backward, forward, options)
     return _combine(clean, forward, backward, options, num_frames)
 
 
+def _confirmed_only(sweep: _Sweep, failed: _Failed, other: _Sweep, options: TrackOptions) -> _Sweep:
+    kept: _Sweep = {}
+    for point, by_frame in sweep.items():
+        bad = failed.get(point, set())
+        kept[point] = {
+            frame: p for frame, p in by_frame.items()
+            if frame not in bad or (frame in other.get(point, {}) and np.hypot(
+                p[0] - other[point][frame][0], p[1] - other[point][frame][1]) <= options.agree_px)}
+    return kept
+
+
 def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]], options: TrackOptions,
-           direction: int, tick: Callable[[], None]) -> _Sweep:
+           direction: int, tick: Callable[[], None]) -> tuple[_Sweep, _Failed]:
     """One pass over the frames in `direction` (+1 forward, -1 backward), all points at once."""
     num_frames = len(frames)
     out: _Sweep = {point: {} for point in labels}
+    failed: _Failed = {point: set() for point in labels}
     by_frame: dict[int, dict[str, np.ndarray | None]] = {}
     for point, marks in labels.items():
         for frame, xy in marks.items():
@@ -102,9 +122,6 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
     reference: tuple[float, float] | None = None
     for frame in order:
         here = by_frame.get(frame, {})
-        # A label of any kind ends the track arriving here; the label itself may start the next one.
-        for name in here:
-            active.pop(name, None)
         if not active and not any(xy is not None for xy in here.values()):
             prev = None
             tick()
@@ -117,12 +134,20 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
         if active and prev is not None:
             _advance(prev, gray, active, options, out, frame)
         for name, label in here.items():
+            # A label of any kind ends the track arriving here; the label itself may start the next one.
+            arriving = active.pop(name, None)
+            if arriving is not None:
+                reached = out[name].pop(frame)
+                arriving.frames.pop()
+                miss = np.inf if label is None else np.hypot(reached[0] - label[0], reached[1] - label[1])
+                if label is not None and miss > options.agree_px:
+                    failed[name].update(arriving.frames)
             if label is not None:
                 template = patch_at(gray, label, options.patch)
                 active[name] = _Track(xy=label.copy(), template=template, score=1.0)
         prev = gray
         tick()
-    return out
+    return out, failed
 
 
 def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], options: TrackOptions, out: _Sweep,
@@ -147,6 +172,7 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
         track.xy = step[0]
         track.score = min(step[1], track.score) if options.score_memory else step[1]
         out[name][frame] = (float(track.xy[0]), float(track.xy[1]), track.score)
+        track.frames.append(frame)
 
 
 def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: TrackOptions,
@@ -220,7 +246,9 @@ def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] |
     distance = float(np.hypot(f[0] - b[0], f[1] - b[1]))
     better = f if wf >= wb else b
     if distance > options.agree_px:
-        # One of them drifted; which one is a guess, so the score says so.
+        if not options.keep_disagreeing:
+            return None  # one of them drifted and nothing tells which: unobserved rather than maybe wrong
+        # Keep the likelier one, with a score that says it is a guess.
         return better[0], better[1], better[2] * options.agree_px / distance
     score = 1.0 - (1.0 - f[2]) * (1.0 - b[2])  # two tracks that agree are more certain than either
     if options.blend is Blend.BEST:

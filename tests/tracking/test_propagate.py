@@ -129,3 +129,17 @@ def test_brightness_normalization_survives_auto_exposure_flicker() -> None:
     a, b = normalize_brightness(frames[4], reference), normalize_brightness(frames[5], reference)
     assert a is frames[4]  # same exposure as the reference: untouched
     assert abs(float(a.mean()) - float(b.mean())) < 1.0 and abs(float(a.std()) - float(b.std())) < 1.0
+
+
+def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(small_video: SyntheticVideo) -> None:
+    uv = small_video.uv
+    p = int(np.flatnonzero(small_video.visible[:12].all(axis=0))[0])
+    # Two labels 5 px apart from what the video shows between them: each track arrives 5 px off the other
+    # label, so neither can be trusted and the frames between stay unobserved.
+    labels = {"m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])),
+                    10: (float(uv[10, p, 0]) + 5, float(uv[10, p, 1]))}}
+    checked = track_video(_frames(small_video), labels, TrackOptions())["m"]
+    assert not any(f in checked for f in range(1, 10))
+    assert 11 in checked  # after the last label nothing can be checked: tracked as usual
+    unchecked = track_video(_frames(small_video), labels, TrackOptions(closure_check=False))["m"]
+    assert all(f in unchecked for f in range(1, 10))
