@@ -1,0 +1,184 @@
+"""The self-expressive solver: alternate the W-step and the X-step, first with the smoothness term Psi2, then
+without it (paper, Sec. "Optimization" and "Sequencing information").
+
+All work happens in normalized world coordinates (average distance between cameras = 1); results come back in the
+input's units.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from tqdm import tqdm
+
+from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
+from reconstruct.problem import Problem, reconstructable_points
+from reconstruct.rays import Normalization, camera_normalization, viewing_rays
+from reconstruct.wstep import SparseW, WStepOptions, solve_w
+from reconstruct.xstep import RayConstraint, XStepOptions, quadratic_form, solve_x
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class SolverOptions:
+    lambda1: float = 0.05  # structural coherence Psi1
+    lambda2: float = 0.1  # smoothness Psi2 in the first stage (the second stage uses 0)
+    lambda3: float = 100.0  # soft ray constraint
+    constraint: RayConstraint = RayConstraint.SOFT
+    max_iterations: int = 200  # alternations per stage
+    tolerance: float = 1e-5  # stop a stage when the relative cost decrease falls below this ...
+    point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
+    w_step: WStepOptions = field(default_factory=WStepOptions)
+    progress: bool = False
+    # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
+    # benchmarks that follow accuracy along the iterations.
+    monitor: Callable[[str, int, np.ndarray], None] | None = None
+
+
+@dataclass(kw_only=True)
+class StageLog:
+    name: str
+    lambda2: float
+    iterations: int = 0
+    converged: bool = False
+    cost: list[float] = field(default_factory=list)
+    w_iterations: list[int] = field(default_factory=list)
+    max_point_change: list[float] = field(default_factory=list)
+
+
+@dataclass(kw_only=True)
+class SolveResult:
+    points: np.ndarray  # (F, P, 3) input units; NaN for points that cannot be reconstructed
+    W: SparseW
+    reconstructable: np.ndarray  # (P,) bool
+    init: PairInit
+    normalization: Normalization
+    stages: list[StageLog]
+    timings: dict[str, float]
+    residual: np.ndarray  # (F,) self-expression residual per frame, RMS over points, input units
+    init_points: np.ndarray  # (F, P, 3) input units, the initialization
+
+
+def total_cost(
+    points: np.ndarray, W: sp.spmatrix, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray,
+    lambda1: float, lambda2: float, lambda3: float, constraint: RayConstraint,
+) -> float:
+    """The objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized units."""
+    F, P = points.shape[:2]
+    Q = quadratic_form(W, video_index, P, lambda2)
+    shapes = points.reshape(F, -1)
+    cost = float(np.sum(shapes * (Q @ shapes)))
+    asym = W - W.T
+    cost += lambda1 / F * float(asym.multiply(asym).sum())
+    if constraint is RayConstraint.SOFT:
+        offset = points - centers[:, None, :]
+        along = np.nansum(offset * rays, axis=-1, keepdims=True)
+        perpendicular = np.where(np.isnan(rays), 0.0, offset - along * np.nan_to_num(rays))
+        cost += lambda3 / (F * P) * float(np.sum(perpendicular * perpendicular))
+    return cost
+
+
+def frame_residuals(points: np.ndarray, W: sp.spmatrix) -> np.ndarray:
+    """(F,) RMS over points of S_f - sum_j W_jf S_j."""
+    F, P = points.shape[:2]
+    shapes = points.reshape(F, -1)
+    residual = shapes - W.T @ shapes
+    return np.sqrt(np.sum(residual.reshape(F, P, 3) ** 2, axis=(1, 2)) / P)
+
+
+def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult:
+    options = options or SolverOptions()
+    timings: dict[str, float] = {}
+    started = time.perf_counter()
+    F, P_all = problem.num_frames, problem.num_points
+    video_index = problem.video_index
+    keep = reconstructable_points(problem)
+    for name in np.asarray(problem.point_names)[~keep]:
+        log.warning("point %r is seen in fewer than two videos: it cannot be reconstructed (left empty)", name)
+    if not keep.any():
+        raise_not_enough(problem)
+
+    rays_all = viewing_rays(problem)
+    normalization = camera_normalization(problem.centers, video_index)
+    centers = normalization.apply(problem.centers)
+    rays = rays_all[:, keep]
+    P = int(keep.sum())
+    timings["rays"] = time.perf_counter() - started
+
+    t0 = time.perf_counter()
+    init = initialize_depths(centers, rays, video_index)
+    init_points = centers[:, None, :] + init.depth[..., None] * rays
+    unmatched = int(np.sum(init.partner < 0))
+    if unmatched:
+        log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated",
+                 unmatched)
+    points = fill_missing_points(init_points, video_index)
+    timings["initialize"] = time.perf_counter() - t0
+
+    stages: list[StageLog] = []
+    plan = [("smooth", options.lambda2), ("final", 0.0)] if options.lambda2 > 0 else [("final", 0.0)]
+    W: SparseW | None = None
+    w_options = WStepOptions(**{**options.w_step.__dict__, "lambda1": options.lambda1})
+    t_w = t_x = 0.0
+    for name, lambda2 in plan:
+        stage = StageLog(name=name, lambda2=lambda2)
+        stages.append(stage)
+        x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint)
+        previous_cost = np.inf
+        bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=not options.progress,
+                   leave=False)
+        for _ in bar:
+            t0 = time.perf_counter()
+            W, w_stats = solve_w(points.reshape(F, -1), video_index, P, w_options, previous=W)
+            t_w += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            W_matrix = W.to_csc()
+            new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=points)
+            t_x += time.perf_counter() - t0
+            change = float(np.max(np.abs(new_points - points)))
+            points = new_points
+            cost = total_cost(points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
+                              options.lambda3, options.constraint)
+            stage.iterations += 1
+            stage.cost.append(cost)
+            stage.w_iterations.append(w_stats.iterations)
+            stage.max_point_change.append(change)
+            bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
+            if options.monitor is not None:
+                options.monitor(name, stage.iterations, normalization.undo(points))
+            decrease = (previous_cost - cost) / max(abs(cost), 1e-300)
+            if decrease < options.tolerance and change < options.point_tolerance:
+                stage.converged = True
+                break
+            previous_cost = cost
+        log.info("stage %s: %d iterations, cost %.4e, converged: %s", name, stage.iterations,
+                 stage.cost[-1] if stage.cost else float("nan"), stage.converged)
+    if W is None:
+        raise ValueError("max_iterations must be at least 1")
+    timings["w_step"] = t_w
+    timings["x_step"] = t_x
+    timings["total"] = time.perf_counter() - started
+
+    W_matrix = W.to_csc()
+    out = np.full((F, P_all, 3), np.nan)
+    out[:, keep] = normalization.undo(points)
+    init_out = np.full((F, P_all, 3), np.nan)
+    init_out[:, keep] = normalization.undo(init_points)
+    return SolveResult(
+        points=out, W=W, reconstructable=keep, init=init, normalization=normalization, stages=stages,
+        timings=timings, residual=frame_residuals(points, W_matrix) * normalization.scale, init_points=init_out,
+    )
+
+
+def raise_not_enough(problem: Problem) -> None:
+    from dynrecon.errors import NotEnoughDataError
+
+    raise NotEnoughDataError(
+        f"none of the {problem.num_points} point(s) is seen in two different videos: nothing can be "
+        "reconstructed (each point needs observations from at least two videos)")

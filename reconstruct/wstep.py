@@ -1,0 +1,371 @@
+"""The W-step: minimize over W, with the shapes S fixed,
+
+    g(W) = 1/(F P) ||S^T - S^T W||_F^2 + lambda1/F ||W - W^T||_F^2,   columns of W on the simplex,
+    W_jf = 0 (not a variable) when j = f or video(j) = video(f).
+
+Method (solves the same convex problem as the paper's ADMM; see docs/solver.md):
+* Working set. Solutions are sparse and local, so each column only carries the entries in a working set: its nearest
+  shapes of other videos plus the previous support, symmetrized so that Psi1's partner entry W_fj is always in the set.
+* Accelerated projected gradient (FISTA with function-value restart) on the working set, in a per-column metric:
+  the data term is block-diagonal over columns, so step 1/L_f with L_f = 2/(FP) lambda_max(B_f^T B_f) + 8 lambda1/F
+  (B_f: candidate shapes minus S_f) majorizes the Hessian and the projection stays a per-column Euclidean simplex
+  projection. Warm-started from the previous W.
+* Optimality on the full problem: after convergence, the gradient of every allowed entry outside the set is
+  checked against the column's simplex multiplier (KKT); violators join the set and the solve continues. When no
+  entry violates, the working-set solution is a solution of the full problem.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from reconstruct.simplex import project_rows_to_simplex
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class WStepOptions:
+    lambda1: float = 0.05
+    nearest: int = 8  # initial working-set neighbours per column (other videos)
+    tolerance: float = 1e-6  # stop when max |W_new - W_extrapolated| (gradient mapping, W units) is below
+    max_iterations: int = 2000  # FISTA fallback
+    max_active_set_iterations: int = 50
+    kkt_tolerance: float = 1e-5  # entries whose KKT violation / L_f exceeds this join the working set
+    max_added_per_column: int = 8
+    max_rounds: int = 10
+    full_kkt_check: bool = True  # O(F^2 P) per W-step; disable for very long captures
+
+
+@dataclass(kw_only=True)
+class SparseW:
+    """Column-padded sparse W: W[cand[f, k], f] = value[f, k] where valid[f, k]."""
+
+    cand: np.ndarray  # (F, K) int
+    valid: np.ndarray  # (F, K) bool
+    value: np.ndarray  # (F, K) float
+
+    @property
+    def num_frames(self) -> int:
+        return self.cand.shape[0]
+
+    def to_csc(self) -> sp.csc_matrix:
+        F = self.num_frames
+        cols = np.broadcast_to(np.arange(F)[:, None], self.cand.shape)
+        keep = self.valid & (self.value != 0)
+        return sp.csc_matrix((self.value[keep], (self.cand[keep], cols[keep])), shape=(F, F))
+
+    def column(self, f: int, threshold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(neighbours, weights) of column f with weights above `threshold`."""
+        keep = self.valid[f] & (self.value[f] > threshold)
+        return self.cand[f, keep], self.value[f, keep]
+
+
+@dataclass(kw_only=True)
+class WStepStats:
+    iterations: int = 0
+    rounds: int = 0
+    added: int = 0
+    working_set: int = 0
+    objective: float = float("nan")
+    converged: bool = False
+    history: list[float] = field(default_factory=list)
+
+
+def nearest_other_video(shapes: np.ndarray, video_index: np.ndarray, k: int, *, block: int = 1024) -> np.ndarray:
+    """(F, k') indices of the k nearest shapes of other videos (k' = min(k, available)), in row blocks."""
+    F = len(shapes)
+    norms = np.einsum("fd,fd->f", shapes, shapes)
+    k = min(k, F - 1)
+    result = np.empty((F, k), dtype=np.int64)
+    for start in range(0, F, block):
+        rows = np.arange(start, min(F, start + block))
+        d2 = norms[rows, None] + norms[None, :] - 2.0 * shapes[rows] @ shapes.T
+        d2[video_index[rows][:, None] == video_index[None, :]] = np.inf
+        part = np.argpartition(d2, k - 1, axis=1)[:, :k]
+        order = np.argsort(np.take_along_axis(d2, part, axis=1), axis=1)
+        result[rows] = np.take_along_axis(part, order, axis=1)
+    return result
+
+
+def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unique (row j, column f) pairs, symmetrized, packed per column -> (cand (F, K), valid (F, K))."""
+    rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
+    keys = np.unique(cols.astype(np.int64) * F + rows)
+    cols, rows = keys // F, keys % F
+    counts = np.bincount(cols, minlength=F)
+    K = max(1, int(counts.max()))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    position = np.arange(len(keys)) - starts[cols]
+    cand = np.broadcast_to(np.arange(F)[:, None], (F, K)).copy()  # padding points at the frame itself
+    valid = np.zeros((F, K), dtype=bool)
+    cand[cols, position] = rows
+    valid[cols, position] = True
+    return cand, valid
+
+
+def _transpose_index(cand: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Flat index of the entry (f, j) for every valid entry (j, f); the set must be symmetric. (F, K), -1 padding."""
+    F, K = cand.shape
+    flat = np.flatnonzero(valid.ravel())
+    cols = flat // K
+    keys = cols * F + cand.ravel()[flat]
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    transposed = cand.ravel()[flat] * F + cols
+    where = np.searchsorted(sorted_keys, transposed)
+    if np.any(where >= len(sorted_keys)) or np.any(sorted_keys[np.minimum(where, len(keys) - 1)] != transposed):
+        raise RuntimeError("working set is not symmetric")
+    index = np.full(F * K, -1, dtype=np.int64)
+    index[flat] = flat[order[where]]
+    return index.reshape(F, K)
+
+
+class _WorkingSetProblem:
+    """g restricted to a working set, with the per-column Gram matrices precomputed."""
+
+    def __init__(self, shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray, lambda1: float, num_points: int):
+        F = len(shapes)
+        self.cand, self.valid = cand, valid
+        self.data_weight = 1.0 / (F * num_points)
+        self.sym_weight = lambda1 / F
+        self.transpose = _transpose_index(cand, valid)
+        B = shapes[cand] - shapes[:, None, :]  # (F, K, D); padding rows are zero
+        B[~valid] = 0.0
+        self.gram = np.matmul(B, B.transpose(0, 2, 1))  # (F, K, K)
+        lam_max = np.linalg.eigvalsh(self.gram)[:, -1]
+        self.lipschitz = 2.0 * self.data_weight * np.maximum(lam_max, 0.0) + 8.0 * self.sym_weight
+        self.lipschitz = np.maximum(self.lipschitz, 1e-300)
+
+    def _transposed(self, V: np.ndarray) -> np.ndarray:
+        flat = V.ravel()
+        return np.where(self.valid, flat[np.maximum(self.transpose, 0)].reshape(V.shape), 0.0)
+
+    def objective(self, V: np.ndarray) -> float:
+        data = float(np.sum(V * np.matmul(self.gram, V[:, :, None])[:, :, 0]))
+        asym = V - self._transposed(V)
+        return float(self.data_weight * data + self.sym_weight * np.sum(asym * asym))
+
+    def gradient(self, V: np.ndarray) -> np.ndarray:
+        grad = 2.0 * self.data_weight * np.matmul(self.gram, V[:, :, None])[:, :, 0]
+        grad += 4.0 * self.sym_weight * (V - self._transposed(V))
+        return np.where(self.valid, grad, 0.0)
+
+    def hessian(self) -> sp.csr_matrix:
+        """H (n, n) over the flat entries f*K + k, with objective = 1/2 v^T H v."""
+        F, K = self.cand.shape
+        base = (np.arange(F) * K)[:, None, None]
+        rows = np.broadcast_to(base + np.arange(K)[None, :, None], self.gram.shape)
+        cols = np.broadcast_to(base + np.arange(K)[None, None, :], self.gram.shape)
+        pair = self.valid[:, :, None] & self.valid[:, None, :]
+        flat = np.flatnonzero(self.valid.ravel())
+        partner = self.transpose.ravel()[flat]
+        sym = 4.0 * self.sym_weight
+        return sp.csr_matrix(
+            (np.concatenate([2.0 * self.data_weight * self.gram[pair], np.full(len(flat), sym),
+                             np.full(len(flat), -sym)]),
+             (np.concatenate([rows[pair], flat, flat]), np.concatenate([cols[pair], flat, partner]))),
+            shape=(F * K, F * K))
+
+    def project(self, V: np.ndarray) -> np.ndarray:
+        return project_rows_to_simplex(V, self.valid)
+
+
+def _fista(problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats) -> np.ndarray:
+    step = 1.0 / problem.lipschitz[:, None]
+    x = problem.project(V)
+    y = x.copy()
+    t = 1.0
+    f_x = problem.objective(x)
+    for _ in range(options.max_iterations):
+        stats.iterations += 1
+        x_new = problem.project(y - step * problem.gradient(y))
+        f_new = problem.objective(x_new)
+        if f_new > f_x:
+            # Momentum overshot: restart from x with a plain projected-gradient step (monotone, O'Donoghue-Candes).
+            y, t = x.copy(), 1.0
+            continue
+        change = float(np.max(np.abs(x_new - y)))
+        t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        y = x_new + ((t - 1.0) / t_new) * (x_new - x)
+        x, f_x, t = x_new, f_new, t_new
+        if change < options.tolerance:
+            stats.converged = True
+            break
+    stats.objective = f_x
+    return x
+
+
+def _active_set(
+    problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats
+) -> np.ndarray | None:
+    """Exact minimizer on the working set by a primal-dual active-set method (Hintermueller, Ito, Kunisch 2002).
+
+    Each iteration solves the equality-constrained QP on a free set I (all other entries fixed at 0) through its
+    sparse KKT system, which also gives each column's simplex multiplier mu_f. The next free set keeps the entries
+    that came out positive and adds those outside I whose gradient lies below their column's multiplier. When the set
+    repeats, the solution is non-negative and satisfies KKT: it is the exact minimizer. Returns None when the set
+    has not settled within the iteration budget (the caller then falls back to FISTA).
+    """
+    F, K = V.shape
+    n = F * K
+    H = problem.hessian()
+    ridge = 1e-12 * max(float(np.abs(H.diagonal()).max()), 1e-300)
+    column_of = np.repeat(np.arange(F), K)
+    valid = problem.valid.ravel()
+    free = (problem.project(V).ravel() > 0) & valid
+    seen: set[bytes] = set()
+    for _ in range(options.max_active_set_iterations):
+        stats.iterations += 1
+        idx = np.flatnonzero(free)
+        m = len(idx)
+        E = sp.csr_matrix((np.ones(m), (column_of[idx], np.arange(m))), shape=(F, m))
+        H_II = H[idx][:, idx] + ridge * sp.identity(m)
+        kkt = sp.bmat([[H_II, E.T], [E, None]], format="csc")
+        rhs = np.concatenate([np.zeros(m), np.ones(F)])
+        try:
+            solution = spla.spsolve(kkt, rhs)
+        except RuntimeError:
+            return None
+        if not np.all(np.isfinite(solution)):
+            return None
+        v = np.zeros(n)
+        v[idx] = solution[:m]
+        mu = -solution[m:]
+        gradient = H @ v
+        violation = (mu[column_of] - gradient) / problem.lipschitz[column_of]
+        entering = valid & ~free & (violation > options.tolerance)
+        positive = free & (v > 0)
+        if not entering.any() and positive.sum() == m:
+            stats.converged = True
+            V_out = v.reshape(F, K)
+            stats.objective = problem.objective(V_out)
+            return V_out
+        next_free = positive | entering
+        key = np.packbits(next_free).tobytes()
+        if key in seen:  # cycling: let the first-order method finish from here
+            return None
+        seen.add(key)
+        free = next_free
+        empty = np.bincount(column_of[free], minlength=F) == 0
+        if empty.any():  # every column needs one free entry: take its lowest gradient
+            g = np.where(valid, gradient, np.inf).reshape(F, K)
+            free.reshape(F, K)[empty, np.argmin(g[empty], axis=1)] = True
+    return None
+
+
+def kkt_violations(
+    shapes: np.ndarray, video_index: np.ndarray, W: SparseW, problem: _WorkingSetProblem, options: WStepOptions,
+    *, block: int = 1024,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Allowed entries (rows j, columns f) outside the working set whose gradient lies below the column's simplex
+    multiplier by more than kkt_tolerance * L_f: moving weight onto them would lower g."""
+    F = len(shapes)
+    grad = problem.gradient(W.value)
+    mu = np.where(W.valid, grad, np.inf).min(axis=1)  # (F,) multiplier: min gradient over the column's entries
+    residual = np.einsum("fk,fkd->fd", W.value, shapes[W.cand]) - shapes  # (F, D): S W_f - S_f
+    add_rows: list[np.ndarray] = []
+    add_cols: list[np.ndarray] = []
+    for start in range(0, F, block):
+        cols = np.arange(start, min(F, start + block))
+        M = residual[cols] @ shapes.T  # (B, F): r_f . S_j
+        g = 2.0 * problem.data_weight * (M - np.einsum("bd,bd->b", residual[cols], shapes[cols])[:, None])
+        violation = (mu[cols, None] - g) / problem.lipschitz[cols, None]
+        violation[video_index[cols][:, None] == video_index[None, :]] = -np.inf
+        local_rows, local_k = np.nonzero(W.valid[cols])
+        violation[local_rows, W.cand[cols][local_rows, local_k]] = -np.inf  # already in the working set
+        k = min(options.max_added_per_column, F - 1)
+        top = np.argpartition(-violation, k - 1, axis=1)[:, :k]
+        top_violation = np.take_along_axis(violation, top, axis=1)
+        chosen = top_violation > options.kkt_tolerance
+        add_rows.append(top[chosen])
+        add_cols.append(np.broadcast_to(cols[:, None], top.shape)[chosen])
+    return np.concatenate(add_rows), np.concatenate(add_cols)
+
+
+def solve_w(
+    shapes: np.ndarray, video_index: np.ndarray, num_points: int, options: WStepOptions,
+    previous: SparseW | None = None,
+) -> tuple[SparseW, WStepStats]:
+    """Solve the W-step for shapes (F, 3P), warm-started from `previous`."""
+    F = len(shapes)
+    stats = WStepStats()
+    near = nearest_other_video(shapes, video_index, options.nearest)
+    near_cols = np.repeat(np.arange(F), near.shape[1])
+    other = video_index[near.ravel()] != video_index[near_cols]  # fewer other-video frames than `nearest`
+    rows = [near.ravel()[other]]
+    cols = [near_cols[other]]
+    if previous is not None:
+        keep = previous.valid & (previous.value > 0)
+        rows.append(previous.cand[keep])
+        cols.append(np.broadcast_to(np.arange(F)[:, None], previous.cand.shape)[keep])
+    all_rows, all_cols = np.concatenate(rows), np.concatenate(cols)
+    V_start: np.ndarray | None = None
+    for round_index in range(options.max_rounds):
+        cand, valid = _pack_pairs(all_rows, all_cols, F)
+        problem = _WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points)
+        V = _start_values(cand, valid, previous if V_start is None else None, V_start, near)
+        exact = _active_set(problem, V, options, stats)
+        if exact is None:
+            log.debug("active-set W-step did not finish; falling back to FISTA")
+            exact = _fista(problem, V, options, stats)
+        V = exact
+        W = SparseW(cand=cand, valid=valid, value=V)
+        stats.rounds = round_index + 1
+        stats.working_set = int(valid.sum())
+        if not options.full_kkt_check:
+            break
+        add_rows, add_cols = kkt_violations(shapes, video_index, W, problem, options)
+        if len(add_rows) == 0:
+            break
+        stats.added += len(add_rows)
+        all_rows = np.concatenate([cand[valid], add_rows])
+        all_cols = np.concatenate([np.broadcast_to(np.arange(F)[:, None], cand.shape)[valid], add_cols])
+        V_start = _sparse_lookup(W)
+    stats.history.append(stats.objective)
+    return W, stats
+
+
+def _sparse_lookup(W: SparseW) -> np.ndarray:
+    """W as a dense-free lookup: (F*F keys) is too big, so return the (col, row, value) triplets packed."""
+    F = W.num_frames
+    cols = np.broadcast_to(np.arange(F)[:, None], W.cand.shape)[W.valid]
+    return np.stack([cols, W.cand[W.valid], W.value[W.valid]])
+
+
+def _start_values(
+    cand: np.ndarray, valid: np.ndarray, previous: SparseW | None, triplets: np.ndarray | None, near: np.ndarray,
+) -> np.ndarray:
+    """Warm start on a new working set: previous values where the entry existed, else all weight on the nearest."""
+    F, K = cand.shape
+    V = np.zeros((F, K))
+    if previous is not None:
+        cols = np.broadcast_to(np.arange(F)[:, None], previous.cand.shape)[previous.valid]
+        triplets = np.stack([cols, previous.cand[previous.valid], previous.value[previous.valid]])
+    if triplets is not None and triplets.shape[1]:
+        old_keys = triplets[0].astype(np.int64) * F + triplets[1].astype(np.int64)
+        order = np.argsort(old_keys)
+        old_keys, old_values = old_keys[order], triplets[2][order]
+        new_keys = np.arange(F)[:, None] * F + cand
+        where = np.clip(np.searchsorted(old_keys, new_keys), 0, len(old_keys) - 1)
+        hit = valid & (old_keys[where] == new_keys)
+        V[hit] = old_values[where[hit]]
+    empty = V.sum(axis=1) <= 0
+    if np.any(empty):
+        nearest = near[:, 0]
+        match = valid & (cand == nearest[:, None])
+        V[empty] = np.where(match[empty], 1.0, 0.0)
+    return V
+
+
+def objective_full(shapes: np.ndarray, W: sp.spmatrix, lambda1: float, num_points: int) -> float:
+    """g(W) evaluated with a sparse W (F, F) — for reports and tests."""
+    F = len(shapes)
+    residual = shapes - W.T @ shapes
+    asym = W - W.T
+    return float(np.sum(residual * residual) / (F * num_points) + lambda1 / F * asym.multiply(asym).sum())

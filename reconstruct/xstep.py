@@ -1,0 +1,220 @@
+"""The X-step: minimize over the 3D points, with W fixed,
+
+    1/(F P) ||S^T (I - W)||_F^2 + lambda2/M Psi2 + [soft rays] lambda3/(F P) sum_observed ||(I - r r^T)(Y - C)||^2
+
+Points decouple: for point p with positions Y_p (F, 3) the cost is sum_fg Q_fg <Y_pf, Y_pg> (+ ray terms) with
+Q = 1/(FP) (I - W)(I - W)^T + lambda2/M L, L the Laplacian of consecutive frames of one video (M links). Each
+point is one sparse symmetric linear system:
+* hard rays: an observed Y_pf = C_f + d r_f has one unknown d; a missing one has three free coordinates;
+* soft rays: every Y_pf is free, observed ones are pulled to their ray by lambda3/(FP) (I - r r^T).
+The soft weight carries the same 1/(FP) as the data term, so lambda3 is the weight of a squared ray distance
+relative to a squared self-expression residual of one point.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+class RayConstraint(enum.Enum):
+    HARD = "hard"
+    SOFT = "soft"
+
+
+@dataclass(kw_only=True)
+class XStepOptions:
+    lambda2: float = 0.1
+    lambda3: float = 100.0
+    constraint: RayConstraint = RayConstraint.SOFT
+    cg_tolerance: float = 1e-10  # relative residual of the batched conjugate-gradient solve
+    cg_max_iterations: int = 3000
+
+
+def video_chain_laplacian(video_index: np.ndarray) -> tuple[sp.csr_matrix, int]:
+    """Laplacian (F, F) of the graph linking consecutive frames of the same video, and its number of links M.
+    Frames of a video must be contiguous and in temporal order (as `build_problem` makes them)."""
+    F = len(video_index)
+    same = video_index[1:] == video_index[:-1]
+    a = np.flatnonzero(same)
+    b = a + 1
+    M = len(a)
+    adjacency = sp.coo_matrix((np.ones(2 * M), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(F, F))
+    degree = sp.diags(np.asarray(adjacency.sum(axis=1)).ravel())
+    return (degree - adjacency).tocsr(), M
+
+
+def quadratic_form(W: sp.spmatrix, video_index: np.ndarray, num_points: int, lambda2: float) -> sp.csr_matrix:
+    """Q (F, F) such that the X-step cost of one point is trace(Y^T Q Y)."""
+    F = W.shape[0]
+    A = sp.identity(F, format="csr") - W.tocsr()
+    Q = (A @ A.T) / (F * num_points)
+    if lambda2 > 0:
+        laplacian, M = video_chain_laplacian(video_index)
+        if M > 0:
+            # Normalized per point like the data term (the paper writes 1/M over shapes stacking all P points,
+            # which made Psi2 P times stronger and collapsed the motion toward the cameras: docs/solver.md).
+            Q = Q + (lambda2 / (M * num_points)) * laplacian
+    return sp.csr_matrix(Q)
+
+
+def solve_x(
+    W: sp.spmatrix,
+    centers: np.ndarray,
+    rays: np.ndarray,
+    video_index: np.ndarray,
+    options: XStepOptions,
+    *,
+    num_points: int | None = None,
+    start: np.ndarray | None = None,
+) -> np.ndarray:
+    """3D points (F, P, 3) minimizing the X-step cost for fixed W (F, F). rays (F, P, 3), NaN = unobserved.
+
+    All points are solved together by a block-Jacobi preconditioned conjugate gradient, warm-started from `start`
+    (the previous points: late in the alternation they barely move). Points whose CG does not converge are solved
+    directly (sparse LU). `num_points` is the P of the 1/(FP) normalization (defaults to the P of `rays`).
+    """
+    F, P = rays.shape[:2]
+    P_norm = num_points or P
+    Q = quadratic_form(W, video_index, P_norm, options.lambda2)
+    observed = ~np.isnan(rays[..., 0])
+    r = np.where(observed[..., None], rays, 0.0)
+    if options.constraint is RayConstraint.HARD:
+        points, converged = _cg_hard(Q, centers, r, observed, options, start)
+    else:
+        weight = options.lambda3 / (F * P_norm)
+        points, converged = _cg_soft(Q, centers, r, observed, weight, options, start)
+    if not converged.all():
+        Q3 = sp.kron(Q, sp.identity(3), format="csr")
+        for p in np.flatnonzero(~converged):
+            if options.constraint is RayConstraint.HARD:
+                points[:, p] = _solve_hard(Q3, centers, rays[:, p], observed[:, p])
+            else:
+                points[:, p] = _solve_soft(Q3, centers, rays[:, p], observed[:, p],
+                                           options.lambda3 / (F * P_norm))
+    return points
+
+
+def _batched_cg(
+    apply: Callable[[np.ndarray], np.ndarray],
+    precondition: Callable[[np.ndarray], np.ndarray],
+    rhs: np.ndarray,
+    x: np.ndarray,
+    options: XStepOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Independent CG solves, one per point: arrays are (F, P, k) and the point axis is 1. Returns (x, converged)."""
+    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.einsum("fpk,fpk->p", a, b)
+
+    residual = rhs - apply(x)
+    target = options.cg_tolerance * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
+    z = precondition(residual)
+    direction = z.copy()
+    rz = dot(residual, z)
+    done = np.sqrt(dot(residual, residual)) <= target
+    for _ in range(options.cg_max_iterations):
+        if done.all():
+            break
+        Ad = apply(direction)
+        curvature = dot(direction, Ad)
+        alpha = np.where(done | (curvature <= 0), 0.0, rz / np.where(curvature > 0, curvature, 1.0))
+        x = x + alpha[None, :, None] * direction
+        residual = residual - alpha[None, :, None] * Ad
+        done |= np.sqrt(dot(residual, residual)) <= target
+        z = precondition(residual)
+        rz_new = dot(residual, z)
+        beta = np.where(done, 0.0, rz_new / np.where(rz != 0, rz, 1.0))
+        direction = z + beta[None, :, None] * direction
+        rz = rz_new
+    return x, done
+
+
+def _cg_soft(
+    Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, weight: float,
+    options: XStepOptions, start: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    F, P = observed.shape
+    blocks = weight * (np.eye(3)[None, None] - r[..., :, None] * r[..., None, :])  # (F, P, 3, 3)
+    blocks[~observed] = 0.0
+    diagonal = Q.diagonal()
+    preconditioner = np.linalg.inv(diagonal[:, None, None, None] * np.eye(3) + blocks)
+
+    def apply(Y: np.ndarray) -> np.ndarray:
+        return (Q @ Y.reshape(F, -1)).reshape(F, P, 3) + np.einsum("fpij,fpj->fpi", blocks, Y)
+
+    rhs = np.einsum("fpij,fj->fpi", blocks, centers)
+    x0 = start if start is not None else np.broadcast_to(centers[:, None, :], (F, P, 3)).copy()
+    return _batched_cg(apply, lambda R: np.einsum("fpij,fpj->fpi", preconditioner, R), rhs, x0, options)
+
+
+def _cg_hard(
+    Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, options: XStepOptions,
+    start: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observed points move along their ray only: CG on Y = y0 + Pi z with Pi = r r^T (observed) or I (missing)."""
+    F, P = observed.shape
+    projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (F, P, 3, 3)
+    y0 = np.where(observed[..., None], centers[:, None, :], 0.0)
+
+    def project(Y: np.ndarray) -> np.ndarray:
+        return np.einsum("fpij,fpj->fpi", projector, Y)
+
+    def apply(Z: np.ndarray) -> np.ndarray:
+        return project((Q @ project(Z).reshape(F, -1)).reshape(F, P, 3))
+
+    inverse_diagonal = 1.0 / np.maximum(Q.diagonal(), 1e-300)
+    rhs = -project((Q @ y0.reshape(F, -1)).reshape(F, P, 3))
+    z0 = project(start - y0) if start is not None else np.zeros((F, P, 3))
+    z, converged = _batched_cg(apply, lambda R: project(R * inverse_diagonal[:, None, None]), rhs, z0, options)
+    return y0 + project(z), converged
+
+
+def _solve_hard(Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    F = len(centers)
+    # Columns of J: one per observed frame (its ray), three per missing frame (free xyz).
+    n_unknowns = np.where(observed, 1, 3)
+    first = np.concatenate([[0], np.cumsum(n_unknowns)[:-1]])
+    rows, cols, vals = [], [], []
+    obs = np.flatnonzero(observed)
+    for axis in range(3):
+        rows.append(3 * obs + axis)
+        cols.append(first[obs])
+        vals.append(rays[obs, axis])
+    mis = np.flatnonzero(~observed)
+    for axis in range(3):
+        rows.append(3 * mis + axis)
+        cols.append(first[mis] + axis)
+        vals.append(np.ones(len(mis)))
+    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(3 * F, int(n_unknowns.sum())))
+    y0 = np.where(observed[:, None], centers, 0.0).ravel()
+    H = (J.T @ Q3 @ J).tocsc()
+    rhs = -(J.T @ (Q3 @ y0))
+    z = _spd_solve(H, rhs)
+    return (y0 + J @ z).reshape(F, 3)
+
+
+def _solve_soft(
+    Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observed: np.ndarray, weight: float
+) -> np.ndarray:
+    F = len(centers)
+    r = np.where(observed[:, None], rays, 0.0)
+    # Blocks weight * (I - r r^T) for observed frames, zero for missing ones.
+    blocks = weight * (np.eye(3)[None] - r[:, :, None] * r[:, None, :])
+    blocks[~observed] = 0.0
+    block_rows = (3 * np.arange(F)[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+    block_cols = (3 * np.arange(F)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+    penalty = sp.csr_matrix((blocks.ravel(), (block_rows.ravel(), block_cols.ravel())), shape=(3 * F, 3 * F))
+    H = (Q3 + penalty).tocsc()
+    rhs = penalty @ centers.ravel()
+    return _spd_solve(H, rhs).reshape(F, 3)
+
+
+def _spd_solve(H: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
+    # Minimum-degree ordering on A^T + A suits these symmetric systems better than the default COLAMD.
+    return np.asarray(spla.spsolve(H, rhs, permc_spec="MMD_AT_PLUS_A"))
