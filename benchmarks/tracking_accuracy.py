@@ -61,12 +61,15 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--quick", action="store_true", help="one scenario, no CSRT-only variant")
+    parser.add_argument("--default-only", action="store_true", help="only the default TrackOptions()")
     parser.add_argument("--csrt-everywhere", action="store_true",
                         help="run the slow CSRT-only variant on every scenario, not only the first")
     parser.add_argument("--out-dir", type=Path, help="keep the rendered videos here")
     args = parser.parse_args()
     scenarios = dict(list(SCENARIOS.items())[:1]) if args.quick else SCENARIOS
     variants = [v for v in VARIANTS if not (args.quick and v[1].method is Method.CSRT)]
+    if args.default_only:
+        variants = [("default", TrackOptions())]
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.out_dir or Path(tmp)
         print(f"{args.width}x{args.height}, {args.frames} frames, 8 markers, "

@@ -49,8 +49,9 @@ class _Track:
 
 # per point: frame -> (x, y, score) of one sweep
 _Sweep = dict[str, dict[int, tuple[float, float, float]]]
-# per point: frames of tracks that reached the point's next label more than `agree_px` away from it
-_Failed = dict[str, set[int]]
+# per point: for each track that reached the point's next label more than `agree_px` away from it, its frames
+# in the order it visited them
+_Failed = dict[str, list[list[int]]]
 
 
 def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | None = None, *,
@@ -86,19 +87,22 @@ def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | Non
     if options.closure_check:
         # A track that arrives at the next label far from it drifted somewhere on the way: its positions count
         # only where the track from the other side confirms them.
-        forward = _confirmed_only(forward, failed_forward, backward, options)
-        backward = _confirmed_only(backward, failed_backward, forward, options)
+        forward, backward = (_confirmed_only(forward, failed_forward, backward, options),
+                             _confirmed_only(backward, failed_backward, forward, options))
     return _combine(clean, forward, backward, options, num_frames)
 
 
 def _confirmed_only(sweep: _Sweep, failed: _Failed, other: _Sweep, options: TrackOptions) -> _Sweep:
-    kept: _Sweep = {}
-    for point, by_frame in sweep.items():
-        bad = failed.get(point, set())
-        kept[point] = {
-            frame: p for frame, p in by_frame.items()
-            if frame not in bad or (frame in other.get(point, {}) and np.hypot(
-                p[0] - other[point][frame][0], p[1] - other[point][frame][1]) <= options.agree_px)}
+    kept = {point: dict(by_frame) for point, by_frame in sweep.items()}
+    for point, tracks in failed.items():
+        theirs = other.get(point, {})
+        for visited in tracks:
+            agree = [i for i, frame in enumerate(visited) if frame in theirs and np.hypot(
+                sweep[point][frame][0] - theirs[frame][0], sweep[point][frame][1] - theirs[frame][1])
+                <= options.agree_px]
+            # Drift grows along a track: trust it up to the last frame the other side confirms, not after.
+            for frame in visited[agree[-1] + 1 if agree else 0:]:
+                kept[point].pop(frame, None)
     return kept
 
 
@@ -107,7 +111,7 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
     """One pass over the frames in `direction` (+1 forward, -1 backward), all points at once."""
     num_frames = len(frames)
     out: _Sweep = {point: {} for point in labels}
-    failed: _Failed = {point: set() for point in labels}
+    failed: _Failed = {point: [] for point in labels}
     by_frame: dict[int, dict[str, np.ndarray | None]] = {}
     for point, marks in labels.items():
         for frame, xy in marks.items():
@@ -141,7 +145,7 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
                 arriving.frames.pop()
                 miss = np.inf if label is None else np.hypot(reached[0] - label[0], reached[1] - label[1])
                 if label is not None and miss > options.agree_px:
-                    failed[name].update(arriving.frames)
+                    failed[name].append(arriving.frames)
             if label is not None:
                 template = patch_at(gray, label, options.patch)
                 active[name] = _Track(xy=label.copy(), template=template, score=1.0)
