@@ -1,9 +1,45 @@
-"""Subcommands of the reconstruction stage."""
+"""Subcommands of the reconstruction stage: solve, plus simulate and evaluate (reconstruct.sim_cli)."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from reconstruct import sim_cli
+from reconstruct.solve_stage import SolveStageOptions, run
+from reconstruct.solver import SolverOptions
+from reconstruct.xstep import RayConstraint
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    """Register `solve` (and friends) on the main parser."""
+    parser = subparsers.add_parser(
+        "solve", help="reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)",
+        description="Self-expressive reconstruction (Zheng et al.): writes points3d.csv, sequencing.json, "
+                    "report.json and recording.rrd into OUT.")
+    parser.add_argument("--cameras", type=Path, required=True, help="cameras.json (per-frame poses)")
+    parser.add_argument("--tracks", type=Path, required=True, help="tracks.csv (2D observations)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    defaults = SolverOptions()
+    parser.add_argument("--lambda1", type=float, default=defaults.lambda1, help="structural coherence weight")
+    parser.add_argument("--lambda2", type=float, default=defaults.lambda2,
+                        help="smoothness weight of the first stage (0 skips that stage)")
+    parser.add_argument("--lambda3", type=float, default=defaults.lambda3, help="soft ray constraint weight")
+    parser.add_argument("--constraint", choices=[c.value for c in RayConstraint], default=defaults.constraint.value,
+                        help="points exactly on their rays (hard) or pulled to them (soft, for noisy tracks)")
+    parser.add_argument("--max-iterations", type=int, default=defaults.max_iterations,
+                        help="alternations per stage")
+    parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
+    parser.set_defaults(func=_solve)
+    sim_cli.add_commands(subparsers)
+
+
+def _solve(args: argparse.Namespace) -> int:
+    solver = SolverOptions(lambda1=args.lambda1, lambda2=args.lambda2, lambda3=args.lambda3,
+                           constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
+                           progress=True)
+    points = run(args.cameras, args.tracks, args.out, SolveStageOptions(solver=solver,
+                                                                        recording=not args.no_recording))
+    print(f"wrote {points} (+ sequencing.json, report.json" +  # noqa: T201
+          ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
+          + ")")
+    return 0

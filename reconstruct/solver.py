@@ -131,7 +131,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
         stages.append(stage)
         x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint)
         previous_cost = np.inf
-        bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=not options.progress,
+        bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=None if options.progress else True,
                    leave=False)
         for _ in bar:
             t0 = time.perf_counter()

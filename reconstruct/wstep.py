@@ -36,9 +36,11 @@ class WStepOptions:
     tolerance: float = 1e-6  # stop when max |W_new - W_extrapolated| (gradient mapping, W units) is below
     max_iterations: int = 2000  # FISTA fallback
     max_active_set_iterations: int = 50
-    kkt_tolerance: float = 1e-5  # entries whose KKT violation / L_f exceeds this join the working set
+    # Entries whose KKT violation / L_f (the weight a gradient step would give them) exceeds this join the working
+    # set. Measured on HDM05: 1e-5 grew the set to ~36 entries per column for the same accuracy at 10x the time.
+    kkt_tolerance: float = 1e-3
     max_added_per_column: int = 8
-    max_rounds: int = 10
+    max_rounds: int = 3
     full_kkt_check: bool = True  # O(F^2 P) per W-step; disable for very long captures
 
 
