@@ -85,7 +85,9 @@ def bundle_distances(
         depth[:, :, p] = np.where(usable, depth_a, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         D = total / count
-    enough = count >= np.minimum(MIN_COMMON_POINTS, np.maximum(count.max(axis=1, keepdims=True), 1))
+    # A frame that observes fewer points than MIN_COMMON_POINTS can still pair on all of them.
+    observed_in_row = np.sum(~np.isnan(rays[rows, :, 0]), axis=1, keepdims=True)
+    enough = count >= np.minimum(MIN_COMMON_POINTS, np.maximum(observed_in_row, 1))
     D[~enough | (count == 0) | diverging] = np.inf
     D[video_index[rows][:, None] == video_index[None, :]] = np.inf
     return D, depth

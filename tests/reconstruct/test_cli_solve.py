@@ -1,0 +1,63 @@
+import json
+
+import numpy as np
+from rrd_reader import entities, verify
+from synthetic_motion import smooth_motion
+
+from dynrecon.cli import main
+from reconstruct.points import read_points, read_sequencing
+from reconstruct.simulate import SimulationOptions, simulate_capture
+from sfm.cameras import write_cameras
+from tracking.tracks import write_tracks
+
+
+def _capture(tmp_path, frames=80, points=4):
+    capture = simulate_capture(smooth_motion(frames, points), 120.0, SimulationOptions(seed=3))
+    write_cameras(tmp_path / "cameras.json", capture.cameras)
+    write_tracks(tmp_path / "tracks.csv", capture.tracks)
+    return capture
+
+
+def test_solve_writes_every_output(tmp_path, capsys):
+    capture = _capture(tmp_path)
+    out = tmp_path / "out"
+    code = main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
+                 "--out", str(out)])
+    assert code == 0
+    assert "recording.rrd" in capsys.readouterr().out
+    points = read_points(out / "points3d.csv")
+    assert points.xyz.shape == (capture.truth.num_frames, 4, 3)
+    index = capture.truth.index()
+    truth = np.stack([capture.truth.xyz[index[(v, int(f))]] for v, f in zip(points.videos, points.frames,
+                                                                             strict=True)])
+    assert np.median(np.linalg.norm(points.xyz - truth, axis=-1)) < 1.0
+    sequencing = read_sequencing(out / "sequencing.json")
+    assert all(abs(w.sum() - 1) < 1e-3 for w in sequencing.weights)
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["lambda1"] == 0.05 and report["parameters"]["constraint"] == "soft"
+    assert [s["name"] for s in report["stages"]] == ["smooth", "final"]
+    assert len(report["residual"]["per_frame"]) == points.num_frames
+    assert "/world/points" in entities(out / "recording.rrd")
+    verify(out / "recording.rrd")
+
+
+def test_simulate_solve_evaluate_chain(tmp_path, capsys, shared_dir):
+    mocap = shared_dir / "data" / "mocap" / "hdm05" / "HDM_dg_06-03_03_120.c3d"
+    sim = tmp_path / "sim"
+    assert main(["simulate", str(mocap), "--out", str(sim), "--length", "120", "--step", "2"]) == 0
+    assert main(["solve", "--cameras", str(sim / "cameras.json"), "--tracks", str(sim / "tracks.csv"),
+                 "--out", str(sim), "--no-recording"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(sim)]) == 0
+    assert "<10:" in capsys.readouterr().out
+
+
+def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
+    _capture(tmp_path, frames=20, points=2)
+    (tmp_path / "tracks.csv").write_text("video,frame,point,x,y\ncam0,0,p,1,2\nghost,0,p,1,2\n")
+    code = main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
+                 "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "tracks.csv:line 3: video 'ghost' is not in the cameras file" in err[0]
+    assert not (tmp_path / "out" / "points3d.csv").exists()

@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from reconstruct.wstep import WStepOptions, objective_full, solve_w
+
+
+def _shapes(F=24, P=4, videos=3, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(0, 2, F))
+    base = rng.normal(size=(P, 3))
+    shapes = (base[None] + 0.3 * np.sin(3 * t[:, None, None] + rng.normal(size=(P, 3))[None]))
+    shapes += rng.normal(scale=0.01, size=shapes.shape)
+    video_index = rng.integers(0, videos, F)
+    return shapes.reshape(F, -1), video_index, P
+
+
+def _kkt_residual(shapes, video_index, P, W, lambda1):
+    """Largest violation of the KKT conditions of the full W-step, in gradient units relative to its scale."""
+    F = len(shapes)
+    grad = 2.0 / (F * P) * (shapes @ (W.T @ shapes - shapes).T) + 4.0 * lambda1 / F * (W - W.T)
+    allowed = video_index[:, None] != video_index[None, :]
+    worst = 0.0
+    for f in range(F):
+        g = grad[allowed[:, f], f]
+        w = W[allowed[:, f], f]
+        mu = g[w > 1e-9].mean()
+        worst = max(worst, np.abs(g[w > 1e-9] - mu).max(), max(0.0, mu - g.min()))
+    return worst / np.abs(grad).max()
+
+
+@pytest.mark.parametrize("lambda1", [0.0, 0.05, 1.0])
+def test_w_step_satisfies_kkt_on_the_full_problem(lambda1):
+    shapes, video_index, P = _shapes()
+    options = WStepOptions(lambda1=lambda1, nearest=3, kkt_tolerance=1e-9, max_rounds=20)
+    W, stats = solve_w(shapes, video_index, P, options)
+    dense = W.to_csc().toarray()
+    assert stats.converged
+    np.testing.assert_allclose(dense.sum(axis=0), 1.0, atol=1e-9)
+    assert dense.min() >= -1e-12
+    assert np.all(np.diag(dense) == 0)
+    assert np.all(dense[video_index[:, None] == video_index[None, :]] == 0)
+    assert _kkt_residual(shapes, video_index, P, dense, lambda1) < 1e-4
+
+
+def test_w_step_matches_a_general_qp_solver():
+    shapes, video_index, P = _shapes(F=14, P=3, seed=1)
+    F = len(shapes)
+    lambda1 = 0.05
+    W, _ = solve_w(shapes, video_index, P, WStepOptions(lambda1=lambda1, kkt_tolerance=1e-9, max_rounds=20))
+    ours = objective_full(shapes, W.to_csc(), lambda1, P)
+    allowed = video_index[:, None] != video_index[None, :]
+    rows, cols = np.nonzero(allowed)
+
+    def unpack(x):
+        dense = np.zeros((F, F))
+        dense[rows, cols] = x
+        return dense
+
+    def cost(x):
+        dense = unpack(x)
+        residual = shapes - dense.T @ shapes
+        return np.sum(residual**2) / (F * P) + lambda1 / F * np.sum((dense - dense.T) ** 2)
+
+    constraints = [{"type": "eq", "fun": lambda x, f=f: unpack(x)[:, f].sum() - 1.0} for f in range(F)]
+    x0 = np.concatenate([np.full(allowed[:, f].sum(), 1.0 / allowed[:, f].sum()) for f in range(F)])
+    x0 = unpack(x0)[rows, cols]
+    reference = minimize(cost, x0, method="SLSQP", bounds=[(0, 1)] * len(rows), constraints=constraints,
+                         options={"maxiter": 1000, "ftol": 1e-14})
+    assert ours <= reference.fun * (1 + 1e-6) + 1e-12
+
+
+def test_warm_start_reuses_previous_solution():
+    shapes, video_index, P = _shapes(seed=2)
+    options = WStepOptions(kkt_tolerance=1e-9, max_rounds=20)
+    W, cold = solve_w(shapes, video_index, P, options)
+    W2, warm = solve_w(shapes, video_index, P, options, previous=W)
+    assert warm.iterations <= cold.iterations
+    np.testing.assert_allclose(W2.to_csc().toarray(), W.to_csc().toarray(), atol=1e-6)
