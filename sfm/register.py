@@ -12,29 +12,29 @@ pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP e
 from __future__ import annotations
 
 import enum
-import json
 import logging
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import DynreconError, InputError
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
-from sfm.export import image_reprojection_errors, opencv_intrinsics, write_ply
+from sfm.export import write_ply
 from sfm.frames import Resize, image_name, select_frames, write_frames
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
-from sfm.localize import Reference, localize, read_features, reference
+from sfm.localize_frames import localize_all
 from sfm.masks import mask_from_points, track_points, user_mask, write_mask
 from sfm.pairs import build_pairs
+from sfm.plan import FramePose, VideoPlan
+from sfm.report import write_report
 from sfm.video import VideoInfo, probe_video
 from tracking.tracks import Tracks, read_tracks
 
@@ -69,11 +69,11 @@ class RegisterOptions:
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video; every keyframe is matched with every keyframe of the other videos
+    # Default by measurement (benchmarks/sfm_synthetic.py, sfm_pose2sim.py): global was slightly more accurate on
+    # the synthetic room but put a camera at a wrong pose from false wide-baseline matches; incremental did not.
     mapper: Mapper = Mapper.INCREMENTAL
     camera_model: str = "SIMPLE_RADIAL"
-    intrinsics: Path | None = (
-        None  # cameras.json / calib .toml / .qca with known intrinsics per video (fixed)
-    )
+    intrinsics: Path | None = None  # cameras.json / calib .toml / .qca with known intrinsics per video (fixed)
     tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
     masks: Path | None = None  # user masks folder (see sfm.masks)
     mask_radius: float = 40.0  # original pixels around tracked points
@@ -82,15 +82,6 @@ class RegisterOptions:
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
     init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
     num_threads: int = -1
-
-
-@dataclass(kw_only=True)
-class _Video:
-    info: VideoInfo
-    resize: Resize
-    sfm_frames: np.ndarray
-    wanted: np.ndarray  # every frame that should get a pose
-    names: list[str] = field(default_factory=list)
 
 
 def _check_videos(videos: list[Path]) -> None:
@@ -115,9 +106,7 @@ def _tracks(options: RegisterOptions, out: Path) -> Tracks | None:
     return read_tracks(path) if path is not None else None
 
 
-def _wanted_frames(
-    info: VideoInfo, sfm_frames: np.ndarray, tracks: Tracks | None, mode: Localize
-) -> np.ndarray:
+def _wanted_frames(info: VideoInfo, sfm_frames: np.ndarray, tracks: Tracks | None, mode: Localize) -> np.ndarray:
     if mode is Localize.AUTO:
         mode = Localize.TRACKED if tracks is not None else Localize.ALL
     if mode is Localize.ALL:
@@ -129,8 +118,7 @@ def _wanted_frames(
         if len(outside):
             raise InputError(
                 tracks.path,
-                f"video {info.name!r} has {info.num_frames} frames but tracks "
-                f"mention frame {int(outside[0])}",
+                f"video {info.name!r} has {info.num_frames} frames but tracks mention frame {int(outside[0])}",
                 fix="tracks.csv belongs to other videos",
             )
     else:
@@ -138,9 +126,7 @@ def _wanted_frames(
     return np.union1d(sfm_frames, extra).astype(np.int64)
 
 
-def _write_masks(
-    videos: list[_Video], tracks: Tracks | None, options: RegisterOptions, mask_dir: Path
-) -> int:
+def _write_masks(videos: list[VideoPlan], tracks: Tracks | None, options: RegisterOptions, mask_dir: Path) -> int:
     """Masks for every frame that will have features extracted; returns how many were written."""
     written = 0
     for video in videos:
@@ -148,9 +134,7 @@ def _write_masks(
         if tracks is not None and not per_frame:
             log.warning("no tracks for video %r: its frames are not masked", video.info.name)
         for frame in video.wanted:
-            mask = (
-                user_mask(options.masks, video.info.name, int(frame), video.resize) if options.masks else None
-            )
+            mask = user_mask(options.masks, video.info.name, int(frame), video.resize) if options.masks else None
             if int(frame) in per_frame:
                 from_tracks = mask_from_points(per_frame[int(frame)], video.resize, options.mask_radius)
                 mask = from_tracks if mask is None else np.minimum(mask, from_tracks)
@@ -161,7 +145,7 @@ def _write_masks(
 
 
 def _extract_args(
-    videos: list[_Video], names_of: dict[str, list[str]], intrinsics: dict[str, Any], options: RegisterOptions
+    videos: list[VideoPlan], names_of: dict[str, list[str]], intrinsics: dict[str, Any], options: RegisterOptions
 ) -> list[dict[str, Any]]:
     from sfm.export import colmap_params
 
@@ -233,11 +217,9 @@ def _run(
     intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
     videos = []
     for info in infos:
-        sfm_frames = select_frames(
-            info, step=options.step, time_step=options.time_step, max_frames=options.max_frames
-        )
+        sfm_frames = select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
         videos.append(
-            _Video(
+            VideoPlan(
                 info=info,
                 resize=Resize.for_video(info, options.long_side),
                 sfm_frames=sfm_frames,
@@ -331,15 +313,24 @@ def _run(
         )
 
     started = time.perf_counter()
-    results = _localize_all(
-        videos, rec, database, frames_dir, sfm_dir, mask_dir if masked else None, colmap_log, options
+    results = localize_all(
+        videos,
+        rec,
+        database,
+        frames_dir,
+        sfm_dir,
+        mask_dir if masked else None,
+        colmap_log,
+        max_features=options.max_features,
+        max_ratio=options.max_ratio,
+        min_inliers=options.min_inliers,
+        num_threads=options.num_threads,
     )
     timings["localize"] = time.perf_counter() - started
 
-    registered_videos = [
-        v for v in videos if any(r["pose"] is not None for r in results[v.info.name].values())
-    ]
+    registered_videos = [v for v in videos if any(r.pose is not None for r in results[v.info.name].values())]
     if len(registered_videos) < 2:
+        names = ", ".join(v.info.name for v in registered_videos) or "none"
         _fail(
             out,
             videos,
@@ -350,8 +341,7 @@ def _run(
             pairs,
             matching,
             rec,
-            f"only {len(registered_videos)} of {len(videos)} videos registered "
-            f"({', '.join(v.info.name for v in registered_videos) or 'none'})",
+            f"only {len(registered_videos)} of {len(videos)} videos registered ({names})",
         )
 
     started = time.perf_counter()
@@ -359,17 +349,16 @@ def _run(
     for video in registered_videos:
         frames = []
         for frame, result in sorted(results[video.info.name].items()):
-            if result["pose"] is None:
+            if result.pose is None or result.intrinsics is None:
                 continue
-            K, dist = result["intrinsics"]
-            pose = result["pose"]
+            K, dist = result.intrinsics
             frames.append(
                 FrameCamera(
                     frame=frame,
                     time=float(video.info.times[frame]),
                     K=K,
-                    R=pose.rotation.matrix(),
-                    t=np.asarray(pose.translation),
+                    R=result.pose.rotation.matrix(),
+                    t=np.asarray(result.pose.translation),
                     dist=dist,
                 )
             )
@@ -387,14 +376,25 @@ def _run(
     write_ply(out / "background.ply", xyz, rgb)
     path = write_cameras(out / "cameras.json", cameras)
     timings["export"] = time.perf_counter() - started
-    _write_report(out, videos, results, timings, warnings, options, pairs, matching, rec, error=None)
+    write_report(
+        out / "register_report.json",
+        videos=videos,
+        results=results,
+        timings=timings,
+        warnings=warnings,
+        options=options,
+        pairs=len(pairs),
+        matching=matching,
+        rec=rec,
+        error=None,
+    )
     return path
 
 
 def _fail(
     out: Path,
-    videos: list[_Video],
-    results: dict[str, dict[int, dict[str, Any]]],
+    videos: list[VideoPlan],
+    results: dict[str, dict[int, FramePose]],
     timings: dict[str, float],
     warnings: list[str],
     options: RegisterOptions,
@@ -402,201 +402,25 @@ def _fail(
     matching: dict[str, int],
     rec: pycolmap.Reconstruction | None,
     what: str,
-) -> None:
+) -> NoReturn:
     message = (
         f"{what}; cameras.json not written. Try: more overlap between the videos' views, more frames "
         "(--max-frames, --step), known intrinsics (--intrinsics), or --keyframes / --max-features higher. "
         f"Details: {out / 'register_report.json'}"
     )
-    _write_report(out, videos, results, timings, warnings, options, pairs, matching, rec, error=message)
+    write_report(
+        out / "register_report.json",
+        videos=videos,
+        results=results,
+        timings=timings,
+        warnings=warnings,
+        options=options,
+        pairs=len(pairs),
+        matching=matching,
+        rec=rec,
+        error=message,
+    )
     raise RegistrationError(message)
-
-
-def _localize_all(
-    videos: list[_Video],
-    rec: pycolmap.Reconstruction,
-    database: Path,
-    frames_dir: Path,
-    sfm_dir: Path,
-    mask_dir: Path | None,
-    colmap_log: Path,
-    options: RegisterOptions,
-) -> dict[str, dict[int, dict[str, Any]]]:
-    """Pose of every wanted frame: from the model for registered SfM frames, by PnP for the others."""
-    results: dict[str, dict[int, dict[str, Any]]] = {}
-    # Frames not sent to SfM need features: decode them and extract into a second database.
-    extra_names = {}
-    for video in videos:
-        extra = np.setdiff1d(video.wanted, video.sfm_frames)
-        if len(extra):
-            extra_names[video.info.name] = write_frames(
-                video.info, extra, frames_dir, video.resize, desc="decoding frames to localize"
-            )
-    query_db = sfm_dir / "localize.db"
-    if extra_names:
-        run_isolated(
-            "feature extraction (frames to localize)",
-            colmap_steps.extract,
-            {
-                "database": str(query_db),
-                "image_dir": str(frames_dir),
-                "videos": [
-                    {"name": k, "images": v, "camera_model": "SIMPLE_PINHOLE", "camera_params": ""}
-                    for k, v in extra_names.items()
-                ],
-                "mask_dir": str(mask_dir) if mask_dir else None,
-                "max_features": options.max_features,
-                "num_threads": options.num_threads,
-            },
-            colmap_log,
-        )
-    with pycolmap.Database.open(str(database)) as db:
-        db_ids = {image.name: image.image_id for image in db.read_all_images()}
-        query_ids: dict[str, int] = {}
-        if extra_names:
-            with pycolmap.Database.open(str(query_db)) as qdb:
-                query_ids = {image.name: image.image_id for image in qdb.read_all_images()}
-        for video in tqdm(videos, desc="localizing", unit="video", leave=False):
-            results[video.info.name] = _localize_video(video, rec, db, db_ids, query_db, query_ids, options)
-    return results
-
-
-def _localize_video(
-    video: _Video,
-    rec: pycolmap.Reconstruction,
-    db: pycolmap.Database,
-    db_ids: dict[str, int],
-    query_db: Path,
-    query_ids: dict[str, int],
-    options: RegisterOptions,
-) -> dict[int, dict[str, Any]]:
-    results: dict[int, dict[str, Any]] = {}
-    registered: dict[int, pycolmap.Image] = {}
-    for frame in video.sfm_frames:
-        image = rec.find_image_with_name(image_name(video.info.name, int(frame)))
-        if image is not None and image.has_pose:
-            registered[int(frame)] = image
-    if not registered:
-        for frame in video.wanted:
-            results[int(frame)] = {
-                "pose": None,
-                "source": None,
-                "reason": "video not in the kept model",
-                "error": None,
-            }
-        return results
-    camera = rec.cameras[next(iter(registered.values())).camera_id]
-    intrinsics = opencv_intrinsics(camera, video.resize)
-    for frame, image in registered.items():
-        errors = image_reprojection_errors(rec, image)
-        results[frame] = {
-            "pose": image.cam_from_world(),
-            "source": "sfm",
-            "reason": None,
-            "error": float(errors.mean()) / video.resize.scale if len(errors) else None,
-            "intrinsics": intrinsics,
-        }
-    registered_frames = np.array(sorted(registered))
-    references: dict[int, Reference] = {}
-    todo = [int(f) for f in video.wanted if int(f) not in registered]
-    query = pycolmap.Database.open(str(query_db)) if query_ids else None
-    try:
-        for frame in tqdm(todo, desc=f"localizing {video.info.name}", unit="frame", leave=False):
-            name = image_name(video.info.name, frame)
-            if name in query_ids and query is not None:
-                features = read_features(query, query_ids[name])
-            elif name in db_ids:
-                features = read_features(db, db_ids[name])
-            else:
-                results[frame] = {"pose": None, "source": None, "reason": "no features", "error": None}
-                continue
-            nearest = registered_frames[np.argsort(np.abs(registered_frames - frame), kind="stable")[:2]]
-            refs = []
-            for ref_frame in nearest:
-                if int(ref_frame) not in references:
-                    ref_image = registered[int(ref_frame)]
-                    ref_name = image_name(video.info.name, int(ref_frame))
-                    references[int(ref_frame)] = reference(
-                        rec, ref_image, read_features(db, db_ids[ref_name])
-                    )
-                refs.append(references[int(ref_frame)])
-            located = localize(
-                features, refs, camera, max_ratio=options.max_ratio, min_inliers=options.min_inliers
-            )
-            results[frame] = {
-                "pose": located.cam_from_world,
-                "source": "pnp",
-                "reason": located.reason,
-                "error": None if located.mean_error is None else located.mean_error / video.resize.scale,
-                "intrinsics": intrinsics,
-                "inliers": located.inliers,
-            }
-    finally:
-        if query is not None:
-            query.close()
-    for frame in video.sfm_frames:
-        if int(frame) not in registered and results.get(int(frame), {}).get("pose") is not None:
-            results[int(frame)]["source"] = "pnp (dropped by SfM)"
-    return results
-
-
-def _write_report(
-    out: Path,
-    videos: list[_Video],
-    results: dict[str, dict[int, dict[str, Any]]],
-    timings: dict[str, float],
-    warnings: list[str],
-    options: RegisterOptions,
-    pairs: list[tuple[str, str]],
-    matching: dict[str, int],
-    rec: pycolmap.Reconstruction | None,
-    error: str | None,
-) -> None:
-    report: dict[str, Any] = {
-        "ok": error is None,
-        "error": error,
-        "pycolmap": pycolmap.__version__,
-        "options": {
-            k: (v.value if isinstance(v, enum.Enum) else str(v) if isinstance(v, Path) else v)
-            for k, v in vars(options).items()
-        },
-        "model": None
-        if rec is None
-        else {
-            "images": int(rec.num_reg_images()),
-            "points": int(rec.num_points3D()),
-            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
-        },
-        "pairs": len(pairs),
-        "matching": matching,
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-        "warnings": warnings,
-        "videos": [],
-    }
-    for video in videos:
-        per_frame = results.get(video.info.name, {})
-        posed = {f: r for f, r in per_frame.items() if r["pose"] is not None}
-        errors = [r["error"] for r in posed.values() if r["error"] is not None]
-        report["videos"].append(
-            {
-                "name": video.info.name,
-                "path": str(video.info.path),
-                "frames_in_video": video.info.num_frames,
-                "frames_given": len(video.wanted),
-                "sfm_frames": len(video.sfm_frames),
-                "registered": len(posed),
-                "registered_by_sfm": sum(1 for r in posed.values() if r["source"] == "sfm"),
-                "registered_by_pnp": sum(1 for r in posed.values() if r["source"] != "sfm"),
-                "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
-                "failed": [
-                    {"frame": int(f), "reason": r["reason"] or "unknown"}
-                    for f, r in sorted(per_frame.items())
-                    if r["pose"] is None
-                ]
-                or ([] if per_frame else [{"frame": None, "reason": "not reached"}]),
-            }
-        )
-    atomic_write_text(out / "register_report.json", json.dumps(report, indent=1) + "\n")
 
 
 __all__ = ["Localize", "Mapper", "RegisterOptions", "RegistrationError", "read_cameras", "run"]

@@ -1,0 +1,74 @@
+"""`register_report.json`: what `register` did, per video and per stage (see docs/formats.md)."""
+
+from __future__ import annotations
+
+import enum
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from dynrecon.atomic import atomic_write_text
+from sfm.plan import FramePose, VideoPlan
+
+
+def write_report(
+    path: Path,
+    *,
+    videos: list[VideoPlan],
+    results: dict[str, dict[int, FramePose]],
+    timings: dict[str, float],
+    warnings: list[str],
+    options: Any,
+    pairs: int,
+    matching: dict[str, int],
+    rec: pycolmap.Reconstruction | None,
+    error: str | None,
+) -> None:
+    model = None
+    if rec is not None:
+        model = {
+            "images": int(rec.num_reg_images()),
+            "points": int(rec.num_points3D()),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        }
+    report: dict[str, Any] = {
+        "ok": error is None,
+        "error": error,
+        "pycolmap": pycolmap.__version__,
+        "options": {
+            k: (v.value if isinstance(v, enum.Enum) else str(v) if isinstance(v, Path) else v)
+            for k, v in vars(options).items()
+        },
+        "model": model,
+        "pairs": pairs,
+        "matching": matching,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "warnings": warnings,
+        "videos": [_video_entry(video, results.get(video.info.name, {})) for video in videos],
+    }
+    atomic_write_text(path, json.dumps(report, indent=1) + "\n")
+
+
+def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str, Any]:
+    posed = [r for r in per_frame.values() if r.pose is not None]
+    errors = [r.error for r in posed if r.error is not None]
+    failed = [
+        {"frame": int(f), "reason": r.reason or "unknown"} for f, r in sorted(per_frame.items()) if r.pose is None
+    ]
+    if not per_frame:
+        failed = [{"frame": None, "reason": "not reached (SfM stopped before localization)"}]
+    return {
+        "name": video.info.name,
+        "path": str(video.info.path),
+        "frames_in_video": video.info.num_frames,
+        "frames_given": len(video.wanted),
+        "sfm_frames": len(video.sfm_frames),
+        "registered": len(posed),
+        "registered_by_sfm": sum(1 for r in posed if r.source == "sfm"),
+        "registered_by_pnp": sum(1 for r in posed if r.source != "sfm"),
+        "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
+        "failed": failed,
+    }
