@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from reconstruct import sim_cli
+from labeling.workspace import read_skeleton
+from reconstruct import demo, sim_cli
 from reconstruct.solve_stage import SolveStageOptions, run
 from reconstruct.solver import SolverOptions
 from reconstruct.xstep import RayConstraint
@@ -28,17 +29,21 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                         help="points exactly on their rays (hard) or pulled to them (soft, for noisy tracks)")
     parser.add_argument("--max-iterations", type=int, default=defaults.max_iterations,
                         help="alternations per stage")
+    parser.add_argument("--skeleton", type=Path, help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
+                        "recording (the labeling page's skeleton file)")
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
     parser.set_defaults(func=_solve)
     sim_cli.add_commands(subparsers)
+    demo.add_command(subparsers)
 
 
 def _solve(args: argparse.Namespace) -> int:
     solver = SolverOptions(lambda1=args.lambda1, lambda2=args.lambda2, lambda3=args.lambda3,
                            constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
                            progress=True)
-    points = run(args.cameras, args.tracks, args.out, SolveStageOptions(solver=solver,
-                                                                        recording=not args.no_recording))
+    skeleton = tuple(read_skeleton(args.skeleton).connections) if args.skeleton else ()
+    points = run(args.cameras, args.tracks, args.out,
+                 SolveStageOptions(solver=solver, recording=not args.no_recording, skeleton=skeleton))
     print(f"wrote {points} (+ sequencing.json, report.json" +  # noqa: T201
           ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
           + ")")

@@ -79,11 +79,12 @@ def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | N
     known_videos = set(video_names) | {v.name for v in cameras.videos}
     unposed: list[int] = []
     for row in range(len(tracks)):
-        video = tracks.video[row]
-        if video not in known_videos:
-            raise InputError(tracks.path, f"video {video!r} is not in the cameras file", where=tracks.where(row),
+        video_name = tracks.video[row]
+        if video_name not in known_videos:
+            raise InputError(tracks.path, f"video {video_name!r} is not in the cameras file",
+                             where=tracks.where(row),
                              fix=f"known videos: {', '.join(sorted(known_videos))}; rename or register it")
-        fi = index.get((video, int(tracks.frame[row])))
+        fi = index.get((video_name, int(tracks.frame[row])))
         if fi is None:
             unposed.append(row)
             continue

@@ -30,6 +30,7 @@ SEQUENCING_THRESHOLD = 1e-6
 class SolveStageOptions:
     solver: SolverOptions = dataclasses.field(default_factory=SolverOptions)
     recording: bool = True
+    skeleton: tuple[tuple[str, str], ...] = ()  # point pairs drawn as bones in the recording
 
 
 def run(cameras_path: Path, tracks_path: Path, out_dir: Path, options: SolveStageOptions | None = None) -> Path:
@@ -48,8 +49,10 @@ def run(cameras_path: Path, tracks_path: Path, out_dir: Path, options: SolveStag
     points_path = write_points(out_dir / "points3d.csv", points)
     write_sequencing(out_dir / "sequencing.json", sequencing(problem, result))
     if options.recording:
+        known = set(problem.point_names)
+        bones = [bone for bone in options.skeleton if bone[0] in known and bone[1] in known]
         write_recording(out_dir / "recording.rrd", cameras=cameras, points=points, tracks=tracks,
-                        residual=result.residual)
+                        residual=result.residual, skeleton=bones or None)
     report = build_report(problem, result, options, cameras_path, tracks_path)
     report["timings"]["stage_total"] = time.perf_counter() - started
     atomic_write_text(out_dir / "report.json", json.dumps(report, indent=1, default=_json_default) + "\n")
