@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames
@@ -143,3 +144,9 @@ def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(small_vide
     assert 11 in checked  # after the last label nothing can be checked: tracked as usual
     unchecked = track_video(_frames(small_video), labels, TrackOptions(closure_check=False))["m"]
     assert all(f in unchecked for f in range(1, 10))
+
+
+def test_invalid_options_fail_at_construction() -> None:
+    for bad in ({"min_ncc": 1.0}, {"min_score": 1.5}, {"fb_threshold": 0.0}, {"win_size": 3}, {"patch": 1}):
+        with pytest.raises(ValueError):
+            TrackOptions(**bad)  # type: ignore[arg-type]
