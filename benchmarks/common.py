@@ -149,11 +149,12 @@ PAPER: dict[str, tuple[float, ...]] = {
 }
 
 
-def simulate(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedCapture, Problem]:
-    """Simulate a capture of the whole `mocap` and assemble the solver's problem (frames in the truth's order)."""
-    capture, _ = simulate_mocap(mocap, options)
+def simulate(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedCapture, Problem, float]:
+    """Simulate a capture of the whole `mocap` and assemble the solver's problem (frames in the truth's order);
+    also returns the camera distance in mm (1 px of noise is about distance / 1000 mm at the subject)."""
+    capture, rig = simulate_mocap(mocap, options)
     problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
-    return capture, problem
+    return capture, problem, rig.distance
 
 
 @dataclass(kw_only=True)

@@ -2,6 +2,7 @@
 
     python benchmarks/paper_tables.py [--windows 6] [--rows frame,noise,missing] [--length 300] [--jobs 1]
                                       [--per-window] [--json OUT]
+    python benchmarks/paper_tables.py --from-json OUT [OUT2 ...] [--per-window]   # tables of earlier runs
 
 Protocol (the paper's, via reconstruct.simulate): 4 static virtual cameras, each capture time seen by one camera.
 Rows: 30 / 15 / 7.5 Hz per camera (every 1st / 2nd / 4th sample of 120 Hz motion), 30 Hz with unconstrained camera
@@ -120,9 +121,9 @@ def run_task(task: Task) -> Outcome:
         mocap = _window_mocap(window, task.length)
         options = SimulationOptions(step=step_for(mocap, row.per_camera_hz), noise_px=row.noise_px, miss=row.miss,
                                     unconstrained=row.unconstrained, seed=task.window_index)
-        capture, problem = simulate(mocap, options)
+        capture, problem, distance = simulate(mocap, options)
         run, _ = solve_and_score(capture, problem)
-        outcome.result = run.as_dict()
+        outcome.result = {**run.as_dict(), "camera_distance_mm": distance}
     except Exception as error:  # one failing window must not lose the others' hours of work
         log.exception("%s / %s failed", window.name, row.key)
         outcome.error = f"{type(error).__name__}: {error}"
@@ -193,9 +194,31 @@ def print_tables(outcomes: list[Outcome], rows: list[Row], window_indices: list[
                         print(f"| &nbsp;&nbsp;{name} | failed: {outcome.error} |")
                         continue
                     r = outcome.result
+                    distance = r.get("camera_distance_mm")
+                    where = f"cameras at {distance / 1000:.1f} m, " if distance else ""
                     print(percent_row(f"&nbsp;&nbsp;{name}", r["shares"],
-                                      f" F={r['frames']} P={r['points']}, {r['median_mm']:.2f} mm, "
+                                      f" F={r['frames']} P={r['points']}, {where}{r['median_mm']:.2f} mm, "
                                       f"{r['seconds']:.0f} s, init <10 mm {100 * r['init_shares'][0]:.1f} % |"))
+
+
+def reprint(paths: list[Path], rows: list[Row], per_window: bool) -> int:
+    """Tables of earlier runs: the windows and rows found in the files, in list order, restricted to `rows`."""
+    merged: dict[tuple[str, str], Outcome] = {}
+    for path in paths:
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise SystemExit(f"{path}: not a paper_tables --json file ({error})") from None
+        for item in data.get("results", []):
+            outcome = Outcome(window=item["window"], row=item["row"], result=item.get("result") or {},
+                              error=item.get("error"))
+            merged[(outcome.window, outcome.row)] = outcome
+    names = [w.name for w in WINDOWS]
+    window_indices = sorted({names.index(w) for w, _ in merged if w in names})
+    present = {r for _, r in merged}
+    print("Windows: " + ", ".join(f"{i}. {names[i]} ({WINDOWS[i].path})" for i in window_indices))
+    print_tables(list(merged.values()), [r for r in rows if r.key in present], window_indices, per_window)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -208,13 +231,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="parallel worker processes (default 1)")
     parser.add_argument("--per-window", action="store_true", help="also print one line per window")
     parser.add_argument("--json", type=Path, help="write every result (updated after each solve) to this file")
+    parser.add_argument("--from-json", type=Path, nargs="+", metavar="JSON",
+                        help="solve nothing: print the tables of earlier --json files (merged; later files win)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     for noisy in ("reconstruct", "common"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    require_mocap_dir()
     window_indices = parse_windows(args.windows)
     rows = parse_rows(args.rows)
+    if args.from_json:
+        return reprint(args.from_json, rows, args.per_window)
+    require_mocap_dir()
     if args.length < 20:
         raise SystemExit("--length: at least 20 captures")
 

@@ -72,7 +72,8 @@ def capture_of(frames: int, seed: int = 0) -> tuple[SimulatedCapture, Problem]:
     xyz, names = xyz[:, :POINTS], names[:POINTS]
     window = Mocap(xyz=np.ascontiguousarray(xyz), rate=mocap.rate, marker_names=names,
                    times=mocap.times[rows] - mocap.times[rows[0]], path=mocap.path)
-    return simulate(window, SimulationOptions(seed=seed))
+    capture, problem, _ = simulate(window, SimulationOptions(seed=seed))
+    return capture, problem
 
 
 # ------------------------------------------------------------------------------------------------------------
