@@ -33,6 +33,9 @@ class SolverOptions:
     constraint: RayConstraint = RayConstraint.SOFT
     max_iterations: int = 200  # alternations per stage
     tolerance: float = 1e-5  # stop a stage when the relative cost decrease falls below this ...
+    # The smoothing stage only has to pull wrong initial shapes out of their local minima; it need not converge to
+    # the Psi2-biased optimum that the final stage leaves anyway.
+    smooth_tolerance: float = 1e-3
     point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
     w_step: WStepOptions = field(default_factory=WStepOptions)
     progress: bool = False
@@ -153,7 +156,11 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             if options.monitor is not None:
                 options.monitor(name, stage.iterations, normalization.undo(points))
             decrease = (previous_cost - cost) / max(abs(cost), 1e-300)
-            if decrease < options.tolerance and change < options.point_tolerance:
+            if lambda2 > 0:
+                converged = decrease < options.smooth_tolerance
+            else:
+                converged = decrease < options.tolerance and change < options.point_tolerance
+            if converged:
                 stage.converged = True
                 break
             previous_cost = cost
