@@ -109,7 +109,7 @@ def _batched_cg(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Independent CG solves, one per point: arrays are (F, P, k) and the point axis is 1. Returns (x, converged)."""
     def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.einsum("fpk,fpk->p", a, b)
+        return (a * b).sum(axis=(0, 2))
 
     residual = rhs - apply(x)
     target = options.cg_tolerance * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
@@ -134,22 +134,36 @@ def _batched_cg(
     return x, done
 
 
+def _along(r: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """r (r . Y) per (frame, point): the component of Y along its ray (zero where r = 0, i.e. unobserved)."""
+    # Explicit components: numpy's reduction over a length-3 axis is several times slower.
+    dot = r[..., 0] * Y[..., 0] + r[..., 1] * Y[..., 1] + r[..., 2] * Y[..., 2]
+    return r * dot[..., None]
+
+
 def _cg_soft(
     Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, weight: float,
     options: XStepOptions, start: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """The 3x3 ray blocks weight (I - r r^T) and the block-Jacobi preconditioner are applied in closed form:
+    (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit ray r."""
     F, P = observed.shape
-    blocks = weight * (np.eye(3)[None, None] - r[..., :, None] * r[..., None, :])  # (F, P, 3, 3)
-    blocks[~observed] = 0.0
-    diagonal = Q.diagonal()
-    preconditioner = np.linalg.inv(diagonal[:, None, None, None] * np.eye(3) + blocks)
+    w = weight * observed[..., None]  # (F, P, 1), zero where unobserved
+    diagonal = np.maximum(Q.diagonal(), 1e-300)[:, None, None]
+
+    def ray_term(Y: np.ndarray) -> np.ndarray:
+        return w * (Y - _along(r, Y))
 
     def apply(Y: np.ndarray) -> np.ndarray:
-        return (Q @ Y.reshape(F, -1)).reshape(F, P, 3) + np.einsum("fpij,fpj->fpi", blocks, Y)
+        return (Q @ Y.reshape(F, -1)).reshape(F, P, 3) + ray_term(Y)
 
-    rhs = np.einsum("fpij,fj->fpi", blocks, centers)
+    def precondition(R: np.ndarray) -> np.ndarray:
+        along = _along(r, R)
+        return (R - along) / (diagonal + w) + along / diagonal
+
+    rhs = ray_term(np.broadcast_to(centers[:, None, :], (F, P, 3)))
     x0 = start if start is not None else np.broadcast_to(centers[:, None, :], (F, P, 3)).copy()
-    return _batched_cg(apply, lambda R: np.einsum("fpij,fpj->fpi", preconditioner, R), rhs, x0, options)
+    return _batched_cg(apply, precondition, rhs, x0, options)
 
 
 def _cg_hard(
@@ -158,11 +172,11 @@ def _cg_hard(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observed points move along their ray only: CG on Y = y0 + Pi z with Pi = r r^T (observed) or I (missing)."""
     F, P = observed.shape
-    projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (F, P, 3, 3)
+    missing = ~observed[..., None]
     y0 = np.where(observed[..., None], centers[:, None, :], 0.0)
 
     def project(Y: np.ndarray) -> np.ndarray:
-        return np.einsum("fpij,fpj->fpi", projector, Y)
+        return np.where(missing, Y, _along(r, Y))
 
     def apply(Z: np.ndarray) -> np.ndarray:
         return project((Q @ project(Z).reshape(F, -1)).reshape(F, P, 3))
