@@ -39,10 +39,9 @@ class VideoInfo:
 
     @property
     def fps(self) -> float | None:
-        """Mean frame rate from the decoder's timestamps (None for a single frame)."""
-        if self.num_frames < 2 or self.times[-1] <= self.times[0]:
-            return self.nominal_fps
-        return float((self.num_frames - 1) / (self.times[-1] - self.times[0]))
+        """The container's nominal frame rate, None when unknown or when the decoder's timestamps are irregular
+        (the cameras.json contract; per-frame times carry the truth)."""
+        return None if self.variable_frame_rate else self.nominal_fps
 
     @property
     def variable_frame_rate(self) -> bool:

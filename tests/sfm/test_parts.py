@@ -174,3 +174,10 @@ def test_wanted_frames_follow_tracks() -> None:
     assert _wanted_frames(info, sfm, tracks, Localize.AUTO).tolist() == [0, 7, 10, 20, 31]
     assert _wanted_frames(info, sfm, None, Localize.AUTO).tolist() == list(range(50))
     assert _wanted_frames(info, sfm, tracks, Localize.NONE).tolist() == [0, 10, 20]
+
+
+def test_frame_rate_follows_the_contract() -> None:
+    """cameras.json `fps`: the container's nominal rate, null when the decoder's timestamps are irregular."""
+    assert _info(np.arange(10) / 30.0).fps == 30.0
+    irregular = _info(np.array([0.0, 0.033, 0.070, 0.100, 0.150, 0.166]))
+    assert irregular.variable_frame_rate and irregular.fps is None
