@@ -36,6 +36,20 @@ BASE_RATE_HZ = 120.0
 CAMERAS = 4
 
 
+def solver_version() -> str:
+    """HEAD commit and whether reconstruct/ has uncommitted changes: the solver is tuned while benchmarks run."""
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "reconstruct"], cwd=ROOT,
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    return f"{head}{' + uncommitted changes in reconstruct/' if dirty else ''}"
+
+
 def require_mocap_dir() -> Path:
     """The shared mocap folder, or exit with a message saying where it was expected."""
     if not MOCAP_DIR.is_dir():

@@ -49,6 +49,7 @@ from common import (
     require_mocap_dir,
     simulate,
     solve_and_score,
+    solver_version,
     step_for,
     threshold_header,
 )
@@ -216,6 +217,8 @@ def reprint(paths: list[Path], rows: list[Row], per_window: bool) -> int:
     names = [w.name for w in WINDOWS]
     window_indices = sorted({names.index(w) for w, _ in merged if w in names})
     present = {r for _, r in merged}
+    for path in paths:
+        print(f"{path}: solver {json.loads(path.read_text()).get('solver', 'not recorded')}")
     print("Windows: " + ", ".join(f"{i}. {names[i]} ({WINDOWS[i].path})" for i in window_indices))
     print_tables(list(merged.values()), [r for r in rows if r.key in present], window_indices, per_window)
     return 0
@@ -245,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.length < 20:
         raise SystemExit("--length: at least 20 captures")
 
+    version = solver_version()
+    print(f"solver: {version}")
     print("Windows (4 cameras; 300 captures at 120 Hz = 2.5 s unless noted; seed = list position):")
     for i in window_indices:
         w = WINDOWS[i]
@@ -268,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
                      r["seconds"])
         if args.json:
             args.json.write_text(json.dumps({
-                "windows": [WINDOWS[i].__dict__ for i in window_indices], "length": args.length,
+                "solver": version, "windows": [WINDOWS[i].__dict__ for i in window_indices], "length": args.length,
                 "paper": PAPER, "results": [o.__dict__ for o in outcomes]}, indent=1) + "\n")
 
     if args.jobs <= 1:

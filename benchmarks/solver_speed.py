@@ -38,7 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import require_mocap_dir, simulate
+from common import require_mocap_dir, simulate, solver_version
 
 from reconstruct.mocap import Mocap, read_mocap
 from reconstruct.problem import Problem
@@ -291,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
 
     require_mocap_dir()
     print(f"cores: {os.cpu_count()}, load average at start: {os.getloadavg()[0]:.1f}; data: {CMU_FILE}, P = {POINTS}")
-    report: dict[str, Any] = {}
+    report: dict[str, Any] = {"solver": solver_version()}
+    print(f"solver: {report['solver']}")
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     full = [run_child(F, 1, args.repeats if F <= 700 else 1) for F in sizes]
     report["full"] = full
