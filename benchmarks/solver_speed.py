@@ -316,11 +316,15 @@ def main(argv: list[str] | None = None) -> int:
             log.info("W-step F=%d: ours ...", F)
             row: dict[str, Any] = {"frames": F, "points": P, "ours": ours(shapes, video_index, P, args.repeats)}
             row["ours_tight"] = ours(shapes, video_index, P, 1, **TIGHT)
+            log.info("... ours %s; tight %s", json.dumps(row["ours"]), json.dumps(row["ours_tight"]))
             row["general"] = []
             for solver in [s.strip() for s in args.qp.split(",") if s.strip()]:
                 log.info("W-step F=%d: cvxpy %s ...", F, solver)
                 row["general"].append(general_qp(shapes, video_index, P, solver))
+                log.info("... %s", json.dumps(row["general"][-1]))  # a long run keeps what it has measured
         qp_rows.append(row)
+        if args.json:
+            args.json.write_text(json.dumps({**report, "wstep": qp_rows}, indent=1) + "\n")
     report["wstep"] = qp_rows
     if qp_rows:
         print_qp(qp_rows)
