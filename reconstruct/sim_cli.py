@@ -33,6 +33,9 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     sim.add_argument("--start", type=int, default=defaults.start, help="first mocap frame (default 0)")
     sim.add_argument("--length", type=int, default=defaults.length,
                      help="window length in mocap frames, before --step (default: to the end)")
+    sim.add_argument("--distance", type=float, default=None, metavar="MM",
+                     help="fixed camera distance to the motion's centroid in mm (the paper averages 2700); default: "
+                          "twice the motion's extent, moved back until every point is inside the images")
     sim.set_defaults(func=_simulate)
 
     ev = subparsers.add_parser(
@@ -47,7 +50,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 def _simulate(args: argparse.Namespace) -> int:
     options = simulate_module.SimulationOptions(
         cameras=args.cameras, step=args.step, noise_px=args.noise, miss=args.miss,
-        unconstrained=args.unconstrained, seed=args.seed, start=args.start, length=args.length)
+        unconstrained=args.unconstrained, seed=args.seed, start=args.start, length=args.length,
+        camera_distance_mm=args.distance)
     out = simulate_module.run(args.mocap, args.out, options)
     record = json.loads((out / "simulation.json").read_text(encoding="utf-8"))
     distance_m = record["camera_distance_mm"] / 1000

@@ -45,6 +45,9 @@ class SimulationOptions:
     image_size: int = 1000  # width = height, pixels
     focal_px: float = 1000.0
     distance_factor: float = 2.0  # camera distance to the centroid / motion scale (before any push back)
+    # Fixed camera distance in mm (the paper's protocol averages 2.7 m): no push back, so points of a motion that
+    # travels far may project outside the virtual 1000 x 1000 image; the solver does not mind.
+    camera_distance_mm: float | None = None
 
 
 class SimulatedCapture(NamedTuple):
@@ -132,6 +135,11 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
     phase = rng.uniform(0, 2 * np.pi / options.cameras)
     azimuths = phase + 2 * np.pi * np.arange(options.cameras) / options.cameras
     directions = np.cos(azimuths)[:, None] * h1 + np.sin(azimuths)[:, None] * h2  # (C, 3)
+    if options.camera_distance_mm is not None:
+        distance = options.camera_distance_mm
+        poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
+        return Rig(centroid=centroid, up=up, scale=scale, distance=distance, K=K,
+                   R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]))
     distance = options.distance_factor * scale
     for _ in range(200):
         poses = [look_at(centroid + distance * d, centroid, up) for d in directions]

@@ -119,6 +119,15 @@ def test_wide_motion_pushes_cameras_back_until_everything_is_visible() -> None:
     assert projected.min() >= 0
 
 
+def test_fixed_camera_distance_follows_the_papers_protocol() -> None:
+    xyz = walking_body(frames=600)
+    capture = simulate_capture(xyz, 120.0, SimulationOptions(seed=5, camera_distance_mm=2700.0))
+    centroid = xyz.reshape(-1, 3).mean(axis=0)
+    for video in capture.cameras.videos:
+        f = video.frames[0]
+        assert np.linalg.norm(-f.R.T @ f.t - centroid) == pytest.approx(2700.0)
+
+
 def test_unconstrained_allows_repeats() -> None:
     rng = np.random.default_rng(0)
     constrained = assign_cameras(5000, 4, False, rng)
