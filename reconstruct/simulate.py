@@ -27,6 +27,7 @@ from tracking.tracks import Tracks, write_tracks
 
 log = logging.getLogger(__name__)
 
+MIN_DEPTH_FRACTION = 0.2  # with a fixed distance, no sample may come closer to a camera than this x distance
 IMAGE_MARGIN_PX = 5.0  # every noise-free projection stays this far inside the image border
 PUSH_BACK = 1.05  # distance growth per attempt while some point falls outside an image
 
@@ -138,6 +139,13 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
     if options.camera_distance_mm is not None:
         distance = options.camera_distance_mm
         poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
+        for k, (R, t) in enumerate(poses):
+            _, depth = project(samples, K, R, t)
+            if depth.min() < MIN_DEPTH_FRACTION * distance:
+                raise DynreconError(
+                    f"--distance {distance:.0f} mm puts the motion within {max(depth.min(), 0):.0f} mm of camera "
+                    f"{k} (or behind it): the motion spans {2 * scale:.0f} mm; use a larger distance or a shorter "
+                    "window")
         return Rig(centroid=centroid, up=up, scale=scale, distance=distance, K=K,
                    R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]))
     distance = options.distance_factor * scale
