@@ -27,7 +27,7 @@ from tracking.tracks import Tracks, write_tracks
 
 log = logging.getLogger(__name__)
 
-MIN_DEPTH_FRACTION = 0.2  # with a fixed distance, no sample may come closer to a camera than this x distance
+MIN_DEPTH_FRACTION = 0.02  # with a fixed distance, no sample may come closer to a camera than this x distance
 IMAGE_MARGIN_PX = 5.0  # every noise-free projection stays this far inside the image border
 PUSH_BACK = 1.05  # distance growth per attempt while some point falls outside an image
 

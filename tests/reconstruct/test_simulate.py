@@ -127,7 +127,7 @@ def test_fixed_camera_distance_follows_the_papers_protocol() -> None:
         f = video.frames[0]
         assert np.linalg.norm(-f.R.T @ f.t - centroid) == pytest.approx(2700.0)
     with pytest.raises(DynreconError, match="larger distance"):
-        simulate_capture(xyz, 120.0, SimulationOptions(camera_distance_mm=800.0))
+        simulate_capture(xyz, 120.0, SimulationOptions(camera_distance_mm=300.0))
 
 
 def test_unconstrained_allows_repeats() -> None:
