@@ -1,0 +1,383 @@
+"""`dynrecon run`: videos in, 3D motion out. register -> (track) -> solve -> record -> export, in one workspace.
+
+Each stage is skipped when its outputs exist unchanged and its inputs (file contents and options) are those of the
+last run: `WS/pipeline.json` keeps, per stage, a hash of its inputs and of each output file. So a user can
+register, label, and rerun: only what the new labels change is redone. `force` redoes everything.
+
+Workspace layout (paths relative to WS):
+    register/          cameras.json, background.ply, register_report.json, frames/, sfm/ (dynrecon register)
+    labels.csv         the clicks (from the labeling page, or a copy of --labels)
+    tracks.csv         written by the track stage, or a copy of --tracks
+    points3d.csv, sequencing.json, report.json    the solve stage
+    recording.rrd      the rerun recording (background cloud, videos, tracks, 3D points, skeleton)
+    points.trc, points.c3d                        exports in the estimated global order
+    pipeline.json      stage hashes and timings
+
+Registration does not use the tracks for masks, so that new labels never force a new registration (measured on
+the video sample: every frame registered without masks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dynrecon.atomic import atomic_write_text
+from dynrecon.errors import InputError
+from labeling.workspace import read_skeleton
+from reconstruct.evaluate import Accuracy, evaluate
+from reconstruct.export import OrderSource, frame_times, global_order, write_c3d_export, write_trc_export
+from reconstruct.points import FramePoints, read_points, read_sequencing
+from reconstruct.recording import BackgroundCloud, write_recording
+from reconstruct.solve_stage import SolveStageOptions
+from reconstruct.solve_stage import run as solve_run
+from sfm.cameras import CameraSet, read_cameras
+from sfm.evaluate import similarity
+from sfm.export import read_ply
+from sfm.register import Localize, RegisterOptions
+from sfm.register import run as register_run
+from tracking.options import TrackOptions
+from tracking.stage import run as track_run
+from tracking.tracks import read_tracks
+
+log = logging.getLogger(__name__)
+
+STATE_NAME = "pipeline.json"
+REGISTER_DIR = "register"
+STAGES = ("register", "track", "solve", "record", "export")
+_HASH_CHUNK = 1 << 20
+
+
+def _default_register() -> RegisterOptions:
+    # No tracks exist when registering (see the module docstring): localize every frame.
+    return RegisterOptions(localize=Localize.ALL)
+
+
+@dataclass(kw_only=True)
+class PipelineOptions:
+    register: RegisterOptions = field(default_factory=_default_register)
+    track: TrackOptions = field(default_factory=TrackOptions)
+    solve: SolveStageOptions = field(default_factory=lambda: SolveStageOptions(recording=False))
+    labels: Path | None = None  # clicks to track (default: WS/labels.csv when it exists)
+    tracks: Path | None = None  # or ready 2D tracks (detector output, ...): no track stage
+    skeleton: Path | None = None  # skeleton JSON for the recording (points and connections)
+    units: str = "mm"  # unit label written into TRC/C3D (SfM worlds have an arbitrary scale)
+    force: bool = False  # redo every stage
+
+
+@dataclass(kw_only=True)
+class StageRun:
+    name: str
+    skipped: bool
+    seconds: float
+
+
+@dataclass(kw_only=True)
+class PipelineResult:
+    workspace: Path
+    stages: list[StageRun]
+    order_source: OrderSource | None = None
+
+    def seconds(self, name: str) -> float:
+        return next((s.seconds for s in self.stages if s.name == name), 0.0)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Hashes and the state file
+
+
+def file_hash(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        while chunk := handle.read(_HASH_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _plain(value: Any) -> Any:
+    """Options as JSON-able values (enums by value, paths as strings, dataclasses as dicts)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if callable(value):
+        return None  # monitors and callbacks do not change results
+    return value
+
+
+def inputs_key(files: dict[str, Path], settings: Any) -> str:
+    """Hash of the contents of `files` (by role) and of `settings`."""
+    document = {"files": {role: file_hash(path) for role, path in sorted(files.items())},
+                "settings": _plain(settings)}
+    return hashlib.sha256(json.dumps(document, sort_keys=True, default=str).encode()).hexdigest()
+
+
+class State:
+    """`WS/pipeline.json`: per stage, the inputs key, output hashes, seconds and when it ran."""
+
+    def __init__(self, workspace: Path) -> None:
+        self.path = workspace / STATE_NAME
+        self.stages: dict[str, dict[str, Any]] = {}
+        if self.path.is_file():
+            try:
+                self.stages = dict(json.loads(self.path.read_text(encoding="utf-8")).get("stages", {}))
+            except (ValueError, AttributeError):
+                log.warning("%s is not valid JSON; every stage runs again", self.path)
+
+    def up_to_date(self, name: str, key: str, workspace: Path) -> bool:
+        entry = self.stages.get(name)
+        if not entry or entry.get("inputs") != key:
+            return False
+        for relative, digest in entry.get("outputs", {}).items():
+            path = workspace / relative
+            if not path.is_file() or file_hash(path) != digest:
+                return False
+        return True
+
+    def record(self, name: str, key: str, outputs: list[Path], workspace: Path, seconds: float) -> None:
+        self.stages[name] = {"inputs": key,
+                             "outputs": {str(p.relative_to(workspace)): file_hash(p) for p in outputs},
+                             "seconds": round(seconds, 3),
+                             "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        self.save()
+
+    def forget(self, name: str) -> None:
+        if self.stages.pop(name, None) is not None:
+            self.save()
+
+    def save(self) -> None:
+        atomic_write_text(self.path, json.dumps({"version": 1, "stages": self.stages}, indent=1) + "\n")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The pipeline
+
+
+def _check(videos: list[Path], options: PipelineOptions) -> None:
+    for video in videos:
+        if not video.is_file():
+            raise InputError(video, "video not found", fix="give the paths of existing video files")
+    if options.labels is not None and options.tracks is not None:
+        raise InputError(options.tracks, "both labels and tracks were given",
+                         fix="give --labels (to track them) or --tracks (ready 2D tracks), not both")
+    for given in (options.labels, options.tracks, options.skeleton):
+        if given is not None and not given.is_file():
+            raise InputError(given, "file not found")
+
+
+def _copy_into(source: Path, target: Path) -> None:
+    """Copy a user's file into the workspace unless it already is that file."""
+    if source.resolve() != target.resolve():
+        shutil.copyfile(source, target)
+
+
+def run(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> Path:
+    """Run every stage that is not up to date; returns WS (see `run_stages` for the per-stage details)."""
+    return run_stages(videos, out_dir, options).workspace
+
+
+def run_stages(videos: list[str | Path], out_dir: str | Path,
+               options: PipelineOptions | None = None) -> PipelineResult:
+    options = options or PipelineOptions()
+    paths = [Path(v) for v in videos]
+    _check(paths, options)
+    ws = Path(out_dir)
+    ws.mkdir(parents=True, exist_ok=True)
+    state = State(ws)
+    result = PipelineResult(workspace=ws, stages=[])
+    video_files = {f"video:{p.stem}": p for p in paths}
+
+    def stage(name: str, files: dict[str, Path], settings: Any, outputs: list[Path],
+              work: Callable[[], object]) -> None:
+        number = STAGES.index(name) + 1
+        key = inputs_key(files, settings)
+        if not options.force and state.up_to_date(name, key, ws):
+            log.info("[%d/%d] %s: up to date, skipped", number, len(STAGES), name)
+            result.stages.append(StageRun(name=name, skipped=True, seconds=0.0))
+            return
+        log.info("[%d/%d] %s ...", number, len(STAGES), name)
+        state.forget(name)  # a stage that fails half-way must not look done
+        started = time.perf_counter()
+        work()
+        seconds = time.perf_counter() - started
+        missing = [p for p in outputs if not p.is_file()]
+        if missing:
+            raise InputError(missing[0], f"stage {name} did not write this file")
+        state.record(name, key, outputs, ws, seconds)
+        log.info("[%d/%d] %s: done in %.1f s", number, len(STAGES), name, seconds)
+        result.stages.append(StageRun(name=name, skipped=False, seconds=seconds))
+
+    # 1. register
+    register_dir = ws / REGISTER_DIR
+    cameras_path = register_dir / "cameras.json"
+    background_path = register_dir / "background.ply"
+    register_options = dataclasses.replace(options.register, tracks=None)
+    stage("register", video_files, {"register": register_options, "videos": [p.stem for p in paths]},
+          [cameras_path, background_path],
+          lambda: _register(paths, register_dir, register_options))
+
+    # 2. track (labels -> tracks.csv), or take the given tracks
+    tracks_path = ws / "tracks.csv"
+    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
+    if options.tracks is not None:
+        _copy_into(options.tracks, tracks_path)
+        state.forget("track")
+    elif labels is not None:
+        _copy_into(labels, ws / "labels.csv")
+        stage("track", {**video_files, "labels": ws / "labels.csv"}, {"track": options.track}, [tracks_path],
+              lambda: _track(ws, tracks_path, paths, options.track))
+    elif not tracks_path.is_file():
+        log.info("no labels and no tracks: registration only. Label the points with `dynrecon label %s "
+                 "--videos ...`, then run this command again", ws)
+        return result
+    if not tracks_path.is_file():
+        raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
+
+    # 3. solve
+    skeleton = read_skeleton(options.skeleton) if options.skeleton is not None else None
+    bones = tuple(tuple(c) for c in skeleton.connections) if skeleton is not None else ()
+    solve_options = dataclasses.replace(options.solve, recording=False, skeleton=bones)  # type: ignore[arg-type]
+    solved = [ws / "points3d.csv", ws / "sequencing.json", ws / "report.json"]
+    stage("solve", {"cameras": cameras_path, "tracks": tracks_path}, {"solve": solve_options}, solved,
+          lambda: solve_run(cameras_path, tracks_path, ws, solve_options))
+
+    # 4. record
+    record_files = {**video_files, "cameras": cameras_path, "background": background_path, "tracks": tracks_path,
+                    "points": ws / "points3d.csv", "report": ws / "report.json",
+                    "sequencing": ws / "sequencing.json"}
+    stage("record", record_files, {"skeleton": bones}, [ws / "recording.rrd"],
+          lambda: _record(ws, cameras_path, background_path, tracks_path, paths, bones))
+
+    # 5. export
+    exported = [ws / "points.trc", ws / "points.c3d"]
+    stage("export", {"cameras": cameras_path, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"},
+          {"units": options.units}, exported, lambda: _export(ws, cameras_path, options.units))
+    result.order_source = _order(ws, cameras_path)[1]
+    ran = ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages if not s.skipped) or "nothing to redo"
+    log.info("pipeline done (%s); open the recording with: rerun %s", ran, ws / "recording.rrd")
+    return result
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Stage bodies
+
+
+def _register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+    given: list[str | Path] = list(videos)
+    register_run(given, register_dir, options)
+
+
+def _track(ws: Path, tracks_path: Path, videos: list[Path], options: TrackOptions) -> None:
+    tracks_path.unlink(missing_ok=True)  # the tracker keeps rows of untracked videos: start clean
+    track_run(ws, tracks_path, options, videos={p.stem: p for p in videos})
+
+
+def _residual(ws: Path, keys: list[tuple[str, int]]) -> np.ndarray | None:
+    try:
+        per_frame = json.loads((ws / "report.json").read_text(encoding="utf-8"))["residual"]["per_frame"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    by_key = {(e["video"], int(e["frame"])): float(e["residual"]) for e in per_frame}
+    values = [by_key.get(key) for key in keys]
+    return None if any(v is None for v in values) else np.array(values, dtype=float)
+
+
+def _order(ws: Path, cameras_path: Path) -> tuple[np.ndarray, OrderSource]:
+    points = read_points(ws / "points3d.csv")
+    cameras = read_cameras(cameras_path)
+    return global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
+
+
+def export_rate(cameras: CameraSet, frames: int) -> float:
+    """Rows per second of an interleaved export: the sum of the videos' frame rates (nominal, or measured from
+    decoder times); 30 Hz per video when neither is known."""
+    total = 0.0
+    for video in cameras.videos:
+        times = [f.time for f in video.frames if f.time is not None]
+        if video.fps:
+            total += float(video.fps)
+        elif len(times) > 1 and max(times) > min(times):
+            total += (len(times) - 1) / (max(times) - min(times))
+        else:
+            total += 30.0
+    return total if total > 0 else 30.0 * max(1, frames)
+
+
+def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Path, videos: list[Path],
+            bones: tuple[tuple[str, ...], ...]) -> None:
+    cameras = read_cameras(cameras_path)
+    points = read_points(ws / "points3d.csv")
+    order, source = global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
+    times = frame_times(points, cameras) if source is OrderSource.TIME else None
+    if times is None:
+        times = np.empty(points.num_frames)
+        times[order] = np.arange(points.num_frames) / export_rate(cameras, points.num_frames)
+    xyz, rgb = read_ply(background_path)
+    keys = [(v, int(f)) for v, f in zip(points.videos, points.frames, strict=True)]
+    known = set(points.point_names)
+    skeleton = [(a, b) for a, b in bones if a in known and b in known]
+    write_recording(ws / "recording.rrd", cameras=cameras, points=points, tracks=read_tracks(tracks_path),
+                    skeleton=skeleton or None, residual=_residual(ws, keys), global_time=times,
+                    background=BackgroundCloud(xyz=xyz, colors=rgb),
+                    video_files={p.stem: p for p in videos if p.suffix.lower() == ".mp4"})
+
+
+def _export(ws: Path, cameras_path: Path, units: str) -> None:
+    points = read_points(ws / "points3d.csv")
+    cameras = read_cameras(cameras_path)
+    order, source = global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
+    rate = export_rate(cameras, points.num_frames)
+    log.info("export: %d rows at %.1f Hz, ordered by %s", len(order), rate, source.value)
+    write_trc_export(points, order, rate, ws / "points.trc", units=units)
+    write_c3d_export(points, order, rate, ws / "points.c3d", units=units)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Scoring against a known truth (the video sample)
+
+
+def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: CameraSet) -> FramePoints:
+    """`points` moved into the truth's world by the similarity that best maps the registered camera centres of
+    the frames both have onto the true ones (SfM worlds have their own origin, rotation and scale)."""
+    true_centres = {(v.name, f.frame): f.center for v in truth_cameras.videos for f in v.frames}
+    pairs = [(f.center, true_centres[(v.name, f.frame)]) for v in cameras.videos for f in v.frames
+             if (v.name, f.frame) in true_centres]
+    if len(pairs) < 3:
+        raise InputError(None, f"only {len(pairs)} registered frames have a true camera; need 3 to align",
+                         fix="score against the truth of the same videos")
+    s, R, t = similarity(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]))
+    return dataclasses.replace(points, xyz=s * points.xyz @ R.T + t)
+
+
+def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) -> Accuracy:
+    """Accuracy of `WS/points3d.csv` after alignment to the true cameras, against `truth_path` (same layout as
+    points3d.csv). Truth rows of frames the registration lost are left out (the log says how many)."""
+    points = read_points(ws / "points3d.csv")
+    aligned = align_to_truth(points, read_cameras(ws / REGISTER_DIR / "cameras.json"),
+                             read_cameras(truth_cameras_path))
+    truth = read_points(truth_path)
+    keep = [i for i, key in enumerate(zip(truth.videos, truth.frames, strict=True))
+            if (key[0], int(key[1])) in points.index()]
+    if len(keep) < truth.num_frames:
+        log.warning("%d of %d truth frames have no registered camera; not scored", truth.num_frames - len(keep),
+                    truth.num_frames)
+    subset = FramePoints(videos=[truth.videos[i] for i in keep], frames=truth.frames[keep],
+                         point_names=truth.point_names, xyz=truth.xyz[keep], observed=truth.observed[keep])
+    return evaluate(aligned, subset, estimate_path=ws / "points3d.csv", truth_path=truth_path)
