@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import enum
 import logging
-import os
 import tempfile
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, laplacian
 
+from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
 from reconstruct.mocap import UNIT_TO_MM, Mocap, write_trc
 from reconstruct.points import FramePoints, Sequencing
@@ -154,12 +154,10 @@ def write_c3d_export(points: FramePoints, order: np.ndarray | None, rate_hz: flo
     c3d.add_parameter("DYNRECON", "VIDEOS", [points.videos[int(i)] for i in rows])
     c3d.add_parameter("DYNRECON", "FRAMES", [int(points.frames[int(i)]) for i in rows])
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".c3d", dir=path.parent)
-    os.close(handle)
-    try:
-        c3d.write(temporary)
-        os.replace(temporary, path)
-    finally:
-        Path(temporary).unlink(missing_ok=True)
+    # ezc3d writes to a path; write a scratch copy and publish it atomically (readers never see half a file).
+    with tempfile.TemporaryDirectory(prefix=".c3d-", dir=path.parent if path.parent.is_dir() else None) as scratch:
+        scratch_file = Path(scratch) / "export.c3d"
+        c3d.write(str(scratch_file))
+        with atomic_open(path, "wb") as handle:
+            handle.write(scratch_file.read_bytes())
     return path

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -72,6 +74,10 @@ def test_c3d_round_trip_with_sources(tmp_path):
     assert group["TIMING"]["value"][0] == TIMING_NOTE
     assert list(group["VIDEOS"]["value"]) == [points.videos[i] for i in order]
     assert [int(f) for f in group["FRAMES"]["value"]] == [int(points.frames[i]) for i in order]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # like a plain open(), not mkstemp's 0600
+    assert [p.name for p in tmp_path.iterdir()] == ["out.c3d"]  # no scratch files left behind
 
 
 def test_bad_order_and_rate(tmp_path):
