@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dynrecon.errors import InputError
 from dynrecon.pipeline import PipelineOptions, _default_register, run_stages
+from tracking.options import TrackOptions
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -22,6 +24,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--skeleton", type=Path, help="skeleton JSON (points, connections) for the recording")
     parser.add_argument("--max-frames", type=int, default=_default_register().max_frames,
                         help="SfM frames per video at most (the others are localized)")
+    parser.add_argument("--track-window", type=int, default=TrackOptions().win_size,
+                        help="LK window side of the tracker, px (smaller for small markers)")
+    parser.add_argument("--track-patch", type=int, default=TrackOptions().patch,
+                        help="appearance patch side of the tracker, px (smaller for small markers)")
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.set_defaults(func=_run)
@@ -30,8 +36,11 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     register = _default_register()
     register.max_frames = args.max_frames
-    options = PipelineOptions(register=register, labels=args.labels, tracks=args.tracks, skeleton=args.skeleton,
-                              units=args.units, force=args.force)
+    if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
+        raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
+    track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
+    options = PipelineOptions(register=register, track=track, labels=args.labels, tracks=args.tracks,
+                              skeleton=args.skeleton, units=args.units, force=args.force)
     result = run_stages(args.videos, args.out, options)
     for stage in result.stages:
         print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
