@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from rrd_reader import entities, timelines, verify
 
 from dynrecon import cli
 from dynrecon.errors import InputError
@@ -121,6 +122,18 @@ def test_first_run_runs_every_stage(first_run):
         assert mocap.num_frames == points.num_frames
         assert mocap.marker_names == points.point_names
         assert mocap.rate == pytest.approx((30.0 + 24.0 + 20.0) / STEP)
+
+
+def test_recording_has_background_videos_and_global_time(first_run):
+    _, _, ws, _ = first_run
+    found = entities(ws / "recording.rrd")
+    parts = ("", "/image", "/image/tracks", "/image/reprojection")
+    cameras = [f"/world/cameras/{v}{part}" for v in CUT for part in parts]
+    for name in ("/world/background", "/world/points", "/metrics/residual", *cameras):
+        assert name in found, name
+    assert timelines(ws / "recording.rrd") == {"global_time", *(f"frame:{v}" for v in CUT)}
+    checked = verify(ws / "recording.rrd")
+    assert checked.returncode == 0, checked.stderr
 
 
 def test_accuracy_against_truth(first_run):
