@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "labeling.cli",
     "tracking.cli",
     "reconstruct.cli",
+    "dynrecon.pipeline_cli",
 )
 
 log = logging.getLogger("dynrecon")

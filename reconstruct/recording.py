@@ -32,6 +32,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from dynrecon.atomic import publish
 from dynrecon.errors import InputError
 from reconstruct import recording_parts as parts
 from reconstruct.points import FramePoints
@@ -214,7 +215,7 @@ def write_recording(
                       residual=residual, global_time=global_time, background=background,
                       video_files=video_files, options=options)
         rec.disconnect()  # flushes and writes the footer, without which readers see a "legacy RRD"
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         rec.disconnect()
         tmp.unlink(missing_ok=True)
