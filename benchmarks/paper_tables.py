@@ -16,7 +16,8 @@ at 120 Hz (2.5 s) each unless the file is shorter; files whose rate is not a mul
 120 Hz by a cubic spline. Seeds are fixed (window k uses seed k), so reruns give the same numbers.
 
 Runtime: one solve of 300 frames x ~45 points takes ~20-40 s on one core (fewer frames at 15 / 7.5 Hz), so the
-default run (6 windows x 14 rows = 84 solves) takes 1-2 hours on one core (the missing-data rows take 30-600 s per solve); `--jobs N` runs N windows'
+default run (6 windows x 14 rows = 84 solves) takes 1-2 hours on one core (the missing-data rows take
+30-600 s per solve); `--jobs N` runs N windows'
 solves in parallel processes (each with one BLAS thread). Default 1 job: the machine is shared.
 """
 
