@@ -91,6 +91,7 @@ class Task:
     window_index: int
     row: Row
     length: int
+    distance_mm: float | None = None  # fixed camera distance (the paper's 2.7 m), None = push back until visible
 
 
 @dataclass(kw_only=True)
@@ -122,7 +123,8 @@ def run_task(task: Task) -> Outcome:
     try:
         mocap = _window_mocap(window, task.length)
         options = SimulationOptions(step=step_for(mocap, row.per_camera_hz), noise_px=row.noise_px, miss=row.miss,
-                                    unconstrained=row.unconstrained, seed=task.window_index)
+                                    unconstrained=row.unconstrained, seed=task.window_index,
+                                    camera_distance_mm=task.distance_mm)
         capture, problem, distance = simulate(mocap, options)
         run, _ = solve_and_score(capture, problem)
         outcome.result = {**run.as_dict(), "camera_distance_mm": distance}
@@ -232,6 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", default="frame,noise,missing",
                         help="groups (frame, noise, missing) and/or row keys, comma-separated")
     parser.add_argument("--length", type=int, default=300, help="captures per window at 120 Hz (default 300)")
+    parser.add_argument("--distance", type=float, default=None, metavar="MM",
+                        help="fixed camera distance in mm, as in the paper's protocol (2700); default: cameras at "
+                             "twice the motion's extent, moved back until every point is inside the images")
     parser.add_argument("--jobs", type=int, default=1, help="parallel worker processes (default 1)")
     parser.add_argument("--per-window", action="store_true", help="also print one line per window")
     parser.add_argument("--json", type=Path, help="write every result (updated after each solve) to this file")
@@ -258,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Rows: {', '.join(r.key for r in rows)}; {len(window_indices) * len(rows)} solves, {args.jobs} job(s)",
           flush=True)
 
-    tasks = [Task(window_index=i, row=r, length=args.length) for r in rows for i in window_indices]
+    tasks = [Task(window_index=i, row=r, length=args.length, distance_mm=args.distance)
+             for r in rows for i in window_indices]
     outcomes: list[Outcome] = []
     started = time.perf_counter()
 
