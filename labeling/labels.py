@@ -61,6 +61,7 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
             raise InputError(path, f"header lacks column(s) {', '.join(missing)}", where="line 1",
                              fix="the header must be video,frame,point,x,y,source")
         col = {name: header.index(name) for name in COLUMNS if name in header}
+        first_line: dict[Key, int] = {}
         try:
             for row in reader:
                 if not row or all(not cell.strip() for cell in row):
@@ -69,6 +70,11 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
                 if len(row) < len(header):
                     raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
                 key = _parse_key(path, where, row, col)
+                if key in first_line:
+                    raise InputError(path, f"point {key[2]!r} of video {key[0]!r} is labeled twice on frame "
+                                     f"{key[1]} (first on line {first_line[key]})", where=where,
+                                     fix="keep one row per video, frame and point")
+                first_line[key] = reader.line_num
                 labels[key] = _parse_label(path, where, row, col)
         except csv.Error as error:
             raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None

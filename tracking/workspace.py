@@ -9,12 +9,11 @@ Layout (shared with `labeling`):
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from labeling import labels as labeling_labels
 
 CONFIG_NAME = "labeling.json"
 LABELS_NAME = "labels.csv"
@@ -70,65 +69,12 @@ AllLabels = dict[str, dict[str, dict[int, tuple[float, float] | None]]]
 
 
 def read_labels(path: Path) -> AllLabels:
-    """`labels.csv` -> video -> point -> frame -> (x, y), or None for `source=hidden`. Missing file: no
-    labels."""
+    """`labels.csv` -> video -> point -> frame -> (x, y), or None for `source=hidden`. Missing file: no labels.
+    The format belongs to the labeling page (`labeling.labels`); this only regroups its rows for tracking."""
     labels: AllLabels = {}
-    try:
-        handle = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        return labels
-    with handle:
-        reader = csv.reader(handle)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            return labels
-        except (csv.Error, UnicodeDecodeError) as error:
-            raise InputError(path, f"not a CSV file: {error}", where="line 1") from None
-        missing = [c for c in ("video", "frame", "point", "x", "y") if c not in header]
-        if missing:
-            raise InputError(path, f"header lacks column(s) {', '.join(missing)}", where="line 1",
-                             fix="the header must be video,frame,point,x,y,source")
-        col = {name: header.index(name) for name in header}
-        try:
-            for row in reader:
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                where = f"line {reader.line_num}"
-                if len(row) < len(header):
-                    raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
-                video, point = row[col["video"]].strip(), row[col["point"]].strip()
-                if not video or not point:
-                    raise InputError(path, "empty video or point name", where=where)
-                try:
-                    frame = int(row[col["frame"]])
-                except ValueError:
-                    raise InputError(path, f"frame {row[col['frame']]!r} is not an integer",
-                                     where=where) from None
-                if frame < 0:
-                    raise InputError(path, f"frame {frame} is negative", where=where,
-                                     fix="frames are 0-based")
-                source = row[col["source"]].strip() if "source" in col else "label"
-                marks = labels.setdefault(video, {}).setdefault(point, {})
-                if frame in marks:
-                    raise InputError(path, f"point {point!r} of video {video!r} is labeled twice on frame "
-                                     f"{frame}",
-                                     where=where, fix="keep one row per video, frame and point")
-                if source in HIDDEN_SOURCES:
-                    marks[frame] = None
-                    continue
-                try:
-                    x, y = float(row[col["x"]]), float(row[col["y"]])
-                except ValueError:
-                    raise InputError(path, f"x, y = {row[col['x']]!r}, {row[col['y']]!r} are not numbers",
-                                     where=where,
-                                     fix="write source=hidden with empty x,y for a hidden point") from None
-                if not (math.isfinite(x) and math.isfinite(y)):
-                    raise InputError(path, f"x, y = {x}, {y} is not finite", where=where)
-                marks[frame] = (x, y)
-        except csv.Error as error:
-            raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None
-        except UnicodeDecodeError:
-            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
+    for (video, frame, point), label in labeling_labels.read_labels(path).items():
+        labels.setdefault(video, {}).setdefault(point, {})[frame] = (
+            None if label.source is labeling_labels.Source.HIDDEN else label.xy)
     return labels
+
 

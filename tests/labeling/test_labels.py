@@ -108,3 +108,10 @@ def test_rename_refuses_to_merge_points(tmp_path: Path) -> None:
         store.rename_point("a", "b")
     assert store.rename_point("a", "c") == 1
     assert set(read_labels(tmp_path / "labels.csv")) == {("cam1", 0, "c"), ("cam1", 0, "b")}
+
+
+def test_duplicate_rows_are_an_error_naming_both_lines(tmp_path: Path) -> None:
+    path = tmp_path / "labels.csv"
+    path.write_text("video,frame,point,x,y,source\na,0,p,1,2,label\na,1,p,1,2,label\na,0,p,3,4,label\n")
+    with pytest.raises(InputError, match=r"line 4: .* labeled twice on frame 0 \(first on line 2\)"):
+        labels_module.read_labels(path)
