@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 from tqdm import tqdm
 
+from dynrecon.errors import NotEnoughDataError
 from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
@@ -105,7 +106,9 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     for name in np.asarray(problem.point_names)[~keep]:
         log.warning("point %r is seen in fewer than two videos: it cannot be reconstructed (left empty)", name)
     if not keep.any():
-        raise_not_enough(problem)
+        raise NotEnoughDataError(
+            f"none of the {problem.num_points} point(s) is seen in two different videos: nothing can be "
+            "reconstructed (each point needs observations from at least two videos)")
 
     rays_all = viewing_rays(problem)
     normalization = camera_normalization(problem.centers, video_index)
@@ -181,11 +184,3 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
         points=out, W=W, reconstructable=keep, init=init, normalization=normalization, stages=stages,
         timings=timings, residual=frame_residuals(points, W_matrix) * normalization.scale, init_points=init_out,
     )
-
-
-def raise_not_enough(problem: Problem) -> None:
-    from dynrecon.errors import NotEnoughDataError
-
-    raise NotEnoughDataError(
-        f"none of the {problem.num_points} point(s) is seen in two different videos: nothing can be "
-        "reconstructed (each point needs observations from at least two videos)")

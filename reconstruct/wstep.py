@@ -318,11 +318,12 @@ def solve_w(
         rows.append(previous.cand[keep])
         cols.append(np.broadcast_to(np.arange(F)[:, None], previous.cand.shape)[keep])
     all_rows, all_cols = np.concatenate(rows), np.concatenate(cols)
-    V_start: np.ndarray | None = None
+    # Warm start: the previous W on the first round, then each round's own solution.
+    V_start = None if previous is None else _sparse_lookup(previous)
     for round_index in range(options.max_rounds):
         cand, valid = _pack_pairs(all_rows, all_cols, F)
         problem = _WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points)
-        V = _start_values(cand, valid, previous if V_start is None else None, V_start, near)
+        V = _start_values(cand, valid, V_start, near)
         exact = _active_set(problem, V, options, stats)
         if exact is None:
             log.debug("active-set W-step did not finish; falling back to FISTA")
@@ -346,21 +347,17 @@ def solve_w(
 
 
 def _sparse_lookup(W: SparseW) -> np.ndarray:
-    """W as a dense-free lookup: (F*F keys) is too big, so return the (col, row, value) triplets packed."""
+    """The entries of W as (column, row, value) triplets, (3, nnz): keyed like a sparse matrix, never dense F x F."""
     F = W.num_frames
     cols = np.broadcast_to(np.arange(F)[:, None], W.cand.shape)[W.valid]
     return np.stack([cols, W.cand[W.valid], W.value[W.valid]])
 
 
-def _start_values(
-    cand: np.ndarray, valid: np.ndarray, previous: SparseW | None, triplets: np.ndarray | None, near: np.ndarray,
-) -> np.ndarray:
-    """Warm start on a new working set: previous values where the entry existed, else all weight on the nearest."""
+def _start_values(cand: np.ndarray, valid: np.ndarray, triplets: np.ndarray | None, near: np.ndarray) -> np.ndarray:
+    """Warm start on a new working set: previous values (triplets of `_sparse_lookup`) where the entry existed,
+    else all weight on the nearest."""
     F, K = cand.shape
     V = np.zeros((F, K))
-    if previous is not None:
-        cols = np.broadcast_to(np.arange(F)[:, None], previous.cand.shape)[previous.valid]
-        triplets = np.stack([cols, previous.cand[previous.valid], previous.value[previous.valid]])
     if triplets is not None and triplets.shape[1]:
         old_keys = triplets[0].astype(np.int64) * F + triplets[1].astype(np.int64)
         order = np.argsort(old_keys)
