@@ -23,24 +23,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
 from sfm.register import Mapper, RegisterOptions, RegistrationError, run
-from sfm.synthetic.demo import orbiting_spheres, render_demo, three_cameras
-from tracking.tracks import Tracks, write_tracks
+from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
+from tracking.tracks import write_tracks
 
 ROOM_DIAGONAL = float(np.linalg.norm([8.0, 6.0, 3.0]))
-
-
-def sphere_tracks(videos: list) -> Tracks:
-    rows = []
-    for video in videos:
-        for frame in video.cameras.frames:
-            centers = orbiting_spheres(frame.time).centers
-            in_cam = centers @ frame.R.T + frame.t
-            uv = in_cam @ frame.K.T
-            for index, (point, depth) in enumerate(zip(uv, in_cam[:, 2], strict=True)):
-                x, y = point[:2] / point[2]
-                if depth > 0 and 0 <= x < video.cameras.width and 0 <= y < video.cameras.height:
-                    rows.append((video.cameras.name, frame.frame, f"sphere{index}", float(x), float(y)))
-    return Tracks.from_rows(rows)
 
 
 def main() -> None:

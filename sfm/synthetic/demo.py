@@ -10,6 +10,7 @@ import numpy as np
 
 from sfm.synthetic.room import Room, Spheres
 from sfm.synthetic.scene import CameraPath, SceneVideo, render_video
+from tracking.tracks import Tracks
 
 
 def orbiting_spheres(time: float, count: int = 4) -> Spheres:
@@ -71,3 +72,21 @@ def render_demo(
         render_video(room, camera, Path(out_dir) / f"{camera.name}.mp4", orbiting_spheres)
         for camera in (cameras or three_cameras())
     ]
+
+
+def sphere_tracks(videos: list[SceneVideo]) -> Tracks:
+    """Ground-truth 2D tracks of the orbiting spheres' centres in each rendered frame (what the tracking stage
+    would deliver), for masking the moving subject out of SfM."""
+    rows = []
+    for video in videos:
+        for frame in video.cameras.frames:
+            if frame.time is None:
+                raise ValueError(f"rendered frame {frame.frame} of {video.cameras.name} has no capture time")
+            centers = orbiting_spheres(frame.time).centers
+            in_cam = centers @ frame.R.T + frame.t
+            uv = in_cam @ frame.K.T
+            for index, (point, depth) in enumerate(zip(uv, in_cam[:, 2], strict=True)):
+                x, y = point[:2] / point[2]
+                if depth > 0 and 0 <= x < video.cameras.width and 0 <= y < video.cameras.height:
+                    rows.append((video.cameras.name, frame.frame, f"sphere{index}", float(x), float(y)))
+    return Tracks.from_rows(rows)

@@ -13,26 +13,11 @@ from dynrecon.cli import main
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
 from sfm.export import read_ply
-from sfm.synthetic.demo import orbiting_spheres, render_demo, three_cameras
+from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
 from sfm.synthetic.room import Room
-from tracking.tracks import Tracks, write_tracks
+from tracking.tracks import write_tracks
 
 ROOM_DIAGONAL = float(np.linalg.norm(Room(textures=[np.zeros((1, 1, 3), np.uint8)] * 6).size))
-
-
-def _sphere_tracks(videos: list) -> Tracks:
-    """Ground-truth 2D tracks of the moving spheres' centres (what the tracking stage would deliver)."""
-    rows = []
-    for video in videos:
-        for frame in video.cameras.frames:
-            centers = orbiting_spheres(frame.time).centers
-            in_cam = centers @ frame.R.T + frame.t
-            uv = in_cam @ frame.K.T
-            for index, (point, depth) in enumerate(zip(uv, in_cam[:, 2], strict=True)):
-                x, y = point[:2] / point[2]
-                if depth > 0 and 0 <= x < video.cameras.width and 0 <= y < video.cameras.height:
-                    rows.append((video.cameras.name, frame.frame, f"sphere{index}", float(x), float(y)))
-    return Tracks.from_rows(rows)
 
 
 @pytest.mark.slow
@@ -41,7 +26,7 @@ def test_register_synthetic_room(tmp_path: Path) -> None:
     videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))
     truth = CameraSet(videos=[v.cameras for v in videos])
     ws = tmp_path / "ws"
-    write_tracks(ws / "tracks.csv", _sphere_tracks(videos))
+    write_tracks(ws / "tracks.csv", sphere_tracks(videos))
     args = [
         "register",
         *(str(v.path) for v in videos),
