@@ -107,9 +107,10 @@ def _batched_cg(
     x: np.ndarray,
     options: XStepOptions,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Independent CG solves, one per point: arrays are (F, P, k) and the point axis is 1. Returns (x, converged)."""
+    """Independent CG solves, one per point: arrays are (F, 3, P), the point axis last so that the per-point dot
+    products reduce over contiguous memory (the (F, P, 3) layout made them 10x slower). Returns (x, converged)."""
     def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return (a * b).sum(axis=(0, 2))
+        return np.einsum("fkp,fkp->p", a, b)
 
     residual = rhs - apply(x)
     target = options.cg_tolerance * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
@@ -123,22 +124,25 @@ def _batched_cg(
         Ad = apply(direction)
         curvature = dot(direction, Ad)
         alpha = np.where(done | (curvature <= 0), 0.0, rz / np.where(curvature > 0, curvature, 1.0))
-        x = x + alpha[None, :, None] * direction
-        residual = residual - alpha[None, :, None] * Ad
+        x = x + alpha * direction
+        residual = residual - alpha * Ad
         done |= np.sqrt(dot(residual, residual)) <= target
         z = precondition(residual)
         rz_new = dot(residual, z)
         beta = np.where(done, 0.0, rz_new / np.where(rz != 0, rz, 1.0))
-        direction = z + beta[None, :, None] * direction
+        direction = z + beta * direction
         rz = rz_new
     return x, done
 
 
 def _along(r: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """r (r . Y) per (frame, point): the component of Y along its ray (zero where r = 0, i.e. unobserved)."""
-    # Explicit components: numpy's reduction over a length-3 axis is several times slower.
-    dot = r[..., 0] * Y[..., 0] + r[..., 1] * Y[..., 1] + r[..., 2] * Y[..., 2]
-    return r * dot[..., None]
+    """r (r . Y) per (frame, point), arrays (F, 3, P): the component of Y along its ray (zero where r = 0)."""
+    dot = r[:, 0] * Y[:, 0] + r[:, 1] * Y[:, 1] + r[:, 2] * Y[:, 2]
+    return r * dot[:, None]
+
+
+def _to_fkp(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a.transpose(0, 2, 1))
 
 
 def _cg_soft(
@@ -148,22 +152,27 @@ def _cg_soft(
     """The 3x3 ray blocks weight (I - r r^T) and the block-Jacobi preconditioner are applied in closed form:
     (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit ray r."""
     F, P = observed.shape
-    w = weight * observed[..., None]  # (F, P, 1), zero where unobserved
+    r = _to_fkp(r)
+    w = weight * observed[:, None, :]  # (F, 1, P), zero where unobserved
     diagonal = np.maximum(Q.diagonal(), 1e-300)[:, None, None]
+    inverse_observed = 1.0 / (diagonal + w)
+    inverse_diagonal = 1.0 / diagonal
 
     def ray_term(Y: np.ndarray) -> np.ndarray:
         return w * (Y - _along(r, Y))
 
     def apply(Y: np.ndarray) -> np.ndarray:
-        return (Q @ Y.reshape(F, -1)).reshape(F, P, 3) + ray_term(Y)
+        return (Q @ Y.reshape(F, -1)).reshape(F, 3, P) + ray_term(Y)
 
     def precondition(R: np.ndarray) -> np.ndarray:
         along = _along(r, R)
-        return (R - along) / (diagonal + w) + along / diagonal
+        return (R - along) * inverse_observed + along * inverse_diagonal
 
-    rhs = ray_term(np.broadcast_to(centers[:, None, :], (F, P, 3)))
-    x0 = start if start is not None else np.broadcast_to(centers[:, None, :], (F, P, 3)).copy()
-    return _batched_cg(apply, precondition, rhs, x0, options)
+    C = np.broadcast_to(centers[:, :, None], (F, 3, P))
+    rhs = ray_term(C)
+    x0 = _to_fkp(start) if start is not None else C.copy()
+    x, done = _batched_cg(apply, precondition, rhs, x0, options)
+    return x.transpose(0, 2, 1).copy(), done
 
 
 def _cg_hard(
@@ -172,20 +181,21 @@ def _cg_hard(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observed points move along their ray only: CG on Y = y0 + Pi z with Pi = r r^T (observed) or I (missing)."""
     F, P = observed.shape
-    missing = ~observed[..., None]
-    y0 = np.where(observed[..., None], centers[:, None, :], 0.0)
+    r = _to_fkp(r)
+    missing = ~observed[:, None, :]
+    y0 = np.where(missing, 0.0, centers[:, :, None])
 
     def project(Y: np.ndarray) -> np.ndarray:
         return np.where(missing, Y, _along(r, Y))
 
     def apply(Z: np.ndarray) -> np.ndarray:
-        return project((Q @ project(Z).reshape(F, -1)).reshape(F, P, 3))
+        return project((Q @ project(Z).reshape(F, -1)).reshape(F, 3, P))
 
-    inverse_diagonal = 1.0 / np.maximum(Q.diagonal(), 1e-300)
-    rhs = -project((Q @ y0.reshape(F, -1)).reshape(F, P, 3))
-    z0 = project(start - y0) if start is not None else np.zeros((F, P, 3))
-    z, converged = _batched_cg(apply, lambda R: project(R * inverse_diagonal[:, None, None]), rhs, z0, options)
-    return y0 + project(z), converged
+    inverse_diagonal = (1.0 / np.maximum(Q.diagonal(), 1e-300))[:, None, None]
+    rhs = -project((Q @ y0.reshape(F, -1)).reshape(F, 3, P))
+    z0 = project(_to_fkp(start) - y0) if start is not None else np.zeros((F, 3, P))
+    z, converged = _batched_cg(apply, lambda R: project(R * inverse_diagonal), rhs, z0, options)
+    return (y0 + project(z)).transpose(0, 2, 1).copy(), converged
 
 
 def _solve_hard(Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observed: np.ndarray) -> np.ndarray:
