@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import (  # noqa: E402
+from common import (
     PAPER,
     WINDOWS,
     load_window,
@@ -45,16 +45,17 @@ from common import (  # noqa: E402
     step_for,
     threshold_header,
 )
-from paper_tables import ROWS, Row  # noqa: E402
+from paper_tables import ROWS, Row
 
-from reconstruct.evaluate import evaluate  # noqa: E402
-from reconstruct.export import sequencing_order  # noqa: E402
-from reconstruct.initialize import fill_missing_points  # noqa: E402
-from reconstruct.points import FramePoints  # noqa: E402
-from reconstruct.problem import Problem  # noqa: E402
-from reconstruct.simulate import SimulatedCapture, SimulationOptions  # noqa: E402
-from reconstruct.solve_stage import frame_points, sequencing  # noqa: E402
-from reconstruct.solver import solve  # noqa: E402
+from reconstruct.evaluate import evaluate
+from reconstruct.export import sequencing_order
+from reconstruct.initialize import fill_missing_points
+from reconstruct.points import FramePoints
+from reconstruct.problem import Problem
+from reconstruct.refine import RefineOptions, RobustLoss, SmoothnessRule, refine
+from reconstruct.simulate import SimulatedCapture, SimulationOptions
+from reconstruct.solve_stage import frame_points, sequencing
+from reconstruct.solver import solve
 
 log = logging.getLogger("refine_tables")
 
@@ -83,17 +84,21 @@ def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_m
 
 
 def seed_solve(problem: Problem, path: Path) -> dict[str, np.ndarray]:
-    """Seed solver outputs (points, init, spectral order, seconds), from the cache or solved and cached."""
+    """Seed solver outputs (points, init, spectral order, W, seconds), from the cache or solved and cached."""
     if path.is_file():
         with np.load(path) as data:
-            return {key: data[key] for key in data.files}
+            cached = {key: data[key] for key in data.files}
+        if "w_data" in cached:
+            return cached
     started = time.perf_counter()
     result = solve(problem)
     seconds = time.perf_counter() - started
     points = frame_points(problem, result)
     order = sequencing_order(points, sequencing(problem, result))
     init = fill_missing_points(result.init_points, problem.video_index)
-    out = {"points": result.points, "init": init, "order": order, "seconds": np.array(seconds)}
+    W = result.W.to_csc()
+    out = {"points": result.points, "init": init, "order": order, "seconds": np.array(seconds),
+           "w_data": W.data, "w_indices": W.indices, "w_indptr": W.indptr, "reconstructable": result.reconstructable}
     path.parent.mkdir(parents=True, exist_ok=True)
     scratch = path.with_suffix(".tmp.npz")
     np.savez(scratch, **out)
@@ -105,3 +110,164 @@ def score(problem: Problem, capture: SimulatedCapture, xyz: np.ndarray) -> list[
     estimate = FramePoints(videos=problem.frame_videos, frames=problem.frames, point_names=problem.point_names,
                            xyz=xyz, observed=problem.observed)
     return [float(s) for s in evaluate(estimate, capture.truth).share_under]
+
+
+def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) -> tuple[np.ndarray, str]:
+    """(F,) global times the pipeline could know, and how they were obtained.
+
+    With reconstruct.clocks: every video's decoder times are shifted by an unknown offset (uniform in +-1 s, as
+    unsynchronized phones start at different moments) and `estimate_clocks` recovers the global time from W. Without
+    it (or when it fails): the spectral order of W (reconstruct.export.sequencing_order) at even spacing, which is
+    the true spacing of the simulation's captures when the order is right.
+    """
+    import scipy.sparse as sp
+
+    try:
+        from reconstruct.clocks import estimate_clocks
+
+        rng = np.random.default_rng(1000 + seed)
+        offsets = rng.uniform(-1.0, 1.0, len(problem.video_names))
+        shifted = replace(problem, times=problem.times + offsets[problem.video_index])
+        F = problem.num_frames
+        W = sp.csc_matrix((cached["w_data"], cached["w_indices"], cached["w_indptr"]), shape=(F, F))
+
+        class _W:
+            def to_csc(self) -> sp.csc_matrix:
+                return W
+
+        class _Result:  # the two fields estimate_clocks reads
+            def __init__(self) -> None:
+                self.W = _W()
+                self.reconstructable = cached["reconstructable"]
+
+        clocks = estimate_clocks(shifted, _Result())  # type: ignore[arg-type]
+        times = np.asarray(clocks.global_time, dtype=float)
+        if np.isfinite(times).all():
+            return times, "clocks"
+        log.warning("estimate_clocks left %d frame(s) without a time: spectral order instead",
+                    int(np.sum(~np.isfinite(times))))
+    except Exception as error:  # the clock module is optional here; say why it was not used
+        log.warning("estimate_clocks unavailable (%s: %s): spectral order instead", type(error).__name__, error)
+    times = np.empty(problem.num_frames)
+    times[cached["order"]] = np.arange(problem.num_frames) / (capture_rate(problem))
+    return times, "spectral order"
+
+
+def capture_rate(problem: Problem) -> float:
+    """Captures per second of the simulation (its times are known to the benchmark, not to the method)."""
+    span = float(np.nanmax(problem.times) - np.nanmin(problem.times))
+    return (problem.num_frames - 1) / span if span > 0 else 1.0
+
+
+def run_one(window_index: int, row: Row, length: int, distance_mm: float | None, cache: Path,
+            options: RefineOptions) -> dict[str, Any]:
+    capture, problem = simulate_row(window_index, row, length, distance_mm)
+    cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm))
+    true_times = capture.truth.extra["time"][:, 0]
+    shares: dict[str, list[float]] = {"init": score(problem, capture, cached["init"]),
+                                      "seed": score(problem, capture, cached["points"])}
+    started = time.perf_counter()
+    oracle = refine(problem, cached["points"], true_times, options)
+    refine_seconds = time.perf_counter() - started
+    shares["refined_true"] = score(problem, capture, oracle.points)
+    times, source = estimated_times(problem, cached, window_index)
+    estimated = refine(problem, cached["points"], times, options)
+    shares["refined_estimated"] = score(problem, capture, estimated.points)
+    # Time error of the estimate after removing the gauge (a common offset).
+    time_error = times - true_times
+    time_error -= np.median(time_error)
+    return {"window": WINDOWS[window_index].name, "row": row.key, "shares": shares, "times": source,
+            "time_error_ms_median": float(1000 * np.median(np.abs(time_error))),
+            "frames": problem.num_frames, "points": problem.num_points,
+            "seed_seconds": float(cached["seconds"]), "refine_seconds": refine_seconds,
+            "smoothness_median": float(np.nanmedian(oracle.smoothness)),
+            "outliers": int(oracle.outliers.sum())}
+
+
+def print_tables(results: list[dict[str, Any]], per_window: bool) -> None:
+    by_protocol: dict[str, list[dict[str, Any]]] = {}
+    for item in results:
+        by_protocol.setdefault(item["protocol"], []).append(item)
+    for protocol, items in by_protocol.items():
+        print(f"\n### {protocol}\n")
+        print(threshold_header("setting / method", extra="windows"))
+        keys = [r.key for r in ROWS if any(i["row"] == r.key for i in items)]
+        for key in keys:
+            done = [i for i in items if i["row"] == key]
+            sources = sorted({i["times"] for i in done})
+            for method in METHODS:
+                mean = np.mean([i["shares"][method] for i in done], axis=0)
+                label = LABELS[method] + (f" ({', '.join(sources)})" if method == "refined_estimated" else "")
+                print(percent_row(f"{key}: {label}", mean, f" {len(done)} |"))
+            print(percent_row(f"{key}: paper", PAPER[key], " |"))
+            if per_window:
+                for i in done:
+                    cells = ", ".join(f"{LABELS[m]} {100 * i['shares'][m][0]:.2f}" for m in METHODS)
+                    print(f"| &nbsp;&nbsp;{i['window']} (<10 mm) | {cells}; F={i['frames']}, time error "
+                          f"{i['time_error_ms_median']:.2f} ms, smoothness {i['smoothness_median']:.2g}, "
+                          f"{i['outliers']} outliers, refine {i['refine_seconds']:.1f} s |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--windows", default=DEFAULT_WINDOWS, help="comma-separated window names (common.WINDOWS)")
+    parser.add_argument("--rows", default="30Hz,7.5Hz,noise1,noise3", help="row keys of paper_tables.py")
+    parser.add_argument("--distance", default="2700",
+                        help="camera distance in mm (the paper's 2700), or 'push' for cameras pushed back until "
+                             "every point is inside the images; comma-separated for both")
+    parser.add_argument("--length", type=int, default=300)
+    parser.add_argument("--cache", type=Path, default=Path("/tmp/dynrecon_refine_cache"),
+                        help="folder of cached seed solves")
+    parser.add_argument("--loss", default=RobustLoss.HUBER.value, choices=[x.value for x in RobustLoss])
+    parser.add_argument("--rule", default=SmoothnessRule.GCV.value, choices=[x.value for x in SmoothnessRule])
+    parser.add_argument("--smoothness", type=float, default=1.0, help="lambda for --rule fixed")
+    parser.add_argument("--json", type=Path, help="write every result (after each window) to this file")
+    parser.add_argument("--from-json", type=Path, nargs="+", help="print the tables of earlier --json files")
+    parser.add_argument("--per-window", action="store_true")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    for noisy in ("reconstruct", "common"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    if args.from_json:
+        results = [item for path in args.from_json for item in json.loads(path.read_text())["results"]]
+        print_tables(results, args.per_window)
+        return 0
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    names = [w.name for w in WINDOWS]
+    rows = {r.key: r for r in ROWS}
+    unknown = [w for w in args.windows.split(",") if w not in names] + \
+        [r for r in args.rows.split(",") if r not in rows]
+    if unknown:
+        raise SystemExit(f"unknown window or row: {', '.join(unknown)}")
+    options = RefineOptions(loss=RobustLoss(args.loss), rule=SmoothnessRule(args.rule), smoothness=args.smoothness)
+    version = solver_version()
+    print(f"solver: {version}; refine options: {options}", flush=True)
+    results: list[dict[str, Any]] = []
+    for distance_text in args.distance.split(","):
+        distance = None if distance_text == "push" else float(distance_text)
+        protocol = "cameras pushed back (default protocol)" if distance is None else \
+            f"paper protocol, cameras at {distance / 1000:g} m"
+        for key in args.rows.split(","):
+            for name in args.windows.split(","):
+                try:
+                    item = run_one(names.index(name), rows[key], args.length, distance, args.cache, options)
+                except Exception:  # keep the other windows' results
+                    log.exception("%s / %s failed", name, key)
+                    continue
+                item["protocol"] = protocol
+                results.append(item)
+                s = item["shares"]
+                log.info("%s / %s / %s: <10 mm init %.2f seed %.2f refined(true) %.2f refined(%s) %.2f", protocol,
+                         name, key, 100 * s["init"][0], 100 * s["seed"][0], 100 * s["refined_true"][0],
+                         item["times"], 100 * s["refined_estimated"][0])
+                if args.json:
+                    args.json.write_text(json.dumps({"solver": version, "options": str(options),
+                                                     "results": results}, indent=1) + "\n")
+    print_tables(results, args.per_window)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -228,6 +228,34 @@ def _check_inputs(problem: Problem, points: np.ndarray, times: np.ndarray) -> No
                          fix="estimate the clocks first, every frame needs a time")
 
 
+@dataclass(kw_only=True)
+class _Track:
+    """One point's observations and its refinement state."""
+
+    point: int
+    seen: np.ndarray  # (m,) frames that observe it
+    node: np.ndarray  # (m,) their instants
+    rays: np.ndarray  # (m, 3)
+    centers: np.ndarray  # (m, 3) normalized units
+    s2: np.ndarray  # (m,) (focal / depth)^2: normalized units^2 -> px^2
+    mean_s2: float  # (mean focal / depth)^2, the prior's px scale
+    anchor: np.ndarray  # (n, 3) start positions per instant
+    positions: np.ndarray  # (n, 3) current estimate
+    weights: np.ndarray  # (m,) robust weights
+    scale: float = 1.0  # robust scale, px
+    smoothness: float = 1.0
+    residual: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (m,) px
+
+    def residuals(self, positions: np.ndarray) -> np.ndarray:
+        """(m,) reprojection errors in px (ray distance x focal / depth)."""
+        offset = positions[self.node] - self.centers
+        perpendicular = offset - np.einsum("mi,mi->m", offset, self.rays)[:, None] * self.rays
+        return np.sqrt(self.s2 * np.einsum("mi,mi->m", perpendicular, perpendicular))
+
+    def data(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        return _data_blocks(self.rays, self.centers, self.weights * self.s2, self.node, n)
+
+
 def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None
            ) -> RefineResult:
     """Smooth trajectories through the rays of `problem`, started from `points (F, P, 3)` (e.g. the seed
@@ -247,100 +275,94 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
     prior = prior_bands(nodes)
     grid = [options.smoothness] if options.rule is SmoothnessRule.FIXED else list(options.grid)
 
-    out = np.full((F, P, 3), np.nan)
-    weights_out = np.full((F, P), np.nan)
-    residual_out = np.full((F, P), np.nan)
-    outliers = np.zeros((F, P), dtype=bool)
-    smoothness_out = np.full(P, np.nan)
-    scale_out = np.full(P, np.nan)
-
-    # Per point: observations, their px-per-unit scale, and a start position per instant.
-    prepared = []
+    tracks: list[_Track] = []
     for p in range(P):
         seen = np.flatnonzero(problem.observed[:, p])
-        if not np.isfinite(start[:, p]).all(axis=1).any() or seen.size == 0:
-            continue
+        if seen.size == 0 or not np.isfinite(start[:, p]).all(axis=1).any():
+            continue  # nothing to refine (the solver left the point empty)
         anchor = _start_per_node(start[:, p], nodes)
-        r = rays[seen, p]
-        c = centers[seen]
-        depth = np.einsum("mi,mi->m", anchor[nodes.node_of_frame[seen]] - c, r)
+        node = nodes.node_of_frame[seen]
+        depth = np.einsum("mi,mi->m", anchor[node] - centers[seen], rays[seen, p])
         typical = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
-        depth = np.where(depth > 0.05 * typical, depth, typical)
-        s = focal[seen] / depth  # px per normalized unit at each observation
-        prepared.append((p, seen, r, c, s * s, anchor, float(np.mean(s)) ** 2))
+        depth = np.where(depth > 0.05 * typical, depth, typical)  # a start behind the camera: typical depth
+        s = focal[seen] / depth
+        track = _Track(point=p, seen=seen, node=node, rays=rays[seen, p], centers=centers[seen], s2=s * s,
+                       mean_s2=float(np.mean(s)) ** 2, anchor=anchor, positions=anchor,
+                       weights=np.ones(seen.size), smoothness=grid[0])
+        # First weights and scale from the start's residuals: a false detection is already far from its ray.
+        residual = track.residuals(anchor)
+        track.scale = _loss_scale(residual, options)
+        track.weights = robust_weights(residual, options.loss, track.scale)
+        tracks.append(track)
 
-    def residuals(positions: np.ndarray, seen: np.ndarray, r: np.ndarray, c: np.ndarray, s2: np.ndarray
-                  ) -> np.ndarray:
-        offset = positions[nodes.node_of_frame[seen]] - c
-        perpendicular = offset - np.einsum("mi,mi->m", offset, r)[:, None] * r
-        return np.sqrt(s2 * np.einsum("mi,mi->m", perpendicular, perpendicular))
-
-    # Start weights and scales from the input points' residuals.
-    state = []
-    for p, seen, r, c, s2, anchor, scale2 in prepared:
-        res = residuals(anchor, seen, r, c, s2)
-        scale = _loss_scale(res, options)
-        state.append({"w": robust_weights(res, options.loss, scale), "scale": scale, "positions": anchor,
-                      "lambda": grid[0]})
-
-    # Smoothness by GCV on the first round's weights (a per-round choice costs |grid| inverses per point and
-    # round for little change: the weights move few observations).
-    if len(grid) > 1:
-        rss = np.zeros((len(prepared), len(grid)))
-        trace = np.zeros((len(prepared), len(grid)))
-        m = np.array([2.0 * item[1].size for item in prepared])[:, None]  # each ray constrains two coordinates
-        for k, (p, seen, r, c, s2, anchor, scale2) in enumerate(prepared):
-            w = state[k]["w"]
-            blocks, rhs = _data_blocks(r, c, w * s2, nodes.node_of_frame[seen], n)
-            factors = []
-            for g, value in enumerate(grid):
-                positions, factor = _fit(prior, scale2, value, blocks, rhs, anchor)
-                rss[k, g] = float(np.sum(w * residuals(positions, seen, r, c, s2) ** 2))
-                factors.append(factor)
-            # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i).
-            inverse_blocks = _diagonal_blocks(selected_inverse(np.stack(factors)))
-            trace[k] = np.einsum("gnij,nji->g", inverse_blocks, blocks)
-        if options.rule is SmoothnessRule.GCV_GLOBAL:
-            total_m = float(m.sum())
-            score = rss.sum(axis=0) / total_m / np.maximum(1 - trace.sum(axis=0) / total_m, 1e-9) ** 2
-            chosen = np.full(len(prepared), int(np.argmin(score)))
-        else:
-            chosen = np.argmin(rss / m / np.maximum(1 - trace / m, 1e-9) ** 2, axis=1)
-        for k, s in enumerate(state):
-            s["lambda"] = grid[int(chosen[k])]
+    if len(grid) > 1 and tracks:
+        _choose_smoothness(tracks, prior, grid, n, options.rule)
 
     cost: list[float] = []
     for _ in range(max(options.iterations, 1)):
         total = 0.0
-        for k, (p, seen, r, c, s2, anchor, scale2) in enumerate(prepared):
-            s = state[k]
-            blocks, rhs = _data_blocks(r, c, s["w"] * s2, nodes.node_of_frame[seen], n)
-            positions, _ = _fit(prior, scale2, s["lambda"], blocks, rhs, anchor)
-            s["positions"] = positions
-            res = residuals(positions, seen, r, c, s2)
-            total += float(np.sum(_rho(res, options.loss, s["scale"])))
-            total += s["lambda"] * scale2 * _prior_value(prior, positions)
+        for track in tracks:
+            blocks, rhs = track.data(n)
+            track.positions, _ = _fit(prior, track.mean_s2, track.smoothness, blocks, rhs, track.anchor)
+            track.residual = track.residuals(track.positions)
+            total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
+            total += track.smoothness * track.mean_s2 * _prior_value(prior, track.positions)
             if options.scale_px is None:
-                s["scale"] = _loss_scale(res, options)
-            s["w"] = robust_weights(res, options.loss, s["scale"])
-            s["res"] = res
+                track.scale = _loss_scale(track.residual, options)
+            track.weights = robust_weights(track.residual, options.loss, track.scale)
         cost.append(total)
         if options.loss is RobustLoss.NONE:
             break
 
-    for k, (p, seen, _r, _c, _s2, _anchor, _scale2) in enumerate(prepared):
-        s = state[k]
-        out[:, p] = s["positions"][nodes.node_of_frame]
-        weights_out[seen, p] = s["w"]
-        residual_out[seen, p] = s["res"]
-        outliers[seen, p] = s["res"] > options.outlier_factor * s["scale"]
-        smoothness_out[p] = s["lambda"]
-        scale_out[p] = s["scale"]
-    if prepared:
+    out = np.full((F, P, 3), np.nan)
+    weights = np.full((F, P), np.nan)
+    residual_px = np.full((F, P), np.nan)
+    outliers = np.zeros((F, P), dtype=bool)
+    smoothness = np.full(P, np.nan)
+    scale_px = np.full(P, np.nan)
+    for track in tracks:
+        p = track.point
+        out[:, p] = track.positions[nodes.node_of_frame]
+        weights[track.seen, p] = track.weights
+        residual_px[track.seen, p] = track.residual
+        outliers[track.seen, p] = track.residual > options.outlier_factor * track.scale
+        smoothness[p] = track.smoothness
+        scale_px[p] = track.scale
+    if tracks:
         log.info("refined %d point(s) on %d instants: smoothness median %.3g, %d outlier observation(s)",
-                 len(prepared), n, float(np.nanmedian(smoothness_out)), int(outliers.sum()))
-    return RefineResult(points=normalization.undo(out), weights=weights_out, outliers=outliers,
-                        residual_px=residual_out, smoothness=smoothness_out, scale_px=scale_out, cost=cost)
+                 len(tracks), n, float(np.nanmedian(smoothness)), int(outliers.sum()))
+    return RefineResult(points=normalization.undo(out), weights=weights, outliers=outliers,
+                        residual_px=residual_px, smoothness=smoothness, scale_px=scale_px, cost=cost)
+
+
+def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int,
+                       rule: SmoothnessRule) -> None:
+    """GCV over `grid` with the tracks' current weights: score = (RSS / m) / (1 - tr(H) / m)^2, m = 2 per ray.
+
+    Chosen once, before the IRLS rounds: re-choosing every round costs |grid| solves per point and round for
+    little change (the weights move few observations).
+    """
+    rss = np.zeros((len(tracks), len(grid)))
+    trace = np.zeros((len(tracks), len(grid)))
+    m = np.array([2.0 * track.seen.size for track in tracks])[:, None]  # each ray constrains two coordinates
+    for k, track in enumerate(tracks):
+        blocks, rhs = track.data(n)
+        factors = []
+        for g, value in enumerate(grid):
+            positions, factor = _fit(prior, track.mean_s2, value, blocks, rhs, track.anchor)
+            rss[k, g] = float(np.sum(track.weights * track.residuals(positions) ** 2))
+            factors.append(factor)
+        # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i).
+        inverse_blocks = _diagonal_blocks(selected_inverse(np.stack(factors)))
+        trace[k] = np.einsum("gnij,nji->g", inverse_blocks, blocks)
+    if rule is SmoothnessRule.GCV_GLOBAL:
+        total = float(m.sum())
+        score = rss.sum(axis=0) / total / np.maximum(1 - trace.sum(axis=0) / total, 1e-9) ** 2
+        chosen = np.full(len(tracks), int(np.argmin(score)))
+    else:
+        chosen = np.argmin(rss / m / np.maximum(1 - trace / m, 1e-9) ** 2, axis=1)
+    for k, track in enumerate(tracks):
+        track.smoothness = grid[int(chosen[k])]
 
 
 def _start_per_node(start: np.ndarray, nodes: TimeNodes) -> np.ndarray:
