@@ -56,11 +56,15 @@ class RefineOptions:
     # Candidates for GCV, half-decade steps (a wide range: noise-free 30 Hz wants little, 5 px noise much more).
     grid: tuple[float, ...] = tuple(float(10.0 ** (k / 2)) for k in range(-12, 9))
     loss: RobustLoss = RobustLoss.HUBER
-    # Robust scale in pixels of reprojection error; None = 2.5 x the noise level estimated per point from the
-    # median residual (a 2D Gaussian's residual norm has median 1.1774 sigma), at least `min_scale_px`.
+    # Robust scale in pixels of reprojection error; None = `scale_sigmas` x the per-axis noise level that each
+    # point's GCV fit implies, at least `min_scale_px`.
     scale_px: float | None = None
+    scale_sigmas: float = 2.5
     min_scale_px: float = 0.5
-    iterations: int = 5  # IRLS rounds (weights from the previous round's residuals; the first from the input)
+    iterations: int = 5  # IRLS rounds per GCV pass (weights from the previous round's residuals)
+    # Smoothness and scale are chosen by GCV, then IRLS runs with them; a second pass chooses again with the
+    # robust weights (the first pass's weights come from the start points' residuals).
+    gcv_passes: int = 2
     outlier_factor: float = 3.0  # residual > factor x scale marks an observation as an outlier in the result
     # Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
     # concurrent frames cannot make the system ill-conditioned.
@@ -295,22 +299,22 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
         track.weights = robust_weights(residual, options.loss, track.scale)
         tracks.append(track)
 
-    if len(grid) > 1 and tracks:
-        _choose_smoothness(tracks, prior, grid, n, options.rule)
-
     cost: list[float] = []
-    for _ in range(max(options.iterations, 1)):
-        total = 0.0
-        for track in tracks:
-            blocks, rhs = track.data(n)
-            track.positions, _ = _fit(prior, track.mean_s2, track.smoothness, blocks, rhs, track.anchor)
-            track.residual = track.residuals(track.positions)
-            total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
-            total += track.smoothness * track.mean_s2 * _prior_value(prior, track.positions)
-            if options.scale_px is None:
-                track.scale = _loss_scale(track.residual, options)
-            track.weights = robust_weights(track.residual, options.loss, track.scale)
-        cost.append(total)
+    for _ in range(max(options.gcv_passes, 1)):
+        if tracks:
+            _choose_smoothness(tracks, prior, grid, n, options)
+        for _ in range(max(options.iterations, 1)):
+            total = 0.0
+            for track in tracks:
+                blocks, rhs = track.data(n)
+                track.positions, _ = _fit(prior, track.mean_s2, track.smoothness, blocks, rhs, track.anchor)
+                track.residual = track.residuals(track.positions)
+                total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
+                total += track.smoothness * track.mean_s2 * _prior_value(prior, track.positions)
+                track.weights = robust_weights(track.residual, options.loss, track.scale)
+            cost.append(total)
+            if options.loss is RobustLoss.NONE:
+                break
         if options.loss is RobustLoss.NONE:
             break
 
@@ -336,11 +340,13 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
 
 
 def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int,
-                       rule: SmoothnessRule) -> None:
-    """GCV over `grid` with the tracks' current weights: score = (RSS / m) / (1 - tr(H) / m)^2, m = 2 per ray.
+                       options: RefineOptions) -> None:
+    """Smoothness by GCV over `grid` with the tracks' current weights, score = (RSS / m) / (1 - tr(H) / m)^2
+    (m = 2 per ray), and the robust scale from the noise level the fit implies, sigma^2 = RSS / (m - tr(H)).
 
-    Chosen once, before the IRLS rounds: re-choosing every round costs |grid| solves per point and round for
-    little change (the weights move few observations).
+    The residuals' own spread would underestimate sigma by the fitted degrees of freedom; re-estimated every IRLS
+    round it also shrinks as observations are down-weighted, until the poorly constrained ends of a track are
+    rejected (measured in the tests). So the scale is set here, once per GCV pass, and held during IRLS.
     """
     rss = np.zeros((len(tracks), len(grid)))
     trace = np.zeros((len(tracks), len(grid)))
@@ -355,14 +361,22 @@ def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float
         # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i).
         inverse_blocks = _diagonal_blocks(selected_inverse(np.stack(factors)))
         trace[k] = np.einsum("gnij,nji->g", inverse_blocks, blocks)
-    if rule is SmoothnessRule.GCV_GLOBAL:
+    if options.rule is SmoothnessRule.GCV_GLOBAL:
         total = float(m.sum())
         score = rss.sum(axis=0) / total / np.maximum(1 - trace.sum(axis=0) / total, 1e-9) ** 2
         chosen = np.full(len(tracks), int(np.argmin(score)))
     else:
         chosen = np.argmin(rss / m / np.maximum(1 - trace / m, 1e-9) ** 2, axis=1)
     for k, track in enumerate(tracks):
-        track.smoothness = grid[int(chosen[k])]
+        g = int(chosen[k])
+        track.smoothness = grid[g]
+        if options.scale_px is not None:
+            track.scale = float(options.scale_px)
+        else:
+            # Weighted RSS over the weights' effective count of residual components.
+            effective = float(np.sum(track.weights)) * 2.0
+            sigma = np.sqrt(rss[k, g] / max(effective - trace[k, g], 1.0))
+            track.scale = max(options.scale_sigmas * sigma, options.min_scale_px)
 
 
 def _start_per_node(start: np.ndarray, nodes: TimeNodes) -> np.ndarray:

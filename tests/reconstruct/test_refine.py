@@ -1,0 +1,239 @@
+"""reconstruct.refine: smoothing-spline trajectories through viewing rays on known global times."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.linalg import cholesky_banded
+
+from dynrecon.errors import InputError
+from reconstruct.problem import Problem
+from reconstruct.refine import (
+    BANDS,
+    RefineOptions,
+    RobustLoss,
+    SmoothnessRule,
+    prior_bands,
+    refine,
+    selected_inverse,
+    time_nodes,
+)
+from reconstruct.simulate import look_at, project
+
+DISTANCE_MM = 2700.0
+K = np.array([[1000.0, 0, 499.5], [0, 1000.0, 499.5], [0, 0, 1.0]])
+
+
+def trajectories(times: np.ndarray, points: int = 4) -> np.ndarray:
+    """(F, P, 3) smooth motion in mm: each point on its own Lissajous path, ~0.5 m across, ~1 Hz."""
+    phase = np.arange(points)[None, :]
+    t = times[:, None]
+    x = 300 * np.sin(2 * np.pi * 0.9 * t + phase)
+    y = 200 * np.cos(2 * np.pi * 1.3 * t + 0.5 * phase)
+    z = 1000 + 150 * np.sin(2 * np.pi * 0.7 * t + 0.3 * phase) + 100 * phase
+    return np.stack([x, y, z], axis=-1)
+
+
+def capture(times: np.ndarray, camera_of: np.ndarray, noise_px: float = 0.0, seed: int = 0,
+            cameras: int = 4) -> tuple[Problem, np.ndarray]:
+    """A Problem seeing `trajectories(times)` with camera camera_of[f] at frame f; returns (problem, truth)."""
+    truth = trajectories(times)
+    F, P = truth.shape[:2]
+    target = np.array([0.0, 0.0, 1000.0])
+    up = np.array([0.0, 0.0, 1.0])
+    poses = []
+    for c in range(cameras):
+        angle = 2 * np.pi * c / cameras + 0.3
+        poses.append(look_at(target + DISTANCE_MM * np.array([np.cos(angle), np.sin(angle), 0.1]), target, up))
+    R = np.stack([poses[c][0] for c in camera_of])
+    t = np.stack([poses[c][1] for c in camera_of])
+    uv = np.stack([project(truth[f], K, R[f], t[f])[0] for f in range(F)])
+    uv += np.random.default_rng(seed).normal(0.0, noise_px, uv.shape)
+    frames = np.zeros(F, dtype=np.int64)
+    for c in range(cameras):
+        frames[camera_of == c] = np.arange(np.sum(camera_of == c))
+    problem = Problem(video_names=[f"cam{c}" for c in range(cameras)], video_index=np.asarray(camera_of),
+                      frames=frames, times=times.copy(), point_names=[f"p{i}" for i in range(P)],
+                      K=np.repeat(K[None], F, axis=0), R=R, t=t, dist=[None] * F, uv=uv)
+    return problem, truth
+
+
+def round_robin(count: int, rate_hz: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Captures at `rate_hz` overall, each by one camera, never the same camera twice in a row."""
+    rng = np.random.default_rng(seed)
+    camera_of = np.zeros(count, dtype=np.int64)
+    for k in range(1, count):
+        camera_of[k] = (camera_of[k - 1] + rng.integers(1, 4)) % 4
+    return np.arange(count) / rate_hz, camera_of
+
+
+def start_points(problem: Problem, truth: np.ndarray, seed: int = 1, error_mm: float = 30.0) -> np.ndarray:
+    """A poor start: the truth displaced by `error_mm` Gaussian noise per coordinate."""
+    return truth + np.random.default_rng(seed).normal(0.0, error_mm, truth.shape)
+
+
+def error_mm(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(estimate - truth, axis=-1)
+
+
+def test_noise_free_rays_reproduce_the_truth_at_a_sparse_rate() -> None:
+    # 30 captures per second overall = 7.5 Hz per camera: each instant has one ray, only the prior fixes depth.
+    times, camera_of = round_robin(75, 30.0)
+    problem, truth = capture(times, camera_of)
+    result = refine(problem, start_points(problem, truth), times)
+    errors = error_mm(result.points, truth)
+    assert np.median(errors) < 1.0
+    assert np.max(errors[5:-5]) < 5.0  # the ends extrapolate the spline
+    assert np.all(result.weights[problem.observed] > 0.99)
+    assert not result.outliers.any()
+
+
+def test_noisy_rays_are_improved_over_the_input() -> None:
+    times, camera_of = round_robin(240, 120.0)
+    problem, truth = capture(times, camera_of, noise_px=2.0)
+    # The input: each point on its own noisy ray at the true depth (what a per-frame triangulation gives at best).
+    from reconstruct.rays import viewing_rays
+
+    rays = viewing_rays(problem)
+    centers = problem.centers
+    depth = np.einsum("fpi,fpi->fp", truth - centers[:, None], rays)
+    on_rays = centers[:, None] + depth[..., None] * rays
+    result = refine(problem, on_rays, times)
+    before = np.sqrt(np.mean(error_mm(on_rays, truth) ** 2))
+    after = np.sqrt(np.mean(error_mm(result.points, truth) ** 2))
+    assert after < 0.5 * before
+    # GCV picked a real amount of smoothing, not the grid's smallest value.
+    assert np.all(result.smoothness > RefineOptions().grid[0])
+
+
+def test_a_false_observation_is_down_weighted() -> None:
+    times, camera_of = round_robin(120, 60.0)
+    problem, truth = capture(times, camera_of, noise_px=0.5)
+    f, p = 60, 1
+    problem.uv[f, p] += [80.0, -60.0]  # a false detection 100 px away
+    start = start_points(problem, truth, error_mm=5.0)
+    robust = refine(problem, start, times, RefineOptions(loss=RobustLoss.CAUCHY))
+    plain = refine(problem, start, times, RefineOptions(loss=RobustLoss.NONE))
+    assert robust.outliers[f, p]
+    assert robust.weights[f, p] < 0.05
+    assert robust.outliers.sum() <= 3  # the other observations keep their weight
+    assert error_mm(robust.points[f, p], truth[f, p]) < 3.0
+    # IRLS with a fixed scale majorizes the robust cost: it never increases within a GCV pass.
+    rounds = RefineOptions().iterations
+    for start_round in range(0, len(robust.cost), rounds):
+        costs = np.array(robust.cost[start_round:start_round + rounds])
+        assert np.all(np.diff(costs) <= 1e-9 * costs[0])
+    assert error_mm(plain.points[f, p], truth[f, p]) > 3 * error_mm(robust.points[f, p], truth[f, p])
+    huber = refine(problem, start, times, RefineOptions(loss=RobustLoss.HUBER))
+    assert huber.weights[f, p] < 0.2
+    assert error_mm(huber.points[f, p], truth[f, p]) < error_mm(plain.points[f, p], truth[f, p])
+
+
+def test_unobserved_frames_are_interpolated() -> None:
+    times, camera_of = round_robin(160, 80.0)
+    problem, truth = capture(times, camera_of)
+    gap = np.arange(70, 78)
+    problem.uv[gap, 2] = np.nan
+    start = start_points(problem, truth)
+    start[gap, 2] = np.nan  # the input may lack them too
+    result = refine(problem, start, times)
+    assert np.all(np.isnan(result.weights[gap, 2]))
+    assert np.max(error_mm(result.points[gap, 2], truth[gap, 2])) < 5.0
+    assert np.median(error_mm(result.points[:, 2], truth[:, 2])) < 1.0
+
+
+def test_uneven_and_concurrent_times() -> None:
+    rng = np.random.default_rng(3)
+    instants = np.sort(rng.uniform(0.0, 2.0, 100))
+    # Every instant seen by one camera; 20 of them by a second camera at exactly the same time.
+    twice = rng.choice(100, size=20, replace=False)
+    times = np.concatenate([instants, instants[twice]])
+    first = rng.integers(0, 4, 100)
+    camera_of = np.concatenate([first, (first[twice] + 2) % 4])
+    problem, truth = capture(times, camera_of)
+    result = refine(problem, start_points(problem, truth), times)
+    errors = error_mm(result.points, truth)
+    assert np.median(errors) < 1.0
+    assert np.percentile(errors, 95) < 5.0
+    # Concurrent frames share one position.
+    np.testing.assert_allclose(result.points[twice], result.points[100:], atol=1e-9)
+    # The same capture in another frame order gives the same points.
+    order = rng.permutation(len(times))
+    shuffled, _ = capture(times[order], camera_of[order])
+    again = refine(shuffled, start_points(problem, truth)[order], times[order])
+    np.testing.assert_allclose(again.points, result.points[order], atol=0.05)
+
+
+def test_nearly_concurrent_times_merge_into_one_instant() -> None:
+    nodes = time_nodes(np.array([0.0, 0.1, 0.1 + 1e-6, 0.2, 0.3]), merge_fraction=0.01)
+    assert len(nodes.times) == 4
+    assert nodes.node_of_frame[1] == nodes.node_of_frame[2]
+    assert nodes.tau == pytest.approx(0.1, rel=1e-4)
+
+
+def test_fixed_smoothness_and_cost_history() -> None:
+    times, camera_of = round_robin(80, 40.0)
+    problem, truth = capture(times, camera_of, noise_px=1.0)
+    weak = refine(problem, truth, times, RefineOptions(rule=SmoothnessRule.FIXED, smoothness=1e-6))
+    strong = refine(problem, truth, times, RefineOptions(rule=SmoothnessRule.FIXED, smoothness=1e6))
+    assert np.all(weak.smoothness == 1e-6)
+    # A huge weight flattens the motion into a straight line: far from the truth, larger residuals.
+    assert np.nanmedian(strong.residual_px) > 10 * np.nanmedian(weak.residual_px)
+    options = RefineOptions()
+    assert len(weak.cost) == options.iterations * options.gcv_passes
+    one = refine(problem, truth, times, RefineOptions(rule=SmoothnessRule.GCV_GLOBAL))
+    assert len(set(one.smoothness.tolist())) == 1
+
+
+def test_prior_is_the_second_difference_on_uniform_times() -> None:
+    nodes = time_nodes(np.arange(6) * 0.25, merge_fraction=0.01)
+    bands = prior_bands(nodes)
+    n = 6
+    D = np.zeros((n - 2, n))
+    for i in range(n - 2):
+        D[i, i:i + 3] = [1.0, -2.0, 1.0]
+    expected = np.kron(D.T @ D, np.eye(3))
+    dense = np.zeros((3 * n, 3 * n))
+    for d in range(BANDS):
+        idx = np.arange(3 * n - d)
+        dense[idx + d, idx] = bands[d, : 3 * n - d]
+        dense[idx, idx + d] = bands[d, : 3 * n - d]
+    np.testing.assert_allclose(dense, expected, atol=1e-12)
+
+
+def test_selected_inverse_matches_the_dense_inverse() -> None:
+    rng = np.random.default_rng(0)
+    N = 40
+    A = rng.normal(size=(N, N))
+    M = np.where(np.abs(np.subtract.outer(np.arange(N), np.arange(N))) < BANDS, (A + A.T) / 2, 0.0) + N * np.eye(N)
+    bands = np.zeros((BANDS, N))
+    for d in range(BANDS):
+        bands[d, : N - d] = np.diag(M, -d)
+    band = selected_inverse(cholesky_banded(bands, lower=True)[None])[0]
+    inverse = np.linalg.inv(M)
+    for d in range(BANDS):
+        np.testing.assert_allclose(band[d, : N - d], np.diag(inverse, -d), atol=1e-12)
+
+
+def test_bad_inputs_raise_input_errors() -> None:
+    times, camera_of = round_robin(20, 30.0)
+    problem, truth = capture(times, camera_of)
+    with pytest.raises(InputError, match="times have shape"):
+        refine(problem, truth, times[:-1])
+    with pytest.raises(InputError, match="points have shape"):
+        refine(problem, truth[:, :2], times)
+    bad = times.copy()
+    bad[4] = np.nan
+    with pytest.raises(InputError, match="frame 4 .* has no global time"):
+        refine(problem, truth, bad)
+
+
+def test_points_the_solver_left_empty_stay_empty() -> None:
+    times, camera_of = round_robin(40, 30.0)
+    problem, truth = capture(times, camera_of)
+    start = truth.copy()
+    start[:, 3] = np.nan
+    result = refine(problem, start, times)
+    assert np.isnan(result.points[:, 3]).all()
+    assert np.isnan(result.smoothness[3])
+    assert np.median(error_mm(result.points[:, :3], truth[:, :3])) < 1.0
