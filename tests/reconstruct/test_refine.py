@@ -224,7 +224,7 @@ def test_bad_inputs_raise_input_errors() -> None:
         refine(problem, truth[:, :2], times)
     bad = times.copy()
     bad[4] = np.nan
-    with pytest.raises(InputError, match="frame 4 .* has no global time"):
+    with pytest.raises(InputError, match=r"frame 4 .* has no global time"):
         refine(problem, truth, bad)
 
 
