@@ -1,0 +1,227 @@
+"""How much to trust each reconstructed point: per (frame, point) measures from the solve, and a flag for points
+whose error is likely large.
+
+Measures (arrays (F, P), NaN where the point was not reconstructed):
+* `condition`: the paper's reconstructability (Sec. "Analysis", Eq. (A)) for the point in frame f's neighbourhood.
+  The paper writes the error of a point's trajectory along its rays, l, as the solution of A l = b with
+  A_gh = [(I - W)(I - W)^T]_gh r_g.r_h and bounds |l| <= |A^-1| |b| = |b| / sigma_min(A). Here the neighbourhood
+  N = {f} + the strongest W neighbours of f (both directions) is unknown and every other frame is held at its
+  value: A_N is the principal submatrix of the paper's A on N, and `condition` = 1 / sigma_min(A_N) bounds how much
+  a self-expression misfit in that neighbourhood is amplified along the rays. A frame where the point is not
+  observed has no ray: its error has 3 degrees of freedom (the identity instead of r), as in the paper's
+  "Missing data". Dimensionless (W and rays are).
+* `residual`: |X_pf - sum_j W_jf X_pj|, the point's own self-expression residual (paper, Sec. "Shape approximation
+  residual": the b of the bound above), input units.
+* `ray_distance`: distance of X_pf from its viewing ray (the soft ray constraint lets it leave), input units; NaN
+  where unobserved. `reprojection_px` is the same as an angle seen from the camera, in pixels (x focal length).
+* `support`: share of frame f's W weight on neighbours that observe the point (1 = interpolated between
+  observations; 0 = a missing point built only from other missing points, i.e. extrapolated).
+* `videos`: number of distinct videos among frame f's neighbours (per frame, repeated for every point).
+
+The flag (`flag`, bool) is a rule on these measures; its thresholds live in TrustOptions and were tuned on
+simulations (benchmarks/trust.py documents the windows used for tuning and those reported).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from reconstruct.problem import Problem
+from reconstruct.rays import viewing_rays
+from reconstruct.solver import SolveResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class TrustOptions:
+    min_weight: float = 0.02  # W entries below this are not neighbours (numerical dust of the W-step)
+    max_neighbours: int = 4  # strongest neighbours kept per frame: the paper's W columns have ~2
+    # Flag rule: a point is flagged when any of these is exceeded (see `flag_rule`).
+    condition_limit: float = 50.0  # 1 / sigma_min of the neighbourhood's system
+    residual_px: float = 4.0  # self-expression residual seen from the frame's camera, pixels
+    reprojection_px: float = 6.0  # distance from the viewing ray seen from the camera, pixels
+    min_support: float = 0.5  # a missing point whose neighbours mostly miss it too is extrapolated
+
+
+@dataclass(kw_only=True)
+class Trust:
+    condition: np.ndarray  # (F, P) dimensionless, 1 / sigma_min of the neighbourhood's A
+    residual: np.ndarray  # (F, P) input units
+    residual_px: np.ndarray  # (F, P) pixels, residual seen from frame f's camera
+    ray_distance: np.ndarray  # (F, P) input units, NaN where unobserved
+    reprojection_px: np.ndarray  # (F, P) pixels, NaN where unobserved
+    support: np.ndarray  # (F, P) in [0, 1]
+    videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
+    flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
+    reconstructed: np.ndarray  # (F, P) bool
+    options: TrustOptions = field(default_factory=TrustOptions)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """Extra columns of points3d.csv, name -> (F, P) floats (NaN = empty)."""
+        empty = ~self.reconstructed
+        return {
+            "condition": _blank(self.condition, empty),
+            "residual": _blank(self.residual, empty),
+            "residual_px": _blank(self.residual_px, empty),
+            "ray_distance": _blank(self.ray_distance, empty),
+            "reprojection_px": _blank(self.reprojection_px, empty),
+            "support": _blank(self.support, empty),
+            "flag": np.where(empty, np.nan, self.flag.astype(float)),
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """The report.json `trust` block: distribution of each measure and the flag count."""
+        done = self.reconstructed
+        measures = {}
+        for name, values in (("condition", self.condition), ("residual", self.residual),
+                             ("residual_px", self.residual_px), ("ray_distance", self.ray_distance),
+                             ("reprojection_px", self.reprojection_px), ("support", self.support)):
+            v = values[done & np.isfinite(values)]
+            measures[name] = {
+                "median": _number(np.median(v)) if v.size else None,
+                "p90": _number(np.percentile(v, 90)) if v.size else None,
+                "max": _number(np.max(v)) if v.size else None,
+            }
+        flagged = int(np.sum(self.flag & done))
+        total = int(done.sum())
+        return {
+            "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
+                      "residual_px": "pixels", "reprojection_px": "pixels", "support": "fraction"},
+            "measures": measures,
+            "flagged": flagged,
+            "reconstructed": total,
+            "flagged_share": flagged / total if total else None,
+            "rule": flag_rule(self.options),
+            "options": asdict(self.options),
+        }
+
+
+def flag_rule(options: TrustOptions) -> str:
+    return (f"condition > {options.condition_limit:g} or residual_px > {options.residual_px:g} or "
+            f"reprojection_px > {options.reprojection_px:g} or (unobserved and support < {options.min_support:g})")
+
+
+def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
+    return np.where(empty, np.nan, values)
+
+
+def _number(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def neighbourhoods(W: sp.csc_matrix, min_weight: float, max_neighbours: int) -> np.ndarray:
+    """(F, 1 + max_neighbours) frame indices: f itself, then its strongest neighbours in W (W_jf or W_fj above
+    `min_weight`, by weight), padded with -1."""
+    F = W.shape[0]
+    both = W.maximum(W.T).tocsc()
+    out = np.full((F, 1 + max_neighbours), -1, dtype=np.int64)
+    out[:, 0] = np.arange(F)
+    for f in range(F):
+        start, stop = both.indptr[f], both.indptr[f + 1]
+        rows, values = both.indices[start:stop], both.data[start:stop]
+        keep = values >= min_weight
+        rows, values = rows[keep], values[keep]
+        chosen = rows[np.argsort(-values, kind="stable")[:max_neighbours]]
+        out[f, 1:1 + len(chosen)] = chosen
+    return out
+
+
+def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """1 / sigma_min of the paper's A for neighbourhoods, batched.
+
+    gram: (B, n, n) [(I - W)(I - W)^T] restricted to each neighbourhood; rays: (B, n, 3) unit rays, NaN where the
+    point is unobserved (3 free coordinates); valid: (B, n) slots in use (default all). Returns (B,).
+
+    A_gh = gram_gh B_g^T B_h with B_g = r_g (observed) or I (unobserved). Computed as the 3n x 3n matrix
+    gram_gh P_g P_h (P_g = B_g B_g^T) plus c (I - P) on the complement (and on unused slots), which has the
+    eigenvalues of A and c: with c above A's largest eigenvalue the smallest eigenvalue is A's.
+    """
+    B, n = gram.shape[:2]
+    valid = np.ones((B, n), dtype=bool) if valid is None else valid
+    observed = np.isfinite(rays).all(axis=-1)  # (B, n)
+    r = np.nan_to_num(rays)
+    projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (B, n, 3, 3)
+    projector = np.where(valid[..., None, None], projector, 0.0)
+    blocks = gram[:, :, :, None, None] * np.einsum("bgij,bhjk->bghik", projector, projector)  # (g, h) block
+    big = blocks.transpose(0, 1, 3, 2, 4).reshape(B, 3 * n, 3 * n)
+    c = np.einsum("bii->b", big) + 1.0  # trace >= largest eigenvalue of a PSD matrix
+    complement = np.zeros((B, n, 3, n, 3))
+    idx = np.arange(n)
+    complement[:, idx, :, idx, :] = (np.eye(3) - projector).transpose(1, 0, 2, 3)
+    big = big + c[:, None, None] * complement.reshape(B, 3 * n, 3 * n)
+    smallest = np.linalg.eigvalsh(big)[:, 0]
+    with np.errstate(divide="ignore"):
+        return np.where(smallest > 1e-13 * c, 1.0 / np.maximum(smallest, 1e-300), np.inf)
+
+
+def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
+    """All measures for every (frame, point) of a solve, and the flag."""
+    options = options or TrustOptions()
+    F, P = problem.num_frames, problem.num_points
+    points = result.points  # (F, P, 3) input units
+    reconstructed = np.isfinite(points).all(axis=-1)
+    observed = problem.observed
+    rays = viewing_rays(problem)  # (F, P, 3)
+    centers = problem.centers  # (F, 3)
+    W = result.W.to_csc()
+    focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])  # (F,)
+
+    # Self-expression residual of each point.
+    shapes = np.nan_to_num(points).reshape(F, -1)
+    fit = (W.T @ shapes).reshape(F, P, 3)
+    residual = np.linalg.norm(np.nan_to_num(points) - fit, axis=-1)
+    offset = points - centers[:, None, :]
+    depth = np.linalg.norm(offset, axis=-1)
+    residual_px = focal[:, None] * residual / np.maximum(depth, 1e-300)
+
+    # Distance from the viewing ray, and that angle in pixels.
+    along = np.sum(offset * rays, axis=-1)
+    perpendicular = np.linalg.norm(offset - along[..., None] * rays, axis=-1)
+    ray_distance = np.where(observed, perpendicular, np.nan)
+    reprojection_px = np.where(observed, focal[:, None] * np.arctan2(perpendicular, np.maximum(along, 1e-300)),
+                               np.nan)
+
+    # Support: W weight on neighbours observing the point.
+    support = np.asarray((W.T @ observed.astype(float)))
+    support = support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300)
+
+    hood = neighbourhoods(W, options.min_weight, options.max_neighbours)  # (F, n)
+    valid = hood >= 0
+    safe = np.where(valid, hood, 0)
+    videos = np.array([len(set(problem.video_index[hood[f, 1:][valid[f, 1:]]].tolist())) for f in range(F)])
+
+    # The paper's A per point on each neighbourhood.
+    M = (sp.identity(F, format="csc") - W).tocsr()
+    G = (M @ M.T).tocsr()
+    n = hood.shape[1]
+    gram = np.zeros((F, n, n))
+    for f in range(F):
+        members = hood[f][valid[f]]
+        k = len(members)
+        gram[f, :k, :k] = G[members][:, members].toarray()
+    condition = np.full((F, P), np.nan)
+    for p in range(P):
+        if not reconstructed[:, p].any():
+            continue
+        condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
+
+    flag = reconstructed & (
+        (condition > options.condition_limit)
+        | (residual_px > options.residual_px)
+        | (np.nan_to_num(reprojection_px) > options.reprojection_px)
+        | (~observed & (support < options.min_support))
+    )
+    nan = ~reconstructed
+    return Trust(
+        condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
+        residual_px=np.where(nan, np.nan, residual_px), ray_distance=np.where(nan, np.nan, ray_distance),
+        reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
+        videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, reconstructed=reconstructed,
+        options=options,
+    )

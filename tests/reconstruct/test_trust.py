@@ -1,0 +1,180 @@
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from synthetic_motion import synthetic_problem, truth_array
+
+from reconstruct.rays import viewing_rays
+from reconstruct.solver import solve
+from reconstruct.trust import TrustOptions, neighbourhood_condition, neighbourhoods, trust_measures
+
+
+@pytest.fixture(scope="module")
+def solved():
+    """A small noise-free solve of smooth motion (4 cameras, 30 Hz each) and its truth in problem order."""
+    problem, truth = synthetic_problem(frames=120, points=5, seed=3)
+    result = solve(problem)
+    return problem, result, truth_array(problem, truth)
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v)
+
+
+def _paper_A(W, rays):
+    """The paper's Eq. (A) for one point, every frame observed: A_gh = [(I - W)(I - W)^T]_gh r_g.r_h."""
+    M = np.eye(len(rays)) - W
+    return (M @ M.T) * (rays @ rays.T)
+
+
+def test_two_frames_expressing_each_other_have_the_closed_form_sigma_min():
+    # W_jf = W_fj = 1: A = [[2, -2c], [-2c, 2]] with c = r_f.r_j, so sigma_min = 2 (1 - c).
+    W = np.array([[0.0, 1.0], [1.0, 0.0]])
+    for degrees in (20.0, 60.0, 90.0):
+        a = np.radians(degrees)
+        rays = np.array([[1.0, 0.0, 0.0], [np.cos(a), np.sin(a), 0.0]])
+        A = _paper_A(W, rays)
+        np.testing.assert_allclose(A, [[2, -2 * np.cos(a)], [-2 * np.cos(a), 2]], atol=1e-12)
+        M = np.eye(2) - W
+        condition = neighbourhood_condition((M @ M.T)[None], rays[None])[0]
+        assert condition == pytest.approx(1 / (2 * (1 - np.cos(a))), rel=1e-9)
+
+
+def test_condition_matches_a_dense_construction_with_missing_observations():
+    rng = np.random.default_rng(1)
+    n = 4
+    W = rng.random((n, n))
+    np.fill_diagonal(W, 0)
+    W /= W.sum(axis=0, keepdims=True)
+    M = np.eye(n) - W
+    gram = M @ M.T + 0.3 * np.eye(n)  # a neighbourhood held by frames outside it: positive definite
+    rays = rng.normal(size=(n, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays[2] = np.nan  # unobserved: 3 free coordinates
+    # Dense: unknowns l_g along r_g (observed) or e_g in R^3 (unobserved); A = B^T (gram kron I3) B.
+    columns = []
+    for g in range(n):
+        basis = np.eye(3) if np.isnan(rays[g]).any() else rays[g][:, None]
+        block = np.zeros((3 * n, basis.shape[1]))
+        block[3 * g:3 * g + 3] = basis
+        columns.append(block)
+    B = np.hstack(columns)
+    A = B.T @ np.kron(gram, np.eye(3)) @ B
+    expected = 1 / np.linalg.eigvalsh(A)[0]
+    assert neighbourhood_condition(gram[None], rays[None])[0] == pytest.approx(expected, rel=1e-8)
+    # Unused slots do not change it.
+    padded_gram = np.zeros((1, n + 2, n + 2))
+    padded_gram[0, :n, :n] = gram
+    padded_rays = np.concatenate([rays, np.full((2, 3), 7.0)])[None]
+    valid = np.array([[True] * n + [False, False]])
+    assert neighbourhood_condition(padded_gram, padded_rays, valid)[0] == pytest.approx(expected, rel=1e-8)
+
+
+def test_parallel_rays_are_degenerate_and_converging_rays_are_not():
+    # Three frames expressing each other (columns of W on the simplex, the group closed): with parallel rays a
+    # common shift along them costs nothing, so A is singular.
+    W = np.array([[0.0, 0.5, 0.5], [0.5, 0.0, 0.5], [0.5, 0.5, 0.0]])
+    M = np.eye(3) - W
+    gram = (M @ M.T)[None]
+    parallel = np.tile(_unit([0.2, 0.1, 1.0]), (3, 1))[None]
+    assert neighbourhood_condition(gram, parallel)[0] > 1e10
+    # Nearly parallel (one handheld camera) is badly conditioned, cameras 90 degrees apart are fine.
+    nearly = np.array([_unit([0.0, 0.0, 1.0]), _unit([0.01, 0.0, 1.0]), _unit([0.0, 0.01, 1.0])])[None]
+    spread = np.array([_unit([1.0, 0.0, 0.0]), _unit([0.0, 1.0, 0.0]), _unit([0.0, 0.0, 1.0])])[None]
+    assert neighbourhood_condition(gram, nearly)[0] > 1e3
+    assert neighbourhood_condition(gram, spread)[0] < 10
+
+
+def test_neighbourhoods_take_both_directions_strongest_first():
+    W = sp.csc_matrix(np.array([[0.0, 0.7, 0.0, 0.01], [0.6, 0.0, 0.0, 0.0], [0.4, 0.3, 0.0, 0.99],
+                                [0.0, 0.0, 1.0, 0.0]]))
+    hood = neighbourhoods(W, min_weight=0.02, max_neighbours=2)
+    np.testing.assert_array_equal(hood[0], [0, 1, 2])  # W_10 = 0.6 / W_01 = 0.7 -> 0.7, W_20 = 0.4
+    np.testing.assert_array_equal(hood[3], [3, 2, -1])  # W_03 = 0.01 is dust
+
+
+def test_points_on_their_rays_have_zero_ray_distance_and_an_offset_is_measured(solved):
+    problem, result, truth = solved
+    trust = trust_measures(problem, result)
+    observed = problem.observed
+    # The soft constraint (lambda3 = 100) keeps noise-free points essentially on their rays.
+    assert np.nanmax(trust.ray_distance) < 1.0  # mm
+    # Put every observed point exactly on its ray (at the truth's depth), then push one off by 25 mm.
+    rays = viewing_rays(problem)
+    centers = problem.centers[:, None, :]
+    depth = np.sum((truth - centers) * rays, axis=-1)
+    on_ray = np.where(observed[..., None], centers + depth[..., None] * rays, result.points)
+    f, p = 10, 2
+    side = np.cross(rays[f, p], [0.0, 0.0, 1.0])
+    on_ray[f, p] += 25.0 * _unit(side)
+    trust = trust_measures(problem, replace(result, points=on_ray))
+    distance = trust.ray_distance.copy()
+    assert distance[f, p] == pytest.approx(25.0, rel=1e-9)
+    distance[f, p] = 0.0
+    assert np.nanmax(distance) < 1e-9
+    # Seen from the camera: an angle of atan(25 / depth) times the focal length.
+    expected_px = problem.K[f, 0, 0] * np.arctan2(25.0, depth[f, p])
+    assert trust.reprojection_px[f, p] == pytest.approx(expected_px, rel=1e-6)
+
+
+def test_unobserved_points_have_no_ray_distance_and_unreconstructed_ones_are_empty(solved):
+    problem, result, _ = solved
+    problem = replace(problem, uv=problem.uv.copy())
+    problem.uv[5, 1] = np.nan
+    points = result.points.copy()
+    points[:, 4] = np.nan  # as the solver leaves a point seen in one video
+    trust = trust_measures(problem, replace(result, points=points))
+    assert np.isnan(trust.ray_distance[5, 1]) and np.isfinite(trust.residual[5, 1])
+    assert np.isfinite(trust.condition[5, 1])
+    columns = trust.columns()
+    for name, values in columns.items():
+        assert values.shape == (problem.num_frames, problem.num_points), name
+        assert np.all(np.isnan(values[:, 4])), name
+    assert not trust.flag[:, 4].any()
+
+
+def test_residual_is_the_distance_to_the_w_combination(solved):
+    problem, result, _ = solved
+    trust = trust_measures(problem, result)
+    W = result.W.to_csc().toarray()
+    f, p = 30, 3
+    combination = np.einsum("j,jk->k", W[:, f], result.points[:, p])
+    assert trust.residual[f, p] == pytest.approx(np.linalg.norm(result.points[f, p] - combination), rel=1e-9)
+    # The frame's RMS residual reported by the solver is the RMS of the points' residuals.
+    np.testing.assert_allclose(np.sqrt(np.mean(trust.residual**2, axis=1)), result.residual, rtol=1e-6)
+
+
+def test_flags_catch_injected_large_errors_and_leave_a_good_solve_mostly_unflagged(solved):
+    problem, result, truth = solved
+    trust = trust_measures(problem, result)
+    error = np.linalg.norm(result.points - truth, axis=-1)
+    assert np.median(error) < 2.0  # the solve itself is good
+    assert trust.flag.mean() < 0.05
+    # Move 12 points (away from the clip's ends) 150 mm along their rays: a wrong depth the rays cannot see.
+    rng = np.random.default_rng(7)
+    F, P = problem.num_frames, problem.num_points
+    rays = viewing_rays(problem)
+    chosen = rng.choice(np.arange(F * P).reshape(F, P)[10:-10].ravel(), size=12, replace=False)
+    frames, points_ = np.unravel_index(chosen, (F, P))
+    moved = result.points.copy()
+    moved[frames, points_] += 150.0 * rays[frames, points_]
+    flagged = trust_measures(problem, replace(result, points=moved)).flag
+    assert flagged[frames, points_].mean() >= 0.9
+
+
+def test_summary_and_columns_are_json_ready(solved):
+    problem, result, _ = solved
+    trust = trust_measures(problem, result, TrustOptions(residual_px=1e-9))  # flag everything
+    summary = trust.summary()
+    text = json.dumps(summary, allow_nan=False)
+    assert "rule" in summary and summary["flagged"] == problem.num_frames * problem.num_points
+    assert summary["flagged_share"] == pytest.approx(1.0)
+    assert set(summary["measures"]) >= {"condition", "residual", "ray_distance"}
+    assert json.loads(text)["measures"]["residual"]["median"] > 0
+    columns = trust.columns()
+    assert set(columns) == {"condition", "residual", "residual_px", "ray_distance", "reprojection_px", "support",
+                            "flag"}
+    assert set(np.unique(columns["flag"])) == {1.0}
