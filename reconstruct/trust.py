@@ -188,7 +188,7 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
                                np.nan)
 
     # Support: W weight on neighbours observing the point.
-    support = np.asarray((W.T @ observed.astype(float)))
+    support = np.asarray(W.T @ observed.astype(float))
     support = support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300)
 
     hood = neighbourhoods(W, options.min_weight, options.max_neighbours)  # (F, n)

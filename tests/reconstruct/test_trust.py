@@ -24,7 +24,7 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _paper_A(W, rays):
+def _paper_a(W, rays):
     """The paper's Eq. (A) for one point, every frame observed: A_gh = [(I - W)(I - W)^T]_gh r_g.r_h."""
     M = np.eye(len(rays)) - W
     return (M @ M.T) * (rays @ rays.T)
@@ -36,7 +36,7 @@ def test_two_frames_expressing_each_other_have_the_closed_form_sigma_min():
     for degrees in (20.0, 60.0, 90.0):
         a = np.radians(degrees)
         rays = np.array([[1.0, 0.0, 0.0], [np.cos(a), np.sin(a), 0.0]])
-        A = _paper_A(W, rays)
+        A = _paper_a(W, rays)
         np.testing.assert_allclose(A, [[2, -2 * np.cos(a)], [-2 * np.cos(a), 2]], atol=1e-12)
         M = np.eye(2) - W
         condition = neighbourhood_condition((M @ M.T)[None], rays[None])[0]
