@@ -5,8 +5,8 @@ camera), every camera here records on its own:
 
 - its own nominal frame rate `fps` (24-60 fps, non-integer ratios by default), its own start `offset_s` and an
   optional clock drift; captures of different cameras may coincide (no exclusivity);
-- optional Gaussian frame-time jitter and handheld motion (a smooth, mean-reverting random walk of the centre
-  and of the orientation; every frame has its own R, t);
+- optional Gaussian frame-time jitter and handheld motion (a smooth stationary random sway of the centre and
+  of the orientation; every frame has its own R, t);
 - ground truth interpolated (cubic spline) from the mocap at each true capture time.
 
 Clock model (scored by `clocks_truth.json`), for frame k of video v:
@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from dynrecon.atomic import atomic_write_text
@@ -61,7 +62,7 @@ log = logging.getLogger(__name__)
 # Common phone rates; every ratio among the first four is non-integer. Cycled when there are more cameras.
 DEFAULT_FPS = (30.0, 25.0, 59.94, 24.0, 29.97, 50.0)
 MAX_JITTER_FRAMES = 0.4  # jitter is clipped to this share of a frame period, so frames keep their order
-KNOT_SPACING_S = 0.05  # the handheld random walk is drawn on knots this far apart, then splined
+KNOT_SPACING_S = 0.02  # the handheld motion is drawn on knots this far apart, then splined
 GAP_SAMPLES = 1.5  # a capture between two mocap samples farther apart than this x the period is in a gap
 MAX_FALSE_DRAWS = 1000  # rejection sampling of false detections far from the truth
 
@@ -86,7 +87,7 @@ class CaptureOptions:
     handheld: bool = False
     shake_mm: float = 20.0  # std of each coordinate of the centre's excursion from its base position
     shake_deg: float = 1.0  # std of each component of the orientation's excursion (rotation vector)
-    shake_s: float = 1.0  # correlation time of the handheld random walk
+    shake_s: float = 0.5  # correlation time of the handheld motion (velocity std = shake / shake_s)
     noise_px: float = 0.0  # std of the Gaussian noise on each pixel coordinate
     miss: float = 0.0  # share of the visible observations removed at random
     false_fraction: float = 0.0  # share of the kept detections replaced by a random pixel far from the truth
@@ -204,24 +205,24 @@ def capture_times(clock: VideoClock, span: tuple[float, float], jitter_s: float,
 
 def smooth_walk(times: np.ndarray, dims: int, std: float, correlation_s: float,
                 rng: np.random.Generator) -> np.ndarray:
-    """A stationary, mean-reverting random walk (Ornstein-Uhlenbeck) through C2 cubic splines, (N, dims).
+    """A smooth, stationary random motion at `times` (N,): (N, dims), each coordinate N(0, std^2).
 
-    Knots every KNOT_SPACING_S from the stationary distribution with correlation time `correlation_s`; each
-    coordinate's standard deviation is `std` at the knots (a little less between them).
+    White noise on knots every KNOT_SPACING_S, Gaussian-filtered so that the covariance is
+    std^2 exp(-dt^2 / (2 correlation_s^2)) (velocity std = std / correlation_s), then splined. Unlike a plain
+    random walk it never drifts away, and unlike per-frame noise it is smooth: a hand swaying a phone.
     """
     times = np.asarray(times, dtype=float)
     if len(times) == 0 or std == 0:
         return np.zeros((len(times), dims))
-    t0, t1 = float(times.min()) - KNOT_SPACING_S, float(times.max()) + KNOT_SPACING_S
+    sigma = correlation_s / math.sqrt(2) / KNOT_SPACING_S  # kernel width in knots
+    margin = 4 * sigma * KNOT_SPACING_S + KNOT_SPACING_S  # no edge effects inside the span
+    t0, t1 = float(times.min()) - margin, float(times.max()) + margin
     count = max(4, math.ceil((t1 - t0) / KNOT_SPACING_S) + 1)
     knots_t = t0 + KNOT_SPACING_S * np.arange(count)
-    decay = math.exp(-KNOT_SPACING_S / correlation_s)
-    values = np.empty((count, dims))
-    values[0] = rng.normal(0.0, std, dims)
-    steps = rng.normal(0.0, std * math.sqrt(1 - decay**2), (count, dims))
-    for k in range(1, count):
-        values[k] = decay * values[k - 1] + steps[k]
-    return np.asarray(CubicSpline(knots_t, values, axis=0)(times))
+    white = rng.normal(0.0, 1.0, (count, dims))
+    # A unit-sum Gaussian kernel of width sigma leaves 1 / (2 sqrt(pi) sigma) of white noise's variance.
+    smooth = gaussian_filter1d(white, sigma, axis=0, mode="wrap") * math.sqrt(2 * math.sqrt(math.pi) * sigma)
+    return np.asarray(CubicSpline(knots_t, std * smooth, axis=0)(times))
 
 
 def handheld_poses(R: np.ndarray, t: np.ndarray, times: np.ndarray, options: CaptureOptions,

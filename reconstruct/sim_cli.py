@@ -108,7 +108,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     clocks.add_argument("--vfr", action=_StoreTrue,
                         help="cameras.json times carry the jitter (variable frame rate); default k / fps")
     clocks.add_argument("--handheld", action=_Boolean,
-                        help="shake the cameras (smooth random walk of centre and orientation); default off for "
+                        help="shake the cameras (smooth random sway of centre and orientation); default off for "
                              "phones, on for flight")
     clocks.add_argument("--shake-mm", type=float, metavar="MM", action=_Store,
                         help=f"handheld: std of the centre's excursion per axis (default {phones.shake_mm:g}; "
