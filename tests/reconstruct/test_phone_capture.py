@@ -65,9 +65,10 @@ def reprojection(capture: SimulatedCapture) -> tuple[np.ndarray, np.ndarray, np.
 def true_times(capture: SimulatedCapture, clocks: dict[str, tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
     """Capture times from the clock model (offset, rate) and the cameras.json times, and truth.csv's, (F,) each."""
     cams = by_key(capture)
-    model = np.array([clocks[v][0] + clocks[v][1] * cams[(v, int(f))].time
-                      for v, f in zip(capture.truth.videos, capture.truth.frames, strict=True)])
-    return model, capture.truth.extra["time"][:, 0]
+    keys = list(zip(capture.truth.videos, capture.truth.frames.tolist(), strict=True))
+    own = np.array([cams[key].time for key in keys], dtype=float)
+    offset, rate = np.array([clocks[video] for video, _ in keys]).T
+    return offset + rate * own, capture.truth.extra["time"][:, 0]
 
 
 def test_clock_model_round_trip_through_the_files(tmp_path: Path) -> None:
