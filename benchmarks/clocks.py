@@ -1,0 +1,138 @@
+"""Clock recovery against ground truth: phone captures of real mocap and the single-drone flight scene.
+
+Each row: simulate (reconstruct.phone_capture / reconstruct.flight, known clocks and per-frame capture times),
+solve, `estimate_clocks`, then compare every frame's global time with its true capture time. The estimate's gauge is
+its reference video (offset 0, rate 1); the truth's is the scene start, so estimates are mapped through the
+reference video's true clock (global_true = offset_ref + rate_ref * global_est) before scoring; jitter on the
+reference's frames is then part of the error, as it is for every frame (CFR timestamps do not show it).
+
+Columns: median |time error| in ms and as a fraction of the fastest camera's frame period (target < 0.25), p90,
+calibration (share of frames whose error is within 2 reported std), the method per video, seconds spent in
+estimate_clocks and in the solve.
+
+    python benchmarks/clocks.py                       # phones (3 seeds) + flight (2 seeds)
+    python benchmarks/clocks.py --scenes flight --seeds 0,1,2 --search always --json /tmp/clocks.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from common import WINDOWS, load_window, solver_version  # noqa: E402
+
+from reconstruct.clocks import ClockModel, ClockOptions, SearchMode, estimate_clocks  # noqa: E402
+from reconstruct.flight import FlightOptions, simulate_flight  # noqa: E402
+from reconstruct.phone_capture import PhoneCaptureOptions, simulate_phones  # noqa: E402
+from reconstruct.problem import build_problem  # noqa: E402
+from reconstruct.solver import SolverOptions, solve  # noqa: E402
+
+log = logging.getLogger("benchmarks.clocks")
+
+PHONE_WINDOW = "cmu-jumps"
+
+
+def phone_capture(seed: int, seconds: float) -> tuple[Any, Any]:
+    """4 handheld phones (30, 25, 59.94, 24 fps), starts within 1 s, +-50 ppm drift, 2 ms CFR jitter, 1 px."""
+    window = next(w for w in WINDOWS if w.name == PHONE_WINDOW)
+    from dataclasses import replace
+
+    mocap = load_window(replace(window, seconds=seconds))
+    return simulate_phones(mocap, PhoneCaptureOptions(
+        cameras=4, handheld=True, noise_px=1.0, offset_s=(0.0, 1.0), drift_ppm=50.0, jitter_ms=2.0, seed=seed))
+
+
+def flight_capture(seed: int, seconds: float) -> tuple[Any, Any]:
+    """The flight defaults (5 handheld phones 30-100 m away, 1.5 px, 3 % false detections) + drift and jitter."""
+    capture, record, _ = simulate_flight(FlightOptions(seed=seed, duration_s=seconds, drift_ppm=50.0,
+                                                       jitter_ms=2.0))
+    return capture, record
+
+
+def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOptions,
+          solver: SolverOptions) -> dict[str, Any]:
+    problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
+    t0 = time.perf_counter()
+    result = solve(problem, solver)
+    solve_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    clocks = estimate_clocks(problem, result, options)
+    clocks_s = time.perf_counter() - t0
+    truth_index = capture.truth.index()
+    true_time = np.array([capture.truth.extra["time"][truth_index[(v, int(f))], 0]
+                          for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
+    true_clocks = {c.name: c for c in record.clocks}
+    ref = true_clocks[clocks.reference]
+    estimate = ref.offset_s + ref.rate * clocks.global_time
+    std = ref.rate * clocks.global_std
+    error = np.abs(estimate - true_time)
+    known = np.isfinite(error)
+    fastest = 1.0 / max(c.fps for c in record.clocks)
+    median = float(np.median(error[known])) if known.any() else float("nan")
+    return {
+        "scene": scene, "seed": seed, "videos": len(problem.video_names),
+        "fps": [round(true_clocks[n].fps, 2) for n in problem.video_names], "frames": problem.num_frames,
+        "points": problem.num_points, "median_ms": 1000 * median, "fraction_of_period": median / fastest,
+        "p90_ms": 1000 * float(np.percentile(error[known], 90)) if known.any() else float("nan"),
+        "within_2std": float(np.mean(error[known] <= 2 * std[known])) if known.any() else float("nan"),
+        "unclocked_frames": int((~known).sum()),
+        "methods": [v.method for v in clocks.videos],
+        "offset_error_ms": [1000 * (ref.offset_s + ref.rate * v.offset - true_clocks[v.name].offset_s)
+                            for v in clocks.videos],
+        "link_scale_ms": 1000 * clocks.diagnostics.get("link_scale_s", float("nan")),
+        "clocks_s": clocks_s, "solve_s": solve_s, "warnings": clocks.warnings,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", default="phones,flight")
+    parser.add_argument("--seeds", default=None, help="comma-separated (default: phones 0,1,2; flight 0,1)")
+    parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 5, flight 12)")
+    parser.add_argument("--search", choices=[m.value for m in SearchMode], default="auto")
+    parser.add_argument("--model", choices=[m.value for m in ClockModel], default="affine")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    options = ClockOptions(search=SearchMode(args.search), model=ClockModel(args.model))
+    rows: list[dict[str, Any]] = []
+    print(f"solver {solver_version()}; search {args.search}, model {args.model}")
+    header = ("| scene | seed | videos | fps | F | median ms | / fastest period | p90 ms | within 2 std | methods | "
+              "clocks s | solve s |")
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    for scene in args.scenes.split(","):
+        seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else ([0, 1, 2] if scene == "phones" else [0, 1])
+        for seed in seeds:
+            if scene == "phones":
+                capture, record = phone_capture(seed, args.seconds or 5.0)
+            elif scene == "flight":
+                capture, record = flight_capture(seed, args.seconds or 12.0)
+            else:
+                parser.error(f"unknown scene {scene!r}")
+            row = score(scene, seed, capture, record, options, SolverOptions())
+            rows.append(row)
+            print(f"| {scene} | {seed} | {row['videos']} | {'/'.join(f'{f:g}' for f in row['fps'])} | "
+                  f"{row['frames']} | {row['median_ms']:.2f} | {row['fraction_of_period']:.3f} | "
+                  f"{row['p90_ms']:.2f} | {row['within_2std']:.2f} | {','.join(row['methods'])} | "
+                  f"{row['clocks_s']:.1f} | {row['solve_s']:.0f} |", flush=True)
+            if args.json:
+                args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
