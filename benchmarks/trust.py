@@ -16,7 +16,8 @@ walk; run-5ms is refused at 2.7 m: the sprint reaches a camera). The flag thresh
 (freeform, run-4ms, cmu-late, sit-stand: `--windows freeform,run-4ms,cmu-late,sit-stand`), never on these.
 
 `--cache DIR` keeps each solve (pickle of problem, result, truth) so that a rerun with other thresholds solves
-nothing; a cached solve is reused only for the same window, setting, length and solver commit.
+nothing; a cached solve is reused only for the same window, setting, length and solver sources
+(SOLVE_SOURCES).
 Runtime: ~3-60 s per solve on one core (the missing-data and unconstrained rows are the slow ones), ~10 min for the
 default 5 windows x 6 settings.
 """
@@ -24,6 +25,7 @@ default 5 windows x 6 settings.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import os
@@ -40,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import WINDOWS, load_window, require_mocap_dir, simulate, solver_version, step_for
+from common import ROOT, WINDOWS, load_window, require_mocap_dir, simulate, solver_version, step_for
 
 from reconstruct.points import FramePoints
 from reconstruct.problem import Problem
@@ -84,14 +86,27 @@ def truth_in_problem_order(problem: Problem, truth: FramePoints) -> np.ndarray:
     return truth.xyz[frames][:, columns]
 
 
-def solved(window_index: int, setting: Setting, length: int, cache: Path | None, version: str
+# What a solve depends on: a cached solve is reused only while these files are unchanged.
+SOLVE_SOURCES = ("reconstruct/solver.py", "reconstruct/wstep.py", "reconstruct/xstep.py", "reconstruct/initialize.py",
+                 "reconstruct/problem.py", "reconstruct/rays.py", "reconstruct/simplex.py", "reconstruct/simulate.py",
+                 "reconstruct/mocap.py", "benchmarks/common.py")
+
+
+def solve_sources_digest() -> str:
+    digest = hashlib.sha256()
+    for name in SOLVE_SOURCES:
+        digest.update((ROOT / name).read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def solved(window_index: int, setting: Setting, length: int, cache: Path | None
            ) -> tuple[Problem, SolveResult, FramePoints, float]:
     """Simulate and solve one (window, setting), or load it from the cache."""
     window = WINDOWS[window_index]
     path = None
     if cache is not None:
-        path = cache / f"{window.name}_{setting.key}_{length}_{version.split()[0]}.pkl"
-        if path.is_file() and "uncommitted" not in version:
+        path = cache / f"{window.name}_{setting.key}_{length}_{solve_sources_digest()}.pkl"
+        if path.is_file():
             with path.open("rb") as handle:
                 stored = pickle.load(handle)  # our own cache file, written below
             return stored["problem"], stored["result"], stored["truth"], stored["seconds"]
@@ -179,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, list[dict[str, Any]]] = {}
     for setting in chosen:
         for index in windows:
-            problem, result, truth, seconds = solved(index, setting, args.length, args.cache, version)
+            problem, result, truth, seconds = solved(index, setting, args.length, args.cache)
             counts = score(problem, result, truth, options)
             counts["window"] = names[index]
             results.setdefault(setting.key, []).append(counts)

@@ -42,11 +42,13 @@ log = logging.getLogger(__name__)
 class TrustOptions:
     min_weight: float = 0.02  # W entries below this are not neighbours (numerical dust of the W-step)
     max_neighbours: int = 4  # strongest neighbours kept per frame: the paper's W columns have ~2
-    # Flag rule: a point is flagged when any of these is exceeded (see `flag_rule`).
-    condition_limit: float = 50.0  # 1 / sigma_min of the neighbourhood's system
-    residual_px: float = 4.0  # self-expression residual seen from the frame's camera, pixels
-    reprojection_px: float = 6.0  # distance from the viewing ray seen from the camera, pixels
-    min_support: float = 0.5  # a missing point whose neighbours mostly miss it too is extrapolated
+    # Flag rule (see `flag_rule`): the residual in pixels, or the residual amplified by the condition (the paper's
+    # bound |l| <= |b| / sigma_min with the point's residual for |b|), above a floor and above `relative` times its
+    # median over the solve (the median follows the noise level and frame rate: a scale-free limit). Tuned on
+    # simulations (benchmarks/trust.py, tuning windows freeform, run-4ms, cmu-late, sit-stand).
+    residual_px: float = 5.0
+    bound_px: float = 30.0
+    relative: float = 3.0
 
 
 @dataclass(kw_only=True)
@@ -54,12 +56,16 @@ class Trust:
     condition: np.ndarray  # (F, P) dimensionless, 1 / sigma_min of the neighbourhood's A
     residual: np.ndarray  # (F, P) input units
     residual_px: np.ndarray  # (F, P) pixels, residual seen from frame f's camera
+    bound_px: np.ndarray  # (F, P) pixels, condition x residual_px
     ray_distance: np.ndarray  # (F, P) input units, NaN where unobserved
     reprojection_px: np.ndarray  # (F, P) pixels, NaN where unobserved
     support: np.ndarray  # (F, P) in [0, 1]
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
+    limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
     reconstructed: np.ndarray  # (F, P) bool
+    video_names: list[str] = field(default_factory=list)  # (N,) for the per-video counts of the summary
+    video_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (F,)
     options: TrustOptions = field(default_factory=TrustOptions)
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -69,6 +75,7 @@ class Trust:
             "condition": _blank(self.condition, empty),
             "residual": _blank(self.residual, empty),
             "residual_px": _blank(self.residual_px, empty),
+            "bound_px": _blank(self.bound_px, empty),
             "ray_distance": _blank(self.ray_distance, empty),
             "reprojection_px": _blank(self.reprojection_px, empty),
             "support": _blank(self.support, empty),
@@ -80,8 +87,9 @@ class Trust:
         done = self.reconstructed
         measures = {}
         for name, values in (("condition", self.condition), ("residual", self.residual),
-                             ("residual_px", self.residual_px), ("ray_distance", self.ray_distance),
-                             ("reprojection_px", self.reprojection_px), ("support", self.support)):
+                             ("residual_px", self.residual_px), ("bound_px", self.bound_px),
+                             ("ray_distance", self.ray_distance), ("reprojection_px", self.reprojection_px),
+                             ("support", self.support)):
             v = values[done & np.isfinite(values)]
             measures[name] = {
                 "median": _number(np.median(v)) if v.size else None,
@@ -90,21 +98,31 @@ class Trust:
             }
         flagged = int(np.sum(self.flag & done))
         total = int(done.sum())
+        per_video = {}
+        for v, name in enumerate(self.video_names):
+            rows = self.video_index == v
+            per_video[name] = {"flagged": int(np.sum(self.flag[rows] & done[rows])),
+                               "reconstructed": int(done[rows].sum())}
         return {
             "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
-                      "residual_px": "pixels", "reprojection_px": "pixels", "support": "fraction"},
+                      "residual_px": "pixels", "bound_px": "pixels", "reprojection_px": "pixels",
+                      "support": "fraction"},
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
             "flagged_share": flagged / total if total else None,
+            "per_video": per_video,
             "rule": flag_rule(self.options),
+            "limits": {k: _number(v) for k, v in self.limits.items()},
             "options": asdict(self.options),
         }
 
 
 def flag_rule(options: TrustOptions) -> str:
-    return (f"condition > {options.condition_limit:g} or residual_px > {options.residual_px:g} or "
-            f"reprojection_px > {options.reprojection_px:g} or (unobserved and support < {options.min_support:g})")
+    k = f"{options.relative:g}"
+    return (f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
+            f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px); "
+            "medians over the solve's reconstructed points")
 
 
 def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
@@ -140,7 +158,8 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
 
     A_gh = gram_gh B_g^T B_h with B_g = r_g (observed) or I (unobserved). Computed as the 3n x 3n matrix
     gram_gh P_g P_h (P_g = B_g B_g^T) plus c (I - P) on the complement (and on unused slots), which has the
-    eigenvalues of A and c: with c above A's largest eigenvalue the smallest eigenvalue is A's.
+    eigenvalues of A and c: with c above A's largest eigenvalue the smallest eigenvalue is A's. A singular A
+    (e.g. all rays parallel in a closed group) gives ~1e13 / c.
     """
     B, n = gram.shape[:2]
     valid = np.ones((B, n), dtype=bool) if valid is None else valid
@@ -156,8 +175,8 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     complement[:, idx, :, idx, :] = (np.eye(3) - projector).transpose(1, 0, 2, 3)
     big = big + c[:, None, None] * complement.reshape(B, 3 * n, 3 * n)
     smallest = np.linalg.eigvalsh(big)[:, 0]
-    with np.errstate(divide="ignore"):
-        return np.where(smallest > 1e-13 * c, 1.0 / np.maximum(smallest, 1e-300), np.inf)
+    # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
+    return 1.0 / np.maximum(smallest, 1e-13 * c)
 
 
 def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
@@ -211,17 +230,21 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             continue
         condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
 
-    flag = reconstructed & (
-        (condition > options.condition_limit)
-        | (residual_px > options.residual_px)
-        | (np.nan_to_num(reprojection_px) > options.reprojection_px)
-        | (~observed & (support < options.min_support))
-    )
+    bound_px = condition * residual_px
+    limits = {"residual_px": options.residual_px, "bound_px": options.bound_px}
+    if reconstructed.any():
+        limits = {
+            "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
+            "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
+        }
+    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"]))
     nan = ~reconstructed
     return Trust(
         condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
-        residual_px=np.where(nan, np.nan, residual_px), ray_distance=np.where(nan, np.nan, ray_distance),
+        residual_px=np.where(nan, np.nan, residual_px), bound_px=np.where(nan, np.nan, bound_px),
+        ray_distance=np.where(nan, np.nan, ray_distance),
         reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
-        videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, reconstructed=reconstructed,
-        options=options,
+        videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, limits=limits,
+        reconstructed=reconstructed,
+        video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,
     )

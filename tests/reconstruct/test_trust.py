@@ -167,7 +167,7 @@ def test_flags_catch_injected_large_errors_and_leave_a_good_solve_mostly_unflagg
 
 def test_summary_and_columns_are_json_ready(solved):
     problem, result, _ = solved
-    trust = trust_measures(problem, result, TrustOptions(residual_px=1e-9))  # flag everything
+    trust = trust_measures(problem, result, TrustOptions(residual_px=0.0, relative=0.0))  # flag everything
     summary = trust.summary()
     text = json.dumps(summary, allow_nan=False)
     assert "rule" in summary and summary["flagged"] == problem.num_frames * problem.num_points
@@ -175,6 +175,6 @@ def test_summary_and_columns_are_json_ready(solved):
     assert set(summary["measures"]) >= {"condition", "residual", "ray_distance"}
     assert json.loads(text)["measures"]["residual"]["median"] > 0
     columns = trust.columns()
-    assert set(columns) == {"condition", "residual", "residual_px", "ray_distance", "reprojection_px", "support",
-                            "flag"}
+    assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
+                            "support", "flag"}
     assert set(np.unique(columns["flag"])) == {1.0}
