@@ -208,7 +208,7 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
 
     # Support: W weight on neighbours observing the point.
     support = np.asarray(W.T @ observed.astype(float))
-    support = support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300)
+    support = np.clip(support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300), 0.0, 1.0)
 
     hood = neighbourhoods(W, options.min_weight, options.max_neighbours)  # (F, n)
     valid = hood >= 0

@@ -178,3 +178,30 @@ def test_summary_and_columns_are_json_ready(solved):
     assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
                             "support", "flag"}
     assert set(np.unique(columns["flag"])) == {1.0}
+
+
+def test_support_is_the_weight_on_neighbours_that_observe_the_point(solved):
+    problem, result, _ = solved
+    W = result.W.to_csc().toarray()
+    f, p = 40, 0
+    neighbours = np.flatnonzero(W[:, f] > 0)
+    problem = replace(problem, uv=problem.uv.copy())
+    problem.uv[f, p] = np.nan
+    problem.uv[neighbours[0], p] = np.nan
+    trust = trust_measures(problem, result)
+    assert trust.support[f, p] == pytest.approx(1.0 - W[neighbours[0], f] / W[:, f].sum(), abs=1e-9)
+    problem.uv[neighbours, p] = np.nan
+    assert trust_measures(problem, result).support[f, p] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_measures_in_pixels_and_the_flag_do_not_depend_on_the_unit_of_length(solved):
+    problem, result, _ = solved
+    moved = result.points.copy()
+    moved[20:23, 1] += 200.0  # a few wrong points so that something is flagged
+    in_mm = trust_measures(problem, replace(result, points=moved))
+    in_m = trust_measures(replace(problem, t=problem.t / 1000.0), replace(result, points=moved / 1000.0))
+    np.testing.assert_allclose(in_m.condition, in_mm.condition, rtol=1e-9)
+    np.testing.assert_allclose(in_m.residual_px, in_mm.residual_px, rtol=1e-6)
+    np.testing.assert_allclose(in_m.residual * 1000.0, in_mm.residual, rtol=1e-6)
+    np.testing.assert_array_equal(in_m.flag, in_mm.flag)
+    assert in_mm.flag[20:23, 1].all()
