@@ -42,7 +42,7 @@ from reconstruct.points import FramePoints, read_points, read_sequencing
 from reconstruct.recording import BackgroundCloud, write_recording
 from reconstruct.solve_stage import SolveStageOptions
 from reconstruct.solve_stage import run as solve_run
-from sfm.cameras import CameraSet, read_cameras
+from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply
 from sfm.register import Localize, RegisterOptions
 from sfm.register import run as register_run
@@ -352,13 +352,33 @@ def _export(ws: Path, cameras_path: Path, units: str) -> None:
 # Scoring against a known truth (the video sample)
 
 
-def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: CameraSet) -> FramePoints:
-    """`points` moved into the truth's world by the similarity X_true = s R X + t that best maps the registered
-    cameras of the frames both have onto the true ones (SfM worlds have their own origin, rotation and scale).
+@dataclass(kw_only=True)
+class Similarity:
+    """X_true = scale * rotation @ X + translation."""
 
-    R comes from the camera orientations (R_true^T R_est, averaged), s and t from the camera centres. Handheld
-    cameras' centres lie close to a line, so a centres-only fit leaves the rotation about that line loose
-    (measured on the video sample: a 1 degree tilt, 70 mm at the subject); orientations fix it.
+    scale: float
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+
+    def apply(self, xyz: np.ndarray) -> np.ndarray:
+        """xyz: (..., 3) -> (..., 3) in the target world."""
+        return self.scale * xyz @ self.rotation.T + self.translation
+
+    def camera(self, camera: FrameCamera) -> FrameCamera:
+        """`camera` (cam_from_world of the source world) as a camera of the target world (translation in target
+        units: the camera's own scale is the target's)."""
+        R = camera.R @ self.rotation.T
+        t = self.scale * camera.t - R @ self.translation
+        return dataclasses.replace(camera, R=R, t=t)
+
+
+def similarity_to_truth(cameras: CameraSet, truth_cameras: CameraSet) -> Similarity:
+    """The similarity that best maps the registered cameras of the frames both sets have onto the true ones (SfM
+    worlds have their own origin, rotation and scale).
+
+    The rotation comes from the camera orientations (R_true^T R_est, averaged), scale and translation from the camera
+    centres. Handheld cameras' centres lie close to a line, so a centres-only fit leaves the rotation about that line
+    loose (measured on the video sample: a 1 degree tilt, 70 mm at the subject); orientations fix it.
     """
     true_frames = {(v.name, f.frame): f for v in truth_cameras.videos for f in v.frames}
     pairs = [(f, true_frames[(v.name, f.frame)]) for v in cameras.videos for f in v.frames
@@ -374,7 +394,12 @@ def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: Camer
     a, b = source - source.mean(axis=0), target - target.mean(axis=0)
     s = float((a * b).sum() / (a * a).sum())
     t = target.mean(axis=0) - s * source.mean(axis=0)
-    return dataclasses.replace(points, xyz=s * points.xyz @ R.T + t)
+    return Similarity(scale=s, rotation=R, translation=t)
+
+
+def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: CameraSet) -> FramePoints:
+    """`points` moved into the truth's world by `similarity_to_truth` of their cameras."""
+    return dataclasses.replace(points, xyz=similarity_to_truth(cameras, truth_cameras).apply(points.xyz))
 
 
 def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) -> Accuracy:
