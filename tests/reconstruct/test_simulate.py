@@ -222,3 +222,18 @@ def test_hdm05_protocol(shared_dir: Path) -> None:
     projected, tracked = reprojection(capture)
     np.testing.assert_allclose(tracked, projected, atol=1e-8)
     assert tracked.min() >= 0 and tracked.max() <= 999
+
+
+def test_cli_mode_paper_is_the_default(tmp_path: Path) -> None:
+    from dynrecon.cli import main
+
+    xyz = walking_body(frames=60)
+    mocap = Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)], times=np.arange(60) / 120.0)
+    source = write_trc(tmp_path / "walk.trc", mocap)
+    common = [str(source), "--noise", "1", "--seed", "3", "--step", "2"]
+    assert main(["simulate", *common, "--out", str(tmp_path / "default")]) == 0
+    assert main(["simulate", *common, "--mode", "paper", "--out", str(tmp_path / "paper")]) == 0
+    for name in ("cameras.json", "tracks.csv", "truth.csv"):
+        assert (tmp_path / "default" / name).read_bytes() == (tmp_path / "paper" / name).read_bytes()
+    assert not (tmp_path / "paper" / "clocks_truth.json").exists()
+    assert read_cameras(tmp_path / "paper" / "cameras.json").videos[0].fps is None
