@@ -13,6 +13,10 @@ Prints markdown tables:
 - solver (`--solve`, minutes each): the same solver on true cameras + true 2D (at the tracked rows), true cameras +
   tracked 2D, registered cameras + true 2D, registered + tracked (the pipeline), and true cameras + true 2D at every
   visible joint (the observation pattern's cost).
+
+`--screenshot PNG` instead renders WS/recording.rrd to a picture (the README's): rerun's web viewer
+(`rerun --serve-web`) opened in headless chromium (`/usr/bin/chromium`, software WebGL), side panels collapsed,
+quantized to 256 colours.
 """
 
 from __future__ import annotations
@@ -20,9 +24,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import subprocess
 import sys
 import tempfile
 import time
+import urllib.parse
 from pathlib import Path
 
 import numpy as np
@@ -143,13 +149,53 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
     return evaluate(aligned, subset), seconds
 
 
+def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: int = 9191,
+               grpc_port: int = 9877) -> Path:
+    """A 1280 x 720 picture of `recording` in rerun's web viewer (headless chromium, swiftshader WebGL)."""
+    from PIL import Image
+    from playwright.sync_api import sync_playwright
+
+    server = subprocess.Popen(["rerun", "--serve-web", "--web-viewer-port", str(web_port), "--port",
+                               str(grpc_port), str(recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(5)  # the server loads the file before the page asks for it
+        source = urllib.parse.quote(f"rerun+http://localhost:{grpc_port}/proxy", safe="")
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path="/usr/bin/chromium", headless=True,
+                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                      "--ignore-gpu-blocklist"])
+            page = browser.new_page(viewport={"width": 1280, "height": 720})
+            page.goto(f"http://localhost:{web_port}/?url={source}&renderer=webgl")
+            time.sleep(wait_s)  # software rendering: the first frames take tens of seconds
+            for x in (1256, 1201):  # the right (selection) and left (blueprint) panel toggles, top right
+                page.mouse.click(x, 18)
+                time.sleep(3)
+            page.mouse.move(640, 700)  # no hover highlight on the views
+            time.sleep(5)
+            raw = png.with_suffix(".raw.png")
+            page.screenshot(path=str(raw))
+            browser.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    png.parent.mkdir(parents=True, exist_ok=True)
+    Image.open(raw).convert("RGB").quantize(colors=256).save(png, optimize=True)
+    raw.unlink()
+    return png
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ws", type=Path, required=True)
     parser.add_argument("--sample", type=Path, default=SAMPLE)
     parser.add_argument("--solve", action="store_true", help="run the solver experiments (minutes each)")
     parser.add_argument("--only", default="", help="comma-separated experiment numbers to run (default all)")
+    parser.add_argument("--screenshot", type=Path, metavar="PNG", help="render WS/recording.rrd to PNG and stop")
     args = parser.parse_args()
+    if args.screenshot is not None:
+        print(screenshot(args.ws / "recording.rrd", args.screenshot))
+        return
     logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
     cameras = read_cameras(args.ws / REGISTER_DIR / "cameras.json")
     truth_cameras = read_cameras(args.sample / "truth_cameras.json")
