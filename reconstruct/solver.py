@@ -17,6 +17,7 @@ import scipy.sparse as sp
 from tqdm import tqdm
 
 from dynrecon.errors import NotEnoughDataError
+from reconstruct.anderson import AndersonMixer
 from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
@@ -38,6 +39,9 @@ class SolverOptions:
     # the Psi2-biased optimum that the final stage leaves anyway.
     smooth_tolerance: float = 1e-3
     point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
+    # Anderson acceleration of the alternation over this many past iterates (0: plain alternation); see
+    # reconstruct/anderson.py.
+    anderson_memory: int = 5
     w_step: WStepOptions = field(default_factory=WStepOptions)
     progress: bool = False
     # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
@@ -54,6 +58,7 @@ class StageLog:
     cost: list[float] = field(default_factory=list)
     w_iterations: list[int] = field(default_factory=list)
     max_point_change: list[float] = field(default_factory=list)
+    rejected_mixes: int = 0  # Anderson mixes that raised the cost and were replaced by the plain step
 
 
 @dataclass(kw_only=True)
@@ -137,19 +142,30 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
         stages.append(stage)
         x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint)
         previous_cost = np.inf
+        mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
+        candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
         bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=None if options.progress else True,
                    leave=False)
         for _ in bar:
             t0 = time.perf_counter()
-            W, w_stats = solve_w(points.reshape(F, -1), video_index, P, w_options, previous=W)
+            W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W)
+            if candidate is not points:
+                mixed_cost = total_cost(candidate, W_next.to_csc(), centers, rays, video_index, options.lambda1,
+                                        lambda2, options.lambda3, options.constraint)
+                if mixed_cost > previous_cost:  # the mix lost ground: fall back to the plain alternation
+                    stage.rejected_mixes += 1
+                    if mixer is not None:
+                        mixer.reset()
+                    candidate = points
+                    W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W)
+            W = W_next
             t_w += time.perf_counter() - t0
             t0 = time.perf_counter()
             W_matrix = W.to_csc()
-            new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=points)
+            new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=candidate)
             t_x += time.perf_counter() - t0
-            change = float(np.max(np.abs(new_points - points)))
-            points = new_points
-            cost = total_cost(points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
+            change = float(np.max(np.abs(new_points - candidate)))
+            cost = total_cost(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
                               options.lambda3, options.constraint)
             stage.iterations += 1
             stage.cost.append(cost)
@@ -157,16 +173,19 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             stage.max_point_change.append(change)
             bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
             if options.monitor is not None:
-                options.monitor(name, stage.iterations, normalization.undo(points))
+                options.monitor(name, stage.iterations, normalization.undo(new_points))
             decrease = (previous_cost - cost) / max(abs(cost), 1e-300)
             if lambda2 > 0:
                 converged = decrease < options.smooth_tolerance
             else:
                 converged = decrease < options.tolerance and change < options.point_tolerance
+            previous_cost = cost
             if converged:
+                points = new_points
                 stage.converged = True
                 break
-            previous_cost = cost
+            candidate = mixer.mix(candidate, new_points) if mixer is not None else new_points
+            points = new_points
         log.info("stage %s: %d iterations, cost %.4e, converged: %s", name, stage.iterations,
                  stage.cost[-1] if stage.cost else float("nan"), stage.converged)
     if W is None:

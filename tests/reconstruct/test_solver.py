@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 from synthetic_motion import synthetic_problem, truth_array
@@ -68,3 +70,16 @@ def test_fewer_than_two_videos_is_an_error():
         build_problem(capture.cameras, capture.tracks)
     assert problem.num_frames == 30
     assert isinstance(capture.tracks, Tracks)
+
+
+def test_anderson_acceleration_keeps_the_cost_monotone_and_needs_fewer_alternations():
+    problem, truth = synthetic_problem(frames=160, points=6)
+    plain = solve(problem, SolverOptions(anderson_memory=0))
+    mixed = solve(problem, SolverOptions())
+    final = mixed.stages[-1].cost
+    assert all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(final))
+    assert mixed.stages[-1].iterations < plain.stages[-1].iterations
+    assert final[-1] <= plain.stages[-1].cost[-1] * 1.01
+    for result in (plain, mixed):
+        error = np.linalg.norm(result.points - truth_array(problem, truth), axis=-1)
+        assert np.mean(error < 10.0) > 0.99
