@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import enum
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -89,21 +90,23 @@ class TimeNodes:
     tau: float  # median spacing of consecutive distinct instants
 
 
-def time_nodes(times: np.ndarray, merge_fraction: float) -> TimeNodes:
-    """Distinct instants of `times (F,)`; gaps below merge_fraction x the median gap join one instant."""
+def time_nodes(times: np.ndarray, merge_fraction: float, tau: float | None = None) -> TimeNodes:
+    """Distinct instants of `times (F,)`; gaps below merge_fraction x the median gap join one instant. `tau`
+    fixes the time unit (else the median gap between instants)."""
     order = np.argsort(times, kind="stable")
     sorted_times = times[order]
     gaps = np.diff(sorted_times)
     positive = gaps[gaps > 0]
-    tau = float(np.median(positive)) if positive.size else 1.0
-    new_node = np.concatenate([[True], gaps > merge_fraction * tau])
+    unit = tau if tau is not None else (float(np.median(positive)) if positive.size else 1.0)
+    new_node = np.concatenate([[True], gaps > merge_fraction * unit])
     node_sorted = np.cumsum(new_node) - 1
     node_of_frame = np.empty(len(times), dtype=np.int64)
     node_of_frame[order] = node_sorted
     counts = np.bincount(node_sorted)
     node_times = np.bincount(node_sorted, weights=sorted_times) / counts
     node_gaps = np.diff(node_times)
-    tau = float(np.median(node_gaps)) if node_gaps.size else 1.0
+    if tau is None:
+        tau = float(np.median(node_gaps)) if node_gaps.size else 1.0
     return TimeNodes(node_of_frame=node_of_frame, times=node_times, tau=tau)
 
 
@@ -279,25 +282,13 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
     prior = prior_bands(nodes)
     grid = [options.smoothness] if options.rule is SmoothnessRule.FIXED else list(options.grid)
 
-    tracks: list[_Track] = []
-    for p in range(P):
-        seen = np.flatnonzero(problem.observed[:, p])
-        if seen.size == 0 or not np.isfinite(start[:, p]).all(axis=1).any():
-            continue  # nothing to refine (the solver left the point empty)
-        anchor = _start_per_node(start[:, p], nodes)
-        node = nodes.node_of_frame[seen]
-        depth = np.einsum("mi,mi->m", anchor[node] - centers[seen], rays[seen, p])
-        typical = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
-        depth = np.where(depth > 0.05 * typical, depth, typical)  # a start behind the camera: typical depth
-        s = focal[seen] / depth
-        track = _Track(point=p, seen=seen, node=node, rays=rays[seen, p], centers=centers[seen], s2=s * s,
-                       mean_s2=float(np.mean(s)) ** 2, anchor=anchor, positions=anchor,
-                       weights=np.ones(seen.size), smoothness=grid[0])
+    tracks = _make_tracks(problem, start, rays, centers, focal, nodes)
+    for track in tracks:
+        track.smoothness = grid[0]
         # First weights and scale from the start's residuals: a false detection is already far from its ray.
-        residual = track.residuals(anchor)
+        residual = track.residuals(track.anchor)
         track.scale = _loss_scale(residual, options)
         track.weights = robust_weights(residual, options.loss, track.scale)
-        tracks.append(track)
 
     cost: list[float] = []
     for _ in range(max(options.gcv_passes, 1)):
@@ -310,7 +301,7 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
                 track.positions, _ = _fit(prior, track.mean_s2, track.smoothness, blocks, rhs, track.anchor)
                 track.residual = track.residuals(track.positions)
                 total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
-                total += track.smoothness * track.mean_s2 * _prior_value(prior, track.positions)
+                total += track.smoothness * track.mean_s2 * float(_prior_value(prior, track.positions.reshape(-1)))
                 track.weights = robust_weights(track.residual, options.loss, track.scale)
             cost.append(total)
             if options.loss is RobustLoss.NONE:
@@ -339,6 +330,26 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
                         residual_px=residual_px, smoothness=smoothness, scale_px=scale_px, cost=cost)
 
 
+def _make_tracks(problem: Problem, start: np.ndarray, rays: np.ndarray, centers: np.ndarray, focal: np.ndarray,
+                 nodes: TimeNodes) -> list[_Track]:
+    """One _Track per point that has observations and a start position (normalized units)."""
+    tracks: list[_Track] = []
+    for p in range(problem.num_points):
+        seen = np.flatnonzero(problem.observed[:, p])
+        if seen.size == 0 or not np.isfinite(start[:, p]).all(axis=1).any():
+            continue  # nothing to refine (the solver left the point empty)
+        anchor = _start_per_node(start[:, p], nodes)
+        node = nodes.node_of_frame[seen]
+        depth = np.einsum("mi,mi->m", anchor[node] - centers[seen], rays[seen, p])
+        typical = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
+        depth = np.where(depth > 0.05 * typical, depth, typical)  # a start behind the camera: typical depth
+        s = focal[seen] / depth
+        tracks.append(_Track(point=p, seen=seen, node=node, rays=rays[seen, p], centers=centers[seen], s2=s * s,
+                             mean_s2=float(np.mean(s)) ** 2, anchor=anchor, positions=anchor,
+                             weights=np.ones(seen.size)))
+    return tracks
+
+
 def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int,
                        options: RefineOptions) -> None:
     """Smoothness by GCV over `grid` with the tracks' current weights, score = (RSS / m) / (1 - tr(H) / m)^2
@@ -351,16 +362,22 @@ def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float
     rss = np.zeros((len(tracks), len(grid)))
     trace = np.zeros((len(tracks), len(grid)))
     m = np.array([2.0 * track.seen.size for track in tracks])[:, None]  # each ray constrains two coordinates
+    factors: list[np.ndarray] = []
+    all_blocks: list[np.ndarray] = []
     for k, track in enumerate(tracks):
         blocks, rhs = track.data(n)
-        factors = []
+        all_blocks.append(blocks)
         for g, value in enumerate(grid):
             positions, factor = _fit(prior, track.mean_s2, value, blocks, rhs, track.anchor)
             rss[k, g] = float(np.sum(track.weights * track.residuals(positions) ** 2))
             factors.append(factor)
-        # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i).
-        inverse_blocks = _diagonal_blocks(selected_inverse(np.stack(factors)))
-        trace[k] = np.einsum("gnij,nji->g", inverse_blocks, blocks)
+    # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i); the recursion runs on batches of
+    # systems (its loop over unknowns is Python, its work per step numpy).
+    batch = max(1, 2 ** 22 // (BANDS * 3 * n * 8))  # ~32 MB of factors per batch
+    inverse_blocks = np.concatenate([_diagonal_blocks(selected_inverse(np.stack(factors[i:i + batch])))
+                                     for i in range(0, len(factors), batch)])
+    trace[:] = np.einsum("kgnij,knji->kg", inverse_blocks.reshape(len(tracks), len(grid), n, 3, 3),
+                         np.stack(all_blocks))
     if options.rule is SmoothnessRule.GCV_GLOBAL:
         total = float(m.sum())
         score = rss.sum(axis=0) / total / np.maximum(1 - trace.sum(axis=0) / total, 1e-9) ** 2
@@ -413,10 +430,166 @@ def _rho(residual: np.ndarray, loss: RobustLoss, scale: float) -> np.ndarray:
     return scale ** 2 * np.log1p((residual / scale) ** 2)
 
 
-def _prior_value(bands: np.ndarray, positions: np.ndarray) -> float:
-    """y^T M y for a lower-banded M and y = positions (n, 3) flattened."""
-    y = positions.reshape(-1)
-    value = float(np.sum(bands[0] * y * y))
+def _prior_value(bands: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """y^T M y for a lower-banded M (BANDS, N) and y (..., N)."""
+    value = np.sum(bands[0] * y * y, axis=-1)
     for d in range(1, BANDS):
-        value += 2.0 * float(np.sum(bands[d, :-d] * y[:-d] * y[d:]))
+        value = value + 2.0 * np.sum(bands[d, :-d] * y[..., :-d] * y[..., d:], axis=-1)
     return value
+
+
+@dataclass(kw_only=True)
+class ClockRefineOptions:
+    sweeps: int = 3  # coordinate-descent sweeps over the videos
+    search_periods: float = 1.0  # each sweep searches a video's offset within +- this many of its frame periods
+    tolerance_periods: float = 0.005  # golden-section search stops at this bracket width
+    reference: int | None = None  # video index whose clock stays fixed; default: the one with most frames
+    rates: bool = True  # also correct each video's rate (estimated clocks err in rate as much as in offset)
+
+
+@dataclass(kw_only=True)
+class ClockRefineResult:
+    times: np.ndarray  # (F,) adjusted global times, s
+    offsets: np.ndarray  # (N,) s added to every frame of each video (the reference's is 0)
+    rates: np.ndarray  # (N,) relative rate corrections: + rate x (own time - the video's middle time)
+    cost: list[float]  # trajectory cost after each sweep (px^2)
+    result: RefineResult  # the refinement at the adjusted times
+
+
+def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray,
+                       options: RefineOptions | None = None, clock_options: ClockRefineOptions | None = None
+                       ) -> ClockRefineResult:
+    """`refine`, then per-video time offsets that minimize the refinement's own cost, then `refine` again.
+
+    Estimated clocks can be off by a fraction of a frame (measured: ~5 ms at 120 captures/s on some captures),
+    which folds the trajectory into a zig-zag the prior pays for. With the smoothness and robust weights of the
+    first refinement held fixed, the cost (weighted ray distances + smoothness) is a function of the offsets
+    alone; each video's offset is found by golden-section search in turn (coordinate descent).
+    """
+    options = options or RefineOptions()
+    clock_options = clock_options or ClockRefineOptions()
+    first = refine(problem, points, times, options)
+    times = np.asarray(times, dtype=float)
+    N = len(problem.video_names)
+    counts = np.bincount(problem.video_index, minlength=N)
+    reference = clock_options.reference if clock_options.reference is not None else int(np.argmax(counts))
+    normalization = camera_normalization(problem.centers, problem.video_index)
+    centers = normalization.apply(problem.centers)
+    rays = viewing_rays(problem)
+    focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
+    tau = time_nodes(times, options.merge_fraction).tau
+    span = float(np.ptp(times))
+    refined = np.isfinite(first.smoothness)
+    observed = problem.observed & refined[None, :]
+    frame, point = np.nonzero(observed)  # every observation of a refined point
+    keep = np.flatnonzero(refined)
+    column = np.searchsorted(keep, point)  # the observation's point among the refined ones
+    # Held fixed: smoothness and weights of the first refinement, and each observation's px scale from its
+    # positions (time shifts of a fraction of a frame barely move the depths).
+    positions = normalization.apply(first.points)
+    depth = np.einsum("mi,mi->m", positions[frame, point] - centers[frame], rays[frame, point])
+    s2 = (focal[frame] / np.maximum(depth, 1e-9)) ** 2
+    weight = np.nan_to_num(first.weights[frame, point]) * s2
+    mean_s2 = np.array([np.mean(np.sqrt(s2[column == k])) ** 2 for k in range(len(keep))])
+    strength = first.smoothness[keep] * mean_s2  # (P',)
+    projector = np.eye(3)[None] - rays[frame, point][:, :, None] * rays[frame, point][:, None, :]
+    blocks_obs = weight[:, None, None] * projector
+    rhs_obs = np.einsum("mij,mj->mi", blocks_obs, centers[frame])
+
+    def cost(candidate: np.ndarray) -> float:
+        """Trajectory cost (px^2) of all refined points at the frame times `candidate`, one banded solve."""
+        # Time unit proportional to the span: the cost is then invariant to a global affine change of time (the
+        # gauge), so every video, the reference included, can move alone.
+        nodes = time_nodes(candidate, options.merge_fraction, tau * float(np.ptp(candidate)) / span)
+        n = len(nodes.times)
+        node = nodes.node_of_frame[frame]
+        blocks = np.zeros((len(keep), n, 3, 3))
+        rhs = np.zeros((len(keep), n, 3))
+        np.add.at(blocks, (column, node), blocks_obs)
+        np.add.at(rhs, (column, node), rhs_obs)
+        eps = 1e-9 * np.maximum(np.mean(np.trace(blocks, axis1=2, axis2=3), axis=1), 1e-300)
+        blocks += eps[:, None, None, None] * np.eye(3)
+        anchor = np.zeros((n, len(keep), 3))  # mean position per instant (the tiny eps pull's target)
+        np.add.at(anchor, nodes.node_of_frame, np.nan_to_num(positions[:, keep]))
+        anchor /= np.maximum(np.bincount(nodes.node_of_frame, minlength=n), 1)[:, None, None]
+        rhs += eps[:, None, None] * anchor.transpose(1, 0, 2)
+        prior = prior_bands(nodes)
+        system = strength[:, None, None] * prior[None]  # (P', BANDS, 3n)
+        for row in range(3):
+            for col in range(row + 1):
+                system[:, row - col, np.arange(n) * 3 + col] += blocks[:, :, row, col]
+        # Points are independent: their systems side by side form one banded matrix (no band crosses a seam).
+        stacked = system.transpose(1, 0, 2).reshape(BANDS, -1)
+        y = cho_solve_banded((cholesky_banded(stacked, lower=True), True), rhs.reshape(-1))
+        solved = y.reshape(len(keep), n, 3)
+        offset = solved[column, node] - centers[frame]
+        along = np.einsum("mi,mi->m", offset, rays[frame, point])
+        perpendicular = offset - along[:, None] * rays[frame, point]
+        total = float(np.sum(weight * np.einsum("mi,mi->m", perpendicular, perpendicular)))
+        return total + float(np.sum(strength * _prior_value(prior, solved.reshape(len(keep), -1))))
+
+    offsets = np.zeros(N)
+    rates = np.zeros(N)  # relative rate errors: each video's times stretch by (1 + rate) about their middle
+    middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
+
+    def adjusted_times(offsets: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        v = problem.video_index
+        return times + offsets[v] + rates[v] * (times - middle[v])
+
+    history = [cost(times)]
+    for _ in range(max(clock_options.sweeps, 0)):
+        for v in range(N):
+            own = problem.video_index == v
+            if own.sum() < 2:
+                continue
+            period = float(np.median(np.diff(np.sort(times[own]))))
+            video_span = float(np.ptp(times[own]))
+            if not (period > 0 and video_span > 0):
+                continue
+            for kind in ("offset", "rate") if clock_options.rates else ("offset",):
+                values = offsets if kind == "offset" else rates
+                # The rate's bracket moves the video's ends by as much as the offset's moves its middle.
+                reach = clock_options.search_periods * period * (1.0 if kind == "offset" else 2.0 / video_span)
+
+                def shifted(delta: float, values: np.ndarray = values, v: int = v) -> float:
+                    trial = values.copy()
+                    trial[v] += delta
+                    if values is offsets:
+                        return cost(adjusted_times(trial, rates))
+                    return cost(adjusted_times(offsets, trial))
+
+                best, best_cost = _golden_search(shifted, -reach, reach, clock_options.tolerance_periods * reach)
+                if best_cost < shifted(0.0):
+                    values[v] += best
+        history.append(cost(adjusted_times(offsets, rates)))
+        if history[-2] - history[-1] <= 1e-6 * abs(history[-2]):
+            break
+    # Gauge: map time by the affine A(g) = (g - b) / a that gives the reference video its own clock back (the
+    # cost does not see a global affine change of time); express every video's correction after A.
+    a = 1.0 + rates[reference]
+    b = offsets[reference] - rates[reference] * middle[reference]
+    adjusted = (adjusted_times(offsets, rates) - b) / a
+    offsets = (middle + offsets - b) / a - middle
+    rates = (1.0 + rates) / a - 1.0
+    log.info("clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
+             ", ".join(f"{1000 * o:+.2f}" for o in offsets), ", ".join(f"{1000 * r:+.2f}" for r in rates),
+             history[0], history[-1])
+    return ClockRefineResult(times=adjusted, offsets=offsets, rates=rates, cost=history,
+                             result=refine(problem, points, adjusted, options))
+
+
+def _golden_search(f: Callable[[float], float], low: float, high: float, tolerance: float) -> tuple[float, float]:
+    """Minimum of a unimodal f on [low, high] to `tolerance`: (argument, value)."""
+    golden = (np.sqrt(5.0) - 1) / 2
+    a, b = high - golden * (high - low), low + golden * (high - low)
+    fa, fb = f(a), f(b)
+    while high - low > tolerance:
+        if fa < fb:
+            high, b, fb = b, a, fa
+            a = high - golden * (high - low)
+            fa = f(a)
+        else:
+            low, a, fa = a, b, fb
+            b = low + golden * (high - low)
+            fb = f(b)
+    return (a, fa) if fa < fb else (b, fb)
