@@ -440,7 +440,8 @@ def _prior_value(bands: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 @dataclass(kw_only=True)
 class ClockRefineOptions:
-    sweeps: int = 3  # coordinate-descent sweeps over the videos
+    rounds: int = 2  # refine (choosing the smoothness), then search the clocks; repeated
+    sweeps: int = 4  # coordinate-descent sweeps over the videos per round
     search_periods: float = 1.0  # each sweep searches a video's offset within +- this many of its frame periods
     tolerance_periods: float = 0.005  # golden-section search stops at this bracket width
     reference: int | None = None  # video index whose clock stays fixed; default: the one with most frames
@@ -459,17 +460,42 @@ class ClockRefineResult:
 def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray,
                        options: RefineOptions | None = None, clock_options: ClockRefineOptions | None = None
                        ) -> ClockRefineResult:
-    """`refine`, then per-video time offsets that minimize the refinement's own cost, then `refine` again.
+    """`refine`, then per-video time offsets and rates that minimize the refinement's own cost, then `refine`
+    again; `ClockRefineOptions.rounds` times (each round re-chooses the smoothness: wrong times make GCV smooth
+    more, which flattens the cost the clocks are searched on)."""
+    options = options or RefineOptions()
+    clock_options = clock_options or ClockRefineOptions()
+    times = np.asarray(times, dtype=float)
+    original = times
+    history: list[float] = []
+    result: ClockRefineResult | None = None
+    for _ in range(max(clock_options.rounds, 1)):
+        result = _clock_round(problem, points, times, options, clock_options)
+        history.extend(result.cost)
+        times = result.times
+    assert result is not None
+    # Corrections relative to the input times (the rounds compose affine maps per video).
+    N = len(problem.video_names)
+    offsets, rates = np.zeros(N), np.zeros(N)
+    for v in range(N):
+        own = problem.video_index == v
+        if own.sum() >= 2 and np.ptp(original[own]) > 0:
+            middle = float(np.median(original[own]))
+            slope, intercept = np.polyfit(original[own] - middle, times[own] - original[own], 1)
+            offsets[v], rates[v] = intercept, slope
+    return ClockRefineResult(times=times, offsets=offsets, rates=rates, cost=history, result=result.result)
+
+
+def _clock_round(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions,
+                 clock_options: ClockRefineOptions) -> ClockRefineResult:
+    """One round of refine_with_clocks.
 
     Estimated clocks can be off by a fraction of a frame (measured: ~5 ms at 120 captures/s on some captures),
     which folds the trajectory into a zig-zag the prior pays for. With the smoothness and robust weights of the
     first refinement held fixed, the cost (weighted ray distances + smoothness) is a function of the offsets
     alone; each video's offset is found by golden-section search in turn (coordinate descent).
     """
-    options = options or RefineOptions()
-    clock_options = clock_options or ClockRefineOptions()
     first = refine(problem, points, times, options)
-    times = np.asarray(times, dtype=float)
     N = len(problem.video_names)
     counts = np.bincount(problem.video_index, minlength=N)
     reference = clock_options.reference if clock_options.reference is not None else int(np.argmax(counts))
