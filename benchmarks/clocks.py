@@ -104,12 +104,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 5, flight 12)")
     parser.add_argument("--search", choices=[m.value for m in SearchMode], default="auto")
     parser.add_argument("--model", choices=[m.value for m in ClockModel], default="affine")
+    parser.add_argument("--max-iterations", type=int, default=40,
+                        help="solver alternations per stage (default 40: W's links settle long before the points)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("reconstruct.clock_search").setLevel(logging.INFO)
     options = ClockOptions(search=SearchMode(args.search), model=ClockModel(args.model))
     rows: list[dict[str, Any]] = []
-    print(f"solver {solver_version()}; search {args.search}, model {args.model}")
+    print(f"solver {solver_version()}; search {args.search}, model {args.model}, "
+          f"{args.max_iterations} solver iterations per stage")
     header = ("| scene | seed | videos | fps | F | median ms | / fastest period | p90 ms | within 2 std | methods | "
               "clocks s | solve s |")
     print(header)
@@ -123,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
                 capture, record = flight_capture(seed, args.seconds or 12.0)
             else:
                 parser.error(f"unknown scene {scene!r}")
-            row = score(scene, seed, capture, record, options, SolverOptions())
+            row = score(scene, seed, capture, record, options, SolverOptions(max_iterations=args.max_iterations))
             rows.append(row)
             print(f"| {scene} | {seed} | {row['videos']} | {'/'.join(f'{f:g}' for f in row['fps'])} | "
                   f"{row['frames']} | {row['median_ms']:.2f} | {row['fraction_of_period']:.3f} | "

@@ -110,7 +110,7 @@ class _Track:
         n = len(self.own)
         k = np.clip(np.searchsorted(self.own, tq, side="right") - 1, 0, max(n - 2, 0))
         if n < 2:
-            nan = np.full((len(tq),) + self.rays.shape[1:], np.nan)
+            nan = np.full((len(tq), *self.rays.shape[1:]), np.nan)
             return np.full((len(tq), 3), np.nan), nan, np.full(len(tq), np.nan)
         t0, t1 = self.own[k], self.own[k + 1]
         a = (tq - t0) / (t1 - t0)
@@ -393,12 +393,12 @@ class _Refined:
 def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.ndarray) -> _Refined:
     """Rounds of: robust scale of the gaps, samples below a shrinking multiple of it, soft-L1 least squares."""
     scale = math.nan
-    for r in range(options.refine_rounds):
+    for round_ in range(options.refine_rounds):
         values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
         if len(values) <= len(theta):
             break
         scale = max(MAD * float(np.median(values)), 0.1)
-        threshold = max((8.0, 5.0, 4.0)[min(r, 2)] * scale, 1.0)
+        threshold = max((8.0, 5.0, 4.0)[min(round_, 2)] * scale, 1.0)
         joint.clean(theta, threshold)
         if joint.fix_mask(theta, threshold) <= len(theta):
             break
@@ -511,5 +511,5 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
             warnings.append(f"video {names[v]!r}: the track search found no distinct offset to the other videos "
                             "(too little overlap, or motion that every offset explains): its clock is not "
                             "identified by the tracks")
-    return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms, start=label,
-                        warnings=warnings)
+    return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms,
+                        start=label, warnings=warnings)
