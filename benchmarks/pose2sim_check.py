@@ -1,0 +1,297 @@
+"""Real-video check on the Pose2Sim demo (4 static lab cameras, 60 fps): sync-free solve on desynchronized frame
+subsets against triangulation from the lab calibration on synchronized frames.
+
+    python benchmarks/pose2sim_check.py [--work /tmp/pose2sim_check] [--labels tests/data/pose2sim/labels.csv]
+
+Steps (all in mm, world frame of the QCA calibration):
+1. cameras: `import-calibration` of the lab's QCA file (`--scale 1000`: mm), every frame of every video posed;
+2. tracks: `dynrecon track` of the committed labels through every frame of each video (LK);
+3. desynchronization as in the seed paper: camera k keeps frames k, k+4, k+8, ... (no two cameras share an
+   instant); the solver gets only those posed frames and the tracks on them (original frame numbers and times);
+4. reference: for every frame f and point, DLT + least-squares triangulation of the same tracks from every camera
+   that sees the point at frame f (>= 2 cameras), with the lab calibration (synchronized frames); its
+   reprojection error says how good it is;
+5. distance between the sync-free point of (camera k, frame f) and the reference at frame f.
+
+The videos are only roughly synchronized: the script also searches integer frame offsets per camera that minimize
+the reference's reprojection error, and reports the comparison against that offset-corrected reference.
+Needs ../shared (exits with a message otherwise).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reconstruct import solve_stage
+from reconstruct.points import read_points
+from sfm import import_calibration
+from sfm.cameras import CameraSet, FrameCamera, read_cameras, write_cameras
+from tracking import stage as track_stage
+from tracking.tracks import Tracks, read_tracks, write_tracks
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = Path("data") / "videos" / "pose2sim_demo"
+LABELS = REPO / "tests" / "data" / "pose2sim" / "labels.csv"
+STRIDE = 4  # camera k keeps frames k, k+STRIDE, ...: 4 cameras, no shared instant
+# Frames compared: where the committed labels' tracks cover every point in most cameras (labels at 0, 32, 48;
+# LK loses the fast-moving hand and feet outside this window).
+WINDOW = (24, 71)
+
+
+@dataclass(kw_only=True)
+class CheckResult:
+    points: list[str]
+    # One row per compared (video, frame, point): distance (mm) between sync-free and reference.
+    video: list[str] = field(default_factory=list)
+    frame: list[int] = field(default_factory=list)
+    point: list[str] = field(default_factory=list)
+    distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    observed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # tracked in that capture
+    distance_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))  # against the offset-corrected ref.
+    ref_error_px: dict[str, np.ndarray] = field(default_factory=dict)  # point -> per-observation reproj. error
+    ref_error_offset_px: dict[str, np.ndarray] = field(default_factory=dict)
+    offsets: dict[str, int] = field(default_factory=dict)  # video -> frame offset (frame f of cam01 = f + o)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Reference triangulation
+
+
+def _project(camera: FrameCamera, X: np.ndarray) -> np.ndarray:
+    """(N, 3) world -> (N, 2) pixels with distortion."""
+    uv, _ = cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(camera.R)[0], camera.t, camera.K,
+                              camera.dist if camera.dist is not None else np.zeros(4))
+    return uv.reshape(-1, 2)
+
+
+def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """DLT on undistorted normalized rays, refined by least squares in pixels. uv: (C, 2). Returns X (3,) and the
+    per-camera reprojection error (C,) in pixels."""
+    rows = []
+    for camera, p in zip(cameras, uv, strict=True):
+        n = cv2.undistortPoints(p.reshape(1, 1, 2), camera.K,
+                                camera.dist if camera.dist is not None else np.zeros(4)).reshape(2)
+        P = np.c_[camera.R, camera.t]
+        rows += [n[0] * P[2] - P[0], n[1] * P[2] - P[1]]
+    X = np.linalg.svd(np.array(rows))[2][-1]
+    X = X[:3] / X[3]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([_project(c, x)[0] - p for c, p in zip(cameras, uv, strict=True)])
+
+    X = least_squares(residual, X, method="lm").x
+    return X, np.linalg.norm(residual(X).reshape(-1, 2), axis=1)
+
+
+def _observations(tracks: Tracks) -> dict[tuple[str, int, str], np.ndarray]:
+    return {(v, int(f), p): tracks.xy[i] for i, (v, f, p) in enumerate(zip(tracks.video, tracks.frame, tracks.point,
+                                                                             strict=True))}
+
+
+def reference(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], points: list[str],
+              offsets: dict[str, int], window: tuple[int, int] = WINDOW,
+              ) -> tuple[dict[tuple[int, str], np.ndarray], dict[str, list[float]]]:
+    """Triangulate every (frame f in window, point) from the cameras that see it at frame f + offset[video]
+    (>= 2). Returns {(f, point): X} and point -> reprojection errors (px) of every used observation."""
+    by_video = {v.name: {c.frame: c for c in v.frames} for v in cameras.videos}
+    frames = sorted({f for v in cameras.videos for f in (c.frame for c in v.frames)
+                     if window[0] <= f <= window[1]})
+    result: dict[tuple[int, str], np.ndarray] = {}
+    errors: dict[str, list[float]] = {p: [] for p in points}
+    for f in frames:
+        for point in points:
+            cams, uv = [], []
+            for video, poses in by_video.items():
+                g = f + offsets.get(video, 0)
+                if (video, g, point) in obs and g in poses:
+                    cams.append(poses[g])
+                    uv.append(obs[(video, g, point)])
+            if len(cams) < 2:
+                continue
+            X, err = triangulate(cams, np.array(uv))
+            result[(f, point)] = X
+            errors[point] += list(err)
+    return result, errors
+
+
+def search_offsets(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], points: list[str],
+                   max_offset: int = 4) -> dict[str, int]:
+    """Integer frame offsets per video (the first video fixed at 0) minimizing the median reprojection error of
+    the reference over points seen by >= 3 cameras; coordinate descent, two sweeps."""
+    names = [v.name for v in cameras.videos]
+    offsets = {n: 0 for n in names}
+
+    def cost(candidate: dict[str, int]) -> float:
+        _, errors = reference(cameras, obs, points, candidate)
+        values = np.concatenate([np.asarray(e) for e in errors.values() if len(e)])
+        return float(np.median(values)) if len(values) else np.inf
+
+    for _ in range(2):
+        for name in names[1:]:
+            trials = {o: cost({**offsets, name: o}) for o in range(-max_offset, max_offset + 1)}
+            offsets[name] = min(trials, key=lambda o: trials[o])
+            log.info("offset %s: %s", name, {o: round(c, 2) for o, c in trials.items()})
+    return offsets
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Desynchronization
+
+
+def desynchronize(cameras: CameraSet, tracks: Tracks, stride: int = STRIDE,
+                  window: tuple[int, int] = WINDOW) -> tuple[CameraSet, Tracks]:
+    """Camera k (in file order) keeps frames k, k + stride, ... inside `window` (inclusive); tracks on dropped
+    frames are dropped too. Frame numbers and times stay the videos' own."""
+    keep: dict[str, set[int]] = {}
+    out = CameraSet()
+    for k, video in enumerate(cameras.videos):
+        frames = [f for f in video.frames
+                  if f.frame % stride == k % stride and window[0] <= f.frame <= window[1]]
+        keep[video.name] = {f.frame for f in frames}
+        out.videos.append(type(video)(name=video.name, width=video.width, height=video.height, fps=video.fps,
+                                      frames=frames))
+    rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep[v]]
+    kept = Tracks(video=[tracks.video[i] for i in rows], frame=tracks.frame[rows],
+                  point=[tracks.point[i] for i in rows], xy=tracks.xy[rows],
+                  extra={k: [v[i] for i in rows] for k, v in tracks.extra.items()})
+    return out, kept
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool = True) -> CheckResult:
+    demo = shared / DEMO
+    videos = sorted((demo / "videos").glob("cam*.mp4"))
+    work.mkdir(parents=True, exist_ok=True)
+    seconds: dict[str, float] = {}
+    started = time.perf_counter()
+    import_calibration.run(demo / "calibration" / "Calib.qca.txt", list(videos), work,
+                           import_calibration.ImportOptions(scale=1000.0))
+    seconds["import"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    (work / "labels.csv").write_bytes(labels.read_bytes())
+    track_stage.run(work, work / "tracks.csv", videos={v.stem: v for v in videos})
+    seconds["track"] = time.perf_counter() - started
+
+    cameras = read_cameras(work / "cameras.json")
+    tracks = read_tracks(work / "tracks.csv")
+    desync_cameras, desync_tracks = desynchronize(cameras, tracks)
+    write_cameras(work / "desync" / "cameras.json", desync_cameras)
+    write_tracks(work / "desync" / "tracks.csv", desync_tracks)
+    started = time.perf_counter()
+    solve_stage.run(work / "desync" / "cameras.json", work / "desync" / "tracks.csv", work / "desync",
+                    solve_stage.SolveStageOptions(recording=False))
+    seconds["solve"] = time.perf_counter() - started
+    solved = read_points(work / "desync" / "points3d.csv")
+
+    started = time.perf_counter()
+    points = tracks.point_names()
+    obs = _observations(tracks)
+    ref, ref_err = reference(cameras, obs, points, {})
+    offsets = search_offsets(cameras, obs, points) if search else {v.name: 0 for v in cameras.videos}
+    ref_off, ref_err_off = reference(cameras, obs, points, offsets)
+    seconds["reference"] = time.perf_counter() - started
+
+    result = CheckResult(points=points, offsets=offsets, seconds=seconds,
+                         ref_error_px={p: np.asarray(e) for p, e in ref_err.items()},
+                         ref_error_offset_px={p: np.asarray(e) for p, e in ref_err_off.items()})
+    dist, dist_off, observed = [], [], []
+    for i, (video, frame) in enumerate(zip(solved.videos, solved.frames, strict=True)):
+        for p, name in enumerate(solved.point_names):
+            X = solved.xyz[i, p]
+            key = (int(frame), name)
+            if not np.all(np.isfinite(X)) or key not in ref:
+                continue
+            # The offset-corrected reference of this capture: cam01's clock, i.e. frame - offset[video].
+            key_off = (int(frame) - offsets[video], name)
+            result.video.append(video)
+            result.frame.append(int(frame))
+            result.point.append(name)
+            observed.append(bool(solved.observed[i, p]))
+            dist.append(float(np.linalg.norm(X - ref[key])))
+            dist_off.append(float(np.linalg.norm(X - ref_off[key_off])) if key_off in ref_off else np.nan)
+    result.distance = np.array(dist)
+    result.distance_offset = np.array(dist_off)
+    result.observed = np.array(observed, dtype=bool)
+    _write_comparison(work / "comparison.csv", result)
+    return result
+
+
+def _write_comparison(path: Path, result: CheckResult) -> None:
+    lines = ["video,frame,point,observed,distance_mm,distance_offset_mm"]
+    for i in range(len(result.point)):
+        lines.append(f"{result.video[i]},{result.frame[i]},{result.point[i]},{int(result.observed[i])},"
+                     f"{result.distance[i]:.2f},{result.distance_offset[i]:.2f}")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _stats(values: np.ndarray) -> str:
+    values = values[np.isfinite(values)]
+    if not len(values):
+        return f"{'-':>6} {'-':>7} {0:>5}"
+    return f"{np.median(values):6.1f} {np.percentile(values, 90):7.1f} {len(values):5d}"
+
+
+def table(result: CheckResult) -> str:
+    """Distances (mm) per point: all compared captures, the tracked ones only, and against the
+    offset-corrected reference; then the reference's median reprojection error (px) without / with offsets."""
+    lines = [f"frames {WINDOW[0]}..{WINDOW[1]}; camera k keeps frames k mod {STRIDE}; frame offsets minimizing the "
+             f"reference's reprojection error (cam01 = 0): {result.offsets}", "",
+             f"{'':10} | {'sync-free vs reference (same frame index)':^44} | {'vs offset-corrected':^24} | "
+             f"{'reference':^15}",
+             f"{'':10} | {'all captures':^21} | {'tracked there':^20} | {'all captures':^24} | "
+             f"{'reproj. px':^15}",
+             f"{'point':10} | {'med':>6} {'p90':>8} {'n':>5} | {'med':>6} {'p90':>7} {'n':>5} | {'med':>6} {'p90':>8} "
+             f"{'n':>8} | {'med':>6} {'offs':>7}"]
+    for name in [*result.points, "ALL"]:
+        mask = np.ones(len(result.point), bool) if name == "ALL" else np.array([p == name for p in result.point])
+        if name == "ALL":
+            err = np.concatenate([e for e in result.ref_error_px.values() if len(e)] or [np.zeros(0)])
+            err_off = np.concatenate([e for e in result.ref_error_offset_px.values() if len(e)] or [np.zeros(0)])
+        else:
+            err, err_off = result.ref_error_px.get(name, np.zeros(0)), result.ref_error_offset_px.get(name, np.zeros(0))
+        med = f"{np.median(err):6.2f}" if len(err) else f"{'-':>6}"
+        med_off = f"{np.median(err_off):7.2f}" if len(err_off) else f"{'-':>7}"
+        tracked = result.distance[mask & result.observed]
+        lines.append(f"{name:10} | {_stats(result.distance[mask])} | {_stats(tracked)} | "
+                     f"{_stats(result.distance_offset[mask])} | {med} {med_off}")
+    lines.append("")
+    lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.seconds.items()))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--work", type=Path, default=Path("/tmp/pose2sim_check"))
+    parser.add_argument("--labels", type=Path, default=LABELS)
+    parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
+    if not (args.shared / DEMO).is_dir():
+        print(f"needs {args.shared / DEMO} (the shared data folder)")
+        return 1
+    result = run_check(args.shared, args.work, args.labels)
+    print(table(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
