@@ -61,6 +61,9 @@ class SearchOptions:
     min_distinctness: float = 1.15  # runner-up cost / best cost of a pair usable for the chain
     refine_rounds: int = 3
     cluster_s: float = 0.5  # residuals within this time of one video form one cluster of the covariance
+    # Prior std of a rate around 1 for videos with decoder times or a known fps (0: none). Phone clocks run within
+    # ~50 ppm of true time; a far, noisy single point leaves the rate of a short video weakly determined.
+    rate_prior: float = 2e-4
     max_residuals: int = 30000  # (frame, point, other video) samples in the joint refinement
     time_source: list[TimeSource] = field(default_factory=list)  # per video; NOMINAL ones search frame rates
     seed: int = 0
@@ -283,9 +286,13 @@ class _Joint:
     """Robust least squares over the clocks of the free videos, on the gaps of every ordered pair of videos."""
 
     def __init__(self, tracks: list[_Track], centers: np.ndarray, ref_coef: np.ndarray, ref: int, free: list[int],
-                 model: ClockModel, max_residuals: int, block_s: float):
+                 model: ClockModel, max_residuals: int, block_s: float, rate_sigma: np.ndarray):
         self.raw, self.tracks, self.centers, self.ref, self.free = tracks, list(tracks), centers, ref, free
         self.k = free_terms(model)
+        # Prior rate 1 +- rate_sigma (per video, inf = none) as extra residuals, in units of the gap scale.
+        self.rate_sigma = rate_sigma
+        self.prior_videos = [i for i, v in enumerate(free) if np.isfinite(rate_sigma[v])] if self.k >= 2 else []
+        self.prior_scale = 1.0
         self.ref_coef = ref_coef
         active = [ref, *free]
         samples = sum(len(tracks[v].own) for v in active) * max(len(active) - 1, 1) * tracks[0].rays.shape[1]
@@ -362,13 +369,16 @@ class _Joint:
     def residuals(self, theta: np.ndarray) -> np.ndarray:
         gaps = self.gaps(theta, smooth=True)
         parts = [np.nan_to_num(value[self.mask[key]], nan=0.0) for key, value in gaps.items()]
-        return np.concatenate(parts) if parts else np.zeros(0)
+        parts.append(np.array([(theta[i * self.k + 1] - 1.0) / self.rate_sigma[self.free[i]] * self.prior_scale
+                               for i in self.prior_videos]))
+        return np.concatenate(parts)
 
     def clusters(self) -> np.ndarray:
         parts = []
         for (v, _), m in self.mask.items():
             parts.append(np.broadcast_to(self.block[v][:, None], m.shape)[m])
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+        parts.append(-1 - np.arange(len(self.prior_videos)))  # each prior row on its own
+        return np.concatenate(parts)
 
     def video_rms(self, theta: np.ndarray, scale: float) -> np.ndarray:
         gaps = self.gaps(theta)
@@ -399,6 +409,7 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
             break
         scale = max(MAD * float(np.median(values)), 0.1)
         threshold = max((8.0, 5.0, 4.0)[min(round_, 2)] * scale, 1.0)
+        joint.prior_scale = scale
         joint.clean(theta, threshold)
         if joint.fix_mask(theta, threshold) <= len(theta):
             break
@@ -467,6 +478,9 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
     all_points = np.flatnonzero(counts > 0)
     full_tracks = _tracks(problem, own, all_points, options.max_gap_periods)
     starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
+    # Decoder clocks are quartz: rate 1 within a few hundred ppm. Nominal own times carry an unknown frame rate.
+    rate_sigma = np.array([options.rate_prior if s is not TimeSource.NOMINAL and options.rate_prior > 0 else np.inf
+                           for s in sources])
     if start is not None and start.identified.sum() > 1:
         starts.append(("links", start.coef.copy(), start.identified.copy()))
     best: tuple[tuple[int, float], str, _Refined, _Joint] | None = None
@@ -475,7 +489,7 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
         if not free:
             continue
         joint = _Joint(full_tracks, centers, c[ref], ref, free, options.model, options.max_residuals,
-                       options.cluster_s)
+                       options.cluster_s, rate_sigma)
         k = joint.k
         theta0 = np.concatenate([c[v, :k] for v in free])
         steps = np.concatenate([_parameter_steps(float(periods[v]), full_tracks[v].own, k) for v in free])
