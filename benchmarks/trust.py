@@ -60,7 +60,7 @@ LARGE_MM = (30.0, 10.0)
 # The default rule, and a more sensitive one (flags ~3x more points, catches more of the large errors).
 PRESETS: dict[str, TrustOptions] = {
     "default": TrustOptions(),
-    "sensitive": TrustOptions(residual_px=3.0, bound_px=15.0, relative=2.0),
+    "sensitive": TrustOptions(residual_px=3.0, bound_px=15.0, relative=2.0, sequence_jump=12.0),
 }
 
 

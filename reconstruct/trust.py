@@ -17,6 +17,7 @@ Measures (arrays (F, P), NaN where the point was not reconstructed):
 * `support`: share of frame f's W weight on neighbours that observe the point (1 = interpolated between
   observations; 0 = a missing point built only from other missing points, i.e. extrapolated).
 * `videos`: number of distinct videos among frame f's neighbours (per frame, repeated for every point).
+* `sequence_jump`: how far the local sequencing recovered by W breaks at frame f (per frame; see `sequence_jump`).
 
 The flag (`flag`, bool) is a rule on these measures; its thresholds live in TrustOptions and were tuned on
 simulations (benchmarks/trust.py documents the windows used for tuning and those reported).
@@ -49,6 +50,9 @@ class TrustOptions:
     residual_px: float = 5.0
     bound_px: float = 30.0
     relative: float = 3.0
+    # ... or the local sequencing broken by more than this many frame gaps (correct interpolation stays within ~2,
+    # static phases reached 14 on the tuning windows; the paper's wrong-partner failure jumps by seconds).
+    sequence_jump: float = 20.0
 
 
 @dataclass(kw_only=True)
@@ -60,6 +64,7 @@ class Trust:
     ray_distance: np.ndarray  # (F, P) input units, NaN where unobserved
     reprojection_px: np.ndarray  # (F, P) pixels, NaN where unobserved
     support: np.ndarray  # (F, P) in [0, 1]
+    sequence_jump: np.ndarray  # (F, P) frame gaps, per frame (see `sequence_jump`), NaN where times are unknown
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
     limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
@@ -79,6 +84,7 @@ class Trust:
             "ray_distance": _blank(self.ray_distance, empty),
             "reprojection_px": _blank(self.reprojection_px, empty),
             "support": _blank(self.support, empty),
+            "sequence_jump": _blank(self.sequence_jump, empty),
             "flag": np.where(empty, np.nan, self.flag.astype(float)),
         }
 
@@ -89,7 +95,7 @@ class Trust:
         for name, values in (("condition", self.condition), ("residual", self.residual),
                              ("residual_px", self.residual_px), ("bound_px", self.bound_px),
                              ("ray_distance", self.ray_distance), ("reprojection_px", self.reprojection_px),
-                             ("support", self.support)):
+                             ("support", self.support), ("sequence_jump", self.sequence_jump)):
             v = values[done & np.isfinite(values)]
             measures[name] = {
                 "median": _number(np.median(v)) if v.size else None,
@@ -106,7 +112,7 @@ class Trust:
         return {
             "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
                       "residual_px": "pixels", "bound_px": "pixels", "reprojection_px": "pixels",
-                      "support": "fraction"},
+                      "support": "fraction", "sequence_jump": "frame gaps"},
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
@@ -121,8 +127,8 @@ class Trust:
 def flag_rule(options: TrustOptions) -> str:
     k = f"{options.relative:g}"
     return (f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
-            f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px); "
-            "medians over the solve's reconstructed points")
+            f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
+            f"sequence_jump > {options.sequence_jump:g}; medians over the solve's reconstructed points")
 
 
 def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
@@ -177,6 +183,53 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     smallest = np.linalg.eigvalsh(big)[:, 0]
     # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
     return 1.0 / np.maximum(smallest, 1e-13 * c)
+
+
+def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, min_mass: float = 0.2
+                  ) -> np.ndarray:
+    """(F,) how far the local sequencing breaks at each frame, in frame gaps; NaN where times are unknown.
+
+    Frames f, f' consecutive in one video advance by dt = t_f' - t_f. Their neighbours in another video u (weighted
+    mean time tau_u, where at least `min_mass` of the column's weight lies in u) should advance by about the same:
+    |(tau_u(f') - tau_u(f)) - dt| stays within ~2 frame gaps when W interpolates between temporally close frames,
+    and is of the order of seconds when a run of frames is expressed by shapes from elsewhere in the motion (the
+    paper's "incorrect initialization" with periodic motion: two far-apart shapes representing each other). Only
+    differences of times within a video are used, so the videos' unknown clock offsets do not matter. The gap unit
+    is max(dt, median frame gap of the video, of u). The value of a frame is the largest over other videos and
+    over its two sides (previous and next frame of its video).
+    """
+    F = W.shape[0]
+    videos = int(video_index.max()) + 1 if F else 0
+    rows, cols = W.nonzero()
+    values = np.asarray(W[rows, cols]).ravel()
+    mass = np.zeros((F, videos))
+    weighted = np.zeros((F, videos))
+    np.add.at(mass, (cols, video_index[rows]), values)
+    np.add.at(weighted, (cols, video_index[rows]), values * times[rows])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tau = np.where(mass >= min_mass, weighted / mass, np.nan)  # (F, videos)
+    order = {}
+    typical = np.full(videos, np.nan)
+    for v in range(videos):
+        frames = np.flatnonzero(video_index == v)
+        frames = frames[np.argsort(times[frames], kind="stable")]
+        order[v] = frames
+        if len(frames) > 1:
+            typical[v] = float(np.median(np.diff(times[frames])))
+    out = np.full(F, np.nan)
+    for v, frames in order.items():
+        if len(frames) < 2:
+            continue
+        dt = np.diff(times[frames])  # (n - 1,)
+        unit = np.fmax(np.fmax(dt, typical[v])[:, None], typical[None, :])  # (n - 1, videos)
+        mismatch = np.abs(np.diff(tau[frames], axis=0) - dt[:, None]) / unit
+        known = np.isfinite(mismatch).any(axis=1)
+        step = np.where(known, np.nanmax(np.where(np.isfinite(mismatch), mismatch, -np.inf), axis=1), np.nan)
+        side = np.full(len(frames), np.nan)
+        side[:-1] = step
+        side[1:] = np.fmax(side[1:], step)
+        out[frames] = side
+    return out
 
 
 def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
@@ -237,13 +290,16 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
             "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
         }
-    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"]))
+    jump = np.broadcast_to(sequence_jump(W, problem.video_index, problem.times)[:, None], (F, P))
+    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
+                            | (np.nan_to_num(jump) > options.sequence_jump))
     nan = ~reconstructed
     return Trust(
         condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
         residual_px=np.where(nan, np.nan, residual_px), bound_px=np.where(nan, np.nan, bound_px),
         ray_distance=np.where(nan, np.nan, ray_distance),
         reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
+        sequence_jump=np.where(nan, np.nan, jump),
         videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, limits=limits,
         reconstructed=reconstructed,
         video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,

@@ -8,7 +8,13 @@ from synthetic_motion import synthetic_problem, truth_array
 
 from reconstruct.rays import viewing_rays
 from reconstruct.solver import solve
-from reconstruct.trust import TrustOptions, neighbourhood_condition, neighbourhoods, trust_measures
+from reconstruct.trust import (
+    TrustOptions,
+    neighbourhood_condition,
+    neighbourhoods,
+    sequence_jump,
+    trust_measures,
+)
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +182,7 @@ def test_summary_and_columns_are_json_ready(solved):
     assert json.loads(text)["measures"]["residual"]["median"] > 0
     columns = trust.columns()
     assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
-                            "support", "flag"}
+                            "support", "sequence_jump", "flag"}
     assert set(np.unique(columns["flag"])) == {1.0}
 
 
@@ -205,3 +211,43 @@ def test_measures_in_pixels_and_the_flag_do_not_depend_on_the_unit_of_length(sol
     np.testing.assert_allclose(in_m.residual * 1000.0, in_mm.residual, rtol=1e-6)
     np.testing.assert_array_equal(in_m.flag, in_mm.flag)
     assert in_mm.flag[20:23, 1].all()
+
+
+def _interleaved_w(times, video_index):
+    """W that interpolates every frame from the nearest earlier and later frames of other videos."""
+    F = len(times)
+    W = np.zeros((F, F))
+    for f in range(F):
+        other = np.flatnonzero(video_index != video_index[f])
+        before = other[times[other] < times[f]]
+        after = other[times[other] > times[f]]
+        if len(before) and len(after):
+            a, b = before[np.argmax(times[before])], after[np.argmin(times[after])]
+            w = (times[b] - times[f]) / (times[b] - times[a])
+            W[a, f], W[b, f] = w, 1 - w
+        else:  # the clip's ends: the nearest frame of another video
+            W[other[np.argmin(np.abs(times[other] - times[f]))], f] = 1.0
+    return W
+
+
+def test_sequence_jump_is_small_for_interleaved_frames_and_large_where_two_far_frames_swap_partners():
+    # Two cameras taking turns at 30 Hz each: capture k at k / 60 s.
+    count = 60
+    times_all = np.arange(count) / 60.0
+    video_all = np.arange(count) % 2
+    order = np.argsort(video_all, kind="stable")  # frames grouped by video, as in a Problem
+    times, video_index = times_all[order], video_all[order]
+    W = _interleaved_w(times, video_index)
+    jump = sequence_jump(sp.csc_matrix(W), video_index, times)
+    assert np.nanmax(jump) <= 2.0
+    # Frames at 0.2 s and 0.8 s (both of video 0) represent each other through video 1's frames 0.6 s away.
+    f = int(np.flatnonzero((video_index == 0) & np.isclose(times, 0.2))[0])
+    far = int(np.flatnonzero((video_index == 1) & np.isclose(times, 0.2 + 0.6 + 1 / 60))[0])
+    W[:, f] = 0.0
+    W[far, f] = 1.0
+    jump = sequence_jump(sp.csc_matrix(W), video_index, times)
+    # Its neighbours moved by 0.6 s while the video advanced 1/30 s: ~18 frame gaps on both sides of f.
+    assert jump[f] > 15
+    assert np.nanmax(np.delete(jump, [f - 1, f, f + 1])) <= 2.0
+    # Unknown times: no measure.
+    assert np.all(np.isnan(sequence_jump(sp.csc_matrix(W), video_index, np.full(count, np.nan))))
