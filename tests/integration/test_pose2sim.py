@@ -17,12 +17,13 @@ from tracking.tracks import Tracks
 
 LABELS = Path(__file__).resolve().parents[1] / "data" / "pose2sim" / "labels.csv"
 
-# Measured with the committed labels (benchmarks/pose2sim_check.py, frames 24..71): median 20.6 mm over every
-# compared capture, 14.3 mm where the point was tracked in that capture. The reference itself has a median
-# reprojection error of 2.6 px, about 5 mm at the 3.3 m camera distance (f = 1680 px), and the cameras are only
-# roughly synchronized (at 60 fps the hand moves ~10 mm per frame), so differences of ~10-20 mm are the floor of
-# this comparison, not the solver's error alone. The bound leaves room for the tracker's run-to-run jitter but
-# fails on any gross error (wrong units, a camera off by a frame subset, a broken solve: those give 100+ mm).
+# Measured with the committed labels (benchmarks/pose2sim_check.py, frames 24..71, 186 compared captures):
+# median 25.0 mm over every compared capture, 21.7 mm where the point was tracked in that capture. The floor of
+# this comparison is not zero: the reference has a median reprojection error of 3.4 px (about 7 mm at the 3.3 m
+# camera distance, f = 1680 px), the videos are only roughly synchronized (a frame is ~10 mm of hand motion at
+# 60 fps), and with 5 sparse points the solver pairs a few frames of two cameras with W = 1 and places their
+# points metres off (that is the p90, not the median). 40 mm passes the measured median with a 60 % margin and
+# fails on gross errors (units, a wrong desynchronization, a broken solve: 100 mm and more).
 MEDIAN_BOUND_MM = 40.0
 
 
