@@ -18,6 +18,8 @@ Measures (arrays (F, P), NaN where the point was not reconstructed):
   observations; 0 = a missing point built only from other missing points, i.e. extrapolated).
 * `videos`: number of distinct videos among frame f's neighbours (per frame, repeated for every point).
 * `sequence_jump`: how far the local sequencing recovered by W breaks at frame f (per frame; see `sequence_jump`).
+* `component`: frames in frame f's connected component of the W graph (per frame; small = an island, see
+  `components`).
 
 The flag (`flag`, bool) is a rule on these measures; its thresholds live in TrustOptions and were tuned on
 simulations (benchmarks/trust.py documents the windows used for tuning and those reported).
@@ -31,6 +33,7 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from reconstruct.problem import Problem
 from reconstruct.rays import viewing_rays
@@ -53,6 +56,10 @@ class TrustOptions:
     # ... or the local sequencing broken by more than this many frame gaps (correct interpolation stays within ~2,
     # static phases reached 14 on the tuning windows; the paper's wrong-partner failure jumps by seconds).
     sequence_jump: float = 20.0
+    # ... or the frame lies in a connected component of the W graph with fewer frames than this (0 = unused): an
+    # island of frames that only represent each other, e.g. two far-apart shapes (the paper's wrong partners). Off
+    # by default: on the tuning windows islands were as often harmless (static phases) as wrong.
+    min_component: int = 0
 
 
 @dataclass(kw_only=True)
@@ -65,6 +72,7 @@ class Trust:
     reprojection_px: np.ndarray  # (F, P) pixels, NaN where unobserved
     support: np.ndarray  # (F, P) in [0, 1]
     sequence_jump: np.ndarray  # (F, P) frame gaps, per frame (see `sequence_jump`), NaN where times are unknown
+    component: np.ndarray  # (F, P) frames in the frame's connected component of the W graph (see `components`)
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
     limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
@@ -85,6 +93,7 @@ class Trust:
             "reprojection_px": _blank(self.reprojection_px, empty),
             "support": _blank(self.support, empty),
             "sequence_jump": _blank(self.sequence_jump, empty),
+            "component": _blank(self.component, empty),
             "flag": np.where(empty, np.nan, self.flag.astype(float)),
         }
 
@@ -95,7 +104,8 @@ class Trust:
         for name, values in (("condition", self.condition), ("residual", self.residual),
                              ("residual_px", self.residual_px), ("bound_px", self.bound_px),
                              ("ray_distance", self.ray_distance), ("reprojection_px", self.reprojection_px),
-                             ("support", self.support), ("sequence_jump", self.sequence_jump)):
+                             ("support", self.support), ("sequence_jump", self.sequence_jump),
+                             ("component", self.component)):
             v = values[done & np.isfinite(values)]
             measures[name] = {
                 "median": _number(np.median(v)) if v.size else None,
@@ -112,7 +122,8 @@ class Trust:
         return {
             "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
                       "residual_px": "pixels", "bound_px": "pixels", "reprojection_px": "pixels",
-                      "support": "fraction", "sequence_jump": "frame gaps"},
+                      "support": "fraction", "sequence_jump": "frame gaps",
+                      "component": "frames"},
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
@@ -128,7 +139,9 @@ def flag_rule(options: TrustOptions) -> str:
     k = f"{options.relative:g}"
     return (f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
             f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
-            f"sequence_jump > {options.sequence_jump:g}; medians over the solve's reconstructed points")
+            f"sequence_jump > {options.sequence_jump:g}"
+            + (f" or component < {options.min_component}" if options.min_component > 0 else "")
+            + "; medians over the solve's reconstructed points")
 
 
 def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
@@ -183,6 +196,16 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     smallest = np.linalg.eigvalsh(big)[:, 0]
     # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
     return 1.0 / np.maximum(smallest, 1e-13 * c)
+
+
+def components(W: sp.csc_matrix, min_weight: float) -> np.ndarray:
+    """(F,) number of frames in each frame's connected component of the graph linking f and j when W_jf or W_fj is
+    at least `min_weight`. A correct solve chains every frame to its temporal neighbours in one large component."""
+    linked = W.maximum(W.T).tocsr()
+    linked.data[linked.data < min_weight] = 0.0
+    linked.eliminate_zeros()
+    _, label = connected_components(linked, directed=False)
+    return np.bincount(label)[label]
 
 
 def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, min_mass: float = 0.2
@@ -291,15 +314,16 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
         }
     jump = np.broadcast_to(sequence_jump(W, problem.video_index, problem.times)[:, None], (F, P))
+    component = np.broadcast_to(components(W, options.min_weight)[:, None], (F, P))
     flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
-                            | (np.nan_to_num(jump) > options.sequence_jump))
+                            | (np.nan_to_num(jump) > options.sequence_jump) | (component < options.min_component))
     nan = ~reconstructed
     return Trust(
         condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
         residual_px=np.where(nan, np.nan, residual_px), bound_px=np.where(nan, np.nan, bound_px),
         ray_distance=np.where(nan, np.nan, ray_distance),
         reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
-        sequence_jump=np.where(nan, np.nan, jump),
+        sequence_jump=np.where(nan, np.nan, jump), component=np.where(nan, np.nan, component),
         videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, limits=limits,
         reconstructed=reconstructed,
         video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,

@@ -10,6 +10,7 @@ from reconstruct.rays import viewing_rays
 from reconstruct.solver import solve
 from reconstruct.trust import (
     TrustOptions,
+    components,
     neighbourhood_condition,
     neighbourhoods,
     sequence_jump,
@@ -182,7 +183,7 @@ def test_summary_and_columns_are_json_ready(solved):
     assert json.loads(text)["measures"]["residual"]["median"] > 0
     columns = trust.columns()
     assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
-                            "support", "sequence_jump", "flag"}
+                            "support", "sequence_jump", "component", "flag"}
     assert set(np.unique(columns["flag"])) == {1.0}
 
 
@@ -251,3 +252,24 @@ def test_sequence_jump_is_small_for_interleaved_frames_and_large_where_two_far_f
     assert np.nanmax(np.delete(jump, [f - 1, f, f + 1])) <= 2.0
     # Unknown times: no measure.
     assert np.all(np.isnan(sequence_jump(sp.csc_matrix(W), video_index, np.full(count, np.nan))))
+
+
+def test_components_find_islands_of_frames_that_only_represent_each_other():
+    chain = np.zeros((6, 6))
+    for f in range(6):  # 0-1-2-3 chained, 4 and 5 only represent each other
+        if f < 4:
+            for j in (f - 1, f + 1):
+                if 0 <= j < 4:
+                    chain[j, f] = 0.5 if f in (1, 2) else 1.0
+    chain[5, 4] = chain[4, 5] = 1.0
+    np.testing.assert_array_equal(components(sp.csc_matrix(chain), 0.02), [4, 4, 4, 4, 2, 2])
+    chain[4, 3] = 0.01  # dust does not link
+    np.testing.assert_array_equal(components(sp.csc_matrix(chain), 0.02), [4, 4, 4, 4, 2, 2])
+
+
+def test_an_island_is_flagged_only_when_asked(solved):
+    problem, result, _ = solved
+    trust = trust_measures(problem, result)
+    assert np.all(trust.component[trust.reconstructed] == problem.num_frames)  # one chain through the clip
+    everything = trust_measures(problem, result, TrustOptions(min_component=problem.num_frames + 1)).flag
+    assert everything[trust.reconstructed].all()
