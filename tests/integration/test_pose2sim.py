@@ -29,14 +29,14 @@ MEDIAN_BOUND_MM = 40.0
 
 def _camera(rng: np.random.Generator, center: list[float]) -> FrameCamera:
     """A camera at `center` looking at the origin, 1000 px focal length, small distortion."""
-    center = np.asarray(center, dtype=float)
-    forward = -center / np.linalg.norm(center)
+    position = np.asarray(center, dtype=float)
+    forward = -position / np.linalg.norm(position)
     right = np.cross(forward, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     R = np.stack([right, down, forward])
     K = np.array([[1000.0, 0.0, 499.5], [0.0, 1000.0, 499.5], [0.0, 0.0, 1.0]])
-    return FrameCamera(frame=0, K=K, R=R, t=-R @ center, dist=np.array([-0.05, 0.02, 0.0, 0.0]) *
+    return FrameCamera(frame=0, K=K, R=R, t=-R @ position, dist=np.array([-0.05, 0.02, 0.0, 0.0]) *
                        rng.uniform(0.5, 1.0))
 
 
