@@ -20,6 +20,8 @@ Measures (arrays (F, P), NaN where the point was not reconstructed):
 * `sequence_jump`: how far the local sequencing recovered by W breaks at frame f (per frame; see `sequence_jump`).
 * `component`: frames in frame f's connected component of the W graph (per frame; small = an island, see
   `components`).
+* `smoothness`, `smoothness_px`: distance from the interpolation of the point's previous and next frame in its own
+  video (the paper's Psi2 as a check; see `video_smoothness`).
 
 The flag (`flag`, bool) is a rule on these measures; its thresholds live in TrustOptions and were tuned on
 simulations (benchmarks/trust.py documents the windows used for tuning and those reported).
@@ -60,6 +62,12 @@ class TrustOptions:
     # island of frames that only represent each other, e.g. two far-apart shapes (the paper's wrong partners). Off
     # by default: on the tuning windows islands were as often harmless (static phases) as wrong.
     min_component: int = 0
+    # ... or the point leaves the interpolation of its own video's previous and next frame by more than
+    # max(smoothness_px, smoothness_relative x median) pixels (0 = unused; see `video_smoothness`). Off by default:
+    # on the tuning windows it raised recall but lowered precision more; the "sensitive" preset of
+    # benchmarks/trust.py uses 30 px, 5 x.
+    smoothness_px: float = 0.0
+    smoothness_relative: float = 5.0
 
 
 @dataclass(kw_only=True)
@@ -73,6 +81,8 @@ class Trust:
     support: np.ndarray  # (F, P) in [0, 1]
     sequence_jump: np.ndarray  # (F, P) frame gaps, per frame (see `sequence_jump`), NaN where times are unknown
     component: np.ndarray  # (F, P) frames in the frame's connected component of the W graph (see `components`)
+    smoothness: np.ndarray  # (F, P) input units, off the own video's interpolation (see `video_smoothness`)
+    smoothness_px: np.ndarray  # (F, P) pixels, the same seen from frame f's camera
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
     limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
@@ -94,6 +104,7 @@ class Trust:
             "support": _blank(self.support, empty),
             "sequence_jump": _blank(self.sequence_jump, empty),
             "component": _blank(self.component, empty),
+            "smoothness_px": _blank(self.smoothness_px, empty),
             "flag": np.where(empty, np.nan, self.flag.astype(float)),
         }
 
@@ -105,7 +116,8 @@ class Trust:
                              ("residual_px", self.residual_px), ("bound_px", self.bound_px),
                              ("ray_distance", self.ray_distance), ("reprojection_px", self.reprojection_px),
                              ("support", self.support), ("sequence_jump", self.sequence_jump),
-                             ("component", self.component)):
+                             ("component", self.component), ("smoothness", self.smoothness),
+                             ("smoothness_px", self.smoothness_px)):
             v = values[done & np.isfinite(values)]
             measures[name] = {
                 "median": _number(np.median(v)) if v.size else None,
@@ -123,7 +135,7 @@ class Trust:
             "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
                       "residual_px": "pixels", "bound_px": "pixels", "reprojection_px": "pixels",
                       "support": "fraction", "sequence_jump": "frame gaps",
-                      "component": "frames"},
+                      "component": "frames", "smoothness": "input units", "smoothness_px": "pixels"},
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
@@ -141,6 +153,8 @@ def flag_rule(options: TrustOptions) -> str:
             f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
             f"sequence_jump > {options.sequence_jump:g}"
             + (f" or component < {options.min_component}" if options.min_component > 0 else "")
+            + (f" or smoothness_px > max({options.smoothness_px:g}, {options.smoothness_relative:g} x median "
+               "smoothness_px)" if options.smoothness_px > 0 else "")
             + "; medians over the solve's reconstructed points")
 
 
@@ -255,6 +269,28 @@ def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, 
     return out
 
 
+def video_smoothness(points: np.ndarray, video_index: np.ndarray, frames: np.ndarray, times: np.ndarray
+                     ) -> np.ndarray:
+    """(F, P) distance of each point from the linear interpolation of the same point in the previous and next frame
+    of its own video (input units); NaN at a video's first and last frame. The paper's Psi2 as a check: W never
+    links frames of one video, so a shape that jumps away from its own video's neighbours (a run of frames expressed
+    by shapes from elsewhere in the motion) shows here even when its self-expression residual is small. Times
+    interpolate when known, frame numbers otherwise."""
+    out = np.full(points.shape[:2], np.nan)
+    clock = np.where(np.isfinite(times), times, frames.astype(float))
+    for v in np.unique(video_index):
+        members = np.flatnonzero(video_index == v)
+        members = members[np.argsort(frames[members], kind="stable")]
+        if len(members) < 3:
+            continue
+        previous, current, following = members[:-2], members[1:-1], members[2:]
+        span = clock[following] - clock[previous]
+        share = np.where(span > 0, (clock[current] - clock[previous]) / np.where(span > 0, span, 1.0), 0.5)
+        predicted = points[previous] + share[:, None, None] * (points[following] - points[previous])
+        out[current] = np.linalg.norm(points[current] - predicted, axis=-1)
+    return out
+
+
 def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
     """All measures for every (frame, point) of a solve, and the flag."""
     options = options or TrustOptions()
@@ -315,8 +351,15 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         }
     jump = np.broadcast_to(sequence_jump(W, problem.video_index, problem.times)[:, None], (F, P))
     component = np.broadcast_to(components(W, options.min_weight)[:, None], (F, P))
+    smoothness = video_smoothness(points, problem.video_index, problem.frames, problem.times)
+    smoothness_px = focal[:, None] * smoothness / np.maximum(depth, 1e-300)
     flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
                             | (np.nan_to_num(jump) > options.sequence_jump) | (component < options.min_component))
+    if options.smoothness_px > 0:
+        known = reconstructed & np.isfinite(smoothness_px)
+        median = float(np.median(smoothness_px[known])) if known.any() else 0.0
+        limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median)
+        flag |= known & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
     nan = ~reconstructed
     return Trust(
         condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
@@ -324,6 +367,7 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         ray_distance=np.where(nan, np.nan, ray_distance),
         reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
         sequence_jump=np.where(nan, np.nan, jump), component=np.where(nan, np.nan, component),
+        smoothness=np.where(nan, np.nan, smoothness), smoothness_px=np.where(nan, np.nan, smoothness_px),
         videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, limits=limits,
         reconstructed=reconstructed,
         video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,

@@ -15,6 +15,7 @@ from reconstruct.trust import (
     neighbourhoods,
     sequence_jump,
     trust_measures,
+    video_smoothness,
 )
 
 
@@ -183,7 +184,7 @@ def test_summary_and_columns_are_json_ready(solved):
     assert json.loads(text)["measures"]["residual"]["median"] > 0
     columns = trust.columns()
     assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
-                            "support", "sequence_jump", "component", "flag"}
+                            "support", "sequence_jump", "component", "smoothness_px", "flag"}
     assert set(np.unique(columns["flag"])) == {1.0}
 
 
@@ -273,3 +274,19 @@ def test_an_island_is_flagged_only_when_asked(solved):
     assert np.all(trust.component[trust.reconstructed] == problem.num_frames)  # one chain through the clip
     everything = trust_measures(problem, result, TrustOptions(min_component=problem.num_frames + 1)).flag
     assert everything[trust.reconstructed].all()
+
+
+def test_video_smoothness_is_zero_on_linear_motion_and_measures_a_jump():
+    # One video, frames 0..5 at uneven times, a point moving at constant velocity; then frame 3 jumps 40 units.
+    times = np.array([0.0, 0.1, 0.15, 0.3, 0.4, 0.55])
+    points = (np.array([1.0, -2.0, 0.5])[None, :] * times[:, None] + np.array([5.0, 0.0, 1.0]))[:, None, :]
+    video_index = np.zeros(6, dtype=np.int64)
+    frames = np.arange(6)
+    smooth = video_smoothness(points, video_index, frames, times)
+    assert np.isnan(smooth[0, 0]) and np.isnan(smooth[5, 0])
+    np.testing.assert_allclose(smooth[1:5, 0], 0.0, atol=1e-12)
+    points[3, 0, 2] += 40.0
+    smooth = video_smoothness(points, video_index, frames, times)
+    assert smooth[3, 0] == pytest.approx(40.0)
+    # Its neighbours see part of the jump through their interpolation: frame 2 (0.15 s) is 1/4 of 0.1 -> 0.3 s.
+    assert smooth[2, 0] == pytest.approx(40.0 / 4.0)
