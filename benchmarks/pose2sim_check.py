@@ -15,7 +15,14 @@ Steps (all in mm, world frame of the QCA calibration):
 
 The videos are only roughly synchronized: the script also searches integer frame offsets per camera that minimize
 the reference's reprojection error, and reports the comparison against that offset-corrected reference.
-Needs ../shared (exits with a message otherwise).
+Needs ../shared (exits with a message otherwise). Writes WORK/comparison.csv (video, frame, point, observed,
+distance_mm, distance_offset_mm: one row per compared capture).
+
+Measured (committed labels, default solver options, frames 24..71, 186 captures, 2 contended cores: track 21 s,
+solve 67 s): median 25.0 mm (21.7 mm where the point was tracked in that capture); the reference's median
+reprojection error is 3.4 px. The p90 is metres: 35 captures come from 6 pairs of frames of two cameras that the
+solver links with W = 1 (each the other's only neighbour, residual ~0), whose points it places metres along their
+rays. Offsets found: cam02 -1, cam03 -1, cam04 0 frames (a flat minimum, 3.41 -> 3.24 px).
 """
 
 from __future__ import annotations
