@@ -49,7 +49,7 @@ from reconstruct.points import FramePoints
 from reconstruct.problem import Problem
 from reconstruct.simulate import SimulationOptions
 from reconstruct.solver import SolveResult, solve
-from reconstruct.trust import TrustOptions, flag_rule, trust_measures
+from reconstruct.trust import TrustOptions, TrustPreset, flag_rule, preset_options, trust_measures
 
 log = logging.getLogger("trust_benchmark")
 
@@ -62,9 +62,8 @@ LARGE_MM = (30.0, 10.0)
 # plus islands of the W graph (fewer than 3 frames). The last was added after looking at the report windows' 30 Hz
 # misses (cmu-jumps: two pairs of frames 1.6 s apart representing each other), so its numbers there are no blind test.
 PRESETS: dict[str, TrustOptions] = {
-    "default": TrustOptions(),
-    "sensitive": TrustOptions(residual_px=3.0, bound_px=15.0, relative=2.0, sequence_jump=12.0, smoothness_px=30.0,
-                              smoothness_relative=5.0),
+    "default (balanced)": preset_options(TrustPreset.BALANCED),
+    "sensitive": preset_options(TrustPreset.SENSITIVE),
     "default + islands": TrustOptions(min_component=3),
 }
 
@@ -213,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, counts in score(problem, result, truth).items():
                 counts["window"] = names[index]
                 results[name].setdefault(setting.key, []).append(counts)
-            counts = results["default"][setting.key][-1]
+            counts = results["default (balanced)"][setting.key][-1]
             log.info("%s %s: %d points, %d flagged, %d > 30 mm (%d caught); solve %.0f s", names[index],
                      setting.key, counts["points"], counts["flagged"], counts["large30"], counts["caught30"],
                      seconds)

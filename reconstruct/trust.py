@@ -29,6 +29,7 @@ simulations (benchmarks/trust.py documents the windows used for tuning and those
 
 from __future__ import annotations
 
+import enum
 import logging
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -68,6 +69,20 @@ class TrustOptions:
     # benchmarks/trust.py uses 30 px, 5 x.
     smoothness_px: float = 0.0
     smoothness_relative: float = 5.0
+
+
+class TrustPreset(enum.Enum):
+    """Operating points of the flag, both chosen on the tuning windows of benchmarks/trust.py."""
+
+    BALANCED = "balanced"  # TrustOptions() defaults: best recall-weighted F2 on the tuning windows
+    SENSITIVE = "sensitive"  # ~3-4x more points flagged, catches most large errors (recall 0.5-0.9 when tuning)
+
+
+def preset_options(preset: TrustPreset) -> TrustOptions:
+    if preset is TrustPreset.SENSITIVE:
+        return TrustOptions(residual_px=3.0, bound_px=15.0, relative=2.0, sequence_jump=12.0, smoothness_px=30.0,
+                            smoothness_relative=5.0)
+    return TrustOptions()
 
 
 @dataclass(kw_only=True)

@@ -10,9 +10,11 @@ from reconstruct.rays import viewing_rays
 from reconstruct.solver import solve
 from reconstruct.trust import (
     TrustOptions,
+    TrustPreset,
     components,
     neighbourhood_condition,
     neighbourhoods,
+    preset_options,
     sequence_jump,
     trust_measures,
     video_smoothness,
@@ -155,9 +157,11 @@ def test_residual_is_the_distance_to_the_w_combination(solved):
     np.testing.assert_allclose(np.sqrt(np.mean(trust.residual**2, axis=1)), result.residual, rtol=1e-6)
 
 
-def test_flags_catch_injected_large_errors_and_leave_a_good_solve_mostly_unflagged(solved):
+@pytest.mark.parametrize("preset", list(TrustPreset))
+def test_flags_catch_injected_large_errors_and_leave_a_good_solve_mostly_unflagged(solved, preset):
     problem, result, truth = solved
-    trust = trust_measures(problem, result)
+    options = preset_options(preset)
+    trust = trust_measures(problem, result, options)
     error = np.linalg.norm(result.points - truth, axis=-1)
     assert np.median(error) < 2.0  # the solve itself is good
     assert trust.flag.mean() < 0.05
@@ -169,7 +173,7 @@ def test_flags_catch_injected_large_errors_and_leave_a_good_solve_mostly_unflagg
     frames, points_ = np.unravel_index(chosen, (F, P))
     moved = result.points.copy()
     moved[frames, points_] += 150.0 * rays[frames, points_]
-    flagged = trust_measures(problem, replace(result, points=moved)).flag
+    flagged = trust_measures(problem, replace(result, points=moved), options).flag
     assert flagged[frames, points_].mean() >= 0.9
 
 
