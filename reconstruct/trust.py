@@ -11,7 +11,8 @@ Measures (arrays (F, P), NaN where the point was not reconstructed):
   observed has no ray: its error has 3 degrees of freedom (the identity instead of r), as in the paper's
   "Missing data". Dimensionless (W and rays are).
 * `residual`: |X_pf - sum_j W_jf X_pj|, the point's own self-expression residual (paper, Sec. "Shape approximation
-  residual": the b of the bound above), input units.
+  residual"; it stands in for the b of the bound above, which needs the truth), input units. `residual_px`: the
+  same seen from frame f's camera (focal x residual / distance), pixels. `bound_px` = condition x residual_px.
 * `ray_distance`: distance of X_pf from its viewing ray (the soft ray constraint lets it leave), input units; NaN
   where unobserved. `reprojection_px` is the same as an angle seen from the camera, in pixels (x focal length).
 * `support`: share of frame f's W weight on neighbours that observe the point (1 = interpolated between
@@ -375,6 +376,8 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         median = float(np.median(smoothness_px[known])) if known.any() else 0.0
         limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median)
         flag |= known & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
+    log.info("trust: %d of %d reconstructed points flagged (%s)", int(flag.sum()), int(reconstructed.sum()),
+             flag_rule(options))
     nan = ~reconstructed
     return Trust(
         condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
