@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from dynrecon.errors import NotEnoughDataError
 from reconstruct.anderson import AndersonMixer
+from reconstruct.candidates import CandidateOptions, VideoLayout, coarse_to_fine_init, follow_w, window_pool
 from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
@@ -43,6 +44,11 @@ class SolverOptions:
     # reconstruct/anderson.py.
     anderson_memory: int = 5
     w_step: WStepOptions = field(default_factory=WStepOptions)
+    # Above this many frames each frame's dictionary is restricted to windows of the other videos around its current
+    # matches (reconstruct/candidates.py): linear cost in F instead of quadratic. At or below it, every frame of the
+    # other videos is a candidate, as in the paper.
+    dense_limit: int = 2500
+    candidates: CandidateOptions = field(default_factory=CandidateOptions)
     progress: bool = False
     # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
     # benchmarks that follow accuracy along the iterations.
@@ -123,7 +129,14 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     timings["rays"] = time.perf_counter() - started
 
     t0 = time.perf_counter()
-    init = initialize_depths(centers, rays, video_index)
+    sparse = options.dense_limit < F
+    if sparse:
+        init, anchor = coarse_to_fine_init(centers, rays, video_index, options.candidates)
+        layout = VideoLayout.of(video_index)
+        log.info("%d frames: dictionaries restricted to +-%d frames of each other video around each frame's "
+                 "matches", F, options.candidates.half_window)
+    else:
+        init = initialize_depths(centers, rays, video_index)
     init_points = centers[:, None, :] + init.depth[..., None] * rays
     unmatched = int(np.sum(init.partner < 0))
     if unmatched:
@@ -148,7 +161,8 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                    leave=False)
         for _ in bar:
             t0 = time.perf_counter()
-            W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W)
+            pool = window_pool(anchor, video_index, layout, options.candidates.half_window) if sparse else None
+            W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W, pool=pool)
             if candidate is not points:
                 mixed_cost = total_cost(candidate, W_next.to_csc(), centers, rays, video_index, options.lambda1,
                                         lambda2, options.lambda3, options.constraint)
@@ -157,8 +171,11 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                     if mixer is not None:
                         mixer.reset()
                     candidate = points
-                    W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W)
+                    W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W,
+                                              pool=pool)
             W = W_next
+            if sparse:
+                anchor = follow_w(anchor, W.to_csc(), video_index, layout)
             t_w += time.perf_counter() - t0
             t0 = time.perf_counter()
             W_matrix = W.to_csc()

@@ -101,6 +101,26 @@ def nearest_other_video(shapes: np.ndarray, video_index: np.ndarray, k: int, *, 
     return result
 
 
+def nearest_in_pool(shapes: np.ndarray, pool: np.ndarray, k: int, *, block: int = 2048) -> np.ndarray:
+    """(F, k) the k nearest shapes among each frame's candidates pool (F, C) (-1 = none); -1 where fewer.
+    Row blocks bound the (block, C, D) gather."""
+    F, C = pool.shape
+    k = min(k, C)
+    nearest = np.full((F, k), -1, dtype=np.int64)
+    for start in range(0, F, block):
+        rows = slice(start, min(F, start + block))
+        difference = shapes[np.maximum(pool[rows], 0)] - shapes[rows, None, :]
+        d2 = np.einsum("fcd,fcd->fc", difference, difference)
+        d2[pool[rows] < 0] = np.inf
+        part = np.argpartition(d2, k - 1, axis=1)[:, :k]
+        order = np.argsort(np.take_along_axis(d2, part, axis=1), axis=1)
+        chosen = np.take_along_axis(part, order, axis=1)
+        found = np.take_along_axis(pool[rows], chosen, axis=1)
+        found[~np.isfinite(np.take_along_axis(d2, chosen, axis=1))] = -1
+        nearest[rows] = found
+    return nearest
+
+
 def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray, np.ndarray]:
     """Unique (row j, column f) pairs, symmetrized, packed per column -> (cand (F, K), valid (F, K))."""
     rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
@@ -305,14 +325,17 @@ def _most_violating_per_column(entering: np.ndarray, violation: np.ndarray, F: i
 
 def kkt_violations(
     shapes: np.ndarray, video_index: np.ndarray, W: SparseW, problem: _WorkingSetProblem, options: WStepOptions,
-    *, block: int = 1024,
+    *, block: int = 1024, pool: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Allowed entries (rows j, columns f) outside the working set whose gradient lies below the column's simplex
-    multiplier by more than kkt_tolerance * L_f: moving weight onto them would lower g."""
+    multiplier by more than kkt_tolerance * L_f: moving weight onto them would lower g. With a candidate `pool`
+    (F, C) only the pool's entries are allowed (long captures)."""
     F = len(shapes)
     grad = problem.gradient(W.value)
     mu = np.where(W.valid, grad, np.inf).min(axis=1)  # (F,) multiplier: min gradient over the column's entries
     residual = np.einsum("fk,fkd->fd", W.value, shapes[W.cand]) - shapes  # (F, D): S W_f - S_f
+    if pool is not None:
+        return _pool_violations(shapes, W, problem, options, mu, residual, pool)
     add_rows: list[np.ndarray] = []
     add_cols: list[np.ndarray] = []
     for start in range(0, F, block):
@@ -332,16 +355,43 @@ def kkt_violations(
     return np.concatenate(add_rows), np.concatenate(add_cols)
 
 
+def _pool_violations(
+    shapes: np.ndarray, W: SparseW, problem: _WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
+    residual: np.ndarray, pool: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    F, C = pool.shape
+    inner = np.empty((F, C))
+    for start in range(0, F, 2048):  # row blocks bound the (block, C, D) gather
+        block = slice(start, min(F, start + 2048))
+        inner[block] = np.einsum("fd,fcd->fc", residual[block], shapes[np.maximum(pool[block], 0)])
+    g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
+    violation = (mu[:, None] - g) / problem.lipschitz[:, None]
+    violation[pool < 0] = -np.inf
+    in_set = np.zeros_like(violation, dtype=bool)
+    for k in range(W.cand.shape[1]):  # pool entries already in the working set
+        in_set |= (pool == W.cand[:, k:k + 1]) & W.valid[:, k:k + 1]
+    violation[in_set] = -np.inf
+    k = min(options.max_added_per_column, C)
+    top = np.argpartition(-violation, k - 1, axis=1)[:, :k]
+    chosen = np.take_along_axis(violation, top, axis=1) > options.kkt_tolerance
+    return np.take_along_axis(pool, top, axis=1)[chosen], np.broadcast_to(np.arange(F)[:, None], top.shape)[chosen]
+
+
 def solve_w(
     shapes: np.ndarray, video_index: np.ndarray, num_points: int, options: WStepOptions,
-    previous: SparseW | None = None,
+    previous: SparseW | None = None, pool: np.ndarray | None = None,
 ) -> tuple[SparseW, WStepStats]:
-    """Solve the W-step for shapes (F, 3P), warm-started from `previous`."""
+    """Solve the W-step for shapes (F, 3P), warm-started from `previous`. With a candidate `pool` (F, C) of frame
+    indices (-1 = none; reconstruct/candidates.py) W is restricted to it: cost O(F C) instead of O(F^2)."""
     F = len(shapes)
     stats = WStepStats()
-    near = nearest_other_video(shapes, video_index, options.nearest)
+    if pool is None:
+        near = nearest_other_video(shapes, video_index, options.nearest)
+    else:
+        near = nearest_in_pool(shapes, pool, options.nearest)
     near_cols = np.repeat(np.arange(F), near.shape[1])
-    other = video_index[near.ravel()] != video_index[near_cols]  # fewer other-video frames than `nearest`
+    # fewer other-video frames than `nearest`, or a short pool
+    other = (near.ravel() >= 0) & (video_index[near.ravel()] != video_index[near_cols])
     rows = [near.ravel()[other]]
     cols = [near_cols[other]]
     if previous is not None:
@@ -366,7 +416,7 @@ def solve_w(
         stats.working_set = int(valid.sum())
         if not options.full_kkt_check:
             break
-        add_rows, add_cols = kkt_violations(shapes, video_index, W, problem, options)
+        add_rows, add_cols = kkt_violations(shapes, video_index, W, problem, options, pool=pool)
         if len(add_rows) == 0:
             break
         stats.added += len(add_rows)
