@@ -19,8 +19,10 @@ walk; run-5ms is refused at 2.7 m: the sprint reaches a camera). The flag thresh
 `--cache DIR` keeps each solve (pickle of problem, result, truth) so that a rerun with other thresholds solves
 nothing; a cached solve is reused only for the same window, setting, length and solver sources
 (SOLVE_SOURCES).
-Runtime: ~3-60 s per solve on one core (the missing-data and unconstrained rows are the slow ones), ~10 min for the
-default 5 windows x 6 settings.
+Runtime: 4-65 s per solve on an idle core (the missing-data and unconstrained rows are the slow ones; 2-6x longer on
+a loaded machine), ~15 min for the default 5 windows x 6 settings; with --cache a rerun takes ~1 min.
+Presets: PRESETS below (the balanced default, the sensitive preset, and the default plus W-graph islands, the last
+added after looking at the report windows, so not a blind test).
 """
 
 from __future__ import annotations
