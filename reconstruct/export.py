@@ -1,12 +1,14 @@
-"""Exports for biomechanics tools: OpenSim TRC and C3D, one row per reconstructed frame in a global order.
+"""Exports for biomechanics tools: OpenSim TRC and C3D, in the global time the solver estimated.
 
-The frames of unsynchronized videos have no common clock. Until the solver recovers one, the global order is
-taken from the decoder times of cameras.json when every frame has one (exact within a video, but it assumes the
-videos started together: the offsets between videos are unknown), else from the solver's sequencing (a spectral
-ordering of the self-expression graph: frames that express each other are close in time; the order is local and
-the spacing between rows is not measured). Either way the rows are evenly spaced at `rate_hz` in the file, so the
-time axis of an export is nominal; `TIMING_NOTE` says so inside the C3D file and docs/formats.md for TRC (whose
-header has no room for comments).
+The frames of unsynchronized videos have no common clock. When `dynrecon solve` recovered the videos' clocks
+(sequencing.json, key `clocks`), every frame has a global time: the export resamples each trajectory on a uniform
+grid of that clock at `rate_hz` (linear interpolation between reconstructed frames, never across a gap longer than
+`MAX_GAP_FACTOR` median frame spacings), and `clock_note` states the clocks' median uncertainty. Without clocks the
+order comes from the decoder times of cameras.json when every frame has one (exact within a video, but it assumes
+the videos started together), else from the solver's sequencing (a spectral ordering of the self-expression graph:
+local, and the spacing between rows is not measured); the rows are then frames, evenly spaced at `rate_hz`, so the
+time axis is nominal, which `TIMING_NOTE` says inside the C3D file (docs/formats.md for TRC, whose header has no
+room for comments).
 """
 
 from __future__ import annotations
@@ -33,7 +35,11 @@ TIMING_NOTE = ("dynrecon: rows are frames of unsynchronized videos in an estimat
                "is unknown")
 
 
+MAX_GAP_FACTOR = 4.0
+
+
 class OrderSource(enum.Enum):
+    CLOCKS = "clocks"  # global times of the recovered video clocks (sequencing.json)
     TIME = "time"  # decoder times of cameras.json (videos assumed to start together)
     SEQUENCING = "sequencing"  # spectral order of the solver's self-expression graph
     FILE = "file"  # the order of points3d.csv (neither of the above available)
@@ -94,9 +100,75 @@ def sequencing_order(points: FramePoints, sequencing: Sequencing) -> np.ndarray:
     return np.concatenate([main[np.argsort(fiedler, kind="stable")], rest])
 
 
+def clock_times(points: FramePoints, sequencing: Sequencing | None) -> np.ndarray | None:
+    """(F,) global time of every frame of `points` from the recovered clocks, or None when sequencing.json has no
+    clocks or some frame has no global time (a video the clocks could not identify)."""
+    if sequencing is None or not isinstance(sequencing.extra.get("clocks"), dict):
+        return None
+    try:
+        known = {(str(e["video"]), int(e["frame"])): e["time"] for e in sequencing.extra["clocks"]["frames"]}
+    except (KeyError, TypeError, ValueError):
+        return None
+    times = [known.get((video, int(frame))) for video, frame in zip(points.videos, points.frames, strict=True)]
+    if any(t is None for t in times):
+        return None
+    values = np.array(times, dtype=float)
+    return values if np.all(np.isfinite(values)) else None
+
+
+def clock_note(sequencing: Sequencing) -> str:
+    """The timing note of an export resampled on the recovered clocks."""
+    stds = [e.get("time_std") for e in sequencing.extra.get("clocks", {}).get("frames", [])]
+    finite = [float(s) for s in stds if isinstance(s, int | float) and np.isfinite(s)]
+    spread = f"{1000 * float(np.median(finite)):.1f} ms" if finite else "unknown"
+    return ("dynrecon: rows are a uniform resampling of the trajectories on the global clock recovered from the "
+            f"unsynchronized videos (median 1-sigma uncertainty of a frame's global time: {spread}); "
+            "time 0 is the reference video's first frame")
+
+
+def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Trajectories on a uniform grid of the global clock: (xyz (N, P, 3), grid times (N,)).
+
+    Frames at the same instant are averaged. A grid time gets a position only between two reconstructed frames no
+    more than MAX_GAP_FACTOR median frame spacings apart (NaN otherwise: a gap is not bridged)."""
+    times = np.asarray(times, dtype=float)
+    if times.shape != (points.num_frames,) or not np.all(np.isfinite(times)):
+        raise InputError(None, f"export times must be {points.num_frames} finite values")
+    start = float(times.min())
+    count = int(np.floor((float(times.max()) - start) * rate_hz + 1e-9)) + 1
+    grid = start + np.arange(count) / rate_hz
+    order = np.argsort(times, kind="stable")
+    gaps = np.diff(times[order])
+    positive = gaps[gaps > 0]
+    max_gap = MAX_GAP_FACTOR * (float(np.median(positive)) if positive.size else 1.0 / rate_hz)
+    P = len(points.point_names)
+    xyz = np.full((count, P, 3), np.nan)
+    for p in range(P):
+        known = order[~np.isnan(points.xyz[order, p, 0])]
+        if len(known) < 2:
+            continue
+        instants, inverse = np.unique(times[known], return_inverse=True)
+        counts = np.bincount(inverse)
+        values = np.stack([np.bincount(inverse, weights=points.xyz[known, p, k]) / counts for k in range(3)],
+                          axis=1)
+        if len(instants) < 2:
+            continue
+        right = np.clip(np.searchsorted(instants, grid), 1, len(instants) - 1)
+        left = right - 1
+        inside = (grid >= instants[0]) & (grid <= instants[-1]) & (instants[right] - instants[left] <= max_gap)
+        for k in range(3):
+            column = np.interp(grid, instants, values[:, k])
+            xyz[inside, p, k] = column[inside]
+    return xyz, grid - start
+
+
 def global_order(points: FramePoints, cameras: CameraSet | None = None,
                  sequencing: Sequencing | None = None) -> tuple[np.ndarray, OrderSource]:
     """(F,) frame indices of `points` in the best global order available, and where it came from."""
+    clock = clock_times(points, sequencing)
+    if clock is not None:
+        return np.lexsort((np.arange(points.num_frames), clock)), OrderSource.CLOCKS
     times = frame_times(points, cameras) if cameras is not None else None
     if times is not None:
         # Ties (two videos at the same decoder time) keep the file's video order.
@@ -125,24 +197,30 @@ def _check_rate_units(rate_hz: float, units: str) -> None:
 
 
 def write_trc_export(points: FramePoints, order: np.ndarray | None, rate_hz: float, path: str | Path, *,
-                     units: str = "mm") -> Path:
-    """OpenSim TRC: row k = frame order[k] at time k / rate_hz; positions as stored (in `units`), empty = NaN."""
+                     units: str = "mm", times: np.ndarray | None = None) -> Path:
+    """OpenSim TRC: row k = frame order[k] at time k / rate_hz; positions as stored (in `units`), empty = NaN.
+    With `times` (F,) global seconds (`clock_times`), rows are instead the uniform resampling on that clock."""
     _check_rate_units(rate_hz, units)
-    xyz = _ordered(points, order)
+    xyz = _ordered(points, order) if times is None else resample_on_clock(points, times, rate_hz)[0]
     mocap = Mocap(xyz=xyz * UNIT_TO_MM[units], rate=float(rate_hz), marker_names=list(points.point_names),
                   times=np.arange(len(xyz)) / float(rate_hz))
     return write_trc(path, mocap, units=units)
 
 
 def write_c3d_export(points: FramePoints, order: np.ndarray | None, rate_hz: float, path: str | Path, *,
-                     units: str = "mm") -> Path:
+                     units: str = "mm", times: np.ndarray | None = None, note: str = TIMING_NOTE) -> Path:
     """C3D (via ezc3d): POINT data in `order` at `rate_hz`, NaN = invalid sample; a DYNRECON parameter group
-    keeps the timing note and the source (video, frame) of every row."""
+    keeps the timing note and the source (video, frame) of every row. With `times` (F,) global seconds the rows
+    are the uniform resampling on that clock (`clock_note` for `note`) and carry no source frame."""
     import ezc3d  # compiled; imported here so the rest of the package works without it
 
     _check_rate_units(rate_hz, units)
-    xyz = _ordered(points, order)
-    rows = np.arange(points.num_frames) if order is None else np.asarray(order)
+    if times is None:
+        xyz = _ordered(points, order)
+        rows = np.arange(points.num_frames) if order is None else np.asarray(order)
+    else:
+        xyz = resample_on_clock(points, times, rate_hz)[0]
+        rows = np.zeros(0, dtype=np.int64)
     c3d = ezc3d.c3d()
     c3d["parameters"]["POINT"]["RATE"]["value"] = [float(rate_hz)]
     c3d["parameters"]["POINT"]["LABELS"]["value"] = list(points.point_names)
@@ -150,9 +228,10 @@ def write_c3d_export(points: FramePoints, order: np.ndarray | None, rate_hz: flo
     data = np.ones((4, len(points.point_names), len(xyz)))
     data[:3] = xyz.transpose(2, 1, 0)
     c3d["data"]["points"] = data
-    c3d.add_parameter("DYNRECON", "TIMING", [TIMING_NOTE])
-    c3d.add_parameter("DYNRECON", "VIDEOS", [points.videos[int(i)] for i in rows])
-    c3d.add_parameter("DYNRECON", "FRAMES", [int(points.frames[int(i)]) for i in rows])
+    c3d.add_parameter("DYNRECON", "TIMING", [note])
+    if len(rows):
+        c3d.add_parameter("DYNRECON", "VIDEOS", [points.videos[int(i)] for i in rows])
+        c3d.add_parameter("DYNRECON", "FRAMES", [int(points.frames[int(i)]) for i in rows])
     path = Path(path)
     # ezc3d writes to a path; write a scratch copy and publish it atomically (readers never see half a file).
     with tempfile.TemporaryDirectory(prefix=".c3d-", dir=path.parent if path.parent.is_dir() else None) as scratch:

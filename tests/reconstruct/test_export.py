@@ -124,3 +124,53 @@ def test_order_from_sequencing_recovers_time():
     # A spectral order is exact up to local swaps: every row is within one sample of its true rank.
     assert np.abs(np.argsort(np.argsort(recovered)) - np.arange(len(order))).max() <= 1
     assert np.corrcoef(recovered, np.arange(len(order)))[0, 1] > 0.99
+
+
+def _with_clocks(points: FramePoints, times: np.ndarray, std: float = 0.002) -> Sequencing:
+    frames = [{"video": v, "frame": int(f), "own_time": float(t), "time": float(t), "time_std": std}
+              for v, f, t in zip(points.videos, points.frames, times, strict=True)]
+    return Sequencing(videos=points.videos, frames=points.frames, neighbours=[np.zeros(0, int)] * points.num_frames,
+                      weights=[np.zeros(0)] * points.num_frames, extra={"clocks": {"frames": frames}})
+
+
+def test_recovered_clocks_order_the_frames_before_decoder_times():
+    points, true_time = _interleaved()
+    order, source = global_order(points, None, _with_clocks(points, true_time / 90.0))
+    assert source is OrderSource.CLOCKS
+    np.testing.assert_array_equal(order, np.argsort(true_time))
+
+
+def test_trc_on_the_clock_is_a_uniform_resampling_of_linear_motion(tmp_path):
+    """Frames at uneven global times of a point moving linearly: the uniform resampling is exact, and a gap
+    longer than MAX_GAP_FACTOR spacings stays empty."""
+    rng = np.random.default_rng(3)
+    times = np.arange(60) / 60.0 + rng.uniform(-0.004, 0.004, 60)  # two videos' frames, jittered
+    times[30:] += 1.0  # a 1 s hole in the capture
+    velocity = np.array([100.0, -50.0, 20.0])
+    xyz = (times[:, None] * velocity)[:, None, :].repeat(2, axis=1)
+    xyz[5, 1] = np.nan
+    points = FramePoints(videos=["a", "b"] * 30, frames=np.arange(60), point_names=["p", "q"], xyz=xyz,
+                         observed=np.ones((60, 2), bool))
+    back = read_mocap(write_trc_export(points, None, 50.0, tmp_path / "c.trc", times=times))
+    grid = back.times
+    np.testing.assert_allclose(np.diff(grid), 1 / 50.0, atol=1e-6)
+    hole = (grid + times[0] > times[29] + 1e-9) & (grid + times[0] < times[30] - 1e-9)
+    assert hole.any() and np.all(np.isnan(back.xyz[hole]))
+    expected = ((grid + times[0])[:, None] * velocity)
+    ok = ~hole
+    np.testing.assert_allclose(back.xyz[ok, 0], expected[ok], atol=1e-6)
+    np.testing.assert_allclose(back.xyz[ok, 1], expected[ok], atol=1e-6)
+
+
+def test_c3d_on_the_clock_carries_the_uncertainty_note(tmp_path):
+    ezc3d = pytest.importorskip("ezc3d")
+    from reconstruct.export import clock_note
+
+    points, true_time = _interleaved()
+    sequencing = _with_clocks(points, true_time / 90.0, std=0.004)
+    note = clock_note(sequencing)
+    assert "4.0 ms" in note
+    path = write_c3d_export(points, None, 90.0, tmp_path / "c.c3d", times=true_time / 90.0, note=note)
+    c3d = ezc3d.c3d(str(path))
+    assert c3d["parameters"]["DYNRECON"]["TIMING"]["value"] == [note]
+    assert c3d["data"]["points"].shape[2] == len(points.videos)  # 24 frames over 23/90 s at 90 Hz
