@@ -7,8 +7,11 @@ from pathlib import Path
 
 from labeling.workspace import read_skeleton
 from reconstruct import demo, sim_cli
+from reconstruct.clocks import ClockModel, ClockOptions
 from reconstruct.solve_stage import SolveStageOptions, run
 from reconstruct.solver import SolverOptions
+from reconstruct.temporal import Refinement, TemporalOptions
+from reconstruct.trust import TrustPreset, preset_options
 from reconstruct.xstep import RayConstraint
 
 
@@ -29,6 +32,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                         help="points exactly on their rays (hard) or pulled to them (soft, for noisy tracks)")
     parser.add_argument("--max-iterations", type=int, default=defaults.max_iterations,
                         help="alternations per stage")
+    parser.add_argument("--refinement", choices=[r.value for r in Refinement], default=Refinement.CLOCKS.value,
+                        help="after the self-expressive solve: recover the video clocks and refine each trajectory on "
+                             "them (clocks, default), or keep the paper's solve (none)")
+    parser.add_argument("--clock-model", choices=[m.value for m in ClockModel], default=ClockModel.AFFINE.value,
+                        help="per-video clock: offset only, offset and rate (default), or with drift")
+    parser.add_argument("--trust", choices=[t.value for t in TrustPreset], default=TrustPreset.SENSITIVE.value,
+                        help="operating point of the trust flag in points3d.csv (sensitive flags more, misses less)")
     parser.add_argument("--skeleton", type=Path, help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
                         "recording (the labeling page's skeleton file)")
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
@@ -42,8 +52,11 @@ def _solve(args: argparse.Namespace) -> int:
                            constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
                            progress=True)
     skeleton = tuple(read_skeleton(args.skeleton).connections) if args.skeleton else ()
+    temporal = TemporalOptions(clocks=ClockOptions(model=ClockModel(args.clock_model)),
+                               refinement=Refinement(args.refinement))
     points = run(args.cameras, args.tracks, args.out,
-                 SolveStageOptions(solver=solver, recording=not args.no_recording, skeleton=skeleton))
+                 SolveStageOptions(solver=solver, temporal=temporal, trust=preset_options(TrustPreset(args.trust)),
+                                   recording=not args.no_recording, skeleton=skeleton))
     print(f"wrote {points} (+ sequencing.json, report.json" +  # noqa: T201
           ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
           + ")")

@@ -61,3 +61,25 @@ def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
     assert code == 2
     assert len(err) == 1 and "tracks.csv:line 3: video 'ghost' is not in the cameras file" in err[0]
     assert not (tmp_path / "out" / "points3d.csv").exists()
+
+
+def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path):
+    capture = _capture(tmp_path)
+    out = tmp_path / "out"
+    assert main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
+                 "--out", str(out), "--no-recording"]) == 0
+    points = read_points(out / "points3d.csv")
+    assert {"time", "condition", "residual_px", "flag"} <= set(points.extra)
+    index = capture.truth.index()
+    true_time = np.array([capture.truth.extra["time"][index[(v, int(f))], 0]
+                          for v, f in zip(points.videos, points.frames, strict=True)])
+    # The simulation's decoder times are one shared clock: the recovered global time is that clock.
+    assert np.median(np.abs(points.extra["time"][:, 0] - true_time)) < 0.25 / 30
+    clocks = read_sequencing(out / "sequencing.json").extra["clocks"]
+    assert len(clocks["videos"]) == len(capture.cameras.videos)
+    report = json.loads((out / "report.json").read_text())
+    assert report["temporal"]["refined"] and "flagged" in report["trust"]
+    plain = tmp_path / "plain"
+    assert main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
+                 "--out", str(plain), "--no-recording", "--refinement", "none", "--trust", "balanced"]) == 0
+    assert json.loads((plain / "report.json").read_text())["temporal"]["refined"] is False

@@ -1,0 +1,95 @@
+"""After the self-expressive solve: recover every video's clock, then refine the 3D trajectories on those clocks.
+
+The seed paper stops at local sequencing (W). dynrecon goes on (docs/solver.md, "Beyond the paper"):
+1. `clocks.estimate_clocks`: an affine clock per video from W's links, and from the tracks where W is ambiguous;
+2. `refine.refine_with_clocks`: a smoothing-spline trajectory per point through its rays on the recovered global
+   times (GCV smoothness, Huber IRLS against false detections), which also polishes each video's offset and rate;
+3. the clocks are refitted to the polished times, so that sequencing.json's clocks and per-frame times agree.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from reconstruct.clocks import ClockModel, ClockOptions, Clocks, estimate_clocks
+from reconstruct.problem import Problem
+from reconstruct.refine import ClockRefineOptions, RefineOptions, refine_with_clocks
+from reconstruct.solver import SolveResult
+
+log = logging.getLogger(__name__)
+
+
+class Refinement(enum.Enum):
+    NONE = "none"  # keep the self-expressive solve's points (the paper)
+    CLOCKS = "clocks"  # smoothing-spline trajectories on the recovered clocks
+
+
+@dataclass(kw_only=True)
+class TemporalOptions:
+    clocks: ClockOptions = field(default_factory=ClockOptions)
+    refinement: Refinement = Refinement.CLOCKS
+    refine: RefineOptions = field(default_factory=RefineOptions)
+    clock_refine: ClockRefineOptions = field(default_factory=ClockRefineOptions)
+
+
+@dataclass(kw_only=True)
+class Temporal:
+    clocks: Clocks
+    points: np.ndarray  # (F, P, 3) input units: refined, or the solve's when not refined
+    times: np.ndarray  # (F,) global seconds, NaN where the clocks could not be recovered
+    refined: bool
+    report: dict[str, Any]
+
+
+def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalOptions | None = None) -> Temporal:
+    options = options or TemporalOptions()
+    clocks = estimate_clocks(problem, result, options.clocks)
+    times = clocks.global_time.copy()
+    report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False}
+    if options.refinement is Refinement.NONE:
+        return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+    if not np.all(np.isfinite(times)):
+        missing = [c.name for c in clocks.videos if not c.identified]
+        log.warning("clocks of %s could not be recovered: the trajectories are not refined (the self-expressive "
+                    "solve is kept)", ", ".join(missing) or "some frames")
+        report["skipped"] = f"unidentified clocks: {', '.join(missing)}"
+        return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+    refined = refine_with_clocks(problem, result.points, times, options.refine, options.clock_refine)
+    clocks = refit_clocks(clocks, problem.video_index, refined.times)
+    points = np.where(np.isfinite(refined.result.points), refined.result.points, result.points)
+    outliers = int(refined.result.outliers.sum())
+    report.update({
+        "refined": True,
+        "clock_corrections": [{"video": name, "offset_s": float(o), "rate": float(r)}
+                              for name, o, r in zip(problem.video_names, refined.offsets, refined.rates,
+                                                    strict=True)],
+        "smoothness_median": _finite(np.nanmedian(refined.result.smoothness)),
+        "outlier_observations": outliers,
+        "cost": [float(c) for c in refined.cost],
+    })
+    return Temporal(clocks=clocks, points=points, times=refined.times, refined=True, report=report)
+
+
+def refit_clocks(clocks: Clocks, video_index: np.ndarray, times: np.ndarray) -> Clocks:
+    """The clocks with each video's offset/rate(/drift) refitted to `times (F,)` by least squares on its own
+    times, and those times as the per-frame global times (the uncertainties are kept)."""
+    degree = 2 if clocks.model is ClockModel.DRIFT else 1
+    for v, clock in enumerate(clocks.videos):
+        own = video_index == v
+        if own.sum() <= degree or not clock.identified:
+            continue
+        coefficients = np.polyfit(clocks.own_time[own], times[own], degree)[::-1]
+        clock.offset, clock.rate = float(coefficients[0]), float(coefficients[1])
+        if degree == 2:
+            clock.drift = float(coefficients[2])
+    clocks.global_time = np.asarray(times, dtype=float).copy()
+    return clocks
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
