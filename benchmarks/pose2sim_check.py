@@ -18,11 +18,14 @@ the reference's reprojection error, and reports the comparison against that offs
 Needs ../shared (exits with a message otherwise). Writes WORK/comparison.csv (video, frame, point, observed,
 distance_mm, distance_offset_mm: one row per compared capture).
 
-Measured (committed labels, default solver options, frames 24..71, 186 captures, 2 contended cores: track 21 s,
-solve 67 s): median 25.0 mm (21.7 mm where the point was tracked in that capture); the reference's median
-reprojection error is 3.4 px. The p90 is metres: 35 captures come from 6 pairs of frames of two cameras that the
-solver links with W = 1 (each the other's only neighbour, residual ~0), whose points it places metres along their
-rays. Offsets found: cam02 -1, cam03 -1, cam04 0 frames (a flat minimum, 3.41 -> 3.24 px).
+Measured (committed labels, default solver options, frames 24..71, 186 captures, 2 contended cores: track
+16-26 s, solve 26-28 s, offset search and reference 35 s):
+- at 08446b9 (solve with clocks and refinement): median 14.9 mm, p90 152 mm (tracked captures: 12.5 / 196 mm);
+- at 688e3ed: median 25.0 mm (21.7 mm tracked), p90 metres: 35 captures came from 6 pairs of frames of two
+  cameras that the solver links with W = 1 (each the other's only neighbour, residual ~0), whose points it placed
+  metres along their rays. The W = 1 pairs are still there at 08446b9, without the metre-scale points.
+The reference's median reprojection error is 3.4 px. Offsets found: cam02 -1, cam03 -1, cam04 0 frames (a flat
+minimum, 3.41 -> 3.24 px): the videos are synchronized to about a frame.
 """
 
 from __future__ import annotations
