@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="700,2000,5000,20000")
     parser.add_argument("--dense-max", type=int, default=2000, help="largest F also solved with dense dictionaries")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds per solve before it is abandoned")
     parser.add_argument("--child", nargs=2, metavar=("FRAMES", "DENSE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -89,8 +90,12 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for frames in (int(s) for s in args.sizes.split(",")):
         for dense in ([True, False] if frames <= args.dense_max else [False]):
-            out = subprocess.run([sys.executable, __file__, "--child", str(frames), "1" if dense else "0"],
-                                 capture_output=True, text=True, check=False)
+            try:
+                out = subprocess.run([sys.executable, __file__, "--child", str(frames), "1" if dense else "0"],
+                                     capture_output=True, text=True, check=False, timeout=args.timeout)
+            except subprocess.TimeoutExpired:
+                print(f"F = {frames} {'dense' if dense else 'windowed'}: over {args.timeout:.0f} s, abandoned")
+                continue
             lines = [line for line in out.stdout.splitlines() if line.startswith(RESULT_PREFIX)]
             if not lines:
                 print(f"F = {frames} {'dense' if dense else 'windowed'} failed:\n{out.stderr[-2000:]}")
