@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import os
+import pickle
 import sys
 import time
 from dataclasses import replace
@@ -62,10 +63,17 @@ def flight_capture(seed: int, seconds: float) -> tuple[Any, Any]:
 
 
 def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOptions,
-          solver: SolverOptions) -> dict[str, Any]:
+          solver: SolverOptions, cache: Path | None = None) -> dict[str, Any]:
     problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
+    cached = cache / f"{scene}-{seed}-{solver.max_iterations}.pickle" if cache else None
     t0 = time.perf_counter()
-    result = solve(problem, solver)
+    if cached is not None and cached.exists():
+        result = pickle.loads(cached.read_bytes())  # our own file from an earlier run of this script
+    else:
+        result = solve(problem, solver)
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            cached.write_bytes(pickle.dumps(result))
     solve_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     clocks = estimate_clocks(problem, result, options)
@@ -104,12 +112,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", default="phones,flight")
     parser.add_argument("--seeds", default=None, help="comma-separated (default: phones 0,1,2; flight 0,1)")
-    parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 5, flight 12)")
+    parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 4, flight 12)")
     parser.add_argument("--search", choices=[m.value for m in SearchMode], default="auto")
     parser.add_argument("--model", choices=[m.value for m in ClockModel], default="affine")
     parser.add_argument("--max-iterations", type=int, default=40,
                         help="solver alternations per stage (default 40: W's links settle long before the points)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="keep each solve here and reuse it (to iterate on the clock options only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("reconstruct.clock_search").setLevel(logging.INFO)
@@ -125,12 +135,13 @@ def main(argv: list[str] | None = None) -> int:
         seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else ([0, 1, 2] if scene == "phones" else [0, 1])
         for seed in seeds:
             if scene == "phones":
-                capture, record = phone_capture(seed, args.seconds or 5.0)
+                capture, record = phone_capture(seed, args.seconds or 4.0)
             elif scene == "flight":
                 capture, record = flight_capture(seed, args.seconds or 12.0)
             else:
                 parser.error(f"unknown scene {scene!r}")
-            row = score(scene, seed, capture, record, options, SolverOptions(max_iterations=args.max_iterations))
+            row = score(scene, seed, capture, record, options, SolverOptions(max_iterations=args.max_iterations),
+                        args.cache)
             rows.append(row)
             print(f"| {scene} | {seed} | {row['videos']} | {'/'.join(f'{f:g}' for f in row['fps'])} | "
                   f"{row['frames']} | {row['median_ms']:.2f} | {row['fraction_of_period']:.3f} | "

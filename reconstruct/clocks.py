@@ -347,8 +347,6 @@ def _pair_relations(links: Links, own: np.ndarray, video_index: np.ndarray, peri
     on the inliers.
     """
     rng = np.random.default_rng(options.seed)
-    frame_of_entry = links.frame[links.row]
-    v_entry = video_index[frame_of_entry]
     u_entry = video_index[links.neighbour]
     key = (links.row * num_videos + u_entry).astype(np.int64)
     unique, inverse = np.unique(key, return_inverse=True)
@@ -357,7 +355,6 @@ def _pair_relations(links: Links, own: np.ndarray, video_index: np.ndarray, peri
     sample_frame = links.frame[unique // num_videos]
     sample_u = (unique % num_videos).astype(np.int64)
     sample_v = video_index[sample_frame]
-    del v_entry
     relations: dict[tuple[int, int], tuple[float, float, int]] = {}
     fixed_rate = options.model is ClockModel.OFFSET
     for v in range(num_videos):

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from reconstruct.clock_search import SearchOptions, gap_px, search_clocks
 from reconstruct.clocks import ClockOptions, SearchMode, TimeSource, estimate_clocks, own_times
@@ -21,6 +20,7 @@ scenes = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("clock_scenes", scenes)  # dataclasses look their module up there
 _spec.loader.exec_module(scenes)
 TrueClock = scenes.TrueClock
+_FakeResult = scenes._FakeResult
 
 DRONE_CLOCKS = [TrueClock(fps=30.0, frames=240), TrueClock(fps=25.0, frames=200, offset=1.37, rate=1.0004),
                 TrueClock(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
@@ -84,20 +84,6 @@ def test_no_overlap_is_reported() -> None:
     result = search_clocks(problem, own, 0, SearchOptions())
     assert not result.params.identified[2]
     assert any("cam2" in w for w in result.warnings)
-
-
-class _FakeW:
-    def __init__(self, W: sp.csc_matrix):
-        self._W = W
-
-    def to_csc(self) -> sp.csc_matrix:
-        return self._W
-
-
-class _FakeResult:
-    def __init__(self, W: sp.csc_matrix, P: int):
-        self.W = _FakeW(W)
-        self.reconstructable = np.ones(P, dtype=bool)
 
 
 def test_estimate_clocks_prefers_tracks_over_wrong_links() -> None:
