@@ -150,7 +150,7 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
 
 
 def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: int = 9191,
-               grpc_port: int = 9877) -> Path:
+               grpc_port: int = 9877, zoom_steps: int = 2, zoom_at: tuple[int, int] = (455, 440)) -> Path:
     """A 1280 x 720 picture of `recording` in rerun's web viewer (headless chromium, swiftshader WebGL)."""
     from PIL import Image
     from playwright.sync_api import sync_playwright
@@ -168,11 +168,15 @@ def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: in
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             page.goto(f"http://localhost:{web_port}/?url={source}&renderer=webgl")
             time.sleep(wait_s)  # software rendering: the first frames take tens of seconds
-            for x in (1256, 1201):  # the right (selection) and left (blueprint) panel toggles, top right
+            for x in (1256, 1229, 1201):  # the right, bottom and left panel toggles (top right corner)
                 page.mouse.click(x, 18)
                 time.sleep(3)
-            page.mouse.move(640, 700)  # no hover highlight on the views
-            time.sleep(5)
+            for _ in range(zoom_steps):  # closer to the subject in the 3D view (top left)
+                page.mouse.move(*zoom_at)
+                page.mouse.wheel(0, -120)
+                time.sleep(1)
+            page.mouse.move(1279, 719)  # no hover highlight on the views
+            time.sleep(8)
             raw = png.with_suffix(".raw.png")
             page.screenshot(path=str(raw))
             browser.close()
