@@ -467,13 +467,12 @@ def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray,
     clock_options = clock_options or ClockRefineOptions()
     times = np.asarray(times, dtype=float)
     original = times
-    history: list[float] = []
-    result: ClockRefineResult | None = None
-    for _ in range(max(clock_options.rounds, 1)):
-        result = _clock_round(problem, points, times, options, clock_options)
+    result = _clock_round(problem, points, times, options, clock_options)
+    history = list(result.cost)
+    for _ in range(clock_options.rounds - 1):
+        result = _clock_round(problem, points, result.times, options, clock_options)
         history.extend(result.cost)
-        times = result.times
-    assert result is not None
+    times = result.times
     # Corrections relative to the input times (the rounds compose affine maps per video).
     N = len(problem.video_names)
     offsets, rates = np.zeros(N), np.zeros(N)
