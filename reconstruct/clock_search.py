@@ -92,6 +92,7 @@ class SearchResult:
     pairs: list[PairHypothesis]
     residual_px: float  # robust RMS gap over all samples at the solution
     video_residual_px: np.ndarray  # (N,)
+    timing_spread: np.ndarray  # (N,) s, frames' capture-time spread around their clock (jitter), NaN if unknown
     start: str  # "tracks" or "links": the start the refinement kept
     warnings: list[str]
 
@@ -143,10 +144,11 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, max_gap_perio
 
 
 def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: np.ndarray,
-           f2: np.ndarray, signed_depth: bool = True) -> np.ndarray:
+           f2: np.ndarray, signed_depth: bool = True, vector: bool = False) -> np.ndarray:
     """(m, P) pixel gap between ray pairs: the distance between the rays, half to each, over each depth, times
     each focal length (RMS of the two). NaN where a ray is missing, the rays are parallel or (with `signed_depth`)
-    a depth is negative; without it, depths count by magnitude (continuous, for the refinement)."""
+    a depth is negative; without it, depths count by magnitude (continuous, for the refinement). `vector`: the
+    (m, P, 3) segment between the rays' closest points at the same pixel scale instead of its length."""
     w = np.broadcast_to((c1 - c2)[:, None, :], r1.shape)
     b = np.einsum("mpk,mpk->mp", r1, r2)
     d = np.einsum("mpk,mpk->mp", r1, w)
@@ -161,6 +163,10 @@ def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: n
     bad = denom < 1e-10
     if signed_depth:
         bad |= (d1 <= 0) | (d2 <= 0)
+    if vector:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(gap > 0, px / gap, np.nan)
+        return np.where(bad[..., None], np.nan, between * scale[..., None])
     return np.where(bad, np.nan, px)
 
 
@@ -380,6 +386,47 @@ class _Joint:
         parts.append(-1 - np.arange(len(self.prior_videos)))  # each prior row on its own
         return np.concatenate(parts)
 
+    def timing_spread(self, theta: np.ndarray, periods: np.ndarray, noise_px: float) -> np.ndarray:
+        """(N,) s: spread of the frames' capture times around their clock (jitter), which no clock model holds.
+
+        Per frame, the shift of its time that best closes its (signed, pixel-scaled) gap vectors to the other
+        videos, linearized: delta = -sum w0.w' / sum |w'|^2, with w' from interpolating the others half a period
+        around. Its robust variance minus the part the pixel noise explains (noise^2 / sum |w'|^2) is the jitter.
+        """
+        coef = self.coefficients(theta)
+        active = [self.ref, *self.free]
+        spread = np.full(len(self.tracks), np.nan)
+        for v in active:
+            track = self.tracks[v]
+            rows = np.arange(len(track.own))
+            s = track.own - self.centers[v]
+            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
+            num = np.zeros(len(rows))
+            den = np.zeros(len(rows))
+            for u in active:
+                if u == v:
+                    continue
+                h = 0.25 * float(periods[u])
+                own_u = self._own_in(coef, u, g)
+                vectors = []
+                for shift in (0.0, -h, h):
+                    cu, ru, fu = self.tracks[u].interpolate(own_u + shift)
+                    vectors.append(gap_px(track.centers, track.rays, track.focal, cu, ru, fu, vector=True))
+                w0, minus, plus = vectors
+                slope = (plus - minus) / (2 * h)
+                ok = np.isfinite(w0).all(-1) & np.isfinite(slope).all(-1)
+                ok &= np.linalg.norm(np.nan_to_num(w0), axis=-1) < 4 * noise_px
+                num += np.where(ok, np.einsum("fpk,fpk->fp", np.nan_to_num(w0), np.nan_to_num(slope)), 0).sum(1)
+                den += np.where(ok, np.einsum("fpk,fpk->fp", np.nan_to_num(slope), np.nan_to_num(slope)), 0).sum(1)
+            usable = den > 0
+            if usable.sum() < 5:
+                continue
+            delta = -num[usable] / den[usable]
+            total = MAD * float(np.median(np.abs(delta - np.median(delta))))
+            noise_var = float(np.median(noise_px ** 2 / den[usable]))
+            spread[v] = math.sqrt(max(total * total - noise_var, 0.0))
+        return spread
+
     def video_rms(self, theta: np.ndarray, scale: float) -> np.ndarray:
         gaps = self.gaps(theta)
         rms = np.full(len(self.tracks), np.nan)
@@ -506,6 +553,7 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
     params.cov[ref] = 0.0
     params.identified[ref] = True
     video_rms = np.full(N, np.nan)
+    spread = np.full(N, np.nan)
     residual = math.nan
     label = "tracks"
     if best is not None:
@@ -520,10 +568,11 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
             params.identified[v] = bool(np.all(np.isfinite(block)) and coef_all[v, 1] > 0)
         video_rms = joint.video_rms(refined.theta, refined.scale)
         residual = refined.scale
+        spread = joint.timing_spread(refined.theta, periods, refined.scale)
     for v in range(N):
         if not params.identified[v]:
             warnings.append(f"video {names[v]!r}: the track search found no distinct offset to the other videos "
                             "(too little overlap, or motion that every offset explains): its clock is not "
                             "identified by the tracks")
     return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms,
-                        start=label, warnings=warnings)
+                        timing_spread=spread, start=label, warnings=warnings)

@@ -645,9 +645,15 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         params, methods, fuse_notes = _combine(link_fit.params, search.params, periods, ref, options,
                                                problem.video_names)
         warnings.extend(fuse_notes)
+        # Per-video jitter estimates of the tracks are noisy (a few hundred frames, noise removed by subtraction):
+        # pool them over the videos.
+        spreads = search.timing_spread[np.isfinite(search.timing_spread)]
+        pooled = float(np.median(spreads)) if len(spreads) else math.nan
         for v in range(N):
             if methods[v] == "tracks":  # the links' spread says nothing about a clock they got wrong
-                scatter[v] = math.nan
+                scatter[v] = pooled
+            elif math.isfinite(pooled):
+                scatter[v] = np.fmax(scatter[v], pooled)
     global_time = params.times(own, problem.video_index)
     # Per frame: the clock's own uncertainty, the frames' timing spread around it (jitter, from the links) and a
     # floor for the sub-frame bias of interpolating tracks / combining neighbours linearly.
