@@ -19,11 +19,12 @@ Needs ../shared (exits with a message otherwise). Writes WORK/comparison.csv (vi
 distance_mm, distance_offset_mm: one row per compared capture).
 
 Measured (committed labels, default solver options, frames 24..71, 186 captures, 2 contended cores: track
-16-26 s, solve 26-28 s, offset search and reference 35 s):
-- at 08446b9 (solve with clocks and refinement): median 14.9 mm, p90 152 mm (tracked captures: 12.5 / 196 mm);
-- at 688e3ed: median 25.0 mm (21.7 mm tracked), p90 metres: 35 captures came from 6 pairs of frames of two
-  cameras that the solver links with W = 1 (each the other's only neighbour, residual ~0), whose points it placed
-  metres along their rays. The W = 1 pairs are still there at 08446b9, without the metre-scale points.
+16-26 s, solve 12-28 s, offset search and reference 35 s):
+- at 2aaf124: median 4.8 mm, p90 9.1 mm (tracked captures 4.8 / 8.7 mm); with --shift-clocks 4.5 / 10.4 mm;
+- at 08446b9: median 14.9 mm, p90 152 mm;
+- at 688e3ed: median 25.0 mm, p90 metres: 35 captures came from 6 pairs of frames of two cameras that the solver
+  links with W = 1 (each the other's only neighbour, residual ~0), whose points it placed metres along their
+  rays. The W = 1 pairs are still in sequencing.json at 2aaf124; the clock-based refinement fixes their points.
 The reference's median reprojection error is 3.4 px. Offsets found: cam02 -1, cam03 -1, cam04 0 frames (a flat
 minimum, 3.41 -> 3.24 px): the videos are synchronized to about a frame.
 """
