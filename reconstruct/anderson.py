@@ -46,5 +46,13 @@ class AndersonMixer:
         gram = dF.T @ dF
         # Tikhonov on the normal equations: the columns become nearly dependent as the iteration settles.
         gram += self.regularization * max(float(np.trace(gram)), 1e-300) * np.eye(len(gram))
-        gamma = np.linalg.solve(gram, dF.T @ residual)
-        return (g_flat - dG @ gamma).reshape(g.shape)
+        try:
+            gamma = np.linalg.solve(gram, dF.T @ residual)
+        except np.linalg.LinAlgError:
+            gamma = None
+        mixed = None if gamma is None else g_flat - dG @ gamma
+        if mixed is None or not np.all(np.isfinite(mixed)):
+            # Degenerate history (e.g. iterates that stopped moving in some coordinates): start over from g.
+            self.reset()
+            return g.copy()
+        return mixed.reshape(g.shape)

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 from tqdm import tqdm
 
-from dynrecon.errors import NotEnoughDataError
+from dynrecon.errors import DynreconError, NotEnoughDataError
 from reconstruct.anderson import AndersonMixer
 from reconstruct.candidates import CandidateOptions, VideoLayout, coarse_to_fine_init, follow_w, window_pool
 from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
@@ -181,6 +181,12 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             W_matrix = W.to_csc()
             new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=candidate)
             t_x += time.perf_counter() - t0
+            if not np.all(np.isfinite(new_points)):
+                sparse_frames = int(np.sum(problem.observed[:, keep].sum(axis=1) < 2))
+                raise DynreconError(
+                    f"the solve diverged in stage {name!r} after {stage.iterations} alternation(s); "
+                    f"{sparse_frames} of {F} frames observe fewer than 2 points: track more points per frame, or "
+                    "drop frames where almost nothing is observed")
             change = float(np.max(np.abs(new_points - candidate)))
             cost = total_cost(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
                               options.lambda3, options.constraint)

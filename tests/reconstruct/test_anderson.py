@@ -37,3 +37,13 @@ def test_first_mix_is_the_plain_step_and_reset_forgets_history():
     mixer.mix(g, 1.5 * g)
     mixer.reset()
     np.testing.assert_array_equal(mixer.mix(x, g), g)
+
+
+def test_degenerate_history_falls_back_to_the_plain_step():
+    """Iterates that repeat exactly make the least-squares system singular: the mixer must not return inf/NaN."""
+    mixer = AndersonMixer(memory=3)
+    x, g = np.zeros(4), np.arange(4.0)
+    mixer.mix(x, g)
+    out = mixer.mix(x, g)  # same pair again: zero differences
+    assert np.all(np.isfinite(out))
+    np.testing.assert_array_equal(out, g)
