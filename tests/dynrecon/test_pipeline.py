@@ -66,9 +66,9 @@ def _cut_sample(out: Path) -> dict[str, Path]:
 def _write_labels(out: Path) -> None:
     """Clicks on every frame of the cut: true projections plus 0.5 px noise (fixed seed).
 
-    The sample's own labels (every 10th frame) leave the solver too few observations on a cut at half the frame
-    rate (measured: 40 % of the points observed, median error ~0.9 m, 160 s); the full sample is measured in the
-    report instead. Here the tracker passes the labels through and the test checks the pipeline around them.
+    The sample's own labels (every 5th frame) fall on every 2.5th frame of this half-rate cut; the demo test
+    (tests/reconstruct/test_demo.py) tracks them on a cut at the full rate. Here the tracker passes the labels through
+    and the test checks the pipeline around them.
     """
     rng = np.random.default_rng(0)
     truth = read_points(out / "truth.csv")
