@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", default="phones,flight")
     parser.add_argument("--seeds", default=None, help="comma-separated (default: phones 0,1,2; flight 0,1)")
     parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 4, flight 12)")
-    parser.add_argument("--search", choices=[m.value for m in SearchMode], default="auto")
+    parser.add_argument("--search", choices=[m.value for m in SearchMode], default=ClockOptions().search.value)
     parser.add_argument("--model", choices=[m.value for m in ClockModel], default="affine")
     parser.add_argument("--max-iterations", type=int, default=40,
                         help="solver alternations per stage (default 40: W's links settle long before the points); "
