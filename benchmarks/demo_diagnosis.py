@@ -36,9 +36,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dynrecon.pipeline import REGISTER_DIR, similarity_to_truth
+from reconstruct.demo import pipeline_options
 from reconstruct.evaluate import Accuracy, evaluate
 from reconstruct.points import FramePoints, read_points
-from reconstruct.solve_stage import SolveStageOptions
 from reconstruct.solve_stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from tracking.tracks import Tracks, read_tracks, write_tracks
@@ -137,7 +137,9 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
     write_cameras(work / "cameras.json", cameras)
     write_tracks(work / "tracks.csv", tracks)
     started = time.perf_counter()
-    solve_run(work / "cameras.json", work / "tracks.csv", work, SolveStageOptions(recording=False))
+    # The demo's solve options (its clock settings matter on the periodic sample: see reconstruct.demo).
+    options = dataclasses.replace(pipeline_options(SAMPLE).solve, recording=False)
+    solve_run(work / "cameras.json", work / "tracks.csv", work, options)
     seconds = time.perf_counter() - started
     points = read_points(work / "points3d.csv")
     sim = similarity_to_truth(cameras, truth_cameras)
