@@ -72,13 +72,20 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
         "outlier_observations": outliers,
         "cost": [float(c) for c in refined.cost],
     })
-    return Temporal(clocks=clocks, points=points, times=refined.times, refined=True, report=report)
+    return Temporal(clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report)
 
 
 def refit_clocks(clocks: Clocks, video_index: np.ndarray, times: np.ndarray) -> Clocks:
     """The clocks with each video's offset/rate(/drift) refitted to `times (F,)` by least squares on its own
-    times, and those times as the per-frame global times (the uncertainties are kept)."""
+    times, and those times (in the clocks' gauge) as the per-frame global times (the uncertainties are kept)."""
     degree = 2 if clocks.model is ClockModel.DRIFT else 1
+    # The refinement's cost does not see a global affine change of time, so its times may come in another gauge:
+    # map them back so that the reference video keeps its own clock (offset 0, rate 1), as estimate_clocks defines.
+    names = [c.name for c in clocks.videos]
+    reference = video_index == names.index(clocks.reference)
+    if reference.sum() >= 2 and np.ptp(clocks.own_time[reference]) > 0:
+        rate, offset = np.polyfit(clocks.own_time[reference], times[reference], 1)
+        times = (np.asarray(times, dtype=float) - offset) / rate
     for v, clock in enumerate(clocks.videos):
         own = video_index == v
         if own.sum() <= degree or not clock.identified:

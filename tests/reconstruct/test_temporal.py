@@ -29,6 +29,8 @@ def test_clocks_are_recovered_and_refinement_beats_the_seed_solve_under_noise():
     refined = np.linalg.norm(temporal.points - expected, axis=-1)
     assert np.median(refined) < np.median(seed)
     assert np.mean(refined < 10.0) >= np.mean(seed < 10.0)
+    reference_clock = temporal.clocks.video(temporal.clocks.reference)
+    assert abs(reference_clock.offset) < 1e-6 and abs(reference_clock.rate - 1) < 1e-6  # the gauge is kept
     corrections = temporal.report["clock_corrections"]
     assert len(corrections) == len(problem.video_names)
     assert json.dumps(temporal.clocks.to_json(), allow_nan=False)
