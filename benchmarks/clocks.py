@@ -24,7 +24,8 @@ Measured (solver a235814, 2-core machine shared under load; solves cached with -
 Phones: CMU 01_01 jumps, 4 s, 41 markers, handheld, 1 px, offsets 0-1 s, +-50 ppm, 2 ms CFR jitter (median
 |jitter| alone is 1.35 ms, the floor of any clock). Flight (* tracks alone): 12 s, 1 drone point, 5 handheld phones
 30-100 m away, 1.5 px, 3 % false detections, +-50 ppm, 2 ms jitter; scored with --max-iterations 0 (W's links of a
-single far point do not clock anything; the search decides there either way). Target: median < 0.25 of the fastest frame period.
+single far point do not clock anything; the search decides there either way).
+Target: median < 0.25 of the fastest frame period.
 
     python benchmarks/clocks.py                       # phones (3 seeds) + flight (2 seeds)
     python benchmarks/clocks.py --scenes flight --seeds 0,1,2 --search always --json /tmp/clocks.json
