@@ -24,6 +24,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -152,13 +154,16 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
 
 
 def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: int = 9191,
-               grpc_port: int = 9877, zoom_steps: int = 2, zoom_at: tuple[int, int] = (455, 440)) -> Path:
+               grpc_port: int = 9877, zoom_steps: int = 1, zoom_at: tuple[int, int] = (420, 460)) -> Path:
     """A 1280 x 720 picture of `recording` in rerun's web viewer (headless chromium, swiftshader WebGL)."""
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
+    # Own session: `rerun` is a launcher that starts the viewer binary as a child; ending the launcher alone left the
+    # server running on the ports (and the next screenshot showed the old recording).
     server = subprocess.Popen(["rerun", "--serve-web", "--web-viewer-port", str(web_port), "--port",
-                               str(grpc_port), str(recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               str(grpc_port), str(recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)
     try:
         time.sleep(5)  # the server loads the file before the page asks for it
         source = urllib.parse.quote(f"rerun+http://localhost:{grpc_port}/proxy", safe="")
@@ -183,7 +188,7 @@ def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: in
             page.screenshot(path=str(raw))
             browser.close()
     finally:
-        server.terminate()
+        os.killpg(server.pid, signal.SIGTERM)  # the launcher and the viewer it started
         server.wait(timeout=30)
     png.parent.mkdir(parents=True, exist_ok=True)
     Image.open(raw).convert("RGB").quantize(colors=256).save(png, optimize=True)
