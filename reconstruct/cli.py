@@ -7,7 +7,7 @@ from pathlib import Path
 
 from labeling.workspace import read_skeleton
 from reconstruct import demo, sim_cli
-from reconstruct.clocks import ClockModel, ClockOptions
+from reconstruct.clocks import ClockModel
 from reconstruct.solve_stage import SolveStageOptions, run
 from reconstruct.solver import SolverOptions
 from reconstruct.temporal import Refinement, TemporalOptions
@@ -35,8 +35,9 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--refinement", choices=[r.value for r in Refinement], default=Refinement.CLOCKS.value,
                         help="after the self-expressive solve: recover the video clocks and refine each trajectory on "
                              "them (clocks, default), or keep the paper's solve (none)")
-    parser.add_argument("--clock-model", choices=[m.value for m in ClockModel], default=ClockModel.AFFINE.value,
-                        help="per-video clock: offset only, offset and rate (default), or with drift")
+    parser.add_argument("--clock-model", choices=["auto", *(m.value for m in ClockModel)], default="auto",
+                        help="per-video clock: offset only, offset and rate, or with drift (auto: offset when every "
+                             "frame has a decoder time, else affine)")
     parser.add_argument("--trust", choices=[t.value for t in TrustPreset], default=TrustPreset.SENSITIVE.value,
                         help="operating point of the trust flag in points3d.csv (sensitive flags more, misses less)")
     parser.add_argument("--skeleton", type=Path, help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
@@ -52,8 +53,8 @@ def _solve(args: argparse.Namespace) -> int:
                            constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
                            progress=True)
     skeleton = tuple(read_skeleton(args.skeleton).connections) if args.skeleton else ()
-    temporal = TemporalOptions(clocks=ClockOptions(model=ClockModel(args.clock_model)),
-                               refinement=Refinement(args.refinement))
+    model = None if args.clock_model == "auto" else ClockModel(args.clock_model)
+    temporal = TemporalOptions(clock_model=model, refinement=Refinement(args.refinement))
     points = run(args.cameras, args.tracks, args.out,
                  SolveStageOptions(solver=solver, temporal=temporal, trust=preset_options(TrustPreset(args.trust)),
                                    recording=not args.no_recording, skeleton=skeleton))
