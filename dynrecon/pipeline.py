@@ -37,7 +37,15 @@ from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
 from labeling.workspace import read_skeleton
 from reconstruct.evaluate import Accuracy, evaluate
-from reconstruct.export import OrderSource, frame_times, global_order, write_c3d_export, write_trc_export
+from reconstruct.export import (
+    OrderSource,
+    clock_note,
+    clock_times,
+    frame_times,
+    global_order,
+    write_c3d_export,
+    write_trc_export,
+)
 from reconstruct.points import FramePoints, read_points, read_sequencing
 from reconstruct.recording import BackgroundCloud, write_recording
 from reconstruct.solve_stage import SolveStageOptions
@@ -323,8 +331,12 @@ def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Pa
             bones: tuple[tuple[str, ...], ...]) -> None:
     cameras = read_cameras(cameras_path)
     points = read_points(ws / "points3d.csv")
-    order, source = global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
-    times = frame_times(points, cameras) if source is OrderSource.TIME else None
+    sequencing = read_sequencing(ws / "sequencing.json")
+    order, source = global_order(points, cameras, sequencing)
+    if source is OrderSource.CLOCKS:
+        times = clock_times(points, sequencing)
+    else:
+        times = frame_times(points, cameras) if source is OrderSource.TIME else None
     if times is None:
         times = np.empty(points.num_frames)
         times[order] = np.arange(points.num_frames) / export_rate(cameras, points.num_frames)
@@ -341,11 +353,18 @@ def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Pa
 def _export(ws: Path, cameras_path: Path, units: str) -> None:
     points = read_points(ws / "points3d.csv")
     cameras = read_cameras(cameras_path)
-    order, source = global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
+    sequencing = read_sequencing(ws / "sequencing.json")
+    order, source = global_order(points, cameras, sequencing)
     rate = export_rate(cameras, points.num_frames)
-    log.info("export: %d rows at %.1f Hz, ordered by %s", len(order), rate, source.value)
-    write_trc_export(points, order, rate, ws / "points.trc", units=units)
-    write_c3d_export(points, order, rate, ws / "points.c3d", units=units)
+    times = clock_times(points, sequencing) if source is OrderSource.CLOCKS else None
+    log.info("export: %s at %.1f Hz, ordered by %s", "resampled on the recovered clock" if times is not None
+             else f"{len(order)} rows", rate, source.value)
+    write_trc_export(points, order, rate, ws / "points.trc", units=units, times=times)
+    if times is not None:
+        write_c3d_export(points, order, rate, ws / "points.c3d", units=units, times=times,
+                         note=clock_note(sequencing))
+    else:
+        write_c3d_export(points, order, rate, ws / "points.c3d", units=units)
 
 
 # ----------------------------------------------------------------------------------------------------------

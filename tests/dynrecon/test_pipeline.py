@@ -24,7 +24,7 @@ from dynrecon.pipeline import (
 )
 from reconstruct.demo import pipeline_options
 from reconstruct.mocap import read_mocap
-from reconstruct.points import FramePoints, read_points, write_points
+from reconstruct.points import FramePoints, read_points, read_sequencing, write_points
 from sfm.cameras import read_cameras, write_cameras
 from tracking.options import TrackOptions
 
@@ -117,12 +117,15 @@ def test_first_run_runs_every_stage(first_run):
         assert (ws / name).is_file(), name
     state = json.loads((ws / "pipeline.json").read_text())
     assert set(state["stages"]) == set(STAGES)
-    # Every frame of the cut registered; the exports have one row per frame, all 18 joints.
+    # Every frame of the cut registered; the exports are the trajectories of all 18 joints resampled on the
+    # recovered clock: a uniform grid over the clocks' time span at the export rate.
     points = read_points(ws / "points3d.csv")
     assert points.num_frames == sum(CUT.values())
+    times = [f["time"] for f in read_sequencing(ws / "sequencing.json").extra["clocks"]["frames"]]
     for export in ("points.trc", "points.c3d"):
         mocap = read_mocap(ws / export)
-        assert mocap.num_frames == points.num_frames
+        assert mocap.num_frames == int(np.floor((max(times) - min(times)) * mocap.rate + 1e-9)) + 1
+        assert np.isfinite(mocap.xyz).all(axis=-1).mean() > 0.9
         assert mocap.marker_names == points.point_names
         assert mocap.rate == pytest.approx((30.0 + 24.0 + 20.0) / STEP)
 
@@ -171,7 +174,10 @@ def test_changed_output_file_reruns_its_stage(first_run):
     (ws / "points.trc").write_text("edited by hand\n")
     result = run_stages(list(videos.values()), ws, _options(base / "sample" / "labels.csv"))
     assert {s.name for s in result.stages if not s.skipped} == {"export"}
-    assert read_mocap(ws / "points.trc").num_frames == sum(CUT.values())
+    # Exported on the recovered clock: a uniform grid over the clocks' time span at the export rate.
+    trc = read_mocap(ws / "points.trc")
+    times = [f["time"] for f in read_sequencing(ws / "sequencing.json").extra["clocks"]["frames"]]
+    assert trc.num_frames == int(np.floor((max(times) - min(times)) * trc.rate + 1e-9)) + 1
 
 
 def test_cli_run_reports_skipped_stages(first_run, monkeypatch, capsys):
