@@ -23,14 +23,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.optimize import least_squares
-from scipy.sparse.csgraph import minimum_spanning_tree
 
 from reconstruct.clocks import (
     ClockModel,
     ClockParams,
     TimeSource,
+    chain_clocks,
     cluster_covariance,
     frame_periods,
     free_terms,
@@ -258,34 +257,16 @@ def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, pe
 def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray,
            min_distinctness: float) -> tuple[np.ndarray, np.ndarray]:
     """Clock coefficients (N, 3) by composing pair relations along a maximum spanning tree of distinctness."""
-    coef = np.full((num_videos, 3), np.nan)
-    coef[ref] = reference_coef(centers[ref])
-    reached = np.zeros(num_videos, dtype=bool)
-    reached[ref] = True
     usable = {(p.v, p.u): p for p in pairs if p.distinctness >= min_distinctness and np.isfinite(p.cost)}
-    if not usable:
-        return coef, reached
     strength = np.zeros((num_videos, num_videos))
     for (v, u), p in usable.items():
         strength[v, u] = strength[u, v] = min(p.distinctness, 1e6)
-    tree = minimum_spanning_tree(sp.csr_matrix(np.divide(1.0, strength, out=np.zeros_like(strength),
-                                                          where=strength > 0)))
-    tree = (tree + tree.T).tocsr()
-    queue = [ref]
-    while queue:
-        v = queue.pop()
-        for u in tree.indices[tree.indptr[v]:tree.indptr[v + 1]]:
-            if reached[u]:
-                continue
-            p = usable.get((v, u)) or usable[(u, v)]
-            alpha, beta = (p.alpha, p.beta) if (p.v, p.u) == (v, u) else (-p.alpha / p.beta, 1.0 / p.beta)
-            o_v = coef[v, 0] - coef[v, 1] * centers[v]
-            r_v = coef[v, 1]
-            o_u, r_u = o_v - r_v * alpha / beta, r_v / beta
-            coef[u] = [o_u + r_u * centers[u], r_u, 0.0]
-            reached[u] = True
-            queue.append(int(u))
-    return coef, reached
+
+    def relation(v: int, u: int) -> tuple[float, float]:
+        p = usable.get((v, u)) or usable[(u, v)]
+        return (p.alpha, p.beta) if (p.v, p.u) == (v, u) else (-p.alpha / p.beta, 1.0 / p.beta)
+
+    return chain_clocks(strength, ref, centers, relation)
 
 
 class _Joint:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -399,6 +399,37 @@ def _pair_relations(links: Links, own: np.ndarray, video_index: np.ndarray, peri
     return relations
 
 
+def chain_clocks(strength: np.ndarray, ref: int, centers: np.ndarray,
+                 relation: Callable[[int, int], tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Clock coefficients (N, 3) and `reached` (N,) by composing pair relations along a maximum spanning tree of
+    `strength` (N, N symmetric, 0 = no relation) from the reference. `relation(v, u)` gives (alpha, beta) with
+    own_u = alpha + beta own_v. Shared by the link fit and the track search."""
+    num_videos = len(strength)
+    coef = np.full((num_videos, 3), np.nan)
+    coef[ref] = reference_coef(centers[ref])
+    reached = np.zeros(num_videos, dtype=bool)
+    reached[ref] = True
+    if num_videos < 2 or not strength.any():
+        return coef, reached
+    tree = minimum_spanning_tree(sp.csr_matrix(np.where(strength > 0, 1.0 / (1.0 + strength), 0.0)))
+    tree = (tree + tree.T).tocsr()
+    queue = [ref]
+    while queue:
+        v = queue.pop()
+        for u in tree.indices[tree.indptr[v]:tree.indptr[v + 1]]:
+            if reached[u]:
+                continue
+            alpha, beta = relation(v, int(u))
+            # g_u(own_u) = g_v(own_v) with own_v = (own_u - alpha) / beta; g_v linear: offset o_v + rate r_v own
+            o_v = coef[v, 0] - coef[v, 1] * centers[v]
+            r_v = coef[v, 1]
+            o_u, r_u = o_v - r_v * alpha / beta, r_v / beta
+            coef[u] = [o_u + r_u * centers[u], r_u, 0.0]
+            reached[u] = True
+            queue.append(int(u))
+    return coef, reached
+
+
 def _chain_start(relations: dict[tuple[int, int], tuple[float, float, int]], ref: int, num_videos: int,
                  centers: np.ndarray, min_links: int) -> tuple[np.ndarray, np.ndarray]:
     """Start coefficients by composing pair relations along a maximum spanning tree (most inliers) from `ref`."""
@@ -407,35 +438,17 @@ def _chain_start(relations: dict[tuple[int, int], tuple[float, float, int]], ref
         strength[v, u] += n
         strength[u, v] += n
     strength[strength < min_links] = 0
-    coef = np.full((num_videos, 3), np.nan)
-    coef[ref] = reference_coef(centers[ref])
-    reached = np.zeros(num_videos, dtype=bool)
-    reached[ref] = True
-    if num_videos > 1 and strength.any():
-        tree = minimum_spanning_tree(sp.csr_matrix(np.where(strength > 0, 1.0 / (1.0 + strength), 0.0)))
-        tree = (tree + tree.T).tocsr()
-        queue = [ref]
-        while queue:
-            v = queue.pop()
-            for u in tree.indices[tree.indptr[v]:tree.indptr[v + 1]]:
-                if reached[u]:
-                    continue
-                # own_u = alpha + beta own_v (from v's links) or own_v = alpha' + beta' own_u (from u's links)
-                if (v, u) in relations and (u, v) in relations:
-                    pick = (v, u) if relations[(v, u)][2] >= relations[(u, v)][2] else (u, v)
-                else:
-                    pick = (v, u) if (v, u) in relations else (u, v)
-                alpha, beta, _ = relations[pick]
-                if pick != (v, u):  # invert own_v = alpha + beta own_u
-                    alpha, beta = -alpha / beta, 1.0 / beta
-                # g_u(own_u) = g_v(own_v) with own_v = (own_u - alpha) / beta; g_v linear: offset o_v + rate r_v own
-                o_v = coef[v, 0] - coef[v, 1] * centers[v]
-                r_v = coef[v, 1]
-                o_u, r_u = o_v - r_v * alpha / beta, r_v / beta
-                coef[u] = [o_u + r_u * centers[u], r_u, 0.0]
-                reached[u] = True
-                queue.append(int(u))
-    return coef, reached
+
+    def relation(v: int, u: int) -> tuple[float, float]:
+        # own_u = alpha + beta own_v (from v's links) or own_v = alpha' + beta' own_u (from u's links)
+        if (v, u) in relations and (u, v) in relations:
+            pick = (v, u) if relations[(v, u)][2] >= relations[(u, v)][2] else (u, v)
+        else:
+            pick = (v, u) if (v, u) in relations else (u, v)
+        alpha, beta, _ = relations[pick]
+        return (alpha, beta) if pick == (v, u) else (-alpha / beta, 1.0 / beta)
+
+    return chain_clocks(strength, ref, centers, relation)
 
 
 @dataclass(kw_only=True)
