@@ -44,3 +44,12 @@ def test_refinement_none_keeps_the_seed_points_but_reports_clocks():
     assert not temporal.refined
     np.testing.assert_array_equal(temporal.points, result.points)
     assert np.all(np.isfinite(temporal.times))
+
+
+def test_a_clock_polish_whose_cost_rises_or_rate_runs_away_is_rejected():
+    from reconstruct.temporal import _plausible
+
+    assert _plausible([10.0, 9.0, 9.05], np.array([0.0, 1e-4]), 0.01)
+    assert not _plausible([10.0, 9.0, 1e6], np.array([0.0, 1e-4]), 0.01)  # the cost exploded
+    assert not _plausible([10.0, 9.0], np.array([0.0, 0.24]), 0.01)  # a clock stretched by 24 %
+    assert not _plausible([10.0, float("nan")], np.array([0.0, 0.0]), 0.01)
