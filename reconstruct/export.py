@@ -47,7 +47,11 @@ class OrderSource(enum.Enum):
 
 def frame_times(points: FramePoints, cameras: CameraSet) -> np.ndarray | None:
     """(F,) decoder time of every frame of `points`, or None when any frame lacks one."""
-    known = {(v.name, f.frame): f.time for v in cameras.videos for f in v.frames}
+    return _times_of(points, {(v.name, f.frame): f.time for v in cameras.videos for f in v.frames})
+
+
+def _times_of(points: FramePoints, known: dict[tuple[str, int], float | None]) -> np.ndarray | None:
+    """(F,) the time `known` gives each (video, frame) of `points`, or None when some frame has none."""
     times = [known.get((video, int(frame))) for video, frame in zip(points.videos, points.frames, strict=True)]
     if any(t is None for t in times):
         return None
@@ -109,11 +113,8 @@ def clock_times(points: FramePoints, sequencing: Sequencing | None) -> np.ndarra
         known = {(str(e["video"]), int(e["frame"])): e["time"] for e in sequencing.extra["clocks"]["frames"]}
     except (KeyError, TypeError, ValueError):
         return None
-    times = [known.get((video, int(frame))) for video, frame in zip(points.videos, points.frames, strict=True)]
-    if any(t is None for t in times):
-        return None
-    values = np.array(times, dtype=float)
-    return values if np.all(np.isfinite(values)) else None
+    values = _times_of(points, known)
+    return values if values is not None and np.all(np.isfinite(values)) else None
 
 
 def clock_note(sequencing: Sequencing) -> str:
