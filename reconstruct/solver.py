@@ -164,8 +164,9 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             t0 = time.perf_counter()
             pool = window_pool(anchor, video_index, layout, options.candidates.half_window) if sparse else None
             W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W, pool=pool)
+            W_matrix = W_next.to_csc()
             if candidate is not points:
-                mixed_cost = total_cost(candidate, W_next.to_csc(), centers, rays, video_index, options.lambda1,
+                mixed_cost = total_cost(candidate, W_matrix, centers, rays, video_index, options.lambda1,
                                         lambda2, options.lambda3, options.constraint)
                 if mixed_cost > previous_cost:  # the mix lost ground: fall back to the plain alternation
                     stage.rejected_mixes += 1
@@ -174,12 +175,12 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                     candidate = points
                     W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W,
                                               pool=pool)
+                    W_matrix = W_next.to_csc()
             W = W_next
             if sparse:
-                anchor = follow_w(anchor, W.to_csc(), video_index, layout)
+                anchor = follow_w(anchor, W_matrix, video_index, layout)
             t_w += time.perf_counter() - t0
             t0 = time.perf_counter()
-            W_matrix = W.to_csc()
             new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=candidate)
             t_x += time.perf_counter() - t0
             if not np.all(np.isfinite(new_points)):
