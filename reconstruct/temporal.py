@@ -70,7 +70,12 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
                     "solve is kept)", ", ".join(missing) or "some frames")
         report["skipped"] = f"unidentified clocks: {', '.join(missing)}"
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
-    polished = refine_with_clocks(problem, result.points, times, options.refine, options.clock_refine)
+    # The polish's cost does not see a global affine change of time: hold the clocks' reference video fixed so
+    # that the polished times stay in the clocks' gauge (reference: offset 0, rate 1).
+    clock_refine = options.clock_refine
+    if clock_refine.reference is None:
+        clock_refine = replace(clock_refine, reference=problem.video_names.index(clocks.reference))
+    polished = refine_with_clocks(problem, result.points, times, options.refine, clock_refine)
     cost = [float(c) for c in polished.cost]
     if _plausible(polished.cost, polished.rates, options.max_rate_correction):
         clocks = refit_clocks(clocks, problem.video_index, polished.times)
@@ -103,15 +108,9 @@ def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float)
 
 def refit_clocks(clocks: Clocks, video_index: np.ndarray, times: np.ndarray) -> Clocks:
     """The clocks with each video's offset/rate(/drift) refitted to `times (F,)` by least squares on its own
-    times, and those times (in the clocks' gauge) as the per-frame global times (the uncertainties are kept)."""
+    times, and those times as the per-frame global times (the uncertainties are kept). `times` must be in the
+    clocks' gauge (the reference video's global time = its own time)."""
     degree = 2 if clocks.model is ClockModel.DRIFT else 1
-    # The refinement's cost does not see a global affine change of time, so its times may come in another gauge:
-    # map them back so that the reference video keeps its own clock (offset 0, rate 1), as estimate_clocks defines.
-    names = [c.name for c in clocks.videos]
-    reference = video_index == names.index(clocks.reference)
-    if reference.sum() >= 2 and np.ptp(clocks.own_time[reference]) > 0:
-        rate, offset = np.polyfit(clocks.own_time[reference], times[reference], 1)
-        times = (np.asarray(times, dtype=float) - offset) / rate
     for v, clock in enumerate(clocks.videos):
         own = video_index == v
         if own.sum() <= degree or not clock.identified:
