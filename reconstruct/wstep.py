@@ -41,6 +41,8 @@ class WStepOptions:
     # F = 700 (measured), still 4x cheaper than FISTA. Past this budget
     # FISTA finishes the solve.
     max_active_set_iterations: int = 60
+    # Budget of the monotone primal active-set method that finishes when PDAS cycles (each step one KKT solve).
+    max_primal_iterations: int = 20
     # Entries whose KKT violation / L_f (the weight a gradient step would give them) exceeds this join the working
     # set. Measured on HDM05: 1e-5 grew the set to ~36 entries per column for the same accuracy at 10x the time.
     kkt_tolerance: float = 1e-3
@@ -229,42 +231,34 @@ def _fista(problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, st
     return x
 
 
-def _active_set(
-    problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats
-) -> np.ndarray | None:
-    """Exact minimizer on the working set by a primal-dual active-set method (Hintermueller, Ito, Kunisch 2002).
+class _FreeSetSolver:
+    """Equality-constrained QPs of g on a free set I (all other entries fixed at 0), one sparse KKT solve each:
+    [[H_II + ridge, E^T], [E, 0]] [v_I; -mu] = [0; 1], E summing each column's free entries."""
 
-    Each iteration solves the equality-constrained QP on a free set I (all other entries fixed at 0) through its
-    sparse KKT system, which also gives each column's simplex multiplier mu_f. The next free set keeps the entries
-    that came out positive and adds those outside I whose gradient lies below their column's multiplier. When the set
-    repeats, the solution is non-negative and satisfies KKT: it is the exact minimizer. Returns None when the set
-    has not settled within the iteration budget (the caller then falls back to FISTA).
-    """
-    F, K = V.shape
-    n = F * K
-    H = problem.hessian()
-    ridge = 1e-12 * max(float(np.abs(H.diagonal()).max()), 1e-300)
-    column_of = np.repeat(np.arange(F), K)
-    valid = problem.valid.ravel()
-    # Dust left by the previous solve (values below NEGLIGIBLE) is not support: starting with it free costs a
-    # whole extra KKT solve to drop it again.
-    free = (problem.project(V).ravel() > NEGLIGIBLE) & valid
-    H_coo = H.tocoo()
-    seen: set[bytes] = set()
-    cautious = False
-    for _ in range(options.max_active_set_iterations):
-        stats.iterations += 1
+    def __init__(self, problem: _WorkingSetProblem):
+        F, K = problem.cand.shape
+        self.F, self.K = F, K
+        self.H = problem.hessian()
+        self.H_coo = self.H.tocoo()
+        self.ridge = 1e-12 * max(float(np.abs(self.H.diagonal()).max()), 1e-300)
+        self.column_of = np.repeat(np.arange(F), K)
+        self.valid = problem.valid.ravel()
+        self.lipschitz = problem.lipschitz
+
+    def solve(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(v (F*K,), mu (F,)) or None when the system is singular."""
+        F = self.F
         idx = np.flatnonzero(free)
         m = len(idx)
-        # KKT matrix [[H_II + ridge, E^T], [E, 0]] assembled as one COO: slicing H and sp.bmat cost more than the
-        # sparse factorization itself.
+        # Assembled as one COO: slicing H and sp.bmat cost more than the sparse factorization itself.
         position = np.cumsum(free) - 1  # new index of every free entry
-        inside = free[H_coo.row] & free[H_coo.col]
-        constraint_rows = m + column_of[idx]
+        H = self.H_coo
+        inside = free[H.row] & free[H.col]
+        constraint_rows = m + self.column_of[idx]
         kkt = sp.csc_matrix(
-            (np.concatenate([H_coo.data[inside], np.full(m, ridge), np.ones(m), np.ones(m)]),
-             (np.concatenate([position[H_coo.row[inside]], np.arange(m), constraint_rows, np.arange(m)]),
-              np.concatenate([position[H_coo.col[inside]], np.arange(m), np.arange(m), constraint_rows]))),
+            (np.concatenate([H.data[inside], np.full(m, self.ridge), np.ones(m), np.ones(m)]),
+             (np.concatenate([position[H.row[inside]], np.arange(m), constraint_rows, np.arange(m)]),
+              np.concatenate([position[H.col[inside]], np.arange(m), np.arange(m), constraint_rows]))),
             shape=(m + F, m + F))
         rhs = np.concatenate([np.zeros(m), np.ones(F)])
         try:
@@ -275,42 +269,123 @@ def _active_set(
         if not np.all(np.isfinite(solution)):
             log.debug("active set: singular KKT system")
             return None
-        v = np.zeros(n)
+        v = np.zeros(self.F * self.K)
         v[idx] = solution[:m]
-        mu = -solution[m:]
-        gradient = H @ v
-        violation = (mu[column_of] - gradient) / problem.lipschitz[column_of]
+        return v, -solution[m:]
+
+    def violation(self, v: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        """(F*K,) how far each entry's gradient lies below its column's multiplier, in W units (/ L_f)."""
+        return (mu[self.column_of] - self.H @ v) / self.lipschitz[self.column_of]
+
+    def ensure_nonempty_columns(self, free: np.ndarray, v: np.ndarray) -> None:
+        """Every column needs one free entry: give an empty one its lowest-gradient entry."""
+        empty = np.bincount(self.column_of[free], minlength=self.F) == 0
+        if empty.any():
+            g = np.where(self.valid, self.H @ v, np.inf).reshape(self.F, self.K)
+            free.reshape(self.F, self.K)[empty, np.argmin(g[empty], axis=1)] = True
+
+
+def _active_set(
+    problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats
+) -> np.ndarray | None:
+    """Exact minimizer on the working set by a primal-dual active-set method (Hintermueller, Ito, Kunisch 2002).
+
+    Each iteration solves the equality-constrained QP on a free set I, which also gives each column's simplex
+    multiplier mu_f. The next free set keeps the entries that came out positive and adds those outside I whose
+    gradient lies below their column's multiplier. When the set repeats, the solution is non-negative and satisfies
+    KKT: it is the exact minimizer. PDAS is fast but not monotone and can cycle on nearly degenerate entries (a
+    handful of entries flipping in and out, measured on CMU F = 2000); a repeated set hands the best iterate seen so
+    far to the monotone primal active-set method, which cannot cycle; so does a PDAS that has not settled within its
+    budget. Returns None only when a KKT system is singular (the caller then falls back to FISTA).
+    """
+    F, K = V.shape
+    solver = _FreeSetSolver(problem)
+    valid = solver.valid
+    # Dust left by the previous solve (values below NEGLIGIBLE) is not support: starting with it free costs a
+    # whole extra KKT solve to drop it again.
+    best = problem.project(V)
+    best_objective = problem.objective(best)
+    free = (best.ravel() > NEGLIGIBLE) & valid
+    seen: set[bytes] = set()
+    for _ in range(options.max_active_set_iterations):
+        stats.iterations += 1
+        solved = solver.solve(free)
+        if solved is None:
+            return None
+        v, mu = solved
+        violation = solver.violation(v, mu)
         entering = valid & ~free & (violation > options.tolerance)
+        if not entering.any() and v[free].min() > -NEGLIGIBLE:
+            return _finish(problem, v, stats)
+        projected = problem.project(v.reshape(F, K))
+        objective = problem.objective(projected)
+        if objective < best_objective:
+            best, best_objective = projected, objective
         # Round-off makes degenerate entries (optimal value 0, gradient = multiplier) flip sign from one solve to
-        # the next; treat |v| below NEGLIGIBLE as zero so that they cannot make the free set cycle.
-        positive = free & (v > NEGLIGIBLE)
-        if not entering.any() and v[idx].min() > -NEGLIGIBLE:
-            stats.converged = True
-            V_out = np.maximum(v, 0.0).reshape(F, K)
-            V_out /= V_out.sum(axis=1, keepdims=True)
-            stats.objective = problem.objective(V_out)
-            return V_out
-        if cautious:
-            entering = _most_violating_per_column(entering, violation, F, K)
-        next_free = positive | entering
-        key = np.packbits(next_free).tobytes()
+        # the next; treat |v| below NEGLIGIBLE as zero.
+        free = (free & (v > NEGLIGIBLE)) | entering
+        key = np.packbits(free).tobytes()
         if key in seen:
-            if cautious:  # cycling even one entry at a time: let the first-order method finish from here
-                log.debug("active set: cycling after %d iterations", len(seen))
-                return None
-            # Full PDAS steps can cycle on nearly degenerate columns; one entering entry per column per
-            # iteration (the most violating) breaks the cycles seen on real captures.
-            cautious = True
-            entering = _most_violating_per_column(entering, violation, F, K)
-            next_free = positive | entering
-            key = np.packbits(next_free).tobytes()
+            log.debug("active set: PDAS cycles after %d iterations; primal active set from the best iterate",
+                      len(seen))
+            return _primal_active_set(problem, solver, best, options, stats)
         seen.add(key)
-        free = next_free
-        empty = np.bincount(column_of[free], minlength=F) == 0
-        if empty.any():  # every column needs one free entry: take its lowest gradient
-            g = np.where(valid, gradient, np.inf).reshape(F, K)
-            free.reshape(F, K)[empty, np.argmin(g[empty], axis=1)] = True
-    return None
+        solver.ensure_nonempty_columns(free, v)
+    log.debug("active set: PDAS has not settled in %d iterations; primal active set from the best iterate",
+              options.max_active_set_iterations)
+    return _primal_active_set(problem, solver, best, options, stats)
+
+
+def _primal_active_set(
+    problem: _WorkingSetProblem, solver: _FreeSetSolver, start: np.ndarray, options: WStepOptions,
+    stats: WStepStats,
+) -> np.ndarray:
+    """Primal active-set method (Nocedal & Wright, Alg. 16.3) from a feasible start: every step solves the QP on
+    the free set and moves toward its solution only as far as the simplex allows, so g never increases and no free
+    set repeats. Entries at zero whose QP value is negative leave the set; when the QP solution is feasible, the
+    entries that violate KKT most (one per column) join it. Near a degenerate optimum most steps remove one entry,
+    so after `max_primal_iterations` the feasible iterate reached is returned (never worse than `start`)."""
+    F, K = start.shape
+    x = start.ravel().copy()
+    free = (x > 0) & solver.valid
+    for _ in range(options.max_primal_iterations):
+        stats.iterations += 1
+        solved = solver.solve(free)
+        if solved is None:
+            break
+        v, mu = solved
+        blocking = free & (v < -NEGLIGIBLE)
+        if not blocking.any():
+            x = np.where(free, np.maximum(v, 0.0), 0.0)
+            violation = solver.violation(v, mu)
+            entering = solver.valid & ~free & (violation > options.tolerance)
+            if not entering.any():
+                return _finish(problem, v, stats)
+            free |= _most_violating_per_column(entering, violation, F, K)
+            continue
+        # Entries already at zero that the QP wants negative leave without a step; the others block the step.
+        at_zero = blocking & (x <= NEGLIGIBLE)
+        if at_zero.any():
+            free &= ~at_zero
+            x[at_zero] = 0.0
+            continue
+        x = x + float(np.min(x[blocking] / (x[blocking] - v[blocking]))) * (v - x)
+        hit = blocking & (x <= NEGLIGIBLE)
+        x[hit] = 0.0
+        free &= ~hit
+    V_out = np.maximum(x, 0.0).reshape(F, K)
+    V_out /= V_out.sum(axis=1, keepdims=True)
+    stats.objective = problem.objective(V_out)
+    return V_out
+
+
+def _finish(problem: _WorkingSetProblem, v: np.ndarray, stats: WStepStats) -> np.ndarray:
+    F, K = problem.cand.shape
+    stats.converged = True
+    V_out = np.maximum(v, 0.0).reshape(F, K)
+    V_out /= V_out.sum(axis=1, keepdims=True)
+    stats.objective = problem.objective(V_out)
+    return V_out
 
 
 def _most_violating_per_column(entering: np.ndarray, violation: np.ndarray, F: int, K: int) -> np.ndarray:

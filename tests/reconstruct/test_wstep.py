@@ -77,3 +77,35 @@ def test_warm_start_reuses_previous_solution():
     W2, warm = solve_w(shapes, video_index, P, options, previous=W)
     assert warm.iterations <= cold.iterations
     np.testing.assert_allclose(W2.to_csc().toarray(), W.to_csc().toarray(), atol=1e-6)
+
+
+def test_primal_active_set_descends_to_the_working_set_optimum():
+    """The fallback that finishes when PDAS cycles: monotone from any feasible start, and exact when its budget
+    suffices (same optimum as PDAS on the same working set)."""
+    from reconstruct.wstep import (
+        WStepStats,
+        _active_set,
+        _FreeSetSolver,
+        _pack_pairs,
+        _primal_active_set,
+        _WorkingSetProblem,
+        nearest_other_video,
+    )
+
+    shapes, video_index, P = _shapes(F=30, seed=3)
+    F = len(shapes)
+    near = nearest_other_video(shapes, video_index, 6)
+    cand, valid = _pack_pairs(near.ravel(), np.repeat(np.arange(F), near.shape[1]), F)
+    problem = _WorkingSetProblem(shapes, cand, valid, 0.05, P)
+    start = problem.project(np.where(valid, 1.0, 0.0))  # uniform weights: feasible, far from optimal
+    options = WStepOptions(max_primal_iterations=2)
+    short = _primal_active_set(problem, _FreeSetSolver(problem), start, options, WStepStats())
+    assert problem.objective(short) <= problem.objective(start)
+    exact = _primal_active_set(problem, _FreeSetSolver(problem), start, WStepOptions(max_primal_iterations=500),
+                               WStepStats())
+    reference = _active_set(problem, start, WStepOptions(), WStepStats())
+    assert reference is not None
+    assert problem.objective(exact) <= problem.objective(short)
+    np.testing.assert_allclose(problem.objective(exact), problem.objective(reference), rtol=1e-9)
+    np.testing.assert_allclose(exact.sum(axis=1), 1.0)
+    assert exact.min() >= 0
