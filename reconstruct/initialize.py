@@ -3,6 +3,14 @@
 For frames f and j of different videos, the depths minimizing ||S_f - S_j||^2 decouple per point: they are the
 closest points of the two viewing rays. D(f, j) is the mean squared gap over the points both frames observe; a pair
 with a negative depth (diverging rays) gets D = inf. Each frame takes the depths from its best partner.
+
+The squared gap of two lines is computed without the depths, from Pluecker coordinates (direction r, moment
+m = C x r): the gap is (r_a . m_b + r_b . m_a)^2 / |r_a x r_b|^2, and |r_a x r_b|^2 = 1 - (r_a . r_b)^2 for unit
+rays. Both numerator terms are matrix products over frame pairs, and no large terms cancel (the expansion
+|w|^2 + d_a^2 + d_b^2 + ... of the gap vector loses digits when the rays nearly meet). D is symmetric, so each pair
+of videos is evaluated once, for the rows of both. Whether a pair diverges needs its depths; it is only checked
+for each frame's best candidates, in order, until one does not diverge: the same partner as excluding every
+diverging pair first, at a fraction of the cost.
 """
 
 from __future__ import annotations
@@ -15,6 +23,11 @@ PARALLEL_EPS = 1e-9
 # Below this many shared points a bundle distance says little about the shape; such pairs are skipped when a
 # frame has better-supported partners.
 MIN_COMMON_POINTS = 3
+# Rounds of "take the best candidate, check that it does not diverge" before the remaining frames get the
+# divergence of all their candidates at once.
+LAZY_ROUNDS = 4
+# Frame pairs per tile of the per-point products: their few (R, C) buffers stay in a 1-2 MB cache.
+TILE_PAIRS = 16_384
 
 
 @dataclass(kw_only=True)
@@ -44,75 +57,245 @@ def closest_ray_points(
     return depth_a, depth_b, np.sum(gap * gap, axis=-1)
 
 
+@dataclass(kw_only=True)
+class _Lines:
+    """The viewing rays as lines, laid out for per-point matrix products. Unobserved rays are zero vectors: their
+    products with anything are 0, so they add nothing to a gap sum and are never parallel."""
+
+    centers: np.ndarray  # (F, 3)
+    rays: np.ndarray  # (F, P, 3) zero where unobserved
+    seen: np.ndarray  # (F, P) bool
+    seen_float: np.ndarray  # (F, P) 1.0 / 0.0, for counting shared points by a matrix product
+    need: np.ndarray  # (F,) shared points a partner must have (MIN_COMMON_POINTS, or all the frame observes)
+    direction: np.ndarray  # (P, F, 3) the rays
+    left: np.ndarray  # (P, F, 6) [m, r] with moments m = (C - origin) x r
+    right: np.ndarray  # (P, F, 6) [r, m]: left_a . right_b = r_a . m_b + r_b . m_a
+
+    @classmethod
+    def of(cls, centers: np.ndarray, rays: np.ndarray) -> _Lines:
+        seen = ~np.isnan(rays[..., 0])
+        zeroed = np.where(seen[..., None], np.nan_to_num(rays), 0.0)
+        # The gap is origin-free; an origin among the cameras keeps the moments, and so the rounding, small.
+        origin = centers.mean(axis=0) if len(centers) else np.zeros(3)
+        moments = np.cross((centers - origin)[:, None, :], zeroed)
+        observed = seen.sum(axis=1)
+        return cls(
+            centers=centers, rays=zeroed, seen=seen, seen_float=seen.astype(float),
+            need=np.minimum(MIN_COMMON_POINTS, np.maximum(observed, 1)),
+            direction=np.ascontiguousarray(zeroed.transpose(1, 0, 2)),
+            left=np.ascontiguousarray(np.concatenate([moments, zeroed], axis=-1).transpose(1, 0, 2)),
+            right=np.ascontiguousarray(np.concatenate([zeroed, moments], axis=-1).transpose(1, 0, 2)),
+        )
+
+
+def _gap_sums(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum over shared, non-parallel points of the squared ray gap, and their number, for rows x cols (R, C).
+
+    One pass per point over cache-sized (R, C) buffers; rows x cols should be about 10^4-10^5 pairs."""
+    R, C = len(rows), len(cols)
+    ray_a = lines.direction[:, rows]  # (P, R, 3)
+    ray_b_t = np.ascontiguousarray(lines.direction[:, cols].transpose(0, 2, 1))  # (P, 3, C)
+    left = lines.left[:, rows]  # (P, R, 6)
+    right_t = np.ascontiguousarray(lines.right[:, cols].transpose(0, 2, 1))  # (P, 6, C)
+    total = np.zeros((R, C))
+    sine_sq = np.empty((R, C))
+    triple = np.empty((R, C))
+    parallel: np.ndarray | None = None
+    for p in range(lines.direction.shape[0]):
+        np.matmul(ray_a[p], ray_b_t[p], out=sine_sq)  # cosine
+        np.multiply(sine_sq, sine_sq, out=sine_sq)
+        np.subtract(1.0, sine_sq, out=sine_sq)
+        np.matmul(left[p], right_t[p], out=triple)  # (C_a - C_b) . (r_a x r_b)
+        if sine_sq.min() < PARALLEL_EPS:  # rare: nearly parallel rays have no meaningful gap and are not counted
+            flat = sine_sq < PARALLEL_EPS
+            parallel = flat.astype(np.int64) if parallel is None else parallel + flat
+            sine_sq[flat] = 1.0
+            triple[flat] = 0.0
+        np.multiply(triple, triple, out=triple)
+        np.divide(triple, sine_sq, out=triple)
+        np.add(total, triple, out=total)
+    count = lines.seen_float[rows] @ lines.seen_float[cols].T  # exact: small integers
+    count = np.rint(count).astype(np.int64)
+    if parallel is not None:
+        count -= parallel
+    return total, count
+
+
+def _pair_depths(lines: _Lines, f: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For explicit pairs (n,): the depths (n, P) of f's points at the mutually closest ray points (NaN where a
+    frame misses the point or the rays are parallel), and whether the pair diverges (n,)."""
+    ra, rb = lines.rays[f], lines.rays[j]  # (n, P, 3)
+    w = lines.centers[f] - lines.centers[j]  # (n, 3)
+    b = np.einsum("npk,npk->np", ra, rb)
+    d = np.einsum("npk,nk->np", ra, w)
+    e = np.einsum("npk,nk->np", rb, w)
+    denom = 1.0 - b * b
+    usable = lines.seen[f] & lines.seen[j] & (denom >= PARALLEL_EPS)
+    safe = np.where(usable, denom, 1.0)
+    depth_a = (b * e - d) / safe
+    depth_b = (e - b * d) / safe
+    diverging = np.any(usable & ((depth_a < 0) | (depth_b < 0)), axis=1)
+    return np.where(usable, depth_a, np.nan), diverging
+
+
+def _diverging_matrix(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Whether each pair of rows x cols (R, C) diverges, by per-point matrix products; the fallback for frames
+    whose best candidates keep diverging. A depth's sign is its numerator's (the denominator is in (0, 1])."""
+    ca, cb = lines.centers[rows], lines.centers[cols]
+    out = np.zeros((len(rows), len(cols)), dtype=bool)
+    for p in range(lines.rays.shape[1]):
+        ra, rb = lines.rays[rows, p], lines.rays[cols, p]  # zero where unobserved
+        sa, sb = lines.seen_float[rows, p], lines.seen_float[cols, p]
+        b = ra @ rb.T
+        # d = r_a . (C_a - C_b), e = r_b . (C_a - C_b); both 0 where either frame misses the point.
+        d = np.einsum("ri,ri->r", ra, ca)[:, None] * sb[None, :] - ra @ (cb * sb[:, None]).T
+        e = (ca * sa[:, None]) @ rb.T - sa[:, None] * np.einsum("ci,ci->c", rb, cb)[None, :]
+        usable = 1.0 - b * b >= PARALLEL_EPS
+        out |= usable & ((b * e - d < 0) | (e - b * d < 0))
+    return out
+
+
+def _best_partners(
+    lines: _Lines, D: np.ndarray, rows: np.ndarray, cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per row of D (R, C; modified: diverging pairs become inf), the first column of least D among the
+    non-diverging ones. Returns the column position (R,) (-1 where none), its D (R,), and the diverging pairs
+    found (row positions, column positions)."""
+    R = len(rows)
+    best = np.full(R, -1, dtype=np.int64)
+    cost = np.full(R, np.inf)
+    found: list[tuple[np.ndarray, np.ndarray]] = []
+    pending = np.arange(R)
+    for _ in range(LAZY_ROUNDS):
+        if not len(pending):
+            return best, cost, found
+        pick = np.argmin(D[pending], axis=1)
+        value = D[pending, pick]
+        finite = np.isfinite(value)
+        pending, pick, value = pending[finite], pick[finite], value[finite]
+        _, diverging = _pair_depths(lines, rows[pending], cols[pick])
+        keep = ~diverging
+        best[pending[keep]], cost[pending[keep]] = pick[keep], value[keep]
+        D[pending[diverging], pick[diverging]] = np.inf
+        found.append((pending[diverging], pick[diverging]))
+        pending = pending[diverging]
+    if len(pending):
+        sub = D[pending]
+        diverging_all = _diverging_matrix(lines, rows[pending], cols)
+        sub[diverging_all] = np.inf
+        D[pending] = sub
+        r, c = np.nonzero(diverging_all)
+        found.append((pending[r], c))
+        pick = np.argmin(sub, axis=1)
+        value = sub[np.arange(len(pending)), pick]
+        finite = np.isfinite(value)
+        best[pending[finite]], cost[pending[finite]] = pick[finite], value[finite]
+    return best, cost, found
+
+
+def _merge(
+    partner: np.ndarray, cost: np.ndarray, frames: np.ndarray, best: np.ndarray, best_cost: np.ndarray,
+    cols: np.ndarray,
+) -> None:
+    """Merge the best column positions (-1: none) of `frames` among `cols` into partner / cost (F,): least cost
+    wins, the lower frame index on ties (as argmin over a whole row)."""
+    ok = best >= 0
+    frames, candidate, candidate_cost = frames[ok], cols[best[ok]], best_cost[ok]
+    old_cost, old = cost[frames], partner[frames]
+    better = (candidate_cost < old_cost) | ((candidate_cost == old_cost) & (candidate < old))
+    partner[frames[better]] = candidate[better]
+    cost[frames[better]] = candidate_cost[better]
+
+
 def bundle_distances(
     centers: np.ndarray, rays: np.ndarray, rows: np.ndarray, video_index: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """D(f, j) for the frames `rows` against all frames, and the depths of `rows` in each pair.
 
-    centers: (F, 3); rays: (F, P, 3) NaN = unobserved; rows: (B,). Returns D (B, F) and depth (B, F, P).
-    The closed form of `closest_ray_points` is evaluated per point with matrix products over frame pairs.
-    """
+    centers: (F, 3); rays: (F, P, 3) NaN = unobserved; rows: (B,). Returns D (B, F) and depth (B, F, P), NaN where
+    either frame misses the point, the rays are parallel, or the frames are of the same video (D = inf there)."""
     F, P = rays.shape[:2]
-    B = len(rows)
-    total = np.zeros((B, F))
-    count = np.zeros((B, F), dtype=np.int64)
-    diverging = np.zeros((B, F), dtype=bool)
-    depth = np.full((B, F, P), np.nan)
-    ca = centers[rows]  # (B, 3)
-    center_sq = np.einsum("fi,fi->f", centers, centers)
-    cross = ca @ centers.T  # (B, F): C_a . C_b
-    w_sq = center_sq[rows][:, None] + center_sq[None, :] - 2.0 * cross  # |C_a - C_b|^2
-    for p in range(P):
-        ra_all, rb = rays[rows, p], rays[:, p]  # (B, 3), (F, 3)
-        seen_a, seen_b = ~np.isnan(ra_all[:, 0]), ~np.isnan(rb[:, 0])
-        if not seen_a.any():
+    rows = np.asarray(rows)
+    lines = _Lines.of(centers, rays)
+    D = np.full((len(rows), F), np.inf)
+    depth = np.full((len(rows), F, P), np.nan)
+    for v in np.unique(video_index[rows]):
+        positions = np.flatnonzero(video_index[rows] == v)
+        cols = np.flatnonzero(video_index != v)
+        if not len(cols):
             continue
-        ra, rbz = np.nan_to_num(ra_all), np.nan_to_num(rb)
-        b = ra @ rbz.T  # r_a . r_b
-        d = np.einsum("bi,bi->b", ra, ca)[:, None] - ra @ centers.T  # r_a . (C_a - C_b)
-        e = rbz @ ca.T  # (F, B): r_b . C_a
-        e = e.T - np.einsum("fi,fi->f", rbz, centers)[None, :]  # r_b . (C_a - C_b)
-        denom = 1.0 - b * b
-        usable = seen_a[:, None] & seen_b[None, :] & (denom >= PARALLEL_EPS)
-        safe = np.where(usable, denom, 1.0)
-        depth_a = (b * e - d) / safe
-        depth_b = (e - b * d) / safe
-        gap = w_sq + depth_a**2 + depth_b**2 + 2 * depth_a * d - 2 * depth_b * e - 2 * depth_a * depth_b * b
-        gap = np.maximum(gap, 0.0)
-        total += np.where(usable, gap, 0.0)
-        count += usable
-        diverging |= usable & ((depth_a < 0) | (depth_b < 0))
-        depth[:, :, p] = np.where(usable, depth_a, np.nan)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        D = total / count
-    # A frame that observes fewer points than MIN_COMMON_POINTS can still pair on all of them.
-    observed_in_row = np.sum(~np.isnan(rays[rows, :, 0]), axis=1, keepdims=True)
-    enough = count >= np.minimum(MIN_COMMON_POINTS, np.maximum(observed_in_row, 1))
-    D[~enough | (count == 0) | diverging] = np.inf
-    D[video_index[rows][:, None] == video_index[None, :]] = np.inf
+        for start in range(0, len(positions), 64):
+            at = positions[start:start + 64]
+            f = rows[at]
+            total, count = _gap_sums(lines, f, cols)
+            pair_depth, diverging = _pair_depths(lines, np.repeat(f, len(cols)), np.tile(cols, len(f)))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = total / count
+            d[(count < lines.need[f][:, None]) | diverging.reshape(len(f), len(cols))] = np.inf
+            D[np.ix_(at, cols)] = d
+            depth[np.ix_(at, cols)] = pair_depth.reshape(len(f), len(cols), P)
     return D, depth
 
 
 def initialize_depths(
-    centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray, *, memory_elements: int = 8_000_000
+    centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray, *, memory_elements: int = 2_000_000
 ) -> PairInit:
-    """Pick each frame's best partner of another video and take the depths from that pair. O(F^2 P), in row blocks
-    of about `memory_elements` (frame pair x point) entries."""
+    """Pick each frame's best partner of another video and take the depths from that pair. O(F^2 P) time; the
+    memory beyond the inputs is O(F P) plus a few arrays of min(memory_elements, frame pairs of two videos)."""
     F, P = rays.shape[:2]
-    block = max(1, memory_elements // max(1, F * P))
+    lines = _Lines.of(centers, rays)
     partner = np.full(F, -1, dtype=np.int64)
     cost = np.full(F, np.inf)
+    members = [np.flatnonzero(video_index == v) for v in np.unique(video_index)]
+    for ia, frames_a in enumerate(members):
+        for frames_b in members[ia + 1:]:
+            if len(frames_a) * len(frames_b) <= memory_elements:
+                # D is symmetric: one evaluation serves the frames of both videos.
+                D_rows, D_cols = _distance_block(lines, frames_a, frames_b, both=True)
+                best, best_cost, diverging = _best_partners(lines, D_rows, frames_a, frames_b)
+                _merge(partner, cost, frames_a, best, best_cost, frames_b)
+                for r, c in diverging:
+                    D_cols[c, r] = np.inf
+                best, best_cost, _ = _best_partners(lines, D_cols, frames_b, frames_a)
+                _merge(partner, cost, frames_b, best, best_cost, frames_a)
+                continue
+            # Too large to hold: bands of whole rows, each direction on its own (twice the arithmetic).
+            for rows_all, cols in ((frames_a, frames_b), (frames_b, frames_a)):
+                band = max(1, memory_elements // len(cols))
+                for start in range(0, len(rows_all), band):
+                    rows = rows_all[start:start + band]
+                    D_rows, _ = _distance_block(lines, rows, cols, both=False)
+                    best, best_cost, _ = _best_partners(lines, D_rows, rows, cols)
+                    _merge(partner, cost, rows, best, best_cost, cols)
     depth = np.full((F, P), np.nan)
-    for start in range(0, F, block):
-        rows = np.arange(start, min(F, start + block))
-        D, depth_rows = bundle_distances(centers, rays, rows, video_index)
-        best = np.argmin(D, axis=1)
-        best_cost = D[np.arange(len(rows)), best]
-        ok = np.isfinite(best_cost)
-        partner[rows[ok]] = best[ok]
-        cost[rows[ok]] = best_cost[ok]
-        depth[rows[ok]] = depth_rows[np.arange(len(rows))[ok], best[ok]]
+    matched = np.flatnonzero(partner >= 0)
+    if len(matched):
+        depth[matched], _ = _pair_depths(lines, matched, partner[matched])
     return PairInit(partner=partner, cost=cost, depth=depth)
+
+
+def _distance_block(
+    lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, both: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """D for rows x cols (R, C), inf where the pair shares too few points for the row frame; with `both`, also
+    the same for the column frames, transposed (C, R) (else an empty array). Divergence is not checked here.
+    Evaluated in cache-sized tiles."""
+    R, C = len(rows), len(cols)
+    D_rows = np.empty((R, C))
+    D_cols = np.empty((C, R) if both else (0, 0))
+    col_step = min(C, TILE_PAIRS)
+    row_step = max(1, TILE_PAIRS // col_step)
+    for r0 in range(0, R, row_step):
+        r1 = min(R, r0 + row_step)
+        for c0 in range(0, C, col_step):
+            c1 = min(C, c0 + col_step)
+            total, count = _gap_sums(lines, rows[r0:r1], cols[c0:c1])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                D = np.divide(total, count, out=total)
+            D_rows[r0:r1, c0:c1] = np.where(count >= lines.need[rows[r0:r1]][:, None], D, np.inf)
+            if both:
+                D_cols[c0:c1, r0:r1] = np.where(count >= lines.need[cols[c0:c1]][None, :], D, np.inf).T
+    return D_rows, D_cols
 
 
 def fill_missing_points(points: np.ndarray, video_index: np.ndarray) -> np.ndarray:
