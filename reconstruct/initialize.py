@@ -27,7 +27,7 @@ MIN_COMMON_POINTS = 3
 # divergence of all their candidates at once.
 LAZY_ROUNDS = 4
 # Frame pairs per tile of the per-point products: their few (R, C) buffers stay in a 1-2 MB cache.
-TILE_PAIRS = 16_384
+TILE_PAIRS = 32_768
 
 
 @dataclass(kw_only=True)
@@ -88,24 +88,40 @@ class _Lines:
         )
 
 
-def _gap_sums(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sum over shared, non-parallel points of the squared ray gap, and their number, for rows x cols (R, C).
+@dataclass(kw_only=True)
+class _Side:
+    """The lines of some frames gathered for `_gap_sums`: as left factors (P, n, k) or right factors (P, k, n)."""
 
-    One pass per point over cache-sized (R, C) buffers; rows x cols should be about 10^4-10^5 pairs."""
-    R, C = len(rows), len(cols)
-    ray_a = lines.direction[:, rows]  # (P, R, 3)
-    ray_b_t = np.ascontiguousarray(lines.direction[:, cols].transpose(0, 2, 1))  # (P, 3, C)
-    left = lines.left[:, rows]  # (P, R, 6)
-    right_t = np.ascontiguousarray(lines.right[:, cols].transpose(0, 2, 1))  # (P, 6, C)
+    frames: np.ndarray  # (n,)
+    direction: np.ndarray  # (P, n, 3) or (P, 3, n)
+    pluecker: np.ndarray  # (P, n, 6) [m, r] or (P, 6, n) [r, m]
+
+    @classmethod
+    def rows(cls, lines: _Lines, frames: np.ndarray) -> _Side:
+        return cls(frames=frames, direction=lines.direction[:, frames], pluecker=lines.left[:, frames])
+
+    @classmethod
+    def cols(cls, lines: _Lines, frames: np.ndarray) -> _Side:
+        return cls(frames=frames,
+                   direction=np.ascontiguousarray(lines.direction[:, frames].transpose(0, 2, 1)),
+                   pluecker=np.ascontiguousarray(lines.right[:, frames].transpose(0, 2, 1)))
+
+
+def _gap_sums(lines: _Lines, a: _Side, b: _Side, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
+    """Sum over shared, non-parallel points of the squared ray gap, and their number, for a.frames[rows] x
+    b.frames[cols] (R, C). One pass per point over (R, C) buffers that should stay in cache."""
+    ray_a, ray_b = a.direction[:, rows], b.direction[:, :, cols]
+    left, right = a.pluecker[:, rows], b.pluecker[:, :, cols]
+    R, C = ray_a.shape[1], ray_b.shape[2]
     total = np.zeros((R, C))
     sine_sq = np.empty((R, C))
     triple = np.empty((R, C))
     parallel: np.ndarray | None = None
-    for p in range(lines.direction.shape[0]):
-        np.matmul(ray_a[p], ray_b_t[p], out=sine_sq)  # cosine
+    for p in range(ray_a.shape[0]):
+        np.matmul(ray_a[p], ray_b[p], out=sine_sq)  # cosine
         np.multiply(sine_sq, sine_sq, out=sine_sq)
         np.subtract(1.0, sine_sq, out=sine_sq)
-        np.matmul(left[p], right_t[p], out=triple)  # (C_a - C_b) . (r_a x r_b)
+        np.matmul(left[p], right[p], out=triple)  # (C_a - C_b) . (r_a x r_b)
         if sine_sq.min() < PARALLEL_EPS:  # rare: nearly parallel rays have no meaningful gap and are not counted
             flat = sine_sq < PARALLEL_EPS
             parallel = flat.astype(np.int64) if parallel is None else parallel + flat
@@ -114,8 +130,8 @@ def _gap_sums(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> tuple[np.nda
         np.multiply(triple, triple, out=triple)
         np.divide(triple, sine_sq, out=triple)
         np.add(total, triple, out=total)
-    count = lines.seen_float[rows] @ lines.seen_float[cols].T  # exact: small integers
-    count = np.rint(count).astype(np.int64)
+    # Exact: sums of a few 0/1 products.
+    count = np.rint(lines.seen_float[a.frames[rows]] @ lines.seen_float[b.frames[cols]].T).astype(np.int64)
     if parallel is not None:
         count -= parallel
     return total, count
@@ -138,11 +154,12 @@ def _pair_depths(lines: _Lines, f: np.ndarray, j: np.ndarray) -> tuple[np.ndarra
     return np.where(usable, depth_a, np.nan), diverging
 
 
-def _diverging_matrix(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Whether each pair of rows x cols (R, C) diverges, by per-point matrix products; the fallback for frames
-    whose best candidates keep diverging. A depth's sign is its numerator's (the denominator is in (0, 1])."""
+def _pair_matrix(lines: _Lines, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """Whether each pair of rows x cols (R, C) diverges, by per-point matrix products; with `depth` (R, C, P), also
+    the rows' depths there (NaN where a frame misses the point or the rays are parallel). A depth's sign is its
+    numerator's: the denominator is in (0, 1]."""
     ca, cb = lines.centers[rows], lines.centers[cols]
-    out = np.zeros((len(rows), len(cols)), dtype=bool)
+    diverging = np.zeros((len(rows), len(cols)), dtype=bool)
     for p in range(lines.rays.shape[1]):
         ra, rb = lines.rays[rows, p], lines.rays[cols, p]  # zero where unobserved
         sa, sb = lines.seen_float[rows, p], lines.seen_float[cols, p]
@@ -150,9 +167,15 @@ def _diverging_matrix(lines: _Lines, rows: np.ndarray, cols: np.ndarray) -> np.n
         # d = r_a . (C_a - C_b), e = r_b . (C_a - C_b); both 0 where either frame misses the point.
         d = np.einsum("ri,ri->r", ra, ca)[:, None] * sb[None, :] - ra @ (cb * sb[:, None]).T
         e = (ca * sa[:, None]) @ rb.T - sa[:, None] * np.einsum("ci,ci->c", rb, cb)[None, :]
-        usable = 1.0 - b * b >= PARALLEL_EPS
-        out |= usable & ((b * e - d < 0) | (e - b * d < 0))
-    return out
+        denom = 1.0 - b * b
+        usable = denom >= PARALLEL_EPS
+        numerator_a = b * e - d
+        diverging |= usable & ((numerator_a < 0) | (e - b * d < 0))
+        if depth is not None:
+            usable &= lines.seen[rows, p][:, None] & lines.seen[cols, p][None, :]
+            depth[:, :, p] = np.nan
+            np.divide(numerator_a, denom, out=depth[:, :, p], where=usable)
+    return diverging
 
 
 def _best_partners(
@@ -181,7 +204,7 @@ def _best_partners(
         pending = pending[diverging]
     if len(pending):
         sub = D[pending]
-        diverging_all = _diverging_matrix(lines, rows[pending], cols)
+        diverging_all = _pair_matrix(lines, rows[pending], cols)
         sub[diverging_all] = np.inf
         D[pending] = sub
         r, c = np.nonzero(diverging_all)
@@ -224,16 +247,19 @@ def bundle_distances(
         cols = np.flatnonzero(video_index != v)
         if not len(cols):
             continue
-        for start in range(0, len(positions), 64):
-            at = positions[start:start + 64]
+        step = max(1, TILE_PAIRS // len(cols))
+        b = _Side.cols(lines, cols)
+        for start in range(0, len(positions), step):
+            at = positions[start:start + step]
             f = rows[at]
-            total, count = _gap_sums(lines, f, cols)
-            pair_depth, diverging = _pair_depths(lines, np.repeat(f, len(cols)), np.tile(cols, len(f)))
+            total, count = _gap_sums(lines, _Side.rows(lines, f), b, slice(None), slice(None))
+            depth_block = np.empty((len(f), len(cols), P))
+            diverging = _pair_matrix(lines, f, cols, depth_block)
             with np.errstate(invalid="ignore", divide="ignore"):
                 d = total / count
-            d[(count < lines.need[f][:, None]) | diverging.reshape(len(f), len(cols))] = np.inf
+            d[(count < lines.need[f][:, None]) | diverging] = np.inf
             D[np.ix_(at, cols)] = d
-            depth[np.ix_(at, cols)] = pair_depth.reshape(len(f), len(cols), P)
+            depth[np.ix_(at, cols)] = depth_block
     return D, depth
 
 
@@ -285,11 +311,12 @@ def _distance_block(
     D_cols = np.empty((C, R) if both else (0, 0))
     col_step = min(C, TILE_PAIRS)
     row_step = max(1, TILE_PAIRS // col_step)
+    a, b = _Side.rows(lines, rows), _Side.cols(lines, cols)
     for r0 in range(0, R, row_step):
         r1 = min(R, r0 + row_step)
         for c0 in range(0, C, col_step):
             c1 = min(C, c0 + col_step)
-            total, count = _gap_sums(lines, rows[r0:r1], cols[c0:c1])
+            total, count = _gap_sums(lines, a, b, slice(r0, r1), slice(c0, c1))
             with np.errstate(invalid="ignore", divide="ignore"):
                 D = np.divide(total, count, out=total)
             D_rows[r0:r1, c0:c1] = np.where(count >= lines.need[rows[r0:r1]][:, None], D, np.inf)
