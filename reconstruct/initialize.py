@@ -67,25 +67,21 @@ class _Lines:
     seen: np.ndarray  # (F, P) bool
     seen_float: np.ndarray  # (F, P) 1.0 / 0.0, for counting shared points by a matrix product
     need: np.ndarray  # (F,) shared points a partner must have (MIN_COMMON_POINTS, or all the frame observes)
-    direction: np.ndarray  # (P, F, 3) the rays
-    left: np.ndarray  # (P, F, 6) [m, r] with moments m = (C - origin) x r
-    right: np.ndarray  # (P, F, 6) [r, m]: left_a . right_b = r_a . m_b + r_b . m_a
+    left: np.ndarray  # (P, F, 6) [m, r] with moments m = (C - origin) x r; [m_a, r_a] . [r_b, m_b] is the
+    # reciprocal product r_a . m_b + r_b . m_a = (C_a - C_b) . (r_a x r_b)
 
     @classmethod
     def of(cls, centers: np.ndarray, rays: np.ndarray) -> _Lines:
+        F, P = rays.shape[:2]
         seen = ~np.isnan(rays[..., 0])
         zeroed = np.where(seen[..., None], np.nan_to_num(rays), 0.0)
         # The gap is origin-free; an origin among the cameras keeps the moments, and so the rounding, small.
-        origin = centers.mean(axis=0) if len(centers) else np.zeros(3)
-        moments = np.cross((centers - origin)[:, None, :], zeroed)
-        observed = seen.sum(axis=1)
-        return cls(
-            centers=centers, rays=zeroed, seen=seen, seen_float=seen.astype(float),
-            need=np.minimum(MIN_COMMON_POINTS, np.maximum(observed, 1)),
-            direction=np.ascontiguousarray(zeroed.transpose(1, 0, 2)),
-            left=np.ascontiguousarray(np.concatenate([moments, zeroed], axis=-1).transpose(1, 0, 2)),
-            right=np.ascontiguousarray(np.concatenate([zeroed, moments], axis=-1).transpose(1, 0, 2)),
-        )
+        origin = centers.mean(axis=0) if F else np.zeros(3)
+        left = np.empty((P, F, 6))
+        left[..., :3] = np.cross((centers - origin)[:, None, :], zeroed).transpose(1, 0, 2)
+        left[..., 3:] = zeroed.transpose(1, 0, 2)
+        return cls(centers=centers, rays=zeroed, seen=seen, seen_float=seen.astype(float),
+                   need=np.minimum(MIN_COMMON_POINTS, np.maximum(seen.sum(axis=1), 1)), left=left)
 
 
 @dataclass(kw_only=True)
@@ -93,18 +89,19 @@ class _Side:
     """The lines of some frames gathered for `_gap_sums`: as left factors (P, n, k) or right factors (P, k, n)."""
 
     frames: np.ndarray  # (n,)
-    direction: np.ndarray  # (P, n, 3) or (P, 3, n)
     pluecker: np.ndarray  # (P, n, 6) [m, r] or (P, 6, n) [r, m]
+    direction: np.ndarray  # (P, n, 3) or (P, 3, n): a view of the rays in `pluecker`
 
     @classmethod
     def rows(cls, lines: _Lines, frames: np.ndarray) -> _Side:
-        return cls(frames=frames, direction=lines.direction[:, frames], pluecker=lines.left[:, frames])
+        pluecker = lines.left[:, frames]
+        return cls(frames=frames, pluecker=pluecker, direction=pluecker[..., 3:])
 
     @classmethod
     def cols(cls, lines: _Lines, frames: np.ndarray) -> _Side:
-        return cls(frames=frames,
-                   direction=np.ascontiguousarray(lines.direction[:, frames].transpose(0, 2, 1)),
-                   pluecker=np.ascontiguousarray(lines.right[:, frames].transpose(0, 2, 1)))
+        gathered = lines.left[:, frames]
+        pluecker = np.concatenate([gathered[..., 3:], gathered[..., :3]], axis=-1).transpose(0, 2, 1).copy()
+        return cls(frames=frames, pluecker=pluecker, direction=pluecker[:, :3])
 
 
 def _gap_sums(lines: _Lines, a: _Side, b: _Side, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
@@ -284,6 +281,7 @@ def initialize_depths(
                     D_cols[c, r] = np.inf
                 best, best_cost, _ = _best_partners(lines, D_cols, frames_b, frames_a)
                 _merge(partner, cost, frames_b, best, best_cost, frames_a)
+                del D_rows, D_cols  # before the next block's
                 continue
             # Too large to hold: bands of whole rows, each direction on its own (twice the arithmetic).
             for rows_all, cols in ((frames_a, frames_b), (frames_b, frames_a)):
@@ -295,8 +293,9 @@ def initialize_depths(
                     _merge(partner, cost, rows, best, best_cost, cols)
     depth = np.full((F, P), np.nan)
     matched = np.flatnonzero(partner >= 0)
-    if len(matched):
-        depth[matched], _ = _pair_depths(lines, matched, partner[matched])
+    for start in range(0, len(matched), 256):
+        f = matched[start:start + 256]
+        depth[f], _ = _pair_depths(lines, f, partner[f])
     return PairInit(partner=partner, cost=cost, depth=depth)
 
 

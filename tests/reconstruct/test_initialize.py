@@ -1,7 +1,13 @@
 import numpy as np
 from synthetic_motion import synthetic_problem
 
-from reconstruct.initialize import closest_ray_points, fill_missing_points, initialize_depths
+from reconstruct.initialize import (
+    LAZY_ROUNDS,
+    bundle_distances,
+    closest_ray_points,
+    fill_missing_points,
+    initialize_depths,
+)
 from reconstruct.rays import camera_normalization, viewing_rays
 
 
@@ -66,6 +72,89 @@ def test_initialization_is_close_on_noise_free_data():
     points = norm.undo(norm.apply(problem.centers)[:, None] + init.depth[..., None] * rays)
     error = np.linalg.norm(points - truth_array(problem, truth), axis=-1)
     assert np.median(error) < 20.0  # mm; neighbours of other videos are 1/120 s away
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _awkward_scene(seed=3):
+    """3 videos x 10 frames, 6 points, a different shape per frame, 30 % missing; frame 0 has LAZY_ROUNDS + 2
+    partners in video 1 whose rays meet its rays exactly but behind its camera (D = 0, diverging), one ray of frame
+    20 is antiparallel to one of frame 1 (parallel pair: not counted), frame 29 sees nothing, frame 28 sees 2
+    points."""
+    rng = np.random.default_rng(seed)
+    V, per, P = 3, 10, 6
+    video_index = np.repeat(np.arange(V), per)
+    F = V * per
+    points = rng.normal(scale=0.3, size=(F, P, 3))
+    centers = 3.0 * _unit(rng.normal(size=(F, 3)))
+    rays = _unit(points - centers[:, None])
+    mirrored = range(per, per + LAZY_ROUNDS + 2)
+    behind = 2.0 * centers[0] - points[0]  # frame 0's points reflected through its camera centre
+    for j in mirrored:
+        rays[j] = _unit(behind - centers[j])
+    centers[20] = 2.0 * points[1, 0] - centers[1]  # beyond frame 1's point 0, looking back along its ray
+    rays[20] = _unit(points[20] - centers[20])
+    rays[20, 0] = _unit(points[1, 0] - centers[20])
+    missing = rng.random((F, P)) < 0.3
+    missing[[0, 1, 20, *mirrored]] = False
+    missing[28] = [False, False, True, True, True, True]
+    missing[29] = True
+    rays[missing] = np.nan
+    return centers, rays, video_index, list(mirrored)
+
+
+def _reference(centers, rays, video_index):
+    """D (F, F) and each pair's depths (F, F, P) by `closest_ray_points`, pair by pair, with the rules of the
+    initialization spelled out."""
+    F, P = rays.shape[:2]
+    D = np.full((F, F), np.inf)
+    naive = np.full((F, F), np.inf)  # without the divergence rule
+    depth = np.full((F, F, P), np.nan)
+    observed = ~np.isnan(rays[..., 0])
+    for f in range(F):
+        for j in range(F):
+            if video_index[f] == video_index[j]:
+                continue
+            da, db, gap = closest_ray_points(centers[f], rays[f], centers[j], rays[j])
+            usable = np.isfinite(gap)  # both observe the point, rays not parallel
+            depth[f, j] = np.where(usable, da, np.nan)
+            if usable.sum() < min(3, max(observed[f].sum(), 1)):
+                continue
+            naive[f, j] = gap[usable].mean()
+            if not (np.any(da[usable] < 0) or np.any(db[usable] < 0)):
+                D[f, j] = naive[f, j]
+    return D, naive, depth
+
+
+def test_initialization_equals_the_pairwise_reference_with_diverging_and_parallel_pairs():
+    centers, rays, video_index, mirrored = _awkward_scene()
+    D, naive, depth = _reference(centers, rays, video_index)
+    # The scene does what it says: frame 0's best bundles diverge, one pair has a parallel ray.
+    assert np.all(naive[0, mirrored] < 1e-20) and np.all(np.isinf(D[0, mirrored]))
+    assert np.isnan(depth[1, 20, 0]) and np.isfinite(naive[1, 20])
+    has = np.isfinite(D).any(axis=1)
+    partner = np.where(has, np.argmin(D, axis=1), -1)
+    assert partner[29] == -1 and partner[28] >= 0 and partner[0] not in mirrored
+    F = len(centers)
+    for memory_elements in (1, 30, 2_000_000):  # bands of one row, tiles, whole blocks
+        init = initialize_depths(centers, rays, video_index, memory_elements=memory_elements)
+        np.testing.assert_array_equal(init.partner, partner)
+        np.testing.assert_allclose(init.cost[has], D[np.arange(F), partner][has], rtol=1e-9)
+        assert np.all(np.isinf(init.cost[~has]))
+        expected = np.where(has[:, None], depth[np.arange(F), partner], np.nan)
+        np.testing.assert_allclose(init.depth, expected, rtol=1e-9, atol=1e-12)  # NaN where NaN
+
+
+def test_bundle_distances_equal_the_pairwise_reference():
+    centers, rays, video_index, _ = _awkward_scene()
+    D, _, depth = _reference(centers, rays, video_index)
+    rows = np.array([0, 1, 5, 12, 20, 28, 29])
+    D_rows, depth_rows = bundle_distances(centers, rays, rows, video_index)
+    np.testing.assert_array_equal(np.isinf(D_rows), np.isinf(D[rows]))
+    np.testing.assert_allclose(D_rows, D[rows], rtol=1e-9)
+    np.testing.assert_allclose(depth_rows, depth[rows], rtol=1e-9, atol=1e-12)
 
 
 def test_fill_missing_points_interpolates_within_a_video():
