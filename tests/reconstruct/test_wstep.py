@@ -72,7 +72,8 @@ def test_w_step_matches_a_general_qp_solver():
 
 def test_warm_start_reuses_previous_solution():
     shapes, video_index, P = _shapes(seed=2)
-    options = WStepOptions(kkt_tolerance=1e-9, max_rounds=20)
+    # Exact W-steps: no early stop of a stalling PDAS, so that both solves reach the same optimum.
+    options = WStepOptions(kkt_tolerance=1e-9, max_rounds=20, stall_iterations=10**6)
     W, cold = solve_w(shapes, video_index, P, options)
     W2, warm = solve_w(shapes, video_index, P, options, previous=W)
     assert warm.iterations <= cold.iterations
