@@ -189,7 +189,7 @@ def _best_partners(
     for _ in range(LAZY_ROUNDS):
         if not len(pending):
             return best, cost, found
-        pick = np.argmin(D[pending], axis=1)
+        pick = np.argmin(D if len(pending) == R else D[pending], axis=1)  # no copy of the whole block
         value = D[pending, pick]
         finite = np.isfinite(value)
         pending, pick, value = pending[finite], pick[finite], value[finite]

@@ -80,9 +80,9 @@ def _unit(v):
 
 def _awkward_scene(seed=3):
     """3 videos x 10 frames, 6 points, a different shape per frame, 30 % missing; frame 0 has LAZY_ROUNDS + 2
-    partners in video 1 whose rays meet its rays exactly but behind its camera (D = 0, diverging), one ray of frame
-    20 is antiparallel to one of frame 1 (parallel pair: not counted), frame 29 sees nothing, frame 28 sees 2
-    points."""
+    partners in video 1 whose rays meet its rays exactly but behind its camera (D = 0, diverging), frames 1 and 20
+    are each other's best partners with one pair of antiparallel rays (not counted), frame 29 sees nothing, frame
+    28 sees 2 points."""
     rng = np.random.default_rng(seed)
     V, per, P = 3, 10, 6
     video_index = np.repeat(np.arange(V), per)
@@ -94,9 +94,11 @@ def _awkward_scene(seed=3):
     behind = 2.0 * centers[0] - points[0]  # frame 0's points reflected through its camera centre
     for j in mirrored:
         rays[j] = _unit(behind - centers[j])
-    centers[20] = 2.0 * points[1, 0] - centers[1]  # beyond frame 1's point 0, looking back along its ray
+    # Frame 20 sees frame 1's shape (its best partner) from beyond point 0, looking back along frame 1's ray.
+    points[20] = points[1] + rng.normal(scale=1e-3, size=(P, 3))
+    points[20, 0] = points[1, 0]
+    centers[20] = 2.0 * points[1, 0] - centers[1]
     rays[20] = _unit(points[20] - centers[20])
-    rays[20, 0] = _unit(points[1, 0] - centers[20])
     missing = rng.random((F, P)) < 0.3
     missing[[0, 1, 20, *mirrored]] = False
     missing[28] = [False, False, True, True, True, True]
@@ -133,18 +135,24 @@ def test_initialization_equals_the_pairwise_reference_with_diverging_and_paralle
     D, naive, depth = _reference(centers, rays, video_index)
     # The scene does what it says: frame 0's best bundles diverge, one pair has a parallel ray.
     assert np.all(naive[0, mirrored] < 1e-20) and np.all(np.isinf(D[0, mirrored]))
-    assert np.isnan(depth[1, 20, 0]) and np.isfinite(naive[1, 20])
     has = np.isfinite(D).any(axis=1)
     partner = np.where(has, np.argmin(D, axis=1), -1)
     assert partner[29] == -1 and partner[28] >= 0 and partner[0] not in mirrored
+    assert partner[1] == 20 and partner[20] == 1 and np.isnan(depth[1, 20, 0]) and np.isnan(depth[20, 1, 0])
     F = len(centers)
+    expected = np.where(has[:, None], depth[np.arange(F), partner], np.nan)
     for memory_elements in (1, 30, 2_000_000):  # bands of one row, tiles, whole blocks
         init = initialize_depths(centers, rays, video_index, memory_elements=memory_elements)
         np.testing.assert_array_equal(init.partner, partner)
         np.testing.assert_allclose(init.cost[has], D[np.arange(F), partner][has], rtol=1e-9)
         assert np.all(np.isinf(init.cost[~has]))
-        expected = np.where(has[:, None], depth[np.arange(F), partner], np.nan)
         np.testing.assert_allclose(init.depth, expected, rtol=1e-9, atol=1e-12)  # NaN where NaN
+    # Frames of a video need not be contiguous.
+    order = np.random.default_rng(1).permutation(F)
+    init = initialize_depths(centers[order], rays[order], video_index[order])
+    back = np.argsort(order)
+    np.testing.assert_array_equal(np.where(init.partner >= 0, order[init.partner], -1)[back], partner)
+    np.testing.assert_allclose(init.depth[back], expected, rtol=1e-9, atol=1e-12)
 
 
 def test_bundle_distances_equal_the_pairwise_reference():
