@@ -1,7 +1,15 @@
 import numpy as np
 from synthetic_motion import synthetic_problem, truth_array
 
-from reconstruct.candidates import CandidateOptions, VideoLayout, coarse_to_fine_init, pair_distances, window_pool
+from reconstruct.candidates import (
+    CandidateOptions,
+    VideoLayout,
+    coarse_to_fine_init,
+    consistent_anchors,
+    follow_w,
+    pair_distances,
+    window_pool,
+)
 from reconstruct.initialize import bundle_distances, initialize_depths
 from reconstruct.rays import camera_normalization, viewing_rays
 from reconstruct.solver import SolverOptions, solve
@@ -56,3 +64,46 @@ def test_windowed_solve_matches_the_dense_solve():
         shares.append(np.mean(np.linalg.norm(result.points - expected, axis=-1) < 10.0))
     assert shares[1] > 0.99
     assert shares[1] >= shares[0] - 0.003
+
+
+def _two_clocks(seed=0):
+    """Two videos at 30 and 24 fps, video 1 starting 0.5 s later, with 1 ms jitter: each frame's true anchor."""
+    rng = np.random.default_rng(seed)
+    times = [np.arange(300) / 30 + rng.normal(0, 1e-3, 300), 0.5 + np.arange(230) / 24 + rng.normal(0, 1e-3, 230)]
+    video_index = np.repeat([0, 1], [300, 230])
+    layout = VideoLayout.of(video_index)
+    all_times = np.concatenate(times)
+    truth = np.zeros((530, 2), dtype=np.int64)
+    for b in range(2):
+        truth[:, b] = np.clip(np.searchsorted(times[b], all_times - 0.5 / 30), 0, len(times[b]) - 1)
+        nearest = np.abs(times[b][np.minimum(truth[:, b] + 1, len(times[b]) - 1)] - all_times) < np.abs(
+            times[b][truth[:, b]] - all_times)
+        truth[:, b] += nearest
+    return video_index, layout, all_times, truth
+
+
+def test_consistent_anchors_move_repeated_pose_matches_back_onto_the_clock_line():
+    video_index, layout, times, truth = _two_clocks()
+    anchor = truth.copy()
+    anchor[40:100, 1] = np.maximum(anchor[40:100, 1] - 70, 0)  # a run matched to an earlier repetition
+    anchor[350:380, 0] = np.minimum(anchor[350:380, 0] + 120, 299)
+    anchor[[10, 200], 1] = [229, 0]  # isolated far matches
+    with_times = consistent_anchors(anchor, video_index, layout, tolerance=3, times=times)
+    assert np.abs(with_times - truth).max() <= 1
+    without = consistent_anchors(anchor, video_index, layout, tolerance=12)
+    assert np.abs(without - truth).max() <= 12
+    np.testing.assert_array_equal(consistent_anchors(truth, video_index, layout, tolerance=3, times=times), truth)
+
+
+def test_follow_w_moves_an_anchor_only_past_the_slack_and_to_the_largest_entry():
+    import scipy.sparse as sp
+
+    video_index = np.repeat([0, 1], [20, 20])
+    layout = VideoLayout.of(video_index)
+    anchor = np.zeros((40, 2), dtype=np.int64)
+    anchor[:20, 1] = 5
+    # frame 0: weights at positions 6 (0.3) and 15 (0.7) of video 1; frame 1: 0.9 at position 7
+    W = sp.csc_matrix(([0.3, 0.7, 0.9], ([26, 35, 27], [0, 0, 1])), shape=(40, 40))
+    moved = follow_w(anchor, W, video_index, layout, slack=3)
+    assert moved[0, 1] == 15  # the largest entry, not the weighted mean (12)
+    assert moved[1, 1] == 5  # within the slack: the pool stays put
