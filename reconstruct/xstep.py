@@ -9,6 +9,20 @@ point is one sparse symmetric linear system:
 * soft rays: every Y_pf is free, observed ones are pulled to their ray by lambda3/(FP) (I - r r^T).
 The soft weight carries the same 1/(FP) as the data term, so lambda3 is the weight of a squared ray distance
 relative to a squared self-expression residual of one point.
+
+How it is solved. The soft ray weight is ~50x the diagonal of Q, so moving a point across its ray is stiff and
+moving it along its ray is governed by Q alone. The slow modes of a plain (block-Jacobi) conjugate gradient are
+along-ray motions that Q barely penalizes: frames linked by W whose rays are nearly parallel (opposite cameras), and
+longer chains of them, so its iterations grew with F. Per point, the *weak subspace* J_p (one column r_f per observed
+frame, three free coordinates per missing frame; exactly the unknowns of the hard-ray system) has the matrix
+S_p = J_p^T (Q x I3) J_p, which has the sparsity of Q: a sparse LU with a minimum-degree ordering has almost no fill
+(nnz(LU) ~ 1.6 nnz(Q) on captures of 700 ... 20,000 frames), so it costs O(F) per point. Then
+* hard rays: the system *is* S_p z = J_p^T b: one direct solve per point;
+* soft rays: M_p^-1 = J_p S_p^-1 J_p^T + (block Jacobi on the stiff across-ray directions) is an additive two-level
+  preconditioner whose conjugate gradient converges in 2-7 iterations, independent of F.
+Late in a solve the warm start is nearly exact and a few cheap Jacobi iterations suffice, so every X-step starts with
+the Jacobi CG and factors only the points whose convergence rate predicts many more iterations
+(`XStepOptions.factor_threshold`).
 """
 
 from __future__ import annotations
@@ -37,6 +51,10 @@ class XStepOptions:
     # were unchanged (benchmarks in docs/solver.md).
     cg_tolerance: float = 1e-8
     cg_max_iterations: int = 3000
+    # A point leaves the block-Jacobi CG for its weak-subspace factorization (module docstring) once its convergence
+    # rate predicts more than this many further Jacobi iterations (0: factor every point at once). One factorization
+    # costs about as much as 20-40 Jacobi iterations of that point (SuperLU, measured at F = 700 ... 20,000).
+    factor_threshold: float = 30.0
 
 
 def video_chain_laplacian(video_index: np.ndarray) -> tuple[sp.csr_matrix, int]:
@@ -79,63 +97,179 @@ def solve_x(
     """3D points (F, P, 3) minimizing the X-step cost for fixed W (F, F). rays (F, P, 3), NaN = unobserved.
 
     All points are solved together by a block-Jacobi preconditioned conjugate gradient, warm-started from `start`
-    (the previous points: late in the alternation they barely move). Points whose CG does not converge are solved
-    directly (sparse LU). `num_points` is the P of the 1/(FP) normalization (defaults to the P of `rays`).
+    (the previous points: late in the alternation they barely move); points it would need many more iterations for
+    (`options.factor_threshold`) are factored in their weak subspace (module docstring). Points whose CG still does
+    not converge are solved directly (sparse LU of the full 3F system). `num_points` is the P of the 1/(FP)
+    normalization (defaults to the P of `rays`).
     """
     F, P = rays.shape[:2]
     P_norm = num_points or P
     Q = quadratic_form(W, video_index, P_norm, options.lambda2)
     observed = ~np.isnan(rays[..., 0])
     r = np.where(observed[..., None], rays, 0.0)
+    weight = options.lambda3 / (F * P_norm)
     if options.constraint is RayConstraint.HARD:
-        points, converged = _cg_hard(Q, centers, r, observed, options, start)
+        points, converged = _solve_hard_points(Q, centers, r, observed, options, start)
     else:
-        weight = options.lambda3 / (F * P_norm)
-        points, converged = _cg_soft(Q, centers, r, observed, weight, options, start)
+        points, converged = _solve_soft_points(Q, centers, r, observed, weight, options, start)
     if not converged.all():
         Q3 = sp.kron(Q, sp.identity(3), format="csr")
         for p in np.flatnonzero(~converged):
             if options.constraint is RayConstraint.HARD:
                 points[:, p] = _solve_hard(Q3, centers, rays[:, p], observed[:, p])
             else:
-                points[:, p] = _solve_soft(Q3, centers, rays[:, p], observed[:, p],
-                                           options.lambda3 / (F * P_norm))
+                points[:, p] = _solve_soft(Q3, centers, rays[:, p], observed[:, p], weight)
     return points
 
 
-def _batched_cg(
-    apply: Callable[[np.ndarray], np.ndarray],
-    precondition: Callable[[np.ndarray], np.ndarray],
+# ------------------------------------------------------------------------------------------------------------
+# Weak subspace of one point: J (3F, n) and the factorization of S = J^T (Q x I3) J
+
+
+class _WeakSubspace:
+    """J (3F, n): column `first[f]` is the ray r_f of an observed frame; a missing frame owns the three columns
+    first[f] + (0, 1, 2), its free coordinates. S = J^T (Q x I3) J (n, n) is built entry by entry from Q's
+    non-zeros (it has Q's pattern, each missing frame's row and column tripled) and factored by sparse LU."""
+
+    def __init__(self, Q: sp.coo_matrix, r: np.ndarray, observed: np.ndarray):
+        width = np.where(observed, 1, 3)
+        self.first = np.concatenate([[0], np.cumsum(width)[:-1]])
+        self.n = int(width.sum())
+        self.J = _weak_basis(r, observed, self.first, self.n)
+        row, col, q = Q.row, Q.col, Q.data
+        both = observed[row] & observed[col]
+        rows = [self.first[row[both]]]
+        cols = [self.first[col[both]]]
+        vals = [q[both] * np.einsum("nk,nk->n", r[row[both]], r[col[both]])]
+        if not observed.all():
+            # entries touching a missing frame: obs-missing r_f[l], missing-obs r_g[k], missing-missing delta_kl
+            touch = ~both
+            tr, tc, tq = row[touch], col[touch], q[touch]
+            obs_r, obs_c = observed[tr], observed[tc]
+            for k in range(3):
+                for m in range(3):
+                    keep = (~obs_r | (k == 0)) & (~obs_c | (m == 0)) & (obs_r | obs_c | (k == m))
+                    value = tq[keep].copy()
+                    value = np.where(obs_r[keep], value * r[tr[keep], m], value)
+                    value = np.where(obs_c[keep], value * r[tc[keep], k], value)
+                    rows.append(self.first[tr[keep]] + np.where(obs_r[keep], 0, k))
+                    cols.append(self.first[tc[keep]] + np.where(obs_c[keep], 0, m))
+                    vals.append(value)
+        S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(self.n, self.n))
+        # Minimum-degree ordering on A^T + A and no pivoting: S is symmetric positive (semi)definite.
+        # relax = panel_size = 1: 20-25 % faster on these nearly fill-free factors than SuperLU's supernode defaults.
+        self.lu = spla.splu(S, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1,
+                            options={"SymmetricMode": True})
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """S^-1 b for b (n,)."""
+        return np.asarray(self.lu.solve(b))
+
+
+def _weak_basis(r: np.ndarray, observed: np.ndarray, first: np.ndarray, n: int) -> sp.csr_matrix:
+    F = len(observed)
+    obs = np.flatnonzero(observed)
+    mis = np.flatnonzero(~observed)
+    rows = np.concatenate([3 * obs[:, None] + np.arange(3), 3 * mis[:, None] + np.arange(3)]).ravel()
+    cols = np.concatenate([np.repeat(first[obs], 3).reshape(-1, 3), first[mis][:, None] + np.arange(3)]).ravel()
+    vals = np.concatenate([r[obs], np.ones((len(mis), 3))]).ravel()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(3 * F, n))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Batched conjugate gradient
+
+Operators = tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("fkp,fkp->p", a, b)
+
+
+class _BatchedCG:
+    """Independent preconditioned CG solves, one per point: arrays are (F, 3, P), the point axis last so that the
+    per-point dot products reduce over contiguous memory (the (F, P, 3) layout made them 10x slower). The state can
+    be narrowed to a subset of the points without restarting them."""
+
+    def __init__(self, operators: Operators, rhs: np.ndarray, x: np.ndarray, tolerance: float):
+        self.apply, self.precondition = operators
+        self.x = x
+        self.residual = rhs - self.apply(x)
+        self.target = tolerance * np.maximum(np.sqrt(_dot(rhs, rhs)), 1e-300)
+        self.norm = np.sqrt(_dot(self.residual, self.residual))
+        self.done = self.norm <= self.target
+        z = self.precondition(self.residual)
+        self.direction = z
+        self.rz = _dot(self.residual, z)
+        self.iterations = 0
+
+    def run(self, iterations: int) -> None:
+        for _ in range(iterations):
+            if self.done.all():
+                return
+            Ad = self.apply(self.direction)
+            curvature = _dot(self.direction, Ad)
+            done = self.done
+            alpha = np.where(done | (curvature <= 0), 0.0, self.rz / np.where(curvature > 0, curvature, 1.0))
+            self.x = self.x + alpha * self.direction
+            self.residual = self.residual - alpha * Ad
+            self.norm = np.sqrt(_dot(self.residual, self.residual))
+            done |= self.norm <= self.target
+            z = self.precondition(self.residual)
+            rz = _dot(self.residual, z)
+            beta = np.where(done, 0.0, rz / np.where(self.rz != 0, self.rz, 1.0))
+            self.direction = z + beta * self.direction
+            self.rz = rz
+            self.iterations += 1
+
+    def narrow(self, keep: np.ndarray, operators: Operators) -> None:
+        """Continue with the points `keep` (indices into the current batch) only; `operators` act on them."""
+        self.apply, self.precondition = operators
+        for name in ("x", "residual", "direction"):
+            setattr(self, name, np.ascontiguousarray(getattr(self, name)[..., keep]))
+        for name in ("target", "norm", "done", "rz"):
+            setattr(self, name, getattr(self, name)[keep])
+
+
+def _cg_then_factor(
+    jacobi: Callable[[np.ndarray], Operators],
+    finish: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
     rhs: np.ndarray,
     x: np.ndarray,
     options: XStepOptions,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Independent CG solves, one per point: arrays are (F, 3, P), the point axis last so that the per-point dot
-    products reduce over contiguous memory (the (F, P, 3) layout made them 10x slower). Returns (x, converged)."""
-    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.einsum("fkp,fkp->p", a, b)
-
-    residual = rhs - apply(x)
-    target = options.cg_tolerance * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
-    z = precondition(residual)
-    direction = z.copy()
-    rz = dot(residual, z)
-    done = np.sqrt(dot(residual, residual)) <= target
-    for _ in range(options.cg_max_iterations):
-        if done.all():
-            break
-        Ad = apply(direction)
-        curvature = dot(direction, Ad)
-        alpha = np.where(done | (curvature <= 0), 0.0, rz / np.where(curvature > 0, curvature, 1.0))
-        x = x + alpha * direction
-        residual = residual - alpha * Ad
-        done |= np.sqrt(dot(residual, residual)) <= target
-        z = precondition(residual)
-        rz_new = dot(residual, z)
-        beta = np.where(done, 0.0, rz_new / np.where(rz != 0, rz, 1.0))
-        direction = z + beta * direction
-        rz = rz_new
-    return x, done
+    """Jacobi CG on all points; every `check` iterations the points whose recent convergence rate predicts more
+    than `options.factor_threshold` further iterations leave the batch for `finish(points, x)`, which returns
+    their (x, converged). Returns x (F, 3, P) and converged (P,)."""
+    P = rhs.shape[2]
+    x = x.copy()
+    converged = np.zeros(P, dtype=bool)
+    batch = np.arange(P)
+    if options.factor_threshold <= 0:
+        return finish(batch, x)
+    cg = _BatchedCG(jacobi(batch), rhs, x, options.cg_tolerance)
+    check = 10
+    while True:
+        before = cg.norm.copy()
+        steps = min(check, options.cg_max_iterations - cg.iterations)
+        cg.run(steps)
+        x[..., batch] = cg.x
+        converged[batch] = cg.done
+        if cg.done.all() or cg.iterations >= options.cg_max_iterations:
+            return x, converged
+        # Rate over the last `check` iterations: the first ones remove the stiff error and look deceptively fast.
+        rate = (np.maximum(cg.norm, 1e-300) / np.maximum(before, 1e-300)) ** (1.0 / max(steps, 1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            remaining = np.where(rate < 1.0, np.log(cg.target / cg.norm) / np.log(rate), np.inf)
+        slow = ~cg.done & (remaining > options.factor_threshold)
+        if slow.any():
+            points = batch[slow]
+            x[..., points], converged[points] = finish(points, cg.x[..., slow])
+            keep = np.flatnonzero(~slow & ~cg.done)
+            if len(keep) == 0:
+                return x, converged
+            batch = batch[keep]
+            cg.narrow(keep, jacobi(batch))
 
 
 def _along(r: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -148,57 +282,132 @@ def _to_fkp(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a.transpose(0, 2, 1))
 
 
-def _cg_soft(
+# ------------------------------------------------------------------------------------------------------------
+# Soft rays
+
+
+def _solve_soft_points(
     Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, weight: float,
     options: XStepOptions, start: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The 3x3 ray blocks weight (I - r r^T) and the block-Jacobi preconditioner are applied in closed form:
-    (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit ray r."""
+    """Jacobi CG for all points; the slow ones continue with the weak-subspace preconditioned CG.
+    Returns points (F, P, 3) and converged (P,)."""
     F, P = observed.shape
-    r = _to_fkp(r)
+    r_fkp = _to_fkp(r)
     w = weight * observed[:, None, :]  # (F, 1, P), zero where unobserved
     diagonal = np.maximum(Q.diagonal(), 1e-300)[:, None, None]
-    inverse_observed = 1.0 / (diagonal + w)
-    inverse_diagonal = 1.0 / diagonal
+    C = np.broadcast_to(centers[:, :, None], (F, 3, P))
+    rhs = w * (C - _along(r_fkp, C))
+    x0 = _to_fkp(start) if start is not None else C.copy()
+    Q_coo: list[sp.coo_matrix] = []
 
-    def ray_term(Y: np.ndarray) -> np.ndarray:
-        return w * (Y - _along(r, Y))
+    def jacobi(points: np.ndarray) -> Operators:
+        r_s, w_s = np.ascontiguousarray(r_fkp[..., points]), np.ascontiguousarray(w[..., points])
+        return _soft_operator(Q, r_s, w_s), _soft_jacobi(r_s, w_s, diagonal)
+
+    def finish(points: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not Q_coo:
+            Q_coo.append(Q.tocoo())
+        subspaces = [_WeakSubspace(Q_coo[0], r[:, p], observed[:, p]) for p in points]
+        r_s, w_s = np.ascontiguousarray(r_fkp[..., points]), np.ascontiguousarray(w[..., points])
+        cg = _BatchedCG((_soft_operator(Q, r_s, w_s), _soft_two_level(subspaces, r_s, w_s, diagonal)),
+                        np.ascontiguousarray(rhs[..., points]), x, options.cg_tolerance)
+        cg.run(options.cg_max_iterations)
+        return cg.x, cg.done
+
+    x, done = _cg_then_factor(jacobi, finish, rhs, x0, options)
+    return x.transpose(0, 2, 1).copy(), done
+
+
+def _soft_operator(Q: sp.csr_matrix, r: np.ndarray, w: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Y (F, 3, P) -> (Q x I3) Y + w (I - r r^T) Y."""
+    F, _, P = r.shape
 
     def apply(Y: np.ndarray) -> np.ndarray:
-        return (Q @ Y.reshape(F, -1)).reshape(F, 3, P) + ray_term(Y)
+        return (Q @ Y.reshape(F, -1)).reshape(F, 3, P) + w * (Y - _along(r, Y))
+
+    return apply
+
+
+def _soft_jacobi(r: np.ndarray, w: np.ndarray, diagonal: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Block Jacobi in closed form: (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit r."""
+    inverse_observed = 1.0 / (diagonal + w)
+    inverse_diagonal = 1.0 / diagonal
 
     def precondition(R: np.ndarray) -> np.ndarray:
         along = _along(r, R)
         return (R - along) * inverse_observed + along * inverse_diagonal
 
-    C = np.broadcast_to(centers[:, :, None], (F, 3, P))
-    rhs = ray_term(C)
-    x0 = _to_fkp(start) if start is not None else C.copy()
-    x, done = _batched_cg(apply, precondition, rhs, x0, options)
-    return x.transpose(0, 2, 1).copy(), done
+    return precondition
 
 
-def _cg_hard(
+def _soft_two_level(
+    subspaces: list[_WeakSubspace], r: np.ndarray, w: np.ndarray, diagonal: np.ndarray
+) -> Callable[[np.ndarray], np.ndarray]:
+    """J S^-1 J^T R + the across-ray components of R divided by (d + w): exact in the weak subspace, Jacobi in
+    the stiff one (missing frames lie wholly in the weak subspace: w = 0 there and r = 0)."""
+    F = r.shape[0]
+    inverse_observed = 1.0 / (diagonal + w)
+
+    def precondition(R: np.ndarray) -> np.ndarray:
+        out = (R - _along(r, R)) * inverse_observed
+        for i, subspace in enumerate(subspaces):
+            residual = np.ascontiguousarray(R[:, :, i]).ravel()
+            out[:, :, i] += (subspace.J @ subspace.solve(subspace.J.T @ residual)).reshape(F, 3)
+        return out
+
+    return precondition
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Hard rays
+
+
+def _solve_hard_points(
     Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, options: XStepOptions,
     start: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Observed points move along their ray only: CG on Y = y0 + Pi z with Pi = r r^T (observed) or I (missing)."""
+    """Observed points move along their ray only: Jacobi CG on Y = y0 + Pi z with Pi = r r^T (observed) or I
+    (missing); the slow points are solved directly in their weak subspace, which is exactly Pi's range."""
     F, P = observed.shape
-    r = _to_fkp(r)
+    r_fkp = _to_fkp(r)
     missing = ~observed[:, None, :]
     y0 = np.where(missing, 0.0, centers[:, :, None])
-
-    def project(Y: np.ndarray) -> np.ndarray:
-        return np.where(missing, Y, _along(r, Y))
-
-    def apply(Z: np.ndarray) -> np.ndarray:
-        return project((Q @ project(Z).reshape(F, -1)).reshape(F, 3, P))
-
     inverse_diagonal = (1.0 / np.maximum(Q.diagonal(), 1e-300))[:, None, None]
-    rhs = -project((Q @ y0.reshape(F, -1)).reshape(F, 3, P))
-    z0 = project(_to_fkp(start) - y0) if start is not None else np.zeros((F, 3, P))
-    z, converged = _batched_cg(apply, lambda R: project(R * inverse_diagonal), rhs, z0, options)
-    return (y0 + project(z)).transpose(0, 2, 1).copy(), converged
+    Q_coo: list[sp.coo_matrix] = []
+
+    def projector(points: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        missing_s, r_s = missing[..., points], np.ascontiguousarray(r_fkp[..., points])
+        return lambda Y: np.where(missing_s, Y, _along(r_s, Y))
+
+    def jacobi(points: np.ndarray) -> Operators:
+        project, n = projector(points), len(points)
+
+        def apply(Z: np.ndarray) -> np.ndarray:
+            return project((Q @ project(Z).reshape(F, -1)).reshape(F, 3, n))
+
+        return apply, lambda R: project(R * inverse_diagonal)
+
+    project_all = projector(np.arange(P))
+    rhs = -project_all((Q @ y0.reshape(F, -1)).reshape(F, 3, P))
+
+    def finish(points: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not Q_coo:
+            Q_coo.append(Q.tocoo())
+        out = np.empty_like(z)
+        for i, p in enumerate(points):
+            subspace = _WeakSubspace(Q_coo[0], r[:, p], observed[:, p])
+            b = subspace.J.T @ np.ascontiguousarray(rhs[:, :, p]).ravel()
+            out[:, :, i] = (subspace.J @ subspace.solve(b)).reshape(F, 3)
+        return out, np.all(np.isfinite(out), axis=(0, 1))
+
+    z0 = project_all(_to_fkp(start) - y0) if start is not None else np.zeros((F, 3, P))
+    z, done = _cg_then_factor(jacobi, finish, rhs, z0, options)
+    return (y0 + project_all(z)).transpose(0, 2, 1).copy(), done
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Last-resort direct solves of one point's full system
 
 
 def _solve_hard(Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -206,19 +415,7 @@ def _solve_hard(Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observ
     # Columns of J: one per observed frame (its ray), three per missing frame (free xyz).
     n_unknowns = np.where(observed, 1, 3)
     first = np.concatenate([[0], np.cumsum(n_unknowns)[:-1]])
-    rows, cols, vals = [], [], []
-    obs = np.flatnonzero(observed)
-    for axis in range(3):
-        rows.append(3 * obs + axis)
-        cols.append(first[obs])
-        vals.append(rays[obs, axis])
-    mis = np.flatnonzero(~observed)
-    for axis in range(3):
-        rows.append(3 * mis + axis)
-        cols.append(first[mis] + axis)
-        vals.append(np.ones(len(mis)))
-    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * F, int(n_unknowns.sum())))
+    J = _weak_basis(np.where(observed[:, None], rays, 0.0), observed, first, int(n_unknowns.sum()))
     y0 = np.where(observed[:, None], centers, 0.0).ravel()
     H = (J.T @ Q3 @ J).tocsc()
     rhs = -(J.T @ (Q3 @ y0))

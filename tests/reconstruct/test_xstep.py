@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from reconstruct.wstep import WStepOptions, solve_w
 from reconstruct.xstep import RayConstraint, XStepOptions, quadratic_form, solve_x
@@ -72,3 +73,109 @@ def test_hard_constraint_keeps_observed_points_on_their_rays():
     perpendicular = offset - along[..., None] * np.nan_to_num(rays)
     observed = ~np.isnan(rays[..., 0])
     assert np.abs(perpendicular[observed]).max() < 1e-9
+
+
+def _missing_run_setup(F=60, P=4, seed=5):
+    """A longer capture where one point misses a run of frames and others miss scattered frames."""
+    W, centers, rays, video_index = _setup(F=F, P=P, seed=seed, miss=0.15)
+    rays[10:25, 0] = np.nan
+    return W, centers, rays, video_index
+
+
+@pytest.mark.parametrize("constraint", list(RayConstraint))
+@pytest.mark.parametrize("lambda2", [0.0, 0.1])
+def test_factored_path_matches_dense_least_squares(constraint, lambda2):
+    """factor_threshold = 0 sends every point to its weak-subspace factorization (soft: two-level CG, hard: direct
+    solve), including frames where the point is missing (three free coordinates in the subspace)."""
+    W, centers, rays, video_index = _missing_run_setup()
+    options = XStepOptions(lambda2=lambda2, constraint=constraint, factor_threshold=0)
+    points = solve_x(W, centers, rays, video_index, options)
+    reference = _dense_solution(W, centers, rays, video_index, options)
+    np.testing.assert_allclose(points, reference, atol=1e-6 * np.abs(reference).max())
+
+
+def _camera_scene(F=400, P=3, seed=4, opposite=0.95):
+    """Four cameras on a circle (two opposite pairs) film P points moving smoothly, one capture per time step in
+    turn; W expresses each frame by linear interpolation of the two frames of every other video around its time,
+    and gives the opposite camera's pair the share `opposite` of the column (real W-steps often lean on one
+    video)."""
+    rng = np.random.default_rng(seed)
+    cameras = 4
+    t = np.arange(F)
+    camera = t % cameras
+    video_index = np.argsort(np.argsort(camera * F + t, kind="stable"))  # flat position of capture t
+    order = np.argsort(video_index)  # capture shown by each flat frame
+    angles = 2 * np.pi * np.arange(cameras) / cameras
+    ring = 3.0 * np.column_stack([np.cos(angles), np.sin(angles), np.zeros(cameras)])
+    phase = rng.uniform(0, 2 * np.pi, (P, 3))
+    truth = 0.3 * np.sin(0.02 * t[:, None, None] * (1 + np.arange(3)) + phase[None])  # (F, P, 3)
+    centers = ring[camera[order]]
+    rays = truth[order] - centers[:, None]
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rows, cols, vals = [], [], []
+    for f in range(F):
+        capture = order[f]
+        for c in range(cameras):
+            if c == camera[capture]:
+                continue
+            before = capture - (capture - c) % cameras
+            after = before + cameras
+            share = (capture - before) / cameras
+            for neighbour, weight in ((before, 1 - share), (after, share)):
+                if 0 <= neighbour < F:
+                    rows.append(video_index[neighbour])
+                    cols.append(f)
+                    vals.append(weight * (opposite if (c - camera[capture]) % 4 == 2 else 1 - opposite))
+    W = sp.csc_matrix((vals, (rows, cols)), shape=(F, F))
+    W = sp.csc_matrix(W @ sp.diags(1 / np.asarray(W.sum(axis=0)).ravel()))
+    return W, centers, rays, np.sort(camera)
+
+
+def test_two_level_preconditioner_needs_few_iterations(monkeypatch):
+    """Opposite cameras leave along-ray motions that Q barely penalizes: block Jacobi needs many CG iterations,
+    the weak-subspace preconditioner a handful (the property that keeps the X-step linear in F)."""
+    import reconstruct.xstep as xstep
+
+    W, centers, rays, video_index = _camera_scene()
+    iterations = {}
+    original = xstep._BatchedCG.run
+
+    def counting_run(self, n):
+        before = self.iterations
+        original(self, n)
+        name = self.precondition.__qualname__.split(".")[0]
+        iterations[name] = iterations.get(name, 0) + self.iterations - before
+
+    monkeypatch.setattr(xstep._BatchedCG, "run", counting_run)
+    options = XStepOptions(lambda2=0.0, factor_threshold=0)
+    factored = solve_x(W, centers, rays, video_index, options)
+    jacobi = solve_x(W, centers, rays, video_index, XStepOptions(lambda2=0.0, factor_threshold=1e9))
+    assert iterations["_soft_two_level"] <= 8
+    assert iterations["_soft_jacobi"] >= 40
+    reference = _dense_solution(W, centers, rays, video_index, options)
+    scale = np.abs(reference).max()
+    # Same residual tolerance, but the well-conditioned two-level system leaves a far smaller error.
+    assert np.abs(factored - reference).max() < 1e-5 * scale
+    assert np.abs(factored - reference).max() < np.abs(jacobi - reference).max() / 3
+
+
+def test_slow_points_switch_to_factorization(monkeypatch):
+    """With the default threshold the slow points of a hard problem leave the Jacobi CG after a few checks and
+    finish with the two-level preconditioner (here with a gap in one point's track)."""
+    import reconstruct.xstep as xstep
+
+    W, centers, rays, video_index = _camera_scene(P=4)
+    rays[50:90, 1] = np.nan
+    switched = []
+    original = xstep._BatchedCG.run
+
+    def recording_run(self, n):
+        switched.append(self.precondition.__qualname__.startswith("_soft_two_level"))
+        original(self, n)
+
+    monkeypatch.setattr(xstep._BatchedCG, "run", recording_run)
+    options = XStepOptions(lambda2=0.0)
+    points = solve_x(W, centers, rays, video_index, options)
+    assert any(switched)
+    reference = _dense_solution(W, centers, rays, video_index, options)
+    assert np.abs(points - reference).max() < 1e-5 * np.abs(reference).max()
