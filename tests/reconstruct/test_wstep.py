@@ -110,3 +110,19 @@ def test_primal_active_set_descends_to_the_working_set_optimum():
     np.testing.assert_allclose(problem.objective(exact), problem.objective(reference), rtol=1e-9)
     np.testing.assert_allclose(exact.sum(axis=1), 1.0)
     assert exact.min() >= 0
+
+
+def test_local_inner_equals_the_gathered_products():
+    from reconstruct.wstep import local_inner, nearest_in_pool
+
+    rng = np.random.default_rng(4)
+    A, B = rng.normal(size=(150, 7)), rng.normal(size=(150, 7))
+    index = np.clip(np.arange(150)[:, None] + rng.integers(-20, 21, size=(150, 9)), -1, 149)
+    index[rng.random(index.shape) < 0.2] = -1
+    expected = np.where(index >= 0, np.einsum("fd,fcd->fc", A, B[np.maximum(index, 0)]), 0.0)
+    np.testing.assert_allclose(local_inner(A, B, index, chunk=16), expected, atol=1e-12)
+    nearest = nearest_in_pool(A, index, 3)
+    for f in (0, 70, 149):
+        candidates = index[f][index[f] >= 0]
+        order = candidates[np.argsort(np.linalg.norm(A[candidates] - A[f], axis=1))][:3]
+        np.testing.assert_array_equal(nearest[f][: len(order)], order)
