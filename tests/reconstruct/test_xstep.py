@@ -179,3 +179,4 @@ def test_slow_points_switch_to_factorization(monkeypatch):
     assert any(switched)
     reference = _dense_solution(W, centers, rays, video_index, options)
     assert np.abs(points - reference).max() < 1e-5 * np.abs(reference).max()
+
