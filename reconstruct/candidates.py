@@ -21,7 +21,22 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from reconstruct.initialize import MIN_COMMON_POINTS, PARALLEL_EPS, PairInit
+from reconstruct.initialize import (
+    LAZY_ROUNDS,
+    MIN_COMMON_POINTS,
+    PARALLEL_EPS,
+    PairInit,
+    _best_partners,
+    _distance_block,
+    _gap_sums,
+    _Lines,
+    _pair_depths,
+    _Side,
+)
+
+# Coarse stage: a video pair's coarse frames are compared in one symmetric block up to this many pairs (two float
+# arrays of that size), as `initialize_depths` does.
+COARSE_BLOCK = 2_000_000
 
 
 @dataclass(kw_only=True)
@@ -53,7 +68,7 @@ def pair_distances(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The initialization's bundle distance D(f, j) for explicit pairs (n,), and the depths (n, P) of f's points at
     the mutually closest ray points; same conventions as `initialize.bundle_distances` (inf for diverging pairs
-    or too few shared points)."""
+    or too few shared points). An explicit evaluation, kept as the reference for the windowed search below."""
     ra, rb = rays[f], rays[j]  # (n, P, 3)
     w = (centers[f] - centers[j])[:, None, :]
     b = np.einsum("npk,npk->np", ra, rb)
@@ -77,31 +92,100 @@ def pair_distances(
 
 
 def _best_per_video(
-    centers: np.ndarray, rays: np.ndarray, rows: np.ndarray, cols: np.ndarray, video_index: np.ndarray,
-    layout: VideoLayout, options: CandidateOptions,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For the pairs (rows[i], cols[i]): per row frame and video, the best column. Returns best position (R, V)
-    (-1 where none), best D (R, V), and the flat pair index of the best (R, V) (-1 where none)."""
-    V = len(layout.starts)
-    unique_rows, row_of = np.unique(rows, return_inverse=True)
-    best_d = np.full((len(unique_rows), V), np.inf)
-    best_pair = np.full((len(unique_rows), V), -1, dtype=np.int64)
-    D_all = np.empty(len(rows))
-    for start in range(0, len(rows), options.pair_block):
-        stop = min(len(rows), start + options.pair_block)
-        D_all[start:stop], _ = pair_distances(centers, rays, rows[start:stop], cols[start:stop])
-    col_video = video_index[cols]
-    # Per (row, video) argmin via a lexicographic sort: smallest D first within each group.
-    order = np.lexsort((D_all, col_video, row_of))
-    group = row_of[order] * V + col_video[order]
-    first = np.concatenate([[True], group[1:] != group[:-1]])
-    winners = order[first]
-    r, v = row_of[winners], col_video[winners]
-    finite = np.isfinite(D_all[winners])
-    best_d[r[finite], v[finite]] = D_all[winners][finite]
-    best_pair[r[finite], v[finite]] = winners[finite]
-    best_position = np.where(best_pair >= 0, layout.position[cols[np.maximum(best_pair, 0)]], -1)
-    return best_position, best_d, best_pair
+    lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, memory_elements: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse stage for one video pair: the first column position of least D among the non-diverging pairs, for
+    each of `rows` (R,) among `cols` (C,) and for each of `cols` among `rows`, as in `initialize_depths`: one
+    symmetric block when it holds at most `memory_elements` pairs, else bands of rows in each direction. Returns
+    (R,) and (C,) positions, -1 where none."""
+    if len(rows) * len(cols) <= memory_elements:
+        D_rows, D_cols = _distance_block(lines, rows, cols, both=True)
+        best_rows, _, diverging = _best_partners(lines, D_rows, rows, cols)
+        for r, c in diverging:
+            D_cols[c, r] = np.inf
+        best_cols, _, _ = _best_partners(lines, D_cols, cols, rows)
+        return best_rows, best_cols
+    found = []
+    for rows_all, cols_all in ((rows, cols), (cols, rows)):
+        best = np.full(len(rows_all), -1, dtype=np.int64)
+        band = max(1, memory_elements // len(cols_all))
+        for start in range(0, len(rows_all), band):
+            D, _ = _distance_block(lines, rows_all[start:start + band], cols_all, both=False)
+            best[start:start + band], _, _ = _best_partners(lines, D, rows_all[start:start + band], cols_all)
+        found.append(best)
+    return found[0], found[1]
+
+
+def _window_distances(
+    lines: _Lines, frames_a: np.ndarray, first: np.ndarray, side_b: _Side, window: int, pair_block: int
+) -> np.ndarray:
+    """D (R, window) of each frame of `frames_a` (R,) against the `window` consecutive frames of video b from
+    position `first` (R,) on (`side_b`: all of b's frames as column factors), inf where too few points are shared;
+    divergence not checked. Frames are taken in the order of their windows, so that a run of them needs one range
+    of b; D of the run against the whole range is a few matrix products per point (`_gap_sums`), from which each
+    frame's window is picked. A run spans at most one window length of starts, so at most half of what is
+    evaluated is thrown away."""
+    D = np.empty((len(frames_a), window))
+    order = np.argsort(first, kind="stable")
+    sorted_first = first[order]
+    max_rows = max(1, pair_block // (2 * window))
+    offsets = np.arange(window)
+    start = 0
+    while start < len(order):
+        stop = min(start + max_rows, int(np.searchsorted(sorted_first, sorted_first[start] + window, "right")))
+        at = order[start:stop]
+        rows = frames_a[at]
+        c0, c1 = int(sorted_first[start]), int(sorted_first[stop - 1]) + window
+        total, count = _gap_sums(lines, _Side.rows(lines, rows), side_b, slice(None), slice(c0, c1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            block = np.divide(total, count, out=total)
+        block[count < lines.need[rows][:, None]] = np.inf
+        D[at] = np.take_along_axis(block, (first[at] - c0)[:, None] + offsets[None, :], axis=1)
+        start = stop
+    return D
+
+
+def _window_best(
+    lines: _Lines, D: np.ndarray, rows: np.ndarray, first_col: np.ndarray, pair_block: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of D (R, K; modified: diverging pairs become inf) the first offset k of least D among the
+    non-diverging pairs (rows[r], first_col[r] + k), and that D; -1 and inf where none. Divergence needs the
+    depths, so it is checked for each row's best candidate, then the next, as in `initialize._best_partners`; rows
+    still unresolved after LAZY_ROUNDS get all their finite candidates checked at once."""
+    R = len(D)
+    best = np.full(R, -1, dtype=np.int64)
+    cost = np.full(R, np.inf)
+    pending = np.arange(R)
+    for _ in range(LAZY_ROUNDS):
+        if not len(pending):
+            return best, cost
+        pick = np.argmin(D[pending], axis=1)
+        value = D[pending, pick]
+        finite = np.isfinite(value)
+        pending, pick, value = pending[finite], pick[finite], value[finite]
+        diverging = _diverging(lines, rows[pending], first_col[pending] + pick, pair_block)
+        keep = ~diverging
+        best[pending[keep]], cost[pending[keep]] = pick[keep], value[keep]
+        D[pending[diverging], pick[diverging]] = np.inf
+        pending = pending[diverging]
+    if len(pending):
+        sub = D[pending]
+        r, k = np.nonzero(np.isfinite(sub))
+        diverging = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k, pair_block)
+        sub[r[diverging], k[diverging]] = np.inf
+        pick = np.argmin(sub, axis=1)
+        value = sub[np.arange(len(pending)), pick]
+        finite = np.isfinite(value)
+        best[pending[finite]], cost[pending[finite]] = pick[finite], value[finite]
+    return best, cost
+
+
+def _diverging(lines: _Lines, f: np.ndarray, j: np.ndarray, pair_block: int) -> np.ndarray:
+    """Whether each explicit pair (f[i], j[i]) has a negative depth (n,), in blocks of pair_block pairs."""
+    out = np.zeros(len(f), dtype=bool)
+    for start in range(0, len(f), pair_block):
+        _, out[start:start + pair_block] = _pair_depths(lines, f[start:start + pair_block], j[start:start + pair_block])
+    return out
 
 
 def _fill_anchor_gaps(anchor: np.ndarray, video_index: np.ndarray, layout: VideoLayout) -> np.ndarray:
@@ -213,40 +297,58 @@ def coarse_to_fine_init(
     times: np.ndarray | None = None,
 ) -> tuple[PairInit, np.ndarray]:
     """The pairwise initialization restricted to anchor windows. Returns (init, anchor (F, V)). `times` (F,):
-    decoder times, which make the anchors' consistency check exact (`consistent_anchors`)."""
+    decoder times, which make the anchors' consistency check exact (`consistent_anchors`).
+
+    Both stages use the dense initialization's Pluecker products (`reconstruct.initialize`): the coarse stage is the
+    dense search on each video pair's coarse frames; the fine stage evaluates runs of frames against the range of
+    the other video that their windows cover. Divergence is checked lazily, for each best candidate in turn. Time
+    O((F / stride)^2 P + F V window P), memory O(F P + F window)."""
     F, P = rays.shape[:2]
     layout = VideoLayout.of(video_index)
     V = len(layout.starts)
-    coarse = np.flatnonzero(layout.position % options.stride == 0)
-    rows = np.repeat(coarse, len(coarse))
-    cols = np.tile(coarse, len(coarse))
-    other = video_index[rows] != video_index[cols]
-    position, _, _ = _best_per_video(centers, rays, rows[other], cols[other], video_index, layout, options)
-    coarse_rows = np.unique(rows[other])
+    lines = _Lines.of(centers, rays)
+    members = [np.arange(layout.starts[v], layout.starts[v] + layout.lengths[v]) for v in range(V)]
     anchor = np.full((F, V), -1, dtype=np.int64)
-    anchor[coarse_rows] = position
+    coarse = [m[:: options.stride] for m in members]
+    for a in range(V):
+        for b in range(a + 1, V):
+            if not len(coarse[a]) or not len(coarse[b]):
+                continue
+            best_a, best_b = _best_per_video(lines, coarse[a], coarse[b], memory_elements=COARSE_BLOCK)
+            anchor[coarse[a], b] = np.where(best_a >= 0, best_a * options.stride, -1)
+            anchor[coarse[b], a] = np.where(best_b >= 0, best_b * options.stride, -1)
     anchor = _fill_anchor_gaps(anchor, video_index, layout)
     anchor = consistent_anchors(anchor, video_index, layout, tolerance=options.stride, times=times)
-    pool = window_pool(anchor, video_index, layout, options.stride + options.half_window)
-    rows = np.repeat(np.arange(F), pool.shape[1])
-    cols = pool.ravel()
-    keep = cols >= 0
-    rows, cols = rows[keep], cols[keep]
-    position, best_d, best_pair = _best_per_video(centers, rays, rows, cols, video_index, layout, options)
-    has = best_pair >= 0
-    anchor = np.where(has, position, anchor)
+    # Fine stage: each frame against anchor +- (stride + half_window) of every other video, the windows of
+    # `window_pool` (shifted inside the video, the whole video when it is shorter).
+    half = options.stride + options.half_window
+    position = np.full((F, V), -1, dtype=np.int64)
+    best_d = np.full((F, V), np.inf)
+    for b in range(V):
+        window = int(min(2 * half + 1, layout.lengths[b]))
+        if window == 0:
+            continue
+        side_b = _Side.cols(lines, members[b])
+        for a in range(V):
+            if a == b or not len(members[a]):
+                continue
+            first = np.clip(anchor[members[a], b] - half, 0, layout.lengths[b] - window)
+            D = _window_distances(lines, members[a], first, side_b, window, options.pair_block)
+            best, best_d[members[a], b] = _window_best(lines, D, members[a], layout.starts[b] + first,
+                                                       options.pair_block)
+            position[members[a], b] = np.where(best >= 0, first + best, -1)
+    anchor = np.where(position >= 0, position, anchor)
     anchor[np.arange(F), video_index] = layout.position
     anchor = consistent_anchors(anchor, video_index, layout, tolerance=anchor_tolerance(options, times), times=times)
-    choice = np.argmin(best_d, axis=1)
-    best = best_pair[np.arange(F), choice]
-    ok = best >= 0
-    partner = np.full(F, -1, dtype=np.int64)
-    cost = np.full(F, np.inf)
+    choice = np.argmin(best_d, axis=1)  # the first video on ties: the lower frame index, as the dense search
+    cost = best_d[np.arange(F), choice]
+    ok = np.isfinite(cost)
+    partner = np.where(ok, layout.starts[choice] + position[np.arange(F), choice], -1)
     depth = np.full((F, P), np.nan)
-    partner[ok] = cols[best[ok]]
-    cost[ok] = best_d[np.arange(F), choice][ok]
-    if ok.any():
-        _, depth[ok] = pair_distances(centers, rays, np.flatnonzero(ok), partner[ok])
+    matched = np.flatnonzero(ok)
+    for start in range(0, len(matched), 256):
+        f = matched[start:start + 256]
+        depth[f], _ = _pair_depths(lines, f, partner[f])
     return PairInit(partner=partner, cost=cost, depth=depth), anchor
 
 
