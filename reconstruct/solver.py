@@ -54,9 +54,10 @@ class SolverOptions:
     w_step: WStepOptions = field(default_factory=WStepOptions)
     # Above this many frames each frame's dictionary is restricted to windows of the other videos around its current
     # matches (reconstruct/candidates.py): linear cost in F instead of quadratic. At or below it, every frame of the
-    # other videos is a candidate, as in the paper. Not the default yet: on a 2000-frame capture the windowed
-    # W-steps' active-set method oscillated and fell back to FISTA (10x slower, 97.95 vs 99.61 % < 10 mm).
-    dense_limit: int = 1_000_000
+    # other videos is a candidate, as in the paper. Measured (1 BLAS thread): CMU F = 2000 windowed ~16 CPU s,
+    # 99.86 % < 10 mm, dense 24.6 s, 99.87 %; complexknee F = 2000 windowed 13.4 s, 99.75 %, dense 22 s, 99.61 %.
+    # Short captures stay dense: the flight scenes (P = 1, ~600 frames) give the windows' anchors nothing to match.
+    dense_limit: int = 1000
     candidates: CandidateOptions = field(default_factory=CandidateOptions)
     progress: bool = False
     # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
