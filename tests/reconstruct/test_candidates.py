@@ -1,16 +1,20 @@
 import numpy as np
+import pytest
 from synthetic_motion import synthetic_problem, truth_array
 
+from reconstruct import candidates
 from reconstruct.candidates import (
     CandidateOptions,
     VideoLayout,
+    _fill_anchor_gaps,
+    anchor_tolerance,
     coarse_to_fine_init,
     consistent_anchors,
     follow_w,
     pair_distances,
     window_pool,
 )
-from reconstruct.initialize import bundle_distances, initialize_depths
+from reconstruct.initialize import LAZY_ROUNDS, bundle_distances, closest_ray_points, initialize_depths
 from reconstruct.rays import camera_normalization, viewing_rays
 from reconstruct.solver import SolverOptions, solve
 
@@ -107,3 +111,96 @@ def test_follow_w_moves_an_anchor_only_past_the_slack_and_to_the_largest_entry()
     moved = follow_w(anchor, W, video_index, layout, slack=3)
     assert moved[0, 1] == 15  # the largest entry, not the weighted mean (12)
     assert moved[1, 1] == 5  # within the slack: the pool stays put
+
+
+def _best_of_pairs(centers, rays, rows, cols, video_index, layout):
+    """Per row frame and video the first position of least D over explicit pairs, by `pair_distances`."""
+    F, V = len(video_index), len(layout.starts)
+    D, _ = pair_distances(centers, rays, rows, cols)
+    best_d = np.full((F, V), np.inf)
+    position = np.full((F, V), -1, dtype=np.int64)
+    for f, j, d in zip(rows, cols, D, strict=True):
+        b = video_index[j]
+        if d < best_d[f, b] or (d == best_d[f, b] and position[f, b] >= 0 and layout.position[j] < position[f, b]):
+            best_d[f, b], position[f, b] = d, layout.position[j]
+    return position, best_d
+
+
+def _reference_init(centers, rays, video_index, options, times):
+    """The windowed initialization spelled out pair by pair: the coarse frames against all coarse frames, then each
+    frame against its `window_pool` (the explicit evaluation this module used before the matrix products)."""
+    F = len(video_index)
+    layout = VideoLayout.of(video_index)
+    coarse = np.flatnonzero(layout.position % options.stride == 0)
+    rows, cols = np.repeat(coarse, len(coarse)), np.tile(coarse, len(coarse))
+    other = video_index[rows] != video_index[cols]
+    position, _ = _best_of_pairs(centers, rays, rows[other], cols[other], video_index, layout)
+    anchor = np.full(position.shape, -1, dtype=np.int64)
+    anchor[coarse] = position[coarse]
+    anchor = _fill_anchor_gaps(anchor, video_index, layout)
+    anchor = consistent_anchors(anchor, video_index, layout, tolerance=options.stride, times=times)
+    pool = window_pool(anchor, video_index, layout, options.stride + options.half_window)
+    rows, cols = np.repeat(np.arange(F), pool.shape[1]), pool.ravel()
+    position, best_d = _best_of_pairs(centers, rays, rows[cols >= 0], cols[cols >= 0], video_index, layout)
+    anchor = np.where(position >= 0, position, anchor)
+    anchor[np.arange(F), video_index] = layout.position
+    anchor = consistent_anchors(anchor, video_index, layout, tolerance=anchor_tolerance(options, times), times=times)
+    choice = np.argmin(best_d, axis=1)
+    cost = best_d[np.arange(F), choice]
+    partner = np.where(np.isfinite(cost), layout.starts[choice] + position[np.arange(F), choice], -1)
+    depth = np.full(rays.shape[:2], np.nan)
+    ok = partner >= 0
+    _, depth[ok] = pair_distances(centers, rays, np.flatnonzero(ok), partner[ok])
+    return partner, cost, depth, anchor
+
+
+def _uneven_capture(seed=0):
+    """A synthetic capture made awkward: 30 % missing, video 2 at half its frame rate, video 3 cut to 12 frames
+    (shorter than a window), one frame sees nothing, one sees 2 points; and frame `target` of video 0 has
+    LAZY_ROUNDS + 2 partners in video 1, at its anchor, whose rays meet its rays exactly, but behind its camera
+    (D = 0, diverging). Returns centers, rays, video_index, times, target, the mirrored frames."""
+    problem, _ = synthetic_problem(frames=480, points=6, miss=0.3, seed=seed)
+    centers, rays = _normalized(problem)
+    layout = VideoLayout.of(problem.video_index)
+    keep = (problem.video_index != 2) | (layout.position % 2 == 0)
+    keep &= (problem.video_index != 3) | (layout.position < 12)
+    centers, rays = centers[keep], rays[keep].copy()
+    video_index, times = problem.video_index[keep], problem.times[keep]
+    layout = VideoLayout.of(video_index)
+    target = layout.starts[0] + 50
+    seen = ~np.isnan(rays[target, :, 0])
+    near = np.argmin(np.abs(times[video_index == 1] - times[target]))
+    mirrored = layout.starts[1] + near + np.arange(-2, LAZY_ROUNDS)
+    behind = centers[target] - rays[target]  # on the target's rays, one unit behind its camera
+    direction = np.where(seen[:, None], behind, np.nan) - centers[mirrored][:, None, :]
+    rays[mirrored] = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    rays[layout.starts[0] + 7] = np.nan
+    rays[layout.starts[1] + 9, 2:] = np.nan
+    return centers, rays, video_index, times, target, mirrored
+
+
+@pytest.mark.parametrize(("stride", "half_window", "pair_block", "coarse_block", "timed"), [
+    (8, 4, 40_000, 2_000_000, True),  # defaults' shape: runs of frames, one symmetric coarse block per pair
+    (5, 3, 16, 7, False),  # one frame per run, coarse bands of one row; anchors by positions
+])
+def test_windowed_initialization_equals_the_explicit_pair_reference(
+    monkeypatch, stride, half_window, pair_block, coarse_block, timed
+):
+    centers, rays, video_index, times, target, mirrored = _uneven_capture()
+    options = CandidateOptions(stride=stride, half_window=half_window, pair_block=pair_block)
+    times = times if timed else None
+    partner, cost, depth, anchor = _reference_init(centers, rays, video_index, options, times)
+    # The scene does what it says: the target's mirrored partners lie in its window, meet it, and diverge.
+    _, _, gap = closest_ray_points(centers[target], rays[target], centers[mirrored][:, None], rays[mirrored])
+    assert np.all(np.nanmean(gap, axis=1) < 1e-20)
+    assert np.all(np.isinf(pair_distances(centers, rays, np.full(len(mirrored), target), mirrored)[0]))
+    layout = VideoLayout.of(video_index)
+    assert np.all(np.abs(layout.position[mirrored] - anchor[target, 1]) <= stride + half_window)
+    assert partner[layout.starts[0] + 7] == -1 and partner[layout.starts[1] + 9] >= 0
+    assert layout.lengths[3] < 2 * (stride + half_window) + 1
+    monkeypatch.setattr(candidates, "COARSE_BLOCK", coarse_block)
+    init, windowed_anchor = coarse_to_fine_init(centers, rays, video_index, options, times=times)
+    np.testing.assert_array_equal(windowed_anchor, anchor)
+    np.testing.assert_array_equal(init.partner, partner)
+    np.testing.assert_allclose(init.cost, cost, rtol=1e-9)  # inf where inf
+    np.testing.assert_allclose(init.depth, depth, rtol=1e-9, atol=1e-12)  # NaN where NaN
