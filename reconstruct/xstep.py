@@ -204,7 +204,7 @@ class _BatchedCG:
 
     def __init__(self, operators: Operators, rhs: np.ndarray, x: np.ndarray, tolerance: float):
         self.apply, self.precondition = operators
-        self.x = x
+        self.x = x.copy()
         self.residual = rhs - self.apply(x)
         self.target = tolerance * np.maximum(np.sqrt(_dot(rhs, rhs)), 1e-300)
         self.norm = np.sqrt(_dot(self.residual, self.residual))
@@ -222,14 +222,17 @@ class _BatchedCG:
             curvature = _dot(self.direction, Ad)
             done = self.done
             alpha = np.where(done | (curvature <= 0), 0.0, self.rz / np.where(curvature > 0, curvature, 1.0))
-            self.x = self.x + alpha * self.direction
-            self.residual = self.residual - alpha * Ad
+            # in place: the arrays are the state's own (copied on construction and narrowing)
+            self.x += alpha * self.direction
+            Ad *= alpha
+            self.residual -= Ad
             self.norm = np.sqrt(_dot(self.residual, self.residual))
             done |= self.norm <= self.target
             z = self.precondition(self.residual)
             rz = _dot(self.residual, z)
             beta = np.where(done, 0.0, rz / np.where(self.rz != 0, self.rz, 1.0))
-            self.direction = z + beta * self.direction
+            self.direction *= beta
+            self.direction += z
             self.rz = rz
             self.iterations += 1
 
@@ -242,6 +245,10 @@ class _BatchedCG:
             setattr(self, name, getattr(self, name)[keep])
 
 
+# Jacobi CG iterations between two looks at the convergence rates (each look may narrow the batch).
+_CHECK_EVERY = 10
+
+
 def _cg_then_factor(
     jacobi: Callable[[np.ndarray], Operators],
     finish: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
@@ -250,7 +257,7 @@ def _cg_then_factor(
     options: XStepOptions,
     labels: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobi CG on all points of rhs, x (F, 3, P'); every `check` iterations the points whose recent convergence
+    """Jacobi CG on all points of rhs, x (F, 3, P'); every `_CHECK_EVERY` iterations the points whose recent convergence
     rate predicts more than `options.factor_threshold` further iterations leave the batch for `finish(labels, x)`,
     which returns their (x, converged); `jacobi(labels)` gives the operators. `labels` (P',) name the points for
     those two. Returns x (F, 3, P') and converged (P',)."""
@@ -261,16 +268,15 @@ def _cg_then_factor(
     if options.factor_threshold <= 0:
         return finish(labels, x)
     cg = _BatchedCG(jacobi(labels), rhs, x, options.cg_tolerance)
-    check = 10
     while True:
         before = cg.norm.copy()
-        steps = min(check, options.cg_max_iterations - cg.iterations)
+        steps = min(_CHECK_EVERY, options.cg_max_iterations - cg.iterations)
         cg.run(steps)
         x[..., batch] = cg.x
         converged[batch] = cg.done
         if cg.done.all() or cg.iterations >= options.cg_max_iterations:
             return x, converged
-        # Rate over the last `check` iterations: the first ones remove the stiff error and look deceptively fast.
+        # Rate over the last `_CHECK_EVERY` iterations: the first ones remove the stiff error and look deceptively fast.
         rate = (np.maximum(cg.norm, 1e-300) / np.maximum(before, 1e-300)) ** (1.0 / max(steps, 1))
         with np.errstate(divide="ignore", invalid="ignore"):
             remaining = np.where(rate < 1.0, np.log(cg.target / cg.norm) / np.log(rate), np.inf)
