@@ -28,7 +28,6 @@ from reconstruct.initialize import (
     PairInit,
     _best_partners,
     _distance_block,
-    _gap_sums,
     _Lines,
     _pair_depths,
     _Side,
@@ -37,6 +36,11 @@ from reconstruct.initialize import (
 # Coarse stage: a video pair's coarse frames are compared in one symmetric block up to this many pairs (two float
 # arrays of that size), as `initialize_depths` does.
 COARSE_BLOCK = 2_000_000
+# Fine stage: a run of frames is evaluated in (P, R, S) buffers of at most this many elements (2 MB each: faster
+# than both smaller runs, whose per-call overhead dominates, and larger ones, which fall out of cache).
+RUN_ELEMENTS = 2**18
+# Explicit pairs (divergence checks, pairs the runs missed) evaluated at once: (n, P, 3) gathers.
+EXPLICIT_PAIRS = 4096
 
 
 @dataclass(kw_only=True)
@@ -117,36 +121,113 @@ def _best_per_video(
 
 
 def _window_distances(
-    lines: _Lines, frames_a: np.ndarray, first: np.ndarray, side_b: _Side, window: int, pair_block: int
-) -> np.ndarray:
+    lines: _Lines, frames_a: np.ndarray, first: np.ndarray, side_b: _Side, window: int, pair_block: int,
+    back: tuple[np.ndarray, int] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """D (R, window) of each frame of `frames_a` (R,) against the `window` consecutive frames of video b from
     position `first` (R,) on (`side_b`: all of b's frames as column factors), inf where too few points are shared;
     divergence not checked. Frames are taken in the order of their windows, so that a run of them needs one range
-    of b; D of the run against the whole range is a few matrix products per point (`_gap_sums`), from which each
-    frame's window is picked. A run spans at most one window length of starts, so at most half of what is
-    evaluated is thrown away."""
+    of b; D of the run against the whole range is a few matrix products per point, from which each frame's window
+    is picked. A run spans at most one window length of starts, so at most half of what is evaluated is unused.
+
+    With `back` = (first_b (L_b,), window_b): also, since D is symmetric, the same for b's frames against their
+    windows in the frames_a video (positions first_b ... + window_b), as far as the runs cover them (their windows
+    lie around the same clock line), NaN where not. Returns (D (R, window), D_back (L_b, window_b) or (0, 0))."""
     D = np.empty((len(frames_a), window))
+    need_a, need_b = lines.need[frames_a], lines.need[side_b.frames]
+    if back is not None:
+        first_b, window_b = back
+        D_back = np.full((len(first_b), window_b), np.nan)
+        slot = np.full(len(frames_a), -1, dtype=np.int64)  # a's position -> its row in the current run
+        offsets_b = np.arange(window_b)
+    else:
+        D_back = np.empty((0, 0))
     order = np.argsort(first, kind="stable")
     sorted_first = first[order]
-    max_rows = max(1, pair_block // (2 * window))
+    max_rows = max(1, min(pair_block, RUN_ELEMENTS // lines.left.shape[0]) // (2 * window))
     offsets = np.arange(window)
     start = 0
     while start < len(order):
         stop = min(start + max_rows, int(np.searchsorted(sorted_first, sorted_first[start] + window, "right")))
         at = order[start:stop]
-        rows = frames_a[at]
         c0, c1 = int(sorted_first[start]), int(sorted_first[stop - 1]) + window
-        total, count = _gap_sums(lines, _Side.rows(lines, rows), side_b, slice(None), slice(c0, c1))
+        total, count = _run_gap_sums(lines, frames_a[at], side_b, c0, c1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            block = np.divide(total, count, out=total)
-        block[count < lines.need[rows][:, None]] = np.inf
-        D[at] = np.take_along_axis(block, (first[at] - c0)[:, None] + offsets[None, :], axis=1)
+            block = np.divide(total, count, out=total)  # NaN where nothing is shared: below every need
+        pick = (first[at] - c0)[:, None] + offsets[None, :]
+        D[at] = np.where(np.take_along_axis(count, pick, axis=1) >= need_a[at][:, None],
+                         np.take_along_axis(block, pick, axis=1), np.inf)
+        if back is not None:
+            slot[at] = np.arange(len(at))
+            row = slot[first_b[c0:c1, None] + offsets_b[None, :]]  # (S, window_b): the run's row, -1 outside
+            g, k = np.nonzero(row >= 0)
+            r = row[g, k]
+            D_back[c0 + g, k] = np.where(count[r, g] >= need_b[c0 + g], block[r, g], np.inf)
+            slot[at] = -1
         start = stop
-    return D
+    return D, D_back
+
+
+def _fill_uncovered(
+    lines: _Lines, D: np.ndarray, frames: np.ndarray, first_col: np.ndarray, members_b: np.ndarray,
+    first: np.ndarray, pair_block: int,
+) -> None:
+    """Fill the NaN entries of D (R, K) of `frames` (R,) against frames first_col + k: a few pair by pair, or, when
+    they are many (the two videos' anchors disagree), the rows that hold them by runs (`_window_distances`
+    against video b, whose frames are `members_b`, from positions `first` on)."""
+    missing = np.isnan(D)
+    if not missing.any():
+        return
+    if missing.mean() <= 0.25:
+        r, k = np.nonzero(missing)
+        for start in range(0, len(r), EXPLICIT_PAIRS):
+            rr, kk = r[start:start + EXPLICIT_PAIRS], k[start:start + EXPLICIT_PAIRS]
+            D[rr, kk] = _explicit_distances(lines, frames[rr], first_col[rr] + kk)
+        return
+    rows = missing.any(axis=1)
+    D[rows], _ = _window_distances(lines, frames[rows], first[rows], _Side.cols(lines, members_b), D.shape[1],
+                                   pair_block)
+
+
+def _explicit_distances(lines: _Lines, f: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """D of explicit pairs (n,) by the same Pluecker products as `_run_gap_sums`, inf where too few points are
+    shared; divergence not checked."""
+    left_f, left_j = lines.left[:, f], lines.left[:, j]  # (P, n, 6) [m, r]
+    sine_sq = np.einsum("pnk,pnk->pn", left_f[..., 3:], left_j[..., 3:])  # cosine
+    triple = np.einsum("pnk,pnk->pn", left_f[..., :3], left_j[..., 3:])
+    triple += np.einsum("pnk,pnk->pn", left_f[..., 3:], left_j[..., :3])
+    sine_sq = 1.0 - sine_sq * sine_sq
+    flat = sine_sq < PARALLEL_EPS
+    count = np.sum(lines.seen[f] & lines.seen[j], axis=1) - flat.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        D = np.sum(np.where(flat, 0.0, triple * triple / np.where(flat, 1.0, sine_sq)), axis=0) / count
+    return np.where(count >= lines.need[f], D, np.inf)
+
+
+def _run_gap_sums(
+    lines: _Lines, rows: np.ndarray, side_b: _Side, c0: int, c1: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """`initialize._gap_sums` for the frames `rows` (R,) against side_b's frames c0 ... c1 - 1 (S): the sum over
+    shared, non-parallel points of the squared ray gap, and their number (R, S). All points in one stacked product:
+    a run's (P, R, S) buffers are small, and the per-call overhead of a loop over points would dominate them."""
+    left = lines.left[:, rows]  # (P, R, 6) [m, r]
+    sine_sq = np.matmul(left[..., 3:], side_b.direction[:, :, c0:c1])  # cosine (P, R, S)
+    triple = np.matmul(left, side_b.pluecker[:, :, c0:c1])  # (C_a - C_b) . (r_a x r_b)
+    np.multiply(sine_sq, sine_sq, out=sine_sq)
+    np.subtract(1.0, sine_sq, out=sine_sq)
+    count = np.rint(lines.seen_float[rows] @ lines.seen_float[side_b.frames[c0:c1]].T).astype(np.int64)
+    if sine_sq.min() < PARALLEL_EPS:  # rare: nearly parallel rays have no meaningful gap and are not counted
+        flat = sine_sq < PARALLEL_EPS
+        count -= flat.sum(axis=0)
+        sine_sq[flat] = 1.0
+        triple[flat] = 0.0
+    np.multiply(triple, triple, out=triple)
+    np.divide(triple, sine_sq, out=triple)
+    return triple.sum(axis=0), count
 
 
 def _window_best(
-    lines: _Lines, D: np.ndarray, rows: np.ndarray, first_col: np.ndarray, pair_block: int
+    lines: _Lines, D: np.ndarray, rows: np.ndarray, first_col: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per row of D (R, K; modified: diverging pairs become inf) the first offset k of least D among the
     non-diverging pairs (rows[r], first_col[r] + k), and that D; -1 and inf where none. Divergence needs the
@@ -163,7 +244,7 @@ def _window_best(
         value = D[pending, pick]
         finite = np.isfinite(value)
         pending, pick, value = pending[finite], pick[finite], value[finite]
-        diverging = _diverging(lines, rows[pending], first_col[pending] + pick, pair_block)
+        diverging = _diverging(lines, rows[pending], first_col[pending] + pick)
         keep = ~diverging
         best[pending[keep]], cost[pending[keep]] = pick[keep], value[keep]
         D[pending[diverging], pick[diverging]] = np.inf
@@ -171,7 +252,7 @@ def _window_best(
     if len(pending):
         sub = D[pending]
         r, k = np.nonzero(np.isfinite(sub))
-        diverging = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k, pair_block)
+        diverging = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k)
         sub[r[diverging], k[diverging]] = np.inf
         pick = np.argmin(sub, axis=1)
         value = sub[np.arange(len(pending)), pick]
@@ -180,11 +261,12 @@ def _window_best(
     return best, cost
 
 
-def _diverging(lines: _Lines, f: np.ndarray, j: np.ndarray, pair_block: int) -> np.ndarray:
-    """Whether each explicit pair (f[i], j[i]) has a negative depth (n,), in blocks of pair_block pairs."""
+def _diverging(lines: _Lines, f: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Whether each explicit pair (f[i], j[i]) has a negative depth (n,)."""
     out = np.zeros(len(f), dtype=bool)
-    for start in range(0, len(f), pair_block):
-        _, out[start:start + pair_block] = _pair_depths(lines, f[start:start + pair_block], j[start:start + pair_block])
+    for start in range(0, len(f), EXPLICIT_PAIRS):
+        stop = start + EXPLICIT_PAIRS
+        _, out[start:stop] = _pair_depths(lines, f[start:stop], j[start:stop])
     return out
 
 
@@ -324,19 +406,23 @@ def coarse_to_fine_init(
     half = options.stride + options.half_window
     position = np.full((F, V), -1, dtype=np.int64)
     best_d = np.full((F, V), np.inf)
+    window = np.minimum(2 * half + 1, layout.lengths)
     for b in range(V):
-        window = int(min(2 * half + 1, layout.lengths[b]))
-        if window == 0:
+        if not window[b]:
             continue
         side_b = _Side.cols(lines, members[b])
-        for a in range(V):
-            if a == b or not len(members[a]):
+        for a in range(b):
+            if not window[a]:
                 continue
-            first = np.clip(anchor[members[a], b] - half, 0, layout.lengths[b] - window)
-            D = _window_distances(lines, members[a], first, side_b, window, options.pair_block)
-            best, best_d[members[a], b] = _window_best(lines, D, members[a], layout.starts[b] + first,
-                                                       options.pair_block)
-            position[members[a], b] = np.where(best >= 0, first + best, -1)
+            first_ab = np.clip(anchor[members[a], b] - half, 0, layout.lengths[b] - window[b])
+            first_ba = np.clip(anchor[members[b], a] - half, 0, layout.lengths[a] - window[a])
+            D_ab, D_ba = _window_distances(lines, members[a], first_ab, side_b, int(window[b]), options.pair_block,
+                                           back=(first_ba, int(window[a])))
+            _fill_uncovered(lines, D_ba, members[b], layout.starts[a] + first_ba, members[a], first_ba,
+                            options.pair_block)
+            for rows, cols, first, D in ((a, b, first_ab, D_ab), (b, a, first_ba, D_ba)):
+                best, best_d[members[rows], cols] = _window_best(lines, D, members[rows], layout.starts[cols] + first)
+                position[members[rows], cols] = np.where(best >= 0, first + best, -1)
     anchor = np.where(position >= 0, position, anchor)
     anchor[np.arange(F), video_index] = layout.position
     anchor = consistent_anchors(anchor, video_index, layout, tolerance=anchor_tolerance(options, times), times=times)

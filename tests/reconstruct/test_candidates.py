@@ -14,7 +14,15 @@ from reconstruct.candidates import (
     pair_distances,
     window_pool,
 )
-from reconstruct.initialize import LAZY_ROUNDS, bundle_distances, closest_ray_points, initialize_depths
+from reconstruct.initialize import (
+    LAZY_ROUNDS,
+    _distance_block,
+    _Lines,
+    _Side,
+    bundle_distances,
+    closest_ray_points,
+    initialize_depths,
+)
 from reconstruct.rays import camera_normalization, viewing_rays
 from reconstruct.solver import SolverOptions, solve
 
@@ -158,7 +166,8 @@ def _uneven_capture(seed=0):
     """A synthetic capture made awkward: 30 % missing, video 2 at half its frame rate, video 3 cut to 12 frames
     (shorter than a window), one frame sees nothing, one sees 2 points; and frame `target` of video 0 has
     LAZY_ROUNDS + 2 partners in video 1, at its anchor, whose rays meet its rays exactly, but behind its camera
-    (D = 0, diverging). Returns centers, rays, video_index, times, target, the mirrored frames."""
+    (D = 0, diverging), and frame `parallel` of video 0 one ray antiparallel to its time match's. Returns centers,
+    rays, video_index, times, target, the mirrored frames, parallel."""
     problem, _ = synthetic_problem(frames=480, points=6, miss=0.3, seed=seed)
     centers, rays = _normalized(problem)
     layout = VideoLayout.of(problem.video_index)
@@ -176,17 +185,25 @@ def _uneven_capture(seed=0):
     rays[mirrored] = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
     rays[layout.starts[0] + 7] = np.nan
     rays[layout.starts[1] + 9, 2:] = np.nan
-    return centers, rays, video_index, times, target, mirrored
+    # An antiparallel pair of rays (not counted) between a frame and its time match, which share 5 points.
+    seen = ~np.isnan(rays[..., 0])
+    match = layout.starts[1] + np.argmin(np.abs(times[video_index == 1][None] - times[video_index == 0][:, None]),
+                                         axis=1)
+    shared = np.sum(seen[video_index == 0] & seen[match], axis=1)
+    parallel = np.flatnonzero(shared[80:] >= 5)[0] + 80
+    point = np.flatnonzero(seen[parallel] & seen[match[parallel]])[0]
+    rays[match[parallel], point] = -rays[parallel, point]
+    return centers, rays, video_index, times, target, mirrored, parallel
 
 
-@pytest.mark.parametrize(("stride", "half_window", "pair_block", "coarse_block", "timed"), [
-    (8, 4, 40_000, 2_000_000, True),  # defaults' shape: runs of frames, one symmetric coarse block per pair
-    (5, 3, 16, 7, False),  # one frame per run, coarse bands of one row; anchors by positions
+@pytest.mark.parametrize(("stride", "half_window", "pair_block", "blocks", "timed"), [
+    (8, 4, 40_000, (2_000_000, 4096), True),  # defaults' shape: runs of frames, one coarse block per video pair
+    (5, 3, 16, (7, 5), False),  # one frame per run, coarse bands of one row, explicit pairs 5 at a time; no times
 ])
 def test_windowed_initialization_equals_the_explicit_pair_reference(
-    monkeypatch, stride, half_window, pair_block, coarse_block, timed
+    monkeypatch, stride, half_window, pair_block, blocks, timed
 ):
-    centers, rays, video_index, times, target, mirrored = _uneven_capture()
+    centers, rays, video_index, times, target, mirrored, parallel = _uneven_capture()
     options = CandidateOptions(stride=stride, half_window=half_window, pair_block=pair_block)
     times = times if timed else None
     partner, cost, depth, anchor = _reference_init(centers, rays, video_index, options, times)
@@ -198,9 +215,43 @@ def test_windowed_initialization_equals_the_explicit_pair_reference(
     assert np.all(np.abs(layout.position[mirrored] - anchor[target, 1]) <= stride + half_window)
     assert partner[layout.starts[0] + 7] == -1 and partner[layout.starts[1] + 9] >= 0
     assert layout.lengths[3] < 2 * (stride + half_window) + 1
-    monkeypatch.setattr(candidates, "COARSE_BLOCK", coarse_block)
+    match = np.flatnonzero(np.any(rays == -rays[parallel], axis=(1, 2)))
+    assert partner[parallel] == match  # where the rule matters
+    assert np.sum(np.isnan(depth[parallel]) & ~np.isnan(rays[match, :, 0]) & ~np.isnan(rays[parallel, :, 0])) == 1
+    monkeypatch.setattr(candidates, "COARSE_BLOCK", blocks[0])
+    monkeypatch.setattr(candidates, "EXPLICIT_PAIRS", blocks[1])
     init, windowed_anchor = coarse_to_fine_init(centers, rays, video_index, options, times=times)
     np.testing.assert_array_equal(windowed_anchor, anchor)
     np.testing.assert_array_equal(init.partner, partner)
     np.testing.assert_allclose(init.cost, cost, rtol=1e-9)  # inf where inf
     np.testing.assert_allclose(init.depth, depth, rtol=1e-9, atol=1e-12)  # NaN where NaN
+
+
+def test_window_distances_of_both_videos_equal_the_dense_block():
+    """One pass over runs of video 0's frames gives the windows of both videos (NaN where its runs miss one of
+    video 1's), and the explicit pairs fill the rest; both equal the dense initialization's D, parallel pair too."""
+    centers, rays, video_index, times, _, _, parallel = _uneven_capture()
+    lines = _Lines.of(centers, rays)
+    layout = VideoLayout.of(video_index)
+    frames_a, frames_b = (np.flatnonzero(video_index == v) for v in (0, 1))
+    dense, _ = _distance_block(lines, frames_a, frames_b, both=False)  # divergence not checked, as here
+    dense_back, _ = _distance_block(lines, frames_b, frames_a, both=False)
+    match = np.argmin(np.abs(times[frames_b][None] - times[frames_a][:, None]), axis=1)  # (L_a,) positions in b
+    back = np.argmin(np.abs(times[frames_a][None] - times[frames_b][:, None]), axis=1)
+    rng = np.random.default_rng(2)
+    first_a = np.clip(match - 6 + rng.integers(-3, 4, len(match)), 0, len(frames_b) - 13)
+    first_b = np.clip(back - 5 + rng.integers(-9, 10, len(back)), 0, len(frames_a) - 11)
+    D, D_back = candidates._window_distances(lines, frames_a, first_a, _Side.cols(lines, frames_b), 13, 40_000,
+                                             back=(first_b, 11))
+    np.testing.assert_allclose(D, np.take_along_axis(dense, first_a[:, None] + np.arange(13), axis=1), rtol=1e-12,
+                               atol=1e-20)  # the mirrored frames: D = 0 up to rounding
+    expected_back = np.take_along_axis(dense_back, first_b[:, None] + np.arange(11), axis=1)
+    covered = ~np.isnan(D_back)
+    assert 0.5 < covered.mean() < 1.0  # the shifted windows stick out of the runs' ranges
+    np.testing.assert_allclose(D_back[covered], expected_back[covered], rtol=1e-12, atol=1e-20)
+    r, k = np.nonzero(~covered)
+    r = np.concatenate([r, [match[parallel - layout.starts[0]]]])
+    cols = np.concatenate([first_b[r[:-1]] + k, [parallel - layout.starts[0]]])
+    explicit = candidates._explicit_distances(lines, frames_b[r], frames_a[cols])
+    np.testing.assert_allclose(explicit, dense_back[r, cols], rtol=1e-12, atol=1e-20)
+    assert np.isfinite(explicit[-1])
