@@ -127,8 +127,9 @@ def _window_distances(
     """D (R, window) of each frame of `frames_a` (R,) against the `window` consecutive frames of video b from
     position `first` (R,) on (`side_b`: all of b's frames as column factors), inf where too few points are shared;
     divergence not checked. Frames are taken in the order of their windows, so that a run of them needs one range
-    of b; D of the run against the whole range is a few matrix products per point, from which each frame's window
-    is picked. A run spans at most one window length of starts, so at most half of what is evaluated is unused.
+    of b; D of the run against the whole range is one stacked matrix product over the points (`_run_gap_sums`),
+    from which each frame's window is picked. A run spans at most one window length of starts, so at most half of
+    what is evaluated is unused, and holds at most pair_block pairs.
 
     With `back` = (first_b (L_b,), window_b): also, since D is symmetric, the same for b's frames against their
     windows in the frames_a video (positions first_b ... + window_b), as far as the runs cover them (their windows
@@ -329,7 +330,10 @@ def consistent_anchors(
             if line is None:
                 continue
             predicted = line[0] + line[1] * x
-            stray = np.abs(y - predicted) > tolerance * scale
+            # Where the line leaves b (no overlap, or a wrong line in periodic motion) clipping would pile anchors
+            # onto b's first or last frame: those keep their own match.
+            inside = (predicted >= b_axis[0]) & (predicted <= b_axis[-1])
+            stray = (np.abs(y - predicted) > tolerance * scale) & inside
             nearest = np.clip(np.searchsorted(b_axis, predicted[stray]), 1, len(b_axis) - 1)
             closer_left = predicted[stray] - b_axis[nearest - 1] < b_axis[nearest] - predicted[stray]
             fixed[members[stray], b] = nearest - closer_left
