@@ -204,7 +204,7 @@ class _BatchedCG:
 
     def __init__(self, operators: Operators, rhs: np.ndarray, x: np.ndarray, tolerance: float):
         self.apply, self.precondition = operators
-        self.x = x.copy()
+        self.x = x  # updated in place: callers hand over an array they own
         self.residual = rhs - self.apply(x)
         self.target = tolerance * np.maximum(np.sqrt(_dot(rhs, rhs)), 1e-300)
         self.norm = np.sqrt(_dot(self.residual, self.residual))
@@ -310,15 +310,18 @@ def _solve_soft_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Jacobi CG for all points; the slow ones continue with the weak-subspace preconditioned CG.
     Returns points (F, P, 3) and converged (P,)."""
-    F, P = observed.shape
+    P = observed.shape[1]
     r_fkp = _to_fkp(r)
     w = weight * observed[:, None, :]  # (F, 1, P), zero where unobserved
     diagonal = np.maximum(Q.diagonal(), 1e-300)[:, None, None]
-    C = np.broadcast_to(centers[:, :, None], (F, 3, P))
-    rhs = w * (C - _along(r_fkp, C))
-    x0 = _to_fkp(start) if start is not None else C.copy()
+    # rhs = w (I - r r^T) C, per (frame, point)
+    C = centers[:, :, None]
+    rhs = w * (C - r_fkp * np.einsum("fkp,fk->fp", r_fkp, centers)[:, None, :])
+    x0 = _to_fkp(start) if start is not None else np.repeat(C, P, axis=2)
 
     def subset(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(points) == P:  # all points, in order: no copies
+            return r_fkp, w
         return np.ascontiguousarray(r_fkp[..., points]), np.ascontiguousarray(w[..., points])
 
     def jacobi(points: np.ndarray) -> Operators:
