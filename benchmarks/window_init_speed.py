@@ -10,7 +10,8 @@ Data: `cmu:F` is the solver benchmark's capture (`solver_speed.capture_of`: CMU 
 4 cameras at 30 Hz, 2.7 m). Rays and centers in the solver's normalized units, decoder times passed as the solver
 does. One BLAS thread (threadpoolctl). Time: `time.process_time` of one call, median of `--repeats`, old and new
 interleaved so that both see the same load on a shared machine. Peak memory: tracemalloc's peak during one call
-(numpy's buffers are traced), beyond the inputs.
+(numpy's buffers are traced), beyond the inputs. `--reference REV` takes the search from REV and the anchor rules
+(`consistent_anchors`, `window_pool`, ...: SHARED_RULES) from the current file, so that only the search is compared.
 
 Differences: partners that differ are reported as ties when the explicit bundle distance (`pair_distances`) of both
 choices lies below `--tie` times the median cost: noise-free captures hold frames of two videos at the same
@@ -43,6 +44,7 @@ from reconstruct import candidates
 from reconstruct.rays import camera_normalization, viewing_rays
 
 REPO = Path(__file__).resolve().parents[1]
+SHARED_RULES = ("consistent_anchors", "_ransac_line", "anchor_tolerance", "window_pool", "_fill_anchor_gaps")
 
 
 def load_revision(revision: str) -> ModuleType:
@@ -57,6 +59,10 @@ def load_revision(revision: str) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
+    # The anchor rules are another job's, and change on their own: the current ones in both, so that the
+    # comparison is of the search alone.
+    for name in SHARED_RULES:
+        setattr(module, name, getattr(candidates, name))
     return module
 
 
