@@ -533,8 +533,10 @@ def solve_w(
     near_cols = np.repeat(np.arange(F), near.shape[1])
     # fewer other-video frames than `nearest`, or a short pool
     other = (near.ravel() >= 0) & (video_index[near.ravel()] != video_index[near_cols])
-    rows = [near.ravel()[other]]
-    cols = [near_cols[other]]
+    seed_rows, seed_cols = _limit_seeds_per_frame(near.ravel()[other], near_cols[other],
+                                                  np.tile(np.arange(near.shape[1]), F)[other], 3 * options.nearest)
+    rows = [seed_rows]
+    cols = [seed_cols]
     if previous is not None:
         keep = previous.valid & (previous.value > 0)
         rows.append(previous.cand[keep])
@@ -566,6 +568,20 @@ def solve_w(
         V_start = _sparse_lookup(W)
     stats.history.append(stats.objective)
     return W, stats
+
+
+def _limit_seeds_per_frame(rows: np.ndarray, cols: np.ndarray, rank: np.ndarray, limit: int
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Keep at most `limit` seed pairs (row j, column f) per frame j, those where j ranks nearest for f. The working
+    set is symmetrized, so a frame that is the nearest of thousands of frames would get a column of thousands of
+    entries, and the per-column Gram matrices (F, K, K) are padded to the largest column: measured on a
+    20,000-frame capture, the last frame of a video, where out-of-range anchors were clipped, was a seed of 255
+    columns (K = 258, > 12 GB)."""
+    order = np.lexsort((rank, rows))
+    rows, cols = rows[order], cols[order]
+    position = np.arange(len(rows)) - np.searchsorted(rows, rows)
+    keep = position < limit
+    return rows[keep], cols[keep]
 
 
 def _sparse_lookup(W: SparseW) -> np.ndarray:

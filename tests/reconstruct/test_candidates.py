@@ -99,10 +99,14 @@ def test_consistent_anchors_move_repeated_pose_matches_back_onto_the_clock_line(
     anchor = truth.copy()
     anchor[40:100, 1] = np.maximum(anchor[40:100, 1] - 70, 0)  # a run matched to an earlier repetition
     anchor[350:380, 0] = np.minimum(anchor[350:380, 0] + 120, 299)
-    anchor[[10, 200], 1] = [229, 0]  # isolated far matches
+    anchor[[30, 200], 1] = [229, 0]  # isolated far matches
+    anchor[5, 1] = 100  # before video 1 starts: no line position to move it to, it keeps its match
     with_times = consistent_anchors(anchor, video_index, layout, tolerance=3, times=times)
+    assert with_times[5, 1] == 100
+    with_times[5, 1] = truth[5, 1]
     assert np.abs(with_times - truth).max() <= 1
     without = consistent_anchors(anchor, video_index, layout, tolerance=12)
+    without[5, 1] = truth[5, 1]
     assert np.abs(without - truth).max() <= 12
     np.testing.assert_array_equal(consistent_anchors(truth, video_index, layout, tolerance=3, times=times), truth)
 

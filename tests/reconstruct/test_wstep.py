@@ -126,3 +126,14 @@ def test_local_inner_equals_the_gathered_products():
         candidates = index[f][index[f] >= 0]
         order = candidates[np.argsort(np.linalg.norm(A[candidates] - A[f], axis=1))][:3]
         np.testing.assert_array_equal(nearest[f][: len(order)], order)
+
+
+def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
+    from reconstruct.wstep import _limit_seeds_per_frame
+
+    rows = np.array([5, 5, 5, 5, 2, 5, 2])  # frame 5 is a seed of 5 columns, frame 2 of two
+    cols = np.array([0, 1, 3, 4, 6, 7, 8])
+    rank = np.array([3, 0, 1, 2, 0, 0, 5])
+    kept_rows, kept_cols = _limit_seeds_per_frame(rows, cols, rank, 3)
+    assert sorted(zip(kept_rows.tolist(), kept_cols.tolist(), strict=True)) == [
+        (2, 6), (2, 8), (5, 1), (5, 3), (5, 7)]
