@@ -31,7 +31,7 @@ from reconstruct.initialize import PairInit, fill_missing_points, initialize_dep
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
 from reconstruct.wstep import SparseW, WStepOptions, solve_w
-from reconstruct.xstep import RayConstraint, XStepOptions, quadratic_form, solve_x
+from reconstruct.xstep import RayConstraint, XStepOptions, solve_x
 
 log = logging.getLogger(__name__)
 
@@ -96,9 +96,16 @@ def total_cost(
 ) -> float:
     """The objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized units."""
     F, P = points.shape[:2]
-    Q = quadratic_form(W, video_index, P, lambda2)
     shapes = points.reshape(F, -1)
-    cost = float(np.sum(shapes * (Q @ shapes)))
+    # trace(S^T Q S) of the X-step's quadratic form, without forming Q = (I - W)(I - W)^T / (FP) + ...: the sparse
+    # product cost more than the rest of the alternation's bookkeeping together.
+    residual = shapes - W.T @ shapes
+    cost = float(np.sum(residual * residual)) / (F * P)
+    if lambda2 > 0:
+        same = np.flatnonzero(video_index[1:] == video_index[:-1])
+        if len(same):
+            step = shapes[same + 1] - shapes[same]
+            cost += lambda2 / (len(same) * P) * float(np.sum(step * step))
     asym = W - W.T
     cost += lambda1 / F * float(asym.multiply(asym).sum())
     if constraint is RayConstraint.SOFT:

@@ -83,3 +83,24 @@ def test_anderson_acceleration_keeps_the_cost_monotone_and_needs_fewer_alternati
     for result in (plain, mixed):
         error = np.linalg.norm(result.points - truth_array(problem, truth), axis=-1)
         assert np.mean(error < 10.0) > 0.99
+
+
+@pytest.mark.parametrize("lambda2", [0.0, 0.1])
+def test_total_cost_data_and_smoothness_terms_equal_the_x_step_quadratic_form(lambda2):
+    import scipy.sparse as sp
+
+    from reconstruct.solver import total_cost
+    from reconstruct.xstep import quadratic_form
+
+    rng = np.random.default_rng(7)
+    F, P = 30, 4
+    video_index = np.repeat([0, 1, 2], 10)
+    points = rng.normal(size=(F, P, 3))
+    W = sp.random(F, F, density=0.2, random_state=1, format="csc")
+    nan_rays = np.full((F, P, 3), np.nan)  # no ray term
+    Q = quadratic_form(W, video_index, P, lambda2)
+    shapes = points.reshape(F, -1)
+    asym = (W - W.T).toarray()
+    expected = float(np.sum(shapes * (Q @ shapes))) + 0.05 / F * np.sum(asym**2)
+    cost = total_cost(points, W, np.zeros((F, 3)), nan_rays, video_index, 0.05, lambda2, 100.0, RayConstraint.SOFT)
+    np.testing.assert_allclose(cost, expected, rtol=1e-12)
