@@ -6,7 +6,8 @@ dictionaries (reconstruct/candidates.py; the default above SolverOptions.dense_l
 
 Data: complexknee 2022_01_0401 (100 Hz, 33.8 s; ../shared/data/mocap/lab/complexknee), 20 markers without gaps,
 resampled to 120 Hz and played forward, backward, forward ... until F captures exist (the shared files are at most
-34 s long; the reversal is a continuous motion that repeats poses, which the dictionaries must not confuse). The
+34 s long; the reversal is a continuous motion that repeats poses, which the dictionaries must not confuse), while
+the whole body wanders slowly about the room (up to 0.3 m; else passes k and k + 2 would be exact copies). The
 paper's protocol: 4 static cameras, 30 Hz each, noise-free, cameras at 2.7 m. Each (size, mode) runs in a fresh
 process with one BLAS thread, so that its peak resident memory (getrusage) is its own.
 """
@@ -31,6 +32,7 @@ from common import require_mocap_dir, resample, solver_version
 FILE = "lab/complexknee/2022_01_0401.c3d"
 POINTS = 20
 RATE_HZ = 120.0
+WANDER_MM = 150.0
 DISTANCE_MM = 2700.0
 RESULT_PREFIX = "RESULT "
 
@@ -48,7 +50,13 @@ def long_motion(frames: int) -> tuple[np.ndarray, list[str]]:
     markers = complete[:POINTS]
     xyz = clip.xyz[:, markers]
     passes = [xyz if k % 2 == 0 else xyz[::-1][1:] for k in range(frames // len(xyz) + 2)]
-    return np.concatenate(passes)[:frames], [mocap.marker_names[m] for m in markers]
+    motion = np.concatenate(passes)[:frames]
+    # The subject wanders slowly about the room (up to ~0.3 m): without it, passes k and k + 2 are exact copies and
+    # every frame has several equally good matches 67 s apart, which no real capture has.
+    t = np.arange(frames) / RATE_HZ
+    wander = WANDER_MM * np.stack([np.sin(2 * np.pi * t / 83.0), 1.0 - np.cos(2 * np.pi * t / 61.0),
+                                   np.zeros_like(t)], axis=1)
+    return motion + wander[:, None, :], [mocap.marker_names[m] for m in markers]
 
 
 def child(frames: int, dense: bool) -> dict[str, Any]:
