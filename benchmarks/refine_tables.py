@@ -2,6 +2,7 @@
 
     python benchmarks/refine_tables.py [--windows hdm05,cmu-jumps,squat,dropjump,walk] [--rows 30Hz,7.5Hz,noise1]
                                        [--distance 2700] [--cache DIR] [--json OUT] [--per-window]
+    python benchmarks/refine_tables.py --rows all      # every row of the paper's three tables
     python benchmarks/refine_tables.py --from-json OUT [OUT2 ...]      # tables of earlier runs
 
 Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), four reconstructions are scored:
@@ -11,10 +12,19 @@ Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), f
 - refined, true times (oracle): reconstruct.refine from the seed result with the simulation's true capture times,
   i.e. trajectory triangulation given the true time order and spacing (the baseline the paper compares with,
   in the spirit of Valmadre & Lucey 2012);
-- refined, estimated times: the same with times that the pipeline could know; see `--times`.
+- refined, estimated times: the same with times that the pipeline could know (`estimated_times`: every video's
+  decoder times shifted by an unknown offset, clocks recovered by `clocks.estimate_clocks` with its default, affine,
+  model);
+- refined, estimated times + clock refinement: `refine.refine_with_clocks` from those times (offsets and rates
+  polished), the default of `dynrecon solve` when this script was written;
+- dynrecon solve (default): what `dynrecon solve` does now, `temporal.recover_and_refine` with default
+  TemporalOptions on the same shifted decoder times (offset-only clocks when every frame has a decoder time, an
+  offset-only polish, guards that fall back to a plain refine); its clock time error and path (its `report`) are
+  kept in the --json output and shown by --per-window.
 
-The seed solves are the slow part; they are cached as .npz under `--cache` (keyed by window, row, length and camera
-distance), so that refinement options can be swept without solving again.
+The seed solves are the slow part; they are cached as .npz under `--cache` (keyed by window, row, length, camera
+distance and `common.solver_version()`), so that refinement options can be swept without solving again. A solve
+with uncommitted changes in reconstruct/ is keyed "dirty" and never read back.
 """
 
 from __future__ import annotations
@@ -56,16 +66,18 @@ from reconstruct.refine import RefineOptions, RobustLoss, SmoothnessRule, refine
 from reconstruct.simulate import SimulatedCapture, SimulationOptions
 from reconstruct.solve_stage import frame_points, sequencing
 from reconstruct.solver import solve
+from reconstruct.temporal import TemporalOptions, recover_and_refine
 
 log = logging.getLogger("refine_tables")
 
 DEFAULT_WINDOWS = "hdm05,cmu-jumps,squat,dropjump,walk"
 # Windows never used for the reported tables: the refinement's defaults were tuned on these.
 TUNING_WINDOWS = "run-5ms,freeform,run-4ms,cmu-late,sit-stand"
-METHODS = ("init", "seed", "refined_true", "refined_estimated", "refined_clocks")
+METHODS = ("init", "seed", "refined_true", "refined_estimated", "refined_clocks", "solve_default")
 LABELS = {"init": "init only", "seed": "seed solver", "refined_true": "refined, true times (oracle)",
           "refined_estimated": "refined, estimated times",
-          "refined_clocks": "refined, estimated times + clock refinement"}
+          "refined_clocks": "refined, estimated times + clock refinement",
+          "solve_default": "dynrecon solve (default)"}
 
 
 def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | None
@@ -79,14 +91,24 @@ def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | 
     return capture, problem
 
 
-def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_mm: float | None) -> Path:
+def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_mm: float | None,
+               version: str) -> Path:
     where = "pushback" if distance_mm is None else f"{distance_mm:g}mm"
-    return cache / f"{WINDOWS[window_index].name}_{row.key}_{length}_{where}.npz"
+    return cache / f"{WINDOWS[window_index].name}_{row.key}_{length}_{where}_{version_tag(version)}.npz"
+
+
+def version_tag(version: str) -> str:
+    """A file-name part for common.solver_version(): the HEAD commit, "-dirty" with uncommitted solver changes."""
+    head = version.split()[0] if version.strip() else "unknown"
+    return head + ("-dirty" if "uncommitted" in version or version.startswith("unknown") else "")
 
 
 def seed_solve(problem: Problem, path: Path) -> dict[str, np.ndarray]:
-    """Seed solver outputs (points, init, spectral order, W, seconds), from the cache or solved and cached."""
-    if path.is_file():
+    """Seed solver outputs (points, init, spectral order, W, seconds), from the cache or solved and cached.
+
+    A solve of a working tree with uncommitted solver changes (tag "-dirty") is written but never read back: the
+    tag cannot tell two such trees apart."""
+    if path.is_file() and not path.stem.endswith("-dirty"):
         with np.load(path) as data:
             cached = {key: data[key] for key in data.files}
         if "w_data" in cached:
@@ -113,6 +135,68 @@ def score(problem: Problem, capture: SimulatedCapture, xyz: np.ndarray) -> list[
     return [float(s) for s in evaluate(estimate, capture.truth).share_under]
 
 
+class _CachedW:
+    """The cached W behind SparseW's `to_csc`, the one call the clock recovery makes."""
+
+    def __init__(self, W: Any) -> None:
+        self._W = W
+
+    def to_csc(self) -> Any:
+        return self._W
+
+
+class CachedResult:
+    """The fields of reconstruct.solver.SolveResult that the clock recovery and the refinement read."""
+
+    def __init__(self, problem: Problem, cached: dict[str, np.ndarray]) -> None:
+        import scipy.sparse as sp
+
+        F = problem.num_frames
+        self.W = _CachedW(sp.csc_matrix((cached["w_data"], cached["w_indices"], cached["w_indptr"]), shape=(F, F)))
+        self.reconstructable = cached["reconstructable"]
+        self.points = cached["points"]
+
+
+def shifted_problem(problem: Problem, seed: int) -> Problem:
+    """The problem with every video's decoder times shifted by an unknown offset (uniform in +-1 s, as
+    unsynchronized phones start at different moments): the clocks must really be recovered."""
+    rng = np.random.default_rng(1000 + seed)
+    offsets = rng.uniform(-1.0, 1.0, len(problem.video_names))
+    return replace(problem, times=problem.times + offsets[problem.video_index])
+
+
+def solve_default(problem: Problem, cached: dict[str, np.ndarray], seed: int, true_times: np.ndarray
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
+    """(F, P, 3) points of `dynrecon solve`'s temporal stage (recover_and_refine, default TemporalOptions) on the
+    shifted problem, and its diagnostics: clock time error, path taken (report), clock model, seconds."""
+    started = time.perf_counter()
+    temporal = recover_and_refine(shifted_problem(problem, seed), CachedResult(problem, cached),  # type: ignore[arg-type]
+                                  TemporalOptions())
+    seconds = time.perf_counter() - started
+    error = temporal.times - true_times
+    finite = np.isfinite(error)
+    error_ms = float(1000 * np.median(np.abs(error[finite] - np.median(error[finite])))) if finite.any() \
+        else float("nan")
+    report = {key: value for key, value in temporal.report.items() if key != "cost"}
+    if temporal.report.get("cost"):
+        cost = temporal.report["cost"]
+        report["cost_first_last"] = [cost[0], cost[-1]]
+    return temporal.points, {"seconds": seconds, "clock_time_error_ms_median": error_ms,
+                             "untimed_frames": int(np.sum(~finite)), "clock_model": temporal.clocks.model.value,
+                             "path": solve_path(temporal.report), "report": report}
+
+
+def solve_path(report: dict[str, Any]) -> str:
+    """Which branch of recover_and_refine ran, in a few words."""
+    if report.get("skipped"):
+        return "not refined (" + str(report["skipped"]) + ")"
+    if not report.get("refined"):
+        return "not refined"
+    if report.get("clock_polish_rejected"):
+        return "polish rejected: plain refine"
+    return "polished clocks"
+
+
 def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) -> tuple[np.ndarray, str]:
     """(F,) global times the pipeline could know, and how they were obtained.
 
@@ -121,27 +205,10 @@ def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) 
     it (or when it fails): the spectral order of W (reconstruct.export.sequencing_order) at even spacing, which is
     the true spacing of the simulation's captures when the order is right.
     """
-    import scipy.sparse as sp
-
     try:
         from reconstruct.clocks import estimate_clocks
 
-        rng = np.random.default_rng(1000 + seed)
-        offsets = rng.uniform(-1.0, 1.0, len(problem.video_names))
-        shifted = replace(problem, times=problem.times + offsets[problem.video_index])
-        F = problem.num_frames
-        W = sp.csc_matrix((cached["w_data"], cached["w_indices"], cached["w_indptr"]), shape=(F, F))
-
-        class _W:
-            def to_csc(self) -> sp.csc_matrix:
-                return W
-
-        class _Result:  # the two fields estimate_clocks reads
-            def __init__(self) -> None:
-                self.W = _W()
-                self.reconstructable = cached["reconstructable"]
-
-        clocks = estimate_clocks(shifted, _Result())  # type: ignore[arg-type]
+        clocks = estimate_clocks(shifted_problem(problem, seed), CachedResult(problem, cached))  # type: ignore[arg-type]
         times = np.asarray(clocks.global_time, dtype=float)
         if np.isfinite(times).all():
             return times, "clocks"
@@ -161,9 +228,9 @@ def capture_rate(problem: Problem) -> float:
 
 
 def run_one(window_index: int, row: Row, length: int, distance_mm: float | None, cache: Path,
-            options: RefineOptions, clock_refinement: bool) -> dict[str, Any]:
+            options: RefineOptions, clock_refinement: bool, version: str) -> dict[str, Any]:
     capture, problem = simulate_row(window_index, row, length, distance_mm)
-    cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm))
+    cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm, version))
     true_times = capture.truth.extra["time"][:, 0]
     shares: dict[str, list[float]] = {"init": score(problem, capture, cached["init"]),
                                       "seed": score(problem, capture, cached["points"])}
@@ -185,6 +252,8 @@ def run_one(window_index: int, row: Row, length: int, distance_mm: float | None,
         shares["refined_clocks"] = score(problem, capture, clocked.result.points)
         clock_error = clocked.times - true_times
         extra["clock_time_error_ms_median"] = float(1000 * np.median(np.abs(clock_error - np.median(clock_error))))
+    default_points, extra["solve_default"] = solve_default(problem, cached, window_index, true_times)
+    shares["solve_default"] = score(problem, capture, default_points)
     return {**extra, "window": WINDOWS[window_index].name, "row": row.key, "shares": shares, "times": source,
             "time_error_ms_median": float(1000 * np.median(np.abs(time_error))),
             "frames": problem.num_frames, "points": problem.num_points,
@@ -217,6 +286,10 @@ def print_tables(results: list[dict[str, Any]], per_window: bool) -> None:
                     cells = ", ".join(f"{LABELS[m]} {100 * i['shares'][m][0]:.2f}" for m in METHODS
                                       if m in i["shares"])
                     clocked = f" -> {i['clock_time_error_ms_median']:.2f} ms" if "clock_seconds" in i else ""
+                    if "solve_default" in i:
+                        d = i["solve_default"]
+                        clocked += (f", default ({d['clock_model']} clocks, {d['path']}) "
+                                    f"{d['clock_time_error_ms_median']:.2f} ms")
                     print(f"| &nbsp;&nbsp;{i['window']} (<10 mm) | {cells}; F={i['frames']}, time error "
                           f"{i['time_error_ms_median']:.2f} ms{clocked}, smoothness {i['smoothness_median']:.2g}, "
                           f"{i['outliers']} outliers, refine {i['refine_seconds']:.1f} s |")
@@ -225,7 +298,8 @@ def print_tables(results: list[dict[str, Any]], per_window: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--windows", default=DEFAULT_WINDOWS, help="comma-separated window names (common.WINDOWS)")
-    parser.add_argument("--rows", default="30Hz,7.5Hz,noise1,noise3", help="row keys of paper_tables.py")
+    parser.add_argument("--rows", default="30Hz,7.5Hz,noise1,noise3",
+                        help="comma-separated row keys of paper_tables.py, or 'all'")
     parser.add_argument("--distance", default="2700",
                         help="camera distance in mm (the paper's 2700), or 'push' for cameras pushed back until "
                              "every point is inside the images; comma-separated for both")
@@ -253,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     threadpool_limits(1)
     names = [w.name for w in WINDOWS]
     rows = {r.key: r for r in ROWS}
+    if args.rows == "all":
+        args.rows = ",".join(rows)
     unknown = [w for w in args.windows.split(",") if w not in names] + \
         [r for r in args.rows.split(",") if r not in rows]
     if unknown:
@@ -269,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
             for name in args.windows.split(","):
                 try:
                     item = run_one(names.index(name), rows[key], args.length, distance, args.cache, options,
-                                   not args.no_clock_refinement)
+                                   not args.no_clock_refinement, version)
                 except Exception:  # keep the other windows' results
                     log.exception("%s / %s failed", name, key)
                     continue
@@ -277,9 +353,11 @@ def main(argv: list[str] | None = None) -> int:
                 results.append(item)
                 s = item["shares"]
                 log.info("%s / %s / %s: <10 mm init %.2f seed %.2f refined(true) %.2f refined(%s) %.2f, "
-                         "+clocks %.2f", protocol, name, key, 100 * s["init"][0], 100 * s["seed"][0],
-                         100 * s["refined_true"][0], item["times"], 100 * s["refined_estimated"][0],
-                         100 * s.get("refined_clocks", [np.nan])[0])
+                         "+clocks %.2f, default %.2f (%s, %.2f ms)", protocol, name, key, 100 * s["init"][0],
+                         100 * s["seed"][0], 100 * s["refined_true"][0], item["times"],
+                         100 * s["refined_estimated"][0], 100 * s.get("refined_clocks", [np.nan])[0],
+                         100 * s["solve_default"][0], item["solve_default"]["path"],
+                         item["solve_default"]["clock_time_error_ms_median"])
                 if args.json:
                     args.json.write_text(json.dumps({"solver": version, "options": str(options),
                                                      "results": results}, indent=1) + "\n")
