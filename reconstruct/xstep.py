@@ -13,16 +13,18 @@ relative to a squared self-expression residual of one point.
 How it is solved. The soft ray weight is ~50x the diagonal of Q, so moving a point across its ray is stiff and
 moving it along its ray is governed by Q alone. The slow modes of a plain (block-Jacobi) conjugate gradient are
 along-ray motions that Q barely penalizes: frames linked by W whose rays are nearly parallel (opposite cameras), and
-longer chains of them, so its iterations grew with F. Per point, the *weak subspace* J_p (one column r_f per observed
-frame, three free coordinates per missing frame; exactly the unknowns of the hard-ray system) has the matrix
+longer chains of them (eigenvectors of the preconditioned system live on 2 frames), so its iterations grew with F
+(226 in the first final-stage X-step of a 2000-frame solve). Per point, the *weak subspace* J_p (one column r_f per
+observed frame, three free coordinates per missing frame; exactly the unknowns of the hard-ray system) has the matrix
 S_p = J_p^T (Q x I3) J_p, which has the sparsity of Q: a sparse LU with a minimum-degree ordering has almost no fill
 (nnz(LU) ~ 1.6 nnz(Q) on captures of 700 ... 20,000 frames), so it costs O(F) per point. Then
 * hard rays: the system *is* S_p z = J_p^T b: one direct solve per point;
 * soft rays: M_p^-1 = J_p S_p^-1 J_p^T + (block Jacobi on the stiff across-ray directions) is an additive two-level
-  preconditioner whose conjugate gradient converges in 2-7 iterations, independent of F.
-Late in a solve the warm start is nearly exact and a few cheap Jacobi iterations suffice, so every X-step starts with
-the Jacobi CG and factors only the points whose convergence rate predicts many more iterations
-(`XStepOptions.factor_threshold`).
+  preconditioner whose conjugate gradient converges in 2-8 iterations, independent of F.
+A factorization costs as much as 20-50 Jacobi iterations of its point, and late in a solve the warm start is nearly
+exact (2-20 Jacobi iterations), so every X-step starts with the Jacobi CG and factors only the points whose
+convergence rate predicts many more iterations (`XStepOptions.factor_threshold`). Measurements:
+benchmarks/xstep_speed.py.
 """
 
 from __future__ import annotations
@@ -154,10 +156,14 @@ class _WeakSubspace:
             B_y = sp.diags(E[:, 1]) @ Q_fm
             B_z = sp.diags(E[:, 2]) @ Q_fm
             S = sp.bmat([[S, B_y, B_z], [B_y.T, Q_mm, None], [B_z.T, None, Q_mm]], format="csc")
-        # Minimum-degree ordering on A^T + A and no pivoting: S is symmetric positive definite. relax = panel_size
-        # = 1: 20-25 % faster on these nearly fill-free factors than SuperLU's supernode defaults.
-        self.lu = spla.splu(S, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1,
-                            options={"SymmetricMode": True})
+        try:
+            self.lu = _factor_spd(S)
+        except RuntimeError:
+            # Exactly singular: a stretch of frames linked by W to no frame where the point is observed (missing
+            # data, measured on a squat window with 30 % missing) can shift freely. A tiny ridge picks the
+            # smallest such shift; the factor serves as a preconditioner (soft rays) or gives that solution (hard).
+            ridge = 1e-10 * max(float(np.abs(S.diagonal()).max()), 1e-300)
+            self.lu = _factor_spd((S + ridge * sp.identity(S.shape[0], format="csc")).tocsc())
 
     def solve(self, primary: np.ndarray, R: np.ndarray) -> np.ndarray:
         """S^-1 J^T R for R (F, 3) whose primary part E . R (F,) is given; returns the unknowns (n,)."""
@@ -177,6 +183,13 @@ class _WeakSubspace:
         out = self.E * z[:len(self.E), None]
         self.add_extras(z, out)
         return out
+
+
+def _factor_spd(S: sp.csc_matrix) -> spla.SuperLU:
+    # Minimum-degree ordering on A^T + A and no pivoting: S is symmetric positive (semi)definite. relax = panel_size
+    # = 1: 20-25 % faster on these nearly fill-free factors than SuperLU's supernode defaults.
+    return spla.splu(S, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1,
+                     options={"SymmetricMode": True})
 
 
 def _weak_subspaces(Q: sp.csr_matrix, r: np.ndarray, observed: np.ndarray, points: np.ndarray) -> list[_WeakSubspace]:
