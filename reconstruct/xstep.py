@@ -55,7 +55,7 @@ class XStepOptions:
     cg_max_iterations: int = 3000
     # A point leaves the block-Jacobi CG for its weak-subspace factorization (module docstring) once its convergence
     # rate predicts more than this many further Jacobi iterations (0: factor every point at once). One factorization
-    # costs about as much as 20-40 Jacobi iterations of that point (SuperLU, measured at F = 700 ... 20,000).
+    # costs about as much as 20-50 Jacobi iterations of that point (SuperLU, measured at F = 700 ... 20,000).
     factor_threshold: float = 30.0
 
 
