@@ -162,7 +162,7 @@ class _WeakSubspace:
             # Exactly singular: a stretch of frames linked by W to no frame where the point is observed (missing
             # data, measured on a squat window with 30 % missing) can shift freely. A tiny ridge picks the
             # smallest such shift; the factor serves as a preconditioner (soft rays) or gives that solution (hard).
-            ridge = 1e-10 * max(float(np.abs(S.diagonal()).max()), 1e-300)
+            ridge = 1e-6 * max(float(np.abs(S.diagonal()).max()), 1e-300)
             self.lu = _factor_spd((S + ridge * sp.identity(S.shape[0], format="csc")).tocsc())
 
     def solve(self, primary: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -337,9 +337,11 @@ def _solve_soft_points(
             return r_fkp, w
         return np.ascontiguousarray(r_fkp[..., points]), np.ascontiguousarray(w[..., points])
 
+    partners = _mutual_partners(Q)
+
     def jacobi(points: np.ndarray) -> Operators:
         r_s, w_s = subset(points)
-        return _soft_operator(Q, r_s, w_s), _soft_jacobi(r_s, w_s, diagonal)
+        return _soft_operator(Q, r_s, w_s), _soft_jacobi(r_s, w_s, diagonal, partners)
 
     def finish(points: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r_s, w_s = subset(points)
@@ -367,14 +369,52 @@ def _soft_operator(Q: sp.csr_matrix, r: np.ndarray, w: np.ndarray) -> Callable[[
     return apply
 
 
-def _soft_jacobi(r: np.ndarray, w: np.ndarray, diagonal: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    """Block Jacobi in closed form: (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit r."""
+def _mutual_partners(Q: sp.csr_matrix, min_coupling: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """partner (F,): the frame g that frame f is most strongly coupled to in Q (|Q_fg| / sqrt(Q_ff Q_gg)) when f is
+    also g's strongest and the coupling exceeds `min_coupling`, else f itself; and Q_f,partner (0 if unpaired)."""
+    F = Q.shape[0]
+    Q = sp.csr_matrix(Q)
+    Q.sort_indices()
+    rows = np.repeat(np.arange(F), np.diff(Q.indptr))
+    d = np.maximum(Q.diagonal(), 1e-300)
+    strength = np.where(rows == Q.indices, -1.0, np.abs(Q.data) / np.sqrt(d[rows] * d[Q.indices]))
+    present = np.diff(Q.indptr) > 0
+    best_value = np.full(F, -1.0)
+    best_value[present] = np.maximum.reduceat(strength, Q.indptr[:-1][present])
+    candidates = np.flatnonzero(strength == best_value[rows])
+    first_rows, first = np.unique(rows[candidates], return_index=True)
+    best = np.arange(F)
+    best[first_rows] = Q.indices[candidates[first]]
+    mutual = (best[best] == np.arange(F)) & (best != np.arange(F)) & (best_value > min_coupling)
+    partner = np.where(mutual, best, np.arange(F))
+    coupling = np.zeros(F)
+    coupling[first_rows] = Q.data[candidates[first]]
+    return partner, np.where(mutual, coupling, 0.0)
+
+
+def _soft_jacobi(
+    r: np.ndarray, w: np.ndarray, diagonal: np.ndarray, partners: tuple[np.ndarray, np.ndarray]
+) -> Callable[[np.ndarray], np.ndarray]:
+    """Block Jacobi in closed form, (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit r,
+    except that the along-ray components of two mutually most strongly coupled frames (`_mutual_partners`) are
+    solved together by their 2x2 block [[d_f, c], [c, d_g]], c = Q_fg r_f . r_g. Such pairs (two frames that
+    express each other, seen from nearly opposite cameras) were the slowest modes of the plain block Jacobi CG:
+    226 -> 22 iterations on the hardest X-step of a 2000-frame solve, 12-42 -> 9-17 on later ones."""
+    partner, coupling = partners
     inverse_observed = 1.0 / (diagonal + w)  # (F, 1, P)
-    along_gain = (1.0 / diagonal - inverse_observed)[:, 0, :]  # (F, P)
+    d_f = diagonal[:, 0, :]  # (F, 1)
+    d_g = d_f[partner]
+    c = coupling[:, None] * np.einsum("fkp,fkp->fp", r, r[partner])  # (F, P)
+    # Q is positive semidefinite, so c^2 <= d_f d_g; the floor only guards exactly parallel rays of a singular pair.
+    determinant = np.maximum(d_f * d_g - c * c, 1e-12 * d_f * d_g)
+    gain_f, gain_g = d_g / determinant, c / determinant
+    inverse_along = inverse_observed[:, 0, :]
 
     def precondition(R: np.ndarray) -> np.ndarray:
+        along = np.einsum("fkp,fkp->fp", r, R)  # (F, P)
+        solved = gain_f * along - gain_g * along[partner]
         out = R * inverse_observed
-        out += r * (np.einsum("fkp,fkp->fp", r, R) * along_gain)[:, None, :]
+        out += r * (solved - along * inverse_along)[:, None, :]
         return out
 
     return precondition
