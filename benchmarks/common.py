@@ -11,6 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,26 @@ def solver_version() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
     return f"{head}{' + uncommitted changes in reconstruct/' if dirty else ''}"
+
+
+def module_at_revision(relative_path: str, revision: str, name: str) -> ModuleType:
+    """`relative_path` (e.g. reconstruct/initialize.py) as of a git revision, loaded as module `name`, for benchmarks
+    that compare a rewrite with the code it replaced on the same inputs."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    source = subprocess.run(["git", "show", f"{revision}:{relative_path}"], cwd=ROOT, check=True,
+                            capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / f"{name}.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"cannot load {relative_path} at {revision}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
 
 
 def require_mocap_dir() -> Path:

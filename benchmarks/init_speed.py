@@ -15,11 +15,8 @@ traced), beyond the inputs. `--reference REV` loads `reconstruct/initialize.py` 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -31,26 +28,16 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from common import module_at_revision
 from solver_speed import capture_of
 
 from reconstruct import initialize
 from reconstruct.rays import camera_normalization, viewing_rays
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 def load_revision(revision: str) -> ModuleType:
     """reconstruct/initialize.py as of a git revision, as a module of its own."""
-    source = subprocess.run(["git", "show", f"{revision}:reconstruct/initialize.py"], cwd=REPO, check=True,
-                            capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "initialize_reference.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("initialize_reference", path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"cannot load reconstruct/initialize.py at {revision}")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return module_at_revision("reconstruct/initialize.py", revision, "initialize_reference")
 
 
 def inputs(frames: int, missing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -22,11 +22,8 @@ compared relatively above that level, absolutely below it.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -38,27 +35,17 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import common  # noqa: F401  (puts the repository root on sys.path)
+from common import module_at_revision  # (also puts the repository root on sys.path)
 
 from reconstruct import candidates
 from reconstruct.rays import camera_normalization, viewing_rays
 
-REPO = Path(__file__).resolve().parents[1]
 SHARED_RULES = ("consistent_anchors", "_ransac_line", "anchor_tolerance", "window_pool", "_fill_anchor_gaps")
 
 
 def load_revision(revision: str) -> ModuleType:
     """reconstruct/candidates.py as of a git revision, as a module of its own."""
-    source = subprocess.run(["git", "show", f"{revision}:reconstruct/candidates.py"], cwd=REPO, check=True,
-                            capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "candidates_reference.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("candidates_reference", path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"cannot load reconstruct/candidates.py at {revision}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
+    module = module_at_revision("reconstruct/candidates.py", revision, "candidates_reference")
     # The anchor rules are another job's, and change on their own: the current ones in both, so that the
     # comparison is of the search alone.
     for name in SHARED_RULES:

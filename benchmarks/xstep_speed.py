@@ -24,11 +24,9 @@ The baseline is `reconstruct/xstep.py` at `--baseline` (git show), loaded as a s
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import logging
 import statistics
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -41,7 +39,7 @@ import scipy.sparse as sp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import ROOT, solver_version
+from common import module_at_revision, solver_version
 
 import reconstruct.xstep as current
 
@@ -159,14 +157,7 @@ def synthetic_calls(frames: int, seed: int = 0) -> list[Call]:
 
 
 def baseline_module(revision: str) -> ModuleType:
-    source = subprocess.run(["git", "show", f"{revision}:reconstruct/xstep.py"], cwd=ROOT, capture_output=True,
-                            text=True, check=True).stdout
-    spec = importlib.util.spec_from_loader("xstep_baseline", loader=None)
-    assert spec is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["xstep_baseline"] = module
-    exec(compile(source, f"{revision}:reconstruct/xstep.py", "exec"), module.__dict__)
-    return module
+    return module_at_revision("reconstruct/xstep.py", revision, "xstep_baseline")
 
 
 class IterationCounter:
