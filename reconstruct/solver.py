@@ -48,6 +48,11 @@ class SolverOptions:
     # the Psi2-biased optimum that the final stage leaves anyway.
     smooth_tolerance: float = 1e-3
     point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
+    # ... measured on this quantile of the coordinates' movement (1: the max). On long captures a few points drift on
+    # while the rest has settled: complexknee F = 5000 stopped after 65 final alternations instead of 82, same
+    # 99.90 % < 10 mm; on 6 windows x 4 rows of the paper's tables (F ~ 300) nothing changed at all (the cost test
+    # binds there).
+    point_quantile: float = 0.999
     # Anderson acceleration of the alternation over this many past iterates (0: plain alternation); see
     # reconstruct/anderson.py.
     anderson_memory: int = 5
@@ -207,7 +212,9 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                     f"the solve diverged in stage {name!r} after {stage.iterations} alternation(s); "
                     f"{sparse_frames} of {F} frames observe fewer than 2 points: track more points per frame, or "
                     "drop frames where almost nothing is observed")
-            change = float(np.max(np.abs(new_points - candidate)))
+            moved = np.abs(new_points - candidate)
+            change = float(np.max(moved))
+            settled = change if options.point_quantile >= 1.0 else float(np.quantile(moved, options.point_quantile))
             cost = total_cost(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
                               options.lambda3, options.constraint)
             stage.iterations += 1
@@ -221,7 +228,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             if lambda2 > 0:
                 converged = decrease < options.smooth_tolerance
             else:
-                converged = decrease < options.tolerance and change < options.point_tolerance
+                converged = decrease < options.tolerance and settled < options.point_tolerance
             previous_cost = cost
             if converged:
                 points = new_points
