@@ -177,10 +177,9 @@ def solve_default(problem: Problem, cached: dict[str, np.ndarray], seed: int, tr
     finite = np.isfinite(error)
     error_ms = float(1000 * np.median(np.abs(error[finite] - np.median(error[finite])))) if finite.any() \
         else float("nan")
-    report = {key: value for key, value in temporal.report.items() if key != "cost"}
-    if temporal.report.get("cost"):
-        cost = temporal.report["cost"]
-        report["cost_first_last"] = [cost[0], cost[-1]]
+    report = dict(temporal.report)
+    if report.get("cost"):  # the polish guard: rejected when max(cost) > 1.01 cost[0] (or a rate moved far)
+        report["cost_max_over_first"] = max(report["cost"]) / report["cost"][0]
     return temporal.points, {"seconds": seconds, "clock_time_error_ms_median": error_ms,
                              "untimed_frames": int(np.sum(~finite)), "clock_model": temporal.clocks.model.value,
                              "path": solve_path(temporal.report), "report": report}
@@ -319,8 +318,8 @@ def main(argv: list[str] | None = None) -> int:
     for noisy in ("reconstruct", "common"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     if args.from_json:
-        results = [item for path in args.from_json for item in json.loads(path.read_text())["results"]]
-        print_tables(results, args.per_window)
+        earlier = [item for path in args.from_json for item in json.loads(path.read_text())["results"]]
+        print_tables(earlier, args.per_window)
         return 0
     from threadpoolctl import threadpool_limits
 
