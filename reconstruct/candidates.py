@@ -31,6 +31,7 @@ from reconstruct.initialize import (
     _Lines,
     _pair_depths,
     _Side,
+    closest_ray_points,
 )
 
 # Coarse stage: a video pair's coarse frames are compared in one symmetric block up to this many pairs (two float
@@ -73,18 +74,10 @@ def pair_distances(
     """The initialization's bundle distance D(f, j) for explicit pairs (n,), and the depths (n, P) of f's points at
     the mutually closest ray points; same conventions as `initialize.bundle_distances` (inf for diverging pairs
     or too few shared points). An explicit evaluation, kept as the reference for the windowed search below."""
-    ra, rb = rays[f], rays[j]  # (n, P, 3)
-    w = (centers[f] - centers[j])[:, None, :]
-    b = np.einsum("npk,npk->np", ra, rb)
-    d = np.einsum("npk,npk->np", ra, np.broadcast_to(w, ra.shape))
-    e = np.einsum("npk,npk->np", rb, np.broadcast_to(w, rb.shape))
-    denom = 1.0 - b * b
-    usable = ~np.isnan(denom) & (np.nan_to_num(denom) >= PARALLEL_EPS)
-    safe = np.where(usable, denom, 1.0)
-    depth_a = (b * e - d) / safe
-    depth_b = (e - b * d) / safe
-    gap = w + depth_a[..., None] * ra - depth_b[..., None] * rb
-    gap_sq = np.where(usable, np.einsum("npk,npk->np", gap, gap), 0.0)
+    ra = rays[f]  # (n, P, 3)
+    depth_a, depth_b, gap = closest_ray_points(centers[f][:, None, :], ra, centers[j][:, None, :], rays[j])
+    usable = np.isfinite(depth_a)  # NaN where a frame misses the point or the rays are parallel
+    gap_sq = np.where(usable, gap, 0.0)
     count = usable.sum(axis=1)
     diverging = np.any(usable & ((depth_a < 0) | (depth_b < 0)), axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -92,7 +85,7 @@ def pair_distances(
     observed_in_f = np.sum(~np.isnan(ra[..., 0]), axis=1)
     enough = count >= np.minimum(MIN_COMMON_POINTS, np.maximum(observed_in_f, 1))
     D[~enough | (count == 0) | diverging] = np.inf
-    return D, np.where(usable, depth_a, np.nan)
+    return D, depth_a
 
 
 def _best_per_video(
