@@ -33,6 +33,7 @@ from reconstruct.initialize import (
     _Side,
     closest_ray_points,
 )
+from reconstruct.wstep import first_per_group
 
 # Coarse stage: a video pair's coarse frames are compared in one symmetric block up to this many pairs (two float
 # arrays of that size), as `initialize_depths` does.
@@ -445,10 +446,7 @@ def follow_w(
     that moved every alternation kept the alternation from settling (F = 2000: 147 alternations)."""
     W = W.tocoo()
     V = anchor.shape[1]
-    key = W.col * V + video_index[W.row]
-    order = np.lexsort((-W.data, key))  # per (frame, video) group, the largest weight first
-    first = np.concatenate([[True], key[order][1:] != key[order][:-1]]) if len(order) else np.zeros(0, bool)
-    winners = order[first]
+    winners = first_per_group(W.col * V + video_index[W.row], -W.data, 1)  # per (frame, video): largest weight
     frames, videos = W.col[winners], video_index[W.row[winners]]
     target = layout.position[W.row[winners]]
     move = np.abs(target - anchor[frames, videos]) > slack

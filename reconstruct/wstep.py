@@ -420,15 +420,13 @@ def _primal_active_set(
         hit = blocking & (x <= NEGLIGIBLE)
         x[hit] = 0.0
         free &= ~hit
-    V_out = np.maximum(x, 0.0).reshape(F, K)
-    V_out /= V_out.sum(axis=1, keepdims=True)
-    stats.objective = problem.objective(V_out)
-    return V_out
+    return _finish(problem, x, stats, converged=False)
 
 
-def _finish(problem: _WorkingSetProblem, v: np.ndarray, stats: WStepStats) -> np.ndarray:
+def _finish(problem: _WorkingSetProblem, v: np.ndarray, stats: WStepStats, *, converged: bool = True) -> np.ndarray:
+    """The flat iterate v (F*K,) as W values on the simplices, its objective recorded."""
     F, K = problem.cand.shape
-    stats.converged = True
+    stats.converged = converged
     V_out = np.maximum(v, 0.0).reshape(F, K)
     V_out /= V_out.sum(axis=1, keepdims=True)
     stats.objective = problem.objective(V_out)
@@ -492,10 +490,8 @@ def kkt_violations(
             found_inner.append(inner[local, position])
     if not found_rows:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    rows, cols, inner_found = np.concatenate(found_rows), np.concatenate(found_cols), np.concatenate(found_inner)
-    ranked = np.lexsort((inner_found, cols))
-    rows, cols = rows[ranked], cols[ranked]
-    keep = np.arange(len(cols)) - np.searchsorted(cols, cols) < k
+    rows, cols = np.concatenate(found_rows), np.concatenate(found_cols)
+    keep = first_per_group(cols, np.concatenate(found_inner), k)
     return rows[keep], cols[keep]
 
 
@@ -577,11 +573,16 @@ def _limit_seeds_per_frame(rows: np.ndarray, cols: np.ndarray, rank: np.ndarray,
     entries, and the per-column Gram matrices (F, K, K) are padded to the largest column: measured on a
     20,000-frame capture, the last frame of a video, where out-of-range anchors were clipped, was a seed of 255
     columns (K = 258, > 12 GB)."""
-    order = np.lexsort((rank, rows))
-    rows, cols = rows[order], cols[order]
-    position = np.arange(len(rows)) - np.searchsorted(rows, rows)
-    keep = position < limit
+    keep = first_per_group(rows, rank, limit)
     return rows[keep], cols[keep]
+
+
+def first_per_group(group: np.ndarray, score: np.ndarray, limit: int) -> np.ndarray:
+    """Indices of at most `limit` items per value of `group` (n,), lowest `score` first (ties in input order),
+    sorted by group."""
+    order = np.lexsort((score, group))
+    grouped = group[order]
+    return order[np.arange(len(order)) - np.searchsorted(grouped, grouped) < limit]
 
 
 def _sparse_lookup(W: SparseW) -> np.ndarray:
