@@ -288,8 +288,11 @@ def _fill_anchor_gaps(anchor: np.ndarray, video_index: np.ndarray, layout: Video
 def anchor_tolerance(options: CandidateOptions, times: np.ndarray | None) -> int:
     """How far an anchor may stray from its video pair's line: with decoder times the line is exact up to jitter;
     without them, positions wander around it (irregular capture), by up to ~20 positions in 500 frames (measured)."""
-    timed = times is not None and bool(np.all(np.isfinite(times)))
-    return options.recentre if timed else options.half_window
+    return options.recentre if _all_timed(times) else options.half_window
+
+
+def _all_timed(times: np.ndarray | None) -> bool:
+    return times is not None and bool(np.all(np.isfinite(times)))
 
 
 def consistent_anchors(
@@ -306,17 +309,18 @@ def consistent_anchors(
     rng = np.random.default_rng(0)
     fixed = anchor.copy()
     V = anchor.shape[1]
-    timed = times is not None and bool(np.all(np.isfinite(times)))
+    timed = _all_timed(times)
+    # Each frame's coordinate on its video's axis: decoder time, or position.
+    axis = np.asarray(times, dtype=float) if timed else layout.position.astype(float)
     for a in range(V):
         members = np.arange(layout.starts[a], layout.starts[a] + layout.lengths[a])
         if len(members) < 3:
             continue
-        x = times[members] if timed and times is not None else layout.position[members].astype(float)
+        x = axis[members]
         for b in range(V):
             if a == b or layout.lengths[b] < 2:
                 continue
-            b_frames = np.arange(layout.starts[b], layout.starts[b] + layout.lengths[b])
-            b_axis = times[b_frames] if timed and times is not None else np.arange(len(b_frames), dtype=float)
+            b_axis = axis[layout.starts[b]:layout.starts[b] + layout.lengths[b]]
             # tolerance in b's axis units: positions, or that many of b's median frame periods
             scale = float(np.median(np.diff(b_axis))) if timed else 1.0
             y = b_axis[fixed[members, b]]

@@ -31,7 +31,7 @@ from reconstruct.initialize import PairInit, fill_missing_points, initialize_dep
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
 from reconstruct.wstep import SparseW, WStepOptions, solve_w
-from reconstruct.xstep import RayConstraint, XStepOptions, solve_x
+from reconstruct.xstep import RayConstraint, XStepOptions, chain_links, solve_x
 
 log = logging.getLogger(__name__)
 
@@ -107,10 +107,10 @@ def total_cost(
     residual = shapes - W.T @ shapes
     cost = float(np.sum(residual * residual)) / (F * P)
     if lambda2 > 0:
-        same = np.flatnonzero(video_index[1:] == video_index[:-1])
-        if len(same):
-            step = shapes[same + 1] - shapes[same]
-            cost += lambda2 / (len(same) * P) * float(np.sum(step * step))
+        links = chain_links(video_index)
+        if len(links):
+            step = shapes[links + 1] - shapes[links]
+            cost += lambda2 / (len(links) * P) * float(np.sum(step * step))
     asym = W - W.T
     cost += lambda1 / F * float(asym.multiply(asym).sum())
     if constraint is RayConstraint.SOFT:

@@ -39,12 +39,16 @@ class XStepOptions:
     cg_max_iterations: int = 3000
 
 
+def chain_links(video_index: np.ndarray) -> np.ndarray:
+    """(M,) frames f whose next frame f + 1 belongs to the same video: the links of Psi2."""
+    return np.flatnonzero(video_index[1:] == video_index[:-1])
+
+
 def video_chain_laplacian(video_index: np.ndarray) -> tuple[sp.csr_matrix, int]:
     """Laplacian (F, F) of the graph linking consecutive frames of the same video, and its number of links M.
     Frames of a video must be contiguous and in temporal order (as `build_problem` makes them)."""
     F = len(video_index)
-    same = video_index[1:] == video_index[:-1]
-    a = np.flatnonzero(same)
+    a = chain_links(video_index)
     b = a + 1
     M = len(a)
     adjacency = sp.coo_matrix((np.ones(2 * M), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(F, F))
