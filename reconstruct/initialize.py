@@ -138,11 +138,18 @@ def _gap_sums(lines: _Lines, a: _Side, b: _Side, rows: slice, cols: slice) -> tu
 def _pair_depths(lines: _Lines, f: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For explicit pairs (n,): the depths (n, P) of f's points at the mutually closest ray points (NaN where a
     frame misses the point or the rays are parallel), and whether the pair diverges (n,)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        depth_a, depth_b, _ = closest_ray_points(lines.centers[f][:, None, :], lines.rays[f],
-                                                 lines.centers[j][:, None, :], lines.rays[j])
-    # Unobserved rays are zero vectors here (not NaN): mask them.
-    usable = lines.seen[f] & lines.seen[j] & np.isfinite(depth_a)
+    # The closed form of `closest_ray_points`, in its own summation order: the chosen partners' depths are the
+    # solver's start, and a rounding-level change there moved a 2000-frame solve's result (99.865 -> 99.860 %).
+    ra, rb = lines.rays[f], lines.rays[j]  # (n, P, 3)
+    w = lines.centers[f] - lines.centers[j]  # (n, 3)
+    b = np.einsum("npk,npk->np", ra, rb)
+    d = np.einsum("npk,nk->np", ra, w)
+    e = np.einsum("npk,nk->np", rb, w)
+    denom = 1.0 - b * b
+    usable = lines.seen[f] & lines.seen[j] & (denom >= PARALLEL_EPS)
+    safe = np.where(usable, denom, 1.0)
+    depth_a = (b * e - d) / safe
+    depth_b = (e - b * d) / safe
     diverging = np.any(usable & ((depth_a < 0) | (depth_b < 0)), axis=1)
     return np.where(usable, depth_a, np.nan), diverging
 
