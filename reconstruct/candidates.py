@@ -22,7 +22,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from reconstruct.initialize import (
-    LAZY_ROUNDS,
     MIN_COMMON_POINTS,
     PARALLEL_EPS,
     PairInit,
@@ -32,6 +31,7 @@ from reconstruct.initialize import (
     _pair_depths,
     _Side,
     closest_ray_points,
+    lazy_best,
 )
 from reconstruct.wstep import first_per_group
 
@@ -225,34 +225,16 @@ def _window_best(
     lines: _Lines, D: np.ndarray, rows: np.ndarray, first_col: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per row of D (R, K; modified: diverging pairs become inf) the first offset k of least D among the
-    non-diverging pairs (rows[r], first_col[r] + k), and that D; -1 and inf where none. Divergence needs the
-    depths, so it is checked for each row's best candidate, then the next, as in `initialize._best_partners`; rows
-    still unresolved after LAZY_ROUNDS get all their finite candidates checked at once."""
-    R = len(D)
-    best = np.full(R, -1, dtype=np.int64)
-    cost = np.full(R, np.inf)
-    pending = np.arange(R)
-    for _ in range(LAZY_ROUNDS):
-        if not len(pending):
-            return best, cost
-        pick = np.argmin(D[pending], axis=1)
-        value = D[pending, pick]
-        finite = np.isfinite(value)
-        pending, pick, value = pending[finite], pick[finite], value[finite]
-        diverging = _diverging(lines, rows[pending], first_col[pending] + pick)
-        keep = ~diverging
-        best[pending[keep]], cost[pending[keep]] = pick[keep], value[keep]
-        D[pending[diverging], pick[diverging]] = np.inf
-        pending = pending[diverging]
-    if len(pending):
-        sub = D[pending]
+    non-diverging pairs (rows[r], first_col[r] + k), and that D; -1 and inf where none (`initialize.lazy_best`:
+    divergence checked for each row's best candidate in turn, then for all finite candidates of the rest)."""
+    def diverging_rows(pending: np.ndarray, sub: np.ndarray) -> np.ndarray:
         r, k = np.nonzero(np.isfinite(sub))
-        diverging = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k)
-        sub[r[diverging], k[diverging]] = np.inf
-        pick = np.argmin(sub, axis=1)
-        value = sub[np.arange(len(pending)), pick]
-        finite = np.isfinite(value)
-        best[pending[finite]], cost[pending[finite]] = pick[finite], value[finite]
+        out = np.zeros(sub.shape, dtype=bool)
+        out[r, k] = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k)
+        return out
+
+    best, cost, _ = lazy_best(D, lambda pending, pick: _diverging(lines, rows[pending], first_col[pending] + pick),
+                              diverging_rows)
     return best, cost
 
 

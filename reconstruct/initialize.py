@@ -16,6 +16,7 @@ diverging pair first, at a fraction of the cost.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -189,7 +190,21 @@ def _best_partners(
     """Per row of D (R, C; modified: diverging pairs become inf), the first column of least D among the
     non-diverging ones. Returns the column position (R,) (-1 where none), its D (R,), and the diverging pairs
     found (row positions, column positions)."""
-    R = len(rows)
+    return lazy_best(D, lambda pending, pick: _pair_depths(lines, rows[pending], cols[pick])[1],
+                     lambda pending, sub: _pair_matrix(lines, rows[pending], cols))
+
+
+def lazy_best(
+    D: np.ndarray,
+    diverging_at: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    diverging_rows: Callable[[np.ndarray, np.ndarray], np.ndarray],
+) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per row of D (R, C; modified: diverging pairs become inf), the first column of least D among the
+    non-diverging pairs. Divergence needs the depths, so it is checked for each row's best candidate, then the
+    next (`diverging_at(rows (n,), columns (n,)) -> (n,) bool`); rows still unresolved after LAZY_ROUNDS get
+    their whole row checked at once (`diverging_rows(rows (n,), D[rows] (n, C)) -> (n, C) bool`). Returns the
+    column (R,) (-1 where none), its D (R,), and the diverging pairs found (rows, columns)."""
+    R = len(D)
     best = np.full(R, -1, dtype=np.int64)
     cost = np.full(R, np.inf)
     found: list[tuple[np.ndarray, np.ndarray]] = []
@@ -201,7 +216,7 @@ def _best_partners(
         value = D[pending, pick]
         finite = np.isfinite(value)
         pending, pick, value = pending[finite], pick[finite], value[finite]
-        _, diverging = _pair_depths(lines, rows[pending], cols[pick])
+        diverging = diverging_at(pending, pick)
         keep = ~diverging
         best[pending[keep]], cost[pending[keep]] = pick[keep], value[keep]
         D[pending[diverging], pick[diverging]] = np.inf
@@ -209,7 +224,7 @@ def _best_partners(
         pending = pending[diverging]
     if len(pending):
         sub = D[pending]
-        diverging_all = _pair_matrix(lines, rows[pending], cols)
+        diverging_all = diverging_rows(pending, sub)
         sub[diverging_all] = np.inf
         D[pending] = sub
         r, c = np.nonzero(diverging_all)
