@@ -137,3 +137,54 @@ def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
     kept_rows, kept_cols = _limit_seeds_per_frame(rows, cols, rank, 3)
     assert sorted(zip(kept_rows.tolist(), kept_cols.tolist(), strict=True)) == [
         (2, 6), (2, 8), (5, 1), (5, 3), (5, 7)]
+
+
+def _windowed_problem(seed):
+    """A working set with a window pool (several independent components of columns) and a random free set."""
+    from reconstruct.wstep import _pack_pairs, _WorkingSetProblem, nearest_in_pool
+
+    rng = np.random.default_rng(seed)
+    F, V = 90, 3
+    shapes = np.cumsum(rng.normal(size=(F, 6)), axis=0)
+    video_index = np.arange(F) % V
+    frames = np.arange(F)
+    pool = frames[:, None] + np.array([-4, -2, -1, 1, 2, 4])[None, :]
+    pool[(pool < 0) | (pool >= F) | (video_index[np.clip(pool, 0, F - 1)] == video_index[:, None])] = -1
+    near = nearest_in_pool(shapes, pool, 3)
+    keep = near >= 0
+    cand, valid = _pack_pairs(near[keep], np.broadcast_to(frames[:, None], near.shape)[keep], F)
+    return _WorkingSetProblem(shapes, cand, valid, 0.05, 2), rng
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed):
+    from reconstruct.wstep import _FreeSetSolver
+
+    problem, rng = _windowed_problem(seed)
+    valid = problem.valid.ravel()
+    free = valid & (rng.random(valid.shape) < 0.6)
+    solver = _FreeSetSolver(problem)
+    solver.ensure_nonempty_columns(free, np.zeros(len(free)))
+    solver.solve(free)
+    # Change a few entries, some of which make or break partner links.
+    flip = rng.choice(np.flatnonzero(valid), 6, replace=False)
+    changed = free.copy()
+    changed[flip] = ~changed[flip]
+    solver.ensure_nonempty_columns(changed, np.zeros(len(free)))
+    cached = solver.solve(changed)
+    fresh = _FreeSetSolver(problem).solve(changed)
+    assert cached is not None and fresh is not None
+    np.testing.assert_allclose(cached[0], fresh[0], atol=1e-10)
+    np.testing.assert_allclose(cached[1], fresh[1], rtol=1e-8, atol=1e-14)
+
+
+def test_column_grams_equal_the_padded_products():
+    from reconstruct.wstep import _column_grams
+
+    problem, _ = _windowed_problem(3)
+    shapes = np.cumsum(np.random.default_rng(3).normal(size=(90, 6)), axis=0)
+    gram, lam_max = _column_grams(shapes, problem.cand, problem.valid)
+    B = np.where(problem.valid[..., None], shapes[problem.cand] - shapes[:, None, :], 0.0)
+    expected = np.einsum("fkd,fld->fkl", B, B)
+    np.testing.assert_allclose(gram, expected, atol=1e-10)
+    np.testing.assert_allclose(lam_max, np.linalg.eigvalsh(expected)[:, -1], rtol=1e-10, atol=1e-12)
