@@ -42,6 +42,9 @@ class WStepOptions:
     # F = 700 (measured), still 4x cheaper than FISTA. Past this budget
     # FISTA finishes the solve.
     max_active_set_iterations: int = 60
+    # A column whose free entries changed in this many active-set iterations changes one entry at a time from then
+    # on (_limit_changes).
+    cycle_changes: int = 8
     # PDAS can wander near a degenerate optimum, flipping a few entries in and out: measured on CMU F = 700, a
     # cold W-step spent 58 KKT solves to gain 0.03 % of g. It stops with its best iterate once that many iterations
     # have not lowered g by this relative amount (the outer KKT check tolerates far more: kkt_tolerance).
@@ -131,17 +134,22 @@ def local_inner(A: np.ndarray, B: np.ndarray, index: np.ndarray, *, chunk: int =
     instead of gathering an (F, C, D) array (at F = 2000, P = 44: 160 MB per call)."""
     F, C = index.shape
     out = np.zeros((F, C))
+    # The union of a chunk's candidates by marking them in a reused mask: np.unique's sort or hash per chunk cost
+    # more than the products.
+    marked = np.zeros(len(B), dtype=bool)
+    column_of = np.zeros(len(B), dtype=np.int64)
     for start in range(0, F, chunk):
         rows = slice(start, min(F, start + chunk))
         idx = index[rows]
         present = idx >= 0
-        union = np.unique(idx[present])
+        marked[idx[present]] = True
+        union = np.flatnonzero(marked)
         if len(union) == 0:
             continue
+        marked[union] = False
+        column_of[union] = np.arange(len(union))
         product = A[rows] @ B[union].T  # (chunk, U)
-        column = np.searchsorted(union, np.maximum(idx, 0))
-        np.clip(column, 0, len(union) - 1, out=column)
-        local = np.take_along_axis(product, column, axis=1)
+        local = np.take_along_axis(product, column_of[np.maximum(idx, 0)], axis=1)
         out[rows] = np.where(present, local, 0.0)
     return out
 
@@ -405,6 +413,7 @@ def _active_set(
     free = (best.ravel() > NEGLIGIBLE) & valid
     seen: set[bytes] = set()
     stalled = 0
+    changes = np.zeros(F, dtype=np.int64)  # active-set iterations that changed each column's free entries
     for _ in range(options.max_active_set_iterations):
         stats.iterations += 1
         solved = solver.solve(free)
@@ -427,10 +436,14 @@ def _active_set(
         if stalled >= options.stall_iterations:
             log.debug("active set: PDAS stalled after %d iterations; keeping the best iterate", len(seen))
             stats.objective = best_objective
+            stats.converged = False  # a previous round's exact solve does not make this one exact
             return best
         # Round-off makes degenerate entries (optimal value 0, gradient = multiplier) flip sign from one solve to
         # the next; treat |v| below NEGLIGIBLE as zero.
-        free = (free & (v > NEGLIGIBLE)) | entering
+        proposal = (free & (v > NEGLIGIBLE)) | entering
+        proposal = _limit_changes(free, proposal, v, violation, changes >= options.cycle_changes, F, K)
+        changes += (proposal != free).reshape(F, K).any(axis=1)
+        free = proposal
         key = np.packbits(free).tobytes()
         if key in seen:
             log.debug("active set: PDAS cycles after %d iterations; primal active set from the best iterate",
@@ -441,6 +454,27 @@ def _active_set(
     log.debug("active set: PDAS has not settled in %d iterations; primal active set from the best iterate",
               options.max_active_set_iterations)
     return _primal_active_set(problem, solver, best, options, stats)
+
+
+def _limit_changes(free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violation: np.ndarray,
+                   restricted: np.ndarray, F: int, K: int) -> np.ndarray:
+    """The proposed free set (flat F*K), with one change per `restricted` column (F,): its most negative entry
+    leaves, else its most violating entry enters. PDAS swaps whole sets and can wander for dozens of iterations on
+    columns with nearly degenerate entries; single changes there (Murty's rule) settle them like the primal method
+    does, while the other columns keep PDAS's fast steps."""
+    if not restricted.any():
+        return proposal
+    leaving = (free & ~proposal).reshape(F, K)
+    entering = (proposal & ~free).reshape(F, K)
+    rows = np.flatnonzero(restricted & (leaving.any(axis=1) | entering.any(axis=1)))
+    out = proposal.reshape(F, K).copy()
+    out[rows] = free.reshape(F, K)[rows]
+    worst = np.argmin(np.where(leaving[rows], v.reshape(F, K)[rows], np.inf), axis=1)
+    best = np.argmax(np.where(entering[rows], violation.reshape(F, K)[rows], -np.inf), axis=1)
+    removes = leaving[rows].any(axis=1)
+    out[rows[removes], worst[removes]] = False
+    out[rows[~removes], best[~removes]] = True
+    return out.ravel()
 
 
 def _primal_active_set(
