@@ -64,6 +64,9 @@ class SolverOptions:
     # Short captures stay dense: the flight scenes (P = 1, ~600 frames) give the windows' anchors nothing to match.
     dense_limit: int = 1000
     candidates: CandidateOptions = field(default_factory=CandidateOptions)
+    # Threads for the independent parts of large steps (the X-step's points, the W-step's KKT components); small
+    # problems stay on one (reconstruct/xstep.PARALLEL_SIZE, reconstruct/wstep.PARALLEL_KKT).
+    workers: int = 2
     progress: bool = False
     # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
     # benchmarks that follow accuracy along the iterations.
@@ -170,12 +173,13 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     stages: list[StageLog] = []
     plan = [("smooth", options.lambda2), ("final", 0.0)] if options.lambda2 > 0 else [("final", 0.0)]
     W: SparseW | None = None
-    w_options = WStepOptions(**{**options.w_step.__dict__, "lambda1": options.lambda1})
+    w_options = WStepOptions(**{**options.w_step.__dict__, "lambda1": options.lambda1, "workers": options.workers})
     t_w = t_x = 0.0
     for name, lambda2 in plan:
         stage = StageLog(name=name, lambda2=lambda2)
         stages.append(stage)
-        x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint)
+        x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint,
+                                 workers=options.workers)
         previous_cost = np.inf
         mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
         candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them

@@ -158,14 +158,17 @@ def _windowed_problem(seed):
     return _WorkingSetProblem(shapes, cand, valid, 0.05, 2), rng
 
 
+@pytest.mark.parametrize("workers", [1, 2])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed):
+def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, workers, monkeypatch):
+    import reconstruct.wstep as wstep
     from reconstruct.wstep import _FreeSetSolver
 
+    monkeypatch.setattr(wstep, "PARALLEL_KKT", 0)  # with 2 workers, components are split over threads
     problem, rng = _windowed_problem(seed)
     valid = problem.valid.ravel()
     free = valid & (rng.random(valid.shape) < 0.6)
-    solver = _FreeSetSolver(problem)
+    solver = _FreeSetSolver(problem, workers)
     solver.ensure_nonempty_columns(free, np.zeros(len(free)))
     solver.solve(free)
     # Change a few entries, some of which make or break partner links.

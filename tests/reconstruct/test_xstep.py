@@ -72,3 +72,16 @@ def test_hard_constraint_keeps_observed_points_on_their_rays():
     perpendicular = offset - along[..., None] * np.nan_to_num(rays)
     observed = ~np.isnan(rays[..., 0])
     assert np.abs(perpendicular[observed]).max() < 1e-9
+
+
+@pytest.mark.parametrize("constraint", list(RayConstraint))
+def test_points_split_over_threads_match_dense_least_squares(constraint, monkeypatch):
+    import reconstruct.xstep as xstep
+
+    monkeypatch.setattr(xstep, "PARALLEL_SIZE", 0)  # split even this small problem
+    W, centers, rays, video_index = _setup(P=5, seed=4)
+    options = XStepOptions(lambda2=0.1, constraint=constraint, workers=2)
+    start = np.random.default_rng(4).normal(size=rays.shape)
+    points = solve_x(W, centers, rays, video_index, options, start=start)
+    reference = _dense_solution(W, centers, rays, video_index, options)
+    np.testing.assert_allclose(points, reference, atol=1e-6 * np.abs(reference).max())
