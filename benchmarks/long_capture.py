@@ -111,7 +111,10 @@ def main(argv: list[str] | None = None) -> int:
             results.append(json.loads(lines[-1][len(RESULT_PREFIX):]))
             if args.json:
                 args.json.write_text(json.dumps({"solver": solver_version(), "results": results}, indent=1))
-    print(f"solver {solver_version()}; P = {POINTS}, 30 Hz per camera, noise-free, 1 BLAS thread")
+    from reconstruct.solver import SolverOptions
+
+    print(f"solver {solver_version()}; P = {POINTS}, 30 Hz per camera, noise-free, 1 BLAS thread, "
+          f"{SolverOptions().workers} solver threads (SolverOptions.workers)")
     print("| F | dictionary | wall s | CPU s | peak RSS MB | iterations | < 10 mm % | < 20 mm % |")
     print("|---|---|---|---|---|---|---|---|")
     for r in results:
