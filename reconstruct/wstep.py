@@ -5,33 +5,26 @@
 
 Method (solves the same convex problem as the paper's ADMM; see docs/solver.md):
 * Working set. Solutions are sparse and local, so each column only carries the entries in a working set: its nearest
-  shapes of other videos plus the previous support, symmetrized so that Psi1's partner entry W_fj is always in the set.
-* Accelerated projected gradient (FISTA with function-value restart) on the working set, in a per-column metric:
-  the data term is block-diagonal over columns, so step 1/L_f with L_f = 2/(FP) lambda_max(B_f^T B_f) + 8 lambda1/F
-  (B_f: candidate shapes minus S_f) majorizes the Hessian and the projection stays a per-column Euclidean simplex
-  projection. Warm-started from the previous W.
-* Optimality on the full problem: after convergence, the gradient of every allowed entry outside the set is
-  checked against the column's simplex multiplier (KKT); violators join the set and the solve continues. When no
-  entry violates, the working-set solution is a solution of the full problem.
+  shapes of other videos (or of its candidate pool on long captures) plus the previous support, symmetrized so that
+  Psi1's partner entry W_fj is always in the set.
+* Exact solve on the working set (reconstruct/working_set.py): a primal-dual active-set method, one sparse KKT
+  solve per iteration, warm-started from the previous W.
+* Optimality on the full problem: the gradient of every allowed entry outside the set is then checked against the
+  column's simplex multiplier (KKT); violators join the set and the solve continues. When no entry violates, the
+  working-set solution is a solution of the full problem.
 """
 
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
-from scipy.sparse.csgraph import connected_components
 
-from reconstruct.simplex import project_rows_to_simplex
+from reconstruct.working_set import WorkingSetProblem, active_set, fista
 
 log = logging.getLogger(__name__)
-
-NEGLIGIBLE = 1e-9  # W entries this close to zero are zero (W values lie in [0, 1])
-PARALLEL_KKT = 20_000  # free entries to re-solve at and above which independent components are split over threads
 
 
 @dataclass(kw_only=True)
@@ -45,7 +38,7 @@ class WStepOptions:
     # FISTA finishes the solve.
     max_active_set_iterations: int = 60
     # A column whose free entries changed in this many active-set iterations changes one entry at a time from then
-    # on (_limit_changes).
+    # on (limit_changes).
     cycle_changes: int = 8
     # PDAS can wander near a degenerate optimum, flipping a few entries in and out: measured on CMU F = 700, a
     # cold W-step spent 58 KKT solves to gain 0.03 % of g. It stops with its best iterate once that many iterations
@@ -189,381 +182,8 @@ def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray,
     return cand, valid
 
 
-def _transpose_index(cand: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Flat index of the entry (f, j) for every valid entry (j, f); the set must be symmetric. (F, K), -1 padding."""
-    F, K = cand.shape
-    flat = np.flatnonzero(valid.ravel())
-    cols = flat // K
-    keys = cols * F + cand.ravel()[flat]
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    transposed = cand.ravel()[flat] * F + cols
-    where = np.searchsorted(sorted_keys, transposed)
-    if np.any(where >= len(sorted_keys)) or np.any(sorted_keys[np.minimum(where, len(keys) - 1)] != transposed):
-        raise RuntimeError("working set is not symmetric")
-    index = np.full(F * K, -1, dtype=np.int64)
-    index[flat] = flat[order[where]]
-    return index.reshape(F, K)
-
-
-def _column_grams(shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column Gram matrices of B_f = candidate shapes - S_f, (F, K, K) zero-padded, and their largest
-    eigenvalues (F,). Columns are batched by their number of entries: K is the largest column's, twice the mean on
-    long captures, and a padded (F, K, D) gather plus (F, K, K) eigvalsh cost 7x more (F = 20,000: 1.08 -> 0.15 s)."""
-    F, K = cand.shape
-    counts = valid.sum(axis=1)
-    slots = np.argsort(~valid, axis=1, kind="stable")  # each column's entries first
-    gram = np.zeros((F, K, K))
-    lam_max = np.zeros(F)
-    for size in np.unique(counts[counts > 0]):
-        cols = np.flatnonzero(counts == size)
-        idx = slots[cols, :size]
-        B = shapes[np.take_along_axis(cand[cols], idx, axis=1)] - shapes[cols][:, None, :]  # (n, size, D)
-        block = np.matmul(B, B.transpose(0, 2, 1))
-        gram[cols[:, None, None], idx[:, :, None], idx[:, None, :]] = block
-        lam_max[cols] = np.linalg.eigvalsh(block)[:, -1]
-    return gram, lam_max
-
-
-class _WorkingSetProblem:
-    """g restricted to a working set, with the per-column Gram matrices precomputed."""
-
-    def __init__(self, shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray, lambda1: float, num_points: int):
-        F = len(shapes)
-        self.cand, self.valid = cand, valid
-        self.data_weight = 1.0 / (F * num_points)
-        self.sym_weight = lambda1 / F
-        self.transpose = _transpose_index(cand, valid)
-        self.gram, lam_max = _column_grams(shapes, cand, valid)
-        self.lipschitz = 2.0 * self.data_weight * np.maximum(lam_max, 0.0) + 8.0 * self.sym_weight
-        self.lipschitz = np.maximum(self.lipschitz, 1e-300)
-
-    def _transposed(self, V: np.ndarray) -> np.ndarray:
-        flat = V.ravel()
-        return np.where(self.valid, flat[np.maximum(self.transpose, 0)].reshape(V.shape), 0.0)
-
-    def objective(self, V: np.ndarray) -> float:
-        data = float(np.sum(V * np.matmul(self.gram, V[:, :, None])[:, :, 0]))
-        asym = V - self._transposed(V)
-        return float(self.data_weight * data + self.sym_weight * np.sum(asym * asym))
-
-    def gradient(self, V: np.ndarray) -> np.ndarray:
-        grad = 2.0 * self.data_weight * np.matmul(self.gram, V[:, :, None])[:, :, 0]
-        grad += 4.0 * self.sym_weight * (V - self._transposed(V))
-        return np.where(self.valid, grad, 0.0)
-
-    def hessian(self) -> sp.csr_matrix:
-        """H (n, n) over the flat entries f*K + k, with objective = 1/2 v^T H v."""
-        F, K = self.cand.shape
-        base = (np.arange(F) * K)[:, None, None]
-        rows = np.broadcast_to(base + np.arange(K)[None, :, None], self.gram.shape)
-        cols = np.broadcast_to(base + np.arange(K)[None, None, :], self.gram.shape)
-        pair = self.valid[:, :, None] & self.valid[:, None, :]
-        flat = np.flatnonzero(self.valid.ravel())
-        partner = self.transpose.ravel()[flat]
-        sym = 4.0 * self.sym_weight
-        return sp.csr_matrix(
-            (np.concatenate([2.0 * self.data_weight * self.gram[pair], np.full(len(flat), sym),
-                             np.full(len(flat), -sym)]),
-             (np.concatenate([rows[pair], flat, flat]), np.concatenate([cols[pair], flat, partner]))),
-            shape=(F * K, F * K))
-
-    def project(self, V: np.ndarray) -> np.ndarray:
-        return project_rows_to_simplex(V, self.valid)
-
-
-def _fista(problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats) -> np.ndarray:
-    step = 1.0 / problem.lipschitz[:, None]
-    x = problem.project(V)
-    y = x.copy()
-    t = 1.0
-    f_x = problem.objective(x)
-    for _ in range(options.max_iterations):
-        stats.iterations += 1
-        x_new = problem.project(y - step * problem.gradient(y))
-        f_new = problem.objective(x_new)
-        if f_new > f_x:
-            # Momentum overshot: restart from x with a plain projected-gradient step (monotone, O'Donoghue-Candes).
-            y, t = x.copy(), 1.0
-            continue
-        change = float(np.max(np.abs(x_new - y)))
-        t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-        y = x_new + ((t - 1.0) / t_new) * (x_new - x)
-        x, f_x, t = x_new, f_new, t_new
-        if change < options.tolerance:
-            stats.converged = True
-            break
-    stats.objective = f_x
-    return x
-
-
-class _FreeSetSolver:
-    """Equality-constrained QPs of g on a free set I (all other entries fixed at 0), one sparse KKT solve each:
-    [[H_II + ridge, E^T], [E, 0]] [v_I; -mu] = [0; 1], E summing each column's free entries.
-
-    Columns are coupled only by Psi1's partner entries (W_jf, W_fj both free), so the system splits into
-    independent components of columns. A component whose columns all kept their free entries since the previous
-    solve has the same system and keeps its solution: only components holding a changed column are re-solved. With
-    windowed dictionaries the system has ~1000 components at F = 20,000 and late active-set iterations change a few
-    of them; a dense dictionary gives one giant component (nothing saved, nothing lost)."""
-
-    def __init__(self, problem: _WorkingSetProblem, workers: int = 1):
-        F, K = problem.cand.shape
-        self.F, self.K = F, K
-        self.H = problem.hessian()
-        self.H_coo = self.H.tocoo()
-        self.ridge = 1e-12 * max(float(np.abs(self.H.diagonal()).max()), 1e-300)
-        self.column_of = np.repeat(np.arange(F), K)
-        self.valid = problem.valid.ravel()
-        self.lipschitz = problem.lipschitz
-        H = self.H_coo
-        link = self.column_of[H.row] != self.column_of[H.col]  # partner entries of different columns
-        self.link_rows, self.link_cols = H.row[link], H.col[link]
-        self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (free, v, mu) of the previous solve
-        self.workers = workers
-
-    def _components(self, free: np.ndarray, last_free: np.ndarray) -> np.ndarray:
-        """(F,) component label of every column. Links count when free before or now: a column whose partner
-        left the free set was solved coupled to it and must be solved again."""
-        both = (free[self.link_rows] & free[self.link_cols]) | (last_free[self.link_rows] & last_free[self.link_cols])
-        a, b = self.column_of[self.link_rows[both]], self.column_of[self.link_cols[both]]
-        graph = sp.csr_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(self.F, self.F))
-        return connected_components(graph, directed=False)[1]
-
-    def solve(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(v (F*K,), mu (F,)) or None when the system is singular."""
-        if self.last is None:
-            last_free, changed = free, np.arange(self.F)
-            v, mu = np.zeros(self.F * self.K), np.zeros(self.F)
-        else:
-            last_free, v, mu = self.last
-            changed = np.unique(self.column_of[free != last_free])
-            v, mu = v.copy(), mu.copy()
-        if len(changed):
-            label = self._components(free, last_free)
-            redo = np.zeros(label.max() + 1, dtype=bool)
-            redo[label[changed]] = True
-            groups = self._groups(label, redo, free)
-            if len(groups) > 1:
-                with ThreadPoolExecutor(len(groups)) as pool:
-                    parts = list(pool.map(lambda columns: self._solve_columns(free, columns), groups))
-            else:
-                parts = [self._solve_columns(free, groups[0])]
-            for columns, solved in zip(groups, parts, strict=True):
-                if solved is None:
-                    return None
-                entries = columns[self.column_of]
-                v[entries] = solved[0][entries]
-                mu[columns] = solved[1]
-        self.last = (free.copy(), v, mu)
-        return v, mu
-
-    def _groups(self, label: np.ndarray, redo: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
-        """Column masks (F,) covering the components to re-solve: one, or `workers` of about equal size (free
-        entries) when the system is large enough for threads to pay (SuperLU releases the GIL)."""
-        columns = redo[label]
-        size = np.bincount(label, weights=free.reshape(self.F, self.K).sum(axis=1), minlength=len(redo))
-        size[~redo] = 0
-        if self.workers < 2 or size.sum() < PARALLEL_KKT or np.count_nonzero(size) < 2:
-            return [columns]
-        load = np.zeros(self.workers)
-        worker_of = np.zeros(len(size), dtype=np.int64)
-        for component in np.argsort(-size)[:np.count_nonzero(size)]:  # largest first, to the least loaded
-            worker_of[component] = np.argmin(load)
-            load[worker_of[component]] += size[component]
-        return [columns & (worker_of[label] == w) for w in range(self.workers) if load[w] > 0]
-
-    def _solve_columns(self, free: np.ndarray, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The KKT system of the free entries of `columns` (F,) bool (closed under partner links)."""
-        free = free & columns[self.column_of]
-        idx = np.flatnonzero(free)
-        m = len(idx)
-        n_columns = int(columns.sum())
-        # Assembled as one COO: slicing H and sp.bmat cost more than the sparse factorization itself.
-        position = np.cumsum(free) - 1  # new index of every free entry
-        constraint_of = np.cumsum(columns) - 1 + m  # row of each column's simplex constraint
-        H = self.H_coo
-        inside = free[H.row] & free[H.col]
-        constraint_rows = constraint_of[self.column_of[idx]]
-        kkt = sp.csc_matrix(
-            (np.concatenate([H.data[inside], np.full(m, self.ridge), np.ones(m), np.ones(m)]),
-             (np.concatenate([position[H.row[inside]], np.arange(m), constraint_rows, np.arange(m)]),
-              np.concatenate([position[H.col[inside]], np.arange(m), np.arange(m), constraint_rows]))),
-            shape=(m + n_columns, m + n_columns))
-        rhs = np.concatenate([np.zeros(m), np.ones(n_columns)])
-        try:
-            solution = spla.spsolve(kkt, rhs)
-        except RuntimeError:
-            log.debug("active set: singular KKT system")
-            return None
-        if not np.all(np.isfinite(solution)):
-            log.debug("active set: singular KKT system")
-            return None
-        v = np.zeros(self.F * self.K)
-        v[idx] = solution[:m]
-        return v, -solution[m:]
-
-    def violation(self, v: np.ndarray, mu: np.ndarray) -> np.ndarray:
-        """(F*K,) how far each entry's gradient lies below its column's multiplier, in W units (/ L_f)."""
-        return (mu[self.column_of] - self.H @ v) / self.lipschitz[self.column_of]
-
-    def ensure_nonempty_columns(self, free: np.ndarray, v: np.ndarray) -> None:
-        """Every column needs one free entry: give an empty one its lowest-gradient entry."""
-        empty = np.bincount(self.column_of[free], minlength=self.F) == 0
-        if empty.any():
-            g = np.where(self.valid, self.H @ v, np.inf).reshape(self.F, self.K)
-            free.reshape(self.F, self.K)[empty, np.argmin(g[empty], axis=1)] = True
-
-
-def _active_set(
-    problem: _WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats
-) -> np.ndarray | None:
-    """Exact minimizer on the working set by a primal-dual active-set method (Hintermueller, Ito, Kunisch 2002).
-
-    Each iteration solves the equality-constrained QP on a free set I, which also gives each column's simplex
-    multiplier mu_f. The next free set keeps the entries that came out positive and adds those outside I whose
-    gradient lies below their column's multiplier. When the set repeats, the solution is non-negative and satisfies
-    KKT: it is the exact minimizer. PDAS is fast but not monotone and can cycle on nearly degenerate entries (a
-    handful of entries flipping in and out, measured on CMU F = 2000); a repeated set hands the best iterate seen so
-    far to the monotone primal active-set method, which cannot cycle; so does a PDAS that has not settled within its
-    budget. Returns None only when a KKT system is singular (the caller then falls back to FISTA).
-    """
-    F, K = V.shape
-    solver = _FreeSetSolver(problem, options.workers)
-    valid = solver.valid
-    # Dust left by the previous solve (values below NEGLIGIBLE) is not support: starting with it free costs a
-    # whole extra KKT solve to drop it again.
-    best = problem.project(V)
-    best_objective = start_objective = problem.objective(best)
-    free = (best.ravel() > NEGLIGIBLE) & valid
-    seen: set[bytes] = set()
-    stalled = 0
-    changes = np.zeros(F, dtype=np.int64)  # active-set iterations that changed each column's free entries
-    for _ in range(options.max_active_set_iterations):
-        stats.iterations += 1
-        solved = solver.solve(free)
-        if solved is None:
-            return None
-        v, mu = solved
-        violation = solver.violation(v, mu)
-        entering = valid & ~free & (violation > options.tolerance)
-        if not entering.any() and v[free].min() > -NEGLIGIBLE:
-            return _finish(problem, v, stats)
-        projected = problem.project(v.reshape(F, K))
-        objective = problem.objective(projected)
-        # Stalling counts only once PDAS has beaten the start: its first iterates are often worse than a warm start.
-        if objective < best_objective * (1.0 - options.stall_tolerance):
-            stalled = 0
-        elif best_objective < start_objective:
-            stalled += 1
-        if objective < best_objective:
-            best, best_objective = projected, objective
-        if stalled >= options.stall_iterations:
-            log.debug("active set: PDAS stalled after %d iterations; keeping the best iterate", len(seen))
-            stats.objective = best_objective
-            stats.converged = False  # a previous round's exact solve does not make this one exact
-            return best
-        # Round-off makes degenerate entries (optimal value 0, gradient = multiplier) flip sign from one solve to
-        # the next; treat |v| below NEGLIGIBLE as zero.
-        proposal = (free & (v > NEGLIGIBLE)) | entering
-        proposal = _limit_changes(free, proposal, v, violation, changes >= options.cycle_changes, F, K)
-        changes += (proposal != free).reshape(F, K).any(axis=1)
-        free = proposal
-        key = np.packbits(free).tobytes()
-        if key in seen:
-            log.debug("active set: PDAS cycles after %d iterations; primal active set from the best iterate",
-                      len(seen))
-            return _primal_active_set(problem, solver, best, options, stats)
-        seen.add(key)
-        solver.ensure_nonempty_columns(free, v)
-    log.debug("active set: PDAS has not settled in %d iterations; primal active set from the best iterate",
-              options.max_active_set_iterations)
-    return _primal_active_set(problem, solver, best, options, stats)
-
-
-def _limit_changes(free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violation: np.ndarray,
-                   restricted: np.ndarray, F: int, K: int) -> np.ndarray:
-    """The proposed free set (flat F*K), with one change per `restricted` column (F,): its most negative entry
-    leaves, else its most violating entry enters. PDAS swaps whole sets and can wander for dozens of iterations on
-    columns with nearly degenerate entries; single changes there (Murty's rule) settle them like the primal method
-    does, while the other columns keep PDAS's fast steps."""
-    if not restricted.any():
-        return proposal
-    leaving = (free & ~proposal).reshape(F, K)
-    entering = (proposal & ~free).reshape(F, K)
-    rows = np.flatnonzero(restricted & (leaving.any(axis=1) | entering.any(axis=1)))
-    out = proposal.reshape(F, K).copy()
-    out[rows] = free.reshape(F, K)[rows]
-    worst = np.argmin(np.where(leaving[rows], v.reshape(F, K)[rows], np.inf), axis=1)
-    best = np.argmax(np.where(entering[rows], violation.reshape(F, K)[rows], -np.inf), axis=1)
-    removes = leaving[rows].any(axis=1)
-    out[rows[removes], worst[removes]] = False
-    out[rows[~removes], best[~removes]] = True
-    return out.ravel()
-
-
-def _primal_active_set(
-    problem: _WorkingSetProblem, solver: _FreeSetSolver, start: np.ndarray, options: WStepOptions,
-    stats: WStepStats,
-) -> np.ndarray:
-    """Primal active-set method (Nocedal & Wright, Alg. 16.3) from a feasible start: every step solves the QP on
-    the free set and moves toward its solution only as far as the simplex allows, so g never increases and no free
-    set repeats. Entries at zero whose QP value is negative leave the set; when the QP solution is feasible, the
-    entries that violate KKT most (one per column) join it. Near a degenerate optimum most steps remove one entry,
-    so after `max_primal_iterations` the feasible iterate reached is returned (never worse than `start`)."""
-    F, K = start.shape
-    x = start.ravel().copy()
-    free = (x > 0) & solver.valid
-    for _ in range(options.max_primal_iterations):
-        stats.iterations += 1
-        solved = solver.solve(free)
-        if solved is None:
-            break
-        v, mu = solved
-        blocking = free & (v < -NEGLIGIBLE)
-        if not blocking.any():
-            x = np.where(free, np.maximum(v, 0.0), 0.0)
-            violation = solver.violation(v, mu)
-            entering = solver.valid & ~free & (violation > options.tolerance)
-            if not entering.any():
-                return _finish(problem, v, stats)
-            free |= _most_violating_per_column(entering, violation, F, K)
-            continue
-        # Entries already at zero that the QP wants negative leave without a step; the others block the step.
-        at_zero = blocking & (x <= NEGLIGIBLE)
-        if at_zero.any():
-            free &= ~at_zero
-            x[at_zero] = 0.0
-            continue
-        x = x + float(np.min(x[blocking] / (x[blocking] - v[blocking]))) * (v - x)
-        hit = blocking & (x <= NEGLIGIBLE)
-        x[hit] = 0.0
-        free &= ~hit
-    return _finish(problem, x, stats, converged=False)
-
-
-def _finish(problem: _WorkingSetProblem, v: np.ndarray, stats: WStepStats, *, converged: bool = True) -> np.ndarray:
-    """The flat iterate v (F*K,) as W values on the simplices, its objective recorded."""
-    F, K = problem.cand.shape
-    stats.converged = converged
-    V_out = np.maximum(v, 0.0).reshape(F, K)
-    V_out /= V_out.sum(axis=1, keepdims=True)
-    stats.objective = problem.objective(V_out)
-    return V_out
-
-
-def _most_violating_per_column(entering: np.ndarray, violation: np.ndarray, F: int, K: int) -> np.ndarray:
-    """Keep, in each column, only the entering entry (flat mask over F*K) with the largest violation."""
-    scores = np.where(entering, violation, -np.inf).reshape(F, K)
-    best = np.argmax(scores, axis=1)
-    kept = np.zeros((F, K), dtype=bool)
-    has = np.isfinite(scores[np.arange(F), best])
-    kept[np.flatnonzero(has), best[has]] = True
-    return kept.ravel()
-
-
 def kkt_violations(
-    shapes: np.ndarray, video_index: np.ndarray, W: SparseW, problem: _WorkingSetProblem, options: WStepOptions,
+    shapes: np.ndarray, video_index: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions,
     *, block: int = 1024, pool: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Allowed entries (rows j, columns f) outside the working set whose gradient lies below the column's simplex
@@ -616,7 +236,7 @@ def kkt_violations(
 
 
 def _pool_violations(
-    shapes: np.ndarray, W: SparseW, problem: _WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
+    shapes: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
     residual: np.ndarray, pool: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     F, C = pool.shape
@@ -662,13 +282,13 @@ def solve_w(
     V_start = None if previous is None else _sparse_lookup(previous)
     for round_index in range(options.max_rounds):
         cand, valid = _pack_pairs(all_rows, all_cols, F)
-        problem = _WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points)
+        problem = WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points)
         V = _start_values(cand, valid, V_start, near)
-        exact = _active_set(problem, V, options, stats)
+        exact = active_set(problem, V, options, stats)
         if exact is None:
             log.debug("active-set W-step did not finish; falling back to FISTA")
             stats.fallbacks += 1
-            exact = _fista(problem, V, options, stats)
+            exact = fista(problem, V, options, stats)
         V = exact
         W = SparseW(cand=cand, valid=valid, value=V)
         stats.rounds = round_index + 1

@@ -85,28 +85,21 @@ def test_warm_start_reuses_previous_solution():
 def test_primal_active_set_descends_to_the_working_set_optimum():
     """The fallback that finishes when PDAS cycles: monotone from any feasible start, and exact when its budget
     suffices (same optimum as PDAS on the same working set)."""
-    from reconstruct.wstep import (
-        WStepStats,
-        _active_set,
-        _FreeSetSolver,
-        _pack_pairs,
-        _primal_active_set,
-        _WorkingSetProblem,
-        nearest_other_video,
-    )
+    from reconstruct.working_set import FreeSetSolver, WorkingSetProblem, active_set, primal_active_set
+    from reconstruct.wstep import WStepStats, _pack_pairs, nearest_other_video
 
     shapes, video_index, P = _shapes(F=30, seed=3)
     F = len(shapes)
     near = nearest_other_video(shapes, video_index, 6)
     cand, valid = _pack_pairs(near.ravel(), np.repeat(np.arange(F), near.shape[1]), F)
-    problem = _WorkingSetProblem(shapes, cand, valid, 0.05, P)
+    problem = WorkingSetProblem(shapes, cand, valid, 0.05, P)
     start = problem.project(np.where(valid, 1.0, 0.0))  # uniform weights: feasible, far from optimal
     options = WStepOptions(max_primal_iterations=2)
-    short = _primal_active_set(problem, _FreeSetSolver(problem), start, options, WStepStats())
+    short = primal_active_set(problem, FreeSetSolver(problem), start, options, WStepStats())
     assert problem.objective(short) <= problem.objective(start)
-    exact = _primal_active_set(problem, _FreeSetSolver(problem), start, WStepOptions(max_primal_iterations=500),
+    exact = primal_active_set(problem, FreeSetSolver(problem), start, WStepOptions(max_primal_iterations=500),
                                WStepStats())
-    reference = _active_set(problem, start, WStepOptions(), WStepStats())
+    reference = active_set(problem, start, WStepOptions(), WStepStats())
     assert reference is not None
     assert problem.objective(exact) <= problem.objective(short)
     np.testing.assert_allclose(problem.objective(exact), problem.objective(reference), rtol=1e-9)
@@ -143,7 +136,8 @@ def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
 
 def _windowed_problem(seed):
     """A working set with a window pool (several independent components of columns) and a random free set."""
-    from reconstruct.wstep import _pack_pairs, _WorkingSetProblem, nearest_in_pool
+    from reconstruct.working_set import WorkingSetProblem
+    from reconstruct.wstep import _pack_pairs, nearest_in_pool
 
     rng = np.random.default_rng(seed)
     F, V = 90, 3
@@ -155,20 +149,20 @@ def _windowed_problem(seed):
     near = nearest_in_pool(shapes, pool, 3)
     keep = near >= 0
     cand, valid = _pack_pairs(near[keep], np.broadcast_to(frames[:, None], near.shape)[keep], F)
-    return _WorkingSetProblem(shapes, cand, valid, 0.05, 2), rng
+    return WorkingSetProblem(shapes, cand, valid, 0.05, 2), rng
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, workers, monkeypatch):
-    import reconstruct.wstep as wstep
-    from reconstruct.wstep import _FreeSetSolver
+    import reconstruct.working_set as working_set
+    from reconstruct.working_set import FreeSetSolver
 
-    monkeypatch.setattr(wstep, "PARALLEL_KKT", 0)  # with 2 workers, components are split over threads
+    monkeypatch.setattr(working_set, "PARALLEL_KKT", 0)  # with 2 workers, components are split over threads
     problem, rng = _windowed_problem(seed)
     valid = problem.valid.ravel()
     free = valid & (rng.random(valid.shape) < 0.6)
-    solver = _FreeSetSolver(problem, workers)
+    solver = FreeSetSolver(problem, workers)
     solver.ensure_nonempty_columns(free, np.zeros(len(free)))
     solver.solve(free)
     # Change a few entries, some of which make or break partner links.
@@ -177,18 +171,18 @@ def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, wo
     changed[flip] = ~changed[flip]
     solver.ensure_nonempty_columns(changed, np.zeros(len(free)))
     cached = solver.solve(changed)
-    fresh = _FreeSetSolver(problem).solve(changed)
+    fresh = FreeSetSolver(problem).solve(changed)
     assert cached is not None and fresh is not None
     np.testing.assert_allclose(cached[0], fresh[0], atol=1e-10)
     np.testing.assert_allclose(cached[1], fresh[1], rtol=1e-8, atol=1e-14)
 
 
 def test_column_grams_equal_the_padded_products():
-    from reconstruct.wstep import _column_grams
+    from reconstruct.working_set import column_grams
 
     problem, _ = _windowed_problem(3)
     shapes = np.cumsum(np.random.default_rng(3).normal(size=(90, 6)), axis=0)
-    gram, lam_max = _column_grams(shapes, problem.cand, problem.valid)
+    gram, lam_max = column_grams(shapes, problem.cand, problem.valid)
     B = np.where(problem.valid[..., None], shapes[problem.cand] - shapes[:, None, :], 0.0)
     expected = np.einsum("fkd,fld->fkl", B, B)
     np.testing.assert_allclose(gram, expected, atol=1e-10)
@@ -196,7 +190,7 @@ def test_column_grams_equal_the_padded_products():
 
 
 def test_limit_changes_makes_one_change_in_restricted_columns_only():
-    from reconstruct.wstep import _limit_changes
+    from reconstruct.working_set import limit_changes
 
     F, K = 3, 4
     free = np.array([[1, 1, 1, 0], [1, 1, 0, 0], [1, 0, 0, 0]], dtype=bool).ravel()
@@ -205,7 +199,7 @@ def test_limit_changes_makes_one_change_in_restricted_columns_only():
     v = np.array([[0.9, -0.2, -0.5, 0.0], [0.5, 0.5, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]).ravel()
     violation = np.array([[0.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.1, 0.4], [0.0, 0.2, 0.1, 0.0]]).ravel()
     restricted = np.array([True, True, False])
-    out = _limit_changes(free, proposal, v, violation, restricted, F, K).reshape(F, K)
+    out = limit_changes(free, proposal, v, violation, restricted, F, K).reshape(F, K)
     np.testing.assert_array_equal(out[0], [1, 1, 0, 0])  # only the most negative entry leaves, nothing enters
     np.testing.assert_array_equal(out[1], [1, 1, 0, 1])  # only the most violating entry enters
     np.testing.assert_array_equal(out[2], proposal.reshape(F, K)[2])
