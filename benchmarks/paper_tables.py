@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (
     PAPER,
     WINDOWS,
+    CaptureSetting,
     Window,
     load_window,
     percent_row,
@@ -51,25 +52,19 @@ from common import (
     simulate,
     solve_and_score,
     solver_version,
-    step_for,
     threshold_header,
 )
 
 from reconstruct.mocap import Mocap
-from reconstruct.simulate import SimulationOptions
 
 log = logging.getLogger("paper_tables")
 
 
 @dataclass(frozen=True, kw_only=True)
-class Row:
-    key: str  # also the key of common.PAPER
+class Row(CaptureSetting):
+    """A row of the paper's tables; `key` is also the key of common.PAPER."""
+
     group: str  # frame | noise | missing
-    label: str
-    per_camera_hz: float = 30.0
-    noise_px: float = 0.0
-    miss: float = 0.0
-    unconstrained: bool = False
 
 
 ROWS: tuple[Row, ...] = (
@@ -122,9 +117,7 @@ def run_task(task: Task) -> Outcome:
     outcome = Outcome(window=window.name, row=row.key)
     try:
         mocap = _window_mocap(window, task.length)
-        options = SimulationOptions(step=step_for(mocap, row.per_camera_hz), noise_px=row.noise_px, miss=row.miss,
-                                    unconstrained=row.unconstrained, seed=task.window_index,
-                                    camera_distance_mm=task.distance_mm)
+        options = row.simulation_options(mocap, task.window_index, task.distance_mm)
         capture, problem, distance = simulate(mocap, options)
         run, _ = solve_and_score(capture, problem)
         outcome.result = {**run.as_dict(), "camera_distance_mm": distance}

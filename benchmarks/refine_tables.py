@@ -52,7 +52,6 @@ from common import (
     percent_row,
     simulate,
     solver_version,
-    step_for,
     threshold_header,
 )
 from paper_tables import ROWS, Row
@@ -63,7 +62,7 @@ from reconstruct.initialize import fill_missing_points
 from reconstruct.points import FramePoints
 from reconstruct.problem import Problem
 from reconstruct.refine import RefineOptions, RobustLoss, SmoothnessRule, refine, refine_with_clocks
-from reconstruct.simulate import SimulatedCapture, SimulationOptions
+from reconstruct.simulate import SimulatedCapture
 from reconstruct.solve_stage import frame_points, sequencing
 from reconstruct.solver import solve
 from reconstruct.temporal import TemporalOptions, recover_and_refine
@@ -85,8 +84,7 @@ def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | 
     """The capture of paper_tables.run_task (same options, same seed)."""
     window = WINDOWS[window_index]
     mocap = load_window(replace(window, seconds=min(window.seconds, length / 120.0)))
-    options = SimulationOptions(step=step_for(mocap, row.per_camera_hz), noise_px=row.noise_px, miss=row.miss,
-                                unconstrained=row.unconstrained, seed=window_index, camera_distance_mm=distance_mm)
+    options = row.simulation_options(mocap, window_index, distance_mm)
     capture, problem, _ = simulate(mocap, options)
     return capture, problem
 

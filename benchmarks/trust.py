@@ -35,7 +35,7 @@ import os
 import pickle
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -45,11 +45,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import ROOT, WINDOWS, load_window, require_mocap_dir, simulate, solver_version, step_for
+from common import ROOT, WINDOWS, CaptureSetting, load_window, require_mocap_dir, simulate, solver_version
 
 from reconstruct.points import FramePoints
 from reconstruct.problem import Problem
-from reconstruct.simulate import SimulationOptions
 from reconstruct.solver import SolveResult, solve
 from reconstruct.trust import TrustOptions, TrustPreset, flag_rule, preset_options, trust_measures
 
@@ -70,23 +69,13 @@ PRESETS: dict[str, TrustOptions] = {
 }
 
 
-@dataclass(frozen=True, kw_only=True)
-class Setting:
-    key: str
-    label: str
-    per_camera_hz: float = 30.0
-    noise_px: float = 0.0
-    miss: float = 0.0
-    unconstrained: bool = False
-
-
-SETTINGS: tuple[Setting, ...] = (
-    Setting(key="30Hz", label="30 Hz, noise-free"),
-    Setting(key="7.5Hz", label="7.5 Hz", per_camera_hz=7.5),
-    Setting(key="noise1", label="noise 1 px", noise_px=1.0),
-    Setting(key="noise3", label="noise 3 px", noise_px=3.0),
-    Setting(key="missing30", label="missing 30 %", miss=0.3),
-    Setting(key="unconstrained", label="unconstrained assignment", unconstrained=True),
+SETTINGS: tuple[CaptureSetting, ...] = (
+    CaptureSetting(key="30Hz", label="30 Hz, noise-free"),
+    CaptureSetting(key="7.5Hz", label="7.5 Hz", per_camera_hz=7.5),
+    CaptureSetting(key="noise1", label="noise 1 px", noise_px=1.0),
+    CaptureSetting(key="noise3", label="noise 3 px", noise_px=3.0),
+    CaptureSetting(key="missing30", label="missing 30 %", miss=0.3),
+    CaptureSetting(key="unconstrained", label="unconstrained assignment", unconstrained=True),
 )
 
 
@@ -111,7 +100,7 @@ def solve_sources_digest() -> str:
     return digest.hexdigest()[:12]
 
 
-def solved(window_index: int, setting: Setting, length: int, cache: Path | None, digest: str
+def solved(window_index: int, setting: CaptureSetting, length: int, cache: Path | None, digest: str
            ) -> tuple[Problem, SolveResult, FramePoints, float]:
     """Simulate and solve one (window, setting), or load it from the cache (`digest`: solve_sources_digest() at
     the start of the run, so that an edit during the run does not mix two solvers in one table)."""
@@ -124,9 +113,7 @@ def solved(window_index: int, setting: Setting, length: int, cache: Path | None,
                 stored = pickle.load(handle)  # our own cache file, written below
             return stored["problem"], stored["result"], stored["truth"], stored["seconds"]
     mocap = load_window(replace(window, seconds=min(window.seconds, length / 120.0)))
-    options = SimulationOptions(step=step_for(mocap, setting.per_camera_hz), noise_px=setting.noise_px,
-                                miss=setting.miss, unconstrained=setting.unconstrained, seed=window_index,
-                                camera_distance_mm=DISTANCE_MM)
+    options = setting.simulation_options(mocap, window_index, DISTANCE_MM)
     capture, problem, _ = simulate(mocap, options)
     started = time.perf_counter()
     result = solve(problem)
