@@ -17,8 +17,8 @@ walk; run-5ms is refused at 2.7 m: the sprint reaches a camera). The flag thresh
 (freeform, run-4ms, cmu-late, sit-stand: `--windows freeform,run-4ms,cmu-late,sit-stand`), never on these.
 
 `--cache DIR` keeps each solve (pickle of problem, result, truth) so that a rerun with other thresholds solves
-nothing; a cached solve is reused only for the same window, setting, length and solver sources
-(SOLVE_SOURCES).
+nothing; a cached solve is reused only for the same window, setting, length and solver sources (every file of
+reconstruct/ and benchmarks/common.py).
 Runtime: 4-65 s per solve on an idle core (the missing-data and unconstrained rows are the slow ones; 2-6x longer on
 a loaded machine), ~15 min for the default 5 windows x 6 settings; with --cache a rerun takes ~1 min.
 Presets: PRESETS below (the balanced default, the sensitive preset, and the default plus W-graph islands, the last
@@ -87,16 +87,13 @@ def truth_in_problem_order(problem: Problem, truth: FramePoints) -> np.ndarray:
     return truth.xyz[frames][:, columns]
 
 
-# What a solve depends on: a cached solve is reused only while these files are unchanged.
-SOLVE_SOURCES = ("reconstruct/solver.py", "reconstruct/wstep.py", "reconstruct/xstep.py", "reconstruct/initialize.py",
-                 "reconstruct/problem.py", "reconstruct/rays.py", "reconstruct/simplex.py", "reconstruct/simulate.py",
-                 "reconstruct/mocap.py", "benchmarks/common.py")
-
-
+# What a solve depends on: a cached solve is reused only while these files are unchanged. The whole package: a
+# hand-picked list missed the W-step's solvers when they moved to reconstruct/working_set.py.
 def solve_sources_digest() -> str:
     digest = hashlib.sha256()
-    for name in SOLVE_SOURCES:
-        digest.update((ROOT / name).read_bytes())
+    for path in [*sorted((ROOT / "reconstruct").glob("*.py")), ROOT / "benchmarks" / "common.py"]:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
     return digest.hexdigest()[:12]
 
 
