@@ -25,13 +25,13 @@ from reconstruct.initialize import (
     MIN_COMMON_POINTS,
     PARALLEL_EPS,
     PairInit,
-    _best_partners,
-    _distance_block,
     _Lines,
     _pair_depths,
     _Side,
     closest_ray_points,
     lazy_best,
+    partner_depths,
+    video_pair_best,
 )
 from reconstruct.wstep import first_per_group
 
@@ -87,31 +87,6 @@ def pair_distances(
     enough = count >= np.minimum(MIN_COMMON_POINTS, np.maximum(observed_in_f, 1))
     D[~enough | (count == 0) | diverging] = np.inf
     return D, depth_a
-
-
-def _best_per_video(
-    lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, memory_elements: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Coarse stage for one video pair: the first column position of least D among the non-diverging pairs, for
-    each of `rows` (R,) among `cols` (C,) and for each of `cols` among `rows`, as in `initialize_depths`: one
-    symmetric block when it holds at most `memory_elements` pairs, else bands of rows in each direction. Returns
-    (R,) and (C,) positions, -1 where none."""
-    if len(rows) * len(cols) <= memory_elements:
-        D_rows, D_cols = _distance_block(lines, rows, cols, both=True)
-        best_rows, _, diverging = _best_partners(lines, D_rows, rows, cols)
-        for r, c in diverging:
-            D_cols[c, r] = np.inf
-        best_cols, _, _ = _best_partners(lines, D_cols, cols, rows)
-        return best_rows, best_cols
-    found = []
-    for rows_all, cols_all in ((rows, cols), (cols, rows)):
-        best = np.full(len(rows_all), -1, dtype=np.int64)
-        band = max(1, memory_elements // len(cols_all))
-        for start in range(0, len(rows_all), band):
-            D, _ = _distance_block(lines, rows_all[start:start + band], cols_all, both=False)
-            best[start:start + band], _, _ = _best_partners(lines, D, rows_all[start:start + band], cols_all)
-        found.append(best)
-    return found[0], found[1]
 
 
 def _window_distances(
@@ -369,7 +344,7 @@ def coarse_to_fine_init(
     dense search on each video pair's coarse frames; the fine stage evaluates runs of frames against the range of
     the other video that their windows cover. Divergence is checked lazily, for each best candidate in turn. Time
     O((F / stride)^2 P + F V window P), memory O(F P + F window)."""
-    F, P = rays.shape[:2]
+    F = len(rays)
     layout = VideoLayout.of(video_index)
     V = len(layout.starts)
     lines = _Lines.of(centers, rays)
@@ -380,7 +355,7 @@ def coarse_to_fine_init(
         for b in range(a + 1, V):
             if not len(coarse[a]) or not len(coarse[b]):
                 continue
-            best_a, best_b = _best_per_video(lines, coarse[a], coarse[b], memory_elements=COARSE_BLOCK)
+            (best_a, _), (best_b, _) = video_pair_best(lines, coarse[a], coarse[b], memory_elements=COARSE_BLOCK)
             anchor[coarse[a], b] = np.where(best_a >= 0, best_a * options.stride, -1)
             anchor[coarse[b], a] = np.where(best_b >= 0, best_b * options.stride, -1)
     anchor = _fill_anchor_gaps(anchor, video_index, layout)
@@ -414,12 +389,7 @@ def coarse_to_fine_init(
     cost = best_d[np.arange(F), choice]
     ok = np.isfinite(cost)
     partner = np.where(ok, layout.starts[choice] + position[np.arange(F), choice], -1)
-    depth = np.full((F, P), np.nan)
-    matched = np.flatnonzero(ok)
-    for start in range(0, len(matched), 256):
-        f = matched[start:start + 256]
-        depth[f], _ = _pair_depths(lines, f, partner[f])
-    return PairInit(partner=partner, cost=cost, depth=depth), anchor
+    return PairInit(partner=partner, cost=cost, depth=partner_depths(lines, partner)), anchor
 
 
 def follow_w(

@@ -290,38 +290,56 @@ def initialize_depths(
     least D in the frame's row of `bundle_distances` (-1 and cost inf where the row is all inf). O(F^2 P) time; the
     memory beyond the inputs is O(F P) plus a few arrays of min(memory_elements, frame pairs of two videos); two
     videos with more frame pairs than memory_elements cost twice the arithmetic."""
-    F, P = rays.shape[:2]
+    F = len(rays)
     lines = _Lines.of(centers, rays)
     partner = np.full(F, -1, dtype=np.int64)
     cost = np.full(F, np.inf)
     members = [np.flatnonzero(video_index == v) for v in np.unique(video_index)]
     for ia, frames_a in enumerate(members):
         for frames_b in members[ia + 1:]:
-            if len(frames_a) * len(frames_b) <= memory_elements:
-                # D is symmetric: one evaluation serves the frames of both videos.
-                D_rows, D_cols = _distance_block(lines, frames_a, frames_b, both=True)
-                best, best_cost, diverging = _best_partners(lines, D_rows, frames_a, frames_b)
-                _merge(partner, cost, frames_a, best, best_cost, frames_b)
-                for r, c in diverging:
-                    D_cols[c, r] = np.inf
-                best, best_cost, _ = _best_partners(lines, D_cols, frames_b, frames_a)
-                _merge(partner, cost, frames_b, best, best_cost, frames_a)
-                del D_rows, D_cols  # before the next block's
-                continue
-            # Too large to hold: bands of whole rows, each direction on its own (twice the arithmetic).
-            for rows_all, cols in ((frames_a, frames_b), (frames_b, frames_a)):
-                band = max(1, memory_elements // len(cols))
-                for start in range(0, len(rows_all), band):
-                    rows = rows_all[start:start + band]
-                    D_rows, _ = _distance_block(lines, rows, cols, both=False)
-                    best, best_cost, _ = _best_partners(lines, D_rows, rows, cols)
-                    _merge(partner, cost, rows, best, best_cost, cols)
-    depth = np.full((F, P), np.nan)
+            (best_a, cost_a), (best_b, cost_b) = video_pair_best(lines, frames_a, frames_b,
+                                                                 memory_elements=memory_elements)
+            _merge(partner, cost, frames_a, best_a, cost_a, frames_b)
+            _merge(partner, cost, frames_b, best_b, cost_b, frames_a)
+    return PairInit(partner=partner, cost=cost, depth=partner_depths(lines, partner))
+
+
+def video_pair_best(
+    lines: _Lines, frames_a: np.ndarray, frames_b: np.ndarray, *, memory_elements: int
+) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """For two videos' frames, each frame's best partner in the other video (`_best_partners`): (position (R,),
+    D (R,)) for `frames_a` among `frames_b`, and the same for `frames_b` among `frames_a`. One symmetric block
+    when it holds at most `memory_elements` pairs (D is symmetric: one evaluation serves both videos), else bands
+    of whole rows in each direction (twice the arithmetic)."""
+    if len(frames_a) * len(frames_b) <= memory_elements:
+        D_rows, D_cols = _distance_block(lines, frames_a, frames_b, both=True)
+        best_a, cost_a, diverging = _best_partners(lines, D_rows, frames_a, frames_b)
+        for r, c in diverging:
+            D_cols[c, r] = np.inf
+        best_b, cost_b, _ = _best_partners(lines, D_cols, frames_b, frames_a)
+        return (best_a, cost_a), (best_b, cost_b)
+    found = []
+    for rows_all, cols in ((frames_a, frames_b), (frames_b, frames_a)):
+        best = np.full(len(rows_all), -1, dtype=np.int64)
+        best_cost = np.full(len(rows_all), np.inf)
+        band = max(1, memory_elements // len(cols))
+        for start in range(0, len(rows_all), band):
+            rows = rows_all[start:start + band]
+            D_rows, _ = _distance_block(lines, rows, cols, both=False)
+            best[start:start + band], best_cost[start:start + band], _ = _best_partners(lines, D_rows, rows, cols)
+        found.append((best, best_cost))
+    return found[0], found[1]
+
+
+def partner_depths(lines: _Lines, partner: np.ndarray) -> np.ndarray:
+    """(F, P) depths of each frame's points at the mutually closest points of its partner's rays (`_pair_depths`);
+    NaN for frames without a partner (-1)."""
+    depth = np.full(lines.rays.shape[:2], np.nan)
     matched = np.flatnonzero(partner >= 0)
     for start in range(0, len(matched), 256):
         f = matched[start:start + 256]
         depth[f], _ = _pair_depths(lines, f, partner[f])
-    return PairInit(partner=partner, cost=cost, depth=depth)
+    return depth
 
 
 def _distance_block(
