@@ -65,7 +65,7 @@ class SolverOptions:
     dense_limit: int = 1000
     candidates: CandidateOptions = field(default_factory=CandidateOptions)
     # Threads for the independent parts of large steps (the X-step's points, the W-step's KKT components); small
-    # problems stay on one (reconstruct/xstep.PARALLEL_SIZE, reconstruct/wstep.PARALLEL_KKT).
+    # problems stay on one (reconstruct/xstep.PARALLEL_SIZE, reconstruct/working_set.PARALLEL_KKT).
     workers: int = 2
     progress: bool = False
     # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for

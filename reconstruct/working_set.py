@@ -330,15 +330,15 @@ def limit_changes(free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violati
     if not restricted.any():
         return proposal
     leaving = (free & ~proposal).reshape(F, K)
-    entering = (proposal & ~free).reshape(F, K)
-    rows = np.flatnonzero(restricted & (leaving.any(axis=1) | entering.any(axis=1)))
+    entering = proposal & ~free
+    rows = np.flatnonzero(restricted & (leaving.any(axis=1) | entering.reshape(F, K).any(axis=1)))
     out = proposal.reshape(F, K).copy()
     out[rows] = free.reshape(F, K)[rows]
     worst = np.argmin(np.where(leaving[rows], v.reshape(F, K)[rows], np.inf), axis=1)
-    best = np.argmax(np.where(entering[rows], violation.reshape(F, K)[rows], -np.inf), axis=1)
     removes = leaving[rows].any(axis=1)
     out[rows[removes], worst[removes]] = False
-    out[rows[~removes], best[~removes]] = True
+    adds = rows[~removes]
+    out[adds] |= _most_violating_per_column(entering, violation, F, K).reshape(F, K)[adds]
     return out.ravel()
 
 
