@@ -59,19 +59,25 @@ def long_motion(frames: int) -> tuple[np.ndarray, list[str]]:
     return motion + wander[:, None, :], [mocap.marker_names[m] for m in markers]
 
 
+def long_problem(frames: int) -> tuple[Any, Any]:
+    """(SimulatedCapture, Problem) of `long_motion(frames)`: the paper's protocol, cameras at DISTANCE_MM."""
+    from reconstruct.problem import build_problem
+    from reconstruct.simulate import SimulationOptions, simulate_capture
+
+    xyz, names = long_motion(frames)
+    capture = simulate_capture(xyz, RATE_HZ, SimulationOptions(camera_distance_mm=DISTANCE_MM), marker_names=names)
+    return capture, build_problem(capture.cameras, capture.tracks, point_names=names)
+
+
 def child(frames: int, dense: bool) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     from reconstruct.evaluate import evaluate
-    from reconstruct.problem import build_problem
-    from reconstruct.simulate import SimulationOptions, simulate_capture
     from reconstruct.solve_stage import frame_points
     from reconstruct.solver import SolverOptions, solve
 
     threadpool_limits(1)
-    xyz, names = long_motion(frames)
-    capture = simulate_capture(xyz, RATE_HZ, SimulationOptions(camera_distance_mm=DISTANCE_MM), marker_names=names)
-    problem = build_problem(capture.cameras, capture.tracks, point_names=names)
+    capture, problem = long_problem(frames)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     options = SolverOptions(dense_limit=10**9 if dense else 0)
     wall, cpu = time.perf_counter(), time.process_time()

@@ -60,14 +60,9 @@ def inputs(size: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | 
 
         _, problem = capture_of(int(frames))
     elif kind == "long":
-        from long_capture import DISTANCE_MM, RATE_HZ, long_motion
+        from long_capture import long_problem
 
-        from reconstruct.problem import build_problem
-        from reconstruct.simulate import SimulationOptions, simulate_capture
-
-        xyz, names = long_motion(int(frames))
-        capture = simulate_capture(xyz, RATE_HZ, SimulationOptions(camera_distance_mm=DISTANCE_MM), marker_names=names)
-        problem = build_problem(capture.cameras, capture.tracks, point_names=names)
+        _, problem = long_problem(int(frames))
     else:
         raise SystemExit(f"--sizes: unknown capture kind {kind!r} (cmu or long)")
     rays = viewing_rays(problem)

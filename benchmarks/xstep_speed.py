@@ -40,6 +40,7 @@ import scipy.sparse as sp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import module_at_revision, solver_version
+from long_capture import long_problem
 
 import reconstruct.xstep as current
 
@@ -59,17 +60,6 @@ class Call:
 
 # ------------------------------------------------------------------------------------------------------------
 # Inputs
-
-
-def long_problem(frames: int) -> tuple[Any, Any]:
-    from long_capture import DISTANCE_MM, RATE_HZ, long_motion
-
-    from reconstruct.problem import build_problem
-    from reconstruct.simulate import SimulationOptions, simulate_capture
-
-    xyz, names = long_motion(frames)
-    capture = simulate_capture(xyz, RATE_HZ, SimulationOptions(camera_distance_mm=DISTANCE_MM), marker_names=names)
-    return capture, build_problem(capture.cameras, capture.tracks, point_names=names)
 
 
 def recorded_calls(frames: int) -> list[Call]:
