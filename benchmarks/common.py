@@ -71,6 +71,18 @@ def module_at_revision(relative_path: str, revision: str, name: str) -> ModuleTy
     return module
 
 
+def solver_sources_digest() -> str:
+    """A digest of what a solve depends on, every file of reconstruct/ and this one: the key of cached solves, which
+    also tells apart two working trees with different uncommitted changes (solver_version cannot)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in [*sorted((ROOT / "reconstruct").glob("*.py")), Path(__file__).resolve()]:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
 def require_mocap_dir() -> Path:
     """The shared mocap folder, or exit with a message saying where it was expected."""
     if not MOCAP_DIR.is_dir():

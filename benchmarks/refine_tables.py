@@ -23,8 +23,7 @@ Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), f
   kept in the --json output and shown by --per-window.
 
 The seed solves are the slow part; they are cached as .npz under `--cache` (keyed by window, row, length, camera
-distance and `common.solver_version()`), so that refinement options can be swept without solving again. A solve
-with uncommitted changes in reconstruct/ is keyed "dirty" and never read back.
+distance and `common.solver_sources_digest()`), so that refinement options can be swept without solving again.
 """
 
 from __future__ import annotations
@@ -51,6 +50,7 @@ from common import (
     load_window,
     percent_row,
     simulate,
+    solver_sources_digest,
     solver_version,
     threshold_header,
 )
@@ -90,23 +90,14 @@ def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | 
 
 
 def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_mm: float | None,
-               version: str) -> Path:
+               digest: str) -> Path:
     where = "pushback" if distance_mm is None else f"{distance_mm:g}mm"
-    return cache / f"{WINDOWS[window_index].name}_{row.key}_{length}_{where}_{version_tag(version)}.npz"
-
-
-def version_tag(version: str) -> str:
-    """A file-name part for common.solver_version(): the HEAD commit, "-dirty" with uncommitted solver changes."""
-    head = version.split()[0] if version.strip() else "unknown"
-    return head + ("-dirty" if "uncommitted" in version or version.startswith("unknown") else "")
+    return cache / f"{WINDOWS[window_index].name}_{row.key}_{length}_{where}_{digest}.npz"
 
 
 def seed_solve(problem: Problem, path: Path) -> dict[str, np.ndarray]:
-    """Seed solver outputs (points, init, spectral order, W, seconds), from the cache or solved and cached.
-
-    A solve of a working tree with uncommitted solver changes (tag "-dirty") is written but never read back: the
-    tag cannot tell two such trees apart."""
-    if path.is_file() and not path.stem.endswith("-dirty"):
+    """Seed solver outputs (points, init, spectral order, W, seconds), from the cache or solved and cached."""
+    if path.is_file():
         with np.load(path) as data:
             cached = {key: data[key] for key in data.files}
         if "w_data" in cached:
@@ -225,9 +216,9 @@ def capture_rate(problem: Problem) -> float:
 
 
 def run_one(window_index: int, row: Row, length: int, distance_mm: float | None, cache: Path,
-            options: RefineOptions, clock_refinement: bool, version: str) -> dict[str, Any]:
+            options: RefineOptions, clock_refinement: bool, digest: str) -> dict[str, Any]:
     capture, problem = simulate_row(window_index, row, length, distance_mm)
-    cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm, version))
+    cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm, digest))
     true_times = capture.truth.extra["time"][:, 0]
     shares: dict[str, list[float]] = {"init": score(problem, capture, cached["init"]),
                                       "seed": score(problem, capture, cached["points"])}
@@ -332,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"unknown window or row: {', '.join(unknown)}")
     options = RefineOptions(loss=RobustLoss(args.loss), rule=SmoothnessRule(args.rule), smoothness=args.smoothness)
     version = solver_version()
-    print(f"solver: {version}; refine options: {options}", flush=True)
+    digest = solver_sources_digest()  # at the start: an edit during the run must not mix two solvers
+    print(f"solver: {version} (sources digest {digest}); refine options: {options}", flush=True)
     results: list[dict[str, Any]] = []
     for distance_text in args.distance.split(","):
         distance = None if distance_text == "push" else float(distance_text)
@@ -342,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
             for name in args.windows.split(","):
                 try:
                     item = run_one(names.index(name), rows[key], args.length, distance, args.cache, options,
-                                   not args.no_clock_refinement, version)
+                                   not args.no_clock_refinement, digest)
                 except Exception:  # keep the other windows' results
                     log.exception("%s / %s failed", name, key)
                     continue

@@ -28,7 +28,6 @@ added after looking at the report windows, so not a blind test).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
@@ -45,7 +44,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import ROOT, WINDOWS, CaptureSetting, load_window, require_mocap_dir, simulate, solver_version
+from common import (
+    WINDOWS,
+    CaptureSetting,
+    load_window,
+    require_mocap_dir,
+    simulate,
+    solver_sources_digest,
+    solver_version,
+)
 
 from reconstruct.points import FramePoints
 from reconstruct.problem import Problem
@@ -87,19 +94,9 @@ def truth_in_problem_order(problem: Problem, truth: FramePoints) -> np.ndarray:
     return truth.xyz[frames][:, columns]
 
 
-# What a solve depends on: a cached solve is reused only while these files are unchanged. The whole package: a
-# hand-picked list missed the W-step's solvers when they moved to reconstruct/working_set.py.
-def solve_sources_digest() -> str:
-    digest = hashlib.sha256()
-    for path in [*sorted((ROOT / "reconstruct").glob("*.py")), ROOT / "benchmarks" / "common.py"]:
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:12]
-
-
 def solved(window_index: int, setting: CaptureSetting, length: int, cache: Path | None, digest: str
            ) -> tuple[Problem, SolveResult, FramePoints, float]:
-    """Simulate and solve one (window, setting), or load it from the cache (`digest`: solve_sources_digest() at
+    """Simulate and solve one (window, setting), or load it from the cache (`digest`: solver_sources_digest() at
     the start of the run, so that an edit during the run does not mix two solvers in one table)."""
     window = WINDOWS[window_index]
     path = None
@@ -187,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"--settings: unknown {key!r}; known: {', '.join(keys)}")
         chosen.append(keys[key])
     version = solver_version()
-    digest = solve_sources_digest()
+    digest = solver_sources_digest()
     print(f"solver: {version} (sources digest {digest}); windows: {', '.join(names[i] for i in windows)}; "
           f"{args.length} captures at 120 Hz; "
           f"cameras at {DISTANCE_MM / 1000:g} m")
