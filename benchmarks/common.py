@@ -175,7 +175,6 @@ def step_for(mocap: Mocap, per_camera_hz: float) -> int:
     return round(step)
 
 
-
 @dataclass(frozen=True, kw_only=True)
 class CaptureSetting:
     """One simulated condition of the paper's protocol: frame rate per camera, pixel noise, missing share, camera
@@ -191,6 +190,7 @@ class CaptureSetting:
     def simulation_options(self, mocap: Mocap, seed: int, camera_distance_mm: float | None) -> SimulationOptions:
         return SimulationOptions(step=step_for(mocap, self.per_camera_hz), noise_px=self.noise_px, miss=self.miss,
                                  unconstrained=self.unconstrained, seed=seed, camera_distance_mm=camera_distance_mm)
+
 
 # The paper's tables (HDM05, 4 cameras), share of points under 10, 20, 30, 40, 50, 100 mm:
 # /work/shared/notes/solver-math.md. Keys are the row keys of paper_tables.py.
