@@ -118,9 +118,10 @@ def total_cost(
     cost += lambda1 / F * float(asym.multiply(asym).sum())
     if constraint is RayConstraint.SOFT:
         offset = points - centers[:, None, :]
-        along = np.nansum(offset * rays, axis=-1, keepdims=True)
-        perpendicular = np.where(np.isnan(rays), 0.0, offset - along * np.nan_to_num(rays))
-        cost += lambda3 / (F * P) * float(np.sum(perpendicular * perpendicular))
+        known = np.nan_to_num(rays)
+        perpendicular = offset - np.einsum("fpk,fpk->fp", offset, known)[..., None] * known
+        perpendicular[np.isnan(rays[..., 0])] = 0.0  # unobserved: no ray term
+        cost += lambda3 / (F * P) * float(np.einsum("fpk,fpk->", perpendicular, perpendicular))
     return cost
 
 

@@ -119,10 +119,24 @@ def nearest_other_video(shapes: np.ndarray, video_index: np.ndarray, k: int, *, 
             d2 *= -2.0
             d2 += norms
             d2[:, lo:hi] = np.inf
-            part = np.argpartition(d2, k - 1, axis=1)[:, :k]
-            nearest = np.take_along_axis(part, np.argsort(np.take_along_axis(d2, part, axis=1), axis=1), axis=1)
-            result[rows] = order[nearest]
+            result[rows] = order[smallest_per_row(d2, k)[0]]
     return result
+
+
+def smallest_per_row(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, k) column indices of each row's k smallest values (n, m), ascending, and those values; `values` is
+    overwritten. One vectorized argmin per rank: for the small k of the working sets (6-8) it took 0.17 ms on
+    (175, 700) where argpartition + argsort took 1.5 ms. A row with fewer than k finite values repeats its first
+    +inf column in the remaining ranks."""
+    rows = np.arange(len(values))
+    index = np.empty((len(values), k), dtype=np.int64)
+    picked = np.empty((len(values), k))
+    for rank in range(k):
+        column = np.argmin(values, axis=1)
+        index[:, rank] = column
+        picked[:, rank] = values[rows, column]
+        values[rows, column] = np.inf
+    return index, picked
 
 
 def local_inner(A: np.ndarray, B: np.ndarray, index: np.ndarray, *, chunk: int = 64) -> np.ndarray:
@@ -159,10 +173,9 @@ def nearest_in_pool(shapes: np.ndarray, pool: np.ndarray, k: int) -> np.ndarray:
     # |S_j|^2 - 2 S_f . S_j ranks the candidates j of frame f like |S_f - S_j|^2 does.
     d2 = norms[np.maximum(pool, 0)] - 2.0 * local_inner(shapes, shapes, pool)
     d2[pool < 0] = np.inf
-    part = np.argpartition(d2, k - 1, axis=1)[:, :k]
-    chosen = np.take_along_axis(part, np.argsort(np.take_along_axis(d2, part, axis=1), axis=1), axis=1)
+    chosen, distance = smallest_per_row(d2, k)
     nearest = np.take_along_axis(pool, chosen, axis=1)
-    nearest[~np.isfinite(np.take_along_axis(d2, chosen, axis=1))] = -1
+    nearest[~np.isfinite(distance)] = -1
     return nearest
 
 
@@ -239,7 +252,6 @@ def _pool_violations(
     shapes: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
     residual: np.ndarray, pool: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    F, C = pool.shape
     inner = local_inner(residual, shapes, pool)
     g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
     violation = (mu[:, None] - g) / problem.lipschitz[:, None]
@@ -248,10 +260,11 @@ def _pool_violations(
     for k in range(W.cand.shape[1]):  # pool entries already in the working set
         in_set |= (pool == W.cand[:, k:k + 1]) & W.valid[:, k:k + 1]
     violation[in_set] = -np.inf
-    k = min(options.max_added_per_column, C)
-    top = np.argpartition(-violation, k - 1, axis=1)[:, :k]
-    chosen = np.take_along_axis(violation, top, axis=1) > options.kkt_tolerance
-    return np.take_along_axis(pool, top, axis=1)[chosen], np.broadcast_to(np.arange(F)[:, None], top.shape)[chosen]
+    # Violators are few: rank only them. An argpartition of the whole (F, C) array took 33 ms at F = 20,000, C = 75;
+    # this takes 5.5 ms.
+    cols, slots = np.nonzero(violation > options.kkt_tolerance)
+    keep = first_per_group(cols, -violation[cols, slots], options.max_added_per_column)
+    return pool[cols[keep], slots[keep]], cols[keep]
 
 
 def solve_w(
