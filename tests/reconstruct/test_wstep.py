@@ -123,6 +123,21 @@ def test_local_inner_equals_the_gathered_products():
         np.testing.assert_array_equal(nearest[f][: len(order)], order)
 
 
+def test_smallest_per_row_equals_a_full_sort():
+    from reconstruct.wstep import smallest_per_row
+
+    rng = np.random.default_rng(7)
+    values = rng.normal(size=(40, 30))
+    values[3, 2:] = np.inf  # fewer finite values than k
+    index, picked = smallest_per_row(values.copy(), 5)
+    expected = np.argsort(values, axis=1, kind="stable")[:, :5]
+    finite = np.isfinite(np.take_along_axis(values, expected, axis=1))
+    np.testing.assert_array_equal(index[finite], expected[finite])
+    np.testing.assert_array_equal(picked, np.take_along_axis(values, index, axis=1))
+    assert np.all(np.diff(picked[finite.all(axis=1)], axis=1) >= 0)
+    assert not np.isfinite(picked[3, 2:]).any()
+
+
 def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
     from reconstruct.wstep import _limit_seeds_per_frame
 
