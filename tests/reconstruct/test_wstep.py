@@ -133,7 +133,7 @@ def test_smallest_per_row_equals_a_full_sort():
     expected = np.argsort(values, axis=1, kind="stable")[:, :5]
     finite = np.isfinite(np.take_along_axis(values, expected, axis=1))
     np.testing.assert_array_equal(index[finite], expected[finite])
-    np.testing.assert_array_equal(picked, np.take_along_axis(values, index, axis=1))
+    np.testing.assert_array_equal(picked[finite], np.take_along_axis(values, index, axis=1)[finite])
     assert np.all(np.diff(picked[finite.all(axis=1)], axis=1) >= 0)
     assert not np.isfinite(picked[3, 2:]).any()
 
