@@ -109,7 +109,13 @@ class WorkingSetProblem:
             shape=(F * K, F * K))
 
     def project(self, V: np.ndarray) -> np.ndarray:
-        return project_rows_to_simplex(V, self.valid)
+        """V (F, K) projected onto the columns' simplices. Only columns off the simplex are projected: an active-set
+        iterate has a few columns with negative entries, and projecting all 20,000 took 7 ms per iteration."""
+        out = np.where(self.valid, V, 0.0)
+        off = np.flatnonzero((out < 0).any(axis=1) | (np.abs(out.sum(axis=1) - 1.0) > 1e-12))
+        if len(off):
+            out[off] = project_rows_to_simplex(V[off], self.valid[off])
+        return out
 
 
 def fista(problem: WorkingSetProblem, V: np.ndarray, options: WStepOptions, stats: WStepStats) -> np.ndarray:
@@ -177,7 +183,7 @@ class FreeSetSolver:
             v, mu = np.zeros(self.F * self.K), np.zeros(self.F)
         else:
             last_free, v, mu = self.last
-            changed = np.unique(self.column_of[free != last_free])
+            changed = np.flatnonzero((free != last_free).reshape(self.F, self.K).any(axis=1))
             v, mu = v.copy(), mu.copy()
         if len(changed):
             label = self._components(free, last_free)
