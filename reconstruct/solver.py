@@ -46,8 +46,8 @@ class SolverOptions:
     # Stop a stage when the relative cost decrease falls below this ... With Anderson mixing, 1e-5 only bought
     # alternations: on the paper's tables (5 windows x 14 rows at 2.7 m) every row stayed within 0.2 points under
     # 10 mm (7.5 Hz 90.23 -> 90.41 %, noise 2 px 65.57 -> 65.49 %) while noise 2 px windows took 18-47 final
-    # alternations instead of 29-92; CMU F = 700 6 + 23 instead of 6 + 32 (99.98 % both); complexknee F = 20,000
-    # 9 + 67 instead of 9 + 121 (99.86 / 99.87 %).
+    # alternations instead of 29-92; CMU F = 700 6 + 23 instead of 6 + 32 (99.98-100 % both); complexknee
+    # F = 20,000 9 + 53 instead of 9 + 121 (99.87 % both; benchmarks/long_capture.py).
     tolerance: float = 1e-4
     # The smoothing stage only has to pull wrong initial shapes out of their local minima; it need not converge to
     # the Psi2-biased optimum that the final stage leaves anyway.
