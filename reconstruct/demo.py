@@ -46,6 +46,11 @@ class DemoOptions:
     noise_px: float = 0.5  # --simulated: a little pixel noise, as clicked or tracked points have
     seed: int = 0  # --simulated
     sample: Path = VIDEO_SAMPLE  # a folder laid out like data_samples/video_sample (the tests use a shorter one)
+    # COLMAP threads of the registration (-1: all cores). Several threads are not reproducible: on the full sample
+    # two runs gave 90.3 / 90.5 % < 10 mm (83-85 s), but on the tests' 1 s cut five runs gave 21-77 % (camera
+    # centres 15-28 mm and focal lengths 0.5-2.2 % off; the tracks identical, and the solver scored the same on
+    # each registration). One thread gives the same cameras every run (full sample: 90.4 %, 105 s).
+    sfm_threads: int = -1
 
 
 @dataclass(kw_only=True)
@@ -79,14 +84,10 @@ def _sample_files(sample: Path) -> list[Path]:
     return wanted[:len(VIDEO_NAMES)]
 
 
-def pipeline_options(sample: Path) -> PipelineOptions:
+def pipeline_options(sample: Path, sfm_threads: int = -1) -> PipelineOptions:
     register = _default_register()
     register.max_frames = SFM_FRAMES
-    # COLMAP on several threads is not reproducible, and the demo scores itself: on the tests' 1 s cut five runs on
-    # 2 threads gave 21-77 % < 10 mm (camera centres 15-28 mm, focal lengths 0.5-2.2 % off, same tracks; the
-    # solver gave the same accuracy on each registration). One thread gives the same cameras every run (85 % on
-    # that cut) for ~30 % more registration time.
-    register.num_threads = 1
+    register.num_threads = sfm_threads
     # Clocks: offset only (the sample's decoder times are exact: no rate to fit), from the solve's W links. The
     # treadmill walk is periodic (a step every 0.56 s): with the default affine clocks and track search, cam1 came
     # out 1.69 s (three steps) off and cam2 at rate 0.73, and the refinement on those clocks put the points
@@ -101,7 +102,7 @@ def pipeline_options(sample: Path) -> PipelineOptions:
 def run_video(out_dir: Path, options: DemoOptions) -> DemoResult:
     videos = _sample_files(options.sample)
     ws = fresh_folder(out_dir)
-    result = run_stages(list(videos), ws, pipeline_options(options.sample))
+    result = run_stages(list(videos), ws, pipeline_options(options.sample, options.sfm_threads))
     accuracy = score_against_truth(ws, options.sample / "truth.csv", options.sample / "truth_cameras.json")
     atomic_write_text(ws / "accuracy.json", json.dumps(
         {"truth": str(options.sample / "truth.csv"), "units": "mm",
@@ -135,12 +136,15 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
                         help="simulated cameras instead of the videos: no registration or tracking (~30 s)")
     parser.add_argument("--sample", type=Path, default=VIDEO_SAMPLE,
                         help="a folder laid out like data_samples/video_sample (default: that one)")
+    parser.add_argument("--threads", type=int, default=DemoOptions().sfm_threads,
+                        help="COLMAP threads of the registration (default -1: all cores; 1: the same cameras on "
+                             "every run, ~25 %% slower)")
     parser.set_defaults(func=_demo)
 
 
 def _demo(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    result = run(args.out, DemoOptions(simulated=args.simulated, sample=args.sample))
+    result = run(args.out, DemoOptions(simulated=args.simulated, sample=args.sample, sfm_threads=args.threads))
     seconds = time.perf_counter() - started
     if result.pipeline is None:
         print(f"demo (--simulated): 4 unsynchronized simulated cameras, walker sample, solved in "  # noqa: T201

@@ -31,7 +31,9 @@ def cut(tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_video_demo_runs_the_pipeline_and_reports_accuracy(cut, tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--sample", str(cut)]) == 0
+    # One COLMAP thread: the same cameras on every run. On this short cut, registrations on several threads scored
+    # anywhere from 21 to 77 % < 10 mm (reconstruct.demo.DemoOptions.sfm_threads).
+    assert main(["demo", "--out", str(out), "--sample", str(cut), "--threads", "1"]) == 0
     printed = capsys.readouterr().out
     assert f"rerun {out / 'recording.rrd'}" in printed
     assert "similarity" in printed  # says that the SfM world was aligned to the truth before scoring
