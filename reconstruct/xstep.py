@@ -172,10 +172,11 @@ def _batched_cg(
     return x, done
 
 
-def _along(r: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """r (r . Y) per (frame, point), arrays (F, 3, P): the component of Y along its ray (zero where r = 0)."""
+def _along(r: np.ndarray, Y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """r (r . Y) per (frame, point), arrays (F, 3, P): the component of Y along its ray (zero where r = 0), written
+    into `out` when given."""
     # einsum reduces the (strided) axis 1 in one pass: 5x faster than three strided products at F = 20,000.
-    return r * np.einsum("fkp,fkp->fp", r, Y)[:, None, :]
+    return np.multiply(r, np.einsum("fkp,fkp->fp", r, Y)[:, None, :], out=out)
 
 
 def _to_fkp(a: np.ndarray) -> np.ndarray:
@@ -202,13 +203,13 @@ def _cg_soft(
 
     def apply(Y: np.ndarray, out: np.ndarray) -> None:
         out[...] = (Q @ Y.reshape(F, -1)).reshape(F, 3, P)
-        np.multiply(r, np.einsum("fkp,fkp->fp", r, Y)[:, None, :], out=scratch)  # along the ray
+        _along(r, Y, out=scratch)
         np.subtract(Y, scratch, out=scratch)
         np.multiply(scratch, w, out=scratch)
         out += scratch
 
     def precondition(R: np.ndarray, out: np.ndarray) -> None:
-        np.multiply(r, np.einsum("fkp,fkp->fp", r, R)[:, None, :], out=scratch)  # along the ray
+        _along(r, R, out=scratch)
         np.subtract(R, scratch, out=out)
         out *= inverse_observed
         np.multiply(scratch, inverse_diagonal, out=scratch)

@@ -150,7 +150,8 @@ def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
 
 
 def _windowed_problem(seed):
-    """A working set with a window pool (several independent components of columns) and a random free set."""
+    """A working set with a window pool (several independent components of columns), its shapes and the random
+    generator that drew them (for a random free set)."""
     from reconstruct.working_set import WorkingSetProblem
     from reconstruct.wstep import _pack_pairs, nearest_in_pool
 
@@ -164,7 +165,7 @@ def _windowed_problem(seed):
     near = nearest_in_pool(shapes, pool, 3)
     keep = near >= 0
     cand, valid = _pack_pairs(near[keep], np.broadcast_to(frames[:, None], near.shape)[keep], F)
-    return WorkingSetProblem(shapes, cand, valid, 0.05, 2), rng
+    return WorkingSetProblem(shapes, cand, valid, 0.05, 2), shapes, rng
 
 
 @pytest.mark.parametrize("workers", [1, 2])
@@ -174,7 +175,7 @@ def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, wo
     from reconstruct.working_set import FreeSetSolver
 
     monkeypatch.setattr(working_set, "PARALLEL_KKT", 0)  # with 2 workers, components are split over threads
-    problem, rng = _windowed_problem(seed)
+    problem, _, rng = _windowed_problem(seed)
     valid = problem.valid.ravel()
     free = valid & (rng.random(valid.shape) < 0.6)
     solver = FreeSetSolver(problem, workers)
@@ -195,8 +196,7 @@ def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, wo
 def test_column_grams_equal_the_padded_products():
     from reconstruct.working_set import column_grams
 
-    problem, _ = _windowed_problem(3)
-    shapes = np.cumsum(np.random.default_rng(3).normal(size=(90, 6)), axis=0)
+    problem, shapes, _ = _windowed_problem(3)
     gram, lam_max = column_grams(shapes, problem.cand, problem.valid)
     B = np.where(problem.valid[..., None], shapes[problem.cand] - shapes[:, None, :], 0.0)
     expected = np.einsum("fkd,fld->fkl", B, B)
