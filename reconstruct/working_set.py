@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 NEGLIGIBLE = 1e-9  # W entries this close to zero are zero (W values lie in [0, 1])
+WHOLE_SHARE = 0.9  # share of the columns re-solved at once from which FreeSetSolver stops looking for components
 PARALLEL_KKT = 20_000  # free entries to re-solve at and above which independent components are split over threads
 
 
@@ -178,6 +179,10 @@ class FreeSetSolver:
         self.partner = problem.transpose.ravel()  # flat index of each entry's Psi1 partner, -1 for padding
         self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (free, v, mu) of the previous solve
         self.workers = workers
+        # Once a re-solve covers nearly every column (one giant component: dense dictionaries), the rest of the
+        # active-set run re-solves everything without looking for components. Re-solving an unchanged component
+        # only repeats its solution; the search cost 0.65 ms of every ~5 ms solve at CMU F = 700.
+        self.whole = False
 
     def _components(self, free: np.ndarray, last_free: np.ndarray) -> np.ndarray:
         """(F,) component label of every column. Links count when free before or now: a column whose partner
@@ -197,10 +202,15 @@ class FreeSetSolver:
             changed = np.flatnonzero((free != last_free).reshape(self.F, self.K).any(axis=1))
             v, mu = v.copy(), mu.copy()
         if len(changed):
-            label = self._components(free, last_free)
-            redo = np.zeros(label.max() + 1, dtype=bool)
-            redo[label[changed]] = True
-            groups = self._groups(label, redo, free)
+            if self.whole:
+                groups = [np.ones(self.F, dtype=bool)]
+            else:
+                label = self._components(free, last_free)
+                redo = np.zeros(label.max() + 1, dtype=bool)
+                redo[label[changed]] = True
+                groups = self._groups(label, redo, free)
+                # A first solve re-solves every column whatever its components: it says nothing.
+                self.whole = self.last is not None and len(groups) == 1 and groups[0].sum() >= WHOLE_SHARE * self.F
             if len(groups) > 1:
                 with ThreadPoolExecutor(len(groups)) as pool:
                     parts = list(pool.map(lambda columns: self._solve_columns(free, columns), groups))
