@@ -16,8 +16,9 @@ Inputs
   hardest call of a real solve) and a late one (start = the exact answer + smooth error 1e-4).
 
 Measured: CPU seconds (time.process_time, median of `--repeats`; 1 BLAS thread unless `--threads`), CG iterations
-(baseline: its batched CG; current: block-Jacobi + two-level iterations), and the largest point error against a
-reference solve (two-level CG to 1e-13) relative to the scene size (the largest |coordinate| of the reference).
+(a batched block-Jacobi CG, or the Jacobi + two-level iterations of the reverted two-level X-step at bfb8730), and
+the largest point error against a direct solve (one sparse LU per point) relative to the scene size (the largest
+|coordinate| of the reference).
 The baseline is `reconstruct/xstep.py` at `--baseline` (git show), loaded as a separate module.
 """
 
@@ -151,8 +152,8 @@ def baseline_module(revision: str) -> ModuleType:
 
 
 class IterationCounter:
-    """CG iterations of one solve_x call, for the baseline (function `_batched_cg`) and the current code
-    (class `_BatchedCG`: Jacobi and two-level iterations apart)."""
+    """CG iterations of one solve_x call: of the function `_batched_cg`, or of the class `_BatchedCG` of the reverted
+    two-level X-step (Jacobi and two-level iterations apart)."""
 
     def __init__(self, module: ModuleType):
         self.counts = {"jacobi": 0, "two-level": 0}
@@ -173,15 +174,15 @@ class IterationCounter:
             def counting_cg(apply: Any, *args: Any, **kwargs: Any) -> Any:
                 applied = [0]
 
-                def counted(v: np.ndarray) -> np.ndarray:
+                def counted(*operands: np.ndarray) -> Any:  # apply(v) or apply(Y, out), by revision
                     applied[0] += 1
-                    return apply(v)
+                    return apply(*operands)
 
                 result = batched(counted, *args, **kwargs)
                 self.counts["jacobi"] += applied[0] - 1  # one application computes the initial residual
                 return result
 
-            module._batched_cg = counting_cg
+            setattr(module, "_batched_cg", counting_cg)  # noqa: B010 (ModuleType has no such attribute to mypy)
 
     def reset(self) -> None:
         for key in self.counts:
@@ -189,8 +190,14 @@ class IterationCounter:
 
 
 def reference(call: Call) -> np.ndarray:
-    options = current.XStepOptions(lambda2=call.lambda2, factor_threshold=0, cg_tolerance=1e-13)
-    return current.solve_x(call.W, call.centers, call.rays, call.video_index, options, start=call.start)
+    """The X-step solved directly: one sparse LU per point (the X-step's own fallback), default lambda3."""
+    F, P = call.rays.shape[:2]
+    options = current.XStepOptions(lambda2=call.lambda2)
+    Q3 = sp.kron(current.quadratic_form(call.W, call.video_index, P, call.lambda2), sp.identity(3), format="csr")
+    observed = ~np.isnan(call.rays[..., 0])
+    weight = options.lambda3 / (F * P)
+    return np.stack([current._solve_soft(Q3, call.centers, call.rays[:, p], observed[:, p], weight)
+                     for p in range(P)], axis=1)
 
 
 def measure(module: ModuleType, counter: IterationCounter, calls: list[Call], repeats: int,
