@@ -98,6 +98,7 @@ def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOption
     problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
     cached = cache / f"{scene}-{seed}-{solver.max_iterations}.pickle" if cache else None
     t0 = time.perf_counter()
+    result: Any  # a SolveResult, or its stand-in without links
     if not solver.max_iterations:
         result = _NoLinks(problem.num_frames, problem.num_points)
     elif cached is not None and cached.exists():

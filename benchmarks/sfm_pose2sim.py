@@ -19,6 +19,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -35,7 +36,7 @@ from sfm.register import Localize, Mapper, RegisterOptions, RegistrationError, r
 DEMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "videos" / "pose2sim_demo"
 QCA = DEMO / "calibration" / "Calib.qca.txt"
 
-CONFIGS = {
+CONFIGS: dict[str, dict[str, Any]] = {
     # What a new user gets: defaults, a few frames per static video.
     "default": {"max_frames": 5},
     # Best found: full resolution, many features, lab intrinsics fixed, weaker initial pair accepted.
@@ -126,7 +127,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for config in args.configs.split(","):
         settings = dict(CONFIGS[config])
-        options = RegisterOptions(localize=Localize.NONE, **settings)  # type: ignore[arg-type]
+        options = RegisterOptions(localize=Localize.NONE, **settings)
         ws = args.out / f"ws_{config}"
         started = time.perf_counter()
         try:

@@ -17,6 +17,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -27,9 +28,9 @@ from tracking.options import Blend, Method, TrackOptions
 from tracking.propagate import track_video
 from tracking.synthetic import SyntheticOptions, render_video
 
-MODERATE = {"speed": 3.0, "pan": 1.5, "exposure": 0.6, "rotation_deg": 3.0}
-FAST = {"speed": 8.0, "pan": 4.0, "exposure": 1.0, "rotation_deg": 6.0}
-JUMPY = {"speed": 20.0, "pan": 6.0, "exposure": 0.3, "rotation_deg": 6.0}
+MODERATE: dict[str, Any] = {"speed": 3.0, "pan": 1.5, "exposure": 0.6, "rotation_deg": 3.0}
+FAST: dict[str, Any] = {"speed": 8.0, "pan": 4.0, "exposure": 1.0, "rotation_deg": 6.0}
+JUMPY: dict[str, Any] = {"speed": 20.0, "pan": 6.0, "exposure": 0.3, "rotation_deg": 6.0}
 SCENARIOS = {
     "moderate, FFV1": (MODERATE, "FFV1", ".avi"),
     "moderate, mp4v": (MODERATE, "mp4v", ".mp4"),

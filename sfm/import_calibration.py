@@ -19,6 +19,7 @@ import logging
 import re
 import tomllib
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -276,7 +277,7 @@ def match_cameras(cameras: list[StaticCamera], videos: list[VideoInfo], path: Pa
 
 def run(
     calibration: str | Path,
-    videos: list[str | Path],
+    videos: Sequence[str | Path],
     out_dir: str | Path,
     options: ImportOptions | None = None,
 ) -> Path:

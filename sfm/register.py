@@ -15,6 +15,7 @@ import enum
 import logging
 import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
@@ -168,7 +169,7 @@ def _extract_args(
     return args
 
 
-def run(videos: list[str | Path], out_dir: str | Path, options: RegisterOptions | None = None) -> Path:
+def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOptions | None = None) -> Path:
     """Register `videos` into one world frame; returns the path of the written `cameras.json`."""
     options = options or RegisterOptions()
     paths = [Path(v) for v in videos]
