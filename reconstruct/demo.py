@@ -29,6 +29,7 @@ from reconstruct.clocks import ClockModel, ClockOptions, SearchMode
 from reconstruct.solve_stage import SolveStageOptions
 from reconstruct.solve_stage import run as solve_run
 from reconstruct.temporal import Refinement, TemporalOptions
+from sfm.register import ALL_CORES
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ class DemoOptions:
     # two runs gave 90.3 / 90.5 % < 10 mm (83-85 s), but on the tests' 1 s cut five runs gave 21-77 % (camera
     # centres 15-28 mm and focal lengths 0.5-2.2 % off; the tracks identical, and the solver scored the same on
     # each registration). One thread gives the same cameras every run (full sample: 90.4 %, 105 s).
-    sfm_threads: int = -1
+    sfm_threads: int = ALL_CORES
 
 
 @dataclass(kw_only=True)
@@ -84,7 +85,7 @@ def _sample_files(sample: Path) -> list[Path]:
     return wanted[:len(VIDEO_NAMES)]
 
 
-def pipeline_options(sample: Path, sfm_threads: int = -1) -> PipelineOptions:
+def pipeline_options(sample: Path, sfm_threads: int = ALL_CORES) -> PipelineOptions:
     register = _default_register()
     register.max_frames = SFM_FRAMES
     register.num_threads = sfm_threads

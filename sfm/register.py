@@ -60,6 +60,9 @@ class RegistrationError(DynreconError):
     """SfM could not put at least two videos into one model."""
 
 
+ALL_CORES = -1  # COLMAP's num_threads for one thread per core
+
+
 @dataclass(kw_only=True)
 class RegisterOptions:
     step: int = 0  # SfM frames: every Nth decoded frame (0: all, then thinned to max_frames)
@@ -82,7 +85,7 @@ class RegisterOptions:
     localize: Localize = Localize.AUTO
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
     init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
-    num_threads: int = -1
+    num_threads: int = ALL_CORES
 
 
 def _check_videos(videos: list[Path]) -> None:
