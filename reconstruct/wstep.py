@@ -180,17 +180,20 @@ def nearest_in_pool(shapes: np.ndarray, pool: np.ndarray, k: int) -> np.ndarray:
 
 
 def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unique (row j, column f) pairs, symmetrized, packed per column -> (cand (F, K), valid (F, K))."""
+    """Unique (row j, column f) pairs, symmetrized, packed per column -> (cand (F, K), valid (F, K)), each column's
+    rows ascending."""
     rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
-    keys = np.unique(cols.astype(np.int64) * F + rows)
-    cols, rows = keys // F, keys % F
-    counts = np.bincount(cols, minlength=F)
+    # A sparse matrix with a row per column f sorts and merges the pairs row by row: np.unique's global sort of the
+    # keys f * F + j took 130-215 ms at F = 20,000 (240k pairs), this 14 ms, same result.
+    pairs = sp.csr_matrix((np.ones(len(rows), dtype=np.int32), (cols, rows)), shape=(F, F))
+    pairs.sum_duplicates()
+    counts = np.diff(pairs.indptr)
     K = max(1, int(counts.max()))
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    position = np.arange(len(keys)) - starts[cols]
+    cols = np.repeat(np.arange(F), counts)
+    position = np.arange(len(cols)) - pairs.indptr[:-1][cols]
     cand = np.broadcast_to(np.arange(F)[:, None], (F, K)).copy()  # padding points at the frame itself
     valid = np.zeros((F, K), dtype=bool)
-    cand[cols, position] = rows
+    cand[cols, position] = pairs.indices
     valid[cols, position] = True
     return cand, valid
 
