@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -55,6 +56,18 @@ class WStepOptions:
     full_kkt_check: bool = True  # O(F^2 P) per W-step; disable for very long captures
     # Independent components of large KKT systems (windowed dictionaries) are factorized on this many threads.
     workers: int = 2
+
+    @classmethod
+    def exact(cls, **overrides: Any) -> WStepOptions:
+        """Settings under which the W-step returns the minimizer of g on the full problem: KKT tests at round-off,
+        no stall guard, budgets that are not reached (`SolverOptions(w_step=WStepOptions.exact())`). Measured
+        (`benchmarks/solver_speed.py`, CMU F = 100, P = 44, cold start): 0.77 s to Clarabel's optimum (0.003 %
+        below it; Frank-Wolfe gap 3e-7 of g against Clarabel's 3e-5), which took Clarabel 55 s: 72x faster. The
+        default stops ~9 % above the optimum with a sparser W that reconstructed better (docs/solver.md)."""
+        settings: dict[str, Any] = {"kkt_tolerance": 1e-12, "tolerance": 1e-12, "max_rounds": 100,
+                                    "stall_iterations": 10**6, "max_active_set_iterations": 500,
+                                    "max_primal_iterations": 500}
+        return cls(**{**settings, **overrides})
 
 
 @dataclass(kw_only=True)

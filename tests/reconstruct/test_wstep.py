@@ -34,7 +34,7 @@ def test_w_step_satisfies_kkt_on_the_full_problem(lambda1):
     shapes, video_index, P = _shapes()
     # Exact W-steps: the default stall guard keeps PDAS's best iterate once it gains little (within ~0.1 % of g,
     # not within 1e-4 of KKT).
-    options = WStepOptions(lambda1=lambda1, nearest=3, kkt_tolerance=1e-9, max_rounds=20, stall_iterations=10**6)
+    options = WStepOptions.exact(lambda1=lambda1, nearest=3)
     W, stats = solve_w(shapes, video_index, P, options)
     dense = W.to_csc().toarray()
     assert stats.converged
