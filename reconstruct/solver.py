@@ -51,11 +51,8 @@ class SolverOptions:
     # 147 s, 99.87 % both; benchmarks/long_capture.py). 1e-5 had been as accurate with 9 + 121 at F = 20,000.
     tolerance: float = 1e-3
     # The smoothing stage only has to pull wrong initial shapes out of their local minima; it need not converge to
-    # the Psi2-biased optimum that the final stage leaves anyway. 2e-3 against 1e-3 (final test 1e-3), paper tables
-    # as above: every row within 0.7 points under 10 mm, all but missing 50 % within 0.2 (7.5 Hz 90.45 -> 90.66 %,
-    # noise 1 px 96.85 -> 96.78 %, missing 30 % 98.19 -> 98.07 %, missing 50 % 91.22 -> 90.56 %); CMU F = 700
-    # 5 + 16 alternations instead of 6 + 18, its smoothing-stage W-steps being the expensive ones.
-    smooth_tolerance: float = 2e-3
+    # the Psi2-biased optimum that the final stage leaves anyway.
+    smooth_tolerance: float = 1e-3
     point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
     # ... measured on this quantile of the coordinates' movement (1: the max). On long captures a few points drift on
     # while the rest has settled: complexknee F = 5000 stopped after 65 final alternations instead of 82, same
