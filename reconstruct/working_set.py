@@ -167,13 +167,12 @@ class FreeSetSolver:
         F, K = problem.cand.shape
         self.F, self.K = F, K
         self.H = problem.hessian()
-        self.H_coo = self.H.tocoo()
         ridge = 1e-12 * max(float(np.abs(self.H.diagonal()).max()), 1e-300)
         self.H_ridge = sp.csr_matrix(self.H + sp.diags(np.where(problem.valid.ravel(), ridge, 0.0)))
         self.column_of = np.repeat(np.arange(F), K)
         self.valid = problem.valid.ravel()
         self.lipschitz = problem.lipschitz
-        H = self.H_coo
+        H = self.H.tocoo()
         link = self.column_of[H.row] != self.column_of[H.col]  # partner entries of different columns
         self.link_rows, self.link_cols = H.row[link], H.col[link]
         self.partner = problem.transpose.ravel()  # flat index of each entry's Psi1 partner, -1 for padding
@@ -256,7 +255,8 @@ class FreeSetSolver:
         idx = np.flatnonzero(free)  # flat f * K + k: grouped by column, in column order
         n = len(idx)
         column = self.column_of[idx]
-        starts = np.flatnonzero(np.r_[True, column[1:] != column[:-1]]) if n else np.zeros(0, dtype=np.int64)
+        first = np.r_[True, column[1:] != column[:-1]] if n else np.zeros(0, dtype=bool)  # of its column
+        starts = np.flatnonzero(first)
         if len(starts) != int(columns.sum()):  # a column without free entries: its simplex cannot be met
             log.debug("active set: a column has no free entry")
             return None
@@ -264,7 +264,7 @@ class FreeSetSolver:
         linked = (partner >= 0) & free[np.maximum(partner, 0)]
         pivot_at = np.minimum.reduceat(np.where(linked, n, np.arange(n)), starts)
         pivot_at = np.where(pivot_at < n, pivot_at, starts)  # every entry linked: the column's first
-        group = np.cumsum(np.r_[False, column[1:] != column[:-1]]) if n else np.zeros(0, dtype=np.int64)
+        group = np.cumsum(first) - 1
         is_pivot = np.zeros(n, dtype=bool)
         is_pivot[pivot_at] = True
         others = np.flatnonzero(~is_pivot)
