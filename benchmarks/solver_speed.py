@@ -44,6 +44,7 @@ from reconstruct.mocap import Mocap, read_mocap
 from reconstruct.problem import Problem
 from reconstruct.rays import camera_normalization
 from reconstruct.simulate import SimulatedCapture, SimulationOptions
+from reconstruct.wstep import WStepOptions, objective_full, solve_w
 
 log = logging.getLogger("solver_speed")
 
@@ -176,12 +177,9 @@ def frank_wolfe_gap(shapes: np.ndarray, video_index: np.ndarray, W: np.ndarray, 
 TIGHT: dict[str, Any] = {"kkt_tolerance": 1e-6, "max_rounds": 20}
 
 
-def ours(shapes: np.ndarray, video_index: np.ndarray, P: int, repeats: int, exact: bool = False,
-         **settings: Any) -> dict[str, Any]:
-    from reconstruct.wstep import WStepOptions, objective_full, solve_w
-
-    options = WStepOptions.exact(lambda1=LAMBDA1) if exact else WStepOptions(lambda1=LAMBDA1, **settings)
-    settings = {"exact": True} if exact else settings
+def ours(shapes: np.ndarray, video_index: np.ndarray, P: int, repeats: int, options: WStepOptions,
+         settings: dict[str, Any]) -> dict[str, Any]:
+    """Our W-step with `options`, reported under `settings` (how they differ from the default)."""
     times = []
     for _ in range(repeats):
         started = time.perf_counter()
@@ -204,7 +202,6 @@ def general_qp(shapes: np.ndarray, video_index: np.ndarray, P: int, solver: str)
     import scipy.sparse as sp
 
     from reconstruct.simplex import project_rows_to_simplex
-    from reconstruct.wstep import objective_full
 
     F = len(shapes)
     X = shapes.T  # (3P, F): column f = shape of frame f
@@ -270,9 +267,6 @@ def print_qp(rows: list[dict[str, Any]]) -> None:
                   f"({t['solver_seconds']:.2f}) | {t['seconds'] / o['seconds']:.0f}x "
                   f"({t['solver_seconds'] / o['seconds']:.0f}x) | {t['objective']:.9e} | {above(t['objective'])} | "
                   f"{t['fw_gap'] / t['objective']:.1e} | {t['infeasibility']:.1e} | {t['nonzeros_above_1e-6']} |")
-
-
-# ------------------------------------------------------------------------------------------------------------
     for row in rows:  # the exact mode against the general solvers: the same problem solved to its optimum
         if "ours_exact" not in row:
             continue
@@ -281,6 +275,9 @@ def print_qp(rows: list[dict[str, Any]]) -> None:
             if "error" not in t:
                 print(f"\nF = {row['frames']}: ours exact {exact['seconds']:.2f} s, cvxpy {t['solver']} "
                       f"{t['seconds']:.2f} s: {t['seconds'] / exact['seconds']:.0f}x faster")
+
+
+# ------------------------------------------------------------------------------------------------------------
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -326,9 +323,11 @@ def main(argv: list[str] | None = None) -> int:
         with threadpool_limits(1):
             shapes, video_index, P = wstep_problem(F)
             log.info("W-step F=%d: ours ...", F)
-            row: dict[str, Any] = {"frames": F, "points": P, "ours": ours(shapes, video_index, P, args.repeats)}
-            row["ours_tight"] = ours(shapes, video_index, P, 1, **TIGHT)
-            row["ours_exact"] = ours(shapes, video_index, P, 1, exact=True)
+            default = WStepOptions(lambda1=LAMBDA1)
+            row: dict[str, Any] = {
+                "frames": F, "points": P, "ours": ours(shapes, video_index, P, args.repeats, default, {}),
+                "ours_tight": ours(shapes, video_index, P, 1, WStepOptions(lambda1=LAMBDA1, **TIGHT), TIGHT),
+                "ours_exact": ours(shapes, video_index, P, 1, WStepOptions.exact(lambda1=LAMBDA1), {"exact": True})}
             log.info("... ours %s; tight %s; exact %s", json.dumps(row["ours"]), json.dumps(row["ours_tight"]),
                      json.dumps(row["ours_exact"]))
             row["general"] = []
