@@ -48,29 +48,36 @@ def transpose_index(cand: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return index.reshape(F, K)
 
 
-def column_grams(shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column Gram matrices of B_f = candidate shapes - S_f, (F, K, K) zero-padded, and their largest
-    eigenvalues (F,). Columns are batched by their number of entries: K is the largest column's, twice the mean on
-    long captures, and a padded (F, K, D) gather plus (F, K, K) eigvalsh cost 7x more (F = 20,000: 1.08 -> 0.15 s)."""
+def column_grams(shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The per-column Gram matrices of B_f = candidate shapes - S_f as one block-diagonal sparse matrix G (F K, F K)
+    over the flat entries f * K + k, and each block's largest eigenvalue (F,). The working set must be packed, each
+    column's entries in its first slots (wstep._pack_pairs makes it so).
+
+    Columns are batched by their number of entries, and G holds only the blocks: K is the largest column's, twice
+    the mean on long captures, so a padded (F, K, K) array was 5x the entries (F = 20,000: 8.8 M against 1.8 M) and
+    every product with it, the Hessian's assembly included, paid for the padding."""
     F, K = cand.shape
     counts = valid.sum(axis=1)
-    # Working sets from wstep._pack_pairs hold each column's entries in its first slots: blocks then go in by
-    # slices; the scatter through three broadcast index arrays cost as much as the products.
-    packed = bool(np.array_equal(valid, np.arange(K)[None, :] < counts[:, None]))
-    slots = None if packed else np.argsort(~valid, axis=1, kind="stable")  # each column's entries first
-    gram = np.zeros((F, K, K))
+    if not np.array_equal(valid, np.arange(K)[None, :] < counts[:, None]):
+        raise ValueError("the working set is not packed: each column's entries must fill its first slots")
+    squares = counts * counts
+    offset = np.r_[0, np.cumsum(squares)]  # where each column's block starts, row-major, in G's entries
+    data = np.empty(int(offset[-1]))
     lam_max = np.zeros(F)
     for size in np.unique(counts[counts > 0]):
         cols = np.flatnonzero(counts == size)
-        idx = np.arange(size) if slots is None else slots[cols, :size]
-        rows = cand[cols, :size] if slots is None else np.take_along_axis(cand[cols], idx, axis=1)
-        B = shapes[rows] - shapes[cols][:, None, :]  # (n, size, D)
+        B = shapes[cand[cols, :size]] - shapes[cols][:, None, :]  # (n, size, D)
         block = np.matmul(B, B.transpose(0, 2, 1))
-        if slots is None:
-            gram[cols, :size, :size] = block
-        else:
-            gram[cols[:, None, None], idx[:, :, None], idx[:, None, :]] = block
+        data[offset[cols][:, None] + np.arange(size * size)] = block.reshape(len(cols), -1)
         lam_max[cols] = np.linalg.eigvalsh(block)[:, -1]
+    # Row f K + i (i < k_f) holds k_f entries, at the columns f K + j: G's entries in CSR order are the blocks,
+    # column after column, each row-major.
+    index_type = np.int32 if F * K < 2**31 and len(data) < 2**31 else np.int64
+    row_length = np.where(valid, counts[:, None], 0).ravel()
+    indptr = np.r_[0, np.cumsum(row_length)].astype(index_type)
+    within = np.arange(len(data)) - np.repeat(offset[:-1], squares)
+    indices = (np.repeat(np.arange(F) * K, squares) + within % np.repeat(np.maximum(counts, 1), squares))
+    gram = sp.csr_matrix((data, indices.astype(index_type), indptr), shape=(F * K, F * K))
     return gram, lam_max
 
 
@@ -92,30 +99,28 @@ class WorkingSetProblem:
         return np.where(self.valid, flat[np.maximum(self.transpose, 0)].reshape(V.shape), 0.0)
 
     def objective(self, V: np.ndarray) -> float:
-        data = float(np.sum(V * np.matmul(self.gram, V[:, :, None])[:, :, 0]))
+        v = V.ravel()
+        # einsum, not v @ ...: a BLAS dot product of this length starts OpenBLAS's threads, whose spinning then
+        # slowed the KKT component threads (W-step at F = 20,000 with 2 BLAS threads: 2.5 -> 2.9 s).
+        data = float(np.einsum("i,i->", v, self.gram @ v))
         asym = V - self._transposed(V)
         return float(self.data_weight * data + self.sym_weight * np.sum(asym * asym))
 
     def gradient(self, V: np.ndarray) -> np.ndarray:
-        grad = 2.0 * self.data_weight * np.matmul(self.gram, V[:, :, None])[:, :, 0]
+        grad = 2.0 * self.data_weight * (self.gram @ V.ravel()).reshape(V.shape)
         grad += 4.0 * self.sym_weight * (V - self._transposed(V))
         return np.where(self.valid, grad, 0.0)
 
     def hessian(self) -> sp.csr_matrix:
         """H (n, n) over the flat entries f*K + k, with objective = 1/2 v^T H v."""
-        F, K = self.cand.shape
-        base = (np.arange(F) * K)[:, None, None]
-        rows = np.broadcast_to(base + np.arange(K)[None, :, None], self.gram.shape)
-        cols = np.broadcast_to(base + np.arange(K)[None, None, :], self.gram.shape)
-        pair = self.valid[:, :, None] & self.valid[:, None, :]
+        n = self.valid.size
         flat = np.flatnonzero(self.valid.ravel())
         partner = self.transpose.ravel()[flat]
         sym = 4.0 * self.sym_weight
-        return sp.csr_matrix(
-            (np.concatenate([2.0 * self.data_weight * self.gram[pair], np.full(len(flat), sym),
-                             np.full(len(flat), -sym)]),
-             (np.concatenate([rows[pair], flat, flat]), np.concatenate([cols[pair], flat, partner]))),
-            shape=(F * K, F * K))
+        # Psi1: sym on the diagonal, -sym between partners
+        psi1 = sp.csr_matrix((np.r_[np.full(len(flat), sym), np.full(len(flat), -sym)],
+                              (np.r_[flat, flat], np.r_[flat, partner])), shape=(n, n))
+        return sp.csr_matrix(2.0 * self.data_weight * self.gram + psi1)
 
     def project(self, V: np.ndarray) -> np.ndarray:
         """V (F, K) projected onto the columns' simplices. Only columns off the simplex are projected: an active-set

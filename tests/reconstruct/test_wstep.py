@@ -194,14 +194,29 @@ def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, wo
 
 
 def test_column_grams_equal_the_padded_products():
+    import scipy.linalg
+
     from reconstruct.working_set import column_grams
 
     problem, shapes, _ = _windowed_problem(3)
     gram, lam_max = column_grams(shapes, problem.cand, problem.valid)
     B = np.where(problem.valid[..., None], shapes[problem.cand] - shapes[:, None, :], 0.0)
     expected = np.einsum("fkd,fld->fkl", B, B)
-    np.testing.assert_allclose(gram, expected, atol=1e-10)
+    assert len(np.unique(problem.valid.sum(axis=1))) > 1  # columns of several sizes: blocks of several sizes
+    np.testing.assert_allclose(gram.toarray(), scipy.linalg.block_diag(*expected), atol=1e-10)
+    assert gram.nnz == int(np.sum(problem.valid.sum(axis=1) ** 2))  # the blocks only, no padding
     np.testing.assert_allclose(lam_max, np.linalg.eigvalsh(expected)[:, -1], rtol=1e-10, atol=1e-12)
+
+
+def test_column_grams_refuse_a_working_set_that_is_not_packed():
+    from reconstruct.working_set import column_grams
+
+    problem, shapes, _ = _windowed_problem(4)
+    valid = problem.valid.copy()
+    row = int(np.flatnonzero(valid.sum(axis=1) >= 2)[0])
+    valid[row, 0] = False  # a hole before the column's last entry
+    with pytest.raises(ValueError, match="not packed"):
+        column_grams(shapes, problem.cand, valid)
 
 
 def test_limit_changes_makes_one_change_in_restricted_columns_only():
