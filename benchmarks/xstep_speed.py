@@ -25,6 +25,7 @@ The baseline is `reconstruct/xstep.py` at `--baseline` (git show), loaded as a s
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import logging
 import statistics
@@ -170,15 +171,25 @@ class IterationCounter:
             module._BatchedCG.run = counting_run
         else:
             batched = module._batched_cg
+            # Revisions whose CG drops converged points from its batch take operators(points) -> (apply,
+            # precondition), rebuilt at each drop; older ones take apply and precondition themselves.
+            takes_operators = next(iter(inspect.signature(batched).parameters)) == "operators"
 
-            def counting_cg(apply: Any, *args: Any, **kwargs: Any) -> Any:
+            def counting_cg(first: Any, *args: Any, **kwargs: Any) -> Any:
                 applied = [0]
 
-                def counted(*operands: np.ndarray) -> Any:  # apply(v) or apply(Y, out), by revision
-                    applied[0] += 1
-                    return apply(*operands)
+                def counted(apply: Any) -> Any:
+                    def application(*operands: np.ndarray) -> Any:  # apply(v) or apply(Y, out), by revision
+                        applied[0] += 1
+                        return apply(*operands)
 
-                result = batched(counted, *args, **kwargs)
+                    return application
+
+                def counting_operators(points: np.ndarray) -> Any:
+                    apply, precondition = first(points)
+                    return counted(apply), precondition
+
+                result = batched(counting_operators if takes_operators else counted(first), *args, **kwargs)
                 self.counts["jacobi"] += applied[0] - 1  # one application computes the initial residual
                 return result
 
