@@ -20,6 +20,10 @@ distance_mm, distance_offset_mm: one row per compared capture).
 
 Measured (committed labels, default solver options, frames 24..71, 186 captures, 2 contended cores: track
 16-26 s, solve 12-28 s, offset search and reference 35 s):
+- since the refinement's GCV skips smoothness values whose fit interpolates its rays: median 3.4 mm, p90 10.4 mm
+  (tracked captures 3.3 / 9.6 mm), the same before and after a round-off change of the X-step. Before it, that
+  change alone moved the result from 5.0 / 102 mm to 13.6 / 319 mm: per point, GCV picked between 1e-6 and 1e4
+  from scores that were round-off (one ray per instant: small smoothness values fit every ray exactly);
 - at 2aaf124: median 4.8 mm, p90 9.1 mm (tracked captures 4.8 / 8.7 mm); with --shift-clocks 4.5 / 10.4 mm;
 - at 08446b9: median 14.9 mm, p90 152 mm;
 - at 688e3ed: median 25.0 mm, p90 metres: 35 captures came from 6 pairs of frames of two cameras that the solver

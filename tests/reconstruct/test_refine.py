@@ -108,6 +108,20 @@ def test_noisy_rays_are_improved_over_the_input() -> None:
     assert np.all(result.smoothness > RefineOptions().grid[0])
 
 
+def test_gcv_skips_smoothness_values_whose_fit_interpolates_its_rays() -> None:
+    from reconstruct.refine import _least_gcv
+
+    m = np.array([[40.0], [40.0]])
+    # Row 0: the two smallest values fit every ray (tr(H) ~ m): RSS ~ 0 over a vanishing denominator gives a tiny,
+    # meaningless score; the real minimum is at index 3. Row 1: every value interpolates.
+    rss = np.array([[1e-12, 1e-10, 4.0, 3.0, 9.0], [1e-12, 1e-11, 1e-10, 1e-9, 1e-8]])
+    trace = np.array([[40.0, 39.99, 20.0, 10.0, 5.0], [40.0, 40.0, 39.99, 39.9, 39.5]])
+    chosen = _least_gcv(rss, trace, m)
+    score = rss[0] / 40.0 / np.maximum(1 - trace[0] / 40.0, 1e-9) ** 2
+    assert int(np.argmin(score)) == 1  # what the plain GCV minimum would have taken
+    assert chosen.tolist() == [3, 0]
+
+
 def test_a_false_observation_is_down_weighted() -> None:
     times, camera_of = round_robin(120, 60.0)
     problem, truth = capture(times, camera_of, noise_px=0.5)
