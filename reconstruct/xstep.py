@@ -40,12 +40,11 @@ class XStepOptions:
     cg_max_iterations: int = 3000
     # Points are independent systems: above PARALLEL_SIZE unknowns they are split over this many threads (numpy and
     # the sparse products release the GIL). Measured on 2 cores (complexknee, P = 20): an X-step 1.7x faster at
-    # F = 20,000 (2.5 -> 1.5 s wall), all X-steps 1.3x at F = 5000. Since converged points leave the CG batch,
-    # CMU F = 700 (P = 44) gains too (six recorded X-steps 0.19 -> 0.15 s), F = 250 not (0.065 -> 0.069 s).
+    # F = 20,000 (2.5 -> 1.5 s wall), all X-steps 1.3x at F = 5000; threads were slower at F = 700.
     workers: int = 2
 
 
-PARALLEL_SIZE = 20_000  # F * P at and above which the X-step splits the points over `workers` threads
+PARALLEL_SIZE = 100_000  # F * P at and above which the X-step splits the points over `workers` threads
 
 
 def chain_links(video_index: np.ndarray) -> np.ndarray:
