@@ -126,8 +126,8 @@ def solve_x(
     return points
 
 
-Operators = Callable[[np.ndarray], tuple[Callable[[np.ndarray, np.ndarray], None],
-                                        Callable[[np.ndarray, np.ndarray], None]]]
+Operator = Callable[[np.ndarray, np.ndarray], None]  # op(Y, out): writes into out
+Operators = Callable[[np.ndarray], tuple[Operator, Operator]]  # points -> (apply, precondition) for those points
 
 
 def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: XStepOptions
@@ -213,8 +213,7 @@ def _cg_soft(
     inverse_observed = 1.0 / (diagonal + w)
     inverse_diagonal = 1.0 / diagonal
 
-    def operators(points: np.ndarray) -> tuple[Callable[[np.ndarray, np.ndarray], None],
-                                               Callable[[np.ndarray, np.ndarray], None]]:
+    def operators(points: np.ndarray) -> tuple[Operator, Operator]:
         n = len(points)
         r_p, w_p, inverse_observed_p = (np.ascontiguousarray(a[:, :, points]) for a in (r, w, inverse_observed))
         scratch = np.empty((F, 3, n))  # used by apply and precondition, never at the same time
@@ -257,8 +256,7 @@ def _cg_hard(
         missing_p, r_p = missing[:, :, points], np.ascontiguousarray(r[:, :, points])
         return lambda Y: np.where(missing_p, Y, _along(r_p, Y))
 
-    def operators(points: np.ndarray) -> tuple[Callable[[np.ndarray, np.ndarray], None],
-                                               Callable[[np.ndarray, np.ndarray], None]]:
+    def operators(points: np.ndarray) -> tuple[Operator, Operator]:
         n = len(points)
         project = projector(points)
 
