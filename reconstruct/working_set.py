@@ -76,7 +76,7 @@ def column_grams(shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray) -> tup
     row_length = np.where(valid, counts[:, None], 0).ravel()
     indptr = np.r_[0, np.cumsum(row_length)].astype(index_type)
     within = np.arange(len(data)) - np.repeat(offset[:-1], squares)
-    indices = (np.repeat(np.arange(F) * K, squares) + within % np.repeat(np.maximum(counts, 1), squares))
+    indices = np.repeat(np.arange(F) * K, squares) + within % np.repeat(counts, squares)
     gram = sp.csr_matrix((data, indices.astype(index_type), indptr), shape=(F * K, F * K))
     return gram, lam_max
 
@@ -177,10 +177,11 @@ class FreeSetSolver:
         self.column_of = np.repeat(np.arange(F), K)
         self.valid = problem.valid.ravel()
         self.lipschitz = problem.lipschitz
-        H = self.H.tocoo()
-        link = self.column_of[H.row] != self.column_of[H.col]  # partner entries of different columns
-        self.link_rows, self.link_cols = H.row[link], H.col[link]
         self.partner = problem.transpose.ravel()  # flat index of each entry's Psi1 partner, -1 for padding
+        # The links between columns are H's Psi1 entries (W_jf, W_fj): every valid entry and its partner, which lies
+        # in another column (j != f), read off the transpose index rather than filtered out of H's COO form.
+        self.link_rows = np.flatnonzero(self.valid)
+        self.link_cols = self.partner[self.link_rows]
         self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (free, v, mu) of the previous solve
         self.workers = workers
         # Once a re-solve covers nearly every column (one giant component: dense dictionaries), the rest of the

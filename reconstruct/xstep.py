@@ -144,11 +144,11 @@ def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: X
     def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.einsum("fkp,fkp->p", a, b)
 
-    solution = x.copy()
+    solution = np.empty_like(x)  # every point is written in when it leaves the batch, or at the end
     converged = np.zeros(rhs.shape[2], dtype=bool)
     active = np.arange(rhs.shape[2])
     apply, precondition = operators(active)
-    x = solution.copy()
+    x = x.copy()
     residual = np.empty_like(x)
     apply(x, residual)
     np.subtract(rhs, residual, out=residual)
