@@ -17,6 +17,7 @@ Method (solves the same convex problem as the paper's ADMM; see docs/solver.md):
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +27,8 @@ import scipy.sparse as sp
 from reconstruct.working_set import WorkingSetProblem, active_set, fista
 
 log = logging.getLogger(__name__)
+
+PARALLEL_ROWS = 4096  # frames from which local_inner splits its rows over threads
 
 
 @dataclass(kw_only=True)
@@ -152,39 +155,49 @@ def smallest_per_row(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray
     return index, picked
 
 
-def local_inner(A: np.ndarray, B: np.ndarray, index: np.ndarray, *, chunk: int = 64) -> np.ndarray:
+def local_inner(A: np.ndarray, B: np.ndarray, index: np.ndarray, *, chunk: int = 64, workers: int = 1) -> np.ndarray:
     """(F, C) A[f] . B[index[f, c]] (0 where index < 0), for A, B (F, D). Consecutive frames have neighbouring
     candidates, so each chunk of rows needs B only on the union of its candidates: one small dense product per chunk
-    instead of gathering an (F, C, D) array (at F = 2000, P = 44: 160 MB per call)."""
+    instead of gathering an (F, C, D) array (at F = 2000, P = 44: 160 MB per call). From PARALLEL_ROWS rows on,
+    `workers` threads take a share of the rows each (same values to the bit)."""
     F, C = index.shape
     out = np.zeros((F, C))
-    # The union of a chunk's candidates by marking them in a reused mask: np.unique's sort or hash per chunk cost
-    # more than the products.
-    marked = np.zeros(len(B), dtype=bool)
-    column_of = np.zeros(len(B), dtype=np.int64)
-    for start in range(0, F, chunk):
-        rows = slice(start, min(F, start + chunk))
-        idx = index[rows]
-        present = idx >= 0
-        marked[idx[present]] = True
-        union = np.flatnonzero(marked)
-        if len(union) == 0:
-            continue
-        marked[union] = False
-        column_of[union] = np.arange(len(union))
-        product = A[rows] @ B[union].T  # (chunk, U)
-        local = np.take_along_axis(product, column_of[np.maximum(idx, 0)], axis=1)
-        out[rows] = np.where(present, local, 0.0)
+
+    def fill(first: int, stop: int) -> None:
+        # The union of a chunk's candidates by marking them in a reused mask: np.unique's sort or hash per chunk
+        # cost more than the products.
+        marked = np.zeros(len(B), dtype=bool)
+        column_of = np.zeros(len(B), dtype=np.int64)
+        for start in range(first, stop, chunk):
+            rows = slice(start, min(stop, start + chunk))
+            idx = index[rows]
+            present = idx >= 0
+            marked[idx[present]] = True
+            union = np.flatnonzero(marked)
+            if len(union) == 0:
+                continue
+            marked[union] = False
+            column_of[union] = np.arange(len(union))
+            product = A[rows] @ B[union].T  # (chunk, U)
+            local = np.take_along_axis(product, column_of[np.maximum(idx, 0)], axis=1)
+            out[rows] = np.where(present, local, 0.0)
+
+    if workers > 1 and F >= PARALLEL_ROWS:
+        bounds = [chunk * (F // chunk * w // workers) for w in range(workers)] + [F]
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(fill, bounds[:-1], bounds[1:]))
+    else:
+        fill(0, F)
     return out
 
 
-def nearest_in_pool(shapes: np.ndarray, pool: np.ndarray, k: int) -> np.ndarray:
+def nearest_in_pool(shapes: np.ndarray, pool: np.ndarray, k: int, workers: int = 1) -> np.ndarray:
     """(F, k) the k nearest shapes among each frame's candidates pool (F, C) (-1 = none); -1 where fewer."""
     C = pool.shape[1]
     k = min(k, C)
     norms = np.einsum("fd,fd->f", shapes, shapes)
     # |S_j|^2 - 2 S_f . S_j ranks the candidates j of frame f like |S_f - S_j|^2 does.
-    d2 = norms[np.maximum(pool, 0)] - 2.0 * local_inner(shapes, shapes, pool)
+    d2 = norms[np.maximum(pool, 0)] - 2.0 * local_inner(shapes, shapes, pool, workers=workers)
     d2[pool < 0] = np.inf
     chosen, distance = smallest_per_row(d2, k)
     nearest = np.take_along_axis(pool, chosen, axis=1)
@@ -268,7 +281,7 @@ def _pool_violations(
     shapes: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
     residual: np.ndarray, pool: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    inner = local_inner(residual, shapes, pool)
+    inner = local_inner(residual, shapes, pool, workers=options.workers)
     g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
     violation = (mu[:, None] - g) / problem.lipschitz[:, None]
     violation[pool < 0] = -np.inf
@@ -294,7 +307,7 @@ def solve_w(
     if pool is None:
         near = nearest_other_video(shapes, video_index, options.nearest)
     else:
-        near = nearest_in_pool(shapes, pool, options.nearest)
+        near = nearest_in_pool(shapes, pool, options.nearest, options.workers)
     near_cols = np.repeat(np.arange(F), near.shape[1])
     # fewer other-video frames than `nearest`, or a short pool
     other = (near.ravel() >= 0) & (video_index[near.ravel()] != video_index[near_cols])
@@ -311,7 +324,7 @@ def solve_w(
     V_start = None if previous is None else _sparse_lookup(previous)
     for round_index in range(options.max_rounds):
         cand, valid = _pack_pairs(all_rows, all_cols, F)
-        problem = WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points)
+        problem = WorkingSetProblem(shapes, cand, valid, options.lambda1, num_points, options.workers)
         V = _start_values(cand, valid, V_start, near)
         exact = active_set(problem, V, options, stats)
         if exact is None:

@@ -107,16 +107,22 @@ def test_primal_active_set_descends_to_the_working_set_optimum():
     assert exact.min() >= 0
 
 
-def test_local_inner_equals_the_gathered_products():
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_local_inner_equals_the_gathered_products(workers, monkeypatch):
+    import reconstruct.wstep as wstep
     from reconstruct.wstep import local_inner, nearest_in_pool
+
+    monkeypatch.setattr(wstep, "PARALLEL_ROWS", 0)  # threads split the rows even at this size
 
     rng = np.random.default_rng(4)
     A, B = rng.normal(size=(150, 7)), rng.normal(size=(150, 7))
     index = np.clip(np.arange(150)[:, None] + rng.integers(-20, 21, size=(150, 9)), -1, 149)
     index[rng.random(index.shape) < 0.2] = -1
     expected = np.where(index >= 0, np.einsum("fd,fcd->fc", A, B[np.maximum(index, 0)]), 0.0)
-    np.testing.assert_allclose(local_inner(A, B, index, chunk=16), expected, atol=1e-12)
-    nearest = nearest_in_pool(A, index, 3)
+    serial = local_inner(A, B, index, chunk=16)
+    np.testing.assert_allclose(serial, expected, atol=1e-12)
+    np.testing.assert_array_equal(local_inner(A, B, index, chunk=16, workers=workers), serial)  # to the bit
+    nearest = nearest_in_pool(A, index, 3, workers)
     for f in (0, 70, 149):
         candidates = index[f][index[f] >= 0]
         order = candidates[np.argsort(np.linalg.norm(A[candidates] - A[f], axis=1))][:3]
@@ -193,13 +199,17 @@ def test_kkt_re_solves_only_changed_components_and_equals_a_fresh_solve(seed, wo
     np.testing.assert_allclose(cached[1], fresh[1], rtol=1e-8, atol=1e-14)
 
 
-def test_column_grams_equal_the_padded_products():
+@pytest.mark.parametrize("workers", [1, 2])
+def test_column_grams_equal_the_padded_products(workers, monkeypatch):
     import scipy.linalg
 
+    import reconstruct.working_set as working_set
     from reconstruct.working_set import column_grams
 
+    monkeypatch.setattr(working_set, "PARALLEL_GRAMS", 0)  # with 2 workers, the columns are split over threads
+
     problem, shapes, _ = _windowed_problem(3)
-    gram, lam_max = column_grams(shapes, problem.cand, problem.valid)
+    gram, lam_max = column_grams(shapes, problem.cand, problem.valid, workers)
     B = np.where(problem.valid[..., None], shapes[problem.cand] - shapes[:, None, :], 0.0)
     expected = np.einsum("fkd,fld->fkl", B, B)
     assert len(np.unique(problem.valid.sum(axis=1))) > 1  # columns of several sizes: blocks of several sizes
