@@ -57,7 +57,10 @@ class SolverOptions:
     # ... measured on this quantile of the coordinates' movement (1: the max). On long captures a few points drift on
     # while the rest has settled: complexknee F = 5000 stopped after 65 final alternations instead of 82, same
     # 99.90 % < 10 mm; on 6 windows x 4 rows of the paper's tables (F ~ 300) nothing changed at all (the cost test
-    # binds there).
+    # binds there). The cost tests likewise leave out the (1 - quantile) share of frames whose cost changed most
+    # (`settled_decrease`; none below 1000 frames): complexknee F = 20,000 then took 8 + 22 alternations instead of
+    # 9 + 35 (99.86 against 99.87 % < 10 mm), F = 5000 8 + 21 instead of 11 + 26 and F = 2000 12 + 16 instead of
+    # 12 + 17 (same accuracy both).
     point_quantile: float = 0.999
     # Anderson acceleration of the alternation over this many past iterates (0: plain alternation); see
     # reconstruct/anderson.py.
@@ -104,31 +107,56 @@ class SolveResult:
     init_points: np.ndarray  # (F, P, 3) input units, the initialization
 
 
-def total_cost(
+def frame_costs(
     points: np.ndarray, W: sp.spmatrix, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray,
     lambda1: float, lambda2: float, lambda3: float, constraint: RayConstraint,
-) -> float:
-    """The objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized units."""
+) -> np.ndarray:
+    """(F,) each frame's share of the objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized
+    units: its self-expression residual, its column's asymmetry, its rays, and the smoothness link to the next frame
+    of its video. They sum to `total_cost`."""
     F, P = points.shape[:2]
     shapes = points.reshape(F, -1)
     # trace(S^T Q S) of the X-step's quadratic form, without forming Q = (I - W)(I - W)^T / (FP) + ...: the sparse
     # product cost more than the rest of the alternation's bookkeeping together.
     residual = shapes - W.T @ shapes
-    cost = float(np.sum(residual * residual)) / (F * P)
+    cost = np.einsum("fd,fd->f", residual, residual) / (F * P)
     if lambda2 > 0:
         links = chain_links(video_index)
         if len(links):
             step = shapes[links + 1] - shapes[links]
-            cost += lambda2 / (len(links) * P) * float(np.sum(step * step))
-    asym = W - W.T
-    cost += lambda1 / F * float(asym.multiply(asym).sum())
+            cost[links] += lambda2 / (len(links) * P) * np.einsum("fd,fd->f", step, step)
+    asym = sp.csc_matrix(W - W.T)
+    cost += lambda1 / F * np.asarray(asym.multiply(asym).sum(axis=0)).ravel()
     if constraint is RayConstraint.SOFT:
         offset = points - centers[:, None, :]
         known = np.nan_to_num(rays)
         perpendicular = offset - np.einsum("fpk,fpk->fp", offset, known)[..., None] * known
         perpendicular[np.isnan(rays[..., 0])] = 0.0  # unobserved: no ray term
-        cost += lambda3 / (F * P) * float(np.einsum("fpk,fpk->", perpendicular, perpendicular))
+        cost += lambda3 / (F * P) * np.einsum("fpk,fpk->f", perpendicular, perpendicular)
     return cost
+
+
+def total_cost(
+    points: np.ndarray, W: sp.spmatrix, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray,
+    lambda1: float, lambda2: float, lambda3: float, constraint: RayConstraint,
+) -> float:
+    """The objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized units."""
+    return float(np.sum(frame_costs(points, W, centers, rays, video_index, lambda1, lambda2, lambda3, constraint)))
+
+
+def settled_decrease(previous: np.ndarray, current: np.ndarray, quantile: float) -> float:
+    """Relative decrease from the frame costs `previous` to `current` (F,), over all frames but the (1 - quantile)
+    share whose cost changed most. Noise-free long captures settle everywhere but in a handful of frames: at
+    F = 20,000 the last 18 of 35 alternations each lowered the total cost by 0.1-0.3 %, from ~10 frames whose
+    points still moved (by more than point_tolerance), while the share under 10 mm stayed at 99.865 +- 0.004 %.
+    Below 1 / (1 - quantile) frames nothing is left out: the test is the plain relative decrease."""
+    left_out = int(np.floor((1.0 - quantile) * len(current) + 1e-9))
+    if left_out > 0:
+        kept = np.ones(len(current), dtype=bool)
+        kept[np.argpartition(-np.abs(previous - current), left_out - 1)[:left_out]] = False
+        previous, current = previous[kept], current[kept]
+    after = float(np.sum(current))
+    return (float(np.sum(previous)) - after) / max(abs(after), 1e-300)
 
 
 def frame_residuals(points: np.ndarray, W: sp.spmatrix) -> np.ndarray:
@@ -188,6 +216,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
         x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint,
                                  workers=options.workers)
         previous_cost = np.inf
+        previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
         mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
         candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
         bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=None if options.progress else True,
@@ -226,8 +255,9 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             moved = np.abs(new_points - candidate)
             change = float(np.max(moved))
             settled = change if options.point_quantile >= 1.0 else float(np.quantile(moved, options.point_quantile))
-            cost = total_cost(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
-                              options.lambda3, options.constraint)
+            frames_cost = frame_costs(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
+                                      options.lambda3, options.constraint)
+            cost = float(np.sum(frames_cost))
             stage.iterations += 1
             stage.cost.append(cost)
             stage.w_iterations.append(w_stats.iterations)
@@ -235,12 +265,13 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
             bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
             if options.monitor is not None:
                 options.monitor(name, stage.iterations, normalization.undo(new_points))
-            decrease = (previous_cost - cost) / max(abs(cost), 1e-300)
+            decrease = (np.inf if previous_frames is None
+                        else settled_decrease(previous_frames, frames_cost, options.point_quantile))
             if lambda2 > 0:
                 converged = decrease < options.smooth_tolerance
             else:
                 converged = decrease < options.tolerance and settled < options.point_tolerance
-            previous_cost = cost
+            previous_cost, previous_frames = cost, frames_cost
             if converged:
                 points = new_points
                 stage.converged = True

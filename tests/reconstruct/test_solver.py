@@ -104,3 +104,50 @@ def test_total_cost_data_and_smoothness_terms_equal_the_x_step_quadratic_form(la
     expected = float(np.sum(shapes * (Q @ shapes))) + 0.05 / F * np.sum(asym**2)
     cost = total_cost(points, W, np.zeros((F, 3)), nan_rays, video_index, 0.05, lambda2, 100.0, RayConstraint.SOFT)
     np.testing.assert_allclose(cost, expected, rtol=1e-12)
+
+
+def test_frame_costs_split_the_objective_frame_by_frame():
+    import scipy.sparse as sp
+
+    from reconstruct.solver import frame_costs, total_cost
+
+    rng = np.random.default_rng(8)
+    F, P = 12, 3
+    video_index = np.repeat([0, 1, 2], 4)
+    points = rng.normal(size=(F, P, 3))
+    centers = rng.normal(size=(F, 3))
+    rays = rng.normal(size=(F, P, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    rays[2, 1] = np.nan  # unobserved: no ray term
+    W = sp.random(F, F, density=0.3, random_state=2, format="csc")
+    Wd = W.toarray()
+    costs = frame_costs(points, W, centers, rays, video_index, 0.05, 0.1, 100.0, RayConstraint.SOFT)
+    for f in range(F):
+        residual = points[f] - np.einsum("j,jpk->pk", Wd[:, f], points)
+        expected = np.sum(residual**2) / (F * P) + 0.05 / F * np.sum((Wd[:, f] - Wd[f, :]) ** 2)
+        if f + 1 < F and video_index[f + 1] == video_index[f]:
+            expected += 0.1 / ((F - 3) * P) * np.sum((points[f + 1] - points[f]) ** 2)
+        for p in range(P):
+            if not np.isnan(rays[f, p, 0]):
+                offset = points[f, p] - centers[f]
+                expected += 100.0 / (F * P) * np.sum((offset - (offset @ rays[f, p]) * rays[f, p]) ** 2)
+        np.testing.assert_allclose(costs[f], expected, rtol=1e-12)
+    np.testing.assert_allclose(total_cost(points, W, centers, rays, video_index, 0.05, 0.1, 100.0,
+                                          RayConstraint.SOFT), costs.sum(), rtol=1e-14)
+
+
+def test_settled_decrease_leaves_out_the_few_frames_that_still_move():
+    from reconstruct.solver import settled_decrease
+
+    rng = np.random.default_rng(9)
+    previous = rng.uniform(1.0, 2.0, size=5000)
+    current = previous * (1 - 1e-5)  # settled frames
+    current[[3, 700, 4200]] *= 0.5  # three frames still improve: +- 0.05 % of the total each
+    plain = (previous.sum() - current.sum()) / current.sum()
+    assert plain > 1e-4
+    # 0.999 of 5000 frames: the 5 whose cost changed most are left out, the three movers among them
+    assert settled_decrease(previous, current, 0.999) < 2e-5
+    # Below 1000 frames nothing is left out: the plain relative decrease.
+    np.testing.assert_allclose(settled_decrease(previous[:999], current[:999], 0.999),
+                               (previous[:999].sum() - current[:999].sum()) / current[:999].sum(), rtol=1e-12)
+    assert settled_decrease(previous, current, 1.0) == pytest.approx(plain, rel=1e-12)
