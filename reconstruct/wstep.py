@@ -284,16 +284,21 @@ def _pool_violations(
     inner = local_inner(residual, shapes, pool, workers=options.workers)
     g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
     violation = (mu[:, None] - g) / problem.lipschitz[:, None]
-    violation[pool < 0] = -np.inf
-    in_set = np.zeros_like(violation, dtype=bool)
-    for k in range(W.cand.shape[1]):  # pool entries already in the working set
-        in_set |= (pool == W.cand[:, k:k + 1]) & W.valid[:, k:k + 1]
-    violation[in_set] = -np.inf
-    # Violators are few: rank only them. An argpartition of the whole (F, C) array took 33 ms at F = 20,000, C = 75;
-    # this takes 5.5 ms.
+    # Violators are few: find them first, then drop the empty slots and the entries already in the working set
+    # among them, and rank only the rest. An argpartition of the whole (F, C) array took 33 ms at F = 20,000,
+    # C = 75, this 5.5 ms; marking the working set in the (F, C) pool beforehand took another 60 ms.
     cols, slots = np.nonzero(violation > options.kkt_tolerance)
-    keep = first_per_group(cols, -violation[cols, slots], options.max_added_per_column)
-    return pool[cols[keep], slots[keep]], cols[keep]
+    rows = pool[cols, slots]
+    F = len(pool)
+    in_set = (np.arange(F)[:, None] * F + W.cand)[W.valid]  # keys f F + j of the working set's entries
+    if np.any(in_set[1:] < in_set[:-1]):  # packed sets (wstep._pack_pairs) are sorted already
+        in_set = np.sort(in_set)
+    keys = cols * F + rows
+    at = np.minimum(np.searchsorted(in_set, keys), max(len(in_set) - 1, 0))
+    new = (rows >= 0) & ((in_set[at] != keys) if len(in_set) else True)
+    cols, rows, violation_new = cols[new], rows[new], violation[cols[new], slots[new]]
+    keep = first_per_group(cols, -violation_new, options.max_added_per_column)
+    return rows[keep], cols[keep]
 
 
 def solve_w(
