@@ -18,15 +18,7 @@ from tqdm import tqdm
 
 from dynrecon.errors import DynreconError, NotEnoughDataError
 from reconstruct.anderson import AndersonMixer
-from reconstruct.candidates import (
-    CandidateOptions,
-    VideoLayout,
-    anchor_tolerance,
-    coarse_to_fine_init,
-    consistent_anchors,
-    follow_w,
-    window_pool,
-)
+from reconstruct.candidates import CandidateOptions, MovingWindows, coarse_to_fine_init
 from reconstruct.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.problem import Problem, reconstructable_points
 from reconstruct.rays import Normalization, camera_normalization, viewing_rays
@@ -192,7 +184,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     sparse = options.dense_limit < F
     if sparse:
         init, anchor = coarse_to_fine_init(centers, rays, video_index, options.candidates, times=problem.times)
-        layout = VideoLayout.of(video_index)
+        windows = MovingWindows(anchor, video_index, options.candidates, times=problem.times)
         log.info("%d frames: dictionaries restricted to +-%d frames of each other video around each frame's "
                  "matches", F, options.candidates.half_window)
     else:
@@ -223,7 +215,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                    leave=False)
         for _ in bar:
             t0 = time.perf_counter()
-            pool = window_pool(anchor, video_index, layout, options.candidates.half_window) if sparse else None
+            pool = windows.pool() if sparse else None
             W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W, pool=pool)
             W_matrix = W_next.to_csc()
             if candidate is not points:
@@ -239,9 +231,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
                     W_matrix = W_next.to_csc()
             W = W_next
             if sparse:
-                anchor = follow_w(anchor, W_matrix, video_index, layout, slack=options.candidates.recentre)
-                anchor = consistent_anchors(anchor, video_index, layout, times=problem.times,
-                                            tolerance=anchor_tolerance(options.candidates, problem.times))
+                windows.follow(W_matrix)
             t_w += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=candidate)

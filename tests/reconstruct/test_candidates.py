@@ -5,6 +5,7 @@ from synthetic_motion import synthetic_problem, truth_array
 from reconstruct import candidates
 from reconstruct.candidates import (
     CandidateOptions,
+    MovingWindows,
     VideoLayout,
     _fill_anchor_gaps,
     anchor_tolerance,
@@ -123,6 +124,33 @@ def test_follow_w_moves_an_anchor_only_past_the_slack_and_to_the_largest_entry()
     moved = follow_w(anchor, W, video_index, layout, slack=3)
     assert moved[0, 1] == 15  # the largest entry, not the weighted mean (12)
     assert moved[1, 1] == 5  # within the slack: the pool stays put
+
+
+def test_moving_windows_rebuild_the_pool_only_when_an_anchor_moves(monkeypatch):
+    import scipy.sparse as sp
+
+    video_index = np.repeat([0, 1], [20, 20])
+    anchor = np.zeros((40, 2), dtype=np.int64)
+    anchor[:20, 0] = np.arange(20)
+    anchor[:20, 1] = np.arange(20)
+    anchor[20:, 0] = np.arange(20)
+    anchor[20:, 1] = np.arange(20)
+    windows = MovingWindows(anchor, video_index, CandidateOptions(half_window=2, recentre=3))
+    built = []
+    monkeypatch.setattr(candidates, "window_pool", lambda *a: built.append(1) or window_pool(*a))
+    first = windows.pool()
+    # W matches every frame with the same position of the other video: no anchor moves, the pool is reused
+    same = sp.csc_matrix((np.ones(40), (np.r_[np.arange(20, 40), np.arange(20)], np.arange(40))), shape=(40, 40))
+    windows.follow(same)
+    assert windows.pool() is first and len(built) == 1
+    # W now matches position p of video 0 with position p + 4 of video 1 (a clock offset past the slack): the
+    # anchors move, and the pool is rebuilt
+    rows = np.r_[20 + np.minimum(np.arange(20) + 4, 19), np.maximum(np.arange(20) - 4, 0)]
+    shifted = sp.csc_matrix((np.ones(40), (rows, np.arange(40))), shape=(40, 40))
+    windows.follow(shifted)
+    pool = windows.pool()
+    assert len(built) == 2 and windows.anchor[5, 1] == 9
+    np.testing.assert_array_equal(pool, window_pool(windows.anchor, video_index, windows.layout, 2))
 
 
 def _best_of_pairs(centers, rays, rows, cols, video_index, layout):
