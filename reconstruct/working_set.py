@@ -194,11 +194,13 @@ class FreeSetSolver:
         self.column_of = np.repeat(np.arange(F), K)
         self.valid = problem.valid.ravel()
         self.lipschitz = problem.lipschitz
+        self.entry_lipschitz = self.lipschitz[self.column_of]  # (F*K,) each entry's column's L_f
         self.partner = problem.transpose.ravel()  # flat index of each entry's Psi1 partner, -1 for padding
         # The links between columns are H's Psi1 entries (W_jf, W_fj): every valid entry and its partner, which lies
         # in another column (j != f), read off the transpose index rather than filtered out of H's COO form.
         self.link_rows = np.flatnonzero(self.valid)
         self.link_cols = self.partner[self.link_rows]
+        self.link_columns = (self.column_of[self.link_rows], self.column_of[self.link_cols])  # the columns linked
         self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (free, v, mu) of the previous solve
         self.workers = workers
         # Once a re-solve covers nearly every column (one giant component: dense dictionaries), the rest of the
@@ -210,7 +212,7 @@ class FreeSetSolver:
         """(F,) component label of every column. Links count when free before or now: a column whose partner
         left the free set was solved coupled to it and must be solved again."""
         both = (free[self.link_rows] & free[self.link_cols]) | (last_free[self.link_rows] & last_free[self.link_cols])
-        a, b = self.column_of[self.link_rows[both]], self.column_of[self.link_cols[both]]
+        a, b = self.link_columns[0][both], self.link_columns[1][both]
         graph = sp.csr_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(self.F, self.F))
         return connected_components(graph, directed=False)[1]
 
@@ -325,9 +327,23 @@ class FreeSetSolver:
         mu = np.add.reduceat(H_rows @ v, starts) / np.diff(np.r_[starts, n])
         return v, mu
 
-    def violation(self, v: np.ndarray, mu: np.ndarray) -> np.ndarray:
-        """(F*K,) how far each entry's gradient lies below its column's multiplier, in W units (/ L_f)."""
-        return (mu[self.column_of] - self.H @ v) / self.lipschitz[self.column_of]
+    def violation(self, v: np.ndarray, mu: np.ndarray, hv: np.ndarray | None = None) -> np.ndarray:
+        """(F*K,) how far each entry's gradient lies below its column's multiplier, in W units (/ L_f); `hv`:
+        H v when the caller has it."""
+        return (mu[self.column_of] - (self.H @ v if hv is None else hv)) / self.entry_lipschitz
+
+    def projected_objective(self, v: np.ndarray, hv: np.ndarray, projected: np.ndarray) -> float:
+        """g = 1/2 p^T H p of p = `projected` (F, K), from v (F*K,) and H v: p differs from v only in the few
+        columns the projection moved (an active-set iterate's columns with negative entries), so this needs H's
+        rows of those entries only, not a product over all of H (3.5 ms per active-set iteration at F = 20,000)."""
+        delta = projected.ravel() - v
+        moved = np.flatnonzero(delta)
+        value = 0.5 * float(np.einsum("i,i->", v, hv))
+        if len(moved):
+            step = delta[moved]
+            value += float(np.einsum("i,i->", step, hv[moved]))
+            value += 0.5 * float(np.einsum("i,i->", step, (self.H[moved] @ delta)))
+        return value
 
     def ensure_nonempty_columns(self, free: np.ndarray, v: np.ndarray) -> None:
         """Every column needs one free entry: give an empty one its lowest-gradient entry."""
@@ -367,12 +383,13 @@ def active_set(
         if solved is None:
             return None
         v, mu = solved
-        violation = solver.violation(v, mu)
+        hv = solver.H @ v
+        violation = solver.violation(v, mu, hv)
         entering = valid & ~free & (violation > options.tolerance)
         if not entering.any() and v[free].min() > -NEGLIGIBLE:
             return _finish(problem, v, stats)
         projected = problem.project(v.reshape(F, K))
-        objective = problem.objective(projected)
+        objective = solver.projected_objective(v, hv, projected)
         # Stalling counts only once PDAS has beaten the start: its first iterates are often worse than a warm start.
         if objective < best_objective * (1.0 - options.stall_tolerance):
             stalled = 0

@@ -253,3 +253,26 @@ def test_active_set_settles_columns_that_would_wander():
     limited = solve_w(shapes, video_index, P, WStepOptions(**{**options.__dict__, "cycle_changes": 1}))[1]
     assert plain.converged and limited.converged
     np.testing.assert_allclose(limited.objective, plain.objective, rtol=1e-4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_projected_objective_from_h_v_equals_the_objective(seed):
+    from reconstruct.working_set import FreeSetSolver
+
+    problem, _, rng = _windowed_problem(seed)
+    solver = FreeSetSolver(problem)
+    F, K = problem.cand.shape
+    # An active-set iterate: on each column's simplex but with a few negative entries, zero outside the set.
+    v = np.where(problem.valid, rng.uniform(0.0, 1.0, (F, K)), 0.0)
+    v /= v.sum(axis=1, keepdims=True)
+    rows = rng.choice(F, 10, replace=False)
+    v[rows, 0] -= 0.3
+    v[rows, problem.valid[rows].sum(axis=1) - 1] += 0.3
+    v = v.ravel()
+    projected = problem.project(v.reshape(F, K))
+    assert np.any(projected.ravel() != v)
+    hv = solver.H @ v
+    np.testing.assert_allclose(solver.projected_objective(v, hv, projected), problem.objective(projected),
+                               rtol=1e-12)
+    np.testing.assert_allclose(solver.projected_objective(v, hv, v.reshape(F, K)), problem.objective(v.reshape(F, K)),
+                               rtol=1e-12)
