@@ -32,6 +32,15 @@ PARALLEL_GRAMS = 200_000  # Gram entries from which column_grams splits the colu
 PARALLEL_KKT = 20_000  # free entries to re-solve at and above which independent components are split over threads
 
 
+def find_sorted(sorted_keys: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(where, found), shaped like `keys`: each key's position in the ascending `sorted_keys` (clipped to a valid
+    index) and whether it is there."""
+    if len(sorted_keys) == 0:
+        return np.zeros(keys.shape, dtype=np.int64), np.zeros(keys.shape, dtype=bool)
+    where = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return where, sorted_keys[where] == keys
+
+
 def transpose_index(cand: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Flat index of the entry (f, j) for every valid entry (j, f); the set must be symmetric. (F, K), -1 padding."""
     F, K = cand.shape
@@ -41,8 +50,8 @@ def transpose_index(cand: np.ndarray, valid: np.ndarray) -> np.ndarray:
     order = np.argsort(keys)
     sorted_keys = keys[order]
     transposed = cand.ravel()[flat] * F + cols
-    where = np.searchsorted(sorted_keys, transposed)
-    if np.any(where >= len(sorted_keys)) or np.any(sorted_keys[np.minimum(where, len(keys) - 1)] != transposed):
+    where, found = find_sorted(sorted_keys, transposed)
+    if not found.all():
         raise RuntimeError("working set is not symmetric")
     index = np.full(F * K, -1, dtype=np.int64)
     index[flat] = flat[order[where]]

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from reconstruct.working_set import WorkingSetProblem, active_set, fista
+from reconstruct.working_set import WorkingSetProblem, active_set, find_sorted, fista
 
 log = logging.getLogger(__name__)
 
@@ -293,9 +293,7 @@ def _pool_violations(
     in_set = (np.arange(F)[:, None] * F + W.cand)[W.valid]  # keys f F + j of the working set's entries
     if np.any(in_set[1:] < in_set[:-1]):  # packed sets (wstep._pack_pairs) are sorted already
         in_set = np.sort(in_set)
-    keys = cols * F + rows
-    at = np.minimum(np.searchsorted(in_set, keys), max(len(in_set) - 1, 0))
-    new = (rows >= 0) & ((in_set[at] != keys) if len(in_set) else True)
+    new = (rows >= 0) & ~find_sorted(in_set, cols * F + rows)[1]
     cols, rows, violation_new = cols[new], rows[new], violation[cols[new], slots[new]]
     keep = first_per_group(cols, -violation_new, options.max_added_per_column)
     return rows[keep], cols[keep]
@@ -389,8 +387,8 @@ def _start_values(cand: np.ndarray, valid: np.ndarray, triplets: np.ndarray | No
         order = np.argsort(old_keys)
         old_keys, old_values = old_keys[order], triplets[2][order]
         new_keys = np.arange(F)[:, None] * F + cand
-        where = np.clip(np.searchsorted(old_keys, new_keys), 0, len(old_keys) - 1)
-        hit = valid & (old_keys[where] == new_keys)
+        where, found = find_sorted(old_keys, new_keys)
+        hit = valid & found
         V[hit] = old_values[where[hit]]
     empty = V.sum(axis=1) <= 0
     if np.any(empty):
