@@ -10,9 +10,14 @@ import numpy as np
 from reconstruct.problem import Problem
 
 
+def has_distortion(dist: np.ndarray | None) -> bool:
+    """Whether OpenCV distortion coefficients change any pixel (None or all zeros do not)."""
+    return dist is not None and bool(np.any(dist != 0))
+
+
 def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     """Pixels (N, 2) of one camera -> normalized image coordinates (N, 2), undistorted when `dist` is given."""
-    if dist is not None and np.any(dist != 0):
+    if has_distortion(dist):
         pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         return cv2.undistortPoints(pts, K, np.asarray(dist, dtype=np.float64)).reshape(-1, 2)
     homogeneous = np.column_stack([uv, np.ones(len(uv))])
@@ -29,7 +34,7 @@ def viewing_rays(problem: Problem) -> np.ndarray:
     normalized = np.linalg.solve(problem.K, pixels.transpose(0, 2, 1)).transpose(0, 2, 1)  # (F, P, 3)
     normalized[..., 2] = 1.0
     for f, dist in enumerate(problem.dist):
-        if dist is not None and np.any(dist != 0) and observed[f].any():
+        if has_distortion(dist) and observed[f].any():
             seen = observed[f]
             normalized[f, seen, :2] = normalized_image_points(problem.uv[f, seen], problem.K[f], dist)
     directions = np.matmul(normalized, problem.R)  # rows: R^T d
