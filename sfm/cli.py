@@ -13,24 +13,36 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_import(subparsers: argparse._SubParsersAction) -> None:
-    from sfm.import_calibration import CalibrationFormat
+    from sfm.import_calibration import CalibrationFormat, Units
 
     parser = subparsers.add_parser(
         "import-calibration",
-        help="write cameras.json from a Qualisys .qca or Pose2Sim/anipose .toml calibration (static cameras)",
+        help="write cameras.json from a Qualisys .qca, Pose2Sim/anipose/FreeMoCap .toml or caliscope "
+        "camera_array.toml / config.toml calibration (static cameras)",
         description="Every decoded frame of each video gets its calibrated camera's static pose. Cameras are "
-        "matched to videos by name (cam01.mp4 <-> cam_01), else in the given order.",
+        "matched to videos by name (cam01.mp4 <-> cam_01; caliscope's cam_id 0 is cam_0), else in the given order. "
+        "TOML rotations may be Rodrigues vectors or 3x3 matrices (cam_from_world, OpenCV).",
     )
-    parser.add_argument("calibration", type=Path, help="calibration file (.qca.txt / .qca / .xml or .toml)")
-    parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
     parser.add_argument(
-        "--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json"
+        "calibration",
+        type=Path,
+        help="calibration file (.qca.txt / .qca / .xml, or .toml: Pose2Sim/anipose/FreeMoCap [cam_N], "
+        "caliscope [cameras.N] or [cam_N])",
     )
+    parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
+    parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json")
     parser.add_argument(
         "--format",
         choices=[f.value for f in CalibrationFormat],
         default="auto",
-        help="calibration format (default: from the file name)",
+        help="calibration format (default: from the file name; toml covers every TOML layout)",
+    )
+    parser.add_argument(
+        "--units",
+        choices=[u.value for u in Units],
+        default="auto",
+        help="unit of TOML translations (default auto: mm for FreeMoCap files, whose [metadata] has "
+        "charuco_square_size, else m)",
     )
     parser.add_argument(
         "--scale",
@@ -42,13 +54,13 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_import(args: argparse.Namespace) -> int:
-    from sfm.import_calibration import CalibrationFormat, ImportOptions, run
+    from sfm.import_calibration import CalibrationFormat, ImportOptions, Units, run
 
     path = run(
         args.calibration,
         args.videos,
         args.out,
-        ImportOptions(format=CalibrationFormat(args.format), scale=args.scale),
+        ImportOptions(format=CalibrationFormat(args.format), units=Units(args.units), scale=args.scale),
     )
     print(path)  # noqa: T201
     return 0

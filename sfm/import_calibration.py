@@ -1,6 +1,7 @@
 """`dynrecon import-calibration`: static, board-calibrated cameras instead of SfM.
 
-Reads a Qualisys QCA XML or a Pose2Sim/anipose TOML calibration and writes `cameras.json` where every decoded
+Reads a Qualisys QCA XML or a TOML calibration (Pose2Sim/anipose/FreeMoCap `[cam_N]`, caliscope's
+`camera_array.toml` `[cameras.N]` and its `config.toml` `[cam_N]`) and writes `cameras.json` where every decoded
 frame of each video gets its camera's one static pose.
 
 Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_import_calibration.py):
@@ -10,6 +11,15 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
   window). Distortion coefficients are used as they are (OpenCV k1, k2, p1, p2, k3 on normalized coordinates).
 - TOML `[cam_N]`: `rotation` (Rodrigues) and `translation` are OpenCV's cam_from_world (as aniposelib's
   Camera.rvec/tvec and Pose2Sim's calib.toml), translation in metres; `matrix` is K in pixels; `size` [w, h].
+- caliscope (checked on ../shared/data/videos/caliscope_office, see tests/sfm/test_import_calibration.py):
+  `camera_array.toml` has `[cameras.0]`, `[cameras.1]`..., its `config.toml` `[cam_0]`...: the same keys with
+  `cam_id`, `rotation` a 3x3 cam_from_world matrix (OpenCV), `translation` in metres; `ignore = true` cameras
+  are left out; cameras are named `cam_<cam_id>` (its videos are cam_0.mp4...). A camera with intrinsics only
+  (no rotation/translation yet) is read with R = t = None: `register --intrinsics` can use it, `run` refuses it.
+- `rotation` may be a Rodrigues 3-vector or a 3x3 matrix (9 numbers) in every TOML layout.
+- FreeMoCap's `*_camera_calibration.toml` is anipose's layout with translations in millimetres (its charuco
+  square size is given in mm). Units rule (`Units.AUTO`): millimetres when the `[metadata]` table has
+  `charuco_square_size` (which only FreeMoCap writes), else metres; `--units m|mm` overrides it.
 """
 
 from __future__ import annotations
@@ -40,29 +50,58 @@ QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # flips the y and z camera axes
 class CalibrationFormat(enum.Enum):
     AUTO = "auto"
     QCA = "qca"
-    TOML = "toml"
+    TOML = "toml"  # every TOML layout: Pose2Sim/anipose/FreeMoCap [cam_N], caliscope [cameras.N] and [cam_N]
+
+
+class Units(enum.Enum):
+    """Length unit of TOML translations. AUTO: mm for FreeMoCap files (`[metadata] charuco_square_size`), else m."""
+
+    AUTO = "auto"
+    M = "m"
+    MM = "mm"
+
+
+FREEMOCAP_MM_KEY = "charuco_square_size"  # in FreeMoCap's [metadata]: the board's square size in mm
 
 
 @dataclass(kw_only=True)
 class StaticCamera:
-    """One calibrated camera. R, t: cam_from_world (OpenCV), t in metres; K, dist: OpenCV pixels."""
+    """One calibrated camera. R, t: cam_from_world (OpenCV), t in metres, both None for an intrinsics-only
+    calibration; K, dist: OpenCV pixels."""
 
     name: str
     width: int
     height: int
     K: np.ndarray  # (3, 3)
     dist: np.ndarray  # (4,) or (5,)
-    R: np.ndarray  # (3, 3)
-    t: np.ndarray  # (3,)
+    R: np.ndarray | None  # (3, 3)
+    t: np.ndarray | None  # (3,)
+
+    @property
+    def has_pose(self) -> bool:
+        return self.R is not None and self.t is not None
+
+    def pose(self, path: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t); an InputError naming the camera when the file gives it no pose."""
+        if self.R is None or self.t is None:
+            raise InputError(
+                path,
+                f"camera {self.name!r} has intrinsics only (no rotation/translation)",
+                where=f"camera {self.name!r}",
+                fix="calibrate the extrinsics first (caliscope: the capture volume step), or leave its video out",
+            )
+        return self.R, self.t
 
     @property
     def center(self) -> np.ndarray:
-        return -self.R.T @ self.t
+        R, t = self.pose()
+        return -R.T @ t
 
 
 @dataclass(kw_only=True)
 class ImportOptions:
     format: CalibrationFormat = CalibrationFormat.AUTO
+    units: Units = Units.AUTO  # TOML translations' unit (see Units)
     scale: float = 1.0  # multiplies the world coordinates (after conversion to metres)
 
 
@@ -129,9 +168,7 @@ def read_qca(path: str | Path) -> list[StaticCamera]:
                 )
             ]
         )
-        cameras.append(
-            StaticCamera(name=name, width=width, height=height, K=K, dist=dist, R=R, t=-R @ center)
-        )
+        cameras.append(StaticCamera(name=name, width=width, height=height, K=K, dist=dist, R=R, t=-R @ center))
     if not cameras:
         raise InputError(path, "no <camera> element found", fix="is this a Qualisys .qca file?")
     return cameras
@@ -145,9 +182,7 @@ def _orthonormalize(R: np.ndarray) -> np.ndarray:
 
 def _toml_array(section: dict, key: str, shape: tuple[int, ...], path: Path, where: str) -> np.ndarray:
     if key not in section:
-        raise InputError(
-            path, f'missing key "{key}"', where=where, fix="see the Pose2Sim/anipose calib.toml layout"
-        )
+        raise InputError(path, f'missing key "{key}"', where=where, fix="see the Pose2Sim/anipose calib.toml layout")
     try:
         value = np.asarray(section[key], dtype=float)
     except (TypeError, ValueError):
@@ -159,8 +194,56 @@ def _toml_array(section: dict, key: str, shape: tuple[int, ...], path: Path, whe
     return value
 
 
-def read_toml(path: str | Path) -> list[StaticCamera]:
-    """Pose2Sim/anipose calib.toml: one StaticCamera per table that has a `matrix` (skips `[metadata]`)."""
+def _toml_rotation(section: dict, path: Path, where: str) -> np.ndarray:
+    """`rotation` as a Rodrigues 3-vector or a 3x3 matrix (nested or 9 flat numbers), checked and orthonormalized."""
+    try:
+        value = np.asarray(section["rotation"], dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(path, '"rotation" must be numbers', where=where) from None
+    if not np.all(np.isfinite(value)):
+        raise InputError(path, '"rotation" contains NaN or infinity', where=where)
+    if value.size == 3:
+        return np.asarray(cv2.Rodrigues(value.reshape(3, 1))[0], dtype=float)
+    if value.size != 9:
+        raise InputError(
+            path,
+            f'"rotation" has shape {value.shape}, expected a Rodrigues vector (3,) or a matrix (3, 3)',
+            where=where,
+        )
+    R = value.reshape(3, 3)
+    if abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+        raise InputError(path, '"rotation" is a 3x3 matrix but not a rotation', where=where)
+    return _orthonormalize(R)
+
+
+def _toml_sections(data: dict) -> list[tuple[str, dict, str | None]]:
+    """(where, table, caliscope cam_id or None) for every camera table of any known layout."""
+    sections: list[tuple[str, dict, str | None]] = []
+    for key, section in data.items():
+        if not isinstance(section, dict):
+            continue
+        if key == "cameras" and all(isinstance(v, dict) for v in section.values()):  # caliscope camera_array
+            sections += [(f"[cameras.{k}]", v, str(v.get("cam_id", k))) for k, v in section.items()]
+        elif "matrix" in section or "cam_id" in section:
+            cam_id = section.get("cam_id")
+            sections.append((f"[{key}]", section, None if cam_id is None else str(cam_id)))
+    return sections
+
+
+def toml_units(data: dict, units: Units = Units.AUTO) -> float:
+    """Metres per translation unit: `units`, or for AUTO mm when `[metadata]` has FreeMoCap's square size."""
+    if units is Units.AUTO:
+        metadata = data.get("metadata")
+        units = Units.MM if isinstance(metadata, dict) and FREEMOCAP_MM_KEY in metadata else Units.M
+    return 0.001 if units is Units.MM else 1.0
+
+
+def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]:
+    """Every TOML layout: one StaticCamera per camera table (see the module doc), translations in metres.
+
+    Tables without a `matrix` are skipped (caliscope: not yet calibrated, with a warning; `[metadata]`,
+    `[charuco]`... silently), as are caliscope cameras with `ignore = true`.
+    """
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -168,12 +251,18 @@ def read_toml(path: str | Path) -> list[StaticCamera]:
         raise InputError(path, "file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(path, f"not valid TOML: {error}") from None
+    metres = toml_units(data, units)
+    if metres != 1.0:
+        log.info("%s: translations read in millimetres", path)
     cameras = []
-    for key, section in data.items():
-        if not isinstance(section, dict) or "matrix" not in section:
+    for where, section, cam_id in _toml_sections(data):
+        if section.get("ignore", False) is True:
+            log.info("%s: %s has ignore = true; skipped", path, where)
             continue
-        where = f"[{key}]"
-        name = str(section.get("name", key))
+        if "matrix" not in section:
+            log.warning("%s: %s has no intrinsics (`matrix`); skipped", path, where)
+            continue
+        name = str(section["name"]) if "name" in section else f"cam_{cam_id}" if cam_id is not None else where[1:-1]
         if section.get("fisheye", False):
             raise InputError(
                 path,
@@ -181,22 +270,31 @@ def read_toml(path: str | Path) -> list[StaticCamera]:
                 where=where,
                 fix="undistort the videos first, or calibrate as pinhole",
             )
+        if section.get("rotation_count", 0):
+            log.warning(
+                "%s: %s has rotation_count = %s; the calibration is used in the videos' stored orientation",
+                path,
+                where,
+                section["rotation_count"],
+            )
         size = _toml_array(section, "size", (2,), path, where)
         K = _toml_array(section, "matrix", (3, 3), path, where)
         dist = np.asarray(section.get("distortions", [0.0, 0.0, 0.0, 0.0]), dtype=float).ravel()
         if dist.shape not in ((4,), (5,)):
             raise InputError(path, f'"distortions" has {dist.size} values, expected 4 or 5', where=where)
-        rvec = _toml_array(section, "rotation", (3,), path, where)
-        tvec = _toml_array(section, "translation", (3,), path, where)
-        R = cv2.Rodrigues(rvec)[0]
-        cameras.append(
-            StaticCamera(name=name, width=round(size[0]), height=round(size[1]), K=K, dist=dist, R=R, t=tvec)
-        )
+        R: np.ndarray | None = None
+        t: np.ndarray | None = None
+        if "rotation" in section or "translation" in section:
+            if "rotation" not in section or "translation" not in section:
+                raise InputError(path, "has one of rotation / translation but not the other", where=where)
+            R = _toml_rotation(section, path, where)
+            t = _toml_array(section, "translation", (3,), path, where) * metres
+        cameras.append(StaticCamera(name=name, width=round(size[0]), height=round(size[1]), K=K, dist=dist, R=R, t=t))
     if not cameras:
         raise InputError(
             path,
             "no camera table (with a `matrix`) found",
-            fix="expected [cam_1] name, size, matrix, distortions, rotation, translation",
+            fix="expected [cam_1] (or caliscope's [cameras.0]) with size, matrix, distortions, rotation, translation",
         )
     return cameras
 
@@ -205,7 +303,8 @@ def write_toml(path: str | Path, cameras: list[StaticCamera]) -> Path:
     """Write a Pose2Sim/anipose calib.toml (for round-trip tests, and to hand poses to those tools)."""
     lines = []
     for index, camera in enumerate(cameras, start=1):
-        rvec = cv2.Rodrigues(camera.R)[0].ravel()
+        R, t = camera.pose(Path(path))
+        rvec = cv2.Rodrigues(R)[0].ravel()
 
         def row(values: np.ndarray) -> str:
             return "[ " + ", ".join(repr(float(v)) for v in values) + ",]"
@@ -217,7 +316,7 @@ def write_toml(path: str | Path, cameras: list[StaticCamera]) -> Path:
             "matrix = [ " + ", ".join(row(r) for r in camera.K) + ",]",
             f"distortions = {row(camera.dist)}",
             f"rotation = {row(rvec)}",
-            f"translation = {row(camera.t)}",
+            f"translation = {row(t)}",
             "fisheye = false",
             "",
         ]
@@ -227,7 +326,10 @@ def write_toml(path: str | Path, cameras: list[StaticCamera]) -> Path:
     return path
 
 
-def read_calibration(path: str | Path, fmt: CalibrationFormat = CalibrationFormat.AUTO) -> list[StaticCamera]:
+def read_calibration(
+    path: str | Path, fmt: CalibrationFormat = CalibrationFormat.AUTO, units: Units = Units.AUTO
+) -> list[StaticCamera]:
+    """Cameras of a QCA or TOML file; TOML cameras may lack a pose (R = t = None): see StaticCamera.pose."""
     path = Path(path)
     if fmt is CalibrationFormat.AUTO:
         lower = path.name.lower()
@@ -241,7 +343,7 @@ def read_calibration(path: str | Path, fmt: CalibrationFormat = CalibrationForma
                 "cannot tell the calibration format from the name",
                 fix="pass --format qca or --format toml",
             )
-    return read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path)
+    return read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -295,9 +397,10 @@ def run(
             f"video name {duplicates[0]!r} is used twice",
             fix="video names (file names without extension) must be unique",
         )
-    cameras = match_cameras(read_calibration(calibration, options.format), infos, calibration)
+    cameras = match_cameras(read_calibration(calibration, options.format, options.units), infos, calibration)
+    poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     result = CameraSet()
-    for info, camera in zip(infos, cameras, strict=True):
+    for info, camera, (R, t) in zip(infos, cameras, poses, strict=True):
         if (info.width, info.height) != (camera.width, camera.height):
             log.warning(
                 "%s is %dx%d but camera %r was calibrated at %dx%d; intrinsics are used unchanged",
@@ -313,8 +416,8 @@ def run(
                 frame=i,
                 time=float(time),
                 K=camera.K.copy(),
-                R=camera.R.copy(),
-                t=camera.t * options.scale,
+                R=R.copy(),
+                t=t * options.scale,
                 dist=camera.dist.copy(),
             )
             for i, time in enumerate(info.times)

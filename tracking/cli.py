@@ -61,11 +61,12 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser(
         "import-tracks",
-        help="import DeepLabCut CSV, OpenPose JSON or plain video,frame,point,x,y CSV into tracks.csv",
+        help="import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board corners "
+             "found in videos into tracks.csv",
         description="Rows of other videos and manual labels already in the output are kept; the imported "
                     "videos' other rows are replaced.")
     parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUT",
-                        help="DLC .csv, OpenPose JSON file or folder, or plain .csv")
+                        help="DLC .csv, OpenPose JSON file or folder, plain .csv, or a video (with --board)")
     parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument("--format", choices=[f.value for f in Format], default="auto",
                         help="input format (default: detected from the file)")
@@ -77,6 +78,9 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--min-score", type=float, default=0.0,
                         help="leave out detections with a lower confidence (default 0)")
     parser.add_argument("--person", type=int, default=0, help="OpenPose: index in people[] (default 0)")
+    parser.add_argument("--board", type=Path, metavar="TOML",
+                        help="ChArUco (videos as inputs): caliscope's charuco.toml or config.toml; points are "
+                             "the board's inner corners corner_<id>")
     parser.set_defaults(func=_run_import)
 
 
@@ -87,7 +91,8 @@ def _run_import(args: argparse.Namespace) -> int:
     if args.person < 0:
         raise InputError(None, f"--person {args.person} is negative")
     options = ImportOptions(format=Format(args.format), video=args.video, mapping=parse_mapping(args.map),
-                            drop_unmapped=args.drop_unmapped, min_score=args.min_score, person=args.person)
+                            drop_unmapped=args.drop_unmapped, min_score=args.min_score, person=args.person,
+                            board=args.board)
     path = run_import(args.inputs, args.out, options)
     print(path)  # noqa: T201
     return 0

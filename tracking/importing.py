@@ -1,7 +1,8 @@
 """`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
 threshold.
 
-Formats: DeepLabCut CSV, OpenPose JSON per frame, and plain `video,frame,point,x,y[,score]` CSV. Imported rows
+Formats: DeepLabCut CSV, OpenPose JSON per frame, plain `video,frame,point,x,y[,score]` CSV, and videos of a
+ChArUco board (`--board charuco.toml`: its corners, see tracking/charuco.py). Imported rows
 get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
 videos and its manual labels (`source=label`) are kept; the labels win over imported rows on the same frame
 and point.
@@ -31,6 +32,10 @@ class Format(enum.Enum):
     DLC = "dlc"
     OPENPOSE = "openpose"
     CSV = "csv"
+    CHARUCO = "charuco"  # the inputs are videos; corners of the board given by ImportOptions.board
+
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
 
 
 @dataclass(kw_only=True)
@@ -41,6 +46,7 @@ class ImportOptions:
     drop_unmapped: bool = False  # with a mapping, keep only the points it names
     min_score: float = 0.0  # detections with a lower confidence are left out
     person: int = 0  # OpenPose: which entry of `people`
+    board: Path | None = None  # ChArUco: caliscope's charuco.toml (or config.toml with a [charuco] table)
 
 
 def parse_mapping(text: str) -> dict[str, str]:
@@ -60,6 +66,8 @@ def parse_mapping(text: str) -> dict[str, str]:
 
 
 def detect_format(path: Path) -> Format:
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return Format.CHARUCO
     if path.is_dir() or path.suffix.lower() == ".json":
         return Format.OPENPOSE
     if path.suffix.lower() in (".h5", ".hdf5"):
@@ -84,7 +92,21 @@ def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[De
         return fmt, read_dlc(path, options.video or video_name_from_dlc(path))
     if fmt is Format.OPENPOSE:
         return fmt, read_openpose(path, options.video or video_name_from_openpose(path), options.person)
+    if fmt is Format.CHARUCO:
+        return fmt, _read_charuco(path, options)
     return fmt, _read_plain(path, options.video)
+
+
+def _read_charuco(path: Path, options: ImportOptions) -> list[Detection]:
+    from tracking.charuco import charuco_tracks
+
+    if options.board is None:
+        raise InputError(path, "ChArUco corners need the board", fix="add --board charuco.toml (caliscope's)")
+    tracks = charuco_tracks([path], options.board)
+    video = options.video or path.stem
+    return [Detection(video=video, frame=int(tracks.frame[i]), point=tracks.point[i], x=float(tracks.xy[i, 0]),
+                      y=float(tracks.xy[i, 1]), score=None, where=f"{path.name} frame {int(tracks.frame[i])}")
+            for i in range(len(tracks))]
 
 
 def _read_plain(path: Path, video: str | None) -> list[Detection]:

@@ -11,7 +11,9 @@ import pytest
 from dynrecon.cli import main
 from dynrecon.errors import InputError
 from sfm.cameras import FrameCamera, read_cameras
-from sfm.import_calibration import StaticCamera, read_qca, write_toml
+from sfm.import_calibration import StaticCamera, Units, read_calibration, read_qca, read_toml, write_toml
+from sfm.intrinsics import known_intrinsics
+from sfm.video import probe_video
 
 
 def _rotation(rng: np.random.Generator) -> np.ndarray:
@@ -69,11 +71,7 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     empty.write_bytes(b"")
     toml = write_toml(
         tmp_path / "calib.toml",
-        [
-            StaticCamera(
-                name="empty", width=64, height=48, K=np.eye(3), dist=np.zeros(4), R=np.eye(3), t=np.zeros(3)
-            )
-        ],
+        [StaticCamera(name="empty", width=64, height=48, K=np.eye(3), dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))],
     )
     assert main(["import-calibration", str(toml), str(empty), "--out", str(tmp_path / "ws")]) == 2
     assert "empty.mp4: file is empty" in capsys.readouterr().err
@@ -115,9 +113,7 @@ def test_qca_pose2sim(shared_dir: Path, tmp_path: Path) -> None:
         assert np.all(np.abs(uv.ravel() - [540, 960]) < [540, 960])
 
 
-def _epipolar_agreement(
-    first: FrameCamera, second: FrameCamera, image_a: np.ndarray, image_b: np.ndarray
-) -> int:
+def _epipolar_agreement(first: FrameCamera, second: FrameCamera, image_a: np.ndarray, image_b: np.ndarray) -> int:
     """How many SIFT ratio-test matches between two views lie within 3 px of the poses' epipolar lines."""
     sift = cv2.SIFT_create(8000)
     ka, da = sift.detectAndCompute(cv2.cvtColor(image_a, cv2.COLOR_BGR2GRAY), None)
@@ -154,3 +150,203 @@ def test_qca_poses_agree_with_image_matches(shared_dir: Path, tmp_path: Path) ->
         frame.t = -frame.R @ center
     wrong = _epipolar_agreement(first, second, *images)
     assert agree >= 8 and agree >= 4 * max(wrong, 1), (agree, wrong)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# caliscope and FreeMoCap layouts
+
+
+def _row(values: np.ndarray) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in np.ravel(values)) + "]"
+
+
+def _matrix(values: np.ndarray) -> str:
+    return "[" + ", ".join(_row(r) for r in values) + "]"
+
+
+def _write_caliscope(path: Path, cameras: list[StaticCamera], *, config: bool = False, ignore: int = -1) -> Path:
+    """caliscope's camera_array.toml ([cameras.N]) or config.toml ([cam_N] plus [charuco]); rotation a matrix."""
+    lines = []
+    for index, camera in enumerate(cameras):
+        lines += [
+            f"[cam_{index}]" if config else f"[cameras.{index}]",
+            f"cam_id = {index}",
+            "rotation_count = 0",
+            f"ignore = {'true' if index == ignore else 'false'}",
+            f"size = [{camera.width}, {camera.height}]",
+            f"matrix = {_matrix(camera.K)}",
+            f"distortions = {_row(camera.dist)}",
+        ]
+        if camera.R is not None and camera.t is not None:
+            lines += [f"translation = {_row(camera.t)}", f"rotation = {_matrix(camera.R)}"]
+        lines.append("")
+    if config:
+        lines += ["[charuco]", "columns = 4", "rows = 5", 'dictionary = "DICT_4X4_1000"', ""]
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path
+
+
+def _write_freemocap(path: Path, cameras: list[StaticCamera]) -> Path:
+    """FreeMoCap's *_camera_calibration.toml: anipose's [cam_N], Rodrigues rotation, translation in mm."""
+    lines = []
+    for index, camera in enumerate(cameras):
+        assert camera.R is not None and camera.t is not None
+        lines += [
+            f"[cam_{index}]",
+            f'name = "{camera.name}"',
+            f"size = [{camera.width}, {camera.height}]",
+            f"matrix = {_matrix(camera.K)}",
+            f"distortions = {_row(camera.dist)}",
+            f"rotation = {_row(cv2.Rodrigues(camera.R)[0])}",
+            f"translation = {_row(camera.t * 1000.0)}",
+            "",
+        ]
+    lines += [
+        "[metadata]",
+        "charuco_square_size = 39",
+        'charuco_board_object = "CharucoBoardDefinition(7x5)"',
+        'path_to_recorded_videos = "/recording/synchronized_videos"',
+        'date_time_calibrated = "2024-01-01T00:00:00"',
+        "",
+    ]
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path
+
+
+def _random_cameras(names: list[str], seed: int = 5) -> list[StaticCamera]:
+    rng = np.random.default_rng(seed)
+    return [
+        StaticCamera(
+            name=name,
+            width=64,
+            height=48,
+            K=np.array([[500.0 + 7 * i, 0.0, 31.5], [0.0, 502.0, 23.5], [0.0, 0.0, 1.0]]),
+            dist=np.array([-0.1 * i, 0.02, 0.001, -0.002, 0.003]),
+            R=_rotation(rng),
+            t=rng.normal(size=3),
+        )
+        for i, name in enumerate(names)
+    ]
+
+
+def _assert_same(read: list[StaticCamera], cameras: list[StaticCamera]) -> None:
+    assert [c.name for c in read] == [c.name for c in cameras]
+    for got, want in zip(read, cameras, strict=True):
+        assert (got.width, got.height) == (want.width, want.height)
+        np.testing.assert_allclose(got.K, want.K)
+        np.testing.assert_allclose(got.dist, want.dist)
+        assert got.R is not None and want.R is not None and got.t is not None and want.t is not None
+        np.testing.assert_allclose(got.R, want.R, atol=1e-12)
+        np.testing.assert_allclose(got.t, want.t, atol=1e-12)
+
+
+@pytest.mark.parametrize("config", [False, True], ids=["camera_array", "config"])
+def test_caliscope_round_trip(tmp_path: Path, config: bool) -> None:
+    cameras = _random_cameras(["cam_0", "cam_1", "cam_2"])
+    path = _write_caliscope(tmp_path / "layout.toml", cameras, config=config, ignore=1)
+    _assert_same(read_calibration(path), [cameras[0], cameras[2]])  # cam_1 has ignore = true
+
+
+def test_freemocap_round_trip_millimetres(tmp_path: Path) -> None:
+    """FreeMoCap: camera names are the video stems; [metadata] charuco_square_size means mm translations."""
+    cameras = _random_cameras(["Camera_000_synchronized", "Camera_001_synchronized"])
+    path = _write_freemocap(tmp_path / "recording_camera_calibration.toml", cameras)
+    _assert_same(read_calibration(path), cameras)
+    as_metres = read_toml(path, Units.M)  # forced: the translations are read as they are written
+    np.testing.assert_allclose(as_metres[1].t, 1000.0 * cameras[1].t)
+    videos = []
+    for camera in cameras:
+        videos.append(tmp_path / f"{camera.name}.mp4")
+        _write_video(videos[-1], 3, (64, 48))
+    assert main(["import-calibration", str(path), *map(str, videos), "--out", str(tmp_path / "ws")]) == 0
+    result = read_cameras(tmp_path / "ws" / "cameras.json")
+    np.testing.assert_allclose(result.videos[1].frames[0].t, cameras[1].t, atol=1e-12)
+    assert main(["import-calibration", str(path), *map(str, videos), "--out", str(tmp_path / "m"), "--units", "m"]) == 0
+    result = read_cameras(tmp_path / "m" / "cameras.json")
+    np.testing.assert_allclose(result.videos[1].frames[0].t, 1000.0 * cameras[1].t, atol=1e-9)
+
+
+def test_rotation_matrix_or_rodrigues_in_every_layout(tmp_path: Path) -> None:
+    R = _rotation(np.random.default_rng(11))
+    rvec = cv2.Rodrigues(R)[0].ravel()
+    common = "size = [64, 48]\nmatrix = [[500.0, 0.0, 32.0], [0.0, 500.0, 24.0], [0.0, 0.0, 1.0]]\n"
+    common += "translation = [0.1, 0.2, 0.3]\n"
+    for header in ("[cam_1]", "[cameras.0]\ncam_id = 0"):
+        for rotation in (_row(rvec), _matrix(R), _row(R)):  # Rodrigues, nested 3x3, 9 flat numbers
+            path = tmp_path / "r.toml"
+            path.write_text(f"{header}\n{common}rotation = {rotation}\n", encoding="utf-8")
+            (camera,) = read_calibration(path)
+            np.testing.assert_allclose(camera.R, R, atol=1e-12)
+    path.write_text(f"[cam_1]\n{common}rotation = {_matrix(2 * R)}\n", encoding="utf-8")
+    with pytest.raises(InputError, match="not a rotation"):
+        read_calibration(path)
+    path.write_text(f"[cam_1]\n{common}rotation = [1.0, 2.0]\n", encoding="utf-8")
+    with pytest.raises(InputError, match="expected a Rodrigues vector"):
+        read_calibration(path)
+
+
+def test_intrinsics_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """caliscope before the capture-volume step: intrinsics for `register --intrinsics`, no import-calibration."""
+    cameras = _random_cameras(["cam_0", "cam_1"])
+    for camera in cameras:
+        camera.R = camera.t = None
+    path = _write_caliscope(tmp_path / "camera_array.toml", cameras)
+    with open(path, "a", encoding="utf-8") as handle:  # a camera not calibrated at all is skipped
+        handle.write("[cameras.2]\ncam_id = 2\nsize = [64, 48]\nignore = false\n")
+    read = read_calibration(path)
+    assert [c.name for c in read] == ["cam_0", "cam_1"] and not any(c.has_pose for c in read)
+    videos = [tmp_path / "cam_1.mp4", tmp_path / "cam_0.mp4"]
+    for video in videos:
+        _write_video(video, 2, (64, 48))
+    intrinsics = known_intrinsics(path, [probe_video(v) for v in videos])
+    np.testing.assert_allclose(intrinsics["cam_1"][0], cameras[1].K)
+    np.testing.assert_allclose(intrinsics["cam_0"][1], cameras[0].dist)
+    assert main(["import-calibration", str(path), *map(str, videos), "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err
+    assert "camera 'cam_1' has intrinsics only" in err, err
+    assert not (tmp_path / "ws" / "cameras.json").exists()
+
+
+# Written down from ../shared/data/videos/caliscope_office/camera_array.toml (config.toml holds the same cameras):
+# K, distortions of cam_0 and cam_3, and every centre -R^T t (metres).
+CALISCOPE_K0 = [[903.550124089999, 0.0, 618.3086297620227], [0.0, 907.8788668762852, 394.213230569746], [0, 0, 1]]
+CALISCOPE_DIST3 = [
+    0.16889026717338923,
+    -0.22656481380801907,
+    0.0014291725779222067,
+    0.00041512649462704715,
+    0.10610964089301607,
+]
+CALISCOPE_CENTERS = [
+    [-0.6521290816, -0.2411164052, -0.1469386797],
+    [-0.3501496933, 0.8444593255, -0.0408395456],
+    [-0.5749959796, 0.0322955931, 0.3235560651],
+    [-0.5736973443, -0.5612476560, 0.1233698960],
+]
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("name", ["camera_array.toml", "config.toml"])
+def test_caliscope_real_files(shared_dir: Path, name: str) -> None:
+    cameras = read_calibration(shared_dir / "data" / "videos" / "caliscope_office" / name)
+    assert [c.name for c in cameras] == ["cam_0", "cam_1", "cam_2", "cam_3"]
+    assert all((c.width, c.height) == (1280, 720) for c in cameras)
+    np.testing.assert_allclose(cameras[0].K, CALISCOPE_K0, rtol=1e-15)
+    np.testing.assert_allclose(cameras[3].dist, CALISCOPE_DIST3, rtol=1e-15)
+    np.testing.assert_allclose([c.center for c in cameras], CALISCOPE_CENTERS, atol=2e-10)
+    np.testing.assert_allclose(cameras[1].t, [0.30872148305699454, -0.14760639347661925, 0.8486976063733689])
+
+
+@pytest.mark.shared
+def test_import_caliscope_videos(shared_dir: Path, tmp_path: Path) -> None:
+    office = shared_dir / "data" / "videos" / "caliscope_office"
+    videos = [office / "calibration" / "extrinsic" / f"cam_{i}.mp4" for i in (2, 0, 3, 1)]
+    assert (
+        main(["import-calibration", str(office / "camera_array.toml"), *map(str, videos), "--out", str(tmp_path)]) == 0
+    )
+    result = read_cameras(tmp_path / "cameras.json")
+    assert [v.name for v in result.videos] == ["cam_2", "cam_0", "cam_3", "cam_1"]
+    for video, i in zip(result.videos, (2, 0, 3, 1), strict=True):
+        assert (video.width, video.height) == (1280, 720) and len(video.frames) == 111
+        centers = np.array([f.center for f in video.frames])
+        np.testing.assert_allclose(centers, np.broadcast_to(CALISCOPE_CENTERS[i], centers.shape), atol=1e-9)

@@ -1,0 +1,211 @@
+"""ChArUco board corners as tracks: every inner corner OpenCV's aruco module finds in every frame of each video.
+
+The board comes from caliscope's `charuco.toml` (or the `[charuco]` table of its `config.toml`): `columns`, `rows`
+(squares), `dictionary` (an OpenCV predefined dictionary name such as DICT_4X4_1000), `square_size_override_cm`
+(the printed square edge; without it the square fills `board_width` x `board_height` in `units`), `aruco_scale`
+(marker edge / square edge) and `inverted` (printed white on black: frames are inverted, 255 - gray, before
+detection). The board is OpenCV's `CharucoBoard((columns, rows), ...)`, as caliscope builds it, so corner ids and
+positions are the same as caliscope's: corner i at `getChessboardCorners()[i]` (metres, z = 0).
+
+Rows of the result: video = the file name without extension, frame = 0-based decoded frame index, point =
+`corner_<id>`, x, y in OpenCV pixels (top-left pixel centre is (0, 0)), `source` = "charuco".
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tomllib
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dynrecon.errors import InputError
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+SOURCE_CHARUCO = "charuco"
+CM_PER_INCH = 2.54
+
+
+def corner_name(corner_id: int) -> str:
+    return f"corner_{corner_id}"
+
+
+@dataclass(kw_only=True)
+class CharucoBoard:
+    """A ChArUco board: `columns` x `rows` squares, lengths in metres."""
+
+    columns: int
+    rows: int
+    square_size: float  # metres
+    marker_size: float  # metres
+    dictionary: str = "DICT_4X4_50"  # name of an OpenCV predefined aruco dictionary
+    inverted: bool = False  # printed inverted: detect on 255 - gray
+    legacy_pattern: bool = False  # OpenCV < 4.6 layout (matters for an even number of rows)
+
+    @property
+    def num_corners(self) -> int:
+        return (self.columns - 1) * (self.rows - 1)
+
+    def opencv(self) -> cv2.aruco.CharucoBoard:
+        dictionary = cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary, None))
+        board = cv2.aruco.CharucoBoard((self.columns, self.rows), self.square_size, self.marker_size, dictionary)
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+
+def _dictionary_id(name: str, path: Path | None) -> int:
+    value = getattr(cv2.aruco, name.upper(), None) if name.upper().startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise InputError(path, f"unknown aruco dictionary {name!r}", fix="use an OpenCV name such as DICT_4X4_50")
+    return value
+
+
+def read_charuco_board(path: str | Path) -> CharucoBoard:
+    """caliscope's `charuco.toml` (keys at the top level) or its `config.toml` (a `[charuco]` table)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise InputError(path, f"not valid TOML: {error}") from None
+    table = data.get("charuco", data)
+    where = "[charuco]" if "charuco" in data else None
+    if not isinstance(table, dict) or "columns" not in table or "rows" not in table:
+        raise InputError(
+            path,
+            "no ChArUco board (columns, rows) found",
+            where=where,
+            fix="give caliscope's charuco.toml or config.toml",
+        )
+
+    def number(key: str, default: float | None = None) -> float:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value) or value <= 0:
+            raise InputError(path, f"{key} = {value!r} must be a positive number", where=where)
+        return float(value)
+
+    columns, rows = number("columns"), number("rows")
+    if columns != int(columns) or rows != int(rows) or columns < 2 or rows < 2:
+        raise InputError(path, f"columns, rows = {columns:g}, {rows:g} must be integers >= 2", where=where)
+    # caliscope spelled the key square_size_overide_cm in its code for a while: accept both.
+    override = table.get("square_size_override_cm", table.get("square_size_overide_cm"))
+    if override:
+        square = (
+            number("square_size_override_cm" if "square_size_override_cm" in table else "square_size_overide_cm")
+            / 100.0
+        )
+    else:
+        per_cm = CM_PER_INCH if str(table.get("units", "inch")).lower() in ("inch", "in") else 1.0
+        square = min(number("board_height") / rows, number("board_width") / columns) * per_cm / 100.0
+    aruco_scale = number("aruco_scale", 0.75)
+    if aruco_scale >= 1:
+        raise InputError(path, f"aruco_scale = {aruco_scale} must be below 1 (marker / square edge)", where=where)
+    dictionary = str(table.get("dictionary", "DICT_4X4_50"))
+    _dictionary_id(dictionary, path)
+    return CharucoBoard(
+        columns=int(columns),
+        rows=int(rows),
+        square_size=square,
+        marker_size=square * aruco_scale,
+        dictionary=dictionary,
+        inverted=bool(table.get("inverted", False)),
+        legacy_pattern=bool(table.get("legacy_pattern", False)),
+    )
+
+
+def _board(board: Path | str | CharucoBoard) -> CharucoBoard:
+    return board if isinstance(board, CharucoBoard) else read_charuco_board(board)
+
+
+def board_corner_positions(board: Path | str | CharucoBoard) -> dict[str, np.ndarray]:
+    """`corner_<id>` -> (3,) position on the board in metres (board frame: x along columns, y along rows, z = 0)."""
+    corners = np.asarray(_board(board).opencv().getChessboardCorners(), dtype=float).reshape(-1, 3)
+    return {corner_name(i): corner for i, corner in enumerate(corners)}
+
+
+def detect_corners(
+    gray: np.ndarray, detector: cv2.aruco.CharucoDetector, *, inverted: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Corner ids (K,) int64 and pixel positions (K, 2) of the board in one (H, W) uint8 frame."""
+    corners, ids, _, _ = detector.detectBoard(255 - gray if inverted else gray)
+    if ids is None or len(ids) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+    return np.asarray(ids, dtype=np.int64).ravel(), np.asarray(corners, dtype=float).reshape(-1, 2)
+
+
+def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(frame (N,), corner id (N,), xy (N, 2), decoded frame count) for one video."""
+    if not path.is_file():
+        raise InputError(path, "video file not found" if not path.exists() else "not a video file")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise InputError(
+            path,
+            "OpenCV cannot open this video",
+            fix="convert it to H.264 MP4 (e.g. ffmpeg -i in -c:v libx264 out.mp4)",
+        )
+    detector = cv2.aruco.CharucoDetector(board.opencv())
+    frames: list[np.ndarray] = []
+    ids: list[np.ndarray] = []
+    xy: list[np.ndarray] = []
+    index = 0
+    try:
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                break
+            gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            corner_ids, corner_xy = detect_corners(gray, detector, inverted=board.inverted)
+            if len(corner_ids) >= min_corners:
+                frames.append(np.full(len(corner_ids), index, dtype=np.int64))
+                ids.append(corner_ids)
+                xy.append(corner_xy)
+            index += 1
+    finally:
+        capture.release()
+    if index == 0:
+        raise InputError(path, "no decodable frames", fix="check the file plays; convert it to H.264")
+    if not frames:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)), index
+    return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), index
+
+
+def charuco_tracks(
+    videos: Sequence[Path | str], board: Path | str | CharucoBoard, *, min_corners: int = 1, workers: int | None = None
+) -> Tracks:
+    """Board corners in every frame of every video: one row per (video, frame, corner), point `corner_<id>`.
+
+    Frames with fewer than `min_corners` corners are left out. Videos are decoded in `workers` threads
+    (default: one per video, at most the CPU count); OpenCV releases the GIL while decoding and detecting.
+    """
+    board = _board(board)
+    paths = [Path(v) for v in videos]
+    names = [p.stem for p in paths]
+    for i, name in enumerate(names):
+        if name in names[:i]:
+            raise InputError(paths[i], f"two videos are named {name!r}", fix="video names must be unique")
+    workers = workers or max(1, min(len(paths), os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(lambda p: _detect_video(p, board, min_corners), paths))
+    video: list[str] = []
+    for name, path, (frame, _, _, count) in zip(names, paths, results, strict=True):
+        video += [name] * len(frame)
+        log.info("%s: board corners in %d of %d frames (%d corners)", path, len(np.unique(frame)), count, len(frame))
+    frame = np.concatenate([r[0] for r in results]) if results else np.zeros(0, dtype=np.int64)
+    ids = np.concatenate([r[1] for r in results]) if results else np.zeros(0, dtype=np.int64)
+    xy = np.concatenate([r[2] for r in results]) if results else np.zeros((0, 2))
+    return Tracks(
+        video=video,
+        frame=frame,
+        point=[corner_name(int(i)) for i in ids],
+        xy=xy,
+        extra={"source": [SOURCE_CHARUCO] * len(video)},
+    )
