@@ -25,8 +25,9 @@ def extract(
     max_features: int,
     num_threads: int,
 ) -> dict[str, int]:
-    """SIFT features of `videos` = [{name, images, camera_model, camera_params}], one pycolmap camera per
-    video.
+    """SIFT features of `videos` = [{name, images, camera_model, camera_params[, max_features, wide_baseline]}],
+    one pycolmap camera per video. `wide_baseline`: DSP-SIFT with affine shapes (a static video's background
+    image, matched across wide baselines).
 
     Returns keypoints per image name.
     """
@@ -38,7 +39,10 @@ def extract(
         if mask_dir:
             reader.mask_path = mask_dir
         options = pycolmap.FeatureExtractionOptions()
-        options.sift.max_num_features = max_features
+        options.sift.max_num_features = video.get("max_features", max_features)
+        if video.get("wide_baseline", False):
+            options.sift.estimate_affine_shape = True
+            options.sift.domain_size_pooling = True
         options.num_threads = num_threads
         options.max_image_size = 100000  # frames are already resized by dynrecon
         pycolmap.extract_features(

@@ -36,6 +36,8 @@ def localize_all(
     # Frames not sent to SfM need features: decode them and extract into a second database.
     extra_names = {}
     for video in videos:
+        if video.static:
+            continue  # every frame takes the background image's pose
         extra = np.setdiff1d(video.wanted, video.sfm_frames)
         if len(extra):
             extra_names[video.info.name] = write_frames(
@@ -65,11 +67,30 @@ def localize_all(
         query = pycolmap.Database.open(str(query_db)) if extra_names else None
         try:
             for video in tqdm(videos, desc="localizing", unit="video", leave=False):
-                results[video.info.name] = _localize_video(video, rec, db, query, max_ratio, min_inliers)
+                if video.static:
+                    results[video.info.name] = _static_video(video, rec)
+                else:
+                    results[video.info.name] = _localize_video(video, rec, db, query, max_ratio, min_inliers)
         finally:
             if query is not None:
                 query.close()
     return results
+
+
+def _static_video(video: VideoPlan, rec: pycolmap.Reconstruction) -> dict[int, FramePose]:
+    """Every wanted frame of a static video takes the pose of its background image, when the model has it."""
+    image = rec.find_image_with_name(video.background_name)
+    if image is None or not image.has_pose:
+        return {int(f): FramePose(pose=None, reason="background image not in the kept model") for f in video.wanted}
+    errors = image_reprojection_errors(rec, image)
+    pose = FramePose(
+        pose=image.cam_from_world(),
+        source="static",
+        intrinsics=opencv_intrinsics(rec.cameras[image.camera_id], video.resize),
+        error=float(errors.mean()) / video.resize.scale if len(errors) else None,
+        inliers=len(errors),
+    )
+    return {int(f): pose for f in video.wanted}
 
 
 def _localize_video(

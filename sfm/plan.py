@@ -8,20 +8,31 @@ import numpy as np
 import pycolmap
 
 from sfm.frames import Resize
+from sfm.static import MotionTest
 from sfm.video import VideoInfo
+
+BACKGROUND_IMAGE = "background"  # a static video's one SfM image: frames/<video>/background.jpg
 
 
 @dataclass(kw_only=True)
 class VideoPlan:
     info: VideoInfo
     resize: Resize
-    sfm_frames: np.ndarray  # (S,) decoded frame numbers sent to SfM
+    sfm_frames: np.ndarray  # (S,) decoded frame numbers sent to SfM (empty for a static video)
     wanted: np.ndarray  # (W,) every frame that should get a pose (includes sfm_frames)
+    motion: MotionTest | None = None  # the measured static/moving decision (None when the user chose)
+    static: bool = False  # one camera pose for every frame, from one background image
+
+    @property
+    def background_name(self) -> str:
+        """The SfM image name of a static video's background (relative to the frames folder)."""
+        return f"{self.info.name}/{BACKGROUND_IMAGE}.jpg"
 
 
 @dataclass(kw_only=True)
 class FramePose:
-    """The outcome for one wanted frame. `source`: "sfm", "pnp" or "pnp (dropped by SfM)"; None without pose."""
+    """The outcome for one wanted frame. `source`: "sfm", "pnp", "pnp (dropped by SfM)", "static" or
+    "subject"; None without pose."""
 
     pose: pycolmap.Rigid3d | None
     reason: str | None = None  # why there is no pose

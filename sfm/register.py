@@ -1,11 +1,12 @@
-"""`dynrecon register`: a pose and intrinsics for every frame of every video, from SfM on the static
-background.
+"""`dynrecon register`: a pose and intrinsics for every frame of every video, in one world frame.
 
-Stages: probe videos -> choose and decode SfM frames (+ masks) -> SIFT (one camera per video) -> matching of
-sequential pairs within a video and of keyframes across videos -> mapping (incremental or global), keep the
-largest
-model -> PnP localization of the other frames against it -> cameras.json, background.ply,
-register_report.json.
+Stages: probe videos -> test each camera for motion (`sfm.static`) -> SfM images: a static video sends one
+background image (temporal median), a moving one sampled frames (+ masks) -> SIFT (one camera per video) ->
+matching of sequential pairs within a video and of every keyframe / background image across videos -> mapping
+(incremental or global), keep the largest model -> a static video's frames take its background image's pose, a
+moving video's other frames are posed by PnP against the model -> static videos the background left out are
+posed from the moving subject's 2D tracks (`sfm.subject`, anchored on the videos the background posed) ->
+cameras.json, background.ply, register_report.json (which path posed each video, and why).
 pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP error is a clear message.
 """
 
@@ -16,10 +17,11 @@ import logging
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
 
+import cv2
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -28,14 +30,16 @@ from dynrecon.errors import DynreconError, InputError
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from sfm.export import write_ply
-from sfm.frames import Resize, image_name, select_frames, write_frames
+from sfm.frames import JPEG_QUALITY, Resize, image_name, select_frames, write_frames
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
 from sfm.localize_frames import localize_all
 from sfm.masks import mask_from_points, track_points, user_mask, write_mask
 from sfm.pairs import build_pairs
 from sfm.plan import FramePose, VideoPlan
+from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
+from sfm.static import StaticOptions, background_image, measure_motion, sample_frames
 from sfm.video import VideoInfo, probe_video
 from tracking.tracks import Tracks, read_tracks
 
@@ -56,6 +60,22 @@ class Localize(enum.Enum):
     NONE = "none"
 
 
+class CameraMotion(enum.Enum):
+    """Whether a video's camera moves: measured per video (AUTO) or set by the user for all videos."""
+
+    AUTO = "auto"
+    STATIC = "static"
+    MOVING = "moving"
+
+
+class SubjectPath(enum.Enum):
+    """When static videos are posed from the moving subject's tracks."""
+
+    AUTO = "auto"  # for static videos the background did not pose, when tracks exist
+    ALWAYS = "always"  # every static video, anchored on the background's poses where there are some
+    NEVER = "never"
+
+
 class RegistrationError(DynreconError):
     """SfM could not put at least two videos into one model."""
 
@@ -70,6 +90,13 @@ class RegisterOptions:
     max_frames: int = 40  # SfM frames per video at most
     long_side: int = 1280  # SfM frames are resized to this long side (pixels)
     max_features: int = 4096  # SIFT features per frame
+    # A static video's background image is matched across wide baselines: more features, DSP-SIFT with affine
+    # shapes (see docs/registration.md).
+    background_features: int = 16384
+    camera_motion: CameraMotion = CameraMotion.AUTO
+    static: StaticOptions = field(default_factory=StaticOptions)
+    subject: SubjectPath = SubjectPath.AUTO
+    scale: tuple[str, str, float] | None = None  # (point A, point B, metres) for the subject path's scale
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video; every keyframe is matched with every keyframe of the other videos
@@ -167,6 +194,8 @@ def _extract_args(
                     "images": names_of[video.info.name],
                     "camera_model": model,
                     "camera_params": params,
+                    "max_features": options.background_features if video.static else options.max_features,
+                    "wide_baseline": any(v.static for v in videos),  # one descriptor kind for all images
                 }
             )
     return args
@@ -206,6 +235,70 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
             logging.getLogger(name).removeHandler(collector)
 
 
+def _plan_videos(infos: list[VideoInfo], tracks: Tracks | None, options: RegisterOptions) -> list[VideoPlan]:
+    """Which frames each video sends to SfM and which need a pose; static or moving camera, measured."""
+    videos = []
+    for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
+        motion = None
+        if options.camera_motion is CameraMotion.AUTO:
+            motion, _ = measure_motion(info, options.static)
+            static = motion.static
+            log.info("%s: %s", info.name, motion.reason)
+        else:
+            static = options.camera_motion is CameraMotion.STATIC
+        resize = Resize.for_video(info, options.long_side)
+        sfm_frames = (
+            np.zeros(0, np.int64)
+            if static
+            else select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
+        )
+        videos.append(
+            VideoPlan(
+                info=info,
+                resize=resize,
+                sfm_frames=sfm_frames,
+                wanted=_wanted_frames(info, sfm_frames, tracks, options.localize),
+                motion=motion,
+                static=static,
+            )
+        )
+    return videos
+
+
+def _write_background(
+    video: VideoPlan, frames_dir: Path, tracks: Tracks | None, options: RegisterOptions, mask_dir: Path
+) -> bool:
+    """A static video's background image (and its mask where the subject stays); returns whether a mask was
+    written."""
+    frames = sample_frames(video.info, options.static.samples)
+    image = background_image(video.info, frames, video.resize)
+    path = frames_dir / video.background_name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.jpg")
+    cv2.imwrite(str(tmp), image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    tmp.replace(path)
+    if not options.use_masks:
+        return False
+    masks = []
+    if options.masks:
+        user = user_mask(options.masks, video.info.name, int(frames[0]), video.resize)
+        if user is not None:
+            masks.append(user)
+    per_frame = track_points(tracks, video.info.name) if tracks is not None else {}
+    if per_frame:
+        # The median image still shows the subject where it stayed for most of the sampled frames: mask there.
+        known = np.array(sorted(per_frame))
+        covered = [
+            mask_from_points(per_frame[int(known[np.abs(known - f).argmin()])], video.resize, options.mask_radius) == 0
+            for f in frames
+        ]
+        masks.append(np.where(np.mean(covered, axis=0) >= 0.5, 0, 255).astype(np.uint8))
+    if not masks:
+        return False
+    write_mask(mask_dir, video.background_name, np.minimum.reduce(masks))
+    return True
+
+
 def _run(
     infos: list[VideoInfo],
     out: Path,
@@ -219,23 +312,18 @@ def _run(
     started = time.perf_counter()
     tracks = _tracks(options, out)
     intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
-    videos = []
-    for info in infos:
-        sfm_frames = select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
-        videos.append(
-            VideoPlan(
-                info=info,
-                resize=Resize.for_video(info, options.long_side),
-                sfm_frames=sfm_frames,
-                wanted=_wanted_frames(info, sfm_frames, tracks, options.localize),
-            )
-        )
-    timings["select"] = time.perf_counter() - started
+    videos = _plan_videos(infos, tracks, options)
+    timings["motion_test"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    names_of = {v.info.name: write_frames(v.info, v.sfm_frames, frames_dir, v.resize) for v in videos}
     mask_dir = sfm_dir / "masks"
-    masked = _write_masks(videos, tracks, options, mask_dir) if options.use_masks else 0
+    names_of = {}
+    masked = _write_masks([v for v in videos if not v.static], tracks, options, mask_dir) if options.use_masks else 0
+    for video in videos:
+        names_of[video.info.name] = write_frames(video.info, video.sfm_frames, frames_dir, video.resize)
+        if video.static:
+            masked += _write_background(video, frames_dir, tracks, options, mask_dir)
+            names_of[video.info.name] = [video.background_name]
     timings["decode"] = time.perf_counter() - started
 
     database = sfm_dir / "database.db"
@@ -295,42 +383,43 @@ def _run(
         colmap_log,
     )
     timings["map"] = time.perf_counter() - started
-    if not models:
-        _fail(
-            out,
-            videos,
-            {},
-            timings,
-            warnings,
-            options,
-            pairs,
-            matching,
-            None,
-            "SfM found no model: no two frames could be matched and triangulated",
-        )
-    best = max(models, key=lambda k: models[k])
-    rec = pycolmap.Reconstruction(str(model_dir / best))
-    if len(models) > 1:
-        warnings.append(
-            f"{len(models)} models; kept model {best} with {models[best]} images "
-            f"(others: {', '.join(f'{k}: {v}' for k, v in models.items() if k != best)})"
-        )
+    rec = None
+    if models:
+        best = max(models, key=lambda k: models[k])
+        rec = pycolmap.Reconstruction(str(model_dir / best))
+        if len(models) > 1:
+            warnings.append(
+                f"{len(models)} models; kept model {best} with {models[best]} images "
+                f"(others: {', '.join(f'{k}: {v}' for k, v in models.items() if k != best)})"
+            )
+    else:
+        warnings.append("background SfM found no model: no two images could be matched and triangulated")
 
     started = time.perf_counter()
-    results = localize_all(
-        videos,
-        rec,
-        database,
-        frames_dir,
-        sfm_dir,
-        mask_dir if masked else None,
-        colmap_log,
-        max_features=options.max_features,
-        max_ratio=options.max_ratio,
-        min_inliers=options.min_inliers,
-        num_threads=options.num_threads,
-    )
+    if rec is not None:
+        results = localize_all(
+            videos,
+            rec,
+            database,
+            frames_dir,
+            sfm_dir,
+            mask_dir if masked else None,
+            colmap_log,
+            max_features=options.max_features,
+            max_ratio=options.max_ratio,
+            min_inliers=options.min_inliers,
+            num_threads=options.num_threads,
+        )
+    else:
+        results = {
+            v.info.name: {int(f): FramePose(pose=None, reason="background SfM found no model") for f in v.wanted}
+            for v in videos
+        }
     timings["localize"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    subject_report = pose_from_subject(videos, results, tracks, intrinsics, options, warnings)
+    timings["subject"] = time.perf_counter() - started
 
     registered_videos = [v for v in videos if any(r.pose is not None for r in results[v.info.name].values())]
     if len(registered_videos) < 2:
@@ -345,6 +434,7 @@ def _run(
             pairs,
             matching,
             rec,
+            subject_report,
             f"only {len(registered_videos)} of {len(videos)} videos registered ({names})",
         )
 
@@ -375,8 +465,11 @@ def _run(
                 frames=frames,
             )
         )
-    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-    rgb = np.array([p.color for p in rec.points3D.values()], dtype=np.uint8).reshape(-1, 3)
+    if rec is not None:
+        xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+        rgb = np.array([p.color for p in rec.points3D.values()], dtype=np.uint8).reshape(-1, 3)
+    else:
+        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     write_ply(out / "background.ply", xyz, rgb)
     path = write_cameras(out / "cameras.json", cameras)
     timings["export"] = time.perf_counter() - started
@@ -390,6 +483,7 @@ def _run(
         pairs=len(pairs),
         matching=matching,
         rec=rec,
+        subject=subject_report,
         error=None,
     )
     return path
@@ -405,6 +499,7 @@ def _fail(
     pairs: list[tuple[str, str]],
     matching: dict[str, int],
     rec: pycolmap.Reconstruction | None,
+    subject: dict[str, Any] | None,
     what: str,
 ) -> NoReturn:
     message = (
@@ -422,9 +517,19 @@ def _fail(
         pairs=len(pairs),
         matching=matching,
         rec=rec,
+        subject=subject,
         error=message,
     )
     raise RegistrationError(message)
 
 
-__all__ = ["Localize", "Mapper", "RegisterOptions", "RegistrationError", "read_cameras", "run"]
+__all__ = [
+    "CameraMotion",
+    "Localize",
+    "Mapper",
+    "RegisterOptions",
+    "RegistrationError",
+    "SubjectPath",
+    "read_cameras",
+    "run",
+]

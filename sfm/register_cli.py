@@ -9,15 +9,18 @@ from pathlib import Path
 
 def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     """Register `dynrecon register` on the main parser."""
-    from sfm.register import Localize, Mapper, RegisterOptions
+    from sfm.register import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
 
     defaults = RegisterOptions()
     parser = subparsers.add_parser(
         "register",
         help="SfM on the static background: a pose for every frame of every video (cameras.json)",
-        description="Registers unsynchronized videos against the static background with pycolmap and writes "
-        "WS/cameras.json, WS/background.ply and WS/register_report.json. Masks keep the moving subject out: "
-        "from WS/tracks.csv (or --tracks) and/or --masks.",
+        description="Registers unsynchronized videos and writes WS/cameras.json, WS/background.ply and "
+        "WS/register_report.json. Each video's camera is tested for motion: a static one sends one background "
+        "image to SfM and all its frames share its pose; a moving one sends sampled frames and the others are "
+        "posed by PnP. Static videos the background cannot pose are posed from the moving subject's 2D tracks "
+        "(WS/tracks.csv or --tracks), which also mask the subject out of SfM. The report says which path posed "
+        "each video.",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
@@ -25,13 +28,9 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     frames.add_argument("--step", type=int, default=defaults.step, help="every Nth decoded frame (0: all)")
     frames.add_argument("--time-step", type=float, default=None, help="or one frame per this many seconds")
     frames.add_argument("--max-frames", type=int, default=defaults.max_frames, help="per video, at most")
-    frames.add_argument(
-        "--long-side", type=int, default=defaults.long_side, help="resize frames to this (px)"
-    )
+    frames.add_argument("--long-side", type=int, default=defaults.long_side, help="resize frames to this (px)")
     sfm = parser.add_argument_group("features, matching, mapping")
-    sfm.add_argument(
-        "--max-features", type=int, default=defaults.max_features, help="SIFT features per frame"
-    )
+    sfm.add_argument("--max-features", type=int, default=defaults.max_features, help="SIFT features per frame")
     sfm.add_argument("--max-ratio", type=float, default=defaults.max_ratio, help="SIFT ratio test")
     sfm.add_argument(
         "--overlap",
@@ -63,10 +62,33 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="known intrinsics (cameras.json, calib .toml or .qca); kept fixed",
     )
-    masks = parser.add_argument_group("masks and localization")
-    masks.add_argument(
-        "--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)"
+    sfm.add_argument(
+        "--background-features",
+        type=int,
+        default=defaults.background_features,
+        help="SIFT features of a static video's background image",
     )
+    static = parser.add_argument_group("static cameras and the subject path")
+    static.add_argument(
+        "--camera-motion",
+        choices=[m.value for m in CameraMotion],
+        default=defaults.camera_motion.value,
+        help="auto: measured per video; static / moving: for every video",
+    )
+    static.add_argument(
+        "--subject",
+        choices=[m.value for m in SubjectPath],
+        default=defaults.subject.value,
+        help="pose static videos from the subject's tracks: auto (those the background left out), always, never",
+    )
+    static.add_argument(
+        "--scale",
+        default=None,
+        metavar="A,B,METRES",
+        help="the distance between two tracked points, for the subject path's scale without background anchors",
+    )
+    masks = parser.add_argument_group("masks and localization")
+    masks.add_argument("--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)")
     masks.add_argument(
         "--masks",
         type=Path,
@@ -88,8 +110,26 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=_run_register)
 
 
+def parse_scale(text: str | None) -> tuple[str, str, float] | None:
+    """`A,B,METRES` -> (A, B, metres); a one-line error otherwise."""
+    from dynrecon.errors import InputError
+
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        metres = float(parts[2]) if len(parts) == 3 else float("nan")
+    except ValueError:
+        metres = float("nan")
+    if len(parts) != 3 or not parts[0] or not parts[1] or not metres > 0 or metres == float("inf"):
+        raise InputError(
+            None, f"--scale {text!r} is not POINT_A,POINT_B,METRES", fix="e.g. --scale l_knee,l_ankle,0.42"
+        )
+    return parts[0], parts[1], metres
+
+
 def _run_register(args: argparse.Namespace) -> int:
-    from sfm.register import Localize, Mapper, RegisterOptions, run
+    from sfm.register import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath, run
 
     options = RegisterOptions(
         step=args.step,
@@ -97,6 +137,10 @@ def _run_register(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         long_side=args.long_side,
         max_features=args.max_features,
+        background_features=args.background_features,
+        camera_motion=CameraMotion(args.camera_motion),
+        subject=SubjectPath(args.subject),
+        scale=parse_scale(args.scale),
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,
         keyframes=args.keyframes,
@@ -115,6 +159,9 @@ def _run_register(args: argparse.Namespace) -> int:
     path = run(args.videos, args.out, options)
     report = json.loads((Path(args.out) / "register_report.json").read_text(encoding="utf-8"))
     for video in report["videos"]:
-        print(f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered")  # noqa: T201
+        print(  # noqa: T201
+            f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered "
+            f"({video['camera']} camera; posed by {video['posed_by']})"
+        )
     print(path)  # noqa: T201
     return 0

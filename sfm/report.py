@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import enum
 import json
+from dataclasses import is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ def write_report(
     matching: dict[str, int],
     rec: pycolmap.Reconstruction | None,
     error: str | None,
+    subject: dict[str, Any] | None = None,
 ) -> None:
     model = None
     if rec is not None:
@@ -41,6 +43,12 @@ def write_report(
         "options": {
             k: (v.value if isinstance(v, enum.Enum) else str(v) if isinstance(v, Path) else v)
             for k, v in vars(options).items()
+            if not is_dataclass(v)
+        }
+        | {
+            k: {kk: (vv.value if isinstance(vv, enum.Enum) else vv) for kk, vv in vars(v).items()}
+            for k, v in vars(options).items()
+            if is_dataclass(v)
         },
         "model": model,
         "pairs": pairs,
@@ -48,6 +56,7 @@ def write_report(
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "warnings": warnings,
         "videos": [_video_entry(video, results.get(video.info.name, {})) for video in videos],
+        "subject": subject,
     }
     atomic_write_text(path, json.dumps(report, indent=1) + "\n")
 
@@ -60,15 +69,32 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
     ]
     if not per_frame:
         failed = [{"frame": None, "reason": "not reached (SfM stopped before localization)"}]
+    sources = sorted({r.source for r in posed if r.source})
     return {
         "name": video.info.name,
         "path": str(video.info.path),
+        "camera": "static" if video.static else "moving",
+        "motion_test": video.motion.to_json() if video.motion is not None else "set by --camera-motion",
+        "posed_by": _posed_by(sources),
         "frames_in_video": video.info.num_frames,
         "frames_given": len(video.wanted),
         "sfm_frames": len(video.sfm_frames),
         "registered": len(posed),
         "registered_by_sfm": sum(1 for r in posed if r.source == "sfm"),
-        "registered_by_pnp": sum(1 for r in posed if r.source != "sfm"),
+        "registered_by_pnp": sum(1 for r in posed if r.source is not None and r.source.startswith("pnp")),
+        "registered_by_static": sum(1 for r in posed if r.source == "static"),
+        "registered_by_subject": sum(1 for r in posed if r.source == "subject"),
         "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
         "failed": failed,
     }
+
+
+def _posed_by(sources: list[str]) -> str:
+    """The path that posed a video, in the words of the report: background SfM, PnP, static, subject or none."""
+    if not sources:
+        return "none"
+    if "subject" in sources:
+        return "subject"
+    if "static" in sources:
+        return "static (background SfM)"
+    return "background SfM + PnP" if any(s.startswith("pnp") for s in sources) else "background SfM"

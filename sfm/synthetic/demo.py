@@ -63,6 +63,35 @@ def three_cameras(
     return paths
 
 
+def mixed_cameras(width: int = 480, height: int = 360, frames: int = 12) -> list[CameraPath]:
+    """A mixed static + handheld capture: two tripods high in the near corners (30 and 25 fps) looking across the
+    room at ~90 degrees from each other, and a handheld camera (24 fps) walking between them."""
+    setups = [  # (name, focal / width, fps, start, end, target at start, target at end)
+        ("cam0", 0.7, 30.0, [0.5, 0.5, 2.3], [0.5, 0.5, 2.3], [5.0, 4.5, 0.6], [5.0, 4.5, 0.6]),
+        ("cam1", 0.8, 24.0, [2.6, 0.3, 1.6], [4.8, 0.4, 1.7], [3.0, 5.5, 1.0], [5.5, 5.0, 1.2]),
+        ("cam2", 0.75, 25.0, [7.5, 0.6, 2.2], [7.5, 0.6, 2.2], [2.5, 4.5, 0.7], [2.5, 4.5, 0.7]),
+    ]
+    paths = []
+    for name, focal, rate, start, end, target_start, target_end in setups:
+        f = focal * width
+        K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+        paths.append(
+            CameraPath(
+                name=name,
+                K=K,
+                width=width,
+                height=height,
+                fps=rate,
+                num_frames=frames,
+                start=np.array(start),
+                end=np.array(end),
+                target_start=np.array(target_start),
+                target_end=np.array(target_end),
+            )
+        )
+    return paths
+
+
 def render_demo(
     out_dir: str | Path, cameras: list[CameraPath] | None = None, seed: int = 0
 ) -> list[SceneVideo]:

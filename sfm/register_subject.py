@@ -1,0 +1,155 @@
+"""The subject path of `register`: static videos posed from the moving subject's 2D tracks (`sfm.subject`).
+
+Used for the static videos the background left out (or for every static video on request). Videos that the
+background posed anchor the world frame and its scale; without them the scale comes from `--scale A,B,METRES`,
+or the report says that the units are arbitrary.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from sfm.plan import FramePose, VideoPlan
+from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectVideo, calibrate_from_subject
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+def _posed(results: dict[int, FramePose]) -> FramePose | None:
+    return next((r for r in results.values() if r.pose is not None), None)
+
+
+def _subset(tracks: Tracks, names: set[str]) -> Tracks:
+    rows = np.array([v in names for v in tracks.video], dtype=bool)
+    index = np.flatnonzero(rows)
+    return Tracks(
+        video=[tracks.video[i] for i in index],
+        frame=tracks.frame[rows],
+        point=[tracks.point[i] for i in index],
+        xy=tracks.xy[rows],
+        path=tracks.path,
+    )
+
+
+def pose_from_subject(
+    videos: list[VideoPlan],
+    results: dict[str, dict[int, FramePose]],
+    tracks: Tracks | None,
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    options: Any,
+    warnings: list[str],
+) -> dict[str, Any] | None:
+    """Pose the static videos that need it from the tracks; updates `results` in place. Returns the report's
+    `subject` section (None when the path was not tried)."""
+    from sfm.register import SubjectPath
+
+    static = [v for v in videos if v.static]
+    unposed = [v for v in static if _posed(results[v.info.name]) is None]
+    if options.subject is SubjectPath.NEVER or not static:
+        return None
+    if options.subject is SubjectPath.AUTO and not unposed:
+        return None
+    if tracks is None:
+        if unposed:
+            warnings.append(
+                f"static videos {', '.join(v.info.name for v in unposed)} were not posed by the background; "
+                "2D tracks of the moving subject can pose them: run `dynrecon track WS` (or import-tracks) "
+                "and register again"
+            )
+        return {"used": False, "why": "no tracks.csv"}
+    tracked = set(tracks.video_names())
+    moving_posed = any(not v.static and _posed(results[v.info.name]) is not None for v in videos)
+    anchors_allowed = options.subject is SubjectPath.AUTO or moving_posed
+    inputs = []
+    anchors = []
+    for video in static:
+        name = video.info.name
+        if name not in tracked:
+            continue
+        known = _posed(results[name]) if anchors_allowed else None
+        K, dist = intrinsics.get(name, (None, None))
+        if K is None and known is not None and known.intrinsics is not None:
+            K, dist = known.intrinsics
+        pose = None
+        if known is not None and known.pose is not None:
+            pose = (known.pose.rotation.matrix(), np.asarray(known.pose.translation))
+            anchors.append(name)
+        inputs.append(
+            SubjectVideo(
+                name=name,
+                width=video.info.width,
+                height=video.info.height,
+                times=video.info.times,
+                K=K,
+                dist=dist,
+                cam_from_world=pose,
+            )
+        )
+    if len(inputs) < 2:
+        return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
+    try:
+        result = calibrate_from_subject(
+            _subset(tracks, {v.name for v in inputs}), inputs, SubjectOptions(scale=options.scale)
+        )
+    except SubjectCalibrationError as error:
+        warnings.append(f"subject path: {error}")
+        for video in unposed:
+            for frame in results[video.info.name]:
+                results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
+        return {"used": False, "why": str(error), "anchors": anchors}
+    by_name = {v.info.name: v for v in videos}
+    posed = []
+    for camera in result.cameras:
+        if camera.name in anchors:
+            continue
+        frame_pose = FramePose(
+            pose=pycolmap.Rigid3d(pycolmap.Rotation3d(camera.R), np.asarray(camera.t, dtype=float)),
+            source="subject",
+            intrinsics=(camera.K, camera.dist),
+            error=camera.residual_px,
+            inliers=camera.inliers,
+        )
+        results[camera.name] = {int(f): frame_pose for f in by_name[camera.name].wanted}
+        posed.append(camera.name)
+    for name, reason in result.failed.items():
+        if name in results and _posed(results[name]) is None:
+            results[name] = {f: FramePose(pose=None, reason=f"subject path: {reason}") for f in results[name]}
+    metric = result.metric or bool(anchors)
+    if not metric:
+        warnings.append(
+            "subject path without background anchors or --scale: the units are arbitrary "
+            "(give --scale POINT_A,POINT_B,METRES)"
+        )
+    log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
+    return {
+        "used": True,
+        "posed": posed,
+        "anchors": anchors,
+        "metric": metric,
+        "cameras": [
+            {
+                "name": c.name,
+                "offset_s": round(float(c.offset), 6),
+                "inliers": int(c.inliers),
+                "residual_px": round(float(c.residual_px), 3),
+            }
+            for c in result.cameras
+        ],
+        "pairs": [
+            {
+                "videos": [p.a, p.b],
+                "offset_s": round(float(p.offset), 6),
+                "inliers": int(p.inliers),
+                "shared": int(p.shared),
+                "runner_up_ratio": round(float(p.runner_up_ratio), 3),
+                "degenerate": p.degenerate,
+            }
+            for p in result.pairs
+        ],
+        "failed": result.failed,
+    }

@@ -1,0 +1,264 @@
+"""`calibrate_from_subject`: pairs -> offsets -> chained poses -> bundle adjustment -> anchors and scale."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from sfm.subject.bundle import Bundle, adjust, residuals_px, rotation
+from sfm.subject.chain import initial_poses, make_knots
+from sfm.subject.model import (
+    PairResult,
+    SubjectCalibrationError,
+    SubjectCamera,
+    SubjectOptions,
+    SubjectResult,
+    SubjectVideo,
+)
+from sfm.subject.observations import VideoObs, build_observations
+from sfm.subject.offsets import solve_offsets
+from sfm.subject.pairs import PairFit, fit_pair
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+def calibrate_from_subject(
+    tracks: Tracks, videos: list[SubjectVideo], options: SubjectOptions | None = None
+) -> SubjectResult:
+    """Pose static cameras (and their clock offsets, and unknown focals) from the 2D tracks of a moving subject."""
+    options = options or SubjectOptions()
+    rng = np.random.default_rng(options.seed)
+    points, obs = build_observations(tracks, videos)
+    if options.scale is not None:
+        missing = [p for p in options.scale[:2] if p not in points]
+        if missing:
+            raise SubjectCalibrationError(
+                f"scale point(s) {', '.join(missing)} are not in the tracks (points: "
+                f"{', '.join(points[:10])}); fix options.scale"
+            )
+    with_tracks = [i for i, o in enumerate(obs) if o.count() > 0]
+    failed: dict[str, str] = {o.name: "no tracks" for o in obs if o.count() == 0}
+    if len(with_tracks) < 2:
+        raise SubjectCalibrationError(f"{len(with_tracks)} video(s) have tracks; track the subject in at least two")
+
+    fits: list[PairFit] = []
+    for n, a in enumerate(with_tracks):
+        for b in with_tracks[n + 1 :]:
+            fit = fit_pair(obs[a], obs[b], a, b, options, rng)
+            log.info(
+                "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
+                obs[a].name,
+                obs[b].name,
+                -fit.shift,
+                fit.inliers,
+                fit.shared,
+                fit.runner_up_ratio,
+                fit.degenerate,
+                fit.reason or "",
+            )
+            fits.append(fit)
+    pairs = [
+        PairResult(
+            a=obs[f.a].name,
+            b=obs[f.b].name,
+            offset=-f.shift,
+            inliers=f.inliers,
+            shared=f.shared,
+            runner_up_ratio=f.runner_up_ratio,
+            degenerate=f.degenerate,
+        )
+        for f in fits
+    ]
+    usable = [f for f in fits if f.usable]
+    if not usable:
+        degenerate = sorted({f.degenerate for f in fits if f.degenerate})
+        if degenerate:
+            raise SubjectCalibrationError(
+                f"degenerate motion: the tracked points move on a {' / '.join(degenerate)} "
+                "in every pair; record a subject moving in all three dimensions"
+            )
+        most = max(f.shared for f in fits)
+        raise SubjectCalibrationError(
+            f"no pair of videos shares {options.min_shared} observations at any time offset "
+            f"within ±{options.max_offset:g} s (best {most}); record longer overlapping "
+            "motion, track more points or raise max_offset"
+        )
+
+    _estimate_focals(obs, usable)
+    anchors = [i for i in with_tracks if videos[i].cam_from_world is not None]
+    reference = anchors[0] if anchors else with_tracks[0]
+    period = max(o.period for o in obs)
+    edges = [(f.a, f.b, -f.shift, float(f.inliers)) for f in usable]
+    offsets, kept = solve_offsets(len(obs), edges, {reference: 0.0}, tolerance=1.5 * period)
+    if not np.isfinite(offsets[reference]) or len(kept) == 0:
+        raise SubjectCalibrationError("no usable pair includes the reference video; check the tracks overlap in time")
+    if not np.isfinite(offsets).all():
+        # the reference's group may not be the largest: re-anchor on the best pair's group
+        pass
+    for i in with_tracks:
+        if not np.isfinite(offsets[i]):
+            failed[obs[i].name] = _why(obs, fits, i)
+
+    kept_fits = [usable[k] for k in kept]
+    knots = make_knots(obs, offsets, len(points))
+    poses = initial_poses(obs, offsets, kept_fits, knots, options.inlier_px, failed)
+    cams = sorted(poses)
+    bundle = Bundle(
+        cams=cams,
+        rvec=np.array([rotation_vector(poses[c][0]) for c in cams]),
+        t=np.array([poses[c][1] for c in cams]),
+        focal=np.array([obs[c].focal for c in cams]),
+        k1=np.zeros(len(cams)),
+        offsets=offsets.copy(),
+        knots=knots,
+        fixed_pose={cams.index(min(cams, key=lambda c: 0 if c == kept_fits[0].a else 1))},
+        fixed_offset={reference},
+        gauge=None,
+        keep=[_thinned(obs[c]) for c in cams],
+    )
+    first = next(j for j, c in enumerate(cams) if np.allclose(poses[c][1], 0) and np.allclose(poses[c][0], np.eye(3)))
+    bundle.fixed_pose = {first}
+    second = max((j for j in range(len(cams)) if j != first), key=lambda j: np.linalg.norm(bundle.t[j]))
+    bundle.gauge = (first, second, float(np.linalg.norm(bundle.t[second])))
+    finite = np.isfinite(knots.X[..., 0])
+    bundle.depth = float(np.median(np.linalg.norm(knots.X[finite], axis=-1))) if finite.any() else 1.0
+    adjust(bundle, obs, options.inlier_px)
+
+    metric = False
+    fixed_anchor = [j for j, c in enumerate(cams) if videos[c].cam_from_world is not None]
+    if fixed_anchor:
+        _align_to_anchors(bundle, videos, fixed_anchor)
+        bundle.fixed_pose = set(fixed_anchor)
+        if len(fixed_anchor) >= 2:
+            bundle.gauge = None
+            metric = True
+        else:
+            j = fixed_anchor[0]
+            other = max(
+                (i for i in range(len(cams)) if i != j),
+                key=lambda i: np.linalg.norm(_centre(bundle, i) - _centre(bundle, j)),
+            )
+            bundle.gauge = (j, other, float(np.linalg.norm(_centre(bundle, other) - _centre(bundle, j))))
+        adjust(bundle, obs, options.inlier_px, rounds=1)
+    if options.scale is not None and not metric:
+        _apply_scale(bundle, points, options.scale, fixed_anchor)
+        metric = True
+
+    res = residuals_px(bundle, obs)
+    cameras = []
+    for j, c in enumerate(cams):
+        K = obs[c].K.copy()
+        dist = obs[c].dist if obs[c].known_K else np.array([bundle.k1[j], 0.0, 0.0, 0.0, 0.0])
+        cameras.append(
+            SubjectCamera(
+                name=obs[c].name,
+                K=K,
+                dist=dist,
+                R=rotation(bundle.rvec[j]),
+                t=bundle.t[j].copy(),
+                offset=float(bundle.offsets[c]),
+                inliers=len(res[j]),
+                residual_px=float(np.median(res[j])) if len(res[j]) else float("nan"),
+            )
+        )
+    return SubjectResult(
+        cameras=cameras,
+        pairs=pairs,
+        failed=failed,
+        metric=metric,
+        points={p: bundle.knots.X[:, i].copy() for i, p in enumerate(points)},
+        times=bundle.knots.times,
+    )
+
+
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()
+
+
+def _thinned(o: VideoObs, budget: int = 2500) -> np.ndarray:
+    """(F, P) observations used by the bundle: every k-th frame so that a camera has about `budget` (speed)."""
+    seen = np.isfinite(o.xy[..., 0])
+    stride = max(1, int(np.ceil(seen.sum() / budget)))
+    seen[np.arange(len(seen)) % stride != 0] = False
+    return seen
+
+
+def _centre(b: Bundle, j: int) -> np.ndarray:
+    return -rotation(b.rvec[j]).T @ b.t[j]
+
+
+def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
+    mine = [f for f in fits if i in (f.a, f.b)]
+    if all(f.shared < 8 or (f.reason or "").startswith(("the videos never", "at most")) for f in mine):
+        return "its tracks never overlap in time with another video's (within max_offset)"
+    reasons = sorted({f.degenerate or f.reason or "inconsistent offset" for f in mine})
+    return "no usable pair: " + "; ".join(r for r in reasons if r)
+
+
+def _estimate_focals(obs: list[VideoObs], fits: list[PairFit]) -> None:
+    """Unknown K: median of the Bougnoux focals of a camera's pairs (kept within a plausible range)."""
+    for i, o in enumerate(obs):
+        if o.known_K:
+            continue
+        vals = [f.focals[0] if f.a == i else f.focals[1] for f in fits if i in (f.a, f.b)]
+        vals = [v for v in vals if np.isfinite(v)]
+        size = max(o.video.width, o.video.height)
+        if not vals:
+            continue
+        old = o.focal
+        new = float(np.clip(np.median(vals), 0.3 * size, 5 * size))
+        log.info("camera %s: focal %.0f px from %d pair(s)", o.name, new, len(vals))
+        o.set_focal(new)
+        for f in fits:  # no distortion without K: normalized coordinates just scale with 1 / focal
+            if f.a == i:
+                f.xa = f.xa * (old / new)
+            if f.b == i:
+                f.xb = f.xb * (old / new)
+
+
+def _align_to_anchors(b: Bundle, videos: list[SubjectVideo], anchors: list[int]) -> None:
+    """Similarity taking the solved frame to the anchors' (rotation from their orientations, scale from centres)."""
+    Rs = [rotation(b.rvec[j]) for j in anchors]
+    Ra = [np.asarray(videos[b.cams[j]].cam_from_world[0], dtype=float) for j in anchors]  # type: ignore[index]
+    ta = [np.asarray(videos[b.cams[j]].cam_from_world[1], dtype=float) for j in anchors]  # type: ignore[index]
+    M = sum(R_true.T @ R_est for R_true, R_est in zip(Ra, Rs, strict=True))  # world_true = Q world_est
+    U, _, Vt = np.linalg.svd(M)
+    Q = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    c_est = np.array([_centre(b, j) for j in anchors])
+    c_true = np.array([-R.T @ t for R, t in zip(Ra, ta, strict=True)])
+    if len(anchors) >= 2:
+        a = (c_est - c_est.mean(0)) @ Q.T
+        s = float((a * (c_true - c_true.mean(0))).sum() / max((a**2).sum(), 1e-12))
+    else:
+        s = 1.0
+    T = c_true.mean(0) - s * c_est.mean(0) @ Q.T
+    for j in range(len(b.cams)):
+        R = rotation(b.rvec[j]) @ Q.T
+        c = s * Q @ _centre(b, j) + T
+        b.rvec[j] = rotation_vector(R)
+        b.t[j] = -R @ c
+    b.knots.X = s * b.knots.X @ Q.T + T
+    for j, R, t in zip(anchors, Ra, ta, strict=True):
+        b.rvec[j], b.t[j] = rotation_vector(R), t
+
+
+def _apply_scale(b: Bundle, points: list[str], scale: tuple[str, str, float], anchors: list[int]) -> None:
+    A, B = b.knots.X[:, points.index(scale[0])], b.knots.X[:, points.index(scale[1])]
+    d = np.linalg.norm(A - B, axis=1)
+    d = d[np.isfinite(d)]
+    if not len(d):
+        raise SubjectCalibrationError(
+            f"points {scale[0]} and {scale[1]} are never triangulated together; "
+            "choose scale points seen at the same time"
+        )
+    s = scale[2] / float(np.mean(d))
+    centre = _centre(b, anchors[0]) if anchors else np.zeros(3)  # a single anchor stays where it is
+    for j in range(len(b.cams)):
+        R = rotation(b.rvec[j])
+        c = centre + s * (_centre(b, j) - centre)
+        b.t[j] = -R @ c
+    b.knots.X = centre + s * (b.knots.X - centre)

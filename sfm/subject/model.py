@@ -1,0 +1,76 @@
+"""Inputs and outputs of `calibrate_from_subject` (the public dataclasses and error)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dynrecon.errors import DynreconError
+
+
+class SubjectCalibrationError(DynreconError):
+    """The tracks cannot pose the cameras; the message says what to change."""
+
+
+@dataclass(kw_only=True)
+class SubjectVideo:
+    """One static camera and the decode times of its frames."""
+
+    name: str
+    width: int
+    height: int
+    times: np.ndarray  # (F,) seconds of each decoded frame in the video's own clock
+    K: np.ndarray | None = None  # (3, 3) known intrinsics (OpenCV pixels), None = estimate
+    dist: np.ndarray | None = None  # OpenCV k1, k2, p1, p2[, k3], None = none (or estimated k1 when K is None)
+    cam_from_world: tuple[np.ndarray, np.ndarray] | None = None  # (R (3, 3), t (3,)) known pose: kept fixed
+
+
+@dataclass(kw_only=True)
+class SubjectOptions:
+    max_offset: float = 10.0  # seconds searched each way for a pair's time offset
+    offset_step: float | None = None  # fine search step, default a quarter of the smaller median frame period
+    min_shared: int = 15  # interpolated correspondences needed for a pair
+    inlier_px: float = 3.0  # RANSAC threshold (pixels)
+    scale: tuple[str, str, float] | None = None  # (point A, point B, metres): mean |A-B| sets the scale
+    seed: int = 0
+
+
+@dataclass(kw_only=True)
+class SubjectCamera:
+    name: str
+    K: np.ndarray  # (3, 3)
+    dist: np.ndarray | None  # (5,) or None
+    R: np.ndarray  # (3, 3) cam_from_world, OpenCV
+    t: np.ndarray  # (3,)
+    offset: float  # seconds: global_time = own_time + offset
+    inliers: int  # observations kept by the bundle adjustment
+    residual_px: float  # median reprojection error after bundle adjustment
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+
+@dataclass(kw_only=True)
+class PairResult:
+    a: str
+    b: str
+    offset: float  # seconds, o_b - o_a (global = own + o)
+    inliers: int
+    shared: int
+    runner_up_ratio: float  # best score / best score further than one frame period from the best
+    degenerate: str | None  # "line", "plane" or None
+
+
+@dataclass(kw_only=True)
+class SubjectResult:
+    cameras: list[SubjectCamera]  # only the posed ones
+    pairs: list[PairResult]
+    failed: dict[str, str]  # video name -> why it could not be posed
+    metric: bool  # True when the scale came from options.scale or from anchors
+    points: dict[str, np.ndarray] = field(default_factory=dict)  # point name -> (T, 3) trajectory samples
+    times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) global times of the `points` samples
+
+    def camera(self, name: str) -> SubjectCamera | None:
+        return next((c for c in self.cameras if c.name == name), None)

@@ -1,0 +1,255 @@
+"""Per pair of videos: the time shift maximizing two-view epipolar consistency, then the pair's geometry.
+
+Video b's tracks are interpolated at a's frame times + shift (own_b = own_a + shift, i.e. shift = o_a - o_b). The
+search is coarse-to-fine: a coarse grid scored with a batched 8-point RANSAC whose threshold allows for the motion
+blur of the coarse step, then fine grids around the best peaks, then a parabola through the best fine score.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from sfm.subject.geometry import bougnoux, eight_point, sampson, weighted_fit
+from sfm.subject.model import SubjectOptions
+from sfm.subject.observations import VideoObs, interpolate
+
+log = logging.getLogger(__name__)
+
+CHUNK = 24  # shifts scored at once (bounds the (D, H, N) Sampson tensor)
+
+
+@dataclass(kw_only=True)
+class PairFit:
+    a: int
+    b: int
+    shift: float  # own_b = own_a + shift
+    inliers: int
+    shared: int
+    runner_up_ratio: float
+    degenerate: str | None
+    xa: np.ndarray  # (M, 2) normalized inlier correspondences in a
+    xb: np.ndarray  # (M, 2) ... in b
+    E: np.ndarray | None  # (3, 3) essential matrix in the current normalized coordinates
+    focals: tuple[float, float]  # Bougnoux estimates (NaN when unknown or K known)
+    reason: str | None = None  # why the pair is unusable (None = usable)
+
+    @property
+    def usable(self) -> bool:
+        return self.reason is None and self.degenerate is None
+
+
+def _pair_corr(oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """shifts: (D,) -> xa, xb: (D, Fa / stride * P, 2) normalized with NaN (every `stride`-th frame of a)."""
+    max_gap = 2.5 * ob.period  # bridge at most one missing frame
+    xb = interpolate(ob.norm, ob.times, oa.times[None, ::stride] + shifts[:, None], max_gap)  # (D, Fa', P, 2)
+    xa = np.broadcast_to(oa.norm[::stride], xb.shape)
+    return xa.reshape(len(shifts), -1, 2), xb.reshape(len(shifts), -1, 2)
+
+
+def _score(
+    oa: VideoObs,
+    ob: VideoObs,
+    shifts: np.ndarray,
+    thr: float,
+    hyps: int,
+    n_max: int,
+    essential: bool,
+    min_shared: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC scores and valid-correspondence counts, (D,) each; thr in normalized units."""
+    scores = np.zeros(len(shifts))
+    counts = np.zeros(len(shifts), dtype=np.int64)
+    for start in range(0, len(shifts), CHUNK):
+        sl = slice(start, start + CHUNK)
+        stride = max(1, oa.norm.shape[0] * oa.norm.shape[1] // (8 * n_max))  # enough to pick n_max from
+        xa, xb = _pair_corr(oa, ob, shifts[sl], stride)
+        valid = np.isfinite(xa[..., 0]) & np.isfinite(xb[..., 0])  # (d, M)
+        n_valid = valid.sum(1)
+        counts[sl] = n_valid
+        if n_valid.max() < max(8, min_shared):
+            continue
+        # a random subset of the valid correspondences of each shift, valid ones first
+        key = np.where(valid, rng.random(valid.shape), 2.0)
+        order = np.argsort(key, axis=1)[:, :n_max]  # (d, N)
+        A = np.take_along_axis(xa, order[..., None], axis=1)
+        B = np.take_along_axis(xb, order[..., None], axis=1)
+        w = np.take_along_axis(valid, order, axis=1).astype(float)  # (d, N)
+        A, B = np.nan_to_num(A), np.nan_to_num(B)
+        n_used = np.maximum(w.sum(1), 1).astype(np.int64)
+        idx = (rng.random((len(A), hyps, 8)) * n_used[:, None, None]).astype(np.int64)  # (d, H, 8)
+        rows = np.arange(len(A))[:, None, None]
+        F = eight_point(A[rows, idx], B[rows, idx], essential)  # (d, H, 3, 3)
+        err = sampson(F, A, B)  # (d, H, N)
+        s = (np.maximum(0.0, 1.0 - err / thr**2) * w[:, None, :]).sum(-1)  # (d, H)
+        best_h = np.argmax(s, axis=1)
+        best_s = s[np.arange(len(A)), best_h]  # (d,)
+        soft = np.maximum(0.0, 1.0 - err[np.arange(len(A)), best_h] / thr**2) * w  # (d, N)
+        for _ in range(2):  # local optimization: refit on the soft inliers, keep it when it scores better
+            F_lo = weighted_fit(A, B, soft, essential)[:, None]  # (d, 1, 3, 3)
+            e_lo = sampson(F_lo, A, B)[:, 0]  # (d, N)
+            s_lo = (np.maximum(0.0, 1.0 - e_lo / thr**2) * w).sum(-1)
+            better = s_lo > best_s
+            best_s = np.where(better, s_lo, best_s)
+            soft = np.where(better[:, None], np.maximum(0.0, 1.0 - e_lo / thr**2) * w, soft)
+        best = best_s * n_valid / n_used * stride  # estimate for all valid correspondences
+        scores[sl] = np.where(n_valid >= max(8, min_shared), best, 0.0)
+    return scores, counts
+
+
+def _image_speed(o: VideoObs) -> float:
+    """Median speed of the tracked points in pixels per second."""
+    d = np.linalg.norm(np.diff(o.norm, axis=0), axis=-1) * o.focal / o.period  # (F - 1, P)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else 0.0
+
+
+def _peaks(shifts: np.ndarray, scores: np.ndarray, separation: float, count: int) -> list[float]:
+    out: list[float] = []
+    for i in np.argsort(-scores):
+        if scores[i] <= 0 or scores[i] < 0.5 * scores.max() or len(out) >= count:
+            break
+        if all(abs(shifts[i] - p) > separation for p in out):
+            out.append(float(shifts[i]))
+    return out
+
+
+def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions, rng: np.random.Generator) -> PairFit:
+    essential = oa.known_K and ob.known_K  # an E needs both calibrations; else an F (up to the focal guess)
+    f_mean = float(np.sqrt(oa.focal * ob.focal))
+    period = max(oa.period, ob.period)
+    fine = options.offset_step or 0.25 * min(oa.period, ob.period)
+    speed = max(_image_speed(oa), _image_speed(ob))
+    # a coarse step whose motion blur stays near the inlier threshold, between the fine step and 3 frames
+    coarse = float(np.clip(4 * options.inlier_px / max(speed, 1e-9), fine, 3 * period))
+    lo = max(-options.max_offset, ob.times[0] - oa.times[-1])
+    hi = min(options.max_offset, ob.times[-1] - oa.times[0])
+    empty = PairFit(
+        a=a,
+        b=b,
+        shift=0.0,
+        inliers=0,
+        shared=0,
+        runner_up_ratio=1.0,
+        degenerate=None,
+        xa=np.zeros((0, 2)),
+        xb=np.zeros((0, 2)),
+        E=None,
+        focals=(np.nan, np.nan),
+    )
+    if hi < lo:
+        empty.reason = "the videos never overlap in time within max_offset"
+        return empty
+    grid = np.arange(lo, hi + coarse / 2, coarse)
+    thr_c = (options.inlier_px + 0.5 * coarse * speed) / f_mean
+    c_scores, c_counts = _score(oa, ob, grid, thr_c, 64, 200, False, options.min_shared, rng)
+    if c_counts.max() < options.min_shared:
+        empty.shared = int(c_counts.max())
+        empty.reason = (
+            f"at most {int(c_counts.max())} shared observations at any time offset (min_shared={options.min_shared})"
+        )
+        return empty
+    candidates: list[float] = []
+    step = max(fine, 2 * coarse / 8)  # at most 9 robust fits per peak
+    for peak in _peaks(grid, c_scores, 2 * coarse, 4):
+        f_grid = np.arange(peak - coarse, peak + coarse + step / 2, step)
+        # the fine scores come from the full robust estimator (cv2 MAGSAC): the batched 8-point is too noisy here
+        f_scores = np.array(
+            [_geometry(oa, ob, a, b, s, 1.0, essential, options, n_max=1500).inliers for s in f_grid], dtype=float
+        )
+        i = int(np.argmax(f_scores))
+        shift = float(f_grid[i])
+        if 0 < i < len(f_grid) - 1:  # sub-step parabola
+            y0, y1, y2 = f_scores[i - 1 : i + 2]
+            den = y0 - 2 * y1 + y2
+            if den < 0:
+                shift += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
+        candidates.append(shift)
+    # the peaks compete on the full robust model (an E when both K are known: 5 dof discriminate best)
+    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, options) for shift in candidates]
+    best = max(fits, key=lambda f: f.inliers)
+    i_best = int(np.argmin(np.abs(grid - best.shift)))
+    far = np.abs(grid - best.shift) > period + coarse
+    runner = float(c_scores[far].max()) if far.any() else 0.0
+    best.runner_up_ratio = float(c_scores[i_best] / runner) if runner > 0 else float("inf")
+    return best
+
+
+def _geometry(
+    oa: VideoObs,
+    ob: VideoObs,
+    a: int,
+    b: int,
+    shift: float,
+    ratio: float,
+    essential: bool,
+    options: SubjectOptions,
+    n_max: int = 0,
+) -> PairFit:
+    """The pair's model, inliers and degeneracy at a shift, from its correspondences (an even subset of n_max)."""
+    xa, xb = _pair_corr(oa, ob, np.array([shift]))
+    ok = np.isfinite(xa[0, :, 0]) & np.isfinite(xb[0, :, 0])
+    xa, xb = xa[0, ok], xb[0, ok]
+    if n_max and len(xa) > n_max:
+        keep = np.linspace(0, len(xa) - 1, n_max).astype(np.int64)
+        xa, xb = xa[keep], xb[keep]
+    fit = PairFit(
+        a=a,
+        b=b,
+        shift=shift,
+        inliers=0,
+        shared=len(xa),
+        runner_up_ratio=ratio,
+        degenerate=None,
+        xa=xa,
+        xb=xb,
+        E=None,
+        focals=(np.nan, np.nan),
+    )
+    if len(xa) < max(8, options.min_shared):
+        fit.reason = f"only {len(xa)} shared observations at the best time offset"
+        return fit
+    f_mean = float(np.sqrt(oa.focal * ob.focal))
+    thr = options.inlier_px / f_mean
+    if essential:
+        E, mask = cv2.findEssentialMat(
+            xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=5000
+        )
+    else:
+        # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
+        pa, pb = xa * oa.focal, xb * ob.focal
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, options.inlier_px, 0.9999, 5000)
+        if F is not None and F.shape == (3, 3):
+            fa, fb = bougnoux(F)
+            fit.focals = (fa, fb)
+            E = np.diag([oa.focal, oa.focal, 1.0]) @ F.T @ np.diag([ob.focal, ob.focal, 1.0])
+            E = E.T  # E = Kb^T F Ka with the current (guessed) intrinsics
+        else:
+            E = None
+    if E is None or mask is None or E.shape != (3, 3):
+        fit.reason = "no epipolar geometry found"
+        return fit
+    inl = mask.ravel().astype(bool)
+    fit.E, fit.inliers, fit.xa, fit.xb = E, int(inl.sum()), xa[inl], xb[inl]
+    if fit.inliers < max(8, options.min_shared):
+        fit.reason = f"only {fit.inliers} epipolar inliers"
+        return fit
+    if not n_max:
+        fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
+    return fit
+
+
+def _degeneracy(xa: np.ndarray, xb: np.ndarray, thr: float) -> str | None:
+    """'line' when the inliers are collinear in an image, 'plane' when a homography explains them as well as E."""
+    for x in (xa, xb):
+        s = np.linalg.svd(x - x.mean(0), compute_uv=False)
+        if s[1] < 0.01 * s[0] or s[1] < 3 * thr * np.sqrt(len(x)):  # thickness within noise of a line
+            return "line"
+    H, mask = cv2.findHomography(xa, xb, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
+    if H is not None and mask is not None and mask.sum() >= 0.9 * len(xa):
+        return "plane"
+    return None

@@ -1,0 +1,83 @@
+"""Static-camera detection and background images (`sfm.static`), and `register` on a mixed static + handheld
+capture of the synthetic room (ground truth known)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from sfm.cameras import CameraSet, read_cameras
+from sfm.evaluate import compare
+from sfm.frames import Resize
+from sfm.static import StaticOptions, background_image, measure_motion, sample_frames
+from sfm.synthetic.demo import mixed_cameras, render_demo, sphere_tracks
+from sfm.synthetic.room import Room, render
+from sfm.video import probe_video, read_frames
+from tracking.tracks import write_tracks
+
+ROOM_DIAGONAL = float(np.linalg.norm(Room(textures=[np.zeros((1, 1, 3), np.uint8)] * 6).size))
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory: pytest.TempPathFactory) -> list:
+    return render_demo(tmp_path_factory.mktemp("mixed"), mixed_cameras(480, 360, frames=12))
+
+
+def test_motion_test_tells_static_from_handheld(mixed: list) -> None:
+    decisions = {}
+    for video in mixed:
+        test, frames = measure_motion(probe_video(video.path), StaticOptions())
+        decisions[video.cameras.name] = test
+        assert len(frames) == 12 and test.corners >= 20
+    # The spheres move through the static views: the test must see through them.
+    assert decisions["cam0"].static and decisions["cam2"].static
+    assert max(decisions["cam0"].shifts) < 0.5 and max(decisions["cam2"].shifts) < 0.5
+    assert not decisions["cam1"].static and "moving" in decisions["cam1"].reason
+    assert max(decisions["cam1"].shifts) > 5
+    assert decisions["cam0"].to_json()["static"] is True
+
+
+def test_background_image_removes_the_moving_subject(mixed: list) -> None:
+    video = mixed[0]
+    info = probe_video(video.path)
+    median = background_image(info, sample_frames(info, 24), Resize.for_video(info, 480)).astype(float)
+    frame = video.cameras.frames[0]
+    empty, _, _ = render(Room(seed=0), frame.K, frame.R, frame.t, info.width, info.height, None)
+    error = np.abs(median - empty.astype(float)).mean(axis=2)  # (H, W): video compression noise at best
+    covered = (video.object_ids >= 0).mean(axis=0)  # (H, W) share of frames a sphere covers the pixel
+    never, sometimes = covered == 0, (covered > 0) & (covered < 0.4)
+    assert sometimes.mean() > 0.005
+    # Where a sphere passed in a few frames, the median shows the room behind it as well as where none passed.
+    assert np.median(error[sometimes]) < 1.5 * np.median(error[never]) + 3
+    _, first = next(read_frames(info.path, np.array([0])))
+    in_sphere = video.object_ids[0] >= 0
+    assert np.median(np.abs(first.astype(float) - empty).mean(axis=2)[in_sphere]) > 3 * np.median(error[sometimes])
+
+
+@pytest.mark.slow
+def test_register_mixed_static_and_handheld(mixed: list, tmp_path: Path) -> None:
+    truth = CameraSet(videos=[v.cameras for v in mixed])
+    ws = tmp_path / "ws"
+    write_tracks(ws / "tracks.csv", sphere_tracks(mixed))  # masks the spheres out of SfM
+    args = ["register", *(str(v.path) for v in mixed), "--out", str(ws), "--long-side", "480", "--threads", "1",
+            "--max-frames", "12", "--max-features", "2000", "--background-features", "4000", "--mask-radius", "40"]
+    assert main(args) == 0
+    report = json.loads((ws / "register_report.json").read_text())
+    by_name = {v["name"]: v for v in report["videos"]}
+    assert by_name["cam0"]["camera"] == by_name["cam2"]["camera"] == "static"
+    assert by_name["cam1"]["camera"] == "moving"
+    assert by_name["cam0"]["posed_by"].startswith("static") and by_name["cam1"]["posed_by"].startswith("background")
+    assert by_name["cam0"]["sfm_frames"] == 0 and by_name["cam0"]["registered_by_static"] == 12
+    cameras = read_cameras(ws / "cameras.json")
+    for name in ("cam0", "cam2"):  # one pose for every frame of a static video
+        frames = cameras.video(name).frames
+        assert len(frames) == 12 and all(np.array_equal(f.R, frames[0].R) for f in frames)
+    errors = compare(cameras, truth)
+    assert len(errors.keys) == 36
+    spread = np.ptp(np.array([f.center for v in truth.videos for f in v.frames]), axis=0).max()
+    assert errors.center_errors.max() < 0.02 * spread
+    assert errors.rotation_errors_deg.max() < 1.0

@@ -1,0 +1,99 @@
+"""Static cameras calibrated from a moving subject's tracks (`sfm.subject`), against synthetic ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sfm.subject import SubjectCalibrationError, SubjectOptions, calibrate_from_subject
+from sfm.subject.geometry import bougnoux
+from sfm.subject.synthetic import compare, make_rig
+from tracking.tracks import Tracks
+
+
+def test_bougnoux_recovers_focals() -> None:
+    rng = np.random.default_rng(1)
+    fa, fb = 1500.0, 900.0
+    R = np.array([[0.8, 0.0, 0.6], [0.0, 1.0, 0.0], [-0.6, 0.0, 0.8]])
+    t = np.array([-1.0, 0.2, 0.3])
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.diag([1 / fb, 1 / fb, 1]) @ tx @ R @ np.diag([1 / fa, 1 / fa, 1])
+    got = bougnoux(F * rng.uniform(0.5, 2))
+    assert got == pytest.approx((fa, fb), rel=1e-6)
+
+
+def test_known_k_wide_baseline_skeleton() -> None:
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=4, noise_px=0.7, seed=0)
+    result = calibrate_from_subject(tracks, videos, SubjectOptions())
+    err = compare(result, truth)
+    assert err.posed == 4 and not result.failed
+    assert err.centre_pct < 2.0 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
+    assert not result.metric
+
+
+def test_flight_single_point_five_cameras() -> None:
+    tracks, videos, truth = make_rig(kind="flight", n_cameras=5, noise_px=1.5, false_rate=0.03, seed=0)
+    result = calibrate_from_subject(tracks, videos, SubjectOptions())
+    err = compare(result, truth)
+    assert err.posed == 5
+    assert err.centre_pct < 2.0 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
+
+
+def test_scale_from_two_points_gives_metres() -> None:
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=8.0, seed=2)
+    from sfm.subject.synthetic import skeleton_motion
+
+    X = skeleton_motion(np.linspace(0, 8, 50))
+    metres = float(np.linalg.norm(X[:, 0] - X[:, 11], axis=1).mean())
+    result = calibrate_from_subject(tracks, videos, SubjectOptions(scale=("p0", "p11", metres)))
+    assert result.metric
+    c = np.array([cam.centre for cam in result.cameras])
+    true_c = truth.centres()[[truth.names.index(cam.name) for cam in result.cameras]]
+    d_est = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    d_true = np.linalg.norm(true_c[:, None] - true_c[None], axis=-1)
+    assert d_est == pytest.approx(d_true, rel=0.03, abs=0.05)
+
+
+def test_video_without_time_overlap_fails_alone() -> None:
+    tracks, videos, _ = make_rig(kind="skeleton", n_cameras=3, duration=8.0, seed=3)
+    # a fourth video whose tracks start 30 s after the others' end
+    late = [i for i, v in enumerate(tracks.video) if v == "cam1"]
+    shift = int(np.ceil(40.0 * 30))
+    rows = [
+        (tracks.video[i], int(tracks.frame[i]), tracks.point[i], *map(float, tracks.xy[i])) for i in range(len(tracks))
+    ]
+    rows += [("late", int(tracks.frame[i]) + shift, tracks.point[i], *map(float, tracks.xy[i])) for i in late]
+    from sfm.subject import SubjectVideo
+
+    v1 = videos[1]
+    videos.append(
+        SubjectVideo(
+            name="late",
+            width=v1.width,
+            height=v1.height,
+            times=np.arange(len(v1.times) + shift) / 30.0,
+            K=v1.K,
+            dist=v1.dist,
+        )
+    )
+    result = calibrate_from_subject(Tracks.from_rows(rows), videos, SubjectOptions(max_offset=5.0))
+    assert "late" in result.failed and "overlap" in result.failed["late"]
+    assert len(result.cameras) == 3
+
+
+def test_single_point_too_few_frames() -> None:
+    tracks, videos, _ = make_rig(kind="flight", n_cameras=3, duration=0.4, offsets=(0.0, 0.05, -0.05), seed=4)
+    with pytest.raises(SubjectCalibrationError, match="shares"):
+        calibrate_from_subject(tracks, videos, SubjectOptions(max_offset=1.0))
+
+
+def test_motion_on_a_line_is_degenerate() -> None:
+    tracks, videos, _ = make_rig(kind="line", n_cameras=3, duration=10.0, seed=5)
+    with pytest.raises(SubjectCalibrationError, match=r"degenerate motion.*line"):
+        calibrate_from_subject(tracks, videos, SubjectOptions(max_offset=3.0))
+
+
+def test_unknown_scale_point_name() -> None:
+    tracks, videos, _ = make_rig(kind="skeleton", n_cameras=2, duration=2.0, seed=6)
+    with pytest.raises(SubjectCalibrationError, match="nose"):
+        calibrate_from_subject(tracks, videos, SubjectOptions(scale=("nose", "p1", 1.0)))
