@@ -20,6 +20,7 @@ from dynrecon.atomic import atomic_write_text
 from reconstruct.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.problem import Problem, build_problem
 from reconstruct.recording import write_recording
+from reconstruct.registered_clocks import check_registered_clocks
 from reconstruct.solver import SolveResult, SolverOptions, solve
 from reconstruct.temporal import Temporal, TemporalOptions, recover_and_refine
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
@@ -73,6 +74,7 @@ def run(cameras_path: Path, tracks_path: Path, out_dir: Path, options: SolveStag
                         global_time=temporal.times if np.isfinite(temporal.times).any() else None)
     report = build_report(problem, result, options, cameras_path, tracks_path)
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
+    report["clocks"]["registration_check"] = check_registered_clocks(cameras, temporal.clocks)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
     report["timings"]["stage_total"] = time.perf_counter() - started

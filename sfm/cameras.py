@@ -45,6 +45,8 @@ class VideoCameras:
     height: int
     fps: float | None = None
     frames: list[FrameCamera] = field(default_factory=list)
+    # Seconds, global time = own time + clock_offset: the clock the subject path of `register` found (None: unknown).
+    clock_offset: float | None = None
 
     def frame_numbers(self) -> np.ndarray:
         return np.array([f.frame for f in self.frames], dtype=np.int64)
@@ -91,6 +93,7 @@ def cameras_to_json(cameras: CameraSet) -> dict[str, Any]:
                 "height": int(video.height),
                 "frames": [_frame_to_json(f) for f in sorted(video.frames, key=lambda f: f.frame)],
             }
+            | ({} if video.clock_offset is None else {"clock_offset": float(video.clock_offset)})
             for video in cameras.videos
         ]
     }
@@ -152,10 +155,16 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
                              where=where)
         if not isinstance(vdata["frames"], list):
             raise InputError(path, '"frames" must be a list', where=where)
+        clock_offset = vdata.get("clock_offset")
+        number = isinstance(clock_offset, int | float) and not isinstance(clock_offset, bool)
+        if clock_offset is not None and not (number and math.isfinite(clock_offset)):
+            raise InputError(path, f'"clock_offset" must be a finite number or absent, got {clock_offset!r}',
+                             where=where)
         frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]")
                   for fi, fdata in enumerate(vdata["frames"])]
         videos.append(VideoCameras(name=name, fps=None if fps is None else float(fps), width=width,
-                                   height=height, frames=frames))
+                                   height=height, frames=frames,
+                                   clock_offset=None if clock_offset is None else float(clock_offset)))
     return CameraSet(videos=videos)
 
 

@@ -252,12 +252,15 @@ def _plan_videos(infos: list[VideoInfo], tracks: Tracks | None, options: Registe
             if static
             else select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
         )
+        wanted = _wanted_frames(info, sfm_frames, tracks, options.localize)  # also checks the tracks' frames
+        if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
+            wanted = np.arange(info.num_frames, dtype=np.int64)
         videos.append(
             VideoPlan(
                 info=info,
                 resize=resize,
                 sfm_frames=sfm_frames,
-                wanted=_wanted_frames(info, sfm_frames, tracks, options.localize),
+                wanted=wanted,
                 motion=motion,
                 static=static,
             )
@@ -440,6 +443,7 @@ def _run(
 
     started = time.perf_counter()
     cameras = CameraSet()
+    clock_offsets = {c["name"]: c["offset_s"] for c in (subject_report or {}).get("cameras", [])}
     for video in registered_videos:
         frames = []
         for frame, result in sorted(results[video.info.name].items()):
@@ -463,6 +467,7 @@ def _run(
                 height=video.info.height,
                 fps=video.info.fps,
                 frames=frames,
+                clock_offset=clock_offsets.get(video.info.name),
             )
         )
     if rec is not None:
