@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic_motion import smooth_motion
 
 from dynrecon.cli import main
 from reconstruct.mocap import Mocap, write_trc
 from sfm.cameras import read_cameras, write_cameras
-from synthetic_motion import smooth_motion
 
 RATE = 120.0
 
