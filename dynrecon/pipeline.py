@@ -14,7 +14,9 @@ Workspace layout (paths relative to WS):
     pipeline.json      stage hashes and timings
 
 Registration does not use the tracks for masks, so that new labels never force a new registration (measured on
-the video sample: every frame registered without masks).
+the video sample: every frame registered without masks). When the background leaves a static video out (or poses
+fewer than two videos) and there are labels or tracks, the `subject` stage registers again after tracking, with
+the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from reconstruct.solve_stage import SolveStageOptions
 from reconstruct.solve_stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply
-from sfm.register import Localize, RegisterOptions
+from sfm.register import Localize, RegisterOptions, RegistrationError
 from sfm.register import run as register_run
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
@@ -62,7 +64,9 @@ log = logging.getLogger(__name__)
 
 STATE_NAME = "pipeline.json"
 REGISTER_DIR = "register"
-STAGES = ("register", "track", "solve", "record", "export")
+SUBJECT_DIR = "register_subject"
+# "subject" runs only when the background left a static video out and there are tracks (see run_stages).
+STAGES = ("register", "track", "subject", "solve", "record", "export")
 _HASH_CHUNK = 1 << 20
 
 
@@ -236,13 +240,20 @@ def run_stages(videos: list[str | Path], out_dir: str | Path,
     cameras_path = register_dir / "cameras.json"
     background_path = register_dir / "background.ply"
     register_options = dataclasses.replace(options.register, tracks=None)
-    stage("register", video_files, {"register": register_options, "videos": [p.stem for p in paths]},
-          [cameras_path, background_path],
-          lambda: _register(paths, register_dir, register_options))
+    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
+    tracks_path = ws / "tracks.csv"
+    background_failed: RegistrationError | None = None
+    try:
+        stage("register", video_files, {"register": register_options, "videos": [p.stem for p in paths]},
+              [cameras_path, background_path],
+              lambda: _register(paths, register_dir, register_options))
+    except RegistrationError as error:
+        if options.tracks is None and labels is None and not tracks_path.is_file():
+            raise
+        background_failed = error
+        log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
 
     # 2. track (labels -> tracks.csv), or take the given tracks
-    tracks_path = ws / "tracks.csv"
-    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
     if options.tracks is not None:
         _copy_into(options.tracks, tracks_path)
         state.forget("track")
@@ -256,6 +267,16 @@ def run_stages(videos: list[str | Path], out_dir: str | Path,
         return result
     if not tracks_path.is_file():
         raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
+
+    # 2b. the subject path, where the background left static videos out
+    if background_failed is not None or _static_left_out(register_dir / "register_report.json"):
+        subject_dir = ws / SUBJECT_DIR
+        subject_options = dataclasses.replace(options.register, tracks=tracks_path)
+        cameras_path = subject_dir / "cameras.json"
+        background_path = subject_dir / "background.ply"
+        stage("subject", {**video_files, "tracks": tracks_path},
+              {"register": subject_options, "videos": [p.stem for p in paths]}, [cameras_path, background_path],
+              lambda: _register(paths, subject_dir, subject_options))
 
     # 3. solve
     skeleton = read_skeleton(options.skeleton) if options.skeleton is not None else None
@@ -289,6 +310,15 @@ def run_stages(videos: list[str | Path], out_dir: str | Path,
 def _register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
     given: list[str | Path] = list(videos)
     register_run(given, register_dir, options)
+
+
+def _static_left_out(report_path: Path) -> bool:
+    """Whether the background registration left a static video without a pose (its report says so)."""
+    try:
+        report = json.loads(report_path.read_text(encoding="utf-8"))
+        return any(v.get("camera") == "static" and v.get("posed_by") == "none" for v in report.get("videos", []))
+    except (OSError, ValueError, AttributeError, TypeError):
+        return False
 
 
 def _track(ws: Path, tracks_path: Path, videos: list[Path], options: TrackOptions) -> None:

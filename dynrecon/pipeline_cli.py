@@ -7,6 +7,7 @@ from pathlib import Path
 
 from dynrecon.errors import InputError
 from dynrecon.pipeline import PipelineOptions, _default_register, run_stages
+from sfm.register_cli import parse_scale
 from tracking.options import TrackOptions
 
 
@@ -14,8 +15,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "run", help="videos in, 3D motion out: register, track, solve, record, export",
         description="Run every stage whose inputs changed since the last run in WS (WS/pipeline.json keeps "
-                    "their hashes): register -> track (labels) -> solve -> recording.rrd -> points3d.csv, "
-                    "points.trc, points.c3d.")
+                    "their hashes): register -> track (labels) -> subject (static videos the background left out, "
+                    "posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, points.c3d.")
     parser.add_argument("videos", nargs="+", type=Path, metavar="VIDEO")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
     source = parser.add_mutually_exclusive_group()
@@ -28,6 +29,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                         help="LK window side of the tracker, px (smaller for small markers)")
     parser.add_argument("--track-patch", type=int, default=TrackOptions().patch,
                         help="appearance patch side of the tracker, px (smaller for small markers)")
+    parser.add_argument("--intrinsics", type=Path, default=None,
+                        help="known intrinsics for registration (cameras.json, calib .toml or .qca); kept fixed")
+    parser.add_argument("--scale", default=None, metavar="A,B,METRES",
+                        help="distance between two tracked points: the scale of static videos posed from the subject")
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.set_defaults(func=_run)
@@ -36,6 +41,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     register = _default_register()
     register.max_frames = args.max_frames
+    register.intrinsics = args.intrinsics
+    register.scale = parse_scale(args.scale)
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
         raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)

@@ -507,11 +507,16 @@ def _fail(
     subject: dict[str, Any] | None,
     what: str,
 ) -> NoReturn:
-    message = (
-        f"{what}; cameras.json not written. Try: more overlap between the videos' views, more frames "
-        "(--max-frames, --step), known intrinsics (--intrinsics), or --keyframes / --max-features higher. "
-        f"Details: {out / 'register_report.json'}"
-    )
+    if subject is not None and subject.get("why"):
+        hint = (
+            f"the static videos share too little background, and the subject path could not pose them: {subject['why']}"
+        )
+    else:
+        hint = (
+            "try more overlap between the videos' views, more frames (--max-frames, --step), known intrinsics "
+            "(--intrinsics), or --keyframes / --max-features higher"
+        )
+    message = f"{what}; cameras.json not written: {hint}. Details: {out / 'register_report.json'}"
     write_report(
         out / "register_report.json",
         videos=videos,

@@ -15,6 +15,7 @@ import pycolmap
 
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectVideo, calibrate_from_subject
+from sfm.subject.stability import check_stability
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,11 @@ def pose_from_subject(
                 "2D tracks of the moving subject can pose them: run `dynrecon track WS` (or import-tracks) "
                 "and register again"
             )
-        return {"used": False, "why": "no tracks.csv"}
+        return {
+            "used": False,
+            "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
+            "import-tracks) and register again",
+        }
     tracked = set(tracks.video_names())
     moving_posed = any(not v.static and _posed(results[v.info.name]) is not None for v in videos)
     anchors_allowed = options.subject is SubjectPath.AUTO or moving_posed
@@ -92,10 +97,11 @@ def pose_from_subject(
         )
     if len(inputs) < 2:
         return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
+    subject_tracks = _subset(tracks, {v.name for v in inputs})
+    subject_options = SubjectOptions(scale=options.scale)
     try:
-        result = calibrate_from_subject(
-            _subset(tracks, {v.name for v in inputs}), inputs, SubjectOptions(scale=options.scale)
-        )
+        result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+        stability = check_stability(subject_tracks, inputs, result, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
         for video in unposed:
@@ -103,9 +109,16 @@ def pose_from_subject(
                 results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
         return {"used": False, "why": str(error), "anchors": anchors}
     by_name = {v.info.name: v for v in videos}
+    if not stability.checked:
+        warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     posed = []
     for camera in result.cameras:
         if camera.name in anchors:
+            continue
+        if camera.name in stability.unstable:
+            reason = f"subject path: {stability.unstable[camera.name]}"
+            warnings.append(f"{camera.name}: {reason}")
+            results[camera.name] = {int(f): FramePose(pose=None, reason=reason) for f in by_name[camera.name].wanted}
             continue
         frame_pose = FramePose(
             pose=pycolmap.Rigid3d(pycolmap.Rotation3d(camera.R), np.asarray(camera.t, dtype=float)),
@@ -152,4 +165,5 @@ def pose_from_subject(
             for p in result.pairs
         ],
         "failed": result.failed,
+        "stability": stability.to_json(),
     }
