@@ -1,0 +1,144 @@
+"""Is a subject calibration determined by the data? Solve again without part of the tracks, and compare.
+
+The subject path has no ground truth to check against, and a poorly constrained problem (few distinct positions,
+little motion, a near-planar path) still returns poses with small residuals: its cameras are then set by noise.
+Each fold leaves out one block of time in `folds` (alternating blocks, so every fold sees the same kind of motion);
+where a camera's pose in a fold differs from the whole-data pose by more than the tolerance, the pose is not
+determined by the data and is not trusted.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras
+from sfm.evaluate import compare
+from sfm.subject.calibrate import calibrate_from_subject
+from sfm.subject.model import SubjectCalibrationError, SubjectCamera, SubjectOptions, SubjectResult, SubjectVideo
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class StabilityOptions:
+    block: float = 0.5  # seconds of a video's own time per block
+    folds: int = 3  # fold k leaves out the blocks whose index is k modulo `folds`
+    # A garbage detector, not an accuracy bound: a fold holds 2/3 of the data, so valid poses move too.
+    max_centre: float = 0.1  # largest centre change between a fold and the whole, fraction of the camera spread
+    max_rotation_deg: float = 5.0
+
+
+@dataclass(kw_only=True)
+class Stability:
+    """Per camera: the largest difference between a fold's solution and the whole (after a similarity)."""
+
+    centre: dict[str, float] = field(default_factory=dict)  # fraction of the camera spread
+    rotation_deg: dict[str, float] = field(default_factory=dict)
+    unstable: dict[str, str] = field(default_factory=dict)  # camera -> one-line reason
+    checked: bool = True  # False when no fold could be solved: the poses are unverified
+    why_unchecked: str | None = None
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "checked": self.checked,
+            "why_unchecked": self.why_unchecked,
+            "centre_pct": {k: round(100 * v, 2) for k, v in self.centre.items()},
+            "rotation_deg": {k: round(v, 3) for k, v in self.rotation_deg.items()},
+            "unstable": self.unstable,
+        }
+
+
+def _fold(tracks: Tracks, videos: list[SubjectVideo], fold: int, stability: StabilityOptions) -> Tracks:
+    times = {v.name: v.times for v in videos}
+    keep = np.zeros(len(tracks), dtype=bool)
+    for row, (video, frame) in enumerate(zip(tracks.video, tracks.frame, strict=True)):
+        own = times[video][int(frame)] if video in times and int(frame) < len(times[video]) else 0.0
+        keep[row] = int(own // stability.block) % stability.folds != fold
+    index = np.flatnonzero(keep)
+    return Tracks(
+        video=[tracks.video[i] for i in index],
+        frame=tracks.frame[keep],
+        point=[tracks.point[i] for i in index],
+        xy=tracks.xy[keep],
+        path=tracks.path,
+    )
+
+
+def _as_cameras(cameras: list[SubjectCamera]) -> CameraSet:
+    return CameraSet(
+        videos=[
+            VideoCameras(name=c.name, width=1, height=1, frames=[FrameCamera(frame=0, K=c.K, R=c.R, t=c.t)])
+            for c in cameras
+        ]
+    )
+
+
+def check_stability(
+    tracks: Tracks,
+    videos: list[SubjectVideo],
+    result: SubjectResult,
+    options: SubjectOptions | None = None,
+    stability: StabilityOptions | None = None,
+) -> Stability:
+    """Solve each fold of `tracks` and compare its cameras with `result` (the solution on all of them).
+
+    A similarity needs 3 cameras; with 2, their relative rotation is compared."""
+    stability = stability or StabilityOptions()
+    whole = _as_cameras(result.cameras)
+    centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
+    spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
+    out = Stability()
+    verified: set[str] = set()
+    failures = []
+    for fold in range(stability.folds):
+        try:
+            part = calibrate_from_subject(_fold(tracks, videos, fold, stability), videos, options)
+        except SubjectCalibrationError as error:
+            failures.append(f"fold {fold + 1}: {error}")
+            continue
+        common = [c for c in part.cameras if any(w.name == c.name for w in result.cameras)]
+        if len(common) >= 3:
+            errors = compare(_as_cameras(common), whole)
+            for (name, _), centre, angle in zip(
+                errors.keys, errors.center_errors, errors.rotation_errors_deg, strict=True
+            ):
+                out.centre[name] = max(out.centre.get(name, 0.0), float(centre) / spread)
+                out.rotation_deg[name] = max(out.rotation_deg.get(name, 0.0), float(angle))
+                verified.add(name)
+        elif len(common) == 2:
+            a, b = (next(w for w in result.cameras if w.name == c.name) for c in common)
+            angle = _angle(common[1].R @ common[0].R.T @ (b.R @ a.R.T).T)
+            for name in (a.name, b.name):
+                out.rotation_deg[name] = max(out.rotation_deg.get(name, 0.0), angle)
+                verified.add(name)
+    unverified = [c.name for c in result.cameras if c.name not in verified]
+    if unverified:
+        out.checked = False
+        out.why_unchecked = f"{', '.join(unverified)}: no fold of the tracks poses them alone" + (
+            f" ({failures[0]})" if failures else ""
+        )
+        log.warning("subject path: poses unverified: %s", out.why_unchecked)
+    for name, value in out.centre.items():
+        if value > stability.max_centre and name not in out.unstable:
+            out.unstable[name] = (
+                f"not determined by the tracks: its centre moves by {100 * value:.1f} % of the camera spread between "
+                f"folds of the data (> {100 * stability.max_centre:.0f} %)"
+            )
+    for name, value in out.rotation_deg.items():
+        if value > stability.max_rotation_deg and name not in out.unstable:
+            out.unstable[name] = (
+                f"not determined by the tracks: its rotation moves by {value:.1f} deg between folds of the data "
+                f"(> {stability.max_rotation_deg:g} deg)"
+            )
+    return out
+
+
+def _angle(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+__all__ = ["Stability", "StabilityOptions", "check_stability"]

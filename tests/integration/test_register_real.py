@@ -1,0 +1,90 @@
+"""`dynrecon register` on the real static rigs of ../shared, against their own calibrations
+(`benchmarks/register_real.py` has the same cases with their timings).
+
+- caliscope office (4 static webcams, a person waving a ChArUco board): the background of the four views barely
+  overlaps (cam_1 faces the others across the room), so the board's corners, detected by OpenCV's aruco module and
+  desynchronized by dropping different leading frames per video, are the subject that poses the cameras;
+- pose2sim lab (4 static cameras): the committed labels tracked by LK give only 3-5 slowly moving markers, which do
+  not determine the cameras; the result must say so instead of reporting wrong poses.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import register_real as real
+from dynrecon.cli import main
+from sfm.cameras import read_cameras
+from tracking.charuco import charuco_tracks
+from tracking.tracks import write_tracks
+
+pytestmark = [pytest.mark.shared, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def caliscope(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Path], Path]:
+    """The desynchronized office videos and their board-corner tracks."""
+    work = tmp_path_factory.mktemp("caliscope")
+    videos = real.desynchronized_caliscope(work)
+    tracks = work / "tracks.csv"
+    write_tracks(tracks, charuco_tracks(videos, real.CALISCOPE / "charuco.toml"))
+    return videos, tracks
+
+
+def _register(videos: list[Path], ws: Path, tracks: Path, *extra: str) -> dict:
+    ws.mkdir(parents=True, exist_ok=True)
+    (ws / "tracks.csv").write_bytes(tracks.read_bytes())
+    assert main(["register", *(str(v) for v in videos), "--out", str(ws), *extra]) == 0
+    return json.loads((ws / "register_report.json").read_text())
+
+
+def test_caliscope_static_rig_from_the_subject(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
+    videos, tracks = caliscope
+    report = _register(videos, tmp_path / "ws", tracks, "--intrinsics", str(real.CALISCOPE / "camera_array.toml"))
+    # Every webcam is found static; the background poses none of them, the board's corners pose all four.
+    assert [v["camera"] for v in report["videos"]] == ["static"] * 4
+    assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
+    assert all(v["registered"] == v["frames_in_video"] for v in report["videos"])  # every frame, one pose
+    cameras = read_cameras(tmp_path / "ws" / "cameras.json")
+    truth = real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)])
+    errors = real.score(cameras, truth)
+    assert errors["centre_pct"] < 5.0 and errors["rotation_deg"] < 2.0, errors
+    # The clock offsets the dropped frames made, against the rig's real capture times, within a frame (6 fps).
+    found = {c["name"]: c["offset_s"] for c in report["subject"]["cameras"]}
+    true = real.caliscope_true_offsets()
+    for name in found:
+        error_frames = ((found[name] - found["cam_0"]) - (true[name] - true["cam_0"])) * 6.0
+        assert abs(error_frames) < 1.0, (name, error_frames)
+    assert report["subject"]["stability"]["unstable"] == {}
+    # Without background anchors or --scale the units are arbitrary, and the report says so.
+    assert not report["subject"]["metric"] and any("units are arbitrary" in w for w in report["warnings"])
+
+
+def test_caliscope_scale_from_two_tracked_points(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
+    videos, tracks = caliscope
+    # Corners 0 and 1 are neighbours on the board: one 5.4 cm square apart.
+    report = _register(videos, tmp_path / "ws", tracks, "--intrinsics", str(real.CALISCOPE / "camera_array.toml"),
+                       "--scale", "corner_0,corner_1,0.054")
+    assert report["subject"]["metric"]
+    cameras = read_cameras(tmp_path / "ws" / "cameras.json")
+    truth = real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)])
+    centres = np.array([v.frames[0].center for v in cameras.videos])
+    true_centres = np.array([v.frames[0].center for v in truth.videos])
+    spread = np.linalg.norm(centres[:, None] - centres[None], axis=-1).max()
+    true_spread = np.linalg.norm(true_centres[:, None] - true_centres[None], axis=-1).max()
+    assert abs(spread / true_spread - 1) < 0.05
+
+
+def test_caliscope_background_alone_says_what_is_missing(shared_dir: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    videos = [real.CALISCOPE / "calibration" / "extrinsic" / f"cam_{i}.mp4" for i in range(4)]
+    assert main(["register", *(str(v) for v in videos), "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err
+    assert "videos registered" in err and "cameras.json not written" in err
+    report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
+    assert [v["camera"] for v in report["videos"]] == ["static"] * 4
+    assert any("dynrecon track" in w for w in report["warnings"])  # the way out: the subject's tracks
