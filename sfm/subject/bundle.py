@@ -7,12 +7,14 @@ so the offsets get gradients; a small acceleration penalty determines the knots 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.sparse import coo_matrix
+from threadpoolctl import threadpool_limits
 
 from sfm.subject.chain import Knots
 from sfm.subject.geometry import rodrigues
@@ -21,6 +23,8 @@ from sfm.subject.observations import VideoObs
 log = logging.getLogger(__name__)
 
 SMOOTH = 0.05  # weight of the acceleration residual (pixels per pixel of second difference)
+NK = 5  # intrinsics of an unknown-K camera: focal, k1, k2, principal point (2)
+PP_SIGMA = 20.0  # pixels of principal-point offset from the image centre that cost like one pixel of residual
 
 
 @dataclass(kw_only=True)
@@ -30,6 +34,8 @@ class Bundle:
     t: np.ndarray  # (C, 3)
     focal: np.ndarray  # (C,) pixels (used for the unknown-K cameras; known ones keep K)
     k1: np.ndarray  # (C,)
+    k2: np.ndarray  # (C,)
+    pp: np.ndarray  # (C, 2) principal points (pixels) of the unknown-K cameras
     offsets: np.ndarray  # (V,) seconds
     knots: Knots
     fixed_pose: set[int]  # positions in `cams` whose pose is not adjusted
@@ -45,7 +51,7 @@ def _obs_arrays(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.nda
     for j, c in enumerate(b.cams):
         o = obs[c]
         f, p = np.nonzero(b.keep[j])
-        target = o.norm[f, p] if o.known_K else o.xy[f, p] - o.K[:2, 2]
+        target = o.norm[f, p] if o.known_K else o.xy[f, p]
         out.append((o.times[f], p, target, f))
     return out
 
@@ -66,39 +72,39 @@ def _layout(b: Bundle, obs: list[VideoObs]) -> tuple[list[int], list[int], list[
     free_pose = [j for j in range(len(b.cams)) if j not in b.fixed_pose]
     free_k = [j for j, c in enumerate(b.cams) if not obs[c].known_K]
     free_o = [j for j, c in enumerate(b.cams) if c not in b.fixed_offset]
-    n = 6 * len(free_pose) + 2 * len(free_k) + len(free_o)
+    n = 6 * len(free_pose) + NK * len(free_k) + len(free_o)
     return free_pose, free_k, free_o, n
 
 
 def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, ...]:
     free_pose, free_k, free_o, n = _layout(b, obs)
-    rvec, t, focal, k1 = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy()
+    rvec, t, focal, k1, k2, pp = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy(), b.k2.copy(), b.pp.copy()
     off = np.array([b.offsets[c] for c in b.cams])
     i = 0
     for j in free_pose:
         rvec[j], t[j] = x[i : i + 3], x[i + 3 : i + 6]
         i += 6
     for j in free_k:
-        focal[j], k1[j] = x[i], x[i + 1]
-        i += 2
+        focal[j], k1[j], k2[j], pp[j] = x[i], x[i + 1], x[i + 2], x[i + 3 : i + 5]
+        i += NK
     for j in free_o:
         off[j] = x[i]
         i += 1
     X = x[n:].reshape(b.knots.X.shape)
-    return rvec, t, focal, k1, off, X
+    return rvec, t, focal, k1, k2, pp, off, X
 
 
 def _pack(b: Bundle, obs: list[VideoObs]) -> np.ndarray:
     free_pose, free_k, free_o, _ = _layout(b, obs)
     parts = [np.concatenate([b.rvec[j], b.t[j]]) for j in free_pose]
-    parts += [np.array([b.focal[j], b.k1[j]]) for j in free_k]
+    parts += [np.array([b.focal[j], b.k1[j], b.k2[j], *b.pp[j]]) for j in free_k]
     parts += [np.array([b.offsets[b.cams[j]]]) for j in free_o]
     return np.concatenate([*parts, b.knots.X.ravel()]) if parts else b.knots.X.ravel().copy()
 
 
 def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple[list[np.ndarray], np.ndarray]:
     """Reprojection residuals per camera (M, 2) in pixels and the smoothness residuals (flattened)."""
-    rvec, t, focal, k1, off, X = _unpack(b, obs, x)
+    rvec, t, focal, k1, k2, pp, off, X = _unpack(b, obs, x)
     T = len(X)
     R = rodrigues(rvec)  # (C, 3, 3)
     out = []
@@ -116,7 +122,7 @@ def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple
             res = (xy - target) * np.array([o.K[0, 0], o.K[1, 1]])
         else:
             r2 = (xy**2).sum(1, keepdims=True)
-            res = focal[j] * xy * (1 + k1[j] * r2) - target
+            res = focal[j] * xy * (1 + k1[j] * r2 + k2[j] * r2**2) + pp[j] - target
         out.append(res)
     scale = SMOOTH * float(np.mean([obs[c].focal for c in b.cams])) / b.depth
     acc = (X[:-2] - 2 * X[1:-1] + X[2:]) * scale  # (T - 2, P, 3)
@@ -125,7 +131,11 @@ def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple
         ja, jb, d = b.gauge
         ca, cb = -R[ja].T @ t[ja], -R[jb].T @ t[jb]
         extra.append(np.array([1e3 * (np.linalg.norm(ca - cb) - d) / d]))
-    extra.append(k1[[j for j, c in enumerate(b.cams) if not obs[c].known_K]] * 10.0)  # weak prior: k1 ~ 0 +- 0.1
+    free_k = [j for j, c in enumerate(b.cams) if not obs[c].known_K]
+    # weak priors (each like one pixel of residual): distortion near 0 +- 0.1, principal point near the centre
+    extra.append(np.concatenate([k1[free_k], k2[free_k]]) * 10.0)
+    centre = np.array([obs[b.cams[j]].video_centre for j in free_k]).reshape(-1, 2)
+    extra.append(((pp[free_k] - centre) / PP_SIGMA).ravel())
     return out, np.concatenate(extra)
 
 
@@ -133,8 +143,8 @@ def _sparsity(b: Bundle, obs: list[VideoObs], arrays: list, n_res: int) -> coo_m
     free_pose, free_k, free_o, n = _layout(b, obs)
     T, P, _ = b.knots.X.shape
     col_pose = {j: 6 * i for i, j in enumerate(free_pose)}
-    col_k = {j: 6 * len(free_pose) + 2 * i for i, j in enumerate(free_k)}
-    col_o = {j: 6 * len(free_pose) + 2 * len(free_k) + i for i, j in enumerate(free_o)}
+    col_k = {j: 6 * len(free_pose) + NK * i for i, j in enumerate(free_k)}
+    col_o = {j: 6 * len(free_pose) + NK * len(free_k) + i for i, j in enumerate(free_o)}
     rows, cols = [], []
     r0 = 0
     for j in range(len(b.cams)):
@@ -146,7 +156,7 @@ def _sparsity(b: Bundle, obs: list[VideoObs], arrays: list, n_res: int) -> coo_m
         if j in col_pose:
             block.append(col_pose[j] + np.arange(6))
         if j in col_k:
-            block.append(col_k[j] + np.arange(2))
+            block.append(col_k[j] + np.arange(NK))
         if j in col_o:
             block.append(np.array([col_o[j]]))
         if block:
@@ -204,26 +214,33 @@ def _solve(b: Bundle, obs: list[VideoObs], inlier_px: float) -> None:
 
     n_res = len(fun(x0))
     sparsity = _sparsity(b, obs, arrays, n_res)
-    sol = least_squares(
+    with threadpool_limits(1, user_api="blas"):  # lsmr's many small vector products only lose with BLAS threads
+        sol = _least_squares(fun, x0, sparsity, inlier_px, all(obs[c].known_K for c in b.cams))
+    rvec, t, focal, k1, k2, pp, off, X = _unpack(b, obs, sol.x)
+    b.rvec, b.t, b.focal, b.k1, b.k2, b.pp, b.knots.X = rvec, t, focal, k1, k2, pp, X
+    for j, c in enumerate(b.cams):
+        b.offsets[c] = off[j]
+        if not obs[c].known_K:
+            obs[c].K = np.array([[focal[j], 0, pp[j, 0]], [0, focal[j], pp[j, 1]], [0, 0, 1.0]])
+    log.info("bundle: cost %.1f -> %.1f in %d evaluations", 0.5 * np.sum(fun(x0) ** 2), sol.cost, sol.nfev)
+
+
+def _least_squares(
+    fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sparsity: coo_matrix, inlier_px: float, known: bool
+) -> OptimizeResult:
+    return least_squares(
         fun,
         x0,
         jac_sparsity=sparsity,
         loss="soft_l1",
         f_scale=inlier_px,
         x_scale="jac",
-        max_nfev=15 if all(obs[c].known_K for c in b.cams) else 50,
+        max_nfev=30 if known else 50,
         xtol=1e-8,
         ftol=1e-5,
         method="trf",
         tr_solver="lsmr",
     )
-    rvec, t, focal, k1, off, X = _unpack(b, obs, sol.x)
-    b.rvec, b.t, b.focal, b.k1, b.knots.X = rvec, t, focal, k1, X
-    for j, c in enumerate(b.cams):
-        b.offsets[c] = off[j]
-        if not obs[c].known_K:
-            obs[c].K = np.array([[focal[j], 0, obs[c].K[0, 2]], [0, focal[j], obs[c].K[1, 2]], [0, 0, 1.0]])
-    log.info("bundle: cost %.1f -> %.1f in %d evaluations", 0.5 * np.sum(fun(x0) ** 2), sol.cost, sol.nfev)
 
 
 def _residuals_px(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -235,6 +252,25 @@ def _residuals_px(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.n
         _, p, _, f = arrays[j]
         out.append((np.linalg.norm(res[j], axis=1), f, p))
     return out
+
+
+def supported(b: Bundle, obs: list[VideoObs]) -> np.ndarray:
+    """(T, P) knots next to trusted observations of at least two cameras (the rest only follow the smoothness)."""
+    T, P, _ = b.knots.X.shape
+    count = np.zeros((T, P), dtype=np.int64)
+    for j, (times, p, _, _) in enumerate(_obs_arrays(b, obs)):
+        u = (times + b.offsets[b.cams[j]] - b.knots.t0) / b.knots.h
+        k = np.clip(np.floor(u).astype(np.int64), 0, T - 2)
+        seen = np.zeros((T, P), dtype=bool)
+        seen[k, p] = True
+        seen[k + 1, p] = True
+        count += seen
+    return count >= 2
+
+
+def camera_residuals(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per camera: (M,) reprojection error in pixels, frame (M,), point (M,) of the observations still trusted."""
+    return _residuals_px(b, obs)
 
 
 def residuals_px(b: Bundle, obs: list[VideoObs]) -> list[np.ndarray]:

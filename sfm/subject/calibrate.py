@@ -6,8 +6,9 @@ import logging
 
 import numpy as np
 
-from sfm.subject.bundle import Bundle, adjust, residuals_px, rotation
+from sfm.subject.bundle import Bundle, adjust, camera_residuals, residuals_px, rotation, supported
 from sfm.subject.chain import initial_poses, make_knots
+from sfm.subject.focals import self_calibrate
 from sfm.subject.model import (
     PairResult,
     SubjectCalibrationError,
@@ -18,7 +19,7 @@ from sfm.subject.model import (
 )
 from sfm.subject.observations import VideoObs, build_observations
 from sfm.subject.offsets import solve_offsets
-from sfm.subject.pairs import PairFit, fit_pair
+from sfm.subject.pairs import DISTINCT, PairFit, fit_at, fit_pair
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,11 @@ def calibrate_from_subject(
     fits: list[PairFit] = []
     for n, a in enumerate(with_tracks):
         for b in with_tracks[n + 1 :]:
-            fit = fit_pair(obs[a], obs[b], a, b, options, rng)
+            known = options.offsets or {}
+            if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
+                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], options)
+            else:
+                fit = fit_pair(obs[a], obs[b], a, b, options, rng)
             log.info(
                 "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
                 obs[a].name,
@@ -68,6 +73,9 @@ def calibrate_from_subject(
             shared=f.shared,
             runner_up_ratio=f.runner_up_ratio,
             degenerate=f.degenerate,
+            ambiguous=f.ambiguous,
+            distinct=f.distinct,
+            reason=f.reason,
         )
         for f in fits
     ]
@@ -76,8 +84,8 @@ def calibrate_from_subject(
         degenerate = sorted({f.degenerate for f in fits if f.degenerate})
         if degenerate:
             raise SubjectCalibrationError(
-                f"degenerate motion: the tracked points move on a {' / '.join(degenerate)} "
-                "in every pair; record a subject moving in all three dimensions"
+                f"degenerate motion in every pair ({'; '.join(degenerate)}): the tracks cannot fix an epipolar "
+                "geometry; record a subject moving in all three dimensions across the views, or track more points"
             )
         most = max(f.shared for f in fits)
         raise SubjectCalibrationError(
@@ -86,11 +94,11 @@ def calibrate_from_subject(
             "motion, track more points or raise max_offset"
         )
 
-    _estimate_focals(obs, usable)
     anchors = [i for i in with_tracks if videos[i].cam_from_world is not None]
     reference = anchors[0] if anchors else with_tracks[0]
     period = max(o.period for o in obs)
-    edges = [(f.a, f.b, -f.shift, float(f.inliers)) for f in usable]
+    # an ambiguous pair barely counts: it decides an offset only where no trusted pair reaches
+    edges = [(f.a, f.b, -f.shift, float(f.inliers) * (1e-3 if f.ambiguous else 1.0)) for f in usable]
     offsets, kept = solve_offsets(len(obs), edges, {reference: 0.0}, tolerance=1.5 * period)
     if not np.isfinite(offsets[reference]) or len(kept) == 0:
         raise SubjectCalibrationError("no usable pair includes the reference video; check the tracks overlap in time")
@@ -101,7 +109,10 @@ def calibrate_from_subject(
         if not np.isfinite(offsets[i]):
             failed[obs[i].name] = _why(obs, fits, i)
 
-    kept_fits = [usable[k] for k in kept]
+    kept_fits = _refit_to_offsets(obs, usable, kept, offsets, options)
+    if not kept_fits:
+        raise SubjectCalibrationError("no pair's epipolar geometry agrees with the chained time offsets")
+    _estimate_focals(obs, kept_fits)
     knots = make_knots(obs, offsets, len(points))
     poses = initial_poses(obs, offsets, kept_fits, knots, options.inlier_px, failed)
     cams = sorted(poses)
@@ -111,6 +122,8 @@ def calibrate_from_subject(
         t=np.array([poses[c][1] for c in cams]),
         focal=np.array([obs[c].focal for c in cams]),
         k1=np.zeros(len(cams)),
+        k2=np.zeros(len(cams)),
+        pp=np.array([obs[c].K[:2, 2] for c in cams]),
         offsets=offsets.copy(),
         knots=knots,
         fixed_pose={cams.index(min(cams, key=lambda c: 0 if c == kept_fits[0].a else 1))},
@@ -125,6 +138,16 @@ def calibrate_from_subject(
     finite = np.isfinite(knots.X[..., 0])
     bundle.depth = float(np.median(np.linalg.norm(knots.X[finite], axis=-1))) if finite.any() else 1.0
     adjust(bundle, obs, options.inlier_px)
+    refused = _refuse(bundle, obs, options, failed)
+    if refused:
+        _drop(bundle, refused)
+        if len(bundle.cams) < 2:
+            raise SubjectCalibrationError(
+                "the bundle adjustment cannot support the cameras' poses: "
+                + "; ".join(f"{obs[c].name}: {failed[obs[c].name]}" for c in cams if obs[c].name in failed)
+            )
+        adjust(bundle, obs, options.inlier_px, rounds=1)
+    cams = bundle.cams
 
     metric = False
     fixed_anchor = [j for j, c in enumerate(cams) if videos[c].cam_from_world is not None]
@@ -142,6 +165,7 @@ def calibrate_from_subject(
             )
             bundle.gauge = (j, other, float(np.linalg.norm(_centre(bundle, other) - _centre(bundle, j))))
         adjust(bundle, obs, options.inlier_px, rounds=1)
+    bundle.knots.X[~supported(bundle, obs)] = np.nan  # knots no two cameras see are extrapolations
     if options.scale is not None and not metric:
         _apply_scale(bundle, points, options.scale, fixed_anchor)
         metric = True
@@ -150,7 +174,7 @@ def calibrate_from_subject(
     cameras = []
     for j, c in enumerate(cams):
         K = obs[c].K.copy()
-        dist = obs[c].dist if obs[c].known_K else np.array([bundle.k1[j], 0.0, 0.0, 0.0, 0.0])
+        dist = obs[c].dist if obs[c].known_K else np.array([bundle.k1[j], bundle.k2[j], 0.0, 0.0, 0.0])
         cameras.append(
             SubjectCamera(
                 name=obs[c].name,
@@ -187,6 +211,53 @@ def _thinned(o: VideoObs, budget: int = 2500) -> np.ndarray:
     return seen
 
 
+def _refuse(b: Bundle, obs: list[VideoObs], options: SubjectOptions, failed: dict[str, str]) -> list[int]:
+    """Positions in `b.cams` whose adjusted pose is not supported: large residuals or too few agreeing points."""
+    out = []
+    for j, (res, f, p) in enumerate(camera_residuals(b, obs)):
+        o = obs[b.cams[j]]
+        good = res <= 3 * options.inlier_px
+        median = float(np.median(res)) if len(res) else float("inf")
+        cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
+        distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
+        if median > options.max_residual_px:
+            why = (
+                f"median reprojection error {median:.1f} px after the bundle adjustment (> {options.max_residual_px:g})"
+            )
+        elif int(good.sum()) < options.min_inliers:
+            why = f"only {int(good.sum())} observations agree with the others' trajectory (< {options.min_inliers})"
+        elif distinct < options.min_distinct // 2:
+            why = f"its agreeing observations cover only {distinct} distinct image positions"
+        else:
+            continue
+        log.warning("camera %s refused: %s", o.name, why)
+        failed[o.name] = why
+        out.append(j)
+    return out
+
+
+def _drop(b: Bundle, positions: list[int]) -> None:
+    """Remove cameras from the bundle; the gauge moves to the remaining ones."""
+    keep = [j for j in range(len(b.cams)) if j not in positions]
+    fixed = [keep.index(j) for j in sorted(b.fixed_pose) if j in keep]
+    b.cams = [b.cams[j] for j in keep]
+    b.rvec, b.t, b.focal = b.rvec[keep], b.t[keep], b.focal[keep]
+    b.k1, b.k2, b.pp = b.k1[keep], b.k2[keep], b.pp[keep]
+    b.keep = [b.keep[j] for j in keep]
+    if len(keep) < 2:
+        return
+    b.fixed_pose = set(fixed) or {0}
+    first = min(b.fixed_pose)
+    second = max(
+        (j for j in range(len(keep)) if j != first), key=lambda j: np.linalg.norm(_centre(b, j) - _centre(b, first))
+    )
+    b.gauge = (
+        None
+        if len(b.fixed_pose) >= 2
+        else (first, second, float(np.linalg.norm(_centre(b, second) - _centre(b, first))))
+    )
+
+
 def _centre(b: Bundle, j: int) -> np.ndarray:
     return -rotation(b.rvec[j]).T @ b.t[j]
 
@@ -199,19 +270,47 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
     return "no usable pair: " + "; ".join(r for r in reasons if r)
 
 
+def _refit_to_offsets(
+    obs: list[VideoObs], usable: list[PairFit], kept: list[int], offsets: np.ndarray, options: SubjectOptions
+) -> list[PairFit]:
+    """The pairs at the chained offsets: a pair whose own offset disagrees (dropped or ambiguous) is refitted there."""
+    out = []
+    for k, f in enumerate(usable):
+        if not (np.isfinite(offsets[f.a]) and np.isfinite(offsets[f.b])):
+            continue
+        shift = -float(offsets[f.b] - offsets[f.a])
+        tol = 0.5 * max(obs[f.a].period, obs[f.b].period)
+        if k in kept and abs(shift - f.shift) <= tol:
+            out.append(f)
+            continue
+        g = fit_at(obs[f.a], obs[f.b], f.a, f.b, shift, options)
+        log.info(
+            "pair %s-%s refitted at the chained offset %.3f s (own %.3f s): %d inliers, %s",
+            obs[f.a].name,
+            obs[f.b].name,
+            -shift,
+            -f.shift,
+            g.inliers,
+            g.reason or g.degenerate or "usable",
+        )
+        if g.usable:
+            out.append(g)
+    return out
+
+
 def _estimate_focals(obs: list[VideoObs], fits: list[PairFit]) -> None:
-    """Unknown K: median of the Bougnoux focals of a camera's pairs (kept within a plausible range)."""
-    for i, o in enumerate(obs):
-        if o.known_K:
+    """Unknown K: focals that make every pair's fundamental matrix most essential (self-calibration)."""
+    unknown = [i for i, o in enumerate(obs) if not o.known_K]
+    if not unknown:
+        return
+    focals = self_calibrate(obs, fits)
+    for i in unknown:
+        new = focals.get(i)
+        if new is None:
             continue
-        vals = [f.focals[0] if f.a == i else f.focals[1] for f in fits if i in (f.a, f.b)]
-        vals = [v for v in vals if np.isfinite(v)]
-        size = max(o.video.width, o.video.height)
-        if not vals:
-            continue
+        o = obs[i]
         old = o.focal
-        new = float(np.clip(np.median(vals), 0.3 * size, 5 * size))
-        log.info("camera %s: focal %.0f px from %d pair(s)", o.name, new, len(vals))
+        log.info("camera %s: focal %.0f px from self-calibration", o.name, new)
         o.set_focal(new)
         for f in fits:  # no distortion without K: normalized coordinates just scale with 1 / focal
             if f.a == i:

@@ -98,7 +98,7 @@ def initial_poses(
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """cam_from_world of every camera that can be chained (first camera of the best pair at the origin)."""
     usable = [f for f in fits if f.usable and np.isfinite(offsets[f.a]) and np.isfinite(offsets[f.b])]
-    best = max(usable, key=lambda f: f.inliers)
+    best = max(usable, key=lambda f: (not f.ambiguous, f.inliers))  # a trusted offset first
     E = best.E
     # re-estimate E in the current normalized coordinates (focal estimates may have changed since the search)
     E2, _mask = cv2.findEssentialMat(

@@ -30,6 +30,10 @@ class VideoObs:
     def focal(self) -> float:
         return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
 
+    @property
+    def video_centre(self) -> np.ndarray:
+        return np.array([(self.video.width - 1) / 2, (self.video.height - 1) / 2])  # (2,) pixels
+
     def count(self) -> int:
         return int(np.isfinite(self.xy[..., 0]).sum())
 

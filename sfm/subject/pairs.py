@@ -20,6 +20,7 @@ from sfm.subject.observations import VideoObs, interpolate
 log = logging.getLogger(__name__)
 
 CHUNK = 24  # shifts scored at once (bounds the (D, H, N) Sampson tensor)
+DISTINCT = 0.02  # cell size (fraction of the image size) that clusters correspondences into distinct positions
 
 
 @dataclass(kw_only=True)
@@ -36,6 +37,10 @@ class PairFit:
     E: np.ndarray | None  # (3, 3) essential matrix in the current normalized coordinates
     focals: tuple[float, float]  # Bougnoux estimates (NaN when unknown or K known)
     reason: str | None = None  # why the pair is unusable (None = usable)
+    score: float = 0.0  # MSAC score of the model over all shared correspondences (compares shifts)
+    distinct: int = 0  # distinct (coarsely clustered) positions among the inliers
+    F_px: np.ndarray | None = None  # (3, 3) fundamental matrix in centred pixels of the current focals (unknown K)
+    ambiguous: bool = False  # another time offset explains the tracks almost as well
 
     @property
     def usable(self) -> bool:
@@ -111,7 +116,7 @@ def _image_speed(o: VideoObs) -> float:
 def _peaks(shifts: np.ndarray, scores: np.ndarray, separation: float, count: int) -> list[float]:
     out: list[float] = []
     for i in np.argsort(-scores):
-        if scores[i] <= 0 or scores[i] < 0.5 * scores.max() or len(out) >= count:
+        if scores[i] <= 0 or scores[i] < 0.3 * scores.max() or len(out) >= count:
             break
         if all(abs(shifts[i] - p) > separation for p in out):
             out.append(float(shifts[i]))
@@ -155,11 +160,13 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
         return empty
     candidates: list[float] = []
     step = max(fine, 2 * coarse / 8)  # at most 9 robust fits per peak
-    for peak in _peaks(grid, c_scores, 2 * coarse, 4):
+    # peaks further apart than the ambiguity window each get a fine search (the runner-up is one of them)
+    for peak in _peaks(grid, c_scores, period + coarse, 5):
         f_grid = np.arange(peak - coarse, peak + coarse + step / 2, step)
         # the fine scores come from the full robust estimator (cv2 MAGSAC): the batched 8-point is too noisy here
         f_scores = np.array(
-            [_geometry(oa, ob, a, b, s, 1.0, essential, options, n_max=1500).inliers for s in f_grid], dtype=float
+            [_geometry(oa, ob, a, b, s, 1.0, essential, options, n_max=1500, iterations=1000).score for s in f_grid],
+            dtype=float,
         )
         i = int(np.argmax(f_scores))
         shift = float(f_grid[i])
@@ -169,14 +176,26 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
             if den < 0:
                 shift += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
         candidates.append(shift)
-    # the peaks compete on the full robust model (an E when both K are known: 5 dof discriminate best)
+    # the peaks compete on the full robust model's MSAC score (an E when both K are known: 5 dof discriminate best)
     fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, options) for shift in candidates]
-    best = max(fits, key=lambda f: f.inliers)
-    i_best = int(np.argmin(np.abs(grid - best.shift)))
-    far = np.abs(grid - best.shift) > period + coarse
-    runner = float(c_scores[far].max()) if far.any() else 0.0
-    best.runner_up_ratio = float(c_scores[i_best] / runner) if runner > 0 else float("inf")
+    best = max(fits, key=lambda f: f.score)
+    far = [f.score for f in fits if abs(f.shift - best.shift) > period]
+    if far:  # best over the best elsewhere, with the same estimator: >= 1 by construction
+        best.runner_up_ratio = float(best.score / max(far)) if max(far) > 0 else float("inf")
+    else:  # no other peak reached the candidate level: the coarse scores say how far behind the rest is
+        near = np.abs(grid - best.shift) <= period + coarse
+        c_far = float(c_scores[~near].max()) if (~near).any() else 0.0
+        c_near = float(c_scores[near].max()) if near.any() else 0.0
+        best.runner_up_ratio = max(1.0, c_near / c_far) if c_far > 0 else float("inf")
+    # one point gives fewer constraints per frame: a single-point pair needs a clearer win
+    margin = options.min_ratio - 1.0 if oa.xy.shape[1] > 1 else 3 * (options.min_ratio - 1.0)
+    best.ambiguous = best.runner_up_ratio < 1.0 + margin
     return best
+
+
+def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float, options: SubjectOptions) -> PairFit:
+    """The pair's model at a given shift (own_b = own_a + shift), e.g. the one the chained offsets imply."""
+    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K, options)
 
 
 def _geometry(
@@ -189,6 +208,7 @@ def _geometry(
     essential: bool,
     options: SubjectOptions,
     n_max: int = 0,
+    iterations: int = 5000,
 ) -> PairFit:
     """The pair's model, inliers and degeneracy at a shift, from its correspondences (an even subset of n_max)."""
     xa, xb = _pair_corr(oa, ob, np.array([shift]))
@@ -215,14 +235,15 @@ def _geometry(
         return fit
     f_mean = float(np.sqrt(oa.focal * ob.focal))
     thr = options.inlier_px / f_mean
+    F: np.ndarray | None = None
     if essential:
         E, mask = cv2.findEssentialMat(
-            xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=5000
+            xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=iterations
         )
     else:
         # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
         pa, pb = xa * oa.focal, xb * ob.focal
-        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, options.inlier_px, 0.9999, 5000)
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, options.inlier_px, 0.9999, iterations)
         if F is not None and F.shape == (3, 3):
             fa, fb = bougnoux(F)
             fit.focals = (fa, fb)
@@ -234,13 +255,31 @@ def _geometry(
         fit.reason = "no epipolar geometry found"
         return fit
     inl = mask.ravel().astype(bool)
+    # MSAC over all correspondences: unlike the inlier count it keeps ranking shifts once every point is an inlier
+    err = sampson(E[None], xa, xb)[0]  # (N,) squared, normalized units
+    fit.score = float(np.maximum(0.0, 1.0 - err / thr**2).sum())
     fit.E, fit.inliers, fit.xa, fit.xb = E, int(inl.sum()), xa[inl], xb[inl]
+    if not essential:
+        fit.F_px = F
     if fit.inliers < max(8, options.min_shared):
         fit.reason = f"only {fit.inliers} epipolar inliers"
         return fit
     if not n_max:
-        fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
+        size_a, size_b = _size(oa), _size(ob)
+        cells = np.hstack(
+            [np.floor(fit.xa * oa.focal / (DISTINCT * size_a)), np.floor(fit.xb * ob.focal / (DISTINCT * size_b))]
+        )  # (M, 4) cell of each inlier in both images
+        fit.distinct = len(np.unique(cells, axis=0))
+        if fit.distinct < options.min_distinct:
+            # a handful of places explain any epipolar geometry (and every time offset): nothing to trust
+            fit.degenerate = f"few distinct positions ({fit.distinct} < {options.min_distinct})"
+        else:
+            fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
     return fit
+
+
+def _size(o: VideoObs) -> float:
+    return float(max(o.video.width, o.video.height))
 
 
 def _degeneracy(xa: np.ndarray, xb: np.ndarray, thr: float) -> str | None:

@@ -9,6 +9,7 @@ determined by the data and is not trusted.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -94,9 +95,11 @@ def check_stability(
     out = Stability()
     verified: set[str] = set()
     failures = []
+    # The folds keep the whole solution's clock offsets: they test the geometry, and skip the offset search.
+    fold_options = dataclasses.replace(options or SubjectOptions(), offsets={c.name: c.offset for c in result.cameras})
     for fold in range(stability.folds):
         try:
-            part = calibrate_from_subject(_fold(tracks, videos, fold, stability), videos, options)
+            part = calibrate_from_subject(_fold(tracks, videos, fold, stability), videos, fold_options)
         except SubjectCalibrationError as error:
             failures.append(f"fold {fold + 1}: {error}")
             continue

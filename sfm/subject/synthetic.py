@@ -69,9 +69,16 @@ def line_motion(t: np.ndarray) -> np.ndarray:
     return (np.array([5.0, 2.0, 12.0]) + s[:, None] * np.array([0.8, 0.5, 0.33]))[:, None, :]
 
 
+def sway_motion(t: np.ndarray) -> np.ndarray:
+    """(T,) -> (T, 5, 3): five markers of someone balancing on the spot (centimetres of motion: few positions)."""
+    base = np.array([[0.1, 0.0, 0.05], [0.1, 0.05, 0.1], [0.05, 0.05, 0.5], [0.3, -0.1, 1.0], [-0.1, 0.0, 0.05]])
+    sway = 0.01 * np.stack([np.sin(0.7 * t), np.cos(0.5 * t), 0.3 * np.sin(1.1 * t)], axis=-1)  # (T, 3)
+    return base[None] + sway[:, None] * (1 + base[None, :, 2:3])
+
+
 def make_rig(
     *,
-    kind: str = "skeleton",  # "skeleton", "flight" or "line"
+    kind: str = "skeleton",  # "skeleton", "flight", "line" or "sway"
     n_cameras: int = 4,
     duration: float = 20.0,
     fps: tuple[float, ...] = (30.0, 25.0, 60.0, 29.97, 30.0),
@@ -86,8 +93,9 @@ def make_rig(
     """Cameras around the scene, looking at its middle; video v's own clock starts at global time offsets[v]."""
     rng = np.random.default_rng(seed)
     motion: Callable[[np.ndarray], np.ndarray]
-    if kind == "skeleton":
-        motion, target, radius, height = skeleton_motion, np.array([0.0, 0.0, 1.0]), 5.0, 2.6
+    if kind in ("skeleton", "sway"):
+        motion = skeleton_motion if kind == "skeleton" else sway_motion
+        target, radius, height = np.array([0.0, 0.0, 1.0]), 5.0, 2.6
         width, hgt = 1920, 1080
     else:
         motion = flight_motion if kind == "flight" else line_motion
@@ -100,11 +108,11 @@ def make_rig(
     point_names = [f"p{i}" for i in range(n_points)] if n_points > 1 else ["ball"]
     for v in range(n_cameras):
         angle = 2 * np.pi * v / n_cameras + rng.uniform(-0.15, 0.15)
-        r = radius * (rng.uniform(0.55, 1.6) if kind != "skeleton" else rng.uniform(0.9, 1.1))
+        r = radius * (rng.uniform(0.55, 1.6) if kind in ("flight", "line") else rng.uniform(0.9, 1.1))
         centre = np.array([r * np.cos(angle), r * np.sin(angle), height + rng.uniform(-0.3, 0.5)])
-        R, t = _look_at(centre, target + rng.normal(0, 0.3 if kind == "skeleton" else 3.0, 3))
+        R, t = _look_at(centre, target + rng.normal(0, 3.0 if kind in ("flight", "line") else 0.3, 3))
         # the flight fits in every view: wider lenses for the nearer cameras
-        f = rng.uniform(0.85, 1.1) * width * (1.0 if kind == "skeleton" else min(1.0, r / 110))
+        f = rng.uniform(0.85, 1.1) * width * (min(1.0, r / 110) if kind in ("flight", "line") else 1.0)
         K = np.array([[f, 0, width / 2 + rng.normal(0, 5)], [0, f, hgt / 2 + rng.normal(0, 5)], [0, 0, 1.0]])
         dist = np.array([rng.uniform(-0.12, 0.05), 0.01, 0.0, 0.0, 0.0]) if distortion else None
         period = 1.0 / fps[v % len(fps)]

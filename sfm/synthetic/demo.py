@@ -93,32 +93,25 @@ def mixed_cameras(width: int = 480, height: int = 360, frames: int = 12) -> list
 
 
 def render_demo(
-    out_dir: str | Path, cameras: list[CameraPath] | None = None, seed: int = 0, starts: list[float] | None = None
+    out_dir: str | Path, cameras: list[CameraPath] | None = None, seed: int = 0
 ) -> list[SceneVideo]:
-    """Render the demo scene's videos (mp4v) into out_dir; returns them with their ground-truth cameras.
-
-    starts: per camera, the global time (s) of its first frame (default 0: synchronized starts)."""
+    """Render the demo scene's videos (mp4v) into out_dir; returns them with their ground-truth cameras."""
     room = Room(seed=seed)
-    cameras = cameras or three_cameras()
-    starts = starts or [0.0] * len(cameras)
     return [
-        render_video(room, camera, Path(out_dir) / f"{camera.name}.mp4",
-                     lambda time, start=start: orbiting_spheres(time + start))
-        for camera, start in zip(cameras, starts, strict=True)
+        render_video(room, camera, Path(out_dir) / f"{camera.name}.mp4", orbiting_spheres)
+        for camera in (cameras or three_cameras())
     ]
 
 
-def sphere_tracks(videos: list[SceneVideo], starts: list[float] | None = None) -> Tracks:
+def sphere_tracks(videos: list[SceneVideo]) -> Tracks:
     """Ground-truth 2D tracks of the orbiting spheres' centres in each rendered frame (what the tracking stage
-    would deliver), for masking the moving subject out of SfM or posing static cameras from it.
-
-    starts: as in `render_demo`."""
+    would deliver), for masking the moving subject out of SfM."""
     rows = []
-    for video, start in zip(videos, starts or [0.0] * len(videos), strict=True):
+    for video in videos:
         for frame in video.cameras.frames:
             if frame.time is None:
                 raise ValueError(f"rendered frame {frame.frame} of {video.cameras.name} has no capture time")
-            centers = orbiting_spheres(frame.time + start).centers
+            centers = orbiting_spheres(frame.time).centers
             in_cam = centers @ frame.R.T + frame.t
             uv = in_cam @ frame.K.T
             for index, (point, depth) in enumerate(zip(uv, in_cam[:, 2], strict=True)):

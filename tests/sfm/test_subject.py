@@ -37,6 +37,47 @@ def test_flight_single_point_five_cameras() -> None:
     err = compare(result, truth)
     assert err.posed == 5
     assert err.centre_pct < 2.0 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
+    # every pair's own offset is right, or it says it is ambiguous; the ratio is >= 1 by construction
+    true = dict(zip(truth.names, truth.offsets, strict=True))
+    for pair in result.pairs:
+        assert pair.runner_up_ratio >= 1.0
+        wrong = abs(pair.offset - (true[pair.b] - true[pair.a])) > max(truth.periods)
+        assert not wrong or pair.ambiguous, pair
+
+
+def test_unknown_intrinsics_skeleton() -> None:
+    tracks, videos, truth = make_rig(
+        kind="skeleton", n_cameras=4, duration=12.0, noise_px=0.7, known_K=False, distortion=False, seed=0
+    )
+    result = calibrate_from_subject(tracks, videos, SubjectOptions())
+    err = compare(result, truth)
+    assert err.posed == 4 and not result.failed
+    assert err.focal_pct < 2.0 and err.centre_pct < 2.0 and err.rotation_deg < 1.0
+
+
+def test_few_distinct_positions_are_refused() -> None:
+    # someone balancing on the spot: five markers that barely move explain any epipolar geometry
+    tracks, videos, _ = make_rig(kind="sway", n_cameras=4, duration=4.0, fps=(60.0,), seed=8)
+    with pytest.raises(SubjectCalibrationError, match="distinct positions"):
+        calibrate_from_subject(tracks, videos, SubjectOptions(max_offset=1.0))
+
+
+def test_anchors_fix_frame_and_scale() -> None:
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=4, duration=10.0, noise_px=0.7, seed=1)
+    for i in (0, 2):
+        videos[i].cam_from_world = (truth.R[i].copy(), truth.t[i].copy())
+    result = calibrate_from_subject(tracks, videos, SubjectOptions())
+    assert result.metric and len(result.cameras) == 4
+    spread = float(np.linalg.norm(truth.centres() - truth.centres().mean(0), axis=1).max())
+    for cam in result.cameras:
+        i = truth.names.index(cam.name)
+        if i in (0, 2):  # anchors unchanged
+            assert np.allclose(cam.R, truth.R[i]) and np.allclose(cam.t, truth.t[i])
+            continue
+        # the others in the anchors' frame and metric scale: no similarity applied
+        assert np.linalg.norm(cam.centre - truth.centres()[i]) / spread < 0.02
+        angle = np.degrees(np.arccos(np.clip((np.trace(cam.R @ truth.R[i].T) - 1) / 2, -1, 1)))
+        assert angle < 1.0
 
 
 def test_scale_from_two_points_gives_metres() -> None:
