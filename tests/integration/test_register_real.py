@@ -88,3 +88,22 @@ def test_caliscope_background_alone_says_what_is_missing(shared_dir: Path, tmp_p
     report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
     assert [v["camera"] for v in report["videos"]] == ["static"] * 4
     assert any("dynrecon track" in w for w in report["warnings"])  # the way out: the subject's tracks
+
+
+def test_pose2sim_markers_too_few_to_pose_are_refused(shared_dir: Path, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """3-5 tracked markers of a person balancing on the spot: every pair's correspondences come from too few
+    distinct positions. Registration must refuse with the reason, not report wrong poses."""
+    from tracking import stage as track_stage
+
+    videos = [real.POSE2SIM / "videos" / f"cam0{i}.mp4" for i in range(1, 5)]
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "labels.csv").write_bytes(real.LABELS.read_bytes())
+    track_stage.run(ws, ws / "tracks.csv", videos={v.stem: v for v in videos})
+    assert main(["register", *(str(v) for v in videos), "--out", str(ws)]) == 2
+    err = capsys.readouterr().err
+    assert "cameras.json not written" in err and "few distinct positions" in err
+    assert not (ws / "cameras.json").exists()
+    report = json.loads((ws / "register_report.json").read_text())
+    assert [v["posed_by"] for v in report["videos"]] == ["none"] * 4
