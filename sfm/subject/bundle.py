@@ -23,8 +23,8 @@ from sfm.subject.observations import VideoObs
 log = logging.getLogger(__name__)
 
 SMOOTH = 0.05  # weight of the acceleration residual (pixels per pixel of second difference)
-NK = 5  # intrinsics of an unknown-K camera: focal, k1, k2, principal point (2)
-PP_SIGMA = 20.0  # pixels of principal-point offset from the image centre that cost like one pixel of residual
+NK = 3  # intrinsics of an unknown-K camera: focal, k1, k2 (the principal point stays at the image centre)
+FOCAL_SIGMA = 0.1  # relative error of the self-calibrated focal, pulled with the weight of all observations
 
 
 @dataclass(kw_only=True)
@@ -35,7 +35,7 @@ class Bundle:
     focal: np.ndarray  # (C,) pixels (used for the unknown-K cameras; known ones keep K)
     k1: np.ndarray  # (C,)
     k2: np.ndarray  # (C,)
-    pp: np.ndarray  # (C, 2) principal points (pixels) of the unknown-K cameras
+    pp: np.ndarray  # (C, 2) principal points (pixels) of the unknown-K cameras (held: the tracks cannot fix them)
     offsets: np.ndarray  # (V,) seconds
     knots: Knots
     fixed_pose: set[int]  # positions in `cams` whose pose is not adjusted
@@ -43,6 +43,7 @@ class Bundle:
     gauge: tuple[int, int, float] | None  # (pos a, pos b, distance): fixes the free scale
     keep: list[np.ndarray]  # per camera position: (F, P) observations still trusted
     depth: float = 1.0  # typical camera-to-subject distance (turns the acceleration penalty into pixels)
+    focal_prior: np.ndarray | None = None  # (C,) self-calibrated focals the adjusted ones are pulled to
 
 
 def _obs_arrays(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
@@ -78,14 +79,14 @@ def _layout(b: Bundle, obs: list[VideoObs]) -> tuple[list[int], list[int], list[
 
 def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, ...]:
     free_pose, free_k, free_o, n = _layout(b, obs)
-    rvec, t, focal, k1, k2, pp = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy(), b.k2.copy(), b.pp.copy()
+    rvec, t, focal, k1, k2, pp = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy(), b.k2.copy(), b.pp
     off = np.array([b.offsets[c] for c in b.cams])
     i = 0
     for j in free_pose:
         rvec[j], t[j] = x[i : i + 3], x[i + 3 : i + 6]
         i += 6
     for j in free_k:
-        focal[j], k1[j], k2[j], pp[j] = x[i], x[i + 1], x[i + 2], x[i + 3 : i + 5]
+        focal[j], k1[j], k2[j] = x[i], x[i + 1], x[i + 2]
         i += NK
     for j in free_o:
         off[j] = x[i]
@@ -97,7 +98,7 @@ def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, 
 def _pack(b: Bundle, obs: list[VideoObs]) -> np.ndarray:
     free_pose, free_k, free_o, _ = _layout(b, obs)
     parts = [np.concatenate([b.rvec[j], b.t[j]]) for j in free_pose]
-    parts += [np.array([b.focal[j], b.k1[j], b.k2[j], *b.pp[j]]) for j in free_k]
+    parts += [np.array([b.focal[j], b.k1[j], b.k2[j]]) for j in free_k]
     parts += [np.array([b.offsets[b.cams[j]]]) for j in free_o]
     return np.concatenate([*parts, b.knots.X.ravel()]) if parts else b.knots.X.ravel().copy()
 
@@ -132,10 +133,12 @@ def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple
         ca, cb = -R[ja].T @ t[ja], -R[jb].T @ t[jb]
         extra.append(np.array([1e3 * (np.linalg.norm(ca - cb) - d) / d]))
     free_k = [j for j, c in enumerate(b.cams) if not obs[c].known_K]
-    # weak priors (each like one pixel of residual): distortion near 0 +- 0.1, principal point near the centre
+    # weak prior (like one pixel of residual): distortion near 0 +- 0.1
     extra.append(np.concatenate([k1[free_k], k2[free_k]]) * 10.0)
-    centre = np.array([obs[b.cams[j]].video_centre for j in free_k]).reshape(-1, 2)
-    extra.append(((pp[free_k] - centre) / PP_SIGMA).ravel())
+    if b.focal_prior is not None and free_k:
+        # weighted like all of the camera's observations: otherwise the focal trades off against distortion
+        n_obs = np.array([len(arrays[j][1]) for j in free_k], dtype=float)
+        extra.append(np.log(focal[free_k] / b.focal_prior[free_k]) / FOCAL_SIGMA * np.sqrt(n_obs))
     return out, np.concatenate(extra)
 
 
@@ -179,7 +182,7 @@ def _sparsity(b: Bundle, obs: list[VideoObs], arrays: list, n_res: int) -> coo_m
         rows.append(r0 + idx)
         cols.append(n + (kk + dk) * P * 3 + rest)
     r0 += len(idx)
-    tail = n_res - r0  # gauge + k1 priors: tie them to all camera parameters (few rows)
+    tail = n_res - r0  # gauge + intrinsic priors: tie them to all camera parameters (few rows)
     if tail and n:
         rows.append(np.repeat(r0 + np.arange(tail), n))
         cols.append(np.tile(np.arange(n), tail))

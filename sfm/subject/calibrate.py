@@ -137,6 +137,7 @@ def calibrate_from_subject(
     bundle.gauge = (first, second, float(np.linalg.norm(bundle.t[second])))
     finite = np.isfinite(knots.X[..., 0])
     bundle.depth = float(np.median(np.linalg.norm(knots.X[finite], axis=-1))) if finite.any() else 1.0
+    bundle.focal_prior = bundle.focal.copy()
     adjust(bundle, obs, options.inlier_px)
     refused = _refuse(bundle, obs, options, failed)
     if refused:
@@ -243,6 +244,8 @@ def _drop(b: Bundle, positions: list[int]) -> None:
     b.cams = [b.cams[j] for j in keep]
     b.rvec, b.t, b.focal = b.rvec[keep], b.t[keep], b.focal[keep]
     b.k1, b.k2, b.pp = b.k1[keep], b.k2[keep], b.pp[keep]
+    if b.focal_prior is not None:
+        b.focal_prior = b.focal_prior[keep]
     b.keep = [b.keep[j] for j in keep]
     if len(keep) < 2:
         return

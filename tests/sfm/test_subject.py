@@ -53,6 +53,9 @@ def test_unknown_intrinsics_skeleton() -> None:
     err = compare(result, truth)
     assert err.posed == 4 and not result.failed
     assert err.focal_pct < 2.0 and err.centre_pct < 2.0 and err.rotation_deg < 1.0
+    for camera, video in zip(result.cameras, videos, strict=True):  # unknown principal points stay at the centre
+        assert camera.name == video.name
+        assert np.allclose(camera.K[:2, 2], [(video.width - 1) / 2, (video.height - 1) / 2])
 
 
 def test_few_distinct_positions_are_refused() -> None:
