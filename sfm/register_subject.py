@@ -15,6 +15,7 @@ import pycolmap
 
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectVideo, calibrate_from_subject
+from sfm.subject.observations import select_rows
 from sfm.subject.stability import check_stability
 from tracking.tracks import Tracks
 
@@ -23,18 +24,6 @@ log = logging.getLogger(__name__)
 
 def _posed(results: dict[int, FramePose]) -> FramePose | None:
     return next((r for r in results.values() if r.pose is not None), None)
-
-
-def _subset(tracks: Tracks, names: set[str]) -> Tracks:
-    rows = np.array([v in names for v in tracks.video], dtype=bool)
-    index = np.flatnonzero(rows)
-    return Tracks(
-        video=[tracks.video[i] for i in index],
-        frame=tracks.frame[rows],
-        point=[tracks.point[i] for i in index],
-        xy=tracks.xy[rows],
-        path=tracks.path,
-    )
 
 
 def pose_from_subject(
@@ -97,7 +86,8 @@ def pose_from_subject(
         )
     if len(inputs) < 2:
         return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
-    subject_tracks = _subset(tracks, {v.name for v in inputs})
+    names = {v.name for v in inputs}
+    subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=options.scale)
     try:
         result = calibrate_from_subject(subject_tracks, inputs, subject_options)
