@@ -1,0 +1,98 @@
+"""`dynrecon run` when the background cannot pose static videos: the `subject` stage registers again after
+tracking, with the subject's tracks, and the later stages use its cameras.
+
+The two registrations are stand-ins here (the real ones are tested in tests/sfm and tests/integration): the first
+raises RegistrationError as `register` does on a static rig whose views share no background, the second writes the
+cameras of a simulated capture, whose tracks the solve then reconstructs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_motion import smooth_motion
+
+from dynrecon import pipeline
+from dynrecon.cli import main
+from reconstruct.mocap import Mocap, write_trc
+from sfm.export import write_ply
+from sfm.register import RegisterOptions, RegistrationError
+
+RATE = 120.0
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("capture")
+    xyz = smooth_motion(frames=180, points=8, rate=RATE)
+    source = write_trc(out / "motion.trc", Mocap(xyz=xyz, rate=RATE, marker_names=[f"m{i}" for i in range(8)],
+                                                 times=np.arange(180) / RATE), units="mm")
+    assert main(["simulate", str(source), "--out", str(out / "sim"), "--mode", "phones", "--cameras", "3", "--fps",
+                 "30,25,20", "--offsets", "0,0.3", "--seed", "2"]) == 0
+    return out / "sim"
+
+
+def test_static_videos_left_out_are_registered_from_the_tracks(capture: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[RegisterOptions] = []
+
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        calls.append(options)
+        if options.tracks is None:
+            raise RegistrationError("only 0 of 3 videos registered (none); cameras.json not written")
+        register_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(capture / "cameras.json", register_dir / "cameras.json")
+        write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    videos = []
+    for name in ("cam0", "cam1", "cam2"):  # the stand-ins never read them; the record stage warns and goes on
+        videos.append(tmp_path / f"{name}.mp4")
+        videos[-1].write_bytes(b"not a video")
+    ws = tmp_path / "ws"
+    result = pipeline.run_stages(videos, ws, pipeline.PipelineOptions(tracks=capture / "tracks.csv"))
+    ran = [s.name for s in result.stages]
+    assert ran == ["subject", "solve", "record", "export"]  # register raised: no stage record
+    assert calls[0].tracks is None and calls[1].tracks == ws / "tracks.csv"
+    assert (ws / "register_subject" / "cameras.json").is_file() and not (ws / "register" / "cameras.json").exists()
+    report = json.loads((ws / "report.json").read_text())
+    assert report["inputs"]["cameras"].endswith("register_subject/cameras.json")
+
+
+def test_without_tracks_the_registration_error_stands(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        raise RegistrationError("only 0 of 2 videos registered (none)")
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    videos = [tmp_path / "a.mp4", tmp_path / "b.mp4"]
+    for video in videos:
+        video.write_bytes(b"x")
+    with pytest.raises(RegistrationError):
+        pipeline.run_stages(videos, tmp_path / "ws", pipeline.PipelineOptions())
+
+
+def test_a_static_video_the_background_left_out_triggers_the_subject_stage(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[RegisterOptions] = []
+
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        calls.append(options)
+        register_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(capture / "cameras.json", register_dir / "cameras.json")
+        write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+        left_out = "none" if options.tracks is None else "subject"
+        videos_report = [{"name": "cam0", "camera": "static", "posed_by": left_out},
+                         {"name": "cam1", "camera": "moving", "posed_by": "background SfM"}]
+        (register_dir / "register_report.json").write_text(json.dumps({"videos": videos_report}))
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    videos = [tmp_path / f"cam{i}.mp4" for i in range(3)]
+    for video in videos:
+        video.write_bytes(b"x")
+    result = pipeline.run_stages(videos, tmp_path / "ws", pipeline.PipelineOptions(tracks=capture / "tracks.csv"))
+    assert [s.name for s in result.stages] == ["register", "subject", "solve", "record", "export"]
+    assert [c.tracks is None for c in calls] == [True, False]
