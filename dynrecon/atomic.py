@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
+
+from dynrecon.errors import InputError
 
 
 @contextmanager
@@ -44,3 +47,29 @@ def publish(tmp: Path, path: Path) -> None:
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_open(path, "w") as handle:
         handle.write(text)
+
+
+def require_writable(folder: str | Path) -> Path:
+    """Check that files can be written in `folder` (made if missing), before a stage spends its time.
+
+    Folders it had to make are removed again: a stage that then fails on its inputs leaves nothing behind.
+    Raises InputError naming the folder and the system's reason (a file in the way, no permission, read-only disk).
+    """
+    folder = Path(folder)
+    made = [p for p in (folder, *folder.parents) if not p.exists()]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=".write-test.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        os.unlink(tmp_name)
+    except FileExistsError:
+        raise InputError(folder, "cannot write here: it is a file, not a folder",
+                         fix="give the path of a folder for the outputs") from None
+    except OSError as error:
+        raise InputError(folder, f"cannot write here: {error.strerror or error}",
+                         fix="give a folder you can write to") from None
+    finally:
+        for path in made:  # deepest first
+            with contextlib.suppress(OSError):
+                path.rmdir()
+    return folder

@@ -148,9 +148,23 @@ class State:
         self.stages: dict[str, dict[str, Any]] = {}
         if self.path.is_file():
             try:
-                self.stages = dict(json.loads(self.path.read_text(encoding="utf-8")).get("stages", {}))
-            except (ValueError, AttributeError):
+                document = json.loads(self.path.read_text(encoding="utf-8"))
+            except (OSError, ValueError, RecursionError):  # ValueError: also undecodable bytes, huge ints
                 log.warning("%s is not valid JSON; every stage runs again", self.path)
+                document = {}
+            stages = document.get("stages", {}) if isinstance(document, dict) else None
+            if not isinstance(stages, dict):
+                log.warning("%s has no 'stages' object; every stage runs again", self.path)
+                stages = {}
+            # An entry of the wrong shape only means that stage runs again; it must not crash up_to_date.
+            self.stages = {name: entry for name, entry in stages.items() if self._valid_entry(entry)}
+
+    @staticmethod
+    def _valid_entry(entry: Any) -> bool:
+        """A stage entry as `record` writes it: an inputs key and output paths -> hashes."""
+        outputs = entry.get("outputs", {}) if isinstance(entry, dict) else None
+        return isinstance(entry, dict) and isinstance(entry.get("inputs"), str) and isinstance(outputs, dict) \
+            and all(isinstance(k, str) and isinstance(v, str) for k, v in outputs.items())
 
     def up_to_date(self, name: str, key: str, workspace: Path) -> bool:
         entry = self.stages.get(name)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
+from dynrecon.readers import parse_frame
 
 COLUMNS = ("video", "frame", "point", "x", "y", "source")
 
@@ -48,6 +49,8 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
         handle = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         return labels
+    except OSError as error:  # a folder, or no permission
+        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
     with handle:
         reader = csv.reader(handle)
         try:
@@ -87,13 +90,7 @@ def _parse_key(path: Path, where: str, row: list[str], col: dict[str, int]) -> K
     video, point = row[col["video"]].strip(), row[col["point"]].strip()
     if not video or not point:
         raise InputError(path, "empty video or point name", where=where)
-    try:
-        frame = int(row[col["frame"]])
-    except ValueError:
-        raise InputError(path, f"frame {row[col['frame']]!r} is not an integer", where=where) from None
-    if frame < 0:
-        raise InputError(path, f"frame {frame} is negative", where=where, fix="frames are 0-based")
-    return video, frame, point
+    return video, parse_frame(row[col["frame"]], path, where), point
 
 
 def _parse_label(path: Path, where: str, row: list[str], col: dict[str, int]) -> Label:

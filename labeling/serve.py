@@ -7,6 +7,7 @@ import signal
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from http.server import ThreadingHTTPServer
 from pathlib import Path
 
 from dynrecon.errors import InputError
@@ -39,6 +40,8 @@ class LabelServer:
         workspace.mkdir(parents=True, exist_ok=True)
         self.lock = WorkspaceLock(workspace)
         self.lock.acquire()
+        app: LabelingApp | None = None
+        httpd: ThreadingHTTPServer | None = None
         try:
             config = load_config(workspace)
             videos = resolve_videos(workspace, options.videos, config.videos)
@@ -46,21 +49,28 @@ class LabelServer:
             config.skeleton.merge(options.skeleton)
             infos = {name: probe_video(name, path) for name, path in videos.items()}
             save_config(workspace, config)
-            self.app = LabelingApp(workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20,
-                                   jpeg_quality=options.jpeg_quality)
+            app = LabelingApp(workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20,
+                              jpeg_quality=options.jpeg_quality)
             # Points already labeled (e.g. by hand in labels.csv) appear in the list even if not configured.
-            for (_, _, point) in self.app.labels.snapshot():
+            for (_, _, point) in app.labels.snapshot():
                 config.skeleton.add_point(point)
-            self.httpd = make_server(self.app, options.host, options.port)
+            httpd = make_server(app, options.host, options.port)
+            host = options.host if ":" not in options.host else f"[{options.host}]"
+            self.url = f"http://{host}:{httpd.server_address[1]}/"
+            self.lock.update_url(self.url)
         except BaseException:
+            # Stop the frame scan before the error reaches the interpreter's exit: a thread still inside
+            # OpenCV then aborts the process (exit 134) instead of the one-line error.
+            if httpd is not None:
+                httpd.server_close()
+            if app is not None:
+                app.close()
             self.lock.release()
             raise
+        self.app, self.httpd = app, httpd
         if options.host not in ("127.0.0.1", "localhost", "::1"):
             log.warning("serving on %s: anyone who can reach this address can read and change the labels",
                         options.host)
-        host = options.host if ":" not in options.host else f"[{options.host}]"
-        self.url = f"http://{host}:{self.httpd.server_address[1]}/"
-        self.lock.update_url(self.url)
         self._thread: threading.Thread | None = None
 
     def start(self) -> LabelServer:

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from dynrecon.errors import DynreconError
+from dynrecon.errors import DynreconError, InputError
 from labeling.frames import FrameCache, VideoInfo
 from labeling.labels import Change, Label, LabelStore, Source
 from labeling.lock import LOCK_NAME
@@ -77,8 +77,13 @@ class LabelingApp:
         self.config = config
         self.videos = videos
         self.frames = FrameCache(videos, max_bytes=cache_bytes, jpeg_quality=jpeg_quality)
-        self.labels = LabelStore(self.workspace / "labels.csv")
-        self.track_job = TrackJob(self.workspace, track)
+        try:
+            self.labels = LabelStore(self.workspace / "labels.csv")
+            self.track_job = TrackJob(self.workspace, track)
+        except BaseException:
+            # The frame scan must not be inside OpenCV when the interpreter exits (C++ terminate, SIGABRT).
+            self.frames.close()
+            raise
         self._config_lock = threading.Lock()
         self._tracks_lock = threading.Lock()
         self._tracks_cache: tuple[tuple[int, int] | None, dict[str, list[TrackRow]]] = (None, {})
@@ -434,7 +439,13 @@ class _Server6(ThreadingHTTPServer):
 def make_server(app: LabelingApp, host: str, port: int) -> ThreadingHTTPServer:
     """Bind (port 0 = any free port); serve with `serve_forever()`."""
     handler = type("BoundHandler", (Handler,), {"app": app})
-    server = _Server6((host, port), handler) if ":" in host else ThreadingHTTPServer((host, port), handler)
+    try:
+        server = _Server6((host, port), handler) if ":" in host else ThreadingHTTPServer((host, port), handler)
+    except OSError as error:  # port in use, address not on this machine, unknown host name
+        reason = error.strerror or str(error)
+        raise InputError(None, f"cannot listen on {host}:{port}: {reason}",
+                         fix="choose another --port (0: any free port) or an address of this machine for --host") \
+            from None
     server.daemon_threads = True
     bound_port = server.server_address[1]
     if host in ("127.0.0.1", "localhost", "::1"):

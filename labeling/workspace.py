@@ -15,6 +15,7 @@ from pathlib import Path
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
+from dynrecon.readers import read_json, shown
 
 log = logging.getLogger(__name__)
 
@@ -63,12 +64,7 @@ def parse_points(text: str) -> Skeleton:
 
 def read_skeleton(path: Path) -> Skeleton:
     """Skeleton JSON `{"points": [...], "connections": [["a", "b"], ...]}`; connections may add points."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "file not found", fix="give the path of a skeleton JSON file") from None
-    except (ValueError, UnicodeDecodeError) as error:
-        raise InputError(path, f"not valid JSON: {error}") from None
+    data = read_json(path, missing_fix="give the path of a skeleton JSON file")
     return _skeleton_from_json(path, data)
 
 
@@ -86,7 +82,7 @@ def _skeleton_from_json(path: Path, data: object) -> Skeleton:
     for i, pair in enumerate(connections):
         if not (isinstance(pair, list | tuple) and len(pair) == 2
                 and all(isinstance(p, str) and valid_point_name(p) for p in pair)) or pair[0] == pair[1]:
-            raise InputError(path, f"connection {i} ({pair!r}) is not a pair of two different point names",
+            raise InputError(path, f"connection {i} ({shown(pair)}) is not a pair of two different point names",
                              fix=fix)
         skeleton.add_point(pair[0])
         skeleton.add_point(pair[1])
@@ -104,10 +100,7 @@ def load_config(workspace: Path) -> WorkspaceConfig:
     path = workspace / CONFIG_NAME
     if not path.exists():
         return WorkspaceConfig()
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as error:
-        raise InputError(path, f"not valid JSON: {error}", fix="fix or delete the file") from None
+    data = read_json(path, fix="fix or delete the file")
     skeleton = _skeleton_from_json(path, data)
     videos_raw = data.get("videos", {})
     if not isinstance(videos_raw, dict) or not all(isinstance(v, str) for v in videos_raw.values()):

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
+from dynrecon.errors import InputError
 from labeling.workspace import read_skeleton
 from reconstruct import demo, sim_cli
 from reconstruct.clocks import ClockModel
@@ -49,6 +51,11 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _solve(args: argparse.Namespace) -> int:
+    if args.max_iterations < 1:
+        raise InputError(None, f"--max-iterations {args.max_iterations} must be at least 1")
+    for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
+        if not (math.isfinite(value) and value >= 0):  # argparse's float() accepts nan, inf and negatives
+            raise InputError(None, f"{flag} {value} must be a finite number >= 0")
     solver = SolverOptions(lambda1=args.lambda1, lambda2=args.lambda2, lambda3=args.lambda3,
                            constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
                            progress=True)

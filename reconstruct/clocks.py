@@ -171,8 +171,8 @@ class Clocks:
                 warnings=[str(w) for w in document.get("warnings", [])],
                 diagnostics=dict(document.get("diagnostics", {})),
             )
-        except (KeyError, TypeError, ValueError) as error:
-            raise InputError(path, f"invalid 'clocks' entry: {error!r}",
+        except (KeyError, TypeError, ValueError, OverflowError, RecursionError) as error:
+            raise InputError(path, f"invalid 'clocks' entry: {repr(error)[:200]}",
                              fix="rewrite it with `dynrecon solve`, or remove the key") from None
 
 

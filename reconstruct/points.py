@@ -18,6 +18,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open, atomic_write_text
 from dynrecon.errors import InputError
+from dynrecon.readers import check_frame, parse_frame, read_json
 
 POINT_COLUMNS = ("video", "frame", "point", "x", "y", "z", "observed")
 
@@ -67,29 +68,37 @@ def read_points(path: str | Path) -> FramePoints:
         handle = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
+    except OSError as error:  # a folder, or no permission
+        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
+    frame_index: dict[tuple[str, int], int] = {}
+    point_index: dict[str, int] = {}
+    records: list[tuple[int, int, list[float], bool, list[float]]] = []
     with handle:
         reader = csv.reader(handle)
-        header = next(reader, None)
-        if header is None or any(c not in header for c in POINT_COLUMNS):
-            raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
-        col = {name: header.index(name) for name in header}
-        extra_names = [h for h in header if h not in POINT_COLUMNS]
-        frame_index: dict[tuple[str, int], int] = {}
-        point_index: dict[str, int] = {}
-        records: list[tuple[int, int, list[float], bool, list[float]]] = []
-        for row in reader:
-            if not row:
-                continue
-            try:
-                key = (row[col["video"]], int(row[col["frame"]]))
-                values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
-                observed = row[col["observed"]].strip() == "1"
-                extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
-            except (ValueError, IndexError):
-                raise InputError(path, "malformed row", where=f"line {reader.line_num}") from None
-            fi = frame_index.setdefault(key, len(frame_index))
-            pi = point_index.setdefault(row[col["point"]], len(point_index))
-            records.append((fi, pi, values, observed, extras))
+        try:
+            header = next(reader, None)
+            if header is None or any(c not in header for c in POINT_COLUMNS):
+                raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
+            col = {name: header.index(name) for name in header}
+            extra_names = [h for h in header if h not in POINT_COLUMNS]
+            for row in reader:
+                if not row:
+                    continue
+                where = f"line {reader.line_num}"
+                try:
+                    key = (row[col["video"]], parse_frame(row[col["frame"]], path, where))
+                    values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
+                    observed = row[col["observed"]].strip() == "1"
+                    extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
+                except (ValueError, IndexError):
+                    raise InputError(path, "malformed row", where=where) from None
+                fi = frame_index.setdefault(key, len(frame_index))
+                pi = point_index.setdefault(row[col["point"]], len(point_index))
+                records.append((fi, pi, values, observed, extras))
+        except csv.Error as error:
+            raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None
+        except UnicodeDecodeError:
+            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
     F, P = len(frame_index), len(point_index)
     xyz = np.full((F, P, 3), np.nan)
     observed_arr = np.zeros((F, P), dtype=bool)
@@ -135,18 +144,25 @@ def write_sequencing(path: str | Path, sequencing: Sequencing) -> Path:
     return Path(path)
 
 
+def _short(error: Exception) -> str:
+    # A KeyError of a huge or deeply nested key would repeat it whole in the one-line message.
+    text = repr(error) if isinstance(error, KeyError) else str(error)
+    return text if len(text) <= 200 else f"{text[:200]}..."
+
+
 def read_sequencing(path: str | Path) -> Sequencing:
     path = Path(path)
+    document = read_json(path)
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
         entries = document["frames"]
         videos = [e["video"] for e in entries]
-        frames = np.array([int(e["frame"]) for e in entries], dtype=np.int64)
+        frames = np.array([check_frame(e["frame"], path, f"frames[{i}]") for i, e in enumerate(entries)],
+                          dtype=np.int64)
         index = {(v, int(f)): i for i, (v, f) in enumerate(zip(videos, frames, strict=True))}
-        neighbours = [np.array([index[(n["video"], int(n["frame"]))] for n in e["neighbours"]], dtype=np.int64)
+        neighbours = [np.array([index[(n["video"], n["frame"])] for n in e["neighbours"]], dtype=np.int64)
                       for e in entries]
         weights = [np.array([float(n["weight"]) for n in e["neighbours"]]) for e in entries]
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise InputError(path, f"not a valid sequencing.json: {error}") from None
+    except (ValueError, KeyError, TypeError, OverflowError) as error:
+        raise InputError(path, f"not a valid sequencing.json: {_short(error)}") from None
     extra = {k: v for k, v in document.items() if k != "frames"}
     return Sequencing(videos=videos, frames=frames, neighbours=neighbours, weights=weights, extra=extra)

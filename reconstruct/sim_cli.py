@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError
 from reconstruct import evaluate as evaluate_module
 from reconstruct import flight as flight_module
@@ -188,6 +189,7 @@ def _capture_fields(args: argparse.Namespace, given: set[str]) -> dict[str, Any]
 
 def _simulate(args: argparse.Namespace) -> int:
     given = _check_mode(args)
+    require_writable(args.out)  # a traceback after the simulation otherwise
     if args.mode == "paper":
         options = simulate_module.SimulationOptions(
             cameras=args.cameras, step=args.step, noise_px=args.noise, miss=args.miss,

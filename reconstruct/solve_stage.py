@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import atomic_write_text
+from dynrecon.atomic import atomic_write_text, require_writable
 from reconstruct.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.problem import Problem, build_problem
 from reconstruct.recording import write_recording
@@ -49,6 +49,7 @@ def run(cameras_path: Path, tracks_path: Path, out_dir: Path, options: SolveStag
     """Reconstruct and write the outputs into `out_dir`; returns the path of points3d.csv."""
     options = options or SolveStageOptions()
     started = time.perf_counter()
+    require_writable(out_dir)  # before minutes of solving, not after
     cameras = read_cameras(cameras_path)
     tracks = read_tracks(tracks_path)
     problem = build_problem(cameras, tracks)

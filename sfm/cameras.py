@@ -17,6 +17,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
+from dynrecon.readers import check_frame, read_json
 
 ROTATION_TOLERANCE = 1e-5
 
@@ -114,17 +115,7 @@ def write_cameras(path: str | Path, cameras: CameraSet) -> Path:
 def read_cameras(path: str | Path) -> CameraSet:
     """Read and validate `cameras.json`; every problem is an InputError naming the video and frame."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, "file not found", fix="run `dynrecon register` or give the right path") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(path, f"cannot read: {error}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise InputError(path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}",
-                         fix="fix the JSON syntax") from None
+    data = read_json(path, missing_fix="run `dynrecon register` or give the right path")
     cameras = cameras_from_json(data, path)
     validate_cameras(cameras, path)
     return cameras
@@ -147,18 +138,17 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
             raise InputError(path, '"name" must be a non-empty string', where=where)
         where = f"video {name!r}"
         fps = vdata.get("fps")
-        if fps is not None and (not isinstance(fps, int | float) or not math.isfinite(fps) or fps <= 0):
-            raise InputError(path, f'"fps" must be a positive number or null, got {fps!r}', where=where)
+        if fps is not None and (not _finite_number(fps) or fps <= 0):
+            raise InputError(path, f'"fps" must be a positive number or null, got {repr(fps)[:40]}', where=where)
         width, height = vdata["width"], vdata["height"]
-        if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-            raise InputError(path, f'"width" and "height" must be positive integers, got {width!r}x{height!r}',
-                             where=where)
+        if not (isinstance(width, int) and isinstance(height, int) and 0 < width < 2**31 and 0 < height < 2**31):
+            raise InputError(path, f'"width" and "height" must be positive integers below 2^31, got '
+                             f'{repr(width)[:40]}x{repr(height)[:40]}', where=where)
         if not isinstance(vdata["frames"], list):
             raise InputError(path, '"frames" must be a list', where=where)
         clock_offset = vdata.get("clock_offset")
-        number = isinstance(clock_offset, int | float) and not isinstance(clock_offset, bool)
-        if clock_offset is not None and not (number and math.isfinite(clock_offset)):
-            raise InputError(path, f'"clock_offset" must be a finite number or absent, got {clock_offset!r}',
+        if clock_offset is not None and not _finite_number(clock_offset):
+            raise InputError(path, f'"clock_offset" must be a finite number or absent, got {repr(clock_offset)[:40]}',
                              where=where)
         frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]")
                   for fi, fdata in enumerate(vdata["frames"])]
@@ -168,10 +158,20 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
     return CameraSet(videos=videos)
 
 
+def _finite_number(value: Any) -> bool:
+    """A JSON int or float that is finite as a float (math.isfinite overflows on huge ints)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
 def _matrix(value: Any, shape: tuple[int, ...], key: str, path: Path | None, where: str) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond the float range
         raise InputError(path, f'"{key}" must be numbers of shape {shape}', where=where) from None
     if array.shape != shape:
         raise InputError(path, f'"{key}" has shape {array.shape}, expected {shape}', where=where)
@@ -189,14 +189,18 @@ def _frame_from_json(fdata: Any, path: Path | None, where: str) -> FrameCamera:
             raise InputError(path, f'missing key "{key}"', where=where, fix="see docs/formats.md#camerasjson")
     number = fdata["frame"]
     if not isinstance(number, int) or isinstance(number, bool) or number < 0:
-        raise InputError(path, f'"frame" must be a non-negative integer, got {number!r}', where=where)
+        raise InputError(path, f'"frame" must be a non-negative integer, got {repr(number)[:40]}', where=where)
+    check_frame(number, path, where, name='"frame"')
     where = f"{where.rsplit(' ', 1)[0]} frame {number}"
     time = fdata.get("time")
-    if time is not None and (not isinstance(time, int | float) or not math.isfinite(time)):
-        raise InputError(path, f'"time" must be a finite number, got {time!r}', where=where)
+    if time is not None and not _finite_number(time):
+        raise InputError(path, f'"time" must be a finite number, got {repr(time)[:40]}', where=where)
     dist = fdata.get("dist")
     if dist is not None:
-        dist_array = np.asarray(dist, dtype=float) if isinstance(dist, list) else None
+        try:
+            dist_array = np.asarray(dist, dtype=float) if isinstance(dist, list) else None
+        except (TypeError, ValueError, OverflowError):
+            dist_array = None
         if dist_array is None or dist_array.shape not in ((4,), (5,)) or not np.all(np.isfinite(dist_array)):
             raise InputError(path, '"dist" must be [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]', where=where)
         dist = dist_array

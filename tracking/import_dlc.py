@@ -13,6 +13,7 @@ import re
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from dynrecon.readers import parse_frame, shown
 from tracking.detections import Detection
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
@@ -31,6 +32,8 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
         handle = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
+    except OSError as error:  # a folder, or no permission
+        raise InputError(path, f"cannot read: {error.strerror or error}") from None
     with handle:
         try:
             rows = list(csv.reader(handle))
@@ -90,12 +93,12 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
 def _frame_of(path: Path, number: int, index_cells: list[str]) -> int:
     text = " ".join(c.strip() for c in index_cells if c.strip())
     if text.isdigit():
-        return int(text)
+        return parse_frame(text, path, f"line {number}")
     match = _LAST_NUMBER.search(text)
     if match is None:
-        raise InputError(path, f"cannot tell the frame number from {text!r}", where=f"line {number}",
+        raise InputError(path, f"cannot tell the frame number from {shown(text)}", where=f"line {number}",
                          fix="the first column must be the frame index or an image name ending in a number")
-    return int(match.group(1))
+    return parse_frame(match.group(1), path, f"line {number}")
 
 
 def _number(path: Path, number: int, row: list[str], col: int) -> float | None:

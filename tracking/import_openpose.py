@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from dynrecon.readers import parse_frame
 from tracking.detections import Detection
 
 BODY_25 = ("Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip", "RHip",
@@ -56,15 +57,17 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
     seen: dict[int, Path] = {}
     for order, file in enumerate(files):
         match = _FRAME.search(file.stem)
-        frame = int(match.group(1)) if match else order
+        frame = parse_frame(match.group(1), file, "file name") if match else order
         if frame in seen:
             raise InputError(file, f"frame {frame} again (also {seen[frame].name})",
                              fix="one JSON file per frame, numbered by frame")
         seen[frame] = file
         try:
             data = json.loads(file.read_text(encoding="utf-8"))
-        except (ValueError, UnicodeDecodeError) as error:
-            raise InputError(file, f"not valid JSON: {error}") from None
+        except OSError as error:
+            raise InputError(file, f"cannot read: {error.strerror or error}") from None
+        except (ValueError, UnicodeDecodeError, RecursionError) as error:  # ValueError: also >4300-digit ints
+            raise InputError(file, f"not valid JSON: {str(error)[:200]}") from None
         people = data.get("people") if isinstance(data, dict) else None
         if not isinstance(people, list):
             raise InputError(file, "no 'people' list", fix="expected OpenPose --write_json output")

@@ -80,6 +80,8 @@ def detect_format(path: Path) -> Format:
         raise InputError(path, "file not found") from None
     except UnicodeDecodeError:
         raise InputError(path, "not UTF-8 text", fix="give a CSV or OpenPose JSON file") from None
+    except OSError as error:  # no permission, a special file
+        raise InputError(path, f"cannot read: {error.strerror or error}") from None
     head = first.split(",")[0].strip().lower()
     if head in ("scorer", "individuals", "bodyparts"):
         return Format.DLC

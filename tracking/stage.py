@@ -8,6 +8,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from dynrecon.atomic import require_writable
+from dynrecon.errors import InputError
 from tracking.frames import VideoFrames
 from tracking.options import TrackOptions
 from tracking.propagate import SOURCE_LABEL, TrackedPoint, track_video
@@ -25,6 +27,9 @@ def run(workspace: str | Path, out: str | Path | None = None, options: TrackOpti
     workspace = Path(workspace)
     options = options or TrackOptions()
     out = Path(out) if out is not None else workspace / TRACKS_NAME
+    if out.is_dir():
+        raise InputError(out, "is a folder", fix="--out names the tracks.csv file to write")
+    require_writable(out.parent)  # before tracking every video, not after
     if isinstance(videos, dict):
         chosen = {name: Path(p) for name, p in videos.items()}
     else:

@@ -15,6 +15,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
+from dynrecon.readers import parse_frame
 
 REQUIRED_COLUMNS = ("video", "frame", "point", "x", "y")
 
@@ -62,6 +63,8 @@ def read_tracks(path: str | Path) -> Tracks:
         handle = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(path, "file not found", fix="run `dynrecon track` or give the right path") from None
+    except OSError as error:  # a folder, or no permission
+        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
     videos: list[str] = []
     frames: list[int] = []
     points: list[str] = []
@@ -98,14 +101,7 @@ def read_tracks(path: str | Path) -> Tracks:
                 point = row[index["point"]].strip()
                 if not video or not point:
                     raise InputError(path, "empty video or point name", where=f"line {number}")
-                try:
-                    frame = int(row[index["frame"]])
-                except ValueError:
-                    raise InputError(path, f"frame {row[index['frame']]!r} is not an integer",
-                                     where=f"line {number}") from None
-                if frame < 0:
-                    raise InputError(path, f"frame {frame} is negative", where=f"line {number}",
-                                     fix="frames are 0-based indices of decoded frames")
+                frame = parse_frame(row[index["frame"]], path, f"line {number}")
                 try:
                     x, y = float(row[index["x"]]), float(row[index["y"]])
                 except ValueError:

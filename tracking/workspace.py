@@ -30,8 +30,10 @@ def workspace_videos(workspace: Path, given: list[Path] | None = None) -> dict[s
     if config.is_file():
         try:
             data = json.loads(config.read_text(encoding="utf-8"))
-        except (ValueError, UnicodeDecodeError) as error:
-            raise InputError(config, f"not valid JSON: {error}", fix="fix or delete the file") from None
+        except OSError as error:
+            raise InputError(config, f"cannot read: {error.strerror or error}") from None
+        except (ValueError, UnicodeDecodeError, RecursionError) as error:  # ValueError: also >4300-digit ints
+            raise InputError(config, f"not valid JSON: {str(error)[:200]}", fix="fix or delete the file") from None
         raw = data.get("videos", {}) if isinstance(data, dict) else None
         if not isinstance(raw, dict) or not all(isinstance(v, str) for v in raw.values()):
             raise InputError(config, "'videos' must map video names to file paths",

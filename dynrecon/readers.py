@@ -1,0 +1,81 @@
+"""Hostile-input-safe pieces shared by the file readers: JSON loading and frame numbers.
+
+Every failure is an InputError naming the file, so a broken or malicious file never shows a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from dynrecon.errors import InputError
+
+MAX_FRAME = 2**31  # frame numbers are 0 <= frame < MAX_FRAME: they fit int32 indices and int64 arithmetic
+
+
+def read_text(path: Path, *, missing_fix: str | None = None) -> str:
+    """The UTF-8 text of `path`; a missing file, a folder or unreadable bytes are InputErrors."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, "file not found", fix=missing_fix) from None
+    except IsADirectoryError:
+        raise InputError(path, "is a folder, not a file", fix="give the path of a file") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8") from None
+    except OSError as error:
+        raise InputError(path, f"cannot read: {error.strerror or error}") from None
+
+
+def loads_json(text: str, path: Path, *, fix: str | None = None) -> Any:
+    """Parse JSON text from `path`; syntax errors, huge integers and deep nesting are InputErrors."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as error:
+        raise InputError(path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}",
+                         fix=fix or "fix the JSON syntax") from None
+    except ValueError as error:  # an integer literal of more than 4300 digits
+        raise InputError(path, f"invalid JSON: {error}", fix=fix) from None
+    except RecursionError:
+        raise InputError(path, "invalid JSON: nested too deeply", fix=fix) from None
+
+
+def read_json(path: Path, *, missing_fix: str | None = None, fix: str | None = None) -> Any:
+    return loads_json(read_text(path, missing_fix=missing_fix), path, fix=fix)
+
+
+def parse_frame(text: str, path: Path, where: str) -> int:
+    """A frame number cell of a CSV file: an integer 0 <= frame < 2^31."""
+    try:
+        frame = int(text)
+    except ValueError:
+        if text.strip().lstrip("+-").isdigit():  # over 4300 digits: int() refuses to convert it
+            raise InputError(path, f"frame of {len(text.strip())} digits is too large", where=where,
+                             fix=f"frame numbers are below 2^31 = {MAX_FRAME}") from None
+        raise InputError(path, f"frame {shown(text)} is not an integer", where=where) from None
+    return check_frame(frame, path, where)
+
+
+def check_frame(frame: Any, path: Path | None, where: str, *, name: str = "frame") -> int:
+    """A frame number that must be an int (not a bool) with 0 <= frame < 2^31."""
+    if not isinstance(frame, int) or isinstance(frame, bool):
+        raise InputError(path, f"{name} {shown(frame)} is not an integer", where=where)
+    if frame < 0:
+        raise InputError(path, f"{name} {frame} is negative", where=where, fix="frames are 0-based")
+    if frame >= MAX_FRAME:
+        raise InputError(path, f"{name} {shown(frame)} is too large", where=where,
+                         fix=f"frame numbers are below 2^31 = {MAX_FRAME}")
+    return frame
+
+
+def shown(value: Any, limit: int = 40) -> str:
+    """repr() of a value from a file, short enough for a one-line message."""
+    # Integers of thousands of digits would make the message unreadable (and str() refuses over 4300 digits).
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        return f"{'-' if value < 0 else ''}~2^{value.bit_length() - 1}"
+    try:
+        text = repr(value)
+    except (RecursionError, ValueError):  # nested hundreds deep, or a huge integer inside
+        return f"<{type(value).__name__}>"
+    return text if len(text) <= limit else f"{text[:limit // 2]}...({len(text)} characters)"
