@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from reconstruct.points import FramePoints
@@ -32,3 +34,19 @@ def truth_array(problem: Problem, truth: FramePoints) -> np.ndarray:
     """(F, P, 3) truth in the problem's frame order."""
     index = truth.index()
     return np.stack([truth.xyz[index[(v, int(f))]] for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
+
+
+def simulated_phones(out: Path, rate: float = 120.0) -> Path:
+    """`dynrecon simulate --mode phones` of 1.5 s of an 8-point smooth motion: three static phones at 30, 25 and
+    20 fps with known clocks (offsets 0-0.3 s). Returns the simulation folder (cameras.json, tracks.csv,
+    clocks_truth.json)."""
+    from dynrecon.cli import main
+    from reconstruct.mocap import Mocap, write_trc
+
+    xyz = smooth_motion(frames=180, points=8, rate=rate)
+    source = write_trc(out / "motion.trc", Mocap(xyz=xyz, rate=rate, marker_names=[f"m{i}" for i in range(8)],
+                                                 times=np.arange(180) / rate), units="mm")
+    if main(["simulate", str(source), "--out", str(out / "sim"), "--mode", "phones", "--cameras", "3", "--fps",
+             "30,25,20", "--offsets", "0,0.3", "--seed", "2"]) != 0:
+        raise RuntimeError("the phone simulation failed")
+    return out / "sim"

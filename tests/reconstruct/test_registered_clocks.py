@@ -5,27 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
-from synthetic_motion import smooth_motion
+from synthetic_motion import simulated_phones
 
 from dynrecon.cli import main
-from reconstruct.mocap import Mocap, write_trc
 from sfm.cameras import read_cameras, write_cameras
-
-RATE = 120.0
 
 
 @pytest.fixture(scope="module")
 def phones(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Three static simulated phones (30, 25, 20 fps) with known clocks, 1.5 s of a smooth 8-point motion."""
-    out = tmp_path_factory.mktemp("phones")
-    xyz = smooth_motion(frames=180, points=8, rate=RATE)
-    source = write_trc(out / "motion.trc", Mocap(xyz=xyz, rate=RATE, marker_names=[f"m{i}" for i in range(8)],
-                                                 times=np.arange(180) / RATE), units="mm")
-    assert main(["simulate", str(source), "--out", str(out / "sim"), "--mode", "phones", "--cameras", "3", "--fps",
-                 "30,25,20", "--offsets", "0,0.3", "--seed", "2"]) == 0
-    return out / "sim"
+    """Three static simulated phones (30, 25, 20 fps) with known clocks."""
+    return simulated_phones(tmp_path_factory.mktemp("phones"))
 
 
 def _solve_with_offsets(sim: Path, work: Path, shift: dict[str, float]) -> dict:
