@@ -241,7 +241,7 @@ def _plan_videos(infos: list[VideoInfo], tracks: Tracks | None, options: Registe
     for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
         motion = None
         if options.camera_motion is CameraMotion.AUTO:
-            motion, _ = measure_motion(info, options.static)
+            motion = measure_motion(info, options.static)
             static = motion.static
             log.info("%s: %s", info.name, motion.reason)
         else:

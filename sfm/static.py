@@ -97,15 +97,15 @@ def measure_motion(
     info: VideoInfo,
     options: StaticOptions,
     subject_mask: np.ndarray | None = None,
-) -> tuple[MotionTest, np.ndarray]:
-    """Measure whether the camera of `info` moves. Returns the test and the sampled frame numbers.
+) -> MotionTest:
+    """Measure whether the camera of `info` moves (the sampled frame numbers are in the test's `frames`).
 
     subject_mask: (H, W) uint8 at WORK_LONG_SIDE, 0 where the tracked subject is (optional)."""
     frames = sample_frames(info, options.samples)
     work = Resize.for_video(info, WORK_LONG_SIDE)
     grays = np.stack([_gray(image, work) for _, image in read_frames(info.path, frames)])
     if len(frames) < 2:
-        return MotionTest(static=False, reason="fewer than 2 frames: treated as moving", frames=frames.tolist()), frames
+        return MotionTest(static=False, reason="fewer than 2 frames: treated as moving", frames=frames.tolist())
     median = np.median(grays, axis=0).astype(np.uint8)
     mask = np.where(_moving_pixels(grays, median), 0, 255).astype(np.uint8)
     if subject_mask is not None:
@@ -116,14 +116,11 @@ def measure_motion(
         corners = cv2.goodFeaturesToTrack(median, maxCorners=400, qualityLevel=0.01, minDistance=8)
     count = 0 if corners is None else len(corners)
     if corners is None or count < MIN_CORNERS:
-        return (
-            MotionTest(
-                static=False,
-                reason=f"only {count} trackable corners: treated as moving",
-                corners=count,
-                frames=frames.tolist(),
-            ),
-            frames,
+        return MotionTest(
+            static=False,
+            reason=f"only {count} trackable corners: treated as moving",
+            corners=count,
+            frames=frames.tolist(),
         )
     lk: dict[str, Any] = {
         "winSize": (21, 21),
@@ -151,10 +148,9 @@ def measure_motion(
     else:
         static = True
         reason = f"static: background shifts at most {shifts[worst]:.2f} px over {len(frames)} sampled frames"
-    test = MotionTest(
+    return MotionTest(
         static=static, reason=reason, frames=frames.tolist(), shifts=shifts, tracked=tracked, corners=count
     )
-    return test, frames
 
 
 def background_image(info: VideoInfo, frames: np.ndarray, resize: Resize) -> np.ndarray:

@@ -30,9 +30,9 @@ def mixed(tmp_path_factory: pytest.TempPathFactory) -> list:
 def test_motion_test_tells_static_from_handheld(mixed: list) -> None:
     decisions = {}
     for video in mixed:
-        test, frames = measure_motion(probe_video(video.path), StaticOptions())
+        test = measure_motion(probe_video(video.path), StaticOptions())
         decisions[video.cameras.name] = test
-        assert len(frames) == 12 and test.corners >= 20
+        assert len(test.frames) == 12 and test.corners >= 20
     # The spheres move through the static views: the test must see through them.
     assert decisions["cam0"].static and decisions["cam2"].static
     assert max(decisions["cam0"].shifts) < 0.5 and max(decisions["cam2"].shifts) < 0.5
