@@ -1,6 +1,6 @@
 """Clock recovery against ground truth: phone captures of real mocap and the single-drone flight scene.
 
-Each row: simulate (reconstruct.phone_capture / reconstruct.flight, known clocks and per-frame capture times),
+Each row: simulate (simulation.phones / simulation.flight, known clocks and per-frame capture times),
 solve, `estimate_clocks`, then compare every frame's global time with its true capture time. The estimate's gauge is
 its reference video (offset 0, rate 1); the truth's is the scene start, so estimates are mapped through the
 reference video's true clock (global_true = offset_ref + rate_ref * global_est) before scoring; jitter on the
@@ -54,11 +54,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from common import WINDOWS, load_window, solver_version  # noqa: E402
 
-from reconstruct.clocks import ClockModel, ClockOptions, SearchMode, estimate_clocks  # noqa: E402
-from reconstruct.flight import FlightOptions, simulate_flight  # noqa: E402
-from reconstruct.phone_capture import PhoneCaptureOptions, simulate_phones  # noqa: E402
-from reconstruct.problem import build_problem  # noqa: E402
-from reconstruct.solver import SolverOptions, solve  # noqa: E402
+from reconstruct.clocks.estimate import ClockModel, ClockOptions, SearchMode, estimate_clocks  # noqa: E402
+from reconstruct.inputs import build_problem  # noqa: E402
+from reconstruct.solver.alternation import SolverOptions, solve  # noqa: E402
+from simulation.flight import FlightOptions, simulate_flight  # noqa: E402
+from simulation.phones import PhoneCaptureOptions, simulate_phones  # noqa: E402
 
 log = logging.getLogger("benchmarks.clocks")
 
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="keep each solve here and reuse it (to iterate on the clock options only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("reconstruct.clock_search").setLevel(logging.INFO)
+    logging.getLogger("reconstruct.clocks.search").setLevel(logging.INFO)
     options = ClockOptions(search=SearchMode(args.search), model=ClockModel(args.model))
     rows: list[dict[str, Any]] = []
     print(f"solver {solver_version()}; search {args.search}, model {args.model}, "

@@ -7,6 +7,7 @@ Not a package module: the scripts put the repository root on sys.path and import
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -20,14 +21,15 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from reconstruct.evaluate import THRESHOLDS_MM, evaluate  # noqa: E402
-from reconstruct.initialize import fill_missing_points  # noqa: E402
-from reconstruct.mocap import Mocap, read_mocap  # noqa: E402
-from reconstruct.points import FramePoints  # noqa: E402
-from reconstruct.problem import Problem, build_problem  # noqa: E402
-from reconstruct.simulate import SimulatedCapture, SimulationOptions, simulate_mocap  # noqa: E402
-from reconstruct.solve_stage import frame_points  # noqa: E402
-from reconstruct.solver import SolveResult, SolverOptions, solve  # noqa: E402
+from reconstruct.inputs import build_problem  # noqa: E402
+from reconstruct.outputs.mocap import Mocap, read_mocap  # noqa: E402
+from reconstruct.outputs.points import FramePoints  # noqa: E402
+from reconstruct.solver.alternation import SolveResult, SolverOptions, solve  # noqa: E402
+from reconstruct.solver.initialize import fill_missing_points  # noqa: E402
+from reconstruct.solver.problem import Problem  # noqa: E402
+from reconstruct.stage import frame_points  # noqa: E402
+from simulation.evaluate import THRESHOLDS_MM, evaluate  # noqa: E402
+from simulation.simulate import SimulatedCapture, SimulationOptions, simulate_mocap  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -51,15 +53,47 @@ def solver_version() -> str:
     return f"{head}{' + uncommitted changes in reconstruct/' if dirty else ''}"
 
 
+# Modules of reconstruct/ before it was split by concern (solver/, clocks/, outputs/, simulation/), for
+# module_at_revision on older revisions.
+PRE_SPLIT_MODULES = {
+    "reconstruct.anderson": "reconstruct.solver.anderson",
+    "reconstruct.candidates": "reconstruct.solver.candidates",
+    "reconstruct.initialize": "reconstruct.solver.initialize",
+    "reconstruct.problem": "reconstruct.solver.problem",
+    "reconstruct.rays": "reconstruct.solver.rays",
+    "reconstruct.simplex": "reconstruct.solver.simplex",
+    "reconstruct.working_set": "reconstruct.solver.active_set",
+    "reconstruct.wstep": "reconstruct.solver.wstep",
+    "reconstruct.xstep": "reconstruct.solver.xstep",
+    "reconstruct.solver": "reconstruct.solver.alternation",
+    "reconstruct.clocks": "reconstruct.clocks.estimate",
+    "reconstruct.clock_search": "reconstruct.clocks.search",
+    "reconstruct.refine": "reconstruct.trajectory",
+    "reconstruct.points": "reconstruct.outputs.points",
+    "reconstruct.mocap": "reconstruct.outputs.mocap",
+    "reconstruct.solve_stage": "reconstruct.stage",
+    "reconstruct.simulate": "simulation.simulate",
+}
+
+
 def module_at_revision(relative_path: str, revision: str, name: str) -> ModuleType:
-    """`relative_path` (e.g. reconstruct/initialize.py) as of a git revision, loaded as module `name`, for benchmarks
+    """`relative_path` (e.g. reconstruct/solver/rays.py) as of a git revision, loaded as module `name`, for benchmarks
     that compare a rewrite with the code it replaced on the same inputs."""
     import importlib.util
     import subprocess
     import tempfile
 
-    source = subprocess.run(["git", "show", f"{revision}:{relative_path}"], cwd=ROOT, check=True,
-                            capture_output=True, text=True).stdout
+    def show(path: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", "show", f"{revision}:{path}"], cwd=ROOT, capture_output=True, text=True)
+
+    shown = show(relative_path)
+    if shown.returncode != 0:  # a revision before reconstruct/ was split by concern: its flat module, imports mapped
+        module_name = relative_path.removesuffix(".py").replace("/", ".")
+        old_names = [old for old, new in PRE_SPLIT_MODULES.items() if new == module_name]
+        if not old_names or (shown := show(old_names[0].replace(".", "/") + ".py")).returncode != 0:
+            raise SystemExit(f"cannot find {relative_path} at {revision}")
+    source = re.sub(r"(?<![\w.])(reconstruct\.\w+)", lambda m: PRE_SPLIT_MODULES.get(m.group(1), m.group(1)),
+                    shown.stdout)
     path = Path(tempfile.mkdtemp()) / f"{name}.py"
     path.write_text(source)
     spec = importlib.util.spec_from_file_location(name, path)
@@ -77,7 +111,7 @@ def solver_sources_digest() -> str:
     import hashlib
 
     digest = hashlib.sha256()
-    for path in [*sorted((ROOT / "reconstruct").glob("*.py")), Path(__file__).resolve()]:
+    for path in [*sorted((ROOT / "reconstruct").rglob("*.py")), Path(__file__).resolve()]:
         digest.update(path.name.encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()[:12]

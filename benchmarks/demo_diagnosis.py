@@ -37,12 +37,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from dynrecon.demo import pipeline_options
 from dynrecon.pipeline import REGISTER_DIR, similarity_to_truth
-from reconstruct.demo import pipeline_options
-from reconstruct.evaluate import Accuracy, evaluate
-from reconstruct.points import FramePoints, read_points
-from reconstruct.solve_stage import run as solve_run
+from reconstruct.outputs.points import FramePoints, read_points
+from reconstruct.stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
+from simulation.evaluate import Accuracy, evaluate
 from tracking.tracks import Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
     write_cameras(work / "cameras.json", cameras)
     write_tracks(work / "tracks.csv", tracks)
     started = time.perf_counter()
-    # The demo's solve options (its clock settings matter on the periodic sample: see reconstruct.demo).
+    # The demo's solve options (its clock settings matter on the periodic sample: see dynrecon.demo).
     options = dataclasses.replace(pipeline_options(SAMPLE).solve, recording=False)
     solve_run(work / "cameras.json", work / "tracks.csv", work, options)
     seconds = time.perf_counter() - started

@@ -1,4 +1,4 @@
-"""CPU time and peak memory of the solver's pairwise initialization (`reconstruct.initialize.initialize_depths`),
+"""CPU time and peak memory of the solver's pairwise initialization (`reconstruct.solver.initialize.initialize_depths`),
 optionally against the same file at another git revision, with a check that both pick the same partners.
 
     python benchmarks/init_speed.py [--sizes 700,2000] [--repeats 5] [--missing 0,0.3] [--reference REV]
@@ -7,7 +7,7 @@ Data: the solver benchmark's capture (`solver_speed.capture_of`: CMU 01_01, P = 
 the solver's normalized units; `--missing` sets that share of the rays to NaN (fixed seed). One BLAS thread
 (threadpoolctl). Time: `time.process_time` of one call, median of `--repeats`, old and new interleaved so that both
 see the same load on a shared machine. Peak memory: tracemalloc's peak during one call (numpy's buffers are
-traced), beyond the inputs. `--reference REV` loads `reconstruct/initialize.py` as of REV (e.g. HEAD~3) by
+traced), beyond the inputs. `--reference REV` loads `reconstruct/solver/initialize.py` as of REV (e.g. HEAD~3) by
 `git show`, and compares partners (exact), costs and depths (largest relative difference) with the current code;
 `--brute-force N` also checks the current costs of N frames against `closest_ray_points` pair by pair.
 """
@@ -31,13 +31,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import module_at_revision
 from solver_speed import capture_of
 
-from reconstruct import initialize
-from reconstruct.rays import camera_normalization, viewing_rays
+from reconstruct.solver import initialize
+from reconstruct.solver.rays import camera_normalization, viewing_rays
 
 
 def load_revision(revision: str) -> ModuleType:
-    """reconstruct/initialize.py as of a git revision, as a module of its own."""
-    return module_at_revision("reconstruct/initialize.py", revision, "initialize_reference")
+    """reconstruct/solver/initialize.py as of a git revision, as a module of its own."""
+    return module_at_revision("reconstruct/solver/initialize.py", revision, "initialize_reference")
 
 
 def inputs(frames: int, missing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -80,7 +80,7 @@ def main() -> None:
     parser.add_argument("--sizes", default="700,2000")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--missing", default="0,0.3", help="shares of rays set to NaN, comma-separated")
-    parser.add_argument("--reference", default=None, help="git revision of reconstruct/initialize.py to compare")
+    parser.add_argument("--reference", default=None, help="git revision of reconstruct/solver/initialize.py to compare")
     parser.add_argument("--brute-force", type=int, default=200, help="frames checked pair by pair (0: none)")
     options = parser.parse_args()
     reference = load_revision(options.reference) if options.reference else None

@@ -1,6 +1,6 @@
 """Long captures: time, peak memory and accuracy of the solver for F = 700 ... 20,000 frames with P = 20 points,
 with every frame of the other videos as a candidate (dense, the paper's dictionary) and with windowed candidate
-dictionaries (reconstruct/candidates.py; the default above SolverOptions.dense_limit frames).
+dictionaries (reconstruct/solver/candidates.py; the default above SolverOptions.dense_limit frames).
 
     python benchmarks/long_capture.py [--sizes 700,2000,5000,20000] [--dense-max 2000] [--json OUT]
 
@@ -39,7 +39,7 @@ RESULT_PREFIX = "RESULT "
 
 def long_motion(frames: int) -> tuple[np.ndarray, list[str]]:
     """(frames, POINTS, 3) mm at RATE_HZ, ping-pong over the file."""
-    from reconstruct.mocap import read_mocap
+    from reconstruct.outputs.mocap import read_mocap
 
     mocap = read_mocap(require_mocap_dir() / FILE)
     complete = np.flatnonzero(~mocap.missing().any(axis=0))
@@ -61,8 +61,8 @@ def long_motion(frames: int) -> tuple[np.ndarray, list[str]]:
 
 def long_problem(frames: int) -> tuple[Any, Any]:
     """(SimulatedCapture, Problem) of `long_motion(frames)`: the paper's protocol, cameras at DISTANCE_MM."""
-    from reconstruct.problem import build_problem
-    from reconstruct.simulate import SimulationOptions, simulate_capture
+    from reconstruct.inputs import build_problem
+    from simulation.simulate import SimulationOptions, simulate_capture
 
     xyz, names = long_motion(frames)
     capture = simulate_capture(xyz, RATE_HZ, SimulationOptions(camera_distance_mm=DISTANCE_MM), marker_names=names)
@@ -72,9 +72,9 @@ def long_problem(frames: int) -> tuple[Any, Any]:
 def child(frames: int, dense: bool) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
-    from reconstruct.evaluate import evaluate
-    from reconstruct.solve_stage import frame_points
-    from reconstruct.solver import SolverOptions, solve
+    from reconstruct.solver.alternation import SolverOptions, solve
+    from reconstruct.stage import frame_points
+    from simulation.evaluate import evaluate
 
     threadpool_limits(1)
     capture, problem = long_problem(frames)
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
             results.append(json.loads(lines[-1][len(RESULT_PREFIX):]))
             if args.json:
                 args.json.write_text(json.dumps({"solver": solver_version(), "results": results}, indent=1))
-    from reconstruct.solver import SolverOptions
+    from reconstruct.solver.alternation import SolverOptions
 
     print(f"solver {solver_version()}; P = {POINTS}, 30 Hz per camera, noise-free, 1 BLAS thread, "
           f"{SolverOptions().workers} solver threads (SolverOptions.workers)")

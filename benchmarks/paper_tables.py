@@ -4,7 +4,7 @@
                                       [--per-window] [--json OUT]
     python benchmarks/paper_tables.py --from-json OUT [OUT2 ...] [--per-window]   # tables of earlier runs
 
-Protocol (the paper's, via reconstruct.simulate): 4 static virtual cameras, each capture time seen by one camera.
+Protocol (the paper's, via simulation.simulate): 4 static virtual cameras, each capture time seen by one camera.
 Rows: 30 / 15 / 7.5 Hz per camera (every 1st / 2nd / 4th sample of 120 Hz motion), 30 Hz with unconstrained camera
 assignment, Gaussian pixel noise sigma 1..5 px and 10..50 % missing observations (both at 30 Hz). Columns: share of
 points whose error is under 10, 20, 30, 40, 50, 100 mm, averaged over the windows (each window weighs the same).
@@ -55,7 +55,7 @@ from common import (
     threshold_header,
 )
 
-from reconstruct.mocap import Mocap
+from reconstruct.outputs.mocap import Mocap
 
 log = logging.getLogger("paper_tables")
 

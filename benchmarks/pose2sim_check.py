@@ -51,8 +51,8 @@ from scipy.optimize import least_squares
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from reconstruct import solve_stage
-from reconstruct.points import read_points
+from reconstruct import stage as solve_stage
+from reconstruct.outputs.points import read_points
 from sfm import import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras, write_cameras
 from tracking import stage as track_stage

@@ -1,4 +1,4 @@
-"""The seed paper's tables with the temporal refinement (reconstruct/refine.py) side by side with its baselines.
+"""The seed paper's tables with the temporal refinement (reconstruct/trajectory.py) side by side with its baselines.
 
     python benchmarks/refine_tables.py [--windows hdm05,cmu-jumps,squat,dropjump,walk] [--rows 30Hz,7.5Hz,noise1]
                                        [--distance 2700] [--cache DIR] [--json OUT] [--per-window]
@@ -8,8 +8,8 @@
 Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), four reconstructions are scored:
 
 - init only: the nearly-intersecting ray bundles the seed solver starts from;
-- seed: the self-expressive solver (reconstruct/solver.py, default options);
-- refined, true times (oracle): reconstruct.refine from the seed result with the simulation's true capture times,
+- seed: the self-expressive solver (reconstruct/solver/alternation.py, default options);
+- refined, true times (oracle): reconstruct.trajectory from the seed result with the simulation's true capture times,
   i.e. trajectory triangulation given the true time order and spacing (the baseline the paper compares with,
   in the spirit of Valmadre & Lucey 2012);
 - refined, estimated times: the same with times that the pipeline could know (`estimated_times`: every video's
@@ -56,16 +56,16 @@ from common import (
 )
 from paper_tables import ROWS, Row
 
-from reconstruct.evaluate import evaluate
-from reconstruct.export import sequencing_order
-from reconstruct.initialize import fill_missing_points
-from reconstruct.points import FramePoints
-from reconstruct.problem import Problem
-from reconstruct.refine import RefineOptions, RobustLoss, SmoothnessRule, refine, refine_with_clocks
-from reconstruct.simulate import SimulatedCapture
-from reconstruct.solve_stage import frame_points, sequencing
-from reconstruct.solver import solve
+from reconstruct.outputs.export import sequencing_order
+from reconstruct.outputs.points import FramePoints
+from reconstruct.solver.alternation import solve
+from reconstruct.solver.initialize import fill_missing_points
+from reconstruct.solver.problem import Problem
+from reconstruct.stage import frame_points, sequencing
 from reconstruct.temporal import TemporalOptions, recover_and_refine
+from reconstruct.trajectory import RefineOptions, RobustLoss, SmoothnessRule, refine, refine_with_clocks
+from simulation.evaluate import evaluate
+from simulation.simulate import SimulatedCapture
 
 log = logging.getLogger("refine_tables")
 
@@ -135,7 +135,7 @@ class _CachedW:
 
 
 class CachedResult:
-    """The fields of reconstruct.solver.SolveResult that the clock recovery and the refinement read."""
+    """The fields of reconstruct.solver.alternation.SolveResult that the clock recovery and the refinement read."""
 
     def __init__(self, problem: Problem, cached: dict[str, np.ndarray]) -> None:
         import scipy.sparse as sp
@@ -188,13 +188,13 @@ def solve_path(report: dict[str, Any]) -> str:
 def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) -> tuple[np.ndarray, str]:
     """(F,) global times the pipeline could know, and how they were obtained.
 
-    With reconstruct.clocks: every video's decoder times are shifted by an unknown offset (uniform in +-1 s, as
+    With reconstruct.clocks.estimate: every video's decoder times are shifted by an unknown offset (uniform in +-1 s, as
     unsynchronized phones start at different moments) and `estimate_clocks` recovers the global time from W. Without
-    it (or when it fails): the spectral order of W (reconstruct.export.sequencing_order) at even spacing, which is
+    it (or when it fails): the spectral order of W (outputs.export.sequencing_order) at even spacing, which is
     the true spacing of the simulation's captures when the order is right.
     """
     try:
-        from reconstruct.clocks import estimate_clocks
+        from reconstruct.clocks.estimate import estimate_clocks
 
         clocks = estimate_clocks(shifted_problem(problem, seed), CachedResult(problem, cached))  # type: ignore[arg-type]
         times = np.asarray(clocks.global_time, dtype=float)

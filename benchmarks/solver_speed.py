@@ -12,7 +12,7 @@ Data: CMU 01_01 (playground jumps, 120 Hz, ../shared/data/mocap) from its first 
    peak resident memory of that process (getrusage ru_maxrss: counts numpy/scipy native allocations, which
    tracemalloc does not) next to its resident memory just before the first solve.
 2. BLAS threads: the full solve at `--threads-frames` frames with 1 and 2 threads (threadpoolctl), fresh processes.
-3. W-step: `reconstruct.wstep.solve_w` (cold start) against cvxpy with OSQP / Clarabel on the same problem: shapes =
+3. W-step: `solver.wstep.solve_w` (cold start) against cvxpy with OSQP / Clarabel on the same problem: shapes =
    the true positions in the solver's normalized units, W a dense F x F variable with W_jf = 0 where video(j) =
    video(f) (the diagonal included), columns on the simplex, lambda1 = 0.05. The general solver's answer is
    projected onto the feasible set before its objective is compared (first-order solvers stop slightly infeasible).
@@ -40,11 +40,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import require_mocap_dir, simulate, solver_version
 
-from reconstruct.mocap import Mocap, read_mocap
-from reconstruct.problem import Problem
-from reconstruct.rays import camera_normalization
-from reconstruct.simulate import SimulatedCapture, SimulationOptions
-from reconstruct.wstep import WStepOptions, objective_full, solve_w
+from reconstruct.outputs.mocap import Mocap, read_mocap
+from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import camera_normalization
+from reconstruct.solver.wstep import WStepOptions, objective_full, solve_w
+from simulation.simulate import SimulatedCapture, SimulationOptions
 
 log = logging.getLogger("solver_speed")
 
@@ -201,7 +201,7 @@ def general_qp(shapes: np.ndarray, video_index: np.ndarray, P: int, solver: str)
     import cvxpy as cp
     import scipy.sparse as sp
 
-    from reconstruct.simplex import project_rows_to_simplex
+    from reconstruct.solver.simplex import project_rows_to_simplex
 
     F = len(shapes)
     X = shapes.T  # (3P, F): column f = shape of frame f

@@ -54,9 +54,9 @@ from common import (
     solver_version,
 )
 
-from reconstruct.points import FramePoints
-from reconstruct.problem import Problem
-from reconstruct.solver import SolveResult, solve
+from reconstruct.outputs.points import FramePoints
+from reconstruct.solver.alternation import SolveResult, solve
+from reconstruct.solver.problem import Problem
 from reconstruct.trust import TrustOptions, TrustPreset, flag_rule, preset_options, trust_measures
 
 log = logging.getLogger("trust_benchmark")

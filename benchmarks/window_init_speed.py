@@ -1,5 +1,5 @@
 """CPU time and peak memory of the windowed (long-capture) initialization
-(`reconstruct.candidates.coarse_to_fine_init`), against the same file at another git revision, with a check that
+(`reconstruct.solver.candidates.coarse_to_fine_init`), against the same file at another git revision, with a check that
 both give the same anchors, partners, costs and depths.
 
     python benchmarks/window_init_speed.py [--sizes cmu:700,cmu:2000,long:5000,long:20000] [--repeats 5]
@@ -37,15 +37,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import module_at_revision  # (also puts the repository root on sys.path)
 
-from reconstruct import candidates
-from reconstruct.rays import camera_normalization, viewing_rays
+from reconstruct.solver import candidates
+from reconstruct.solver.rays import camera_normalization, viewing_rays
 
 SHARED_RULES = ("consistent_anchors", "_ransac_line", "anchor_tolerance", "window_pool", "_fill_anchor_gaps")
 
 
 def load_revision(revision: str) -> ModuleType:
-    """reconstruct/candidates.py as of a git revision, as a module of its own."""
-    module = module_at_revision("reconstruct/candidates.py", revision, "candidates_reference")
+    """reconstruct/solver/candidates.py as of a git revision, as a module of its own."""
+    module = module_at_revision("reconstruct/solver/candidates.py", revision, "candidates_reference")
     # The anchor rules are another job's, and change on their own: the current ones in both, so that the
     # comparison is of the search alone.
     for name in SHARED_RULES:

@@ -1,16 +1,16 @@
-"""X-step alone (`reconstruct.xstep.solve_x`): CPU time per call and CG iterations against F, the current code beside
+"""X-step alone (`solver.xstep.solve_x`): CPU time per call and CG iterations against F, the current code beside
 a baseline revision, on the inputs the solver really gives it.
 
     python benchmarks/xstep_speed.py [--real 700,2000] [--synthetic 5000,20000] [--baseline 6eeb4a6]
                                      [--repeats 3] [--threads 1] [--json OUT]
 
 Inputs
-* real (`--real`): every X-step of a full solve (default options), recorded by wrapping `reconstruct.solver.solve_x`:
+* real (`--real`): every X-step of a full solve (default options), recorded by wrapping `alternation.solve_x`:
   F = 700 is CMU 01_01 with P = 44 (`solver_speed.capture_of`), larger F are complexknee with P = 20
   (`long_capture.long_motion`, 4 cameras at 2.7 m, 30 Hz each). The calls are replayed in order, with the solve's own
   warm starts.
 * synthetic (`--synthetic`, for F where a full solve is too slow): complexknee as above; W is one windowed W-step
-  (`reconstruct.wstep.solve_w`, candidates +-12 frames around the true time in each other video) on the true points
+  (`solver.wstep.solve_w`, candidates +-12 frames around the true time in each other video) on the true points
   plus a smooth error of 3 mm-ish (normalized 0.003). Three calls: the first X-step of the smoothing stage (start =
   truth + smooth error 0.02), the first of the final stage (lambda2 = 0, start = the exact smoothing-stage answer: the
   hardest call of a real solve) and a late one (start = the exact answer + smooth error 1e-4).
@@ -19,7 +19,7 @@ Measured: CPU seconds (time.process_time, median of `--repeats`; 1 BLAS thread u
 (a batched block-Jacobi CG, or the Jacobi + two-level iterations of the reverted two-level X-step at bfb8730), and
 the largest point error against a direct solve (one sparse LU per point) relative to the scene size (the largest
 |coordinate| of the reference).
-The baseline is `reconstruct/xstep.py` at `--baseline` (git show), loaded as a separate module.
+The baseline is `reconstruct/solver/xstep.py` at `--baseline` (git show), loaded as a separate module.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import module_at_revision, solver_version
 from long_capture import long_problem
 
-import reconstruct.xstep as current
+import reconstruct.solver.xstep as current
 
 log = logging.getLogger("xstep_speed")
 
@@ -66,7 +66,7 @@ class Call:
 
 def recorded_calls(frames: int) -> list[Call]:
     """Every X-step of a default full solve."""
-    import reconstruct.solver as solver
+    import reconstruct.solver.alternation as solver
 
     if frames == 700:
         from solver_speed import capture_of
@@ -105,9 +105,9 @@ def smooth_error(times: np.ndarray, P: int, scale: float, width: int, rng: np.ra
 
 
 def synthetic_calls(frames: int, seed: int = 0) -> list[Call]:
-    from reconstruct.candidates import VideoLayout, window_pool
-    from reconstruct.rays import camera_normalization, viewing_rays
-    from reconstruct.wstep import WStepOptions, solve_w
+    from reconstruct.solver.candidates import VideoLayout, window_pool
+    from reconstruct.solver.rays import camera_normalization, viewing_rays
+    from reconstruct.solver.wstep import WStepOptions, solve_w
 
     capture, problem = long_problem(frames)
     rows = capture.truth.index()
@@ -149,7 +149,7 @@ def synthetic_calls(frames: int, seed: int = 0) -> list[Call]:
 
 
 def baseline_module(revision: str) -> ModuleType:
-    return module_at_revision("reconstruct/xstep.py", revision, "xstep_baseline")
+    return module_at_revision("reconstruct/solver/xstep.py", revision, "xstep_baseline")
 
 
 class IterationCounter:
@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--real", default="700,2000", help="F of recorded full solves ('' for none)")
     parser.add_argument("--synthetic", default="5000,20000", help="F of synthetic calls ('' for none)")
-    parser.add_argument("--baseline", default="6eeb4a6", help="git revision of the baseline reconstruct/xstep.py")
+    parser.add_argument("--baseline", default="6eeb4a6", help="git revision of the baseline X-step")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1, help="BLAS threads (threadpoolctl)")
     parser.add_argument("--json", type=Path, default=None)

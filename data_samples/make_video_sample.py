@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_samples.make_walker import BONES, JOINTS, walker
-from reconstruct.points import FramePoints, write_points
+from reconstruct.outputs.points import FramePoints, write_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
 from sfm.synthetic.room import Room, Spheres
 from sfm.synthetic.scene import CameraPath, SceneVideo, look_at, render_video
@@ -223,7 +223,7 @@ def cut_sample(out: Path, seconds: float, source: Path = OUT) -> Path:
     pipeline in a fraction of the demo's time. Returns `out`."""
     import cv2
 
-    from reconstruct.points import read_points
+    from reconstruct.outputs.points import read_points
     from sfm.cameras import read_cameras
 
     out.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruct.mocap import Mocap, write_trc
+from reconstruct.outputs.mocap import Mocap, write_trc
 
 RATE = 120.0
 DURATION = 2.0

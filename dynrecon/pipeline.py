@@ -38,8 +38,7 @@ import numpy as np
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
 from labeling.workspace import read_skeleton
-from reconstruct.evaluate import Accuracy, evaluate
-from reconstruct.export import (
+from reconstruct.outputs.export import (
     OrderSource,
     clock_note,
     clock_times,
@@ -48,14 +47,15 @@ from reconstruct.export import (
     write_c3d_export,
     write_trc_export,
 )
-from reconstruct.points import FramePoints, read_points, read_sequencing
-from reconstruct.recording import BackgroundCloud, write_recording
-from reconstruct.solve_stage import SolveStageOptions
-from reconstruct.solve_stage import run as solve_run
+from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
+from reconstruct.outputs.recording import BackgroundCloud, write_recording
+from reconstruct.stage import SolveStageOptions
+from reconstruct.stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply
 from sfm.register import Localize, RegisterOptions, RegistrationError
 from sfm.register import run as register_run
+from simulation.evaluate import Accuracy, evaluate
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
 from tracking.tracks import read_tracks

@@ -1,4 +1,4 @@
-"""Subcommands of the reconstruction stage: solve, plus simulate and evaluate (reconstruct.sim_cli)."""
+"""Subcommands of the reconstruction stage: solve, plus simulate and evaluate (simulation.cli)."""
 
 from __future__ import annotations
 
@@ -6,15 +6,16 @@ import argparse
 import math
 from pathlib import Path
 
+from dynrecon import demo
 from dynrecon.errors import InputError
 from labeling.workspace import read_skeleton
-from reconstruct import demo, sim_cli
-from reconstruct.clocks import ClockModel
-from reconstruct.solve_stage import SolveStageOptions, run
-from reconstruct.solver import SolverOptions
+from reconstruct.clocks.estimate import ClockModel
+from reconstruct.solver.alternation import SolverOptions
+from reconstruct.solver.xstep import RayConstraint
+from reconstruct.stage import SolveStageOptions, run
 from reconstruct.temporal import Refinement, TemporalOptions
 from reconstruct.trust import TrustPreset, preset_options
-from reconstruct.xstep import RayConstraint
+from simulation import cli as sim_cli
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from reconstruct.clocks import ClockModel, ClockOptions, Clocks, estimate_clocks
-from reconstruct.problem import Problem
-from reconstruct.refine import ClockRefineOptions, RefineOptions, refine, refine_with_clocks
-from reconstruct.solver import SolveResult
+from reconstruct.clocks.estimate import ClockModel, ClockOptions, Clocks, estimate_clocks
+from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.problem import Problem
+from reconstruct.trajectory import ClockRefineOptions, RefineOptions, refine, refine_with_clocks
 
 log = logging.getLogger(__name__)
 

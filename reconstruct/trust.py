@@ -39,9 +39,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from reconstruct.problem import Problem
-from reconstruct.rays import viewing_rays
-from reconstruct.solver import SolveResult
+from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import viewing_rays
 
 log = logging.getLogger(__name__)
 

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruct.points import FramePoints
-from reconstruct.problem import Problem, build_problem
-from reconstruct.simulate import SimulationOptions, simulate_capture
+from reconstruct.inputs import build_problem
+from reconstruct.outputs.points import FramePoints
+from reconstruct.solver.problem import Problem
+from simulation.simulate import SimulationOptions, simulate_capture
 
 
 def smooth_motion(frames: int = 160, points: int = 8, seed: int = 0, rate: float = 120.0) -> np.ndarray:
@@ -41,7 +42,7 @@ def simulated_phones(out: Path, rate: float = 120.0) -> Path:
     20 fps with known clocks (offsets 0-0.3 s). Returns the simulation folder (cameras.json, tracks.csv,
     clocks_truth.json)."""
     from dynrecon.cli import main
-    from reconstruct.mocap import Mocap, write_trc
+    from reconstruct.outputs.mocap import Mocap, write_trc
 
     xyz = smooth_motion(frames=180, points=8, rate=rate)
     source = write_trc(out / "motion.trc", Mocap(xyz=xyz, rate=rate, marker_names=[f"m{i}" for i in range(8)],

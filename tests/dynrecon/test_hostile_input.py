@@ -21,7 +21,7 @@ import pytest
 from dynrecon.cli import main
 from dynrecon.errors import InputError
 from dynrecon.pipeline import State
-from reconstruct.points import read_sequencing
+from reconstruct.outputs.points import read_sequencing
 
 REPO = Path(__file__).resolve().parents[2]
 

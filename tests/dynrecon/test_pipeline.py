@@ -13,6 +13,7 @@ import pytest
 from rrd_reader import entities, timelines, verify
 
 from dynrecon import cli
+from dynrecon.demo import pipeline_options
 from dynrecon.errors import InputError
 from dynrecon.pipeline import (
     STAGES,
@@ -22,9 +23,8 @@ from dynrecon.pipeline import (
     run_stages,
     score_against_truth,
 )
-from reconstruct.demo import pipeline_options
-from reconstruct.mocap import read_mocap
-from reconstruct.points import FramePoints, read_points, read_sequencing, write_points
+from reconstruct.outputs.mocap import read_mocap
+from reconstruct.outputs.points import FramePoints, read_points, read_sequencing, write_points
 from sfm.cameras import read_cameras, write_cameras
 from tracking.options import TrackOptions
 
@@ -92,7 +92,7 @@ def _options(labels: Path) -> PipelineOptions:
     # Small window and patch: the joints are ~10 px spheres on a textured background (measured: 1.7x more
     # tracked positions than the defaults, same accuracy).
     # The demo's clock settings: the sample's treadmill walk is periodic, and the default affine clocks came out a
-    # stride off (median error 52 mm here instead of ~5 mm; see reconstruct.demo.pipeline_options).
+    # stride off (median error 52 mm here instead of ~5 mm; see dynrecon.demo.pipeline_options).
     return PipelineOptions(register=register, track=TrackOptions(patch=11, win_size=11), labels=labels,
                            skeleton=SAMPLE / "walker_skeleton.json", solve=pipeline_options(SAMPLE).solve)
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from reconstruct.points import read_points
+from reconstruct.outputs.points import read_points
 from sfm.cameras import read_cameras
 from tracking.workspace import read_labels
 

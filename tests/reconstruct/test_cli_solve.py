@@ -5,9 +5,9 @@ from rrd_reader import entities, verify
 from synthetic_motion import smooth_motion
 
 from dynrecon.cli import main
-from reconstruct.points import read_points, read_sequencing
-from reconstruct.simulate import SimulationOptions, simulate_capture
+from reconstruct.outputs.points import read_points, read_sequencing
 from sfm.cameras import write_cameras
+from simulation.simulate import SimulationOptions, simulate_capture
 from tracking.tracks import write_tracks
 
 

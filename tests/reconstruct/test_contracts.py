@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 
 from dynrecon.errors import InputError
-from reconstruct.points import FramePoints, Sequencing, read_points, read_sequencing, write_points, write_sequencing
-from reconstruct.problem import build_problem
+from reconstruct.inputs import build_problem
+from reconstruct.outputs.points import (
+    FramePoints,
+    Sequencing,
+    read_points,
+    read_sequencing,
+    write_points,
+    write_sequencing,
+)
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from tracking.tracks import Tracks, read_tracks, write_tracks
 

@@ -1,4 +1,4 @@
-"""reconstruct.refine: smoothing-spline trajectories through viewing rays on known global times."""
+"""reconstruct.trajectory: smoothing-spline trajectories through viewing rays on known global times."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 from scipy.linalg import cholesky_banded
 
 from dynrecon.errors import InputError
-from reconstruct.problem import Problem
-from reconstruct.refine import (
+from reconstruct.solver.problem import Problem
+from reconstruct.trajectory import (
     BANDS,
     ClockRefineOptions,
     RefineOptions,
@@ -20,7 +20,7 @@ from reconstruct.refine import (
     selected_inverse,
     time_nodes,
 )
-from reconstruct.simulate import look_at, project
+from simulation.simulate import look_at, project
 
 DISTANCE_MM = 2700.0
 K = np.array([[1000.0, 0, 499.5], [0, 1000.0, 499.5], [0, 0, 1.0]])
@@ -94,7 +94,7 @@ def test_noisy_rays_are_improved_over_the_input() -> None:
     times, camera_of = round_robin(240, 120.0)
     problem, truth = capture(times, camera_of, noise_px=2.0)
     # The input: each point on its own noisy ray at the true depth (what a per-frame triangulation gives at best).
-    from reconstruct.rays import viewing_rays
+    from reconstruct.solver.rays import viewing_rays
 
     rays = viewing_rays(problem)
     centers = problem.centers
@@ -109,7 +109,7 @@ def test_noisy_rays_are_improved_over_the_input() -> None:
 
 
 def test_gcv_skips_smoothness_values_whose_fit_interpolates_its_rays() -> None:
-    from reconstruct.refine import _least_gcv
+    from reconstruct.trajectory import _least_gcv
 
     m = np.array([[40.0], [40.0]])
     # Row 0: the two smallest values fit every ray (tr(H) ~ m): RSS ~ 0 over a vanishing denominator gives a tiny,

@@ -3,7 +3,7 @@ import json
 import numpy as np
 from synthetic_motion import synthetic_problem, truth_array
 
-from reconstruct.solver import solve
+from reconstruct.solver.alternation import solve
 from reconstruct.temporal import Refinement, TemporalOptions, recover_and_refine
 
 

@@ -6,8 +6,8 @@ import pytest
 import scipy.sparse as sp
 from synthetic_motion import synthetic_problem, truth_array
 
-from reconstruct.rays import viewing_rays
-from reconstruct.solver import solve
+from reconstruct.solver.alternation import solve
+from reconstruct.solver.rays import viewing_rays
 from reconstruct.trust import (
     TrustOptions,
     TrustPreset,

@@ -1,0 +1,60 @@
+"""Do the recovered clocks agree with the offsets that registration found? (`cameras.json` `clock_offset`)
+
+Register's subject path fits each static video's clock offset from the subject's 2D tracks and the epipolar
+geometry; the solve recovers clocks from its own evidence (W's links and the tracks). Two independent estimates of
+the same offsets: where they differ by more than a frame (or three standard deviations), one of them is wrong, and
+the report and a warning say which videos disagree.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from reconstruct.clocks.estimate import Clocks
+from sfm.cameras import CameraSet
+
+log = logging.getLogger(__name__)
+
+
+def _frame_period(cameras: CameraSet, name: str) -> float:
+    video = cameras.video(name)
+    times = np.array([f.time for f in video.frames if f.time is not None], dtype=float)
+    if len(times) >= 2:
+        return float(np.median(np.diff(np.sort(times))))
+    return 1.0 / video.fps if video.fps else math.nan
+
+
+def check_registered_clocks(cameras: CameraSet, clocks: Clocks) -> dict[str, Any] | None:
+    """None when fewer than two videos have both a registered offset and a recovered clock; else per video the
+    registered and recovered offsets relative to a common reference video, their difference and whether they
+    agree."""
+    registered: dict[str, float] = {v.name: v.clock_offset for v in cameras.videos if v.clock_offset is not None}
+    solved = {c.name: c for c in clocks.videos if c.identified and math.isfinite(c.offset)}
+    common = [name for name in registered if name in solved]
+    if len(common) < 2:
+        return None
+    reference = common[0]
+    videos: list[dict[str, Any]] = []
+    for name in common[1:]:
+        expected = registered[name] - registered[reference]
+        found = solved[name].offset - solved[reference].offset
+        std = math.hypot(solved[name].offset_std, solved[reference].offset_std)
+        period = _frame_period(cameras, name)
+        tolerance = max(period if math.isfinite(period) else 0.0, 3 * std if math.isfinite(std) else 0.0)
+        videos.append({
+            "video": name,
+            "registered_s": round(expected, 6),
+            "recovered_s": round(found, 6),
+            "difference_s": round(found - expected, 6),
+            "tolerance_s": round(tolerance, 6),
+            "agree": bool(abs(found - expected) <= tolerance),
+        })
+    disagree = [str(v["video"]) for v in videos if not v["agree"]]
+    if disagree:
+        log.warning("recovered clocks of %s disagree with the offsets registration found (relative to %s); see "
+                    "report.json clocks.registration_check", ", ".join(disagree), reference)
+    return {"reference": reference, "videos": videos, "agree": not disagree}

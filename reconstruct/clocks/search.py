@@ -1,0 +1,559 @@
+"""Clocks from the 2D tracks and poses alone (in the spirit of Albl et al., unsynchronized camera triangulation).
+
+A clock hypothesis for two videos maps the own time of one into the other's. Under the right hypothesis, the track of
+one video, interpolated to the other's frame times (rays: pixel direction in the world and camera centre, linear
+between the two bracketing frames, so a moving handheld camera is interpolated too), triangulates with the other's
+observations: the two rays nearly meet. The score is a truncated (MSAC) cost of the pixel gap between the rays.
+
+1. Pairs: for every pair of videos, a coarse grid over the offset (and, for videos without a known frame rate, the
+   common frame-rate ratios), both directions (each video's frames query the other), on a subsample of frames and
+   points; the best hypothesis and how distinct it is from the runner-up (another minimum more than a few steps away).
+2. Chain: composition of the pair relations along a maximum spanning tree (most distinct pairs) from the reference.
+3. Joint refinement of all clocks (offset, rate, drift per the model) by robust least squares (Cauchy) on the gaps
+   of every ordered pair of videos; the covariance comes from the final Jacobian. Started from the chained pairs and,
+   when given, from the link clocks of W; the start with the lower robust cost wins.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from reconstruct.clocks.estimate import (
+    ClockModel,
+    ClockParams,
+    TimeSource,
+    chain_clocks,
+    cluster_covariance,
+    frame_periods,
+    free_terms,
+    reference_coef,
+)
+from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import viewing_rays
+
+log = logging.getLogger(__name__)
+
+# Frame rates a consumer video may have: the rate ratios tried for videos without decoder times or a known fps.
+COMMON_FPS = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0, 120.0)
+DEFAULT_FPS = 30.0
+
+
+@dataclass(kw_only=True)
+class SearchOptions:
+    model: ClockModel = ClockModel.AFFINE
+    max_points: int = 3  # points used by the coarse grid (the most observed ones)
+    max_queries: int = 150  # frames per video and direction on the coarse grid
+    inlier_px: float = 8.0  # truncation of the pixel gap in the coarse cost
+    coarse_step_periods: float = 0.5  # final grid step in frame periods of the slower video of a pair
+    max_hypotheses: int = 600  # offsets on the first, coarser grid of a pair (then the fine step around the best)
+    min_overlap: int = 12  # interpolated samples a hypothesis needs
+    min_overlap_share: float = 0.15  # ... and this share of the shorter video's observed samples
+    max_gap_periods: float = 2.5  # no interpolation across a gap longer than this (missing frames)
+    distinct_steps: int = 4  # the runner-up minimum lies more than this many grid steps away
+    min_distinctness: float = 1.15  # runner-up cost / best cost of a pair usable for the chain
+    refine_rounds: int = 3
+    cluster_s: float = 0.5  # residuals within this time of one video form one cluster of the covariance
+    # Prior std of a rate around 1 for videos with decoder times or a known fps (0: none). Phone clocks run within
+    # ~50 ppm of true time; a far, noisy single point leaves the rate of a short video weakly determined.
+    rate_prior: float = 2e-4
+    max_residuals: int = 30000  # (frame, point, other video) samples in the joint refinement
+    time_source: list[TimeSource] = field(default_factory=list)  # per video; NOMINAL ones search frame rates
+    seed: int = 0
+
+
+@dataclass(kw_only=True)
+class PairHypothesis:
+    """own_u = alpha + beta * own_v at the best coarse cost."""
+
+    v: int
+    u: int
+    alpha: float
+    beta: float
+    cost: float  # px^2, mean truncated squared gap
+    runner_up: float  # cost of the best hypothesis more than `distinct_steps` away
+    samples: int
+
+    @property
+    def distinctness(self) -> float:
+        return self.runner_up / max(self.cost, 1e-12)
+
+
+@dataclass(kw_only=True)
+class SearchResult:
+    params: ClockParams
+    pairs: list[PairHypothesis]
+    residual_px: float  # robust RMS gap over all samples at the solution
+    video_residual_px: np.ndarray  # (N,)
+    timing_spread: np.ndarray  # (N,) s, frames' capture-time spread around their clock (jitter), NaN if unknown
+    start: str  # "tracks" or "links": the start the refinement kept
+    warnings: list[str]
+
+
+@dataclass
+class _Track:
+    """One video's observations in own-time order."""
+
+    own: np.ndarray  # (n,) increasing
+    centers: np.ndarray  # (n, 3)
+    rays: np.ndarray  # (n, P, 3) unit, NaN where unobserved
+    focal: np.ndarray  # (n,)
+    max_gap: float
+
+    def interpolate(self, tq: np.ndarray, clamp: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Centres (m, 3), rays (m, P, 3) and focal (m,) at own times tq (m,): NaN where not interpolable (outside
+        the video, across a gap), or with `clamp` held at the nearest interpolable value (continuous in tq, for the
+        refinement whose sample set is fixed per round)."""
+        n = len(self.own)
+        k = np.clip(np.searchsorted(self.own, tq, side="right") - 1, 0, max(n - 2, 0))
+        if n < 2:
+            nan = np.full((len(tq), *self.rays.shape[1:]), np.nan)
+            return np.full((len(tq), 3), np.nan), nan, np.full(len(tq), np.nan)
+        t0, t1 = self.own[k], self.own[k + 1]
+        a = (tq - t0) / (t1 - t0)
+        if clamp:
+            a = np.clip(a, 0.0, 1.0)
+        else:
+            ok = (a >= 0) & (a <= 1) & (t1 - t0 <= self.max_gap)
+            a = np.where(ok, a, np.nan)
+        centers = self.centers[k] * (1 - a)[:, None] + self.centers[k + 1] * a[:, None]
+        rays = self.rays[k] * (1 - a)[:, None, None] + self.rays[k + 1] * a[:, None, None]
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        return centers, rays, self.focal[k]
+
+
+def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, max_gap_periods: float) -> list[_Track]:
+    rays = viewing_rays(problem)[:, points]
+    centers = problem.centers
+    focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
+    periods = frame_periods(own, problem.video_index, len(problem.video_names))
+    tracks = []
+    for v in range(len(problem.video_names)):
+        rows = np.flatnonzero(problem.video_index == v)
+        rows = rows[np.argsort(own[rows], kind="stable")]
+        tracks.append(_Track(own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows],
+                             max_gap=max_gap_periods * float(periods[v])))
+    return tracks
+
+
+def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: np.ndarray,
+           f2: np.ndarray, signed_depth: bool = True, vector: bool = False) -> np.ndarray:
+    """(m, P) pixel gap between ray pairs: the distance between the rays, half to each, over each depth, times
+    each focal length (RMS of the two). NaN where a ray is missing, the rays are parallel or (with `signed_depth`)
+    a depth is negative; without it, depths count by magnitude (continuous, for the refinement). `vector`: the
+    (m, P, 3) segment between the rays' closest points at the same pixel scale instead of its length."""
+    w = np.broadcast_to((c1 - c2)[:, None, :], r1.shape)
+    b = np.einsum("mpk,mpk->mp", r1, r2)
+    d = np.einsum("mpk,mpk->mp", r1, w)
+    e = np.einsum("mpk,mpk->mp", r2, w)
+    denom = 1.0 - b * b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d1 = (b * e - d) / denom
+        d2 = (e - b * d) / denom
+        between = w + d1[..., None] * r1 - d2[..., None] * r2
+        gap = np.sqrt(np.einsum("mpk,mpk->mp", between, between))
+        px = 0.5 * gap * np.sqrt((f1[:, None] / d1) ** 2 + (f2[:, None] / d2) ** 2) / math.sqrt(2.0)
+    bad = denom < 1e-10
+    if signed_depth:
+        bad |= (d1 <= 0) | (d2 <= 0)
+    if vector:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(gap > 0, px / gap, np.nan)
+        return np.where(bad[..., None], np.nan, between * scale[..., None])
+    return np.where(bad, np.nan, px)
+
+
+def _query(tracks: list[_Track], v: int, u: int, own_u: np.ndarray, rows: np.ndarray,
+           smooth: bool = False) -> np.ndarray:
+    """(m, P) gaps between video v's frames `rows` and video u's track interpolated at own_u (m,); `smooth`:
+    continuous in own_u (clamped interpolation, unsigned depths)."""
+    tv = tracks[v]
+    cu, ru, fu = tracks[u].interpolate(own_u, clamp=smooth)
+    return gap_px(tv.centers[rows], tv.rays[rows], tv.focal[rows], cu, ru, fu, signed_depth=not smooth)
+
+
+def _subsample(n: int, limit: int) -> np.ndarray:
+    return np.arange(n) if n <= limit else np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
+
+
+def _rate_scales(source: TimeSource) -> np.ndarray:
+    """Factors s with true own time ~ s * own: 1 when the own time is known, 30 / fps candidates otherwise."""
+    if source is TimeSource.NOMINAL:
+        return DEFAULT_FPS / np.array(COMMON_FPS)
+    return np.array([1.0])
+
+
+def _grid_cost(tracks: list[_Track], v: int, u: int, qv: np.ndarray, qu: np.ndarray, alphas: np.ndarray,
+               beta: float, need: int, c2: float, chunk_samples: int = 400_000) -> np.ndarray:
+    """(A,) mean truncated squared gap of each hypothesis alpha (inf with fewer than `need` samples), vectorized
+    over chunks of hypotheses."""
+    tv, tu = tracks[v], tracks[u]
+    P = tv.rays.shape[1]
+    per = max(1, chunk_samples // max(1, (len(qv) + len(qu)) * P))
+    cost = np.full(len(alphas), np.inf)
+    for start in range(0, len(alphas), per):
+        a = alphas[start:start + per]
+        A = len(a)
+        g1 = _query(tracks, v, u, (a[:, None] + beta * tv.own[qv][None]).ravel(), np.tile(qv, A))
+        g2 = _query(tracks, u, v, ((tu.own[qu][None] - a[:, None]) / beta).ravel(), np.tile(qu, A))
+        g1 = g1.reshape(A, -1)
+        g2 = g2.reshape(A, -1)
+        n = np.isfinite(g1).sum(axis=1) + np.isfinite(g2).sum(axis=1)
+        total = (np.minimum(np.nan_to_num(g1, nan=0.0) ** 2, c2).sum(axis=1)
+                 + np.minimum(np.nan_to_num(g2, nan=0.0) ** 2, c2).sum(axis=1))
+        cost[start:start + per] = np.where(n >= need, total / np.maximum(n, 1), np.inf)
+    return cost
+
+
+def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, periods: np.ndarray,
+                sources: list[TimeSource]) -> PairHypothesis | None:
+    """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
+    tv, tu = tracks[v], tracks[u]
+    qv = _subsample(len(tv.own), options.max_queries)
+    qu = _subsample(len(tu.own), options.max_queries)
+    seen_v = np.isfinite(tv.rays[qv, :, 0])
+    seen_u = np.isfinite(tu.rays[qu, :, 0])
+    need = max(options.min_overlap, int(options.min_overlap_share * min(seen_v.sum(), seen_u.sum())))
+    step = options.coarse_step_periods * float(np.nanmax([periods[v], periods[u]]))
+    c2 = options.inlier_px ** 2
+    betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
+    best: PairHypothesis | None = None
+    for beta in betas:
+        # own_u = alpha + beta own_v overlaps when alpha spans [u start - beta v end, u end - beta v start].
+        lo = tu.own[0] - beta * tv.own[-1]
+        hi = tu.own[-1] - beta * tv.own[0]
+        coarse = max(step, (hi - lo) / options.max_hypotheses)
+        alphas = np.arange(lo, hi + coarse, coarse)
+        cost = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
+        if not np.isfinite(cost).any():
+            continue
+        i = int(np.argmin(cost))
+        far = np.abs(np.arange(len(alphas)) - i) > options.distinct_steps
+        runner = float(np.min(cost[far])) if far.any() else np.inf
+        alpha, best_cost = float(alphas[i]), float(cost[i])
+        if coarse > step:  # the basin is wider than the coarse step: settle the offset on the fine step
+            fine = alpha + np.arange(-coarse, coarse + step, step)
+            fine_cost = _grid_cost(tracks, v, u, qv, qu, fine, beta, need, c2)
+            j = int(np.argmin(fine_cost))
+            if fine_cost[j] < best_cost:
+                alpha, best_cost = float(fine[j]), float(fine_cost[j])
+        hypothesis = PairHypothesis(v=v, u=u, alpha=alpha, beta=float(beta), cost=best_cost,
+                                    runner_up=runner, samples=int(np.sum(np.isfinite(cost))))
+        if best is None or hypothesis.cost < best.cost:
+            if best is not None:
+                hypothesis.runner_up = min(hypothesis.runner_up, best.cost)
+            best = hypothesis
+        else:
+            best.runner_up = min(best.runner_up, hypothesis.cost)
+    return best
+
+
+def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray,
+           min_distinctness: float) -> tuple[np.ndarray, np.ndarray]:
+    """Clock coefficients (N, 3) by composing pair relations along a maximum spanning tree of distinctness."""
+    usable = {(p.v, p.u): p for p in pairs if p.distinctness >= min_distinctness and np.isfinite(p.cost)}
+    strength = np.zeros((num_videos, num_videos))
+    for (v, u), p in usable.items():
+        strength[v, u] = strength[u, v] = min(p.distinctness, 1e6)
+
+    def relation(v: int, u: int) -> tuple[float, float]:
+        p = usable.get((v, u)) or usable[(u, v)]
+        return (p.alpha, p.beta) if (p.v, p.u) == (v, u) else (-p.alpha / p.beta, 1.0 / p.beta)
+
+    return chain_clocks(strength, ref, centers, relation)
+
+
+class _Joint:
+    """Robust least squares over the clocks of the free videos, on the gaps of every ordered pair of videos."""
+
+    def __init__(self, tracks: list[_Track], centers: np.ndarray, ref_coef: np.ndarray, ref: int, free: list[int],
+                 model: ClockModel, max_residuals: int, block_s: float, rate_sigma: np.ndarray):
+        self.raw, self.tracks, self.centers, self.ref, self.free = tracks, list(tracks), centers, ref, free
+        self.k = free_terms(model)
+        # Prior rate 1 +- rate_sigma (per video, inf = none) as extra residuals, in units of the gap scale.
+        self.rate_sigma = rate_sigma
+        self.prior_videos = [i for i, v in enumerate(free) if np.isfinite(rate_sigma[v])] if self.k >= 2 else []
+        self.prior_scale = 1.0
+        self.ref_coef = ref_coef
+        active = [ref, *free]
+        samples = sum(len(tracks[v].own) for v in active) * max(len(active) - 1, 1) * tracks[0].rays.shape[1]
+        stride = max(1, math.ceil(samples / max_residuals))
+        self.rows = {v: np.arange(0, len(tracks[v].own), stride) for v in active}
+        self.pairs = [(v, u) for v in active for u in active if u != v]
+        self.mask: dict[tuple[int, int], np.ndarray] = {}
+        # Residuals of one video's frames within `block_s` are correlated (interpolation error, smooth motion):
+        # they form one cluster of the covariance.
+        self.block: dict[int, np.ndarray] = {
+            v: np.floor((tracks[v].own[self.rows[v]] - tracks[v].own[0]) / block_s).astype(np.int64) + 100_000 * v
+            for v in active}
+
+    def coefficients(self, theta: np.ndarray) -> np.ndarray:
+        coef = np.full((len(self.tracks), 3), np.nan)
+        coef[self.ref] = self.ref_coef
+        for i, v in enumerate(self.free):
+            coef[v] = [0.0, 1.0, 0.0]
+            coef[v, :self.k] = theta[i * self.k:(i + 1) * self.k]
+        return coef
+
+    def _own_in(self, coef: np.ndarray, u: int, g: np.ndarray) -> np.ndarray:
+        """Own time of video u at global times g: invert a + b s + c s^2 (Newton from the affine solution)."""
+        a, b, c = coef[u]
+        s = (g - a) / b
+        for _ in range(3 if c != 0 else 0):
+            s -= (a + b * s + c * s * s - g) / (b + 2 * c * s)
+        return s + self.centers[u]
+
+    def gaps(self, theta: np.ndarray, smooth: bool = False) -> dict[tuple[int, int], np.ndarray]:
+        coef = self.coefficients(theta)
+        out = {}
+        for v, u in self.pairs:
+            rows = self.rows[v]
+            s = self.tracks[v].own[rows] - self.centers[v]
+            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
+            out[(v, u)] = _query(self.tracks, v, u, self._own_in(coef, u, g), rows, smooth=smooth)
+        return out
+
+    def clean(self, theta: np.ndarray, threshold: float) -> int:
+        """Drop observations whose median gap to the other videos exceeds `threshold` px (false detections): they
+        would also spoil every interpolation that brackets them. Returns how many were dropped."""
+        coef = self.coefficients(theta)
+        active = [self.ref, *self.free]
+        dropped = 0
+        cleaned = list(self.raw)
+        for v in active:
+            track = self.raw[v]
+            rows = np.arange(len(track.own))
+            s = track.own - self.centers[v]
+            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
+            gaps = np.stack([_query(self.raw, v, u, self._own_in(coef, u, g), rows) for u in active if u != v])
+            if not len(gaps):
+                continue
+            with warnings.catch_warnings():  # observations outside every other video's span: all-NaN, kept
+                warnings.simplefilter("ignore", RuntimeWarning)
+                median = np.nanmedian(gaps, axis=0)
+            bad = np.isfinite(median) & (median > threshold)
+            dropped += int(bad.sum())
+            rays = track.rays.copy()
+            rays[bad] = np.nan
+            cleaned[v] = _Track(own=track.own, centers=track.centers, rays=rays, focal=track.focal,
+                                max_gap=track.max_gap)
+        self.tracks = cleaned
+        return dropped
+
+    def fix_mask(self, theta: np.ndarray, threshold: float) -> int:
+        """Samples of this round: interpolable, positive depths, gap below `threshold` px (outlier detections)."""
+        gaps = self.gaps(theta)
+        self.mask = {key: np.isfinite(value) & (np.nan_to_num(value, nan=np.inf) < threshold)
+                     for key, value in gaps.items()}
+        return int(sum(m.sum() for m in self.mask.values()))
+
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        gaps = self.gaps(theta, smooth=True)
+        parts = [np.nan_to_num(value[self.mask[key]], nan=0.0) for key, value in gaps.items()]
+        parts.append(np.array([(theta[i * self.k + 1] - 1.0) / self.rate_sigma[self.free[i]] * self.prior_scale
+                               for i in self.prior_videos]))
+        return np.concatenate(parts)
+
+    def clusters(self) -> np.ndarray:
+        parts = []
+        for (v, _), m in self.mask.items():
+            parts.append(np.broadcast_to(self.block[v][:, None], m.shape)[m])
+        parts.append(-1 - np.arange(len(self.prior_videos)))  # each prior row on its own
+        return np.concatenate(parts)
+
+    def timing_spread(self, theta: np.ndarray, periods: np.ndarray, noise_px: float) -> np.ndarray:
+        """(N,) s: spread of the frames' capture times around their clock (jitter), which no clock model holds.
+
+        Per frame, the shift of its time that best closes its (signed, pixel-scaled) gap vectors to the other
+        videos, linearized: delta = -sum w0.w' / sum |w'|^2, with w' from interpolating the others half a period
+        around. Its robust variance minus the part the pixel noise explains (noise^2 / sum |w'|^2) is the jitter.
+        """
+        coef = self.coefficients(theta)
+        active = [self.ref, *self.free]
+        spread = np.full(len(self.tracks), np.nan)
+        for v in active:
+            track = self.tracks[v]
+            rows = np.arange(len(track.own))
+            s = track.own - self.centers[v]
+            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
+            num = np.zeros(len(rows))
+            den = np.zeros(len(rows))
+            for u in active:
+                if u == v:
+                    continue
+                h = 0.25 * float(periods[u])
+                own_u = self._own_in(coef, u, g)
+                vectors = []
+                for shift in (0.0, -h, h):
+                    cu, ru, fu = self.tracks[u].interpolate(own_u + shift)
+                    vectors.append(gap_px(track.centers, track.rays, track.focal, cu, ru, fu, vector=True))
+                w0, minus, plus = vectors
+                slope = (plus - minus) / (2 * h)
+                ok = np.isfinite(w0).all(-1) & np.isfinite(slope).all(-1)
+                ok &= np.linalg.norm(np.nan_to_num(w0), axis=-1) < 4 * noise_px
+                num += np.where(ok, np.einsum("fpk,fpk->fp", np.nan_to_num(w0), np.nan_to_num(slope)), 0).sum(1)
+                den += np.where(ok, np.einsum("fpk,fpk->fp", np.nan_to_num(slope), np.nan_to_num(slope)), 0).sum(1)
+            usable = den > 0
+            if usable.sum() < 5:
+                continue
+            delta = -num[usable] / den[usable]
+            total = MAD * float(np.median(np.abs(delta - np.median(delta))))
+            noise_var = float(np.median(noise_px ** 2 / den[usable]))
+            spread[v] = math.sqrt(max(total * total - noise_var, 0.0))
+        return spread
+
+    def video_rms(self, theta: np.ndarray, scale: float) -> np.ndarray:
+        gaps = self.gaps(theta)
+        rms = np.full(len(self.tracks), np.nan)
+        for v in [self.ref, *self.free]:
+            values = np.concatenate([gaps[key][np.isfinite(gaps[key])] for key in gaps if v in key])
+            inl = values[values < 4 * scale]
+            if len(inl):
+                rms[v] = float(np.sqrt(np.mean(inl ** 2)))
+        return rms
+
+
+@dataclass
+class _Refined:
+    theta: np.ndarray
+    cov: np.ndarray
+    scale: float  # robust gap scale, px
+    cost: float  # truncated mean squared gap over the interpolable samples, px^2
+    coverage: int  # samples
+
+
+def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.ndarray) -> _Refined:
+    """Rounds of: robust scale of the gaps, samples below a shrinking multiple of it, soft-L1 least squares."""
+    scale = math.nan
+    for round_ in range(options.refine_rounds):
+        values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
+        if len(values) <= len(theta):
+            break
+        scale = max(MAD * float(np.median(values)), 0.1)
+        threshold = max((8.0, 5.0, 4.0)[min(round_, 2)] * scale, 1.0)
+        joint.prior_scale = scale
+        joint.clean(theta, threshold)
+        if joint.fix_mask(theta, threshold) <= len(theta):
+            break
+        fit = least_squares(joint.residuals, theta, loss="soft_l1", f_scale=scale, x_scale=steps,
+                            diff_step=None, max_nfev=100)
+        theta = fit.x
+    values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
+    if len(values):
+        scale = max(MAD * float(np.median(values)), 0.1)
+    cleaned, joint.tracks = joint.tracks, joint.raw  # starts are compared on the same (raw) observations
+    raw = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
+    joint.tracks = cleaned
+    cost = float(np.mean(np.minimum(raw ** 2, options.inlier_px ** 2))) if len(raw) else math.inf
+    cov = np.full((len(theta), len(theta)), np.inf)
+    if joint.fix_mask(theta, max(4.0 * scale, 1.0)) > len(theta):
+        r = joint.residuals(theta)
+        J = _central_jacobian(joint.residuals, theta, 0.1 * steps)
+        weights = 1.0 / np.sqrt(1.0 + (r / scale) ** 2)  # soft-L1 IRLS weights
+        cov = cluster_covariance(J, r, weights, joint.clusters())
+    return _Refined(theta=theta, cov=cov, scale=scale, cost=cost, coverage=len(values))
+
+
+def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
+                      steps: np.ndarray) -> np.ndarray:
+    """Central differences with steps of a fraction of a frame period: the gaps are piecewise smooth between
+    frames, and the slope across a kink is what the clock estimate feels."""
+    columns = []
+    for i in range(len(theta)):
+        delta = np.zeros_like(theta)
+        delta[i] = steps[i]
+        columns.append((function(theta + delta) - function(theta - delta)) / (2 * steps[i]))
+    return np.stack(columns, axis=1)
+
+
+MAD = 1.4826
+
+
+def _parameter_steps(period: float, own: np.ndarray, k: int) -> np.ndarray:
+    """Typical changes of (a, b, c): a tenth of a frame period at the ends of the video."""
+    half = max(float(np.ptp(own)) / 2, period)
+    return np.array([0.1 * period, 0.1 * period / half, 0.1 * period / half ** 2])[:k]
+
+
+def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOptions | None = None,
+                  start: ClockParams | None = None) -> SearchResult:
+    """Clocks of all videos from the tracks; `start` (link clocks of W) is tried as a second start."""
+    options = options or SearchOptions()
+    N = len(problem.video_names)
+    names = problem.video_names
+    sources = options.time_source or [TimeSource.DECODER] * N
+    observed = problem.observed
+    counts = observed.sum(axis=0)
+    counts[counts == 0] = -1
+    coarse_points = np.argsort(-counts, kind="stable")[:options.max_points]
+    coarse_points = coarse_points[counts[coarse_points] > 0]
+    periods = frame_periods(own, problem.video_index, N)
+    centers = np.array([float(np.mean(own[problem.video_index == v])) for v in range(N)])
+    warnings: list[str] = []
+    tracks = _tracks(problem, own, coarse_points, options.max_gap_periods)
+    pairs = [p for v in range(N) for u in range(v + 1, N)
+             if (p := search_pair(tracks, v, u, options, periods, sources)) is not None]
+    for p in pairs:
+        log.info("clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f",
+                 names[p.v], names[p.u], p.alpha, p.beta, p.cost, p.distinctness)
+    coef, reached = _chain(pairs, ref, N, centers, options.min_distinctness)
+    all_points = np.flatnonzero(counts > 0)
+    full_tracks = _tracks(problem, own, all_points, options.max_gap_periods)
+    starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
+    # Decoder clocks are quartz: rate 1 within a few hundred ppm. Nominal own times carry an unknown frame rate.
+    rate_sigma = np.array([options.rate_prior if s is not TimeSource.NOMINAL and options.rate_prior > 0 else np.inf
+                           for s in sources])
+    if start is not None and start.identified.sum() > 1:
+        starts.append(("links", start.coef.copy(), start.identified.copy()))
+    best: tuple[tuple[int, float], str, _Refined, _Joint] | None = None
+    for label, c, ok in starts:
+        free = [v for v in range(N) if ok[v] and v != ref]
+        if not free:
+            continue
+        joint = _Joint(full_tracks, centers, c[ref], ref, free, options.model, options.max_residuals,
+                       options.cluster_s, rate_sigma)
+        k = joint.k
+        theta0 = np.concatenate([c[v, :k] for v in free])
+        steps = np.concatenate([_parameter_steps(float(periods[v]), full_tracks[v].own, k) for v in free])
+        refined = _refine(joint, theta0, options, steps)
+        log.info("clock search: start from %s -> truncated cost %.3f px^2 (gap scale %.2f px, %d videos)", label,
+                 refined.cost, refined.scale, len(free) + 1)
+        # More clocked videos first, then the lower truncated cost.
+        key = (-len(free), refined.cost)
+        if best is None or key < best[0]:
+            best = (key, label, refined, joint)
+    params = ClockParams(center=centers, coef=np.full((N, 3), np.nan), cov=np.full((N, 3, 3), np.nan),
+                         identified=np.zeros(N, dtype=bool))
+    params.coef[ref] = reference_coef(centers[ref])
+    params.cov[ref] = 0.0
+    params.identified[ref] = True
+    video_rms = np.full(N, np.nan)
+    spread = np.full(N, np.nan)
+    residual = math.nan
+    label = "tracks"
+    if best is not None:
+        _, label, refined, joint = best
+        coef_all = joint.coefficients(refined.theta)
+        k = joint.k
+        for i, v in enumerate(joint.free):
+            block = refined.cov[i * k:(i + 1) * k, i * k:(i + 1) * k]
+            params.coef[v] = coef_all[v]
+            params.cov[v] = 0.0
+            params.cov[v, :k, :k] = block
+            params.identified[v] = bool(np.all(np.isfinite(block)) and coef_all[v, 1] > 0)
+        video_rms = joint.video_rms(refined.theta, refined.scale)
+        residual = refined.scale
+        spread = joint.timing_spread(refined.theta, periods, refined.scale)
+    for v in range(N):
+        if not params.identified[v]:
+            warnings.append(f"video {names[v]!r}: the track search found no distinct offset to the other videos "
+                            "(too little overlap, or motion that every offset explains): its clock is not "
+                            "identified by the tracks")
+    return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms,
+                        timing_spread=spread, start=label, warnings=warnings)

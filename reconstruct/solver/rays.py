@@ -1,0 +1,73 @@
+"""Viewing rays and the similarity normalization the solver works in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from reconstruct.solver.problem import Problem
+
+
+def has_distortion(dist: np.ndarray | None) -> bool:
+    """Whether OpenCV distortion coefficients change any pixel (None or all zeros do not)."""
+    return dist is not None and bool(np.any(dist != 0))
+
+
+def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """Pixels (N, 2) of one camera -> normalized image coordinates (N, 2), undistorted when `dist` is given."""
+    if has_distortion(dist):
+        pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        return cv2.undistortPoints(pts, K, np.asarray(dist, dtype=np.float64)).reshape(-1, 2)
+    homogeneous = np.column_stack([uv, np.ones(len(uv))])
+    return np.linalg.solve(K, homogeneous.T).T[:, :2]
+
+
+def viewing_rays(problem: Problem) -> np.ndarray:
+    """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved.
+    All frames at once (a loop over frames took 1.2 s at F = 20,000); only frames with lens distortion go through
+    OpenCV one by one."""
+    F, P = problem.num_frames, problem.num_points
+    observed = problem.observed
+    pixels = np.concatenate([np.where(observed[..., None], problem.uv, 0.0), np.ones((F, P, 1))], axis=2)
+    normalized = np.linalg.solve(problem.K, pixels.transpose(0, 2, 1)).transpose(0, 2, 1)  # (F, P, 3)
+    normalized[..., 2] = 1.0
+    for f, dist in enumerate(problem.dist):
+        if has_distortion(dist) and observed[f].any():
+            seen = observed[f]
+            normalized[f, seen, :2] = normalized_image_points(problem.uv[f, seen], problem.K[f], dist)
+    directions = np.matmul(normalized, problem.R)  # rows: R^T d
+    rays = directions / np.linalg.norm(directions, axis=2, keepdims=True)
+    rays[~observed] = np.nan
+    return rays
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """x_normalized = (x_world - offset) / scale."""
+
+    offset: np.ndarray  # (3,)
+    scale: float
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.offset) / self.scale
+
+    def undo(self, points: np.ndarray) -> np.ndarray:
+        return points * self.scale + self.offset
+
+
+def camera_normalization(centers: np.ndarray, video_index: np.ndarray) -> Normalization:
+    """Average distance between the cameras' centres -> 1, their centroid -> origin (as in the paper).
+
+    Cameras move, so each video is represented by its mean centre; comparing every frame pair would count the zero
+    distances of frames of one static camera.
+    """
+    video_centers = np.stack([centers[video_index == v].mean(axis=0) for v in np.unique(video_index)])
+    offset = video_centers.mean(axis=0)
+    gaps = np.linalg.norm(video_centers[:, None] - video_centers[None], axis=-1)
+    pairs = gaps[np.triu_indices(len(video_centers), k=1)]
+    scale = float(pairs.mean()) if len(pairs) and pairs.mean() > 0 else 1.0
+    if scale <= 0 or not np.isfinite(scale):
+        scale = 1.0
+    return Normalization(offset=offset, scale=scale)

@@ -1,0 +1,110 @@
+"""Track/pose clock search: one drone point seen from far away (W is no help there), a small body, the ray gap,
+interpolation across handheld poses, and estimate_clocks choosing the tracks when W's links are wrong."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reconstruct.clocks.estimate import ClockOptions, SearchMode, TimeSource, estimate_clocks, own_times
+from reconstruct.clocks.search import SearchOptions, gap_px, search_clocks
+
+# The synthetic capture generator lives beside the W-link tests.
+_spec = importlib.util.spec_from_file_location("clock_scenes", Path(__file__).with_name("test_clocks.py"))
+assert _spec is not None and _spec.loader is not None
+scenes = importlib.util.module_from_spec(_spec)
+sys.modules.setdefault("clock_scenes", scenes)  # dataclasses look their module up there
+_spec.loader.exec_module(scenes)
+TrueClock = scenes.TrueClock
+_FakeResult = scenes._FakeResult
+
+DRONE_CLOCKS = [TrueClock(fps=30.0, frames=240), TrueClock(fps=25.0, frames=200, offset=1.37, rate=1.0004),
+                TrueClock(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
+                TrueClock(fps=24.0, frames=190, offset=0.61, rate=1.0002)]
+
+
+def test_gap_px_matches_geometry() -> None:
+    """Two rays 0.2 m apart at 10 m from both cameras: each ray takes half the gap: 0.1 m / 10 m * f px."""
+    c1, c2 = np.array([[-10.0, 0, 0]]), np.array([[0.0, -10, 0]])
+    r1 = np.array([[[1.0, 0, 0]]])
+    r2 = np.array([[[0.0, 1, 0]]])
+    c2 = c2 + np.array([[0, 0, 0.2]])
+    f = np.array([1000.0])
+    gap = gap_px(c1, r1, f, c2, r2, f)
+    assert gap[0, 0] == pytest.approx(0.5 * 0.2 / 10 * 1000, rel=1e-9)
+    behind = gap_px(c1, -r1, f, c2, r2, f)  # the closest point lies behind camera 1
+    assert np.isnan(behind[0, 0])
+    unsigned = gap_px(c1, -r1, f, c2, r2, f, signed_depth=False)
+    assert np.isfinite(unsigned[0, 0])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_drone_far_away_with_false_detections(seed: int) -> None:
+    """P = 1, cameras 60 m away, handheld, 1 px noise, 5 % false detections: within a quarter of 1/60 s."""
+    problem, g, _ = scenes.make_capture(DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True,
+                                        handheld=True, outlier_share=0.05, seed=seed)
+    own, _ = own_times(problem)
+    result = search_clocks(problem, own, 0, SearchOptions())
+    assert result.params.identified.all()
+    error = np.abs(result.params.times(own, problem.video_index) - g)
+    assert np.median(error) < 0.25 / 60.0
+    assert np.percentile(error, 90) < 0.5 / 60.0
+    for v, clock in enumerate(DRONE_CLOCKS):
+        values, _ = result.params.offset_rate_drift(v)
+        assert values[0] == pytest.approx(clock.offset, abs=0.01)
+    assert result.residual_px < 2.0
+
+
+def test_unknown_frame_rate_is_found() -> None:
+    """A video without decoder times or fps: own time = frame / 30 and the search tries the common rates."""
+    clocks = [TrueClock(fps=30.0, frames=240), TrueClock(fps=25.0, frames=200, offset=0.9)]
+    problem, g, _ = scenes.make_capture(clocks, points=4, distance=8.0, noise_px=0.5, seed=3)
+    problem.times[problem.video_index == 1] = np.nan
+    own, sources = own_times(problem)
+    assert sources[1] is TimeSource.NOMINAL
+    result = search_clocks(problem, own, 0, SearchOptions(time_source=sources))
+    values, _ = result.params.offset_rate_drift(1)
+    assert values[1] == pytest.approx(30.0 / 25.0, rel=2e-3)  # rate carries the true frame rate
+    error = np.abs(result.params.times(own, problem.video_index) - g)
+    assert np.median(error) < 0.25 / 30.0
+
+
+def test_no_overlap_is_reported() -> None:
+    """A video that never overlaps the others in time gets a warning, not a number."""
+    clocks = [TrueClock(fps=30.0, frames=150), TrueClock(fps=30.0, frames=150, offset=0.4),
+              TrueClock(fps=30.0, frames=150, offset=40.0)]
+    problem, _, _ = scenes.make_capture(clocks, points=1, distance=60.0, drone=True, seed=2)
+    own, _ = own_times(problem)
+    # The third video films a different stretch of the flight: its track matches nothing of the others.
+    problem.uv[problem.video_index == 2] += np.random.default_rng(0).normal(scale=200.0, size=(150, 1, 2))
+    result = search_clocks(problem, own, 0, SearchOptions())
+    assert not result.params.identified[2]
+    assert any("cam2" in w for w in result.warnings)
+
+
+def test_estimate_clocks_prefers_tracks_over_wrong_links() -> None:
+    """W whose links are consistent but wrong (every frame linked 0.5 s off, as a drone seen from afar allows):
+    the tracks win, with a warning naming the disagreement."""
+    problem, g, _ = scenes.make_capture(DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True, seed=5)
+    wrong = g + np.where(problem.video_index == 1, 0.5, 0.0)  # cam1 linked as if it started 0.5 s later
+    W = scenes.ideal_w(problem.video_index, wrong, seed=0)
+    result = _FakeResult(W, 1)
+    clocks = estimate_clocks(problem, result, ClockOptions(search=SearchMode.AUTO))  # type: ignore[arg-type]
+    assert clocks.diagnostics["search"] is True
+    assert clocks.video("cam1").method == "tracks"
+    assert any("cam1" in w and "kept the tracks" in w for w in clocks.warnings)
+    error = np.abs(clocks.global_time - g)
+    assert np.median(error) < 0.25 / 60.0
+    assert np.all(np.isfinite(clocks.global_std)) and np.all(clocks.global_std < 0.01)
+
+
+def test_estimate_clocks_fuses_agreeing_sources() -> None:
+    problem, g, _ = scenes.make_capture(DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True, seed=6)
+    W = scenes.ideal_w(problem.video_index, g, seed=0, outliers=0.1)
+    clocks = estimate_clocks(problem, _FakeResult(W, 1), ClockOptions())  # type: ignore[arg-type]
+    assert [v.method for v in clocks.videos] == ["reference", "combined", "combined", "combined"]
+    assert np.median(np.abs(clocks.global_time - g)) < 0.25 / 60.0

@@ -1,0 +1,147 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynrecon.errors import InputError
+from reconstruct.outputs.mocap import Mocap, drop_incomplete, read_mocap, select_window, write_trc
+
+
+def _synthetic(frames: int = 20, markers: int = 3, seed: int = 0) -> Mocap:
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(-1000, 1000, size=(frames, markers, 3))
+    return Mocap(xyz=xyz, rate=100.0, marker_names=[f"m{i}" for i in range(markers)],
+                 times=0.5 + np.arange(frames) / 100.0)
+
+
+def test_every_shared_file_reads(shared_dir: Path) -> None:
+    folder = shared_dir / "data" / "mocap"
+    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".c3d", ".trc"))
+    assert len(files) > 10
+    for path in files:
+        mocap = read_mocap(path)
+        assert mocap.xyz.ndim == 3 and mocap.xyz.shape[2] == 3, path
+        assert mocap.xyz.shape[1] == len(mocap.marker_names) == len(set(mocap.marker_names)), path
+        assert mocap.rate in (100.0, 120.0, 200.0, 240.0, 250.0, 300.0), path
+        assert np.allclose(np.diff(mocap.times), 1 / mocap.rate), path
+        known = mocap.xyz[~mocap.missing()]
+        assert known.size > 0 and not (known == 0).all(axis=1).any(), path  # zero gaps were masked
+        # Every file holds a human-sized subject: the extent of one frame is 0.3 to 3 m, i.e. millimetres.
+        frame = int(np.argmin(mocap.missing().sum(axis=1)))
+        extent = np.nanmax(mocap.xyz[frame], axis=0) - np.nanmin(mocap.xyz[frame], axis=0)
+        assert 300 < extent.max() < 3000, (path, extent)
+
+
+def test_hdm05_matches_the_paper(shared_dir: Path) -> None:
+    mocap = read_mocap(shared_dir / "data/mocap/hdm05/HDM_dg_06-03_03_120.c3d")
+    assert mocap.xyz.shape == (202, 44, 3)
+    assert mocap.rate == 120.0
+    assert not mocap.missing().any()
+
+
+def test_trc_round_trip_in_metres_and_millimetres(tmp_path: Path) -> None:
+    mocap = _synthetic()
+    mocap.xyz[3, 1] = np.nan
+    for units in ("mm", "m"):
+        path = write_trc(tmp_path / f"walk_{units}.trc", mocap, units=units)
+        back = read_mocap(path)
+        assert back.marker_names == mocap.marker_names
+        assert back.rate == 100.0
+        np.testing.assert_allclose(back.times, mocap.times, atol=1e-12)
+        np.testing.assert_allclose(back.xyz, mocap.xyz, rtol=1e-12, atol=1e-9)  # NaN in the same places
+        assert back.missing().sum() == 1
+
+
+def test_trc_zero_samples_are_missing(tmp_path: Path) -> None:
+    mocap = _synthetic()
+    path = write_trc(tmp_path / "z.trc", mocap)
+    lines = path.read_text().splitlines()
+    cells = lines[7].split("\t")  # line 6 is blank, line 7 holds the second frame
+    cells[2:5] = ["0", "0", "0"]  # first marker
+    lines[7] = "\t".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    back = read_mocap(path)
+    assert back.missing()[1, 0] and back.missing().sum() == 1
+
+
+def test_trc_with_padded_header_and_crlf(tmp_path: Path) -> None:
+    # Windows exports: CRLF line ends, header values separated by double tabs, names two tabs apart.
+    text = ("PathFileType  4\t(X/Y/Z) C:\\x\r\n"
+            "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\r\n"
+            "  50.0\t\t  50.0\t\t 2\t\t 2\t\t mm\r\n"
+            "Frame#\tTime\t\tA\t\tB\r\n"
+            "\t\t\tX1\tY1\tZ1\tX2\tY2\tZ2\r\n"
+            "1\t0.0\t1\t2\t3\t4\t5\t6\t\r\n"
+            "2\t0.02\t7\t8\t9\t\t\t\t\r\n")
+    path = tmp_path / "win.trc"
+    path.write_bytes(text.encode())
+    back = read_mocap(path)
+    assert back.rate == 50.0 and back.marker_names == ["A", "B"]
+    np.testing.assert_array_equal(back.xyz[0], [[1, 2, 3], [4, 5, 6]])
+    assert back.missing().tolist() == [[False, False], [False, True]]
+
+
+@pytest.mark.parametrize(("name", "content", "message"), [
+    ("motion.bvh", "HIERARCHY", "unknown motion-capture format"),
+    ("short.trc", "PathFileType\t4\n", "5 header lines"),
+    ("nomarkers.trc", "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t0\tmm\nFrame#\tTime\n\t\n1\t0\n",
+     "no markers"),
+    ("units.trc",
+     "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t1\tinch\nFrame#\tTime\tA\n\t\tX1\n1\t0\t1\t2\t3\n",
+     "unknown Units"),
+    ("bad.c3d", "not a c3d file at all", "not a readable C3D file"),
+])
+def test_bad_files_are_one_line_errors(tmp_path: Path, name: str, content: str, message: str) -> None:
+    path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(InputError, match=message) as error:
+        read_mocap(path)
+    assert "\n" not in str(error.value) and str(path) in str(error.value)
+
+
+def test_truncated_trc_names_the_line(tmp_path: Path) -> None:
+    path = write_trc(tmp_path / "t.trc", _synthetic())
+    text = path.read_text()
+    path.write_text(text[: len(text) - 30])  # cut inside the last row
+    with pytest.raises(InputError, match=r"t\.trc:line 26: expected 11"):
+        read_mocap(path)
+    lines = text.splitlines()
+    path.write_text("\n".join(lines[:-3]) + "\n")  # whole rows missing
+    with pytest.raises(InputError, match="NumFrames is 20 but only 17"):
+        read_mocap(path)
+
+
+def test_truncated_c3d(tmp_path: Path, shared_dir: Path) -> None:
+    data = (shared_dir / "data/mocap/hdm05/HDM_dg_06-03_03_120.c3d").read_bytes()
+    path = tmp_path / "cut.c3d"
+    path.write_bytes(data[:600])
+    with pytest.raises(InputError, match=r"cut\.c3d"):
+        read_mocap(path)
+
+
+def test_select_window_keeps_times() -> None:
+    mocap = _synthetic(frames=30)
+    window = select_window(mocap, start=4, length=10, step=3)
+    np.testing.assert_array_equal(window.xyz, mocap.xyz[[4, 7, 10, 13]])
+    np.testing.assert_allclose(window.times, mocap.times[[4, 7, 10, 13]])
+    assert window.rate == mocap.rate
+    assert select_window(mocap).num_frames == 30
+    with pytest.raises(InputError, match="outside"):
+        select_window(mocap, start=30)
+    with pytest.raises(InputError, match="step"):
+        select_window(mocap, step=0)
+
+
+def test_drop_incomplete() -> None:
+    mocap = _synthetic(frames=20, markers=4)
+    mocap.xyz[:5, 0] = np.nan  # 25 % missing: dropped at 10 %
+    mocap.xyz[7, 2] = np.nan  # 5 % missing: kept, frame 7 dropped
+    clean = drop_incomplete(mocap, max_missing=0.1)
+    assert clean.marker_names == ["m1", "m2", "m3"]
+    assert clean.num_frames == 19 and 7 not in np.round((clean.times - 0.5) * 100).astype(int)
+    assert not clean.missing().any()
+    mocap.xyz[np.arange(4), np.arange(4)] = np.nan  # now every marker misses at least one frame
+    with pytest.raises(InputError, match="every marker"):
+        drop_incomplete(mocap, max_missing=0.0)
