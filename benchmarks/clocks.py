@@ -10,22 +10,11 @@ Columns: median |time error| in ms and as a fraction of the fastest camera's fra
 calibration (share of frames whose error is within 2 reported std), the method per video, the median error of
 the links of W alone (when they clock every video), CPU seconds of estimate_clocks and wall seconds of the solve.
 
-Measured (solver a235814, 2-core machine shared under load; solves cached with --cache):
-
-| scene | seed | videos | fps | F | median ms | / fastest | p90 ms | in 2 std | methods | links only ms | CPU s |
-|---|---|---|---|---|---|---|---|---|---|---|---|
-| phones | 0 | 4 | 30/25/59.94/24 | 527 | 1.57 | 0.094 | 3.82 | 0.98 | reference,tracks,tracks,tracks | 4.94 | 1.4 |
-| phones | 1 | 4 | 30/25/59.94/24 | 461 | 1.63 | 0.098 | 3.77 | 0.99 | reference,tracks,tracks,tracks | 1.56 | 1.3 |
-| phones | 2 | 4 | 30/25/59.94/24 | 507 | 1.53 | 0.092 | 3.62 | 0.98 | reference,tracks,tracks,tracks | 11.52 | 1.5 |
-| flight* | 0 | 5 | 30/25/59.94/24/29.97 | 1836 | 1.61 | 0.096 | 4.13 | 1.00 | reference,tracks x4 | - | 1.5 |
-| flight* | 1 | 5 | 30/25/59.94/24/29.97 | 1846 | 2.08 | 0.125 | 6.76 | 0.96 | reference,tracks x4 | - | 2.1 |
-| flight* | 2 | 5 | 30/25/59.94/24/29.97 | 1769 | 1.78 | 0.107 | 4.17 | 0.75 | reference,tracks x4 | - | 1.4 |
-
-Phones: CMU 01_01 jumps, 4 s, 41 markers, handheld, 1 px, offsets 0-1 s, +-50 ppm, 2 ms CFR jitter (median
-|jitter| alone is 1.35 ms, the floor of any clock). Flight (* tracks alone): 12 s, 1 drone point, 5 handheld phones
-30-100 m away, 1.5 px, 3 % false detections, +-50 ppm, 2 ms jitter; scored with --max-iterations 0 (W's links of a
-single far point do not clock anything; the search decides there either way).
-Target: median < 0.25 of the fastest frame period.
+Phones: CMU 01_01 jumps, 4 s, 41 markers, handheld, 1 px, offsets 0-1 s, +-50 ppm, 2 ms CFR jitter (the jitter
+alone is the floor of any clock). Flight (tracks alone): 12 s, 1 drone point, 5 handheld phones 30-100 m away,
+1.5 px, 3 % false detections, +-50 ppm, 2 ms jitter; scored with --max-iterations 0 (W's links of a single far point
+do not clock anything; the search decides there either way).
+Target: median < 0.25 of the fastest frame period. Results: docs/measurements.md.
 
     python benchmarks/clocks.py                       # phones (3 seeds) + flight (2 seeds)
     python benchmarks/clocks.py --scenes flight --seeds 0,1,2 --search always --json /tmp/clocks.json
@@ -118,11 +107,11 @@ def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOption
                           for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
     true_clocks = {c.name: c for c in record.clocks}
     ref = true_clocks[clocks.reference]
-    estimate = ref.offset_s + ref.rate * clocks.global_time
+    estimate = ref.global_time(clocks.global_time)
     std = ref.rate * clocks.global_std
     error = np.abs(estimate - true_time)
     known = np.isfinite(error)
-    links_error = np.abs(ref.offset_s + ref.rate * links_only.global_time - true_time)
+    links_error = np.abs(ref.global_time(links_only.global_time) - true_time)
     fastest = 1.0 / max(c.fps for c in record.clocks)
     median = float(np.median(error[known])) if known.any() else float("nan")
     return {

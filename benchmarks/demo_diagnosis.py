@@ -42,7 +42,7 @@ from dynrecon.pipeline import REGISTER_DIR, similarity_to_truth
 from reconstruct.outputs.points import FramePoints, read_points
 from reconstruct.stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
-from simulation.evaluate import Accuracy, evaluate
+from simulation.evaluate import ReconstructionAccuracy, evaluate
 from tracking.tracks import Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -134,13 +134,13 @@ def tracks_table(tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints) -
 
 
 def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints,
-                    work: Path) -> tuple[Accuracy, float]:
+                    work: Path) -> tuple[ReconstructionAccuracy, float]:
     work.mkdir(parents=True, exist_ok=True)
     write_cameras(work / "cameras.json", cameras)
     write_tracks(work / "tracks.csv", tracks)
     started = time.perf_counter()
     # The demo's solve options (its clock settings matter on the periodic sample: see dynrecon.demo).
-    options = dataclasses.replace(pipeline_options(SAMPLE).solve, recording=False)
+    options = dataclasses.replace(pipeline_options(SAMPLE).solve, recording=None)
     solve_run(work / "cameras.json", work / "tracks.csv", work, options)
     seconds = time.perf_counter() - started
     points = read_points(work / "points3d.csv")

@@ -53,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from reconstruct import stage as solve_stage
 from reconstruct.outputs.points import read_points
-from sfm import import_calibration
+from sfm import calibration as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras, write_cameras
 from tracking import stage as track_stage
 from tracking.tracks import Tracks, read_tracks, write_tracks
@@ -214,7 +214,7 @@ def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool =
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     import_calibration.run(demo / "calibration" / "Calib.qca.txt", list(videos), work,
-                           import_calibration.ImportOptions(scale=1000.0))
+                           import_calibration.ImportCalibrationOptions(scale=1000.0))
     seconds["import"] = time.perf_counter() - started
 
     started = time.perf_counter()
@@ -231,7 +231,7 @@ def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool =
     write_tracks(work / "desync" / "tracks.csv", desync_tracks)
     started = time.perf_counter()
     solve_stage.run(work / "desync" / "cameras.json", work / "desync" / "tracks.csv", work / "desync",
-                    solve_stage.SolveStageOptions(recording=False))
+                    solve_stage.SolveOptions(recording=None))
     seconds["solve"] = time.perf_counter() - started
     solved = read_points(work / "desync" / "points3d.csv")
 

@@ -13,9 +13,9 @@ Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), f
   i.e. trajectory triangulation given the true time order and spacing (the baseline the paper compares with,
   in the spirit of Valmadre & Lucey 2012);
 - refined, estimated times: the same with times that the pipeline could know (`estimated_times`: every video's
-  decoder times shifted by an unknown offset, clocks recovered by `clocks.estimate_clocks` with its default, affine,
-  model);
-- refined, estimated times + clock refinement: `refine.refine_with_clocks` from those times (offsets and rates
+  decoder times shifted by an unknown offset, clocks recovered by `clocks.estimate.estimate_clocks` with its
+  default, affine, model);
+- refined, estimated times + clock refinement: `trajectory.refine_with_clocks` from those times (offsets and rates
   polished), the default of `dynrecon solve` when this script was written;
 - dynrecon solve (default): what `dynrecon solve` does now, `temporal.recover_and_refine` with default
   TemporalOptions on the same shifted decoder times (offset-only clocks when every frame has a decoder time, an
@@ -56,6 +56,7 @@ from common import (
 )
 from paper_tables import ROWS, Row
 
+from reconstruct.clocks.estimate import estimate_clocks
 from reconstruct.outputs.export import sequencing_order
 from reconstruct.outputs.points import FramePoints
 from reconstruct.solver.alternation import solve
@@ -188,22 +189,17 @@ def solve_path(report: dict[str, Any]) -> str:
 def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) -> tuple[np.ndarray, str]:
     """(F,) global times the pipeline could know, and how they were obtained.
 
-    With reconstruct.clocks.estimate: every video's decoder times are shifted by an unknown offset (uniform in +-1 s, as
-    unsynchronized phones start at different moments) and `estimate_clocks` recovers the global time from W. Without
-    it (or when it fails): the spectral order of W (outputs.export.sequencing_order) at even spacing, which is
-    the true spacing of the simulation's captures when the order is right.
+    Every video's decoder times are shifted by an unknown offset (uniform in +-1 s, as unsynchronized phones start
+    at different moments) and `estimate_clocks` recovers the global time from W. When it leaves a frame without a
+    time: the spectral order of W (outputs.export.sequencing_order) at even spacing, which is the true spacing of
+    the simulation's captures when the order is right.
     """
-    try:
-        from reconstruct.clocks.estimate import estimate_clocks
-
-        clocks = estimate_clocks(shifted_problem(problem, seed), CachedResult(problem, cached))  # type: ignore[arg-type]
-        times = np.asarray(clocks.global_time, dtype=float)
-        if np.isfinite(times).all():
-            return times, "clocks"
-        log.warning("estimate_clocks left %d frame(s) without a time: spectral order instead",
-                    int(np.sum(~np.isfinite(times))))
-    except Exception as error:  # the clock module is optional here; say why it was not used
-        log.warning("estimate_clocks unavailable (%s: %s): spectral order instead", type(error).__name__, error)
+    clocks = estimate_clocks(shifted_problem(problem, seed), CachedResult(problem, cached))  # type: ignore[arg-type]
+    times = np.asarray(clocks.global_time, dtype=float)
+    if np.isfinite(times).all():
+        return times, "clocks"
+    log.warning("estimate_clocks left %d frame(s) without a time: spectral order instead",
+                int(np.sum(~np.isfinite(times))))
     times = np.empty(problem.num_frames)
     times[cached["order"]] = np.arange(problem.num_frames) / (capture_rate(problem))
     return times, "spectral order"

@@ -35,9 +35,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dynrecon.cli import main as dynrecon
+from sfm.calibration import read_calibration
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras
 from sfm.evaluate import compare
-from sfm.import_calibration import read_calibration
 from tracking.charuco import charuco_tracks
 from tracking.tracks import write_tracks
 

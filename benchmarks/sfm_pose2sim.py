@@ -4,12 +4,9 @@ calibration.
     python benchmarks/sfm_pose2sim.py [--configs default,tuned,tuned-global] [--out /tmp/sfm_pose2sim]
 
 For each configuration: which cameras registered, and after a similarity alignment to the QCA poses (rotation
-from
-the orientations, scale and shift from the centres) the rotation error (deg) and the centre error (% of the
-camera
-spread). Then, per camera pair, how many of COLMAP's verified inlier matches agree with the QCA epipolar
-geometry
-(< 5 px): this tells whether SfM failed for lack of correct matches. Needs ../shared (skips otherwise).
+from the orientations, scale and shift from the centres) the rotation error (deg) and the centre error (% of the
+camera spread). Then, per camera pair, how many of COLMAP's verified inlier matches agree with the QCA epipolar
+geometry (< 5 px): this tells whether SfM failed for lack of correct matches. Needs ../shared (skips otherwise).
 """
 
 from __future__ import annotations
@@ -27,11 +24,11 @@ import pycolmap
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sfm import import_calibration
+from sfm import Localize, Mapper, RegisterOptions, RegistrationError, import_calibration
+from sfm import register as run
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
 from sfm.frames import Resize
-from sfm.register import Localize, Mapper, RegisterOptions, RegistrationError, run
 
 DEMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "videos" / "pose2sim_demo"
 QCA = DEMO / "calibration" / "Calib.qca.txt"
@@ -116,7 +113,7 @@ def main() -> None:
         print(f"skipped: {DEMO} not found")
         return
     videos = sorted((DEMO / "videos").glob("cam*.mp4"))
-    reference = read_cameras(import_calibration.run(QCA, videos, args.out / "qca"))
+    reference = read_cameras(import_calibration(QCA, videos, args.out / "qca"))
     centers = np.array([v.frames[0].center for v in reference.videos])
     spread = float(np.linalg.norm(centers - centers.mean(axis=0), axis=1).mean())
     print(f"camera spread (mean distance to the centroid): {spread:.3f} m")

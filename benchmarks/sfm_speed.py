@@ -1,12 +1,9 @@
 """Speed of `register` per stage: 3 synthetic videos x N frames at 1280x720 (long side 1280).
 
-    python benchmarks/sfm_speed.py [--frames 100] [--sfm-frames 30] [--mapper incremental] [--out
-    /tmp/sfm_speed]
+    python benchmarks/sfm_speed.py [--frames 100] [--sfm-frames 30] [--mapper incremental] [--out /tmp/sfm_speed]
 
-`--sfm-frames` of each video go through SfM (extract, match, map); all other frames are posed by PnP against
-the
-model (localize). Prints the stage timings, the time per registered frame for both kinds, and the number of
-frames
+`--sfm-frames` of each video go through SfM (extract, match, map); all other frames are posed by PnP against the
+model (localize). Prints the stage timings, the time per registered frame for both kinds, and the number of frames
 a user can expect to register in 10 minutes on this machine. Videos are rendered once and reused.
 """
 
@@ -22,7 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sfm.register import Localize, Mapper, RegisterOptions, run
+from sfm import Localize, Mapper, RegisterOptions
+from sfm import register as run
 from sfm.synthetic.demo import render_demo, three_cameras
 
 

@@ -4,7 +4,7 @@
         [--configs masks,nomasks,global] [--out /tmp/sfm_synthetic]
 
 Prints one markdown table row per configuration: registered frames, centre error (% of the room diagonal) and
-rotation error after a similarity alignment, and stage timings. CPU heavy: ~1 min per configuration (2 cores).
+rotation error after a similarity alignment, and stage timings. CPU heavy (renders and registers per configuration).
 """
 
 from __future__ import annotations
@@ -20,9 +20,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from sfm import Mapper, RegisterOptions, RegistrationError
+from sfm import register as run
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
-from sfm.register import Mapper, RegisterOptions, RegistrationError, run
 from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
 from tracking.tracks import write_tracks
 

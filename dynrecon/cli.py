@@ -2,6 +2,11 @@
 
 Each package contributes its subcommands through an `add_commands(subparsers)` function in its `cli` module; a
 subcommand sets `func(args) -> int`. User errors (`DynreconError`) are caught here, once, and shown as one line.
+
+Startup stays fast: a `cli` module imports only argparse-level modules at its top, and the stage in its handlers. A
+module whose parsers need heavy modules for their defaults (the solver's, the simulators') also lists its commands
+and their one-line help in `COMMANDS`; its `add_commands` then runs only when one of those commands is chosen, and
+`dynrecon --help` shows the list without loading it.
 """
 
 from __future__ import annotations
@@ -21,13 +26,16 @@ COMMAND_MODULES = (
     "labeling.cli",
     "tracking.cli",
     "reconstruct.cli",
+    "simulation.cli",
     "dynrecon.pipeline_cli",
 )
 
 log = logging.getLogger("dynrecon")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The full parser of `command` (all of them when None); the others' parsers are placeholders with their help
+    line where their module lists them in `COMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="dynrecon",
         description="3D trajectories of moving points from several unsynchronized videos.",
@@ -37,8 +45,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module_name in COMMAND_MODULES:
-        importlib.import_module(module_name).add_commands(subparsers)
+        module = importlib.import_module(module_name)
+        listed: dict[str, str] | None = getattr(module, "COMMANDS", None)
+        if listed is None or command is None or command in listed:
+            module.add_commands(subparsers)
+        else:
+            for name, help_line in listed.items():
+                subparsers.add_parser(name, help=help_line)
     return parser
+
+
+def chosen_command(argv: Sequence[str]) -> str:
+    """The subcommand named in `argv` (the top-level options take no value, so it is the first other word)."""
+    return next((word for word in argv if not word.startswith("-")), "")
 
 
 def configure_logging(verbose: int, quiet: bool) -> None:
@@ -51,7 +70,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(chosen_command(argv))
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()

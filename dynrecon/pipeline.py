@@ -13,8 +13,8 @@ Workspace layout (paths relative to WS):
     points.trc, points.c3d                        exports in the estimated global order
     pipeline.json      stage hashes and timings
 
-Registration does not use the tracks for masks, so that new labels never force a new registration (measured on
-the video sample: every frame registered without masks). When the background leaves a static video out (or poses
+Registration does not use the tracks for masks, so that new labels never force a new registration (the video
+sample registers every frame without masks). When the background leaves a static video out (or poses
 fewer than two videos) and there are labels or tracks, the `subject` stage registers again after tracking, with
 the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json.
 """
@@ -37,7 +37,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
-from labeling.workspace import read_skeleton
+from labeling.skeleton import read_skeleton
 from reconstruct.outputs.export import (
     OrderSource,
     clock_note,
@@ -49,13 +49,13 @@ from reconstruct.outputs.export import (
 )
 from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
-from reconstruct.stage import SolveStageOptions
+from reconstruct.stage import SolveOptions
 from reconstruct.stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply
-from sfm.register import Localize, RegisterOptions, RegistrationError
-from sfm.register import run as register_run
-from simulation.evaluate import Accuracy, evaluate
+from sfm.stage import Localize, RegisterOptions, RegistrationError
+from sfm.stage import run as register_run
+from simulation.evaluate import ReconstructionAccuracy, evaluate
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
 from tracking.tracks import read_tracks
@@ -68,23 +68,36 @@ SUBJECT_DIR = "register_subject"
 # "subject" runs only when the background left a static video out and there are tracks (see run_stages).
 STAGES = ("register", "track", "subject", "solve", "record", "export")
 _HASH_CHUNK = 1 << 20
+Bones = tuple[tuple[str, str], ...]  # pairs of point names drawn as lines in the recording
 
 
-def _default_register() -> RegisterOptions:
+def default_register() -> RegisterOptions:
     # No tracks exist when registering (see the module docstring): localize every frame.
     return RegisterOptions(localize=Localize.ALL)
 
 
 @dataclass(kw_only=True)
 class PipelineOptions:
-    register: RegisterOptions = field(default_factory=_default_register)
+    register: RegisterOptions = field(default_factory=default_register)
     track: TrackOptions = field(default_factory=TrackOptions)
-    solve: SolveStageOptions = field(default_factory=lambda: SolveStageOptions(recording=False))
+    solve: SolveOptions = field(default_factory=lambda: SolveOptions(recording=None))
     labels: Path | None = None  # clicks to track (default: WS/labels.csv when it exists)
     tracks: Path | None = None  # or ready 2D tracks (detector output, ...): no track stage
     skeleton: Path | None = None  # skeleton JSON for the recording (points and connections)
     units: str = "mm"  # unit label written into TRC/C3D (SfM worlds have an arbitrary scale)
     force: bool = False  # redo every stage
+
+    def background_register(self) -> RegisterOptions:
+        """The `register` stage's options: without tracks, so that new labels never force a new registration."""
+        return dataclasses.replace(self.register, tracks=None)
+
+    def subject_register(self, tracks: Path) -> RegisterOptions:
+        """The `subject` stage's options: the registration again, with the subject's tracks."""
+        return dataclasses.replace(self.register, tracks=tracks)
+
+    def solve_options(self, bones: Bones) -> SolveOptions:
+        """The `solve` stage's options: no recording (the `record` stage draws it, with the videos)."""
+        return dataclasses.replace(self.solve, recording=None, skeleton=bones)
 
 
 @dataclass(kw_only=True)
@@ -220,101 +233,159 @@ def run(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions 
 
 def run_stages(videos: list[str | Path], out_dir: str | Path,
                options: PipelineOptions | None = None) -> PipelineResult:
+    """Run every stage that is not up to date, in order (the module docstring says which run when)."""
     options = options or PipelineOptions()
     paths = [Path(v) for v in videos]
     _check(paths, options)
     ws = Path(out_dir)
     ws.mkdir(parents=True, exist_ok=True)
-    state = State(ws)
-    result = PipelineResult(workspace=ws, stages=[])
-    video_files = {f"video:{p.stem}": p for p in paths}
+    stages = _Stages(ws, paths, options)
+    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
+    background_failed = _stage_register(stages, labels)
+    tracks = _stage_track(stages, labels)
+    if tracks is None:
+        return stages.result
+    registration = _stage_subject(stages, tracks, background_failed)
+    bones = _bones(options.skeleton)
+    _stage_solve(stages, registration, tracks, bones)
+    _stage_record(stages, registration, tracks, bones)
+    _stage_export(stages, registration)
+    stages.result.order_source = _order(ws, registration.cameras)[1]
+    ran = ", ".join(f"{s.name} {s.seconds:.1f} s" for s in stages.result.stages if not s.skipped) or "nothing to redo"
+    log.info("pipeline done (%s); open the recording with: rerun %s", ran, ws / "recording.rrd")
+    return stages.result
 
-    def stage(name: str, files: dict[str, Path], settings: Any, outputs: list[Path],
-              work: Callable[[], object]) -> None:
+
+class _Stages:
+    """One run of the pipeline in WS: runs each stage, or skips it when `pipeline.json` says it is up to date."""
+
+    def __init__(self, ws: Path, videos: list[Path], options: PipelineOptions) -> None:
+        self.ws = ws
+        self.options = options
+        self.videos = videos
+        self.video_files = {f"video:{p.stem}": p for p in videos}
+        self.state = State(ws)
+        self.result = PipelineResult(workspace=ws, stages=[])
+
+    def run(self, name: str, files: dict[str, Path], settings: Any, outputs: list[Path],
+            work: Callable[[], object]) -> None:
+        """Run `work` unless `files` (contents) and `settings` are those of the last run and `outputs` are intact."""
         number = STAGES.index(name) + 1
         key = inputs_key(files, settings)
-        if not options.force and state.up_to_date(name, key, ws):
+        if not self.options.force and self.state.up_to_date(name, key, self.ws):
             log.info("[%d/%d] %s: up to date, skipped", number, len(STAGES), name)
-            result.stages.append(StageRun(name=name, skipped=True, seconds=0.0))
+            self.result.stages.append(StageRun(name=name, skipped=True, seconds=0.0))
             return
         log.info("[%d/%d] %s ...", number, len(STAGES), name)
-        state.forget(name)  # a stage that fails half-way must not look done
+        self.state.forget(name)  # a stage that fails half-way must not look done
         started = time.perf_counter()
         work()
         seconds = time.perf_counter() - started
         missing = [p for p in outputs if not p.is_file()]
         if missing:
             raise InputError(missing[0], f"stage {name} did not write this file")
-        state.record(name, key, outputs, ws, seconds)
+        self.state.record(name, key, outputs, self.ws, seconds)
         log.info("[%d/%d] %s: done in %.1f s", number, len(STAGES), name, seconds)
-        result.stages.append(StageRun(name=name, skipped=False, seconds=seconds))
+        self.result.stages.append(StageRun(name=name, skipped=False, seconds=seconds))
 
-    # 1. register
-    register_dir = ws / REGISTER_DIR
-    cameras_path = register_dir / "cameras.json"
-    background_path = register_dir / "background.ply"
-    register_options = dataclasses.replace(options.register, tracks=None)
-    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
-    tracks_path = ws / "tracks.csv"
-    background_failed: RegistrationError | None = None
+
+@dataclass(kw_only=True)
+class _Registration:
+    """The cameras the later stages use: the background registration's, or the subject path's."""
+
+    cameras: Path
+    background: Path
+
+    @classmethod
+    def in_folder(cls, folder: Path) -> _Registration:
+        return cls(cameras=folder / "cameras.json", background=folder / "background.ply")
+
+
+def _stage_register(stages: _Stages, labels: Path | None) -> RegistrationError | None:
+    """The `register` stage. Its failure is returned, not raised, when tracks will come to pose the static videos
+    from the subject (`_stage_subject`)."""
+    options = stages.options
+    folder = stages.ws / REGISTER_DIR
+    registration = _Registration.in_folder(folder)
+    register_options = options.background_register()
     try:
-        stage("register", video_files, {"register": register_options, "videos": [p.stem for p in paths]},
-              [cameras_path, background_path],
-              lambda: _register(paths, register_dir, register_options))
+        stages.run("register", stages.video_files,
+                   {"register": register_options, "videos": [p.stem for p in stages.videos]},
+                   [registration.cameras, registration.background],
+                   lambda: _register(stages.videos, folder, register_options))
     except RegistrationError as error:
-        if options.tracks is None and labels is None and not tracks_path.is_file():
+        if options.tracks is None and labels is None and not (stages.ws / "tracks.csv").is_file():
             raise
-        background_failed = error
         log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
+        return error
+    return None
 
-    # 2. track (labels -> tracks.csv), or take the given tracks
+
+def _stage_track(stages: _Stages, labels: Path | None) -> Path | None:
+    """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither."""
+    ws, options = stages.ws, stages.options
+    tracks_path = ws / "tracks.csv"
     if options.tracks is not None:
         _copy_into(options.tracks, tracks_path)
-        state.forget("track")
+        stages.state.forget("track")
     elif labels is not None:
         _copy_into(labels, ws / "labels.csv")
-        stage("track", {**video_files, "labels": ws / "labels.csv"}, {"track": options.track}, [tracks_path],
-              lambda: _track(ws, tracks_path, paths, options.track))
+        stages.run("track", {**stages.video_files, "labels": ws / "labels.csv"}, {"track": options.track},
+                   [tracks_path], lambda: _track(ws, tracks_path, stages.videos, options.track))
     elif not tracks_path.is_file():
         log.info("no labels and no tracks: registration only. Label the points with `dynrecon label %s "
                  "--videos ...`, then run this command again", ws)
-        return result
+        return None
     if not tracks_path.is_file():
         raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
+    return tracks_path
 
-    # 2b. the subject path, where the background left static videos out
-    if background_failed is not None or _static_left_out(register_dir / "register_report.json"):
-        subject_dir = ws / SUBJECT_DIR
-        subject_options = dataclasses.replace(options.register, tracks=tracks_path)
-        cameras_path = subject_dir / "cameras.json"
-        background_path = subject_dir / "background.ply"
-        stage("subject", {**video_files, "tracks": tracks_path},
-              {"register": subject_options, "videos": [p.stem for p in paths]}, [cameras_path, background_path],
-              lambda: _register(paths, subject_dir, subject_options))
 
-    # 3. solve
-    skeleton = read_skeleton(options.skeleton) if options.skeleton is not None else None
-    bones = tuple(tuple(c) for c in skeleton.connections) if skeleton is not None else ()
-    solve_options = dataclasses.replace(options.solve, recording=False, skeleton=bones)  # type: ignore[arg-type]
+def _stage_subject(stages: _Stages, tracks: Path, background_failed: RegistrationError | None) -> _Registration:
+    """The background's cameras, or, where it left static videos out, the `subject` stage's (registered again
+    with the subject's tracks)."""
+    background = stages.ws / REGISTER_DIR
+    if background_failed is None and not _static_left_out(background / "register_report.json"):
+        return _Registration.in_folder(background)
+    folder = stages.ws / SUBJECT_DIR
+    registration = _Registration.in_folder(folder)
+    subject_options = stages.options.subject_register(tracks)
+    stages.run("subject", {**stages.video_files, "tracks": tracks},
+               {"register": subject_options, "videos": [p.stem for p in stages.videos]},
+               [registration.cameras, registration.background],
+               lambda: _register(stages.videos, folder, subject_options))
+    return registration
+
+
+def _bones(skeleton_path: Path | None) -> Bones:
+    """The connections of the skeleton file, drawn as bones in the recording; none without a file."""
+    if skeleton_path is None:
+        return ()
+    return tuple((a, b) for a, b in read_skeleton(skeleton_path).connections)
+
+
+def _stage_solve(stages: _Stages, registration: _Registration, tracks: Path, bones: Bones) -> None:
+    ws = stages.ws
+    solve_options = stages.options.solve_options(bones)
     solved = [ws / "points3d.csv", ws / "sequencing.json", ws / "report.json"]
-    stage("solve", {"cameras": cameras_path, "tracks": tracks_path}, {"solve": solve_options}, solved,
-          lambda: solve_run(cameras_path, tracks_path, ws, solve_options))
+    stages.run("solve", {"cameras": registration.cameras, "tracks": tracks}, {"solve": solve_options}, solved,
+               lambda: solve_run(registration.cameras, tracks, ws, solve_options))
 
-    # 4. record
-    record_files = {**video_files, "cameras": cameras_path, "background": background_path, "tracks": tracks_path,
-                    "points": ws / "points3d.csv", "report": ws / "report.json",
-                    "sequencing": ws / "sequencing.json"}
-    stage("record", record_files, {"skeleton": bones}, [ws / "recording.rrd"],
-          lambda: _record(ws, cameras_path, background_path, tracks_path, paths, bones))
 
-    # 5. export
-    exported = [ws / "points.trc", ws / "points.c3d"]
-    stage("export", {"cameras": cameras_path, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"},
-          {"units": options.units}, exported, lambda: _export(ws, cameras_path, options.units))
-    result.order_source = _order(ws, cameras_path)[1]
-    ran = ", ".join(f"{s.name} {s.seconds:.1f} s" for s in result.stages if not s.skipped) or "nothing to redo"
-    log.info("pipeline done (%s); open the recording with: rerun %s", ran, ws / "recording.rrd")
-    return result
+def _stage_record(stages: _Stages, registration: _Registration, tracks: Path, bones: Bones) -> None:
+    ws = stages.ws
+    files = {**stages.video_files, "cameras": registration.cameras, "background": registration.background,
+             "tracks": tracks, "points": ws / "points3d.csv", "report": ws / "report.json",
+             "sequencing": ws / "sequencing.json"}
+    stages.run("record", files, {"skeleton": bones}, [ws / "recording.rrd"],
+               lambda: _record(ws, registration.cameras, registration.background, tracks, stages.videos, bones))
+
+
+def _stage_export(stages: _Stages, registration: _Registration) -> None:
+    ws, units = stages.ws, stages.options.units
+    files = {"cameras": registration.cameras, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"}
+    stages.run("export", files, {"units": units}, [ws / "points.trc", ws / "points.c3d"],
+               lambda: _export(ws, registration.cameras, units))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -372,7 +443,7 @@ def export_rate(cameras: CameraSet, frames: int) -> float:
 
 
 def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Path, videos: list[Path],
-            bones: tuple[tuple[str, ...], ...]) -> None:
+            bones: Bones) -> None:
     cameras = read_cameras(cameras_path)
     points = read_points(ws / "points3d.csv")
     sequencing = read_sequencing(ws / "sequencing.json")
@@ -441,7 +512,7 @@ def similarity_to_truth(cameras: CameraSet, truth_cameras: CameraSet) -> Similar
 
     The rotation comes from the camera orientations (R_true^T R_est, averaged), scale and translation from the camera
     centres. Handheld cameras' centres lie close to a line, so a centres-only fit leaves the rotation about that line
-    loose (measured on the video sample: a 1 degree tilt, 70 mm at the subject); orientations fix it.
+    loose (a visible tilt on the video sample); orientations fix it.
     """
     true_frames = {(v.name, f.frame): f for v in truth_cameras.videos for f in v.frames}
     pairs = [(f, true_frames[(v.name, f.frame)]) for v in cameras.videos for f in v.frames
@@ -465,7 +536,7 @@ def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: Camer
     return dataclasses.replace(points, xyz=similarity_to_truth(cameras, truth_cameras).apply(points.xyz))
 
 
-def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) -> Accuracy:
+def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) -> ReconstructionAccuracy:
     """Accuracy of `WS/points3d.csv` after alignment to the true cameras, against `truth_path` (same layout as
     points3d.csv). Truth rows of frames the registration lost are left out (the log says how many)."""
     points = read_points(ws / "points3d.csv")

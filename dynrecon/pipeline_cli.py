@@ -1,19 +1,33 @@
-"""`dynrecon run VIDEO... --out WS [--labels labels.csv | --tracks tracks.csv] [--force]`."""
+"""`dynrecon run VIDEO... --out WS [--labels labels.csv | --tracks tracks.csv] [--force]` and `dynrecon demo`.
+
+Both parsers take their defaults from the pipeline, which loads every stage: `dynrecon` builds them only when one of
+`COMMANDS` is chosen.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import time
 from pathlib import Path
 
-from dynrecon.errors import InputError
-from dynrecon.pipeline import PipelineOptions, _default_register, run_stages
-from sfm.register_cli import parse_scale
-from tracking.options import TrackOptions
+COMMANDS = {
+    "demo": "run the whole job on the embedded video sample and score it",
+    "run": "videos in, 3D motion out: register, track, solve, record, export",
+}
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    _add_demo(subparsers)
+    _add_run(subparsers)
+
+
+def _add_run(subparsers: argparse._SubParsersAction) -> None:
+    from dynrecon.pipeline import default_register
+    from tracking.options import TrackOptions
+
     parser = subparsers.add_parser(
-        "run", help="videos in, 3D motion out: register, track, solve, record, export",
+        "run", help=COMMANDS["run"],
         description="Run every stage whose inputs changed since the last run in WS (WS/pipeline.json keeps "
                     "their hashes): register -> track (labels) -> subject (static videos the background left out, "
                     "posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, points.c3d.")
@@ -23,7 +37,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--labels", type=Path, help="labels.csv to track (default: WS/labels.csv if present)")
     source.add_argument("--tracks", type=Path, help="ready 2D tracks (tracks.csv); no tracking")
     parser.add_argument("--skeleton", type=Path, help="skeleton JSON (points, connections) for the recording")
-    parser.add_argument("--max-frames", type=int, default=_default_register().max_frames,
+    parser.add_argument("--max-frames", type=int, default=default_register().max_frames,
                         help="SfM frames per video at most (the others are localized)")
     parser.add_argument("--track-window", type=int, default=TrackOptions().win_size,
                         help="LK window side of the tracker, px (smaller for small markers)")
@@ -39,12 +53,16 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    register = _default_register()
-    register.max_frames = args.max_frames
-    register.intrinsics = args.intrinsics
-    register.scale = parse_scale(args.scale)
+    from dynrecon.errors import InputError
+    from dynrecon.pipeline import PipelineOptions, default_register, run_stages
+    from sfm.register_cli import parse_scale
+    from tracking.options import TrackOptions
+
+    scale = parse_scale(args.scale)
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
         raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
+    register = dataclasses.replace(default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics,
+                                   scale=scale)
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
     options = PipelineOptions(register=register, track=track, labels=args.labels, tracks=args.tracks,
                               skeleton=args.skeleton, units=args.units, force=args.force)
@@ -53,4 +71,43 @@ def _run(args: argparse.Namespace) -> int:
         print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
     if (result.workspace / "recording.rrd").is_file():
         print(f"open the recording with: rerun {result.workspace / 'recording.rrd'}")  # noqa: T201
+    return 0
+
+
+def _add_demo(subparsers: argparse._SubParsersAction) -> None:
+    from dynrecon import demo
+
+    parser = subparsers.add_parser("demo", help=COMMANDS["demo"], description=demo.__doc__,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("dynrecon-demo"),
+                        help="folder for the results (a fresh one is made beside it if it has results)")
+    parser.add_argument("--simulated", action="store_true",
+                        help="simulated cameras instead of the videos: no registration or tracking (~30 s)")
+    parser.add_argument("--sample", type=Path, default=demo.VIDEO_SAMPLE,
+                        help="a folder laid out like data_samples/video_sample (default: that one)")
+    parser.add_argument("--threads", type=int, default=demo.DemoOptions().sfm_threads,
+                        help="COLMAP threads of the registration (default -1: all cores; 1: the same cameras on "
+                             "every run, ~25 %% slower)")
+    parser.set_defaults(func=_demo)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from dynrecon import demo
+
+    started = time.perf_counter()
+    result = demo.run(args.out, demo.DemoOptions(simulated=args.simulated, sample=args.sample,
+                                                 sfm_threads=args.threads))
+    seconds = time.perf_counter() - started
+    if result.pipeline is None:
+        print(f"demo (--simulated): 4 unsynchronized simulated cameras, walker sample, solved in "  # noqa: T201
+              f"{seconds:.0f} s")
+    else:
+        stages = ", ".join(f"{s.name} {s.seconds:.0f} s" for s in result.pipeline.stages)
+        print(f"demo: 3 unsynchronized handheld videos (30/24/20 fps) of the video sample, {seconds:.0f} s "  # noqa: T201
+              f"({stages})")
+        print("points moved into the sample's true frame by the similarity (scale, rotation, translation) that "  # noqa: T201
+              "maps the registered cameras onto the true ones")
+    print(f"accuracy vs ground truth, {result.accuracy.count} points (mm): {result.accuracy.table()}")  # noqa: T201
+    print(f"results in {result.workspace}")  # noqa: T201
+    print(f"open the recording with: rerun {result.recording}")  # noqa: T201
     return 0

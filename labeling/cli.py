@@ -1,19 +1,18 @@
-"""Subcommands of the `labeling` stage."""
+"""Subcommands of the `labeling` stage. Imports only argparse at the top: the stage loads in the handler."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from dynrecon.errors import InputError
-from labeling.serve import LabelOptions, run
-from labeling.workspace import Skeleton, parse_points, read_skeleton
+COMMANDS = {"label": "label points by hand in a local web page (and track them)"}
+
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Register this stage's subcommands on the main parser."""
     p = subparsers.add_parser(
-        "label", help="label points by hand in a local web page (and track them)",
+        "label", help=COMMANDS["label"],
         description="Serve a local labeling page for the videos of a workspace. Labels are saved to "
                     "WS/labels.csv on every click; the page's Track button writes WS/tracks.csv.")
     p.add_argument("workspace", type=Path, metavar="WS", help="workspace folder (created if missing)")
@@ -36,6 +35,10 @@ def _announce(url: str) -> None:
 
 
 def _label(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
+    from labeling.skeleton import Skeleton, parse_points, read_skeleton
+    from labeling.stage import LabelOptions, run
+
     skeleton = Skeleton()
     if args.points:
         skeleton = parse_points(args.points)

@@ -32,10 +32,12 @@ from urllib.parse import parse_qs, unquote, urlsplit
 
 from dynrecon.errors import DynreconError, InputError
 from labeling.frames import FrameCache, VideoInfo
-from labeling.labels import Change, Label, LabelStore, Source
+from labeling.labels import Change, LabelStore
 from labeling.lock import LOCK_NAME
+from labeling.skeleton import Skeleton, valid_point_name
 from labeling.tracker import TrackFunction, TrackJob
-from labeling.workspace import Skeleton, WorkspaceConfig, save_config, valid_point_name
+from labeling.workspace import WorkspaceConfig, save_config
+from tracking.labels import Label, Source
 
 log = logging.getLogger(__name__)
 

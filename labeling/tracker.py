@@ -9,7 +9,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
@@ -22,12 +22,11 @@ TrackFunction = Callable[[Path, dict[str, Path]], Path]
 
 
 def track_with_tracking_stage(workspace: Path, videos: dict[str, Path]) -> Path:
-    """The real tracker: `tracking.propagate.run` on the workspace, limited to the given videos."""
-    # Imported late: the server starts (and labels) even where tracking cannot be imported.
-    from tracking.options import TrackOptions
-    from tracking.propagate import run
+    """The real tracker: the tracking stage (`tracking.track`) on the workspace, limited to the given videos."""
+    # Imported late: the server starts (and labels) even where the tracker's OpenCV cannot be imported.
+    from tracking.stage import run
 
-    return run(workspace, options=TrackOptions(), videos=videos)
+    return run(workspace, videos=videos)
 
 
 class JobState(Enum):
@@ -60,7 +59,7 @@ class TrackJob:
 
     def status(self) -> JobStatus:
         with self._lock:
-            return JobStatus(**vars(self._status))
+            return replace(self._status)
 
     def running(self) -> bool:
         return self.status().state is JobState.RUNNING

@@ -15,79 +15,11 @@ from pathlib import Path
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
-from dynrecon.readers import read_json, shown
+from dynrecon.readers import read_json
+from labeling.skeleton import Skeleton, skeleton_from_json
+from tracking.workspace import CONFIG_NAME, VIDEO_SUFFIXES
 
 log = logging.getLogger(__name__)
-
-CONFIG_NAME = "labeling.json"
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
-
-
-@dataclass(kw_only=True)
-class Skeleton:
-    """Named points in display order and the pairs drawn as lines between them."""
-
-    points: list[str] = field(default_factory=list)
-    connections: list[tuple[str, str]] = field(default_factory=list)
-
-    def add_point(self, name: str) -> None:
-        if name not in self.points:
-            self.points.append(name)
-
-    def merge(self, other: Skeleton) -> None:
-        for name in other.points:
-            self.add_point(name)
-        for pair in other.connections:
-            if pair not in self.connections and pair[::-1] not in self.connections:
-                self.connections.append(pair)
-
-    def rename(self, old: str, new: str) -> None:
-        self.points = [new if p == old else p for p in self.points]
-        self.connections = [(new if a == old else a, new if b == old else b) for a, b in self.connections]
-
-
-def valid_point_name(name: str) -> bool:
-    """Names go into CSV cells and the page; keep them printable, short and free of separators."""
-    return bool(name) and len(name) <= 64 and name == name.strip() and name.isprintable() \
-        and not any(c in name for c in ',"\'\\/<>')
-
-
-def parse_points(text: str) -> Skeleton:
-    """`--points a,b,c`."""
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    bad = [n for n in names if not valid_point_name(n)]
-    if bad:
-        raise InputError(None, f"--points: invalid point name {bad[0]!r}",
-                         fix="names are up to 64 printable characters without , \" ' \\ / < >")
-    return Skeleton(points=list(dict.fromkeys(names)))
-
-
-def read_skeleton(path: Path) -> Skeleton:
-    """Skeleton JSON `{"points": [...], "connections": [["a", "b"], ...]}`; connections may add points."""
-    data = read_json(path, missing_fix="give the path of a skeleton JSON file")
-    return _skeleton_from_json(path, data)
-
-
-def _skeleton_from_json(path: Path, data: object) -> Skeleton:
-    fix = 'expected {"points": ["a", "b"], "connections": [["a", "b"]]}'
-    if not isinstance(data, dict):
-        raise InputError(path, "top level is not an object", fix=fix)
-    points = data.get("points", [])
-    connections = data.get("connections", [])
-    if not isinstance(points, list) or not all(isinstance(p, str) and valid_point_name(p) for p in points):
-        raise InputError(path, "'points' must be a list of point names", fix=fix)
-    skeleton = Skeleton(points=list(dict.fromkeys(points)))
-    if not isinstance(connections, list):
-        raise InputError(path, "'connections' must be a list of pairs", fix=fix)
-    for i, pair in enumerate(connections):
-        if not (isinstance(pair, list | tuple) and len(pair) == 2
-                and all(isinstance(p, str) and valid_point_name(p) for p in pair)) or pair[0] == pair[1]:
-            raise InputError(path, f"connection {i} ({shown(pair)}) is not a pair of two different point names",
-                             fix=fix)
-        skeleton.add_point(pair[0])
-        skeleton.add_point(pair[1])
-        skeleton.connections.append((pair[0], pair[1]))
-    return skeleton
 
 
 @dataclass(kw_only=True)
@@ -101,7 +33,7 @@ def load_config(workspace: Path) -> WorkspaceConfig:
     if not path.exists():
         return WorkspaceConfig()
     data = read_json(path, fix="fix or delete the file")
-    skeleton = _skeleton_from_json(path, data)
+    skeleton = skeleton_from_json(path, data)
     videos_raw = data.get("videos", {})
     if not isinstance(videos_raw, dict) or not all(isinstance(v, str) for v in videos_raw.values()):
         raise InputError(path, "'videos' must map video names to file paths", fix="fix or delete the file")

@@ -1,4 +1,8 @@
-"""Subcommands of the reconstruction stage: solve, plus simulate and evaluate (simulation.cli)."""
+"""The `dynrecon solve` subcommand: cameras.json + tracks.csv in, 3D points out (`reconstruct.stage.run`).
+
+Its defaults come from the solver's options, which load numpy and scipy: `dynrecon` builds this parser only when
+`solve` is chosen (`COMMANDS`), and the stage loads in the handler.
+"""
 
 from __future__ import annotations
 
@@ -6,21 +10,18 @@ import argparse
 import math
 from pathlib import Path
 
-from dynrecon import demo
-from dynrecon.errors import InputError
-from labeling.workspace import read_skeleton
-from reconstruct.clocks.estimate import ClockModel
-from reconstruct.solver.alternation import SolverOptions
-from reconstruct.solver.xstep import RayConstraint
-from reconstruct.stage import SolveStageOptions, run
-from reconstruct.temporal import Refinement, TemporalOptions
-from reconstruct.trust import TrustPreset, preset_options
-from simulation import cli as sim_cli
+COMMANDS = {"solve": "reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)"}
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    from reconstruct.clocks.model import ClockModel
+    from reconstruct.solver.alternation import SolverOptions
+    from reconstruct.solver.xstep import RayConstraint
+    from reconstruct.temporal import Refinement
+    from reconstruct.trust import TrustPreset
+
     parser = subparsers.add_parser(
-        "solve", help="reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)",
+        "solve", help=COMMANDS["solve"],
         description="Self-expressive reconstruction (Zheng et al.): writes points3d.csv, sequencing.json, "
                     "report.json and recording.rrd into OUT.")
     parser.add_argument("--cameras", type=Path, required=True, help="cameras.json (per-frame poses)")
@@ -47,11 +48,18 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                         "recording (the labeling page's skeleton file)")
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
     parser.set_defaults(func=_solve)
-    sim_cli.add_commands(subparsers)
-    demo.add_command(subparsers)
 
 
 def _solve(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
+    from labeling.skeleton import read_skeleton
+    from reconstruct.clocks.model import ClockModel
+    from reconstruct.solver.alternation import SolverOptions
+    from reconstruct.solver.xstep import RayConstraint
+    from reconstruct.stage import SolveOptions, run
+    from reconstruct.temporal import Refinement, TemporalOptions
+    from reconstruct.trust import TrustPreset, preset_options
+
     if args.max_iterations < 1:
         raise InputError(None, f"--max-iterations {args.max_iterations} must be at least 1")
     for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
@@ -64,8 +72,8 @@ def _solve(args: argparse.Namespace) -> int:
     model = None if args.clock_model == "auto" else ClockModel(args.clock_model)
     temporal = TemporalOptions(clock_model=model, refinement=Refinement(args.refinement))
     points = run(args.cameras, args.tracks, args.out,
-                 SolveStageOptions(solver=solver, temporal=temporal, trust=preset_options(TrustPreset(args.trust)),
-                                   recording=not args.no_recording, skeleton=skeleton))
+                 SolveOptions(solver=solver, temporal=temporal, trust=preset_options(TrustPreset(args.trust)),
+                              recording=None if args.no_recording else SolveOptions().recording, skeleton=skeleton))
     print(f"wrote {points} (+ sequencing.json, report.json" +  # noqa: T201
           ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
           + ")")

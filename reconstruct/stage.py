@@ -1,7 +1,9 @@
 """The `solve` stage: cameras.json + tracks.csv -> points3d.csv, sequencing.json, report.json, recording.rrd.
 
-Self-expressive solve (the paper) -> video clocks and trajectory refinement on them (reconstruct/temporal.py) ->
-trust measures of the solve (reconstruct/trust.py) -> files.
+`solve` works on loaded objects (or paths) and returns a `Reconstruction`: the self-expressive solve (the paper),
+video clocks and trajectory refinement on them (reconstruct/temporal.py) and the trust measures of the solve
+(reconstruct/trust.py). `Reconstruction.write` writes the files; `run` is the file-level stage the CLI calls
+(`dynrecon solve`): solve + write.
 """
 
 from __future__ import annotations
@@ -20,14 +22,15 @@ from dynrecon.atomic import atomic_write_text, require_writable
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
-from reconstruct.outputs.recording import write_recording
-from reconstruct.solver.alternation import SolveResult, SolverOptions, solve
+from reconstruct.outputs.recording_options import RecordingOptions
+from reconstruct.solver.alternation import SolveResult, SolverOptions
+from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, TemporalOptions, recover_and_refine
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
-from sfm.cameras import read_cameras
-from tracking.tracks import read_tracks
+from sfm.cameras import CameraSet, read_cameras
+from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -36,53 +39,113 @@ SEQUENCING_THRESHOLD = 1e-6
 
 
 @dataclasses.dataclass(kw_only=True)
-class SolveStageOptions:
+class SolveOptions:
+    """Options of `solve` and `Reconstruction.write` (`dynrecon solve`).
+
+    solver: the self-expressive solve (`SolverOptions`: weights, ray constraint, iterations, W-step, long captures).
+    temporal: clock recovery and trajectory refinement after it (`TemporalOptions`).
+    trust: the flag rule of points3d.csv (`TrustOptions`); default the sensitive preset, which flags more points
+    and misses fewer large errors than the balanced one (`reconstruct.trust.preset_options`).
+    recording: how to draw recording.rrd (`RecordingOptions`); None writes no recording.
+    skeleton: pairs of point names drawn as bones in the recording (pairs naming unknown points are left out).
+    """
+
     solver: SolverOptions = dataclasses.field(default_factory=SolverOptions)
     temporal: TemporalOptions = dataclasses.field(default_factory=TemporalOptions)
-    # The sensitive operating point: on simulations it catches 45-89 % of the points with errors over 30 mm
-    # (benchmarks/trust.py); the balanced one flags fewer points but misses more.
     trust: TrustOptions = dataclasses.field(default_factory=lambda: preset_options(TrustPreset.SENSITIVE))
-    recording: bool = True
-    skeleton: tuple[tuple[str, str], ...] = ()  # point pairs drawn as bones in the recording
+    recording: RecordingOptions | None = dataclasses.field(default_factory=RecordingOptions)
+    skeleton: tuple[tuple[str, str], ...] = ()
 
 
-def run(cameras_path: Path, tracks_path: Path, out_dir: Path, options: SolveStageOptions | None = None) -> Path:
-    """Reconstruct and write the outputs into `out_dir`; returns the path of points3d.csv."""
-    options = options or SolveStageOptions()
+@dataclasses.dataclass(kw_only=True)
+class Reconstruction:
+    """What `solve` found. `points` and `sequencing` are the contents of points3d.csv and sequencing.json, `report`
+    that of report.json; `seed` is the paper's self-expressive solve, `temporal` the video clocks
+    (`temporal.clocks`) and the trajectories refined on them, `trust` the per-point trust measures and flag."""
+
+    points: FramePoints
+    sequencing: Sequencing
+    temporal: Temporal
+    trust: Trust
+    report: dict[str, Any]
+    seed: SolveResult
+    problem: Problem
+    cameras: CameraSet
+    tracks: Tracks
+    options: SolveOptions
+    started: float = dataclasses.field(repr=False)  # perf_counter() when the solve began, for report timings
+
+    def write(self, out_dir: str | Path) -> Path:
+        """Write points3d.csv, sequencing.json, recording.rrd (unless `options.recording` is None) and report.json
+        into `out_dir`; returns the path of points3d.csv."""
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        points_path = write_points(out_dir / "points3d.csv", self.points)
+        write_sequencing(out_dir / "sequencing.json", self.sequencing)
+        if self.options.recording:
+            self.write_recording(out_dir / "recording.rrd", self.options.recording)
+        self.report["timings"]["stage_total"] = time.perf_counter() - self.started
+        atomic_write_text(out_dir / "report.json", json.dumps(self.report, indent=1, default=_json_default) + "\n")
+        log.info("wrote %s", out_dir)
+        return points_path
+
+    def write_recording(self, path: str | Path, options: RecordingOptions | None = None) -> Path:
+        """The rerun recording (3D points, cameras, tracks, residual, skeleton) at `path`."""
+        from reconstruct.outputs.recording import write_recording  # rerun is slow to import
+
+        known = set(self.problem.point_names)
+        bones = [bone for bone in self.options.skeleton if bone[0] in known and bone[1] in known]
+        times = self.temporal.times
+        return write_recording(path, cameras=self.cameras, points=self.points, tracks=self.tracks,
+                               residual=self.seed.residual, skeleton=bones or None,
+                               global_time=times if np.isfinite(times).any() else None, options=options)
+
+
+def solve(cameras: CameraSet | str | Path, tracks: Tracks | str | Path, options: SolveOptions | None = None
+          ) -> Reconstruction:
+    """Reconstruct the points of `tracks` (tracks.csv or its `Tracks`) seen by `cameras` (cameras.json or its
+    `CameraSet`): the self-expressive solve, then the video clocks and trajectory refinement, then trust.
+
+    Raises InputError / NotEnoughDataError (dynrecon.errors) when the inputs do not fit or are too few."""
+    options = options or SolveOptions()
     started = time.perf_counter()
-    require_writable(out_dir)  # before minutes of solving, not after
-    cameras = read_cameras(cameras_path)
-    tracks = read_tracks(tracks_path)
-    problem = build_problem(cameras, tracks)
+    camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
+    track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
+    problem = build_problem(camera_set, track_set)
     log.info("solving %d frames of %d videos, %d points, %d observations", problem.num_frames,
              len(problem.video_names), problem.num_points, int(problem.observed.sum()))
-    result = solve(problem, options.solver)
+    result = solve_problem(problem, options.solver)
     t0 = time.perf_counter()
     temporal = recover_and_refine(problem, result, options.temporal)
     result.timings["clocks_and_refinement"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     trust = measure_trust(problem, result, options.trust)
     result.timings["trust"] = time.perf_counter() - t0
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    points = frame_points(problem, result, temporal, trust)
-    points_path = write_points(out_dir / "points3d.csv", points)
-    write_sequencing(out_dir / "sequencing.json", sequencing(problem, result, temporal))
-    if options.recording:
-        known = set(problem.point_names)
-        bones = [bone for bone in options.skeleton if bone[0] in known and bone[1] in known]
-        write_recording(out_dir / "recording.rrd", cameras=cameras, points=points, tracks=tracks,
-                        residual=result.residual, skeleton=bones or None,
-                        global_time=temporal.times if np.isfinite(temporal.times).any() else None)
-    report = build_report(problem, result, options, cameras_path, tracks_path)
+    inputs = {"cameras": _input_name(cameras, None), "tracks": _input_name(tracks, track_set.path)}
+    report = build_report(problem, result, options, inputs)
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
-    report["clocks"]["registration_check"] = check_registered_clocks(cameras, temporal.clocks)
+    report["clocks"]["registration_check"] = check_registered_clocks(camera_set, temporal.clocks)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
-    report["timings"]["stage_total"] = time.perf_counter() - started
-    atomic_write_text(out_dir / "report.json", json.dumps(report, indent=1, default=_json_default) + "\n")
-    log.info("wrote %s", out_dir)
-    return points_path
+    return Reconstruction(points=frame_points(problem, result, temporal, trust),
+                          sequencing=sequencing(problem, result, temporal), temporal=temporal, trust=trust,
+                          report=report, seed=result, problem=problem, cameras=camera_set, tracks=track_set,
+                          options=options, started=started)
+
+
+def run(cameras_path: str | Path, tracks_path: str | Path, out_dir: str | Path, options: SolveOptions | None = None
+        ) -> Path:
+    """The file-level stage: `solve` cameras_path + tracks_path and write the outputs into `out_dir`; returns the
+    path of points3d.csv."""
+    require_writable(out_dir)  # before minutes of solving, not after
+    return solve(cameras_path, tracks_path, options).write(out_dir)
+
+
+def _input_name(given: object, fallback: Path | None) -> str | None:
+    """How report.json names an input: the path given, else the file the object was read from (None: in memory)."""
+    if isinstance(given, (str, Path)):
+        return str(given)
+    return None if fallback is None else str(fallback)
 
 
 def frame_points(problem: Problem, result: SolveResult, temporal: Temporal | None = None,
@@ -111,11 +174,11 @@ def sequencing(problem: Problem, result: SolveResult, temporal: Temporal | None 
                       extra=extra)
 
 
-def build_report(problem: Problem, result: SolveResult, options: SolveStageOptions, cameras_path: Path,
-                 tracks_path: Path) -> dict[str, Any]:
+def build_report(problem: Problem, result: SolveResult, options: SolveOptions, inputs: dict[str, str | None]
+                 ) -> dict[str, Any]:
     unreconstructable = [n for n, ok in zip(problem.point_names, result.reconstructable, strict=True) if not ok]
     return {
-        "inputs": {"cameras": str(cameras_path), "tracks": str(tracks_path)},
+        "inputs": inputs,
         "parameters": dataclasses.asdict(options.solver, dict_factory=_options_dict),
         "temporal_parameters": dataclasses.asdict(options.temporal, dict_factory=_options_dict),
         "size": {"frames": problem.num_frames, "videos": len(problem.video_names), "points": problem.num_points,
@@ -133,7 +196,7 @@ def build_report(problem: Problem, result: SolveResult, options: SolveStageOptio
 
 
 def _options_dict(items: list[tuple[str, Any]]) -> dict[str, Any]:
-    return {key: _json_default(value) for key, value in items if key != "monitor"}
+    return {key: _json_default(value) for key, value in items}
 
 
 def _json_default(value: Any) -> Any:

@@ -1,10 +1,13 @@
 """After the self-expressive solve: recover every video's clock, then refine the 3D trajectories on those clocks.
 
-The seed paper stops at local sequencing (W). dynrecon goes on (docs/solver.md, "Beyond the paper"):
-1. `clocks.estimate_clocks`: an affine clock per video from W's links, and from the tracks where W is ambiguous;
-2. `refine.refine_with_clocks`: a smoothing-spline trajectory per point through its rays on the recovered global
+The seed paper stops at local sequencing (W). dynrecon goes on (docs/clocks.md, docs/refinement.md):
+1. `clocks.estimate.estimate_clocks`: a clock per video from W's links, and from the tracks where W is ambiguous;
+2. `trajectory.refine_with_clocks`: a smoothing-spline trajectory per point through its rays on the recovered global
    times (GCV smoothness, Huber IRLS against false detections), which also polishes each video's offset and rate;
-3. the clocks are refitted to the polished times, so that sequencing.json's clocks and per-frame times agree.
+   a polish whose cost rose or that moved a rate far is rejected (`_plausible`), and the trajectories are then
+   refined on the estimated clocks;
+3. the clocks are refitted to the polished times (`Clocks.refit`), so that sequencing.json's clocks and per-frame
+   times agree.
 """
 
 from __future__ import annotations
@@ -16,12 +19,18 @@ from typing import Any
 
 import numpy as np
 
-from reconstruct.clocks.estimate import ClockModel, ClockOptions, Clocks, estimate_clocks
+from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
+from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
-from reconstruct.trajectory import ClockRefineOptions, RefineOptions, refine, refine_with_clocks
+from reconstruct.trajectory import RefineOptions, refine, refine_with_clocks
 
 log = logging.getLogger(__name__)
+
+# A polish that moves a rate by more than this (relative) is not believed: short captures legitimately move rates
+# by about a per cent, a runaway polish by tens of per cent.
+MAX_RATE_CORRECTION = 0.05
+POLISH_COST_SLACK = 1.01  # a polish is kept when its trajectory cost never rose above this x its start
 
 
 class Refinement(enum.Enum):
@@ -32,17 +41,18 @@ class Refinement(enum.Enum):
 @dataclass(kw_only=True)
 class TemporalOptions:
     clocks: ClockOptions = field(default_factory=ClockOptions)
-    # None: offset-only clocks when every frame has a decoder time (phones' timestamps carry the rate; drift of
-    # ~100 ppm is ~6 ms per minute), else `clocks.model`. Measured on the periodic treadmill walk of the video sample:
-    # affine clocks locked cam1 three steps off with rate 0.73 (4.4 % < 10 mm after refinement); offset-only clocks
-    # gave 90.3 %.
+    # None: offset-only clocks when every frame has a decoder time (phones' timestamps carry the rate, and a free
+    # rate can lock onto a wrong period of a periodic motion), else `clocks.model`.
     clock_model: ClockModel | None = None
     refinement: Refinement = Refinement.CLOCKS
     refine: RefineOptions = field(default_factory=RefineOptions)
-    clock_refine: ClockRefineOptions = field(default_factory=ClockRefineOptions)
-    # A polish that moves a rate by more than this (relative) is not believed. Short captures legitimately move
-    # rates by ~1 % (the 1 s demo cut: 0.75-0.9 %); the runaway seen on the flight scene was 24 %.
-    max_rate_correction: float = 0.05
+
+    def clock_options(self, problem: Problem) -> ClockOptions:
+        """The clock options of this solve: `clocks` with the model `clock_model` resolves to."""
+        model = self.clock_model
+        if model is None:
+            model = ClockModel.OFFSET if np.all(np.isfinite(problem.times)) else self.clocks.model
+        return replace(self.clocks, model=model)
 
 
 @dataclass(kw_only=True)
@@ -56,10 +66,8 @@ class Temporal:
 
 def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalOptions | None = None) -> Temporal:
     options = options or TemporalOptions()
-    model = options.clock_model
-    if model is None:
-        model = ClockModel.OFFSET if np.all(np.isfinite(problem.times)) else options.clocks.model
-    clocks = estimate_clocks(problem, result, replace(options.clocks, model=model))
+    clock_options = options.clock_options(problem)
+    clocks = estimate_clocks(problem, result, clock_options)
     times = clocks.global_time.copy()
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False}
     if options.refinement is Refinement.NONE:
@@ -71,27 +79,23 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
         report["skipped"] = f"unidentified clocks: {', '.join(missing)}"
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
     # The polish's cost does not see a global affine change of time: hold the clocks' reference video fixed so
-    # that the polished times stay in the clocks' gauge (reference: offset 0, rate 1).
-    clock_refine = options.clock_refine
-    if clock_refine.reference is None:
-        clock_refine = replace(clock_refine, reference=problem.video_names.index(clocks.reference))
-    if model is ClockModel.OFFSET:
-        # Offset-only clocks trust the decoder's rate; letting the polish fit rates anyway made short clips
-        # unstable (the 1 s demo cut: a 4.6 % rate correction was accepted and gave 39 % < 10 mm, against 75-90 %
-        # on other registrations of the same clip).
-        clock_refine = replace(clock_refine, rates=False)
-    polished = refine_with_clocks(problem, result.points, times, options.refine, clock_refine)
+    # that the polished times stay in the clocks' gauge (reference: offset 0, rate 1). Offset-only clocks trust the
+    # decoder's rate: a polish fitting rates anyway made short clips unstable.
+    polished = refine_with_clocks(problem, result.points, times, options.refine,
+                                  reference=problem.video_names.index(clocks.reference),
+                                  rates=clock_options.model is not ClockModel.OFFSET)
+    correction = polished.correction
     cost = [float(c) for c in polished.cost]
-    if _plausible(polished.cost, polished.rates, options.max_rate_correction):
-        clocks = refit_clocks(clocks, problem.video_index, polished.times)
+    if _plausible(polished.cost, correction.rate, MAX_RATE_CORRECTION):
+        clocks = clocks.refit(problem.video_index, polished.times)
         refined = polished.result
         report["clock_corrections"] = [{"video": name, "offset_s": float(o), "rate": float(r)} for name, o, r in
-                                       zip(problem.video_names, polished.offsets, polished.rates, strict=True)]
+                                       zip(problem.video_names, correction.offset, correction.rate, strict=True)]
     else:
-        # Measured on the flight scene (one point, 3 % false detections): started from a seed solve metres off,
-        # the polish stretched two clocks by 24 % while its cost rose 1e6-fold. Keep the estimated clocks.
+        # A polish started from a seed solve far off can stretch clocks while its cost rises: keep the estimated
+        # clocks.
         log.warning("the clock polish of the refinement was rejected (its cost rose or a rate moved by more than "
-                    "%.0f %%): refining on the estimated clocks", 100 * options.max_rate_correction)
+                    "%.0f %%): refining on the estimated clocks", 100 * MAX_RATE_CORRECTION)
         report["clock_polish_rejected"] = True
         refined = refine(problem, result.points, times, options.refine)
         cost.extend(float(c) for c in refined.cost)
@@ -108,24 +112,8 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
 def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> bool:
     """A clock polish is kept when its trajectory cost never rose above its start and no rate moved far."""
     finite = np.isfinite(cost)
-    return bool(np.all(finite) and max(cost) <= 1.01 * cost[0] and np.all(np.abs(rates) <= max_rate_correction))
-
-
-def refit_clocks(clocks: Clocks, video_index: np.ndarray, times: np.ndarray) -> Clocks:
-    """The clocks with each video's offset/rate(/drift) refitted to `times (F,)` by least squares on its own
-    times, and those times as the per-frame global times (the uncertainties are kept). `times` must be in the
-    clocks' gauge (the reference video's global time = its own time)."""
-    degree = 2 if clocks.model is ClockModel.DRIFT else 1
-    for v, clock in enumerate(clocks.videos):
-        own = video_index == v
-        if own.sum() <= degree or not clock.identified:
-            continue
-        coefficients = np.polyfit(clocks.own_time[own], times[own], degree)[::-1]
-        clock.offset, clock.rate = float(coefficients[0]), float(coefficients[1])
-        if degree == 2:
-            clock.drift = float(coefficients[2])
-    clocks.global_time = np.asarray(times, dtype=float).copy()
-    return clocks
+    return bool(np.all(finite) and max(cost) <= POLISH_COST_SLACK * cost[0]
+                and np.all(np.abs(rates) <= max_rate_correction))
 
 
 def _finite(value: float) -> float | None:

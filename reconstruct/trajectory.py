@@ -17,6 +17,10 @@ the same time share one position). The cost, in pixels squared, is
 lambda is chosen per point by generalized cross-validation (GCV) unless fixed. The system is banded (positions of
 the two neighbours in time) and symmetric positive definite: one banded Cholesky solve per point and iteration.
 Unobserved frames have no data term: the spline interpolates (or linearly extrapolates) them.
+
+`refine_with_clocks` also polishes the clocks: per-video offset (and rate) corrections that minimize this cost,
+found by coordinate descent with the smoothness and robust weights of a first refinement held fixed
+(`clocks.model.ClockCorrection`). docs/refinement.md describes the whole.
 """
 
 from __future__ import annotations
@@ -30,12 +34,29 @@ import numpy as np
 from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 
 from dynrecon.errors import InputError
+from reconstruct.clocks.model import ClockCorrection
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 
 log = logging.getLogger(__name__)
 
 BANDS = 9  # unknowns 3i + k; the prior links nodes i-2..i+2, so |row - column| <= 3 * 2 + 2 = 8
+# Smoothness candidates for GCV, half-decade steps: a wide range, since noise-free frequent captures want little
+# smoothing and noisy sparse ones much more.
+SMOOTHNESS_GRID = tuple(float(10.0 ** (k / 2)) for k in range(-12, 9))
+# Robust scale in pixels of reprojection error: SCALE_SIGMAS x the per-axis noise level that each point's GCV fit
+# implies, at least MIN_SCALE_PX.
+SCALE_SIGMAS = 2.5
+MIN_SCALE_PX = 0.5
+RAYLEIGH_MEDIAN = 1.1774  # median norm of a 2D Gaussian residual, in per-axis sigmas: sqrt(2 ln 2)
+IRLS_ITERATIONS = 5  # IRLS rounds per GCV pass (weights from the previous round's residuals)
+# Smoothness and scale are chosen by GCV, then IRLS runs with them; a second pass chooses again with the robust
+# weights (the first pass's weights come from the start points' residuals).
+GCV_PASSES = 2
+OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an outlier in the result
+# Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
+# concurrent frames cannot make the system ill-conditioned.
+MERGE_FRACTION = 0.01
 
 
 class RobustLoss(enum.Enum):
@@ -54,29 +75,14 @@ class SmoothnessRule(enum.Enum):
 class RefineOptions:
     rule: SmoothnessRule = SmoothnessRule.GCV
     smoothness: float = 1.0  # dimensionless lambda for SmoothnessRule.FIXED
-    # Candidates for GCV, half-decade steps (a wide range: noise-free 30 Hz wants little, 5 px noise much more).
-    grid: tuple[float, ...] = tuple(float(10.0 ** (k / 2)) for k in range(-12, 9))
     loss: RobustLoss = RobustLoss.HUBER
-    # Robust scale in pixels of reprojection error; None = `scale_sigmas` x the per-axis noise level that each
-    # point's GCV fit implies, at least `min_scale_px`.
-    scale_px: float | None = None
-    scale_sigmas: float = 2.5
-    min_scale_px: float = 0.5
-    iterations: int = 5  # IRLS rounds per GCV pass (weights from the previous round's residuals)
-    # Smoothness and scale are chosen by GCV, then IRLS runs with them; a second pass chooses again with the
-    # robust weights (the first pass's weights come from the start points' residuals).
-    gcv_passes: int = 2
-    outlier_factor: float = 3.0  # residual > factor x scale marks an observation as an outlier in the result
-    # Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
-    # concurrent frames cannot make the system ill-conditioned.
-    merge_fraction: float = 0.01
 
 
 @dataclass(kw_only=True)
 class RefineResult:
     points: np.ndarray  # (F, P, 3) input units; NaN where the input had no point at all (unreconstructable)
     weights: np.ndarray  # (F, P) final robust weights, NaN where unobserved
-    outliers: np.ndarray  # (F, P) bool, residual above outlier_factor x scale
+    outliers: np.ndarray  # (F, P) bool, residual above OUTLIER_FACTOR x scale
     residual_px: np.ndarray  # (F, P) final reprojection error (ray distance x focal / depth), NaN unobserved
     smoothness: np.ndarray  # (P,) lambda used, NaN for points not refined
     scale_px: np.ndarray  # (P,) robust scale used, NaN for points not refined
@@ -90,7 +96,7 @@ class TimeNodes:
     tau: float  # median spacing of consecutive distinct instants
 
 
-def time_nodes(times: np.ndarray, merge_fraction: float, tau: float | None = None) -> TimeNodes:
+def time_nodes(times: np.ndarray, merge_fraction: float = MERGE_FRACTION, tau: float | None = None) -> TimeNodes:
     """Distinct instants of `times (F,)`; gaps below merge_fraction x the median gap join one instant. `tau`
     fixes the time unit (else the median gap between instants)."""
     order = np.argsort(times, kind="stable")
@@ -159,8 +165,7 @@ def selected_inverse(factors: np.ndarray) -> np.ndarray:
     """Band of M^-1 (lower form, same shape) from M's banded Cholesky factors, batched (B, BANDS, N).
 
     Takahashi's recursion: Z = M^-1 restricted to the band of L needs only that band, from the last column
-    backwards, O(N BANDS^2) instead of the O(N^2 BANDS) of solving with the identity (measured 35 ms -> ~1 ms per
-    system of 900 unknowns).
+    backwards, O(N BANDS^2) instead of the O(N^2 BANDS) of solving with the identity.
     """
     B, bands, N = factors.shape
     b = bands - 1
@@ -277,24 +282,24 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
     start = normalization.apply(points)
     rays = viewing_rays(problem)
     focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])  # (F,) px
-    nodes = time_nodes(times, options.merge_fraction)
+    nodes = time_nodes(times)
     n = len(nodes.times)
     prior = prior_bands(nodes)
-    grid = [options.smoothness] if options.rule is SmoothnessRule.FIXED else list(options.grid)
+    grid = [options.smoothness] if options.rule is SmoothnessRule.FIXED else list(SMOOTHNESS_GRID)
 
     tracks = _make_tracks(problem, start, rays, centers, focal, nodes)
     for track in tracks:
         track.smoothness = grid[0]
         # First weights and scale from the start's residuals: a false detection is already far from its ray.
         residual = track.residuals(track.anchor)
-        track.scale = _loss_scale(residual, options)
+        track.scale = _loss_scale(residual)
         track.weights = robust_weights(residual, options.loss, track.scale)
 
     cost: list[float] = []
-    for _ in range(max(options.gcv_passes, 1)):
+    for _ in range(max(GCV_PASSES, 1)):
         if tracks:
             _choose_smoothness(tracks, prior, grid, n, options)
-        for _ in range(max(options.iterations, 1)):
+        for _ in range(max(IRLS_ITERATIONS, 1)):
             total = 0.0
             for track in tracks:
                 blocks, rhs = track.data(n)
@@ -320,7 +325,7 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
         out[:, p] = track.positions[nodes.node_of_frame]
         weights[track.seen, p] = track.weights
         residual_px[track.seen, p] = track.residual
-        outliers[track.seen, p] = track.residual > options.outlier_factor * track.scale
+        outliers[track.seen, p] = track.residual > OUTLIER_FACTOR * track.scale
         smoothness[p] = track.smoothness
         scale_px[p] = track.scale
     if tracks:
@@ -357,7 +362,7 @@ def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float
 
     The residuals' own spread would underestimate sigma by the fitted degrees of freedom; re-estimated every IRLS
     round it also shrinks as observations are down-weighted, until the poorly constrained ends of a track are
-    rejected (measured in the tests). So the scale is set here, once per GCV pass, and held during IRLS.
+    rejected. So the scale is set here, once per GCV pass, and held during IRLS.
     """
     rss = np.zeros((len(tracks), len(grid)))
     trace = np.zeros((len(tracks), len(grid)))
@@ -387,13 +392,10 @@ def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float
     for k, track in enumerate(tracks):
         g = int(chosen[k])
         track.smoothness = grid[g]
-        if options.scale_px is not None:
-            track.scale = float(options.scale_px)
-        else:
-            # Weighted RSS over the weights' effective count of residual components.
-            effective = float(np.sum(track.weights)) * 2.0
-            sigma = np.sqrt(rss[k, g] / max(effective - trace[k, g], 1.0))
-            track.scale = max(options.scale_sigmas * sigma, options.min_scale_px)
+        # Weighted RSS over the weights' effective count of residual components.
+        effective = float(np.sum(track.weights)) * 2.0
+        sigma = np.sqrt(rss[k, g] / max(effective - trace[k, g], 1.0))
+        track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
 
 
 MIN_RESIDUAL_DOF = 1.0  # GCV candidates must leave at least this many residual degrees of freedom (m - tr(H))
@@ -404,10 +406,9 @@ def _least_gcv(rss: np.ndarray, trace: np.ndarray, m: np.ndarray) -> np.ndarray:
 
     A fit with m - tr(H) near 0 interpolates its rays: RSS and the denominator (1 - tr(H)/m)^2 both vanish and the
     score is round-off. With unsynchronized cameras each instant often has one ray, which any small smoothness
-    fits exactly, so these values were most of the grid: on the real Pose2Sim capture the choice then flipped with
-    round-off between 1e-6 and 1e4 per point (median error 5 or 14 mm, p90 0.1-0.3 m, by the run). Such values are
-    not candidates; it then measured 3.4 mm, p90 10.4 mm, the same in both runs. When every value interpolates,
-    the data cannot choose, and the least smoothing keeps the trajectory on its rays."""
+    fits exactly, so these values can be most of the grid, and the choice among them would flip with round-off
+    from run to run. Such values are not candidates. When every value interpolates, the data cannot choose, and the
+    least smoothing keeps the trajectory on its rays."""
     score = rss / m / np.maximum(1 - trace / m, 1e-9) ** 2
     score[m - trace < MIN_RESIDUAL_DOF] = np.inf
     score[np.isinf(score).all(axis=1)] = 0.0
@@ -432,11 +433,10 @@ def _start_per_node(start: np.ndarray, nodes: TimeNodes) -> np.ndarray:
     return anchor
 
 
-def _loss_scale(residual: np.ndarray, options: RefineOptions) -> float:
-    if options.scale_px is not None:
-        return float(options.scale_px)
-    sigma = float(np.median(residual)) / 1.1774 if residual.size else 0.0
-    return max(2.5 * sigma, options.min_scale_px)
+def _loss_scale(residual: np.ndarray) -> float:
+    """The first robust scale, from the start's residual norms (px)."""
+    sigma = float(np.median(residual)) / RAYLEIGH_MEDIAN if residual.size else 0.0
+    return max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
 
 
 def _rho(residual: np.ndarray, loss: RobustLoss, scale: float) -> np.ndarray:
@@ -456,108 +456,116 @@ def _prior_value(bands: np.ndarray, y: np.ndarray) -> np.ndarray:
     return value
 
 
-@dataclass(kw_only=True)
-class ClockRefineOptions:
-    rounds: int = 2  # refine (choosing the smoothness), then search the clocks; repeated
-    sweeps: int = 4  # coordinate-descent sweeps over the videos per round
-    search_periods: float = 1.0  # each sweep searches a video's offset within +- this many of its frame periods
-    tolerance_periods: float = 0.005  # golden-section search stops at this bracket width
-    reference: int | None = None  # video index whose clock stays fixed; default: the one with most frames
-    rates: bool = True  # also correct each video's rate (estimated clocks err in rate as much as in offset)
+# ---------------------------------------------------------------------------------------------------------------
+# The clock polish: per-video offset and rate corrections that minimize the refinement's own cost
+
+POLISH_ROUNDS = 2  # refine (choosing the smoothness), then search the clocks; repeated
+POLISH_SWEEPS = 4  # coordinate-descent sweeps over the videos per round
+POLISH_REACH_PERIODS = 1.0  # each sweep searches a video's offset within +- this many of its frame periods
+POLISH_TOLERANCE = 0.005  # the golden-section search stops at this share of its reach
+POLISH_STOP = 1e-6  # sweeps stop when one lowers the cost by less than this share
 
 
 @dataclass(kw_only=True)
 class ClockRefineResult:
     times: np.ndarray  # (F,) adjusted global times, s
-    offsets: np.ndarray  # (N,) s added to every frame of each video (the reference's is 0)
-    rates: np.ndarray  # (N,) relative rate corrections: + rate x (own time - the video's middle time)
+    correction: ClockCorrection  # from the input times to `times` (the reference's is 0)
     cost: list[float]  # trajectory cost after each sweep (px^2)
     result: RefineResult  # the refinement at the adjusted times
 
 
-def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray,
-                       options: RefineOptions | None = None, clock_options: ClockRefineOptions | None = None
-                       ) -> ClockRefineResult:
-    """`refine`, then per-video time offsets and rates that minimize the refinement's own cost, then `refine`
-    again; `ClockRefineOptions.rounds` times (each round re-chooses the smoothness: wrong times make GCV smooth
-    more, which flattens the cost the clocks are searched on)."""
+def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None,
+                       *, reference: int | None = None, rates: bool = True) -> ClockRefineResult:
+    """`refine`, then per-video time offsets (and, with `rates`, rates) that minimize the refinement's own cost,
+    then `refine` again; POLISH_ROUNDS times (each round re-chooses the smoothness: wrong times make GCV smooth
+    more, which flattens the cost the clocks are searched on). Video `reference` keeps its clock (default: the one
+    with most frames): the cost does not see a global affine change of time."""
     options = options or RefineOptions()
-    clock_options = clock_options or ClockRefineOptions()
     times = np.asarray(times, dtype=float)
     original = times
-    result = _clock_round(problem, points, times, options, clock_options)
+    result = _clock_round(problem, points, times, options, reference, rates)
     history = list(result.cost)
-    for _ in range(clock_options.rounds - 1):
-        result = _clock_round(problem, points, result.times, options, clock_options)
+    for _ in range(POLISH_ROUNDS - 1):
+        result = _clock_round(problem, points, result.times, options, reference, rates)
         history.extend(result.cost)
-    times = result.times
     # Corrections relative to the input times (the rounds compose affine maps per video).
-    N = len(problem.video_names)
-    offsets, rates = np.zeros(N), np.zeros(N)
-    for v in range(N):
-        own = problem.video_index == v
-        if own.sum() >= 2 and np.ptp(original[own]) > 0:
-            middle = float(np.median(original[own]))
-            slope, intercept = np.polyfit(original[own] - middle, times[own] - original[own], 1)
-            offsets[v], rates[v] = intercept, slope
-    return ClockRefineResult(times=times, offsets=offsets, rates=rates, cost=history, result=result.result)
+    correction = ClockCorrection.fit(original, result.times, problem.video_index, len(problem.video_names))
+    return ClockRefineResult(times=result.times, correction=correction, cost=history, result=result.result)
 
 
 def _clock_round(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions,
-                 clock_options: ClockRefineOptions) -> ClockRefineResult:
+                 reference: int | None, rates: bool) -> ClockRefineResult:
     """One round of refine_with_clocks.
 
-    Estimated clocks can be off by a fraction of a frame (measured: ~5 ms at 120 captures/s on some captures),
-    which folds the trajectory into a zig-zag the prior pays for. With the smoothness and robust weights of the
-    first refinement held fixed, the cost (weighted ray distances + smoothness) is a function of the offsets
-    alone; each video's offset is found by golden-section search in turn (coordinate descent).
+    Estimated clocks can be off by a fraction of a frame, which folds the trajectory into a zig-zag the prior pays
+    for. With the smoothness and robust weights of a first refinement held fixed, the cost (weighted ray distances
+    + smoothness) is a function of the clocks alone; each video's offset (then rate) is found by golden-section
+    search in turn (coordinate descent).
     """
     first = refine(problem, points, times, options)
     N = len(problem.video_names)
     counts = np.bincount(problem.video_index, minlength=N)
-    reference = clock_options.reference if clock_options.reference is not None else int(np.argmax(counts))
-    normalization = camera_normalization(problem.centers, problem.video_index)
-    centers = normalization.apply(problem.centers)
-    rays = viewing_rays(problem)
-    focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
-    tau = time_nodes(times, options.merge_fraction).tau
-    span = float(np.ptp(times))
-    refined = np.isfinite(first.smoothness)
-    observed = problem.observed & refined[None, :]
-    frame, point = np.nonzero(observed)  # every observation of a refined point
-    keep = np.flatnonzero(refined)
-    column = np.searchsorted(keep, point)  # the observation's point among the refined ones
-    # Held fixed: smoothness and weights of the first refinement, and each observation's px scale from its
-    # positions (time shifts of a fraction of a frame barely move the depths).
-    positions = normalization.apply(first.points)
-    depth = np.einsum("mi,mi->m", positions[frame, point] - centers[frame], rays[frame, point])
-    s2 = (focal[frame] / np.maximum(depth, 1e-9)) ** 2
-    weight = np.nan_to_num(first.weights[frame, point]) * s2
-    mean_s2 = np.array([np.mean(np.sqrt(s2[column == k])) ** 2 for k in range(len(keep))])
-    strength = first.smoothness[keep] * mean_s2  # (P',)
-    projector = np.eye(3)[None] - rays[frame, point][:, :, None] * rays[frame, point][:, None, :]
-    blocks_obs = weight[:, None, None] * projector
-    rhs_obs = np.einsum("mij,mj->mi", blocks_obs, centers[frame])
+    if reference is None:
+        reference = int(np.argmax(counts))
+    cost = _PolishCost(problem, first, times)
+    middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
+    correction = ClockCorrection.none(middle)
+    history = _coordinate_descent(cost, times, problem.video_index, correction, rates)
+    adjusted, correction = correction.in_gauge_of(reference, times, problem.video_index)
+    log.info("clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
+             ", ".join(f"{1000 * o:+.2f}" for o in correction.offset),
+             ", ".join(f"{1000 * r:+.2f}" for r in correction.rate), history[0], history[-1])
+    return ClockRefineResult(times=adjusted, correction=correction, cost=history,
+                             result=refine(problem, points, adjusted, options))
 
-    def cost(candidate: np.ndarray) -> float:
-        """Trajectory cost (px^2) of all refined points at the frame times `candidate`, one banded solve."""
+
+class _PolishCost:
+    """The refinement's cost (px^2) at candidate frame times, one banded solve for all refined points; held fixed:
+    the smoothness and robust weights of a first refinement, and each observation's px scale from its positions
+    (time shifts of a fraction of a frame barely move the depths)."""
+
+    def __init__(self, problem: Problem, first: RefineResult, times: np.ndarray):
+        normalization = camera_normalization(problem.centers, problem.video_index)
+        self.centers = normalization.apply(problem.centers)
+        self.rays = viewing_rays(problem)
+        focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
+        self.tau = time_nodes(times).tau
+        self.span = float(np.ptp(times))
+        refined = np.isfinite(first.smoothness)
+        observed = problem.observed & refined[None, :]
+        frame, point = np.nonzero(observed)  # every observation of a refined point
+        self.frame, self.point = frame, point
+        self.keep = np.flatnonzero(refined)
+        self.column = np.searchsorted(self.keep, point)  # the observation's point among the refined ones
+        self.positions = normalization.apply(first.points)
+        depth = np.einsum("mi,mi->m", self.positions[frame, point] - self.centers[frame], self.rays[frame, point])
+        s2 = (focal[frame] / np.maximum(depth, 1e-9)) ** 2
+        self.weight = np.nan_to_num(first.weights[frame, point]) * s2
+        mean_s2 = np.array([np.mean(np.sqrt(s2[self.column == k])) ** 2 for k in range(len(self.keep))])
+        self.strength = first.smoothness[self.keep] * mean_s2  # (P',)
+        projector = np.eye(3)[None] - self.rays[frame, point][:, :, None] * self.rays[frame, point][:, None, :]
+        self.blocks_obs = self.weight[:, None, None] * projector
+        self.rhs_obs = np.einsum("mij,mj->mi", self.blocks_obs, self.centers[frame])
+
+    def __call__(self, candidate: np.ndarray) -> float:
+        frame, point, column, keep, rays = self.frame, self.point, self.column, self.keep, self.rays
         # Time unit proportional to the span: the cost is then invariant to a global affine change of time (the
         # gauge), so every video, the reference included, can move alone.
-        nodes = time_nodes(candidate, options.merge_fraction, tau * float(np.ptp(candidate)) / span)
+        nodes = time_nodes(candidate, MERGE_FRACTION, self.tau * float(np.ptp(candidate)) / self.span)
         n = len(nodes.times)
         node = nodes.node_of_frame[frame]
         blocks = np.zeros((len(keep), n, 3, 3))
         rhs = np.zeros((len(keep), n, 3))
-        np.add.at(blocks, (column, node), blocks_obs)
-        np.add.at(rhs, (column, node), rhs_obs)
+        np.add.at(blocks, (column, node), self.blocks_obs)
+        np.add.at(rhs, (column, node), self.rhs_obs)
         eps = 1e-9 * np.maximum(np.mean(np.trace(blocks, axis1=2, axis2=3), axis=1), 1e-300)
         blocks += eps[:, None, None, None] * np.eye(3)
         anchor = np.zeros((n, len(keep), 3))  # mean position per instant (the tiny eps pull's target)
-        np.add.at(anchor, nodes.node_of_frame, np.nan_to_num(positions[:, keep]))
+        np.add.at(anchor, nodes.node_of_frame, np.nan_to_num(self.positions[:, keep]))
         anchor /= np.maximum(np.bincount(nodes.node_of_frame, minlength=n), 1)[:, None, None]
         rhs += eps[:, None, None] * anchor.transpose(1, 0, 2)
         prior = prior_bands(nodes)
-        system = strength[:, None, None] * prior[None]  # (P', BANDS, 3n)
+        system = self.strength[:, None, None] * prior[None]  # (P', BANDS, 3n)
         for row in range(3):
             for col in range(row + 1):
                 system[:, row - col, np.arange(n) * 3 + col] += blocks[:, :, row, col]
@@ -565,60 +573,48 @@ def _clock_round(problem: Problem, points: np.ndarray, times: np.ndarray, option
         stacked = system.transpose(1, 0, 2).reshape(BANDS, -1)
         y = cho_solve_banded((cholesky_banded(stacked, lower=True), True), rhs.reshape(-1))
         solved = y.reshape(len(keep), n, 3)
-        offset = solved[column, node] - centers[frame]
+        offset = solved[column, node] - self.centers[frame]
         along = np.einsum("mi,mi->m", offset, rays[frame, point])
         perpendicular = offset - along[:, None] * rays[frame, point]
-        total = float(np.sum(weight * np.einsum("mi,mi->m", perpendicular, perpendicular)))
-        return total + float(np.sum(strength * _prior_value(prior, solved.reshape(len(keep), -1))))
+        total = float(np.sum(self.weight * np.einsum("mi,mi->m", perpendicular, perpendicular)))
+        return total + float(np.sum(self.strength * _prior_value(prior, solved.reshape(len(keep), -1))))
 
-    offsets = np.zeros(N)
-    rates = np.zeros(N)  # relative rate errors: each video's times stretch by (1 + rate) about their middle
-    middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
 
-    def adjusted_times(offsets: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        v = problem.video_index
-        return times + offsets[v] + rates[v] * (times - middle[v])
-
+def _coordinate_descent(cost: _PolishCost, times: np.ndarray, video_index: np.ndarray, correction: ClockCorrection,
+                        rates: bool) -> list[float]:
+    """Sweeps over the videos, each video's offset (then rate) by golden-section search with the others held;
+    `correction` is updated in place. Returns the cost before and after each sweep."""
     history = [cost(times)]
-    for _ in range(max(clock_options.sweeps, 0)):
-        for v in range(N):
-            own = problem.video_index == v
+    for _ in range(max(POLISH_SWEEPS, 0)):
+        for v in range(len(correction.offset)):
+            own = video_index == v
             if own.sum() < 2:
                 continue
             period = float(np.median(np.diff(np.sort(times[own]))))
             video_span = float(np.ptp(times[own]))
             if not (period > 0 and video_span > 0):
                 continue
-            for kind in ("offset", "rate") if clock_options.rates else ("offset",):
-                values = offsets if kind == "offset" else rates
+            for kind in ("offset", "rate") if rates else ("offset",):
+                values = correction.offset if kind == "offset" else correction.rate
                 # The rate's bracket moves the video's ends by as much as the offset's moves its middle.
-                reach = clock_options.search_periods * period * (1.0 if kind == "offset" else 2.0 / video_span)
+                reach = POLISH_REACH_PERIODS * period * (1.0 if kind == "offset" else 2.0 / video_span)
 
                 def shifted(delta: float, values: np.ndarray = values, v: int = v) -> float:
                     trial = values.copy()
                     trial[v] += delta
-                    if values is offsets:
-                        return cost(adjusted_times(trial, rates))
-                    return cost(adjusted_times(offsets, trial))
+                    if values is correction.offset:
+                        moved = ClockCorrection(middle=correction.middle, offset=trial, rate=correction.rate)
+                    else:
+                        moved = ClockCorrection(middle=correction.middle, offset=correction.offset, rate=trial)
+                    return cost(moved.apply(times, video_index))
 
-                best, best_cost = _golden_search(shifted, -reach, reach, clock_options.tolerance_periods * reach)
+                best, best_cost = _golden_search(shifted, -reach, reach, POLISH_TOLERANCE * reach)
                 if best_cost < shifted(0.0):
                     values[v] += best
-        history.append(cost(adjusted_times(offsets, rates)))
-        if history[-2] - history[-1] <= 1e-6 * abs(history[-2]):
+        history.append(cost(correction.apply(times, video_index)))
+        if history[-2] - history[-1] <= POLISH_STOP * abs(history[-2]):
             break
-    # Gauge: map time by the affine A(g) = (g - b) / a that gives the reference video its own clock back (the
-    # cost does not see a global affine change of time); express every video's correction after A.
-    a = 1.0 + rates[reference]
-    b = offsets[reference] - rates[reference] * middle[reference]
-    adjusted = (adjusted_times(offsets, rates) - b) / a
-    offsets = (middle + offsets - b) / a - middle
-    rates = (1.0 + rates) / a - 1.0
-    log.info("clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
-             ", ".join(f"{1000 * o:+.2f}" for o in offsets), ", ".join(f"{1000 * r:+.2f}" for r in rates),
-             history[0], history[-1])
-    return ClockRefineResult(times=adjusted, offsets=offsets, rates=rates, cost=history,
-                             result=refine(problem, points, adjusted, options))
+    return history
 
 
 def _golden_search(f: Callable[[float], float], low: float, high: float, tolerance: float) -> tuple[float, float]:

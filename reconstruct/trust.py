@@ -46,28 +46,36 @@ from reconstruct.solver.rays import viewing_rays
 log = logging.getLogger(__name__)
 
 
+# W entries below this are not neighbours (numerical dust of the W-step).
+MIN_WEIGHT = 0.02
+# Strongest neighbours kept per frame in a neighbourhood: the paper's W columns have about two.
+MAX_NEIGHBOURS = 4
+
+
 @dataclass(kw_only=True)
 class TrustOptions:
-    min_weight: float = 0.02  # W entries below this are not neighbours (numerical dust of the W-step)
-    max_neighbours: int = 4  # strongest neighbours kept per frame: the paper's W columns have ~2
-    # Flag rule (see `flag_rule`): the residual in pixels, or the residual amplified by the condition (the paper's
-    # bound |l| <= |b| / sigma_min with the point's residual for |b|), above a floor and above `relative` times its
-    # median over the solve (the median follows the noise level and frame rate: a scale-free limit). Tuned on
-    # simulations (benchmarks/trust.py, tuning windows freeform, run-4ms, cmu-late, sit-stand).
+    """The flag rule (`flag_rule`); thresholds tuned on simulations (benchmarks/trust.py documents the windows).
+
+    residual_px, bound_px, relative: a point is flagged when its residual in pixels, or that residual amplified by
+    the condition (the paper's bound |l| <= |b| / sigma_min with the point's residual for |b|), exceeds the floor
+    (`residual_px`, `bound_px`) and `relative` times its median over the solve (the median follows the noise level
+    and frame rate: a scale-free limit).
+    sequence_jump: ... or the local sequencing breaks by more than this many frame gaps (correct interpolation stays
+    within a few; the paper's wrong-partner failure jumps by seconds).
+    min_component: ... or the frame lies in a connected component of the W graph with fewer frames than this (0: not
+    used): an island of frames that only represent each other (the paper's wrong partners). Off by default: islands
+    are as often harmless (static phases) as wrong.
+    smoothness_px, smoothness_relative: ... or the point leaves the interpolation of its own video's previous and next
+    frame by more than max(smoothness_px, smoothness_relative x median) pixels (smoothness_px 0: not used; see
+    `video_smoothness`). Off in the balanced preset: on the tuning windows it raised recall but lowered precision
+    more.
+    """
+
     residual_px: float = 5.0
     bound_px: float = 30.0
     relative: float = 3.0
-    # ... or the local sequencing broken by more than this many frame gaps (correct interpolation stays within ~2,
-    # static phases reached 14 on the tuning windows; the paper's wrong-partner failure jumps by seconds).
     sequence_jump: float = 20.0
-    # ... or the frame lies in a connected component of the W graph with fewer frames than this (0 = unused): an
-    # island of frames that only represent each other, e.g. two far-apart shapes (the paper's wrong partners). Off
-    # by default: on the tuning windows islands were as often harmless (static phases) as wrong.
     min_component: int = 0
-    # ... or the point leaves the interpolation of its own video's previous and next frame by more than
-    # max(smoothness_px, smoothness_relative x median) pixels (0 = unused; see `video_smoothness`). Off by default:
-    # on the tuning windows it raised recall but lowered precision more; the "sensitive" preset of
-    # benchmarks/trust.py uses 30 px, 5 x.
     smoothness_px: float = 0.0
     smoothness_relative: float = 5.0
 
@@ -76,7 +84,7 @@ class TrustPreset(enum.Enum):
     """Operating points of the flag, both chosen on the tuning windows of benchmarks/trust.py."""
 
     BALANCED = "balanced"  # TrustOptions() defaults: best recall-weighted F2 on the tuning windows
-    SENSITIVE = "sensitive"  # ~3-4x more points flagged, catches most large errors (recall 0.5-0.9 when tuning)
+    SENSITIVE = "sensitive"  # flags several times more points and catches most large errors
 
 
 def preset_options(preset: TrustPreset) -> TrustOptions:
@@ -313,69 +321,26 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
     F, P = problem.num_frames, problem.num_points
     points = result.points  # (F, P, 3) input units
     reconstructed = np.isfinite(points).all(axis=-1)
-    observed = problem.observed
     rays = viewing_rays(problem)  # (F, P, 3)
-    centers = problem.centers  # (F, 3)
     W = result.W.to_csc()
     focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])  # (F,)
-
-    # Self-expression residual of each point.
-    shapes = np.nan_to_num(points).reshape(F, -1)
-    fit = (W.T @ shapes).reshape(F, P, 3)
-    residual = np.linalg.norm(np.nan_to_num(points) - fit, axis=-1)
-    offset = points - centers[:, None, :]
+    offset = points - problem.centers[:, None, :]
     depth = np.linalg.norm(offset, axis=-1)
-    residual_px = focal[:, None] * residual / np.maximum(depth, 1e-300)
-
-    # Distance from the viewing ray, and that angle in pixels.
-    along = np.sum(offset * rays, axis=-1)
-    perpendicular = np.linalg.norm(offset - along[..., None] * rays, axis=-1)
-    ray_distance = np.where(observed, perpendicular, np.nan)
-    reprojection_px = np.where(observed, focal[:, None] * np.arctan2(perpendicular, np.maximum(along, 1e-300)),
-                               np.nan)
-
+    residual, residual_px = _self_expression(points, W, focal, depth)
+    ray_distance, reprojection_px = _ray_distances(offset, rays, problem.observed, focal)
     # Support: W weight on neighbours observing the point.
-    support = np.asarray(W.T @ observed.astype(float))
+    support = np.asarray(W.T @ problem.observed.astype(float))
     support = np.clip(support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300), 0.0, 1.0)
-
-    hood = neighbourhoods(W, options.min_weight, options.max_neighbours)  # (F, n)
+    hood = neighbourhoods(W, MIN_WEIGHT, MAX_NEIGHBOURS)  # (F, n)
     valid = hood >= 0
-    safe = np.where(valid, hood, 0)
     videos = np.array([len(set(problem.video_index[hood[f, 1:][valid[f, 1:]]].tolist())) for f in range(F)])
-
-    # The paper's A per point on each neighbourhood.
-    M = (sp.identity(F, format="csc") - W).tocsr()
-    G = (M @ M.T).tocsr()
-    n = hood.shape[1]
-    gram = np.zeros((F, n, n))
-    for f in range(F):
-        members = hood[f][valid[f]]
-        k = len(members)
-        gram[f, :k, :k] = G[members][:, members].toarray()
-    condition = np.full((F, P), np.nan)
-    for p in range(P):
-        if not reconstructed[:, p].any():
-            continue
-        condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
-
+    condition = _conditions(W, rays, reconstructed, hood)
     bound_px = condition * residual_px
-    limits = {"residual_px": options.residual_px, "bound_px": options.bound_px}
-    if reconstructed.any():
-        limits = {
-            "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
-            "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
-        }
     jump = np.broadcast_to(sequence_jump(W, problem.video_index, problem.times)[:, None], (F, P))
-    component = np.broadcast_to(components(W, options.min_weight)[:, None], (F, P))
+    component = np.broadcast_to(components(W, MIN_WEIGHT)[:, None], (F, P))
     smoothness = video_smoothness(points, problem.video_index, problem.frames, problem.times)
     smoothness_px = focal[:, None] * smoothness / np.maximum(depth, 1e-300)
-    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
-                            | (np.nan_to_num(jump) > options.sequence_jump) | (component < options.min_component))
-    if options.smoothness_px > 0:
-        known = reconstructed & np.isfinite(smoothness_px)
-        median = float(np.median(smoothness_px[known])) if known.any() else 0.0
-        limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median)
-        flag |= known & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
+    flag, limits = _flag(options, reconstructed, residual_px, bound_px, jump, component, smoothness_px)
     log.info("trust: %d of %d reconstructed points flagged (%s)", int(flag.sum()), int(reconstructed.sum()),
              flag_rule(options))
     nan = ~reconstructed
@@ -390,3 +355,64 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         reconstructed=reconstructed,
         video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,
     )
+
+
+def _self_expression(points: np.ndarray, W: sp.csc_matrix, focal: np.ndarray, depth: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(F, P) each point's self-expression residual, in input units and seen from its frame's camera in pixels."""
+    F, P = points.shape[:2]
+    shapes = np.nan_to_num(points).reshape(F, -1)
+    fit = (W.T @ shapes).reshape(F, P, 3)
+    residual = np.linalg.norm(np.nan_to_num(points) - fit, axis=-1)
+    return residual, focal[:, None] * residual / np.maximum(depth, 1e-300)
+
+
+def _ray_distances(offset: np.ndarray, rays: np.ndarray, observed: np.ndarray, focal: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(F, P) distance from the viewing ray (input units) and that angle in pixels; NaN where unobserved."""
+    along = np.sum(offset * rays, axis=-1)
+    perpendicular = np.linalg.norm(offset - along[..., None] * rays, axis=-1)
+    ray_distance = np.where(observed, perpendicular, np.nan)
+    reprojection_px = np.where(observed, focal[:, None] * np.arctan2(perpendicular, np.maximum(along, 1e-300)),
+                               np.nan)
+    return ray_distance, reprojection_px
+
+
+def _conditions(W: sp.csc_matrix, rays: np.ndarray, reconstructed: np.ndarray, hood: np.ndarray) -> np.ndarray:
+    """(F, P) the paper's A per point on each frame's neighbourhood `hood` (F, n): 1 / sigma_min."""
+    F, P = reconstructed.shape
+    valid = hood >= 0
+    safe = np.where(valid, hood, 0)
+    M = (sp.identity(F, format="csc") - W).tocsr()
+    G = (M @ M.T).tocsr()
+    n = hood.shape[1]
+    gram = np.zeros((F, n, n))
+    for f in range(F):
+        members = hood[f][valid[f]]
+        k = len(members)
+        gram[f, :k, :k] = G[members][:, members].toarray()
+    condition = np.full((F, P), np.nan)
+    for p in range(P):
+        if not reconstructed[:, p].any():
+            continue
+        condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
+    return condition
+
+
+def _flag(options: TrustOptions, reconstructed: np.ndarray, residual_px: np.ndarray, bound_px: np.ndarray,
+          jump: np.ndarray, component: np.ndarray, smoothness_px: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """(F, P) the flag rule's verdict, and its effective limits in this solve."""
+    limits = {"residual_px": options.residual_px, "bound_px": options.bound_px}
+    if reconstructed.any():
+        limits = {
+            "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
+            "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
+        }
+    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
+                            | (np.nan_to_num(jump) > options.sequence_jump) | (component < options.min_component))
+    if options.smoothness_px > 0:
+        known = reconstructed & np.isfinite(smoothness_px)
+        median = float(np.median(smoothness_px[known])) if known.any() else 0.0
+        limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median)
+        flag |= known & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
+    return flag, limits

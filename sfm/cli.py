@@ -1,4 +1,7 @@
-"""Subcommands of the `sfm` stage: `register` (SfM) and `import-calibration` (static calibrated cameras)."""
+"""Subcommands of the `sfm` stage: `register` (SfM) and `import-calibration` (static calibrated cameras).
+
+The parsers are built from `sfm.options` only; the stages are imported when a command runs.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_import(subparsers: argparse._SubParsersAction) -> None:
-    from sfm.import_calibration import CalibrationFormat, Units
+    from sfm.options import CalibrationFormat, Units
 
     parser = subparsers.add_parser(
         "import-calibration",
@@ -54,13 +57,14 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_import(args: argparse.Namespace) -> int:
-    from sfm.import_calibration import CalibrationFormat, ImportOptions, Units, run
+    from sfm.calibration import run
+    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
 
     path = run(
         args.calibration,
         args.videos,
         args.out,
-        ImportOptions(format=CalibrationFormat(args.format), units=Units(args.units), scale=args.scale),
+        ImportCalibrationOptions(format=CalibrationFormat(args.format), units=Units(args.units), scale=args.scale),
     )
     print(path)  # noqa: T201
     return 0

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from sfm.video import VideoInfo, read_frames
+from sfm.video import ProbedVideo, read_frames
 
 JPEG_QUALITY = 95
 
@@ -25,7 +25,7 @@ def image_name(video: str, frame: int) -> str:
 
 
 def select_frames(
-    info: VideoInfo, *, step: int = 0, time_step: float | None = None, max_frames: int = 40
+    info: ProbedVideo, *, step: int = 0, time_step: float | None = None, max_frames: int = 40
 ) -> np.ndarray:
     """Sorted frame numbers for SfM: every `step`-th frame, or one per `time_step` seconds (by decoder
     timestamps), or all; then thinned evenly to at most `max_frames` (first and last kept)."""
@@ -51,7 +51,7 @@ class Resize:
     height: int
 
     @classmethod
-    def for_video(cls, info: VideoInfo, long_side: int) -> Resize:
+    def for_video(cls, info: ProbedVideo, long_side: int) -> Resize:
         return cls.for_video_size(info.width, info.height, long_side)
 
     @classmethod
@@ -67,7 +67,7 @@ class Resize:
 
 
 def write_frames(
-    info: VideoInfo, frames: np.ndarray, frames_dir: Path, resize: Resize, desc: str = "decoding frames"
+    info: ProbedVideo, frames: np.ndarray, frames_dir: Path, resize: Resize, desc: str = "decoding frames"
 ) -> list[str]:
     """Decode `frames` and write them (resized) as JPEG; returns their image names.
 

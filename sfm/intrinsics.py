@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from dynrecon.errors import InputError
+from sfm.calibration import match_cameras, read_calibration
 from sfm.cameras import read_cameras
-from sfm.import_calibration import match_cameras, read_calibration
-from sfm.video import VideoInfo
+from sfm.video import ProbedVideo
 
 
-def known_intrinsics(path: Path, infos: list[VideoInfo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
     if path.suffix.lower() == ".json":
         cameras = read_cameras(path)

@@ -71,8 +71,8 @@ def localize(
         return Localized(cam_from_world=None, inliers=0, matches=0, mean_error=None, reason="no features")
     best: dict[int, tuple[float, int]] = {}  # point3D id -> (descriptor distance, query keypoint index)
     xyz_of: dict[int, np.ndarray] = {}
-    # Approximate nearest neighbours (kd-trees): ~10x faster than brute force on 4k x 2.6k SIFT descriptors, and
-    # the ratio test plus RANSAC absorb the few wrong neighbours.
+    # Approximate nearest neighbours (kd-trees): much faster than brute force, and the ratio test plus RANSAC absorb
+    # the few wrong neighbours.
     matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
     descriptors = query.descriptors.astype(np.float32)
     for ref in references:

@@ -9,14 +9,14 @@ import pycolmap
 
 from sfm.frames import Resize
 from sfm.static import MotionTest
-from sfm.video import VideoInfo
+from sfm.video import ProbedVideo
 
 BACKGROUND_IMAGE = "background"  # a static video's one SfM image: frames/<video>/background.jpg
 
 
 @dataclass(kw_only=True)
 class VideoPlan:
-    info: VideoInfo
+    info: ProbedVideo
     resize: Resize
     sfm_frames: np.ndarray  # (S,) decoded frame numbers sent to SfM (empty for a static video)
     wanted: np.ndarray  # (W,) every frame that should get a pose (includes sfm_frames)

@@ -1,15 +1,22 @@
-"""The `dynrecon register` subcommand: a thin layer over `sfm.register.run`."""
+"""The `dynrecon register` subcommand: a thin layer over `sfm.register` (`sfm.stage.run`).
+
+Imports only `sfm.options` to build the parser, so that `dynrecon --help` does not load pycolmap or OpenCV.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sfm.options import RegisterOptions
 
 
 def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     """Register `dynrecon register` on the main parser."""
-    from sfm.register import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
+    from sfm.options import RegisterOptions
 
     defaults = RegisterOptions()
     parser = subparsers.add_parser(
@@ -24,12 +31,24 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
-    frames = parser.add_argument_group("frames for SfM")
+    _add_frame_arguments(parser.add_argument_group("frames for SfM"), defaults)
+    _add_sfm_arguments(parser.add_argument_group("features, matching, mapping"), defaults)
+    _add_static_arguments(parser.add_argument_group("static cameras and the subject path"), defaults)
+    _add_mask_arguments(parser.add_argument_group("masks and localization"), defaults)
+    parser.add_argument("--threads", type=int, default=defaults.num_threads, help="-1: all cores")
+    parser.set_defaults(func=_run_register)
+
+
+def _add_frame_arguments(frames: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
     frames.add_argument("--step", type=int, default=defaults.step, help="every Nth decoded frame (0: all)")
     frames.add_argument("--time-step", type=float, default=None, help="or one frame per this many seconds")
     frames.add_argument("--max-frames", type=int, default=defaults.max_frames, help="per video, at most")
     frames.add_argument("--long-side", type=int, default=defaults.long_side, help="resize frames to this (px)")
-    sfm = parser.add_argument_group("features, matching, mapping")
+
+
+def _add_sfm_arguments(sfm: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
+    from sfm.options import Mapper
+
     sfm.add_argument("--max-features", type=int, default=defaults.max_features, help="SIFT features per frame")
     sfm.add_argument("--max-ratio", type=float, default=defaults.max_ratio, help="SIFT ratio test")
     sfm.add_argument(
@@ -68,7 +87,11 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         default=defaults.background_features,
         help="SIFT features of a static video's background image",
     )
-    static = parser.add_argument_group("static cameras and the subject path")
+
+
+def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
+    from sfm.options import CameraMotion, SubjectPath
+
     static.add_argument(
         "--camera-motion",
         choices=[m.value for m in CameraMotion],
@@ -87,7 +110,11 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         metavar="A,B,METRES",
         help="the distance between two tracked points, for the subject path's scale without background anchors",
     )
-    masks = parser.add_argument_group("masks and localization")
+
+
+def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
+    from sfm.options import Localize
+
     masks.add_argument("--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)")
     masks.add_argument(
         "--masks",
@@ -106,8 +133,6 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         help="frames posed by PnP besides the SfM frames (auto: tracked frames, else all)",
     )
     masks.add_argument("--min-inliers", type=int, default=defaults.min_inliers, help="PnP inliers needed")
-    parser.add_argument("--threads", type=int, default=defaults.num_threads, help="-1: all cores")
-    parser.set_defaults(func=_run_register)
 
 
 def parse_scale(text: str | None) -> tuple[str, str, float] | None:
@@ -129,7 +154,8 @@ def parse_scale(text: str | None) -> tuple[str, str, float] | None:
 
 
 def _run_register(args: argparse.Namespace) -> int:
-    from sfm.register import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath, run
+    from sfm.options import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
+    from sfm.stage import run
 
     options = RegisterOptions(
         step=args.step,

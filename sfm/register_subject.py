@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
-from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectVideo, calibrate_from_subject
+from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
 from sfm.subject.observations import select_rows
-from sfm.subject.stability import check_stability
+from sfm.subject.stability import Stability, check_stability
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -31,13 +32,11 @@ def pose_from_subject(
     results: dict[str, dict[int, FramePose]],
     tracks: Tracks | None,
     intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]],
-    options: Any,
+    options: RegisterOptions,
     warnings: list[str],
 ) -> dict[str, Any] | None:
     """Pose the static videos that need it from the tracks; updates `results` in place. Returns the report's
     `subject` section (None when the path was not tried)."""
-    from sfm.register import SubjectPath
-
     static = [v for v in videos if v.static]
     unposed = [v for v in static if _posed(results[v.info.name]) is None]
     if options.subject is SubjectPath.NEVER or not static:
@@ -56,9 +55,45 @@ def pose_from_subject(
             "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
             "import-tracks) and register again",
         }
-    tracked = set(tracks.video_names())
     moving_posed = any(not v.static and _posed(results[v.info.name]) is not None for v in videos)
     anchors_allowed = options.subject is SubjectPath.AUTO or moving_posed
+    inputs, anchors = _subject_videos(static, set(tracks.video_names()), results, intrinsics, anchors_allowed)
+    if len(inputs) < 2:
+        return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
+    names = {v.name for v in inputs}
+    subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    subject_options = SubjectOptions(scale=options.scale)
+    try:
+        result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+        stability = check_stability(subject_tracks, inputs, result, subject_options)
+    except SubjectCalibrationError as error:
+        warnings.append(f"subject path: {error}")
+        for video in unposed:
+            for frame in results[video.info.name]:
+                results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
+        return {"used": False, "why": str(error), "anchors": anchors}
+    if not stability.checked:
+        warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
+    posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
+    metric = result.metric or bool(anchors)
+    if not metric:
+        warnings.append(
+            "subject path without background anchors or --scale: the units are arbitrary "
+            "(give --scale POINT_A,POINT_B,METRES)"
+        )
+    log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
+    return _report(result, stability, posed, anchors, metric)
+
+
+def _subject_videos(
+    static: list[VideoPlan],
+    tracked: set[str],
+    results: dict[str, dict[int, FramePose]],
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    anchors_allowed: bool,
+) -> tuple[list[SubjectVideo], list[str]]:
+    """The tracked static videos as the subject path's inputs, with the background's pose (an anchor) and
+    intrinsics where it has them; returns the inputs and the anchors' names."""
     inputs = []
     anchors = []
     for video in static:
@@ -84,23 +119,19 @@ def pose_from_subject(
                 cam_from_world=pose,
             )
         )
-    if len(inputs) < 2:
-        return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
-    names = {v.name for v in inputs}
-    subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
-    subject_options = SubjectOptions(scale=options.scale)
-    try:
-        result = calibrate_from_subject(subject_tracks, inputs, subject_options)
-        stability = check_stability(subject_tracks, inputs, result, subject_options)
-    except SubjectCalibrationError as error:
-        warnings.append(f"subject path: {error}")
-        for video in unposed:
-            for frame in results[video.info.name]:
-                results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
-        return {"used": False, "why": str(error), "anchors": anchors}
-    by_name = {v.info.name: v for v in videos}
-    if not stability.checked:
-        warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
+    return inputs, anchors
+
+
+def _apply(
+    result: SubjectResult,
+    stability: Stability,
+    anchors: list[str],
+    by_name: dict[str, VideoPlan],
+    results: dict[str, dict[int, FramePose]],
+    warnings: list[str],
+) -> list[str]:
+    """Every wanted frame of a camera the subject path posed (and the data determine) takes its pose; the others
+    say why not. Returns the names of the posed videos."""
     posed = []
     for camera in result.cameras:
         if camera.name in anchors:
@@ -122,13 +153,13 @@ def pose_from_subject(
     for name, reason in result.failed.items():
         if name in results and _posed(results[name]) is None:
             results[name] = {f: FramePose(pose=None, reason=f"subject path: {reason}") for f in results[name]}
-    metric = result.metric or bool(anchors)
-    if not metric:
-        warnings.append(
-            "subject path without background anchors or --scale: the units are arbitrary "
-            "(give --scale POINT_A,POINT_B,METRES)"
-        )
-    log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
+    return posed
+
+
+def _report(
+    result: SubjectResult, stability: Stability, posed: list[str], anchors: list[str], metric: bool
+) -> dict[str, Any]:
+    """The report's `subject` section after a calibration."""
     return {
         "used": True,
         "posed": posed,

@@ -20,19 +20,15 @@ import cv2
 import numpy as np
 
 from sfm.frames import Resize
-from sfm.video import VideoInfo, read_frames
+from sfm.video import ProbedVideo, read_frames
 
 log = logging.getLogger(__name__)
 
 WORK_LONG_SIDE = 640  # motion is measured on frames of this long side (pixels)
 MIN_CORNERS = 20  # fewer trackable background corners: the test cannot decide, the video counts as moving
-
-
-@dataclass(kw_only=True)
-class StaticOptions:
-    samples: int = 24  # frames sampled evenly along the video for the test and the median image
-    max_shift: float = 0.006  # static when no sampled frame moves the background by more (fraction of long side)
-    min_tracked: float = 0.2  # share of background corners that must survive the forward-backward check
+SAMPLES = 24  # frames sampled evenly along the video for the test and the median image
+MAX_SHIFT = 0.006  # static when no sampled frame moves the background by more (fraction of long side)
+MIN_TRACKED = 0.2  # share of background corners that must survive the forward-backward check
 
 
 @dataclass(kw_only=True)
@@ -59,7 +55,7 @@ class MotionTest:
         }
 
 
-def sample_frames(info: VideoInfo, count: int) -> np.ndarray:
+def sample_frames(info: ProbedVideo, count: int) -> np.ndarray:
     """Up to `count` frame numbers spread evenly over the video, first and last included."""
     return np.unique(np.round(np.linspace(0, info.num_frames - 1, min(count, info.num_frames))).astype(np.int64))
 
@@ -93,15 +89,11 @@ def _moving_pixels(stack: np.ndarray, median: np.ndarray) -> np.ndarray:
     return differs.mean(axis=0) > 0.3
 
 
-def measure_motion(
-    info: VideoInfo,
-    options: StaticOptions,
-    subject_mask: np.ndarray | None = None,
-) -> MotionTest:
+def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) -> MotionTest:
     """Measure whether the camera of `info` moves (the sampled frame numbers are in the test's `frames`).
 
     subject_mask: (H, W) uint8 at WORK_LONG_SIDE, 0 where the tracked subject is (optional)."""
-    frames = sample_frames(info, options.samples)
+    frames = sample_frames(info, SAMPLES)
     work = Resize.for_video(info, WORK_LONG_SIDE)
     grays = np.stack([_gray(image, work) for _, image in read_frames(info.path, frames)])
     if len(frames) < 2:
@@ -136,9 +128,9 @@ def measure_motion(
         good &= np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 1.0
         tracked.append(float(good.mean()))
         shifts.append(_camera_shift(corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good], gray.shape) * to_original)
-    limit = options.max_shift * max(info.width, info.height)
+    limit = MAX_SHIFT * max(info.width, info.height)
     worst = int(np.argmax(shifts))
-    if min(tracked) < options.min_tracked:
+    if min(tracked) < MIN_TRACKED:
         at = int(np.argmin(tracked))
         static = False
         reason = f"moving: only {tracked[at]:.0%} of {count} background corners tracked into frame {int(frames[at])}"
@@ -153,7 +145,7 @@ def measure_motion(
     )
 
 
-def background_image(info: VideoInfo, frames: np.ndarray, resize: Resize) -> np.ndarray:
+def background_image(info: ProbedVideo, frames: np.ndarray, resize: Resize) -> np.ndarray:
     """The temporal median (BGR, SfM pixels) of `frames`: a subject that moves through the view disappears."""
     images = [
         cv2.resize(image, (resize.width, resize.height), interpolation=cv2.INTER_AREA) if resize.scale != 1.0 else image
@@ -166,4 +158,4 @@ def background_image(info: VideoInfo, frames: np.ndarray, resize: Resize) -> np.
     return median
 
 
-__all__ = ["MotionTest", "StaticOptions", "background_image", "measure_motion", "sample_frames"]
+__all__ = ["MotionTest", "background_image", "measure_motion", "sample_frames"]

@@ -23,7 +23,7 @@ VFR_TOLERANCE = 0.05
 
 
 @dataclass(kw_only=True)
-class VideoInfo:
+class ProbedVideo:
     """What the decoder says about one video. `times`: (F,) seconds of each decoded frame from the first."""
 
     path: Path
@@ -73,7 +73,7 @@ def _open(path: Path) -> cv2.VideoCapture:
     return capture
 
 
-def probe_video(path: str | Path) -> VideoInfo:
+def probe_video(path: str | Path) -> ProbedVideo:
     """Decode every frame header once to count frames and read their timestamps."""
     path = Path(path)
     capture = _open(path)
@@ -106,7 +106,7 @@ def probe_video(path: str | Path) -> VideoInfo:
                 fix="re-encode the video with a constant frame rate",
             )
     stamps = stamps - stamps[0]
-    info = VideoInfo(
+    info = ProbedVideo(
         path=path,
         name=video_name(path),
         width=width,

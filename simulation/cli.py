@@ -1,4 +1,8 @@
-"""Subcommands `simulate` (paper protocol, phones, or the flight scene) and `evaluate` (accuracy vs truth.csv)."""
+"""Subcommands `simulate` (paper protocol, phones, or the flight scene) and `evaluate` (accuracy vs truth.csv).
+
+The simulators' defaults load numpy and scipy: `dynrecon` builds these parsers only when one of `COMMANDS` is chosen,
+and the simulators load in the handlers.
+"""
 
 from __future__ import annotations
 
@@ -9,13 +13,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError
-from simulation import evaluate as evaluate_module
-from simulation import flight as flight_module
-from simulation import phones as phone_capture
-from simulation import simulate as simulate_module
 
+COMMANDS = {
+    "simulate": "simulate unsynchronized cameras watching a motion-capture file (or a drone flight)",
+    "evaluate": "share of reconstructed points within 10..100 mm of the truth",
+}
 MODES = ("paper", "phones", "flight")
 # Options that only some modes read, by argparse dest; giving one to another mode is a mistake, not a no-op.
 MODE_OPTIONS = {
@@ -61,11 +64,20 @@ class _Boolean(argparse.BooleanOptionalAction):
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    _add_simulate(subparsers)
+    _add_evaluate(subparsers)
+
+
+def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
+    from simulation import flight as flight_module
+    from simulation import phones as phone_capture
+    from simulation import simulate as simulate_module
+
     defaults = simulate_module.SimulationOptions()
     phones = phone_capture.PhoneCaptureOptions()
     flight = flight_module.FlightOptions()
     sim = subparsers.add_parser(
-        "simulate", help="simulate unsynchronized cameras watching a motion-capture file (or a drone flight)",
+        "simulate", help=COMMANDS["simulate"],
         description="--mode paper (default): the seed paper's protocol, static virtual cameras (1000x1000 px, "
                     "f = 1000) around the motion, each mocap sample seen by one camera. --mode phones: each "
                     "camera records on its own clock (own fps, start offset, optional drift and jitter), "
@@ -130,8 +142,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                             f"{flight.distance_m[0]:g},{flight.distance_m[1]:g})")
     sim.set_defaults(func=_simulate)
 
+
+def _add_evaluate(subparsers: argparse._SubParsersAction) -> None:
     ev = subparsers.add_parser(
-        "evaluate", help="share of reconstructed points within 10..100 mm of the truth",
+        "evaluate", help=COMMANDS["evaluate"],
         description="Compare DIR/points3d.csv with DIR/truth.csv row by row (video, frame, point).")
     ev.add_argument("dir", type=Path, help="folder with points3d.csv (and truth.csv unless --truth)")
     ev.add_argument("--truth", type=Path, default=None, help="truth.csv of the simulation")
@@ -171,6 +185,8 @@ def _check_mode(args: argparse.Namespace) -> set[str]:
 
 def _capture_fields(args: argparse.Namespace, given: set[str]) -> dict[str, Any]:
     """CaptureOptions fields the user gave (the mode's defaults fill the rest)."""
+    from simulation.phones import Timestamps
+
     fields: dict[str, Any] = {}
     plain = {"cameras": "cameras", "noise": "noise_px", "miss": "miss", "seed": "seed", "drift_ppm": "drift_ppm",
              "jitter_ms": "jitter_ms", "handheld": "handheld", "shake_mm": "shake_mm", "shake_deg": "shake_deg",
@@ -183,11 +199,16 @@ def _capture_fields(args: argparse.Namespace, given: set[str]) -> dict[str, Any]
     if "offsets" in given:
         fields["offset_s"] = _pair(args.offsets, "--offsets")
     if args.vfr:
-        fields["timestamps"] = phone_capture.Timestamps.VFR
+        fields["timestamps"] = Timestamps.VFR
     return fields
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    from dynrecon.atomic import require_writable
+    from simulation import flight as flight_module
+    from simulation import phones as phone_capture
+    from simulation import simulate as simulate_module
+
     given = _check_mode(args)
     require_writable(args.out)  # a traceback after the simulation otherwise
     if args.mode == "paper":
@@ -232,6 +253,8 @@ def _clocks(out: Path) -> list[dict[str, Any]]:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from simulation import evaluate as evaluate_module
+
     accuracy = evaluate_module.run(args.dir, args.truth)
     print(json.dumps(accuracy.as_dict()) if args.json else accuracy.table())  # noqa: T201
     return 0

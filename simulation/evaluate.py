@@ -23,7 +23,9 @@ THRESHOLDS_MM = (10.0, 20.0, 30.0, 40.0, 50.0, 100.0)
 
 
 @dataclass(kw_only=True)
-class Accuracy:
+class ReconstructionAccuracy:
+    """Shares of points under each error threshold, and the errors themselves (`evaluate`)."""
+
     thresholds: tuple[float, ...]  # in the units of the files (mm for simulations)
     share_under: np.ndarray  # (K,) fraction of scored points with error < threshold (failures count as above)
     share_under_observed: np.ndarray  # (K,) the same over points the truth marks observed (NaN if none)
@@ -68,7 +70,7 @@ def _shares(errors: np.ndarray, thresholds: tuple[float, ...]) -> np.ndarray:
 
 
 def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float, ...] = THRESHOLDS_MM, *,
-             estimate_path: Path | None = None, truth_path: Path | None = None) -> Accuracy:
+             estimate_path: Path | None = None, truth_path: Path | None = None) -> ReconstructionAccuracy:
     """Compare `estimate` with `truth` row by row; both must have the same (video, frame) rows and points."""
     if not thresholds or any(not t > 0 for t in thresholds):
         raise InputError(None, f"thresholds must be positive numbers, got {thresholds}")
@@ -102,7 +104,7 @@ def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float,
     errors = errors_fp[has_truth]
     observed = truth.observed[has_truth]
     finite = errors[np.isfinite(errors)]
-    accuracy = Accuracy(
+    accuracy = ReconstructionAccuracy(
         thresholds=tuple(float(t) for t in thresholds),
         share_under=_shares(errors, thresholds),
         share_under_observed=_shares(errors[observed], thresholds),
@@ -122,7 +124,7 @@ def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float,
 
 
 def run(directory: str | Path, truth_path: str | Path | None = None,
-        thresholds: tuple[float, ...] = THRESHOLDS_MM) -> Accuracy:
+        thresholds: tuple[float, ...] = THRESHOLDS_MM) -> ReconstructionAccuracy:
     """Score `DIR/points3d.csv` against `DIR/truth.csv` (or `truth_path`)."""
     directory = Path(directory)
     estimate_path = directory / "points3d.csv"

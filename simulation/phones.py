@@ -26,7 +26,7 @@ From Python:
     from simulation.phones import PhoneCaptureOptions, simulate_phones, run
     capture, record = simulate_phones(read_mocap(path), PhoneCaptureOptions(handheld=True, noise_px=1.0))
     capture.cameras, capture.tracks, capture.truth   # CameraSet, Tracks, FramePoints (extra "time", ...)
-    record.clocks                                    # list[VideoClock]: name, fps, offset_s, rate, drift
+    record.clocks                                    # list[TrueClock]: name, fps, offset_s, rate, drift
     run(path, out_dir, options)                      # writes cameras.json, tracks.csv, truth.csv,
                                                      # clocks_truth.json, simulation.json
 
@@ -51,6 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import DynreconError
+from reconstruct.clocks.model import Clock
 from reconstruct.outputs.mocap import Mocap, drop_incomplete, read_mocap, select_window
 from reconstruct.outputs.points import FramePoints, write_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
@@ -109,24 +110,32 @@ class PhoneCaptureOptions(CaptureOptions):
 
 
 @dataclass(kw_only=True)
-class VideoClock:
-    """The true clock of one video: global_time = offset_s + rate * own_time (+ the frame's jitter)."""
+class TrueClock:
+    """The true clock of one video: global_time = offset_s + rate * own_time (+ the frame's jitter), the affine
+    `reconstruct.clocks.model.Clock` that the solve recovers."""
 
     name: str
     fps: float  # nominal frame rate, as cameras.json reports it
     offset_s: float  # global time of frame 0 (may be before the window: those frames are absent)
     rate: float  # global seconds per own second, 1 + drift
-    drift: float  # dimensionless rate error
+    drift: float  # dimensionless rate error (the clock model's quadratic drift term is 0 here)
+
+    @property
+    def clock(self) -> Clock:
+        return Clock.affine(self.offset_s, self.rate)
 
     def global_time(self, own_time: np.ndarray) -> np.ndarray:
-        return self.offset_s + self.rate * np.asarray(own_time, dtype=float)
+        return self.clock.global_time(own_time)
+
+    def own_time(self, global_time: np.ndarray) -> np.ndarray:
+        return self.clock.own_time(global_time)
 
 
 @dataclass(kw_only=True)
 class CaptureRecord:
     """What the simulation drew, for clocks_truth.json, simulation.json and the tests."""
 
-    clocks: list[VideoClock]
+    clocks: list[TrueClock]
     timestamps: Timestamps
     jitter_ms: float
     frames: dict[str, int]  # posed frames per video
@@ -171,17 +180,17 @@ def _check_capture_options(options: CaptureOptions) -> None:
 # Clocks
 
 
-def draw_clocks(options: CaptureOptions, rng: np.random.Generator) -> list[VideoClock]:
+def draw_clocks(options: CaptureOptions, rng: np.random.Generator) -> list[TrueClock]:
     """One true clock per camera `cam0..`: nominal rate, start offset and drift."""
     rates = options.fps if options.fps is not None else tuple(
         DEFAULT_FPS[c % len(DEFAULT_FPS)] for c in range(options.cameras))
     offsets = rng.uniform(options.offset_s[0], options.offset_s[1], size=options.cameras)
     drifts = rng.uniform(-1.0, 1.0, size=options.cameras) * options.drift_ppm * 1e-6
-    return [VideoClock(name=f"cam{c}", fps=float(rates[c]), offset_s=float(offsets[c]), rate=1.0 + float(drifts[c]),
-                       drift=float(drifts[c])) for c in range(options.cameras)]
+    return [TrueClock(name=f"cam{c}", fps=float(rates[c]), offset_s=float(offsets[c]), rate=1.0 + float(drifts[c]),
+                      drift=float(drifts[c])) for c in range(options.cameras)]
 
 
-def capture_times(clock: VideoClock, span: tuple[float, float], jitter_s: float,
+def capture_times(clock: TrueClock, span: tuple[float, float], jitter_s: float,
                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Frame numbers (N,) whose nominal time lies in `span` (global s) and their true capture times (N,).
 
@@ -338,7 +347,7 @@ def capture_scene(position: Callable[[np.ndarray], np.ndarray], valid: Callable[
         inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & \
             (uv[..., 1] <= height - 0.5)
         # VFR: the capture instant on the camera's own clock; CFR: the nominal frame time.
-        own = (times - clock.offset_s) / clock.rate if options.timestamps is Timestamps.VFR else frames / clock.fps
+        own = clock.own_time(times) if options.timestamps is Timestamps.VFR else frames / clock.fps
         videos.append(VideoCameras(
             name=clock.name, width=width, height=height, fps=clock.fps,
             frames=[FrameCamera(frame=int(f), K=K.copy(), R=Rs[i].copy(), t=ts[i].copy(), time=float(own[i]))

@@ -1,21 +1,39 @@
-"""2D point tracks through every video. Owns the `tracks.csv` contract (`tracking.tracks`).
+"""2D point tracks through every video. Owns `tracks.csv` (`tracking.tracks`) and reads `labels.csv`
+(`tracking.labels`), the clicks of the labeling page.
 
-`tracking.propagate.track_video` carries labels through one in-memory frame source (the labeling page's
-"track" button); `tracking.run` does the whole workspace (`dynrecon track WS`).
+`tracking.track(WS, out, options)` does the whole workspace (`dynrecon track WS`, the stage: `tracking.stage.run`);
+`tracking.track_video` carries labels through one in-memory frame source (the labeling page's "track" button).
+Everything here loads on first use, so that importing `tracking.tracks` stays cheap (no OpenCV, no tracker).
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import TYPE_CHECKING
+import importlib
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from tracking.options import TrackOptions
+    from tracking.options import Blend, Method, TrackOptions
+    from tracking.propagate import track_video
+    from tracking.stage import run as track
+    from tracking.tracks import Tracks, read_tracks, write_tracks
+
+__all__ = ["Blend", "Method", "TrackOptions", "Tracks", "read_tracks", "track", "track_video", "write_tracks"]
+
+# public name -> (module, name in that module)
+_PUBLIC = {
+    "track": ("tracking.stage", "run"),
+    "track_video": ("tracking.propagate", "track_video"),
+    "TrackOptions": ("tracking.options", "TrackOptions"),
+    "Method": ("tracking.options", "Method"),
+    "Blend": ("tracking.options", "Blend"),
+    "Tracks": ("tracking.tracks", "Tracks"),
+    "read_tracks": ("tracking.tracks", "read_tracks"),
+    "write_tracks": ("tracking.tracks", "write_tracks"),
+}
 
 
-def run(workspace: str | Path, out: str | Path | None = None, options: TrackOptions | None = None, *,
-        videos: dict[str, Path] | list[Path] | None = None) -> Path:
-    """`tracking.stage.run`; imported late so that `tracking.tracks` stays cheap to import."""
-    from tracking.stage import run as run_stage
-
-    return run_stage(workspace, out, options, videos=videos)
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'tracking' has no attribute {name!r}")
+    module, attribute = _PUBLIC[name]
+    return getattr(importlib.import_module(module), attribute)

@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tracking.propagate import SOURCE_LABEL, Labels, TrackedPoint
+from tracking.propagate import Labels, TrackedPoint
 from tracking.synthetic import SyntheticVideo
+from tracking.tracks import SOURCE_LABEL
 
 
 def labels_every(video: SyntheticVideo, step: int, offset: int = 0) -> Labels:

@@ -1,10 +1,19 @@
-"""Subcommands of the `tracking` stage: `track` (propagate labels) and `import-tracks` (other tools'
-points)."""
+"""Subcommands of the `tracking` stage: `track` (propagate labels) and `import-tracks` (other tools' points).
+
+The `track` parser reads its defaults from the light `tracking.options`; `import-tracks` loads the importers (and
+`dynrecon` builds both only when one of `COMMANDS` is chosen); the stages load in the handlers.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+COMMANDS = {
+    "track": "carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
+    "import-tracks": "import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board "
+                     "corners found in videos into tracks.csv",
+}
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -18,8 +27,7 @@ def _add_track(subparsers: argparse._SubParsersAction) -> None:
 
     defaults = TrackOptions()
     parser = subparsers.add_parser(
-        "track",
-        help="carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
+        "track", help=COMMANDS["track"],
         description="Headless version of the labeling page's 'track' button. Videos come from --videos, else "
                     "WS/labeling.json, else WS/videos/*; a video's name is its file stem.")
     parser.add_argument("workspace", type=Path, metavar="WS", help="workspace folder with labels.csv")
@@ -60,9 +68,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     from tracking.importing import Format
 
     parser = subparsers.add_parser(
-        "import-tracks",
-        help="import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board corners "
-             "found in videos into tracks.csv",
+        "import-tracks", help=COMMANDS["import-tracks"],
         description="Rows of other videos and manual labels already in the output are kept; the imported "
                     "videos' other rows are replaced.")
     parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUT",

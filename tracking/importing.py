@@ -19,8 +19,7 @@ from dynrecon.errors import InputError
 from tracking.detections import Detection
 from tracking.import_dlc import read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
-from tracking.propagate import SOURCE_LABEL
-from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
 

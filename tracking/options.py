@@ -25,30 +25,25 @@ class Blend(enum.Enum):
 
 @dataclass(kw_only=True)
 class TrackOptions:
-    method: Method = Method.LK  # measured: as accurate as LK_CSRT on every rendered scenario, 3-10x faster
+    """What the CLI, the pipeline and the benchmarks vary; the fixed constants are in `tracking.propagate` and
+    `tracking.steps`."""
+
+    method: Method = Method.LK  # as accurate as LK_CSRT on every rendered scenario, and faster
     blend: Blend = Blend.WEIGHTED
     normalize: bool = True  # cancel global brightness changes (auto exposure) before tracking
     win_size: int = 21  # LK window side, pixels
-    max_level: int = 3  # LK pyramid levels above the full image
     fb_threshold: float = 1.0  # forward-backward error (pixels) above which an LK step counts as failed
-    min_ncc: float = 0.5  # normalized cross-correlation with the label's patch below which the track stops
     patch: int = 21  # side of the appearance patch compared with the label's patch, pixels
     accept_unrefined: bool = False  # keep a CSRT step that LK cannot confirm (at half the score)
-    fallback_box: int = 48  # side of the CSRT box around the point, pixels (the marker should fit in it)
     closure_check: bool = True  # drop a track that reaches the next label far from it, unless confirmed
-    keep_disagreeing: bool = True  # where they disagree, keep the likelier one (False: leave the frame out)
-    agree_px: float = 3.0  # forward and backward tracks farther apart than this disagree: keep the better
     score_memory: bool = True  # a track's score never rises again after a doubtful step (fewer drifts)
     min_score: float = 0.2  # tracked positions with a lower score are left out (unobserved)
-    margin: float = 2.0  # a point closer than this to the image border stops (it is leaving the frame)
 
     def __post_init__(self) -> None:
         # Programming errors (the CLI checks what users type): fail at construction, not deep inside a sweep.
-        if not 0.0 <= self.min_ncc < 1.0:
-            raise ValueError(f"min_ncc {self.min_ncc} must be in [0, 1)")
         if not 0.0 <= self.min_score <= 1.0:
             raise ValueError(f"min_score {self.min_score} must be in [0, 1]")
-        if self.fb_threshold <= 0.0 or self.agree_px <= 0.0:
-            raise ValueError("fb_threshold and agree_px must be positive")
-        if self.win_size < 5 or self.patch < 5 or self.fallback_box < 8 or self.max_level < 0:
-            raise ValueError("win_size and patch must be >= 5, fallback_box >= 8, max_level >= 0")
+        if self.fb_threshold <= 0.0:
+            raise ValueError("fb_threshold must be positive")
+        if self.win_size < 5 or self.patch < 5:
+            raise ValueError("win_size and patch must be >= 5")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -20,14 +19,17 @@ import numpy as np
 from tracking.frames import FrameSource
 from tracking.options import Blend, Method, TrackOptions
 from tracking.steps import brightness, csrt_step, lk_step, ncc, normalize_brightness, patch_at
+from tracking.tracks import SOURCE_LABEL, SOURCE_TRACK
 
 log = logging.getLogger(__name__)
 
+MIN_NCC = 0.5  # normalized cross-correlation with the label's patch below which the track stops
+AGREE_PX = 3.0  # forward and backward tracks farther apart than this (pixels) disagree: keep the likelier one
+FALLBACK_BOX_PX = 48  # side of the CSRT box around the point (the marker should fit in it)
+MARGIN_PX = 2.0  # a point closer than this to the image border stops (it is leaving the frame)
+
 # point -> frame -> (x, y), or None where the user marked the point "not visible here"
 Labels = Mapping[str, Mapping[int, tuple[float, float] | None]]
-
-SOURCE_LABEL = "label"
-SOURCE_TRACK = "track"
 
 
 class TrackedPoint(NamedTuple):
@@ -49,7 +51,7 @@ class _Track:
 
 # per point: frame -> (x, y, score) of one sweep
 _Sweep = dict[str, dict[int, tuple[float, float, float]]]
-# per point: for each track that reached the point's next label more than `agree_px` away from it, its frames
+# per point: for each track that reached the point's next label more than `AGREE_PX` away from it, its frames
 # in the order it visited them
 _Failed = dict[str, list[list[int]]]
 
@@ -99,7 +101,7 @@ def _confirmed_only(sweep: _Sweep, failed: _Failed, other: _Sweep, options: Trac
         for visited in tracks:
             agree = [i for i, frame in enumerate(visited) if frame in theirs and np.hypot(
                 sweep[point][frame][0] - theirs[frame][0], sweep[point][frame][1] - theirs[frame][1])
-                <= options.agree_px]
+                <= AGREE_PX]
             # Drift grows along a track: trust it up to the last frame the other side confirms, not after.
             for frame in visited[agree[-1] + 1 if agree else 0:]:
                 kept[point].pop(frame, None)
@@ -144,7 +146,7 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
                 reached = out[name].pop(frame)
                 arriving.frames.pop()
                 miss = np.inf if label is None else np.hypot(reached[0] - label[0], reached[1] - label[1])
-                if label is not None and miss > options.agree_px:
+                if label is not None and miss > AGREE_PX:
                     failed[name].append(arriving.frames)
             if label is not None:
                 template = patch_at(gray, label, options.patch)
@@ -184,11 +186,11 @@ def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: 
     """The new position and its score, or None when the step fails the forward-backward check, leaves the
     picture, or the patch there no longer looks like the label's."""
     height, width = cur.shape[:2]
-    m = options.margin
+    m = MARGIN_PX
     if not (fb <= options.fb_threshold and m <= xy[0] <= width - 1 - m and m <= xy[1] <= height - 1 - m):
         return None
     similarity = ncc(patch_at(cur, xy, options.patch), track.template)
-    s_app = (similarity - options.min_ncc) / (1.0 - options.min_ncc)
+    s_app = (similarity - MIN_NCC) / (1.0 - MIN_NCC)
     if s_app <= 0.0:
         return None
     s_fb = 1.0 - 0.5 * fb / options.fb_threshold
@@ -198,7 +200,7 @@ def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: 
 def _fallback(prev: np.ndarray, cur: np.ndarray, xy0: np.ndarray, track: _Track, options: TrackOptions
               ) -> tuple[np.ndarray, float] | None:
     """One CSRT step around the point, refined by LK from CSRT's answer."""
-    guess = csrt_step(prev, cur, xy0, options.fallback_box)
+    guess = csrt_step(prev, cur, xy0, FALLBACK_BOX_PX)
     if guess is None:
         return None
     refined, fb = lk_step(prev, cur, xy0.reshape(1, 2), options, guess=guess.reshape(1, 2))
@@ -249,11 +251,9 @@ def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] |
     wf, wb = closeness_f * f[2], closeness_b * b[2]
     distance = float(np.hypot(f[0] - b[0], f[1] - b[1]))
     better = f if wf >= wb else b
-    if distance > options.agree_px:
-        if not options.keep_disagreeing:
-            return None  # one of them drifted and nothing tells which: unobserved rather than maybe wrong
-        # Keep the likelier one, with a score that says it is a guess.
-        return better[0], better[1], better[2] * options.agree_px / distance
+    if distance > AGREE_PX:
+        # One of them drifted: keep the likelier one, with a score that says it is a guess.
+        return better[0], better[1], better[2] * AGREE_PX / distance
     score = 1.0 - (1.0 - f[2]) * (1.0 - b[2])  # two tracks that agree are more certain than either
     if options.blend is Blend.BEST:
         return better[0], better[1], score
@@ -263,10 +263,3 @@ def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] |
     y = (wf * f[1] + wb * b[1]) / (wf + wb)
     return x, y, score
 
-
-def run(workspace: str | Path, out: str | Path | None = None, options: TrackOptions | None = None, *,
-        videos: dict[str, Path] | list[Path] | None = None) -> Path:
-    """`tracking.stage.run` (the whole workspace), re-exported here for the labeling page."""
-    from tracking.stage import run as run_stage  # late: stage imports this module
-
-    return run_stage(workspace, out, options, videos=videos)

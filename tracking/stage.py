@@ -12,8 +12,8 @@ from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
 from tracking.frames import VideoFrames
 from tracking.options import TrackOptions
-from tracking.propagate import SOURCE_LABEL, TrackedPoint, track_video
-from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.propagate import TrackedPoint, track_video
+from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 from tracking.workspace import LABELS_NAME, TRACKS_NAME, AllLabels, read_labels, workspace_videos
 
 log = logging.getLogger(__name__)

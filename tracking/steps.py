@@ -8,11 +8,13 @@ import numpy as np
 
 from tracking.options import TrackOptions
 
+LK_LEVELS = 3  # LK pyramid levels above the full image
+
 
 def _lk_params(options: TrackOptions) -> dict:
     return {
         "winSize": (options.win_size, options.win_size),
-        "maxLevel": options.max_level,
+        "maxLevel": LK_LEVELS,
         "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
     }
 

@@ -20,6 +20,10 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+ZOOM = 0.05  # amplitude of the camera's relative scale change over the video
+OCCLUDER_WIDTH = 0.08  # width of the occluding bar, as a fraction of the image width
+FPS = 30.0  # frame rate written into the video file
+
 
 @dataclass(kw_only=True)
 class SyntheticOptions:
@@ -31,14 +35,11 @@ class SyntheticOptions:
     speed: float = 3.0  # typical marker speed, pixels per frame
     pan: float = 1.5  # typical camera pan, pixels per frame
     rotation_deg: float = 3.0  # amplitude of the camera roll over the video
-    zoom: float = 0.05  # amplitude of the relative scale change over the video
     blur_samples: int = 5  # sub-frame renders averaged per frame (1: no motion blur)
     exposure: float = 0.6  # shutter open time as a fraction of the frame interval
     occluder: bool = True  # a bar sweeps across the picture during the middle half of the video
-    occluder_width: float = 0.08  # bar width as a fraction of the image width
     noise: float = 1.5  # sensor noise, standard deviation in gray levels
     flicker: float = 0.0  # auto-exposure flicker: standard deviation of a per-frame relative gain change
-    fps: float = 30.0
     fourcc: str = "FFV1"  # FFV1 in .avi is lossless; "mp4v" in .mp4 adds compression artefacts
     seed: int = 0
 
@@ -96,7 +97,7 @@ class _Scene:
         self.amp = np.minimum(amplitude, (0.45 * margin * np.array([w, h]))[None, :, None])
         self.spin = rng.uniform(-0.05, 0.05, options.markers)  # radians per frame
         self.cam_phase = rng.uniform(0, 2 * math.pi, 4)
-        self.occluder_tex = _texture(rng, h, max(4, int(options.occluder_width * w)) + 8, (1.0, 4.0))
+        self.occluder_tex = _texture(rng, h, max(4, int(OCCLUDER_WIDTH * w)) + 8, (1.0, 4.0))
 
     def marker_xy(self, t: float) -> np.ndarray:
         """(P, 2) marker centres in frame-0 picture coordinates."""
@@ -108,7 +109,7 @@ class _Scene:
         o = self.o
         n = max(o.frames, 1)
         angle = math.radians(o.rotation_deg) * math.sin(2 * math.pi * t / n + self.cam_phase[0])
-        scale = 1.0 + o.zoom * math.sin(2 * math.pi * t / n + self.cam_phase[1])
+        scale = 1.0 + ZOOM * math.sin(2 * math.pi * t / n + self.cam_phase[1])
         tx = o.pan * t + 0.3 * o.pan * n / (2 * math.pi) * math.sin(2 * math.pi * t / n + self.cam_phase[2])
         ty = 0.5 * o.pan * n / (2 * math.pi) * math.sin(2 * math.pi * t / n + self.cam_phase[3])
         cx, cy = o.width / 2, o.height / 2
@@ -194,7 +195,7 @@ def render_video(path: str | Path | None, options: SyntheticOptions | None = Non
     if path is not None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*options.fourcc), options.fps,
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*options.fourcc), FPS,
                                  (options.width, options.height))
         if not writer.isOpened():
             raise RuntimeError(f"cv2.VideoWriter cannot write {options.fourcc!r} to {path}")

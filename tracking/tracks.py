@@ -18,6 +18,9 @@ from dynrecon.errors import InputError
 from dynrecon.readers import parse_frame
 
 REQUIRED_COLUMNS = ("video", "frame", "point", "x", "y")
+# Values of the optional `source` column written by dynrecon (importers write their own, e.g. "charuco").
+SOURCE_LABEL = "label"  # a manual label, copied from labels.csv
+SOURCE_TRACK = "track"  # carried there by the tracker
 
 
 @dataclass(kw_only=True)

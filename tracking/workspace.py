@@ -13,13 +13,12 @@ import json
 from pathlib import Path
 
 from dynrecon.errors import InputError
-from labeling import labels as labeling_labels
+from tracking import labels as labels_csv
 
 CONFIG_NAME = "labeling.json"
 LABELS_NAME = "labels.csv"
 TRACKS_NAME = "tracks.csv"
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
-HIDDEN_SOURCES = ("hidden",)
 
 
 def workspace_videos(workspace: Path, given: list[Path] | None = None) -> dict[str, Path]:
@@ -72,11 +71,11 @@ AllLabels = dict[str, dict[str, dict[int, tuple[float, float] | None]]]
 
 def read_labels(path: Path) -> AllLabels:
     """`labels.csv` -> video -> point -> frame -> (x, y), or None for `source=hidden`. Missing file: no labels.
-    The format belongs to the labeling page (`labeling.labels`); this only regroups its rows for tracking."""
+    The rows come from `tracking.labels`; this only regroups them for tracking."""
     labels: AllLabels = {}
-    for (video, frame, point), label in labeling_labels.read_labels(path).items():
+    for (video, frame, point), label in labels_csv.read_labels(path).items():
         labels.setdefault(video, {}).setdefault(point, {})[frame] = (
-            None if label.source is labeling_labels.Source.HIDDEN else label.xy)
+            None if label.source is labels_csv.Source.HIDDEN else label.xy)
     return labels
 
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from reconstruct.clocks.estimate import Clocks
+from reconstruct.clocks.model import Clocks
 from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)

@@ -20,20 +20,20 @@ import logging
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from reconstruct.clocks.estimate import (
+from reconstruct.clocks.chain import chain_clocks
+from reconstruct.clocks.model import (
+    DEFAULT_FPS,
+    Clock,
     ClockModel,
-    ClockParams,
+    ClockSet,
     TimeSource,
-    chain_clocks,
-    cluster_covariance,
     frame_periods,
-    free_terms,
-    reference_coef,
+    video_centers,
 )
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import viewing_rays
@@ -42,30 +42,28 @@ log = logging.getLogger(__name__)
 
 # Frame rates a consumer video may have: the rate ratios tried for videos without decoder times or a known fps.
 COMMON_FPS = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0, 120.0)
-DEFAULT_FPS = 30.0
+MAD_TO_SIGMA = 1.4826
+COARSE_STEP_PERIODS = 0.5  # final grid step in frame periods of the slower video of a pair
+MAX_HYPOTHESES = 600  # offsets on the first, coarser grid of a pair (then the fine step around the best)
+MIN_OVERLAP = 12  # interpolated samples a hypothesis needs
+MIN_OVERLAP_SHARE = 0.15  # ... and this share of the shorter video's observed samples
+MAX_GAP_PERIODS = 2.5  # no interpolation across a gap longer than this (missing frames)
+DISTINCT_STEPS = 4  # the runner-up minimum lies more than this many grid steps away
+MIN_DISTINCTNESS = 1.15  # runner-up cost / best cost of a pair usable for the chain
+REFINE_ROUNDS = 3
+REFINE_THRESHOLDS = (8.0, 5.0, 4.0)  # samples kept per refinement round: gap below this many robust scales
+CLUSTER_S = 0.5  # residuals within this time of one video form one cluster of the covariance
 
 
 @dataclass(kw_only=True)
 class SearchOptions:
-    model: ClockModel = ClockModel.AFFINE
     max_points: int = 3  # points used by the coarse grid (the most observed ones)
     max_queries: int = 150  # frames per video and direction on the coarse grid
-    inlier_px: float = 8.0  # truncation of the pixel gap in the coarse cost
-    coarse_step_periods: float = 0.5  # final grid step in frame periods of the slower video of a pair
-    max_hypotheses: int = 600  # offsets on the first, coarser grid of a pair (then the fine step around the best)
-    min_overlap: int = 12  # interpolated samples a hypothesis needs
-    min_overlap_share: float = 0.15  # ... and this share of the shorter video's observed samples
-    max_gap_periods: float = 2.5  # no interpolation across a gap longer than this (missing frames)
-    distinct_steps: int = 4  # the runner-up minimum lies more than this many grid steps away
-    min_distinctness: float = 1.15  # runner-up cost / best cost of a pair usable for the chain
-    refine_rounds: int = 3
-    cluster_s: float = 0.5  # residuals within this time of one video form one cluster of the covariance
-    # Prior std of a rate around 1 for videos with decoder times or a known fps (0: none). Phone clocks run within
-    # ~50 ppm of true time; a far, noisy single point leaves the rate of a short video weakly determined.
+    inlier_px: float = 8.0  # truncation of the pixel gap in the coarse cost and in the comparison of starts
+    # Prior std of a rate around 1 for videos with decoder times or a known fps (0: none): phone clocks are quartz,
+    # while a far, noisy single point leaves the rate of a short video weakly determined.
     rate_prior: float = 2e-4
     max_residuals: int = 30000  # (frame, point, other video) samples in the joint refinement
-    time_source: list[TimeSource] = field(default_factory=list)  # per video; NOMINAL ones search frame rates
-    seed: int = 0
 
 
 @dataclass(kw_only=True)
@@ -87,7 +85,7 @@ class PairHypothesis:
 
 @dataclass(kw_only=True)
 class SearchResult:
-    params: ClockParams
+    params: ClockSet
     pairs: list[PairHypothesis]
     residual_px: float  # robust RMS gap over all samples at the solution
     video_residual_px: np.ndarray  # (N,)
@@ -97,7 +95,7 @@ class SearchResult:
 
 
 @dataclass
-class _Track:
+class _VideoRays:
     """One video's observations in own-time order."""
 
     own: np.ndarray  # (n,) increasing
@@ -128,7 +126,7 @@ class _Track:
         return centers, rays, self.focal[k]
 
 
-def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, max_gap_periods: float) -> list[_Track]:
+def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
     rays = viewing_rays(problem)[:, points]
     centers = problem.centers
     focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -137,8 +135,8 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, max_gap_perio
     for v in range(len(problem.video_names)):
         rows = np.flatnonzero(problem.video_index == v)
         rows = rows[np.argsort(own[rows], kind="stable")]
-        tracks.append(_Track(own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows],
-                             max_gap=max_gap_periods * float(periods[v])))
+        tracks.append(_VideoRays(own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows],
+                             max_gap=MAX_GAP_PERIODS * float(periods[v])))
     return tracks
 
 
@@ -169,7 +167,7 @@ def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: n
     return np.where(bad, np.nan, px)
 
 
-def _query(tracks: list[_Track], v: int, u: int, own_u: np.ndarray, rows: np.ndarray,
+def _query(tracks: list[_VideoRays], v: int, u: int, own_u: np.ndarray, rows: np.ndarray,
            smooth: bool = False) -> np.ndarray:
     """(m, P) gaps between video v's frames `rows` and video u's track interpolated at own_u (m,); `smooth`:
     continuous in own_u (clamped interpolation, unsigned depths)."""
@@ -189,7 +187,7 @@ def _rate_scales(source: TimeSource) -> np.ndarray:
     return np.array([1.0])
 
 
-def _grid_cost(tracks: list[_Track], v: int, u: int, qv: np.ndarray, qu: np.ndarray, alphas: np.ndarray,
+def _grid_cost(tracks: list[_VideoRays], v: int, u: int, qv: np.ndarray, qu: np.ndarray, alphas: np.ndarray,
                beta: float, need: int, c2: float, chunk_samples: int = 400_000) -> np.ndarray:
     """(A,) mean truncated squared gap of each hypothesis alpha (inf with fewer than `need` samples), vectorized
     over chunks of hypotheses."""
@@ -211,7 +209,7 @@ def _grid_cost(tracks: list[_Track], v: int, u: int, qv: np.ndarray, qu: np.ndar
     return cost
 
 
-def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, periods: np.ndarray,
+def search_pair(tracks: list[_VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray,
                 sources: list[TimeSource]) -> PairHypothesis | None:
     """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
     tv, tu = tracks[v], tracks[u]
@@ -219,8 +217,8 @@ def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, pe
     qu = _subsample(len(tu.own), options.max_queries)
     seen_v = np.isfinite(tv.rays[qv, :, 0])
     seen_u = np.isfinite(tu.rays[qu, :, 0])
-    need = max(options.min_overlap, int(options.min_overlap_share * min(seen_v.sum(), seen_u.sum())))
-    step = options.coarse_step_periods * float(np.nanmax([periods[v], periods[u]]))
+    need = max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
+    step = COARSE_STEP_PERIODS * float(np.nanmax([periods[v], periods[u]]))
     c2 = options.inlier_px ** 2
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
     best: PairHypothesis | None = None
@@ -228,13 +226,13 @@ def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, pe
         # own_u = alpha + beta own_v overlaps when alpha spans [u start - beta v end, u end - beta v start].
         lo = tu.own[0] - beta * tv.own[-1]
         hi = tu.own[-1] - beta * tv.own[0]
-        coarse = max(step, (hi - lo) / options.max_hypotheses)
+        coarse = max(step, (hi - lo) / MAX_HYPOTHESES)
         alphas = np.arange(lo, hi + coarse, coarse)
         cost = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
         if not np.isfinite(cost).any():
             continue
         i = int(np.argmin(cost))
-        far = np.abs(np.arange(len(alphas)) - i) > options.distinct_steps
+        far = np.abs(np.arange(len(alphas)) - i) > DISTINCT_STEPS
         runner = float(np.min(cost[far])) if far.any() else np.inf
         alpha, best_cost = float(alphas[i]), float(cost[i])
         if coarse > step:  # the basin is wider than the coarse step: settle the offset on the fine step
@@ -254,10 +252,10 @@ def search_pair(tracks: list[_Track], v: int, u: int, options: SearchOptions, pe
     return best
 
 
-def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray,
-           min_distinctness: float) -> tuple[np.ndarray, np.ndarray]:
+def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Clock coefficients (N, 3) by composing pair relations along a maximum spanning tree of distinctness."""
-    usable = {(p.v, p.u): p for p in pairs if p.distinctness >= min_distinctness and np.isfinite(p.cost)}
+    usable = {(p.v, p.u): p for p in pairs if p.distinctness >= MIN_DISTINCTNESS and np.isfinite(p.cost)}
     strength = np.zeros((num_videos, num_videos))
     for (v, u), p in usable.items():
         strength[v, u] = strength[u, v] = min(p.distinctness, 1e6)
@@ -272,10 +270,10 @@ def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.n
 class _Joint:
     """Robust least squares over the clocks of the free videos, on the gaps of every ordered pair of videos."""
 
-    def __init__(self, tracks: list[_Track], centers: np.ndarray, ref_coef: np.ndarray, ref: int, free: list[int],
+    def __init__(self, tracks: list[_VideoRays], centers: np.ndarray, ref_coef: np.ndarray, ref: int, free: list[int],
                  model: ClockModel, max_residuals: int, block_s: float, rate_sigma: np.ndarray):
         self.raw, self.tracks, self.centers, self.ref, self.free = tracks, list(tracks), centers, ref, free
-        self.k = free_terms(model)
+        self.k = model.free_terms
         # Prior rate 1 +- rate_sigma (per video, inf = none) as extra residuals, in units of the gap scale.
         self.rate_sigma = rate_sigma
         self.prior_videos = [i for i, v in enumerate(free) if np.isfinite(rate_sigma[v])] if self.k >= 2 else []
@@ -301,22 +299,17 @@ class _Joint:
             coef[v, :self.k] = theta[i * self.k:(i + 1) * self.k]
         return coef
 
-    def _own_in(self, coef: np.ndarray, u: int, g: np.ndarray) -> np.ndarray:
-        """Own time of video u at global times g: invert a + b s + c s^2 (Newton from the affine solution)."""
-        a, b, c = coef[u]
-        s = (g - a) / b
-        for _ in range(3 if c != 0 else 0):
-            s -= (a + b * s + c * s * s - g) / (b + 2 * c * s)
-        return s + self.centers[u]
+    def clock(self, coef: np.ndarray, v: int) -> Clock:
+        """Video v's clock of coefficients `coef (N, 3)`."""
+        return Clock(center=self.centers[v], coef=coef[v])
 
     def gaps(self, theta: np.ndarray, smooth: bool = False) -> dict[tuple[int, int], np.ndarray]:
         coef = self.coefficients(theta)
         out = {}
         for v, u in self.pairs:
             rows = self.rows[v]
-            s = self.tracks[v].own[rows] - self.centers[v]
-            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
-            out[(v, u)] = _query(self.tracks, v, u, self._own_in(coef, u, g), rows, smooth=smooth)
+            g = self.clock(coef, v).global_time(self.tracks[v].own[rows])
+            out[(v, u)] = _query(self.tracks, v, u, self.clock(coef, u).own_time(g), rows, smooth=smooth)
         return out
 
     def clean(self, theta: np.ndarray, threshold: float) -> int:
@@ -329,9 +322,8 @@ class _Joint:
         for v in active:
             track = self.raw[v]
             rows = np.arange(len(track.own))
-            s = track.own - self.centers[v]
-            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
-            gaps = np.stack([_query(self.raw, v, u, self._own_in(coef, u, g), rows) for u in active if u != v])
+            g = self.clock(coef, v).global_time(track.own)
+            gaps = np.stack([_query(self.raw, v, u, self.clock(coef, u).own_time(g), rows) for u in active if u != v])
             if not len(gaps):
                 continue
             with warnings.catch_warnings():  # observations outside every other video's span: all-NaN, kept
@@ -341,7 +333,7 @@ class _Joint:
             dropped += int(bad.sum())
             rays = track.rays.copy()
             rays[bad] = np.nan
-            cleaned[v] = _Track(own=track.own, centers=track.centers, rays=rays, focal=track.focal,
+            cleaned[v] = _VideoRays(own=track.own, centers=track.centers, rays=rays, focal=track.focal,
                                 max_gap=track.max_gap)
         self.tracks = cleaned
         return dropped
@@ -380,15 +372,14 @@ class _Joint:
         for v in active:
             track = self.tracks[v]
             rows = np.arange(len(track.own))
-            s = track.own - self.centers[v]
-            g = coef[v, 0] + coef[v, 1] * s + coef[v, 2] * s * s
+            g = self.clock(coef, v).global_time(track.own)
             num = np.zeros(len(rows))
             den = np.zeros(len(rows))
             for u in active:
                 if u == v:
                     continue
                 h = 0.25 * float(periods[u])
-                own_u = self._own_in(coef, u, g)
+                own_u = self.clock(coef, u).own_time(g)
                 vectors = []
                 for shift in (0.0, -h, h):
                     cu, ru, fu = self.tracks[u].interpolate(own_u + shift)
@@ -403,7 +394,7 @@ class _Joint:
             if usable.sum() < 5:
                 continue
             delta = -num[usable] / den[usable]
-            total = MAD * float(np.median(np.abs(delta - np.median(delta))))
+            total = MAD_TO_SIGMA * float(np.median(np.abs(delta - np.median(delta))))
             noise_var = float(np.median(noise_px ** 2 / den[usable]))
             spread[v] = math.sqrt(max(total * total - noise_var, 0.0))
         return spread
@@ -431,12 +422,12 @@ class _Refined:
 def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.ndarray) -> _Refined:
     """Rounds of: robust scale of the gaps, samples below a shrinking multiple of it, soft-L1 least squares."""
     scale = math.nan
-    for round_ in range(options.refine_rounds):
+    for round_ in range(REFINE_ROUNDS):
         values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
         if len(values) <= len(theta):
             break
-        scale = max(MAD * float(np.median(values)), 0.1)
-        threshold = max((8.0, 5.0, 4.0)[min(round_, 2)] * scale, 1.0)
+        scale = max(MAD_TO_SIGMA * float(np.median(values)), 0.1)
+        threshold = max(REFINE_THRESHOLDS[min(round_, 2)] * scale, 1.0)
         joint.prior_scale = scale
         joint.clean(theta, threshold)
         if joint.fix_mask(theta, threshold) <= len(theta):
@@ -446,7 +437,7 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
         theta = fit.x
     values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
     if len(values):
-        scale = max(MAD * float(np.median(values)), 0.1)
+        scale = max(MAD_TO_SIGMA * float(np.median(values)), 0.1)
     cleaned, joint.tracks = joint.tracks, joint.raw  # starts are compared on the same (raw) observations
     raw = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
     joint.tracks = cleaned
@@ -458,6 +449,30 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
         weights = 1.0 / np.sqrt(1.0 + (r / scale) ** 2)  # soft-L1 IRLS weights
         cov = cluster_covariance(J, r, weights, joint.clusters())
     return _Refined(theta=theta, cov=cov, scale=scale, cost=cost, coverage=len(values))
+
+
+def cluster_covariance(J: np.ndarray, r: np.ndarray, weights: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Cluster-robust (sandwich) covariance of a weighted least-squares estimate: H^-1 M H^-1 with H = J^T W J and
+    M = sum over clusters of (J_c^T W_c r_c)(J_c^T W_c r_c)^T, times n / (n - p).
+
+    Residuals of neighbouring frames share interpolation errors and neighbours, so the plain sigma^2 H^-1 is too
+    optimistic; clusters of CLUSTER_S absorb that correlation.
+    """
+    n, p = J.shape
+    cov = np.full((p, p), np.inf)
+    if n <= p:
+        return cov
+    H = J.T @ (weights[:, None] * J)
+    scores = J * (weights * r)[:, None]  # (n, p)
+    _, cluster_index = np.unique(clusters, return_inverse=True)
+    summed = np.zeros((int(cluster_index.max()) + 1, p))
+    np.add.at(summed, cluster_index, scores)
+    M = summed.T @ summed
+    try:
+        H_inv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return cov
+    return (H_inv @ M @ H_inv) * n / (n - p)
 
 
 def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
@@ -472,8 +487,6 @@ def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.nd
     return np.stack(columns, axis=1)
 
 
-MAD = 1.4826
-
 
 def _parameter_steps(period: float, own: np.ndarray, k: int) -> np.ndarray:
     """Typical changes of (a, b, c): a tenth of a frame period at the ends of the video."""
@@ -481,43 +494,59 @@ def _parameter_steps(period: float, own: np.ndarray, k: int) -> np.ndarray:
     return np.array([0.1 * period, 0.1 * period / half, 0.1 * period / half ** 2])[:k]
 
 
-def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOptions | None = None,
-                  start: ClockParams | None = None) -> SearchResult:
-    """Clocks of all videos from the tracks; `start` (link clocks of W) is tried as a second start."""
+def search_clocks(problem: Problem, own: np.ndarray, ref: int, model: ClockModel = ClockModel.AFFINE,
+                  sources: list[TimeSource] | None = None, options: SearchOptions | None = None,
+                  start: ClockSet | None = None) -> SearchResult:
+    """Clocks of all videos from the tracks (`sources`: each video's own time source, NOMINAL ones search frame
+    rates; default DECODER); `start` (link clocks of W) is tried as a second start."""
     options = options or SearchOptions()
     N = len(problem.video_names)
-    names = problem.video_names
-    sources = options.time_source or [TimeSource.DECODER] * N
-    observed = problem.observed
-    counts = observed.sum(axis=0)
+    sources = sources or [TimeSource.DECODER] * N
+    counts = problem.observed.sum(axis=0)
     counts[counts == 0] = -1
+    periods = frame_periods(own, problem.video_index, N)
+    centers = video_centers(own, problem.video_index, N)
+    pairs, coef, reached = _pairs_and_chain(problem, own, ref, sources, options, counts, periods, centers)
+    full_tracks = _tracks(problem, own, np.flatnonzero(counts > 0))
+    starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
+    if start is not None and start.identified.sum() > 1:
+        starts.append(("links", start.coef.copy(), start.identified.copy()))
+    best = _best_start(starts, full_tracks, centers, ref, model, sources, options, periods)
+    return _search_result(best, pairs, centers, ref, periods, problem.video_names)
+
+
+def _pairs_and_chain(problem: Problem, own: np.ndarray, ref: int, sources: list[TimeSource],
+                     options: SearchOptions, counts: np.ndarray, periods: np.ndarray, centers: np.ndarray
+                     ) -> tuple[list[PairHypothesis], np.ndarray, np.ndarray]:
+    """Steps 1 and 2: the coarse pair searches on the most observed points, chained into start clocks."""
+    N = len(problem.video_names)
+    names = problem.video_names
     coarse_points = np.argsort(-counts, kind="stable")[:options.max_points]
     coarse_points = coarse_points[counts[coarse_points] > 0]
-    periods = frame_periods(own, problem.video_index, N)
-    centers = np.array([float(np.mean(own[problem.video_index == v])) for v in range(N)])
-    warnings: list[str] = []
-    tracks = _tracks(problem, own, coarse_points, options.max_gap_periods)
+    tracks = _tracks(problem, own, coarse_points)
     pairs = [p for v in range(N) for u in range(v + 1, N)
              if (p := search_pair(tracks, v, u, options, periods, sources)) is not None]
     for p in pairs:
         log.info("clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f",
                  names[p.v], names[p.u], p.alpha, p.beta, p.cost, p.distinctness)
-    coef, reached = _chain(pairs, ref, N, centers, options.min_distinctness)
-    all_points = np.flatnonzero(counts > 0)
-    full_tracks = _tracks(problem, own, all_points, options.max_gap_periods)
-    starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
+    coef, reached = _chain(pairs, ref, N, centers)
+    return pairs, coef, reached
+
+
+def _best_start(starts: list[tuple[str, np.ndarray, np.ndarray]], full_tracks: list[_VideoRays],
+                centers: np.ndarray, ref: int, model: ClockModel, sources: list[TimeSource],
+                options: SearchOptions, periods: np.ndarray) -> tuple[tuple[int, float], str, _Refined, _Joint] | None:
+    """Step 3 from every start: the refinement that clocks the most videos, then at the lower truncated cost."""
+    N = len(centers)
     # Decoder clocks are quartz: rate 1 within a few hundred ppm. Nominal own times carry an unknown frame rate.
     rate_sigma = np.array([options.rate_prior if s is not TimeSource.NOMINAL and options.rate_prior > 0 else np.inf
                            for s in sources])
-    if start is not None and start.identified.sum() > 1:
-        starts.append(("links", start.coef.copy(), start.identified.copy()))
     best: tuple[tuple[int, float], str, _Refined, _Joint] | None = None
     for label, c, ok in starts:
         free = [v for v in range(N) if ok[v] and v != ref]
         if not free:
             continue
-        joint = _Joint(full_tracks, centers, c[ref], ref, free, options.model, options.max_residuals,
-                       options.cluster_s, rate_sigma)
+        joint = _Joint(full_tracks, centers, c[ref], ref, free, model, options.max_residuals, CLUSTER_S, rate_sigma)
         k = joint.k
         theta0 = np.concatenate([c[v, :k] for v in free])
         steps = np.concatenate([_parameter_steps(float(periods[v]), full_tracks[v].own, k) for v in free])
@@ -528,11 +557,14 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
         key = (-len(free), refined.cost)
         if best is None or key < best[0]:
             best = (key, label, refined, joint)
-    params = ClockParams(center=centers, coef=np.full((N, 3), np.nan), cov=np.full((N, 3, 3), np.nan),
-                         identified=np.zeros(N, dtype=bool))
-    params.coef[ref] = reference_coef(centers[ref])
-    params.cov[ref] = 0.0
-    params.identified[ref] = True
+    return best
+
+
+def _search_result(best: tuple[tuple[int, float], str, _Refined, _Joint] | None, pairs: list[PairHypothesis],
+                   centers: np.ndarray, ref: int, periods: np.ndarray, names: list[str]) -> SearchResult:
+    """The refined clocks (identified with a finite covariance and a positive rate), residuals and jitter."""
+    N = len(centers)
+    params = ClockSet.reference_only(centers, ref)
     video_rms = np.full(N, np.nan)
     spread = np.full(N, np.nan)
     residual = math.nan
@@ -550,10 +582,8 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, options: SearchOp
         video_rms = joint.video_rms(refined.theta, refined.scale)
         residual = refined.scale
         spread = joint.timing_spread(refined.theta, periods, refined.scale)
-    for v in range(N):
-        if not params.identified[v]:
-            warnings.append(f"video {names[v]!r}: the track search found no distinct offset to the other videos "
-                            "(too little overlap, or motion that every offset explains): its clock is not "
-                            "identified by the tracks")
+    warnings = [f"video {names[v]!r}: the track search found no distinct offset to the other videos (too little "
+                "overlap, or motion that every offset explains): its clock is not identified by the tracks"
+                for v in range(N) if not params.identified[v]]
     return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms,
                         timing_spread=spread, start=label, warnings=warnings)

@@ -25,7 +25,6 @@ import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from dynrecon.atomic import publish
 from dynrecon.errors import InputError
 from reconstruct.outputs import recording_parts as parts
 from reconstruct.outputs.points import FramePoints
+from reconstruct.outputs.recording_options import RecordingOptions, WorldAxes
 from reconstruct.outputs.recording_parts import camera_entity
 from sfm.cameras import CameraSet
 from tracking.tracks import Tracks
@@ -45,33 +45,15 @@ log = logging.getLogger(__name__)
 APPLICATION_ID = "dynrecon"
 
 
-class WorldAxes(Enum):
-    """How the world's axes map to the viewer's up direction."""
+# Display sizes in UI points (screen size), so they do not depend on the world's units.
+POINT_RADIUS = 5.0
+TRACK_RADIUS = 5.0
+REPROJECTION_RADIUS = 3.0
+BACKGROUND_RADIUS = 1.5
 
-    Y_DOWN = "y_down"  # COLMAP / OpenCV reconstructions (the cameras' y points down)
-    Z_UP = "z_up"  # motion capture and OpenSim-style worlds
-    Y_UP = "y_up"
-
-    @property
-    def view_coordinates(self) -> rr.components.ViewCoordinates:
-        return {WorldAxes.Y_DOWN: rr.ViewCoordinates.RIGHT_HAND_Y_DOWN,
-                WorldAxes.Z_UP: rr.ViewCoordinates.RIGHT_HAND_Z_UP,
-                WorldAxes.Y_UP: rr.ViewCoordinates.RIGHT_HAND_Y_UP}[self]
-
-
-@dataclass(kw_only=True)
-class RecordingOptions:
-    """Display sizes. Radii are in UI points (screen size), so they do not depend on the world's units."""
-
-    point_radius: float = 5.0
-    track_radius: float = 5.0
-    reprojection_radius: float = 3.0
-    background_radius: float = 1.5
-    # Distance of the drawn image plane from each camera centre, world units; None = 1/10 of the median
-    # distance from the cameras to the points, so frusta look right whether the world is in mm or m.
-    image_plane_distance: float | None = None
-    world_axes: WorldAxes = WorldAxes.Y_DOWN
-    blueprint: bool = True
+VIEW_COORDINATES = {WorldAxes.Y_DOWN: rr.ViewCoordinates.RIGHT_HAND_Y_DOWN,
+                    WorldAxes.Z_UP: rr.ViewCoordinates.RIGHT_HAND_Z_UP,
+                    WorldAxes.Y_UP: rr.ViewCoordinates.RIGHT_HAND_Y_UP}
 
 
 @dataclass(kw_only=True)
@@ -158,20 +140,20 @@ def log_recording(
         lookup = {(v, int(f)): float(g)
                   for v, f, g in zip(points.videos, points.frames, gtime_all, strict=True)}
     colors = parts.point_colors(len(points.point_names))
-    parts.log_world(rec, points.point_names, skeleton, colors, options.world_axes.view_coordinates)
+    parts.log_world(rec, points.point_names, skeleton, colors, VIEW_COORDINATES[options.world_axes])
     if background is not None and len(background.xyz):
         xyz = np.asarray(background.xyz, dtype=float).reshape(-1, 3)
         keep = np.isfinite(xyz).all(axis=1)
         rec.log("world/background", rr.Points3D(
             xyz[keep], colors=None if background.colors is None else np.asarray(background.colors)[keep],
-            radii=rr.Radius.ui_points(options.background_radius)), static=True)
-    plane = options.image_plane_distance or parts.auto_plane_distance(cameras, points)
+            radii=rr.Radius.ui_points(BACKGROUND_RADIUS)), static=True)
+    plane = parts.auto_plane_distance(cameras, points)  # 1/10 of the median camera-point distance
     for video in cameras.videos:
         parts.log_camera(rec, video, lookup, plane)
-    parts.log_points(rec, points, gtime_all, options.point_radius)
-    parts.log_reprojection(rec, cameras, points, gtime_all, options.reprojection_radius)
+    parts.log_points(rec, points, gtime_all, POINT_RADIUS)
+    parts.log_reprojection(rec, cameras, points, gtime_all, REPROJECTION_RADIUS)
     if tracks is not None and len(tracks):
-        parts.log_tracks(rec, cameras, tracks, lookup, options.track_radius)
+        parts.log_tracks(rec, cameras, tracks, lookup, TRACK_RADIUS)
     if residual is not None:
         parts.log_residual(rec, points, residual, gtime_all)
     for name, file in (video_files or {}).items():

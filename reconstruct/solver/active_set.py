@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -20,11 +19,13 @@ import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
 from reconstruct.solver.simplex import project_rows_to_simplex
-
-if TYPE_CHECKING:
-    from reconstruct.solver.wstep import WStepOptions, WStepStats
+from reconstruct.solver.wstep_options import WStepOptions, WStepStats
 
 log = logging.getLogger(__name__)
+
+FISTA_MAX_ITERATIONS = 2000  # budget of the FISTA fallback
+# PDAS stalls when `WStepOptions.stall_iterations` iterations in a row lowered g by less than this share.
+STALL_TOLERANCE = 1e-4
 
 NEGLIGIBLE = 1e-9  # W entries this close to zero are zero (W values lie in [0, 1])
 WHOLE_SHARE = 0.9  # share of the columns re-solved at once from which FreeSetSolver stops looking for components
@@ -66,10 +67,10 @@ def column_grams(
     column's entries in its first slots (wstep._pack_pairs makes it so).
 
     Columns are batched by their number of entries, and G holds only the blocks: K is the largest column's, twice
-    the mean on long captures, so a padded (F, K, K) array was 5x the entries (F = 20,000: 8.8 M against 1.8 M) and
-    every product with it, the Hessian's assembly included, paid for the padding. From PARALLEL_GRAMS entries on,
-    `workers` threads take a share of the columns each (the batched products and eigenvalues release the GIL:
-    0.22 -> 0.13 s per call at F = 20,000 on 2 threads), with the same blocks to the bit."""
+    the mean on long captures, so a padded (F, K, K) array held several times the entries and every product with
+    it, the Hessian's assembly included, paid for the padding. From PARALLEL_GRAMS entries on, `workers` threads
+    take a share of the columns each (the batched products and eigenvalues release the GIL), with the same blocks to
+    the bit."""
     F, K = cand.shape
     counts = valid.sum(axis=1)
     if not np.array_equal(valid, np.arange(K)[None, :] < counts[:, None]):
@@ -127,7 +128,7 @@ class WorkingSetProblem:
     def objective(self, V: np.ndarray) -> float:
         v = V.ravel()
         # einsum, not v @ ...: a BLAS dot product of this length starts OpenBLAS's threads, whose spinning then
-        # slowed the KKT component threads (W-step at F = 20,000 with 2 BLAS threads: 2.5 -> 2.9 s).
+        # slowed the KKT component threads.
         data = float(np.einsum("i,i->", v, self.gram @ v))
         asym = V - self._transposed(V)
         return float(self.data_weight * data + self.sym_weight * np.sum(asym * asym))
@@ -150,7 +151,7 @@ class WorkingSetProblem:
 
     def project(self, V: np.ndarray) -> np.ndarray:
         """V (F, K) projected onto the columns' simplices. Only columns off the simplex are projected: an active-set
-        iterate has a few columns with negative entries, and projecting all 20,000 took 7 ms per iteration."""
+        iterate has a few columns with negative entries, and projecting all of them costs every iteration."""
         out = np.where(self.valid, V, 0.0)
         off = np.flatnonzero((out < 0).any(axis=1) | (np.abs(out.sum(axis=1) - 1.0) > 1e-12))
         if len(off):
@@ -164,7 +165,7 @@ def fista(problem: WorkingSetProblem, V: np.ndarray, options: WStepOptions, stat
     y = x.copy()
     t = 1.0
     f_x = problem.objective(x)
-    for _ in range(options.max_iterations):
+    for _ in range(FISTA_MAX_ITERATIONS):
         stats.iterations += 1
         x_new = problem.project(y - step * problem.gradient(y))
         f_new = problem.objective(x_new)
@@ -191,8 +192,8 @@ class FreeSetSolver:
     Columns are coupled only by Psi1's partner entries (W_jf, W_fj both free), so the system splits into
     independent components of columns. A component whose columns all kept their free entries since the previous
     solve has the same system and keeps its solution: only components holding a changed column are re-solved. With
-    windowed dictionaries the system has ~1000 components at F = 20,000 and late active-set iterations change a few
-    of them; a dense dictionary gives one giant component (nothing saved, nothing lost)."""
+    windowed dictionaries the system has many components on long captures and late active-set iterations change a
+    few of them; a dense dictionary gives one giant component (nothing saved, nothing lost)."""
 
     def __init__(self, problem: WorkingSetProblem, workers: int = 1):
         F, K = problem.cand.shape
@@ -214,7 +215,7 @@ class FreeSetSolver:
         self.workers = workers
         # Once a re-solve covers nearly every column (one giant component: dense dictionaries), the rest of the
         # active-set run re-solves everything without looking for components. Re-solving an unchanged component
-        # only repeats its solution; the search cost 0.65 ms of every ~5 ms solve at CMU F = 700.
+        # only repeats its solution, and the search is a sizeable share of such a solve.
         self.whole = False
 
     def _components(self, free: np.ndarray, last_free: np.ndarray) -> np.ndarray:
@@ -278,13 +279,10 @@ class FreeSetSolver:
         column's simplex equality is eliminated through one pivot entry, v_p = 1 - (sum of the column's other free
         entries), leaving the symmetric positive definite reduced Hessian Z^T H Z. Its LU without pivoting (SuperLU,
         symmetric mode, minimum degree on A^T + A) is a Cholesky in all but name; the KKT system [[H, E^T], [E, 0]]
-        it replaces has zero diagonal entries that force SuperLU's partial pivoting. Measured: on a CMU F = 700
-        system 2291 unknowns and 30k factor entries against 4465 and 118k; the same iterates (W within 1e-8) in
-        23 % less CPU over five recorded CMU F = 700 W-steps and 35 % less on an F = 20,000 one. Reusing one
-        minimum-degree order across a W-step's systems was tried: 1.1-5x the fill, slower. The systems have almost no
-        fill (CMU F = 700: 30k factor entries for 29k in the matrix), so SuperLU's panels of 10 columns, meant for
-        wide supernodes, only cost: single-column panels factorized 24 % faster there and 32 % faster on the
-        components of an F = 20,000 W-step, with the same iterates (objectives equal to 1e-15).
+        it replaces has zero diagonal entries that force SuperLU's partial pivoting, and has about twice the unknowns
+        and several times the factor entries, for the same iterates. Reusing one minimum-degree order across a
+        W-step's systems gave more fill. The systems have almost no fill, so SuperLU's panels of 10 columns, meant
+        for wide supernodes, only cost: single-column panels factorize faster, with the same iterates.
 
         The pivot is a column's first free entry whose partner is not free, when it has one: eliminating an entry
         spreads its Psi1 link over the whole column, so such pivots keep the reduced system as sparse as H."""
@@ -344,7 +342,7 @@ class FreeSetSolver:
     def projected_objective(self, v: np.ndarray, hv: np.ndarray, projected: np.ndarray) -> float:
         """g = 1/2 p^T H p of p = `projected` (F, K), from v (F*K,) and H v: p differs from v only in the few
         columns the projection moved (an active-set iterate's columns with negative entries), so this needs H's
-        rows of those entries only, not a product over all of H (3.5 ms per active-set iteration at F = 20,000)."""
+        rows of those entries only, not a product over all of H (a full product every iteration)."""
         delta = projected.ravel() - v
         moved = np.flatnonzero(delta)
         value = 0.5 * float(np.einsum("i,i->", v, hv))
@@ -371,7 +369,7 @@ def active_set(
     multiplier mu_f. The next free set keeps the entries that came out positive and adds those outside I whose
     gradient lies below their column's multiplier. When the set repeats, the solution is non-negative and satisfies
     KKT: it is the exact minimizer. PDAS is fast but not monotone and can cycle on nearly degenerate entries (a
-    handful of entries flipping in and out, measured on CMU F = 2000); a repeated set hands the best iterate seen so
+    handful of entries flipping in and out); a repeated set hands the best iterate seen so
     far to the monotone primal active-set method, which cannot cycle; so does a PDAS that has not settled within its
     budget. Returns None only when a free-set system is singular (the caller then falls back to FISTA).
     """
@@ -400,7 +398,7 @@ def active_set(
         projected = problem.project(v.reshape(F, K))
         objective = solver.projected_objective(v, hv, projected)
         # Stalling counts only once PDAS has beaten the start: its first iterates are often worse than a warm start.
-        if objective < best_objective * (1.0 - options.stall_tolerance):
+        if objective < best_objective * (1.0 - STALL_TOLERANCE):
             stalled = 0
         elif best_objective < start_objective:
             stalled += 1

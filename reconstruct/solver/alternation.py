@@ -7,9 +7,9 @@ input's units.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,56 +22,63 @@ from reconstruct.solver.candidates import CandidateOptions, MovingWindows, coars
 from reconstruct.solver.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import Normalization, camera_normalization, viewing_rays
-from reconstruct.solver.wstep import SparseW, WStepOptions, solve_w
+from reconstruct.solver.wstep import SparseW, WStepOptions, WStepStats, solve_w
 from reconstruct.solver.xstep import RayConstraint, XStepOptions, chain_links, solve_x
 
 log = logging.getLogger(__name__)
 
+# A stage stops when the relative decrease of the cost falls below its tolerance (and, in the final stage, the points
+# have settled): with Anderson mixing the tail of alternations buys little accuracy (docs/measurements.md).
+COST_TOLERANCE = 1e-3
+# The smoothing stage only has to pull wrong initial shapes out of their local minima; it need not converge to the
+# Psi2-biased optimum that the final stage leaves anyway.
+SMOOTH_TOLERANCE = 1e-3
+POINT_TOLERANCE = 1e-4  # ... and no point coordinate moved more than this (normalized units)
+# On long captures a few points drift on while the rest has settled: the point test and the cost tests leave out the
+# (1 - POINT_QUANTILE) share of coordinates and frames that changed most (`settled_decrease`).
+POINT_QUANTILE = 0.999
+
 
 @dataclass(kw_only=True)
 class SolverOptions:
-    lambda1: float = 0.05  # structural coherence Psi1
-    lambda2: float = 0.1  # smoothness Psi2 in the first stage (the second stage uses 0)
-    lambda3: float = 100.0  # soft ray constraint
+    """Options of the self-expressive solve (`solve`).
+
+    lambda1, lambda2, lambda3: weights of the paper's structural coherence Psi1, of its smoothness Psi2 in the first
+    stage (the second stage uses 0; 0 skips the first stage) and of the soft ray constraint.
+    constraint: points exactly on their viewing rays (hard) or pulled to them (soft, for noisy tracks).
+    max_iterations: alternations per stage.
+    anderson_memory: Anderson acceleration over this many past iterates (0: the plain alternation;
+    `reconstruct.solver.anderson`).
+    dense_limit: above this many frames each frame's dictionary is restricted to windows of the other videos around
+    its current matches (`candidates`, set by `reconstruct.solver.candidates.CandidateOptions`): linear cost in the
+    frames instead of quadratic. At or below it every frame of the other videos is a candidate, as in the paper.
+    w_step: the W-step's settings (`WStepOptions`); its `lambda1` and `workers` are this object's (`w_step_options`).
+    workers: threads for the independent parts of large steps (the X-step's points, the W-step's KKT components);
+    small problems stay on one.
+    progress: show a progress bar per stage.
+    """
+
+    lambda1: float = 0.05
+    lambda2: float = 0.1
+    lambda3: float = 100.0
     constraint: RayConstraint = RayConstraint.SOFT
-    max_iterations: int = 200  # alternations per stage
-    # Stop a stage when the relative cost decrease falls below this ... and the points have settled (below). With
-    # Anderson mixing the tail of alternations buys little: on the paper's tables (5 windows x 14 rows at 2.7 m) 1e-3
-    # against 1e-4 moved every row by at most 0.25 points under 10 mm, both ways (noise 1 px 97.05 -> 96.85 %,
-    # missing 40 % 94.99 -> 94.76 %, missing 50 % 90.23 -> 91.22 %; mean +0.03), while CMU F = 700 took 6 + 18
-    # alternations instead of 6 + 23 (100 % both) and complexknee F = 20,000 9 + 33 instead of 9 + 50 (116 s against
-    # 147 s, 99.87 % both; benchmarks/long_capture.py). 1e-5 had been as accurate with 9 + 121 at F = 20,000.
-    tolerance: float = 1e-3
-    # The smoothing stage only has to pull wrong initial shapes out of their local minima; it need not converge to
-    # the Psi2-biased optimum that the final stage leaves anyway.
-    smooth_tolerance: float = 1e-3
-    point_tolerance: float = 1e-4  # ... and no point moved more than this (normalized units)
-    # ... measured on this quantile of the coordinates' movement (1: the max). On long captures a few points drift on
-    # while the rest has settled: complexknee F = 5000 stopped after 65 final alternations instead of 82, same
-    # 99.90 % < 10 mm; on 6 windows x 4 rows of the paper's tables (F ~ 300) nothing changed at all (the cost test
-    # binds there). The cost tests likewise leave out the (1 - quantile) share of frames whose cost changed most
-    # (`settled_decrease`; none below 1000 frames): complexknee F = 20,000 then took 8 + 22 alternations instead of
-    # 9 + 35 (99.86 against 99.87 % < 10 mm), F = 5000 8 + 21 instead of 11 + 26 and F = 2000 12 + 16 instead of
-    # 12 + 17 (same accuracy both).
-    point_quantile: float = 0.999
-    # Anderson acceleration of the alternation over this many past iterates (0: plain alternation); see
-    # reconstruct/solver/anderson.py.
+    max_iterations: int = 200
     anderson_memory: int = 5
     w_step: WStepOptions = field(default_factory=WStepOptions)
-    # Above this many frames each frame's dictionary is restricted to windows of the other videos around its current
-    # matches (solver/candidates.py): linear cost in F instead of quadratic. At or below it, every frame of the
-    # other videos is a candidate, as in the paper. Measured (1 BLAS thread): CMU F = 2000 windowed ~16 CPU s,
-    # 99.86 % < 10 mm, dense 24.6 s, 99.87 %; complexknee F = 2000 windowed 13.4 s, 99.75 %, dense 22 s, 99.61 %.
-    # Short captures stay dense: the flight scenes (P = 1, ~600 frames) give the windows' anchors nothing to match.
+    # Short captures stay dense: the flight scenes (one point, few hundred frames) give the windows' anchors nothing
+    # to match.
     dense_limit: int = 1000
     candidates: CandidateOptions = field(default_factory=CandidateOptions)
-    # Threads for the independent parts of large steps (the X-step's points, the W-step's KKT components); small
-    # problems stay on one (reconstruct/xstep.PARALLEL_SIZE, reconstruct/working_set.PARALLEL_KKT).
     workers: int = 2
     progress: bool = False
-    # Called after every alternation with (stage name, iteration, points (F, P_kept, 3) in input units); for
-    # benchmarks that follow accuracy along the iterations.
-    monitor: Callable[[str, int, np.ndarray], None] | None = None
+
+    def w_step_options(self) -> WStepOptions:
+        """The W-step's options: `w_step` with this solve's lambda1 and threads."""
+        return dataclasses.replace(self.w_step, lambda1=self.lambda1, workers=self.workers)
+
+    def x_step_options(self, lambda2: float) -> XStepOptions:
+        """The X-step's options for a stage with smoothness weight `lambda2`."""
+        return XStepOptions(lambda2=lambda2, lambda3=self.lambda3, constraint=self.constraint, workers=self.workers)
 
 
 @dataclass(kw_only=True)
@@ -138,10 +145,8 @@ def total_cost(
 
 def settled_decrease(previous: np.ndarray, current: np.ndarray, quantile: float) -> float:
     """Relative decrease from the frame costs `previous` to `current` (F,), over all frames but the (1 - quantile)
-    share whose cost changed most. Noise-free long captures settle everywhere but in a handful of frames: at
-    F = 20,000 the last 18 of 35 alternations each lowered the total cost by 0.1-0.3 %, a third of it from the 20
-    frames that changed most, while ~10 frames still moved by more than point_tolerance and the share under 10 mm
-    stayed at 99.865 +- 0.004 %.
+    share whose cost changed most: noise-free long captures settle everywhere but in a handful of frames, which
+    would keep the plain relative decrease above the tolerance long after the accuracy stopped changing.
     Below 1 / (1 - quantile) frames nothing is left out: the test is the plain relative decrease."""
     left_out = int(np.floor((1.0 - quantile) * len(current) + 1e-9))
     if left_out > 0:
@@ -161,11 +166,54 @@ def frame_residuals(points: np.ndarray, W: sp.spmatrix) -> np.ndarray:
 
 
 def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult:
+    """The paper's alternation on `problem`: initialization, then W-step / X-step alternations with Psi2 (when
+    lambda2 > 0) and without. Raises NotEnoughDataError when no point is seen in two videos, DynreconError when the
+    solve diverges."""
     options = options or SolverOptions()
     timings: dict[str, float] = {}
     started = time.perf_counter()
-    F, P_all = problem.num_frames, problem.num_points
-    video_index = problem.video_index
+    keep = _reconstructable(problem)
+    normalization = camera_normalization(problem.centers, problem.video_index)
+    scene = _Scene(centers=normalization.apply(problem.centers), rays=viewing_rays(problem)[:, keep],
+                   video_index=problem.video_index, observed=problem.observed[:, keep])
+    timings["rays"] = time.perf_counter() - started
+
+    t0 = time.perf_counter()
+    init = _initialize(problem, scene, options)
+    init_points = scene.centers[:, None, :] + init.depth[..., None] * scene.rays
+    unmatched = int(np.sum(init.partner < 0))
+    if unmatched:
+        log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated",
+                 unmatched)
+    points = fill_missing_points(init_points, scene.video_index)
+    timings["initialize"] = time.perf_counter() - t0
+
+    stages, points, W = _alternate(points, scene, options, timings)
+    timings["total"] = time.perf_counter() - started
+    return _result(problem, keep, normalization, init, init_points, points, W, stages, timings)
+
+
+@dataclass(kw_only=True)
+class _Scene:
+    """What every alternation of one solve shares, normalized units, reconstructable points only."""
+
+    centers: np.ndarray  # (F, 3)
+    rays: np.ndarray  # (F, P, 3) unit viewing rays, NaN where unobserved
+    video_index: np.ndarray  # (F,)
+    observed: np.ndarray  # (F, P) bool
+    windows: MovingWindows | None = None  # candidate windows on long captures; None: dense dictionaries
+
+    @property
+    def num_frames(self) -> int:
+        return self.rays.shape[0]
+
+    @property
+    def num_points(self) -> int:
+        return self.rays.shape[1]
+
+
+def _reconstructable(problem: Problem) -> np.ndarray:
+    """(P,) bool, the points seen in at least two videos; warns about the others."""
     keep = reconstructable_points(problem)
     for name in np.asarray(problem.point_names)[~keep]:
         log.warning("point %r is seen in fewer than two videos: it cannot be reconstructed (left empty)", name)
@@ -173,110 +221,126 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
         raise NotEnoughDataError(
             f"none of the {problem.num_points} point(s) is seen in two different videos: nothing can be "
             "reconstructed (each point needs observations from at least two videos)")
+    return keep
 
-    rays_all = viewing_rays(problem)
-    normalization = camera_normalization(problem.centers, video_index)
-    centers = normalization.apply(problem.centers)
-    rays = rays_all[:, keep]
-    P = int(keep.sum())
-    timings["rays"] = time.perf_counter() - started
 
-    t0 = time.perf_counter()
-    sparse = options.dense_limit < F
-    if sparse:
-        init, anchor = coarse_to_fine_init(centers, rays, video_index, options.candidates, times=problem.times)
-        windows = MovingWindows(anchor, video_index, options.candidates, times=problem.times)
-        log.info("%d frames: dictionaries restricted to +-%d frames of each other video around each frame's "
-                 "matches", F, options.candidates.half_window)
-    else:
-        init = initialize_depths(centers, rays, video_index)
-    init_points = centers[:, None, :] + init.depth[..., None] * rays
-    unmatched = int(np.sum(init.partner < 0))
-    if unmatched:
-        log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated",
-                 unmatched)
-    points = fill_missing_points(init_points, video_index)
-    timings["initialize"] = time.perf_counter() - t0
+def _initialize(problem: Problem, scene: _Scene, options: SolverOptions) -> PairInit:
+    """The paper's initialization; on long captures coarse to fine, which also sets `scene.windows`."""
+    F = scene.num_frames
+    if options.dense_limit >= F:
+        return initialize_depths(scene.centers, scene.rays, scene.video_index)
+    init, anchor = coarse_to_fine_init(scene.centers, scene.rays, scene.video_index, options.candidates,
+                                       times=problem.times)
+    scene.windows = MovingWindows(anchor, scene.video_index, options.candidates, times=problem.times)
+    log.info("%d frames: dictionaries restricted to +-%d frames of each other video around each frame's "
+             "matches", F, options.candidates.half_window)
+    return init
 
+
+def _alternate(points: np.ndarray, scene: _Scene, options: SolverOptions, timings: dict[str, float]
+               ) -> tuple[list[StageLog], np.ndarray, SparseW]:
+    """Both stages from the start `points` (F, P, 3); adds the W-step and X-step times to `timings`."""
     stages: list[StageLog] = []
     plan = [("smooth", options.lambda2), ("final", 0.0)] if options.lambda2 > 0 else [("final", 0.0)]
     W: SparseW | None = None
-    w_options = WStepOptions(**{**options.w_step.__dict__, "lambda1": options.lambda1, "workers": options.workers})
-    t_w = t_x = 0.0
+    w_options = options.w_step_options()
+    timings["w_step"] = timings["x_step"] = 0.0
     for name, lambda2 in plan:
         stage = StageLog(name=name, lambda2=lambda2)
         stages.append(stage)
-        x_options = XStepOptions(lambda2=lambda2, lambda3=options.lambda3, constraint=options.constraint,
-                                 workers=options.workers)
-        previous_cost = np.inf
-        previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
-        mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
-        candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
-        bar = tqdm(range(options.max_iterations), desc=f"solve ({name})", disable=None if options.progress else True,
-                   leave=False)
-        for _ in bar:
-            t0 = time.perf_counter()
-            pool = windows.pool() if sparse else None
-            W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W, pool=pool)
-            W_matrix = W_next.to_csc()
-            if candidate is not points:
-                mixed_cost = total_cost(candidate, W_matrix, centers, rays, video_index, options.lambda1,
-                                        lambda2, options.lambda3, options.constraint)
-                if mixed_cost > previous_cost:  # the mix lost ground: fall back to the plain alternation
-                    stage.rejected_mixes += 1
-                    if mixer is not None:
-                        mixer.reset()
-                    candidate = points
-                    W_next, w_stats = solve_w(candidate.reshape(F, -1), video_index, P, w_options, previous=W,
-                                              pool=pool)
-                    W_matrix = W_next.to_csc()
-            W = W_next
-            if sparse:
-                windows.follow(W_matrix)
-            t_w += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            new_points = solve_x(W_matrix, centers, rays, video_index, x_options, start=candidate)
-            t_x += time.perf_counter() - t0
-            if not np.all(np.isfinite(new_points)):
-                sparse_frames = int(np.sum(problem.observed[:, keep].sum(axis=1) < 2))
-                raise DynreconError(
-                    f"the solve diverged in stage {name!r} after {stage.iterations} alternation(s); "
-                    f"{sparse_frames} of {F} frames observe fewer than 2 points: track more points per frame, or "
-                    "drop frames where almost nothing is observed")
-            moved = np.abs(new_points - candidate)
-            change = float(np.max(moved))
-            settled = change if options.point_quantile >= 1.0 else float(np.quantile(moved, options.point_quantile))
-            frames_cost = frame_costs(new_points, W_matrix, centers, rays, video_index, options.lambda1, lambda2,
-                                      options.lambda3, options.constraint)
-            cost = float(np.sum(frames_cost))
-            stage.iterations += 1
-            stage.cost.append(cost)
-            stage.w_iterations.append(w_stats.iterations)
-            stage.max_point_change.append(change)
-            bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
-            if options.monitor is not None:
-                options.monitor(name, stage.iterations, normalization.undo(new_points))
-            decrease = (np.inf if previous_frames is None
-                        else settled_decrease(previous_frames, frames_cost, options.point_quantile))
-            if lambda2 > 0:
-                converged = decrease < options.smooth_tolerance
-            else:
-                converged = decrease < options.tolerance and settled < options.point_tolerance
-            previous_cost, previous_frames = cost, frames_cost
-            if converged:
-                points = new_points
-                stage.converged = True
-                break
-            candidate = mixer.mix(candidate, new_points) if mixer is not None else new_points
-            points = new_points
+        points, W = _run_stage(stage, points, W, scene, options, w_options, timings)
         log.info("stage %s: %d iterations, cost %.4e, converged: %s", name, stage.iterations,
                  stage.cost[-1] if stage.cost else float("nan"), stage.converged)
     if W is None:
         raise ValueError("max_iterations must be at least 1")
-    timings["w_step"] = t_w
-    timings["x_step"] = t_x
-    timings["total"] = time.perf_counter() - started
+    return stages, points, W
 
+
+def _run_stage(stage: StageLog, points: np.ndarray, W: SparseW | None, scene: _Scene, options: SolverOptions,
+               w_options: WStepOptions, timings: dict[str, float]) -> tuple[np.ndarray, SparseW | None]:
+    """Alternations of one stage until it converges or runs out of iterations; returns its points and W."""
+    lambda2 = stage.lambda2
+    x_options = options.x_step_options(lambda2)
+    previous_cost = np.inf
+    previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
+    mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
+    candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
+    bar = tqdm(range(options.max_iterations), desc=f"solve ({stage.name})", disable=None if options.progress else True,
+               leave=False)
+    for _ in bar:
+        t0 = time.perf_counter()
+        W, W_matrix, w_stats, candidate = _w_step(stage, candidate, points, W, previous_cost, mixer, scene, options,
+                                                  w_options)
+        timings["w_step"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        new_points = solve_x(W_matrix, scene.centers, scene.rays, scene.video_index, x_options, start=candidate)
+        timings["x_step"] += time.perf_counter() - t0
+        _check_finite(new_points, stage, scene)
+        moved = np.abs(new_points - candidate)
+        change = float(np.max(moved))
+        settled = float(np.quantile(moved, POINT_QUANTILE))
+        frames_cost = frame_costs(new_points, W_matrix, scene.centers, scene.rays, scene.video_index, options.lambda1,
+                                  lambda2, options.lambda3, options.constraint)
+        cost = float(np.sum(frames_cost))
+        stage.iterations += 1
+        stage.cost.append(cost)
+        stage.w_iterations.append(w_stats.iterations)
+        stage.max_point_change.append(change)
+        bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
+        decrease = (np.inf if previous_frames is None
+                    else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE))
+        if lambda2 > 0:
+            converged = decrease < SMOOTH_TOLERANCE
+        else:
+            converged = decrease < COST_TOLERANCE and settled < POINT_TOLERANCE
+        previous_cost, previous_frames = cost, frames_cost
+        if converged:
+            stage.converged = True
+            return new_points, W
+        candidate = mixer.mix(candidate, new_points) if mixer is not None else new_points
+        points = new_points
+    return points, W
+
+
+def _w_step(stage: StageLog, candidate: np.ndarray, points: np.ndarray, W: SparseW | None, previous_cost: float,
+            mixer: AndersonMixer | None, scene: _Scene, options: SolverOptions, w_options: WStepOptions
+            ) -> tuple[SparseW, sp.csc_matrix, WStepStats, np.ndarray]:
+    """The W-step from `candidate` (an Anderson mix, or the last X-step's `points`); a mix whose cost exceeds
+    `previous_cost` is dropped for the plain step. Returns W, as a matrix, its stats and the start actually used."""
+    F, P = scene.num_frames, scene.num_points
+    pool = scene.windows.pool() if scene.windows is not None else None
+    W_next, w_stats = solve_w(candidate.reshape(F, -1), scene.video_index, P, w_options, previous=W, pool=pool)
+    W_matrix = W_next.to_csc()
+    if candidate is not points:
+        mixed_cost = total_cost(candidate, W_matrix, scene.centers, scene.rays, scene.video_index, options.lambda1,
+                                stage.lambda2, options.lambda3, options.constraint)
+        if mixed_cost > previous_cost:  # the mix lost ground: fall back to the plain alternation
+            stage.rejected_mixes += 1
+            if mixer is not None:
+                mixer.reset()
+            candidate = points
+            W_next, w_stats = solve_w(candidate.reshape(F, -1), scene.video_index, P, w_options, previous=W,
+                                      pool=pool)
+            W_matrix = W_next.to_csc()
+    if scene.windows is not None:
+        scene.windows.follow(W_matrix)
+    return W_next, W_matrix, w_stats, candidate
+
+
+def _check_finite(points: np.ndarray, stage: StageLog, scene: _Scene) -> None:
+    if not np.all(np.isfinite(points)):
+        sparse_frames = int(np.sum(scene.observed.sum(axis=1) < 2))
+        raise DynreconError(
+            f"the solve diverged in stage {stage.name!r} after {stage.iterations} alternation(s); "
+            f"{sparse_frames} of {scene.num_frames} frames observe fewer than 2 points: track more points per frame, "
+            "or drop frames where almost nothing is observed")
+
+
+def _result(problem: Problem, keep: np.ndarray, normalization: Normalization, init: PairInit,
+            init_points: np.ndarray, points: np.ndarray, W: SparseW, stages: list[StageLog],
+            timings: dict[str, float]) -> SolveResult:
+    """Back to input units, with NaN for the points that could not be reconstructed."""
+    F, P_all = problem.num_frames, problem.num_points
     W_matrix = W.to_csc()
     out = np.full((F, P_all, 3), np.nan)
     out[:, keep] = normalization.undo(points)

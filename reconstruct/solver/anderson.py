@@ -14,8 +14,8 @@ import numpy as np
 
 class AndersonMixer:
     """Keeps the last `memory` differences of iterates and residuals, all flattened to vectors, as the rows of two
-    (memory, n) ring buffers: stacking the history anew for every mix copied 10 M values per alternation at
-    F = 20,000 (the order of the rows does not change the least-squares mix)."""
+    (memory, n) ring buffers: stacking the history anew for every mix copied the whole history every alternation
+    (the order of the rows does not change the least-squares mix)."""
 
     def __init__(self, memory: int, regularization: float = 1e-10):
         self.memory = memory

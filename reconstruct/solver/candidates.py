@@ -47,6 +47,8 @@ EXPLICIT_PAIRS = 4096
 
 @dataclass(kw_only=True)
 class CandidateOptions:
+    """Candidate windows of long captures (`SolverOptions.candidates`, used above `SolverOptions.dense_limit`)."""
+
     stride: int = 16  # coarse initialization: compare every stride-th frame of each video
     half_window: int = 12  # candidates: this many positions either side of the anchor in each other video
     recentre: int = 6  # an anchor follows W only when its match has moved more than this many positions
@@ -244,7 +246,7 @@ def _fill_anchor_gaps(anchor: np.ndarray, video_index: np.ndarray, layout: Video
 
 def anchor_tolerance(options: CandidateOptions, times: np.ndarray | None) -> int:
     """How far an anchor may stray from its video pair's line: with decoder times the line is exact up to jitter;
-    without them, positions wander around it (irregular capture), by up to ~20 positions in 500 frames (measured)."""
+    without them, positions wander around it (irregular capture)."""
     return options.recentre if _all_timed(times) else options.half_window
 
 
@@ -260,9 +262,8 @@ def consistent_anchors(
     time in b against time in a when every frame has a decoder time (`times` (F,)), else position in b against
     position in a (only roughly a line: irregular capture makes positions a random walk around it). Anchors further
     than `tolerance` positions from the line that RANSAC fits through them matched a repeated pose elsewhere in the
-    capture and are moved onto it. Measured on a 2000-frame capture of a repeated knee exercise: after the
-    coarse-to-fine search 14 % of the anchors were more than 12 positions off (up to 357), in runs of up to 60
-    frames that a running median follows."""
+    capture and are moved onto it. On repetitive motion such wrong anchors come in runs of frames that a running
+    median would follow, hence the line."""
     rng = np.random.default_rng(0)
     fixed = anchor.copy()
     V = anchor.shape[1]
@@ -399,7 +400,7 @@ def follow_w(
     more than `slack` positions from the current anchor. The largest entry, not the weighted mean: in repetitive
     motion a frame can take weight from two distant passes through the same pose, and their mean is neither. The
     slack keeps the pools, and so the W-step's problem, fixed while the matches stay inside their windows: a pool
-    that moved every alternation kept the alternation from settling (F = 2000: 147 alternations)."""
+    that moved every alternation kept the alternation from settling."""
     W = W.tocoo()
     V = anchor.shape[1]
     winners = first_per_group(W.col * V + video_index[W.row], -W.data, 1)  # per (frame, video): largest weight
@@ -414,7 +415,7 @@ def follow_w(
 class MovingWindows:
     """The candidate windows of a windowed solve: its anchors (F, V), which follow W after every W-step, and the
     candidate pool they give. Once the matches settle, most alternations leave the anchors where they were, and the
-    pool is then reused instead of rebuilt (complexknee F = 20,000: 17 of 30 alternations, 22 ms each)."""
+    pool is then reused instead of rebuilt."""
 
     def __init__(self, anchor: np.ndarray, video_index: np.ndarray, options: CandidateOptions,
                  times: np.ndarray | None = None):

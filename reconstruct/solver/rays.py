@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from reconstruct.solver.problem import Problem
@@ -18,6 +17,8 @@ def has_distortion(dist: np.ndarray | None) -> bool:
 def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     """Pixels (N, 2) of one camera -> normalized image coordinates (N, 2), undistorted when `dist` is given."""
     if has_distortion(dist):
+        import cv2  # only distorted cameras need OpenCV, which is slow to import
+
         pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
         return cv2.undistortPoints(pts, K, np.asarray(dist, dtype=np.float64)).reshape(-1, 2)
     homogeneous = np.column_stack([uv, np.ones(len(uv))])
@@ -26,7 +27,7 @@ def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | No
 
 def viewing_rays(problem: Problem) -> np.ndarray:
     """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved.
-    All frames at once (a loop over frames took 1.2 s at F = 20,000); only frames with lens distortion go through
+    All frames at once (a loop over frames is slow on long captures); only frames with lens distortion go through
     OpenCV one by one."""
     F, P = problem.num_frames, problem.num_points
     observed = problem.observed

@@ -18,59 +18,18 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from reconstruct.solver.active_set import WorkingSetProblem, active_set, find_sorted, fista
+from reconstruct.solver.wstep_options import WStepOptions, WStepStats
 
 log = logging.getLogger(__name__)
 
 PARALLEL_ROWS = 4096  # frames from which local_inner splits its rows over threads
-
-
-@dataclass(kw_only=True)
-class WStepOptions:
-    lambda1: float = 0.05
-    nearest: int = 8  # initial working-set neighbours per column (other videos)
-    tolerance: float = 1e-6  # stop when max |W_new - W_extrapolated| (gradient mapping, W units) is below
-    max_iterations: int = 2000  # FISTA fallback
-    # Warm-started W-steps settle in 2-5 iterations; a cold start with a grown working set needed 30-45 on CMU
-    # F = 700 (measured), still 4x cheaper than FISTA. Past this budget
-    # FISTA finishes the solve.
-    max_active_set_iterations: int = 60
-    # A column whose free entries changed in this many active-set iterations changes one entry at a time from then
-    # on (limit_changes).
-    cycle_changes: int = 8
-    # PDAS can wander near a degenerate optimum, flipping a few entries in and out: measured on CMU F = 700, a
-    # cold W-step spent 58 KKT solves to gain 0.03 % of g. It stops with its best iterate once that many iterations
-    # have not lowered g by this relative amount (the outer KKT check tolerates far more: kkt_tolerance).
-    stall_iterations: int = 5
-    stall_tolerance: float = 1e-4
-    # Budget of the monotone primal active-set method that finishes when PDAS cycles (each step one KKT solve).
-    max_primal_iterations: int = 20
-    # Entries whose KKT violation / L_f (the weight a gradient step would give them) exceeds this join the working
-    # set. Measured on HDM05: 1e-5 grew the set to ~36 entries per column for the same accuracy at 10x the time.
-    kkt_tolerance: float = 1e-3
-    max_added_per_column: int = 8
-    max_rounds: int = 3
-    full_kkt_check: bool = True  # O(F^2 P) per W-step; disable for very long captures
-    # Independent components of large KKT systems (windowed dictionaries) are factorized on this many threads.
-    workers: int = 2
-
-    @classmethod
-    def exact(cls, **overrides: Any) -> WStepOptions:
-        """Settings under which the W-step returns the minimizer of g on the full problem: KKT tests at round-off,
-        no stall guard, budgets that are not reached (`SolverOptions(w_step=WStepOptions.exact())`). Measured
-        (`benchmarks/solver_speed.py`, CMU F = 100, P = 44, cold start): 0.77 s to Clarabel's optimum (0.003 %
-        below it; Frank-Wolfe gap 3e-7 of g against Clarabel's 3e-5), which took Clarabel 55 s: 72x faster. The
-        default stops ~9 % above the optimum with a sparser W that reconstructed better (docs/solver.md)."""
-        settings: dict[str, Any] = {"kkt_tolerance": 1e-12, "tolerance": 1e-12, "max_rounds": 100,
-                                    "stall_iterations": 10**6, "max_active_set_iterations": 500,
-                                    "max_primal_iterations": 500}
-        return cls(**{**settings, **overrides})
+MAX_ADDED_PER_COLUMN = 8  # KKT violators that may join one column's working set per round
 
 
 @dataclass(kw_only=True)
@@ -95,18 +54,6 @@ class SparseW:
         """(neighbours, weights) of column f with weights above `threshold`."""
         keep = self.valid[f] & (self.value[f] > threshold)
         return self.cand[f, keep], self.value[f, keep]
-
-
-@dataclass(kw_only=True)
-class WStepStats:
-    iterations: int = 0
-    rounds: int = 0
-    added: int = 0
-    working_set: int = 0
-    objective: float = float("nan")
-    converged: bool = False
-    fallbacks: int = 0  # working-set solves the active-set method left to FISTA
-    history: list[float] = field(default_factory=list)
 
 
 def _videos_contiguous(video_index: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, int, int]]]:
@@ -141,8 +88,8 @@ def nearest_other_video(shapes: np.ndarray, video_index: np.ndarray, k: int, *, 
 
 def smallest_per_row(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """(n, k) column indices of each row's k smallest values (n, m), ascending, and those values; `values` is
-    overwritten. One vectorized argmin per rank: for the small k of the working sets (6-8) it took 0.17 ms on
-    (175, 700) where argpartition + argsort took 1.5 ms. A row with fewer than k finite values gets +inf values,
+    overwritten. One vectorized argmin per rank: for the small k of the working sets it beats argpartition +
+    argsort. A row with fewer than k finite values gets +inf values,
     with meaningless columns, in the remaining ranks."""
     rows = np.arange(len(values))
     index = np.empty((len(values), k), dtype=np.int64)
@@ -158,7 +105,7 @@ def smallest_per_row(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray
 def local_inner(A: np.ndarray, B: np.ndarray, index: np.ndarray, *, chunk: int = 64, workers: int = 1) -> np.ndarray:
     """(F, C) A[f] . B[index[f, c]] (0 where index < 0), for A, B (F, D). Consecutive frames have neighbouring
     candidates, so each chunk of rows needs B only on the union of its candidates: one small dense product per chunk
-    instead of gathering an (F, C, D) array (at F = 2000, P = 44: 160 MB per call). From PARALLEL_ROWS rows on,
+    instead of gathering an (F, C, D) array (hundreds of MB on long captures). From PARALLEL_ROWS rows on,
     `workers` threads take a share of the rows each (same values to the bit)."""
     F, C = index.shape
     out = np.zeros((F, C))
@@ -210,7 +157,7 @@ def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray,
     rows ascending."""
     rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
     # A sparse matrix with a row per column f sorts and merges the pairs row by row: np.unique's global sort of the
-    # keys f * F + j took 130-215 ms at F = 20,000 (240k pairs), this 14 ms, same result.
+    # keys f * F + j was an order of magnitude slower on long captures, same result.
     pairs = sp.csr_matrix((np.ones(len(rows), dtype=np.int32), (cols, rows)), shape=(F, F))
     pairs.sum_duplicates()
     counts = np.diff(pairs.indptr)
@@ -234,7 +181,7 @@ def kkt_violations(
     F = len(shapes)
     grad = problem.gradient(W.value)
     mu = np.where(W.valid, grad, np.inf).min(axis=1)  # (F,) multiplier: min gradient over the column's entries
-    # (F, D): S W_f - S_f, as a sparse product (gathering shapes[W.cand], (F, K, D), took 0.2 s at F = 20,000)
+    # (F, D): S W_f - S_f, as a sparse product (gathering shapes[W.cand], (F, K, D), is slow on long captures)
     residual = W.to_csc().T @ shapes - shapes
     if pool is not None:
         return _pool_violations(shapes, W, problem, options, mu, residual, pool)
@@ -246,7 +193,7 @@ def kkt_violations(
     # violation: one comparison per entry, and only the few entries past it are ranked.
     self_inner = np.einsum("fd,fd->f", residual, shapes)
     threshold = (mu - options.kkt_tolerance * problem.lipschitz) / (2.0 * problem.data_weight) + self_inner
-    k = min(options.max_added_per_column, F - 1)
+    k = min(MAX_ADDED_PER_COLUMN, F - 1)
     found_rows: list[np.ndarray] = []
     found_cols: list[np.ndarray] = []
     found_inner: list[np.ndarray] = []
@@ -285,8 +232,7 @@ def _pool_violations(
     g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
     violation = (mu[:, None] - g) / problem.lipschitz[:, None]
     # Violators are few: find them first, then drop the empty slots and the entries already in the working set
-    # among them, and rank only the rest. An argpartition of the whole (F, C) array took 33 ms at F = 20,000,
-    # C = 75, this 5.5 ms; marking the working set in the (F, C) pool beforehand took another 60 ms.
+    # among them, and rank only the rest: cheaper than ranking or marking the whole (F, C) pool.
     cols, slots = np.nonzero(violation > options.kkt_tolerance)
     rows = pool[cols, slots]
     F = len(pool)
@@ -295,7 +241,7 @@ def _pool_violations(
         in_set = np.sort(in_set)
     new = (rows >= 0) & ~find_sorted(in_set, cols * F + rows)[1]
     cols, rows, violation_new = cols[new], rows[new], violation[cols[new], slots[new]]
-    keep = first_per_group(cols, -violation_new, options.max_added_per_column)
+    keep = first_per_group(cols, -violation_new, MAX_ADDED_PER_COLUMN)
     return rows[keep], cols[keep]
 
 
@@ -355,9 +301,8 @@ def _limit_seeds_per_frame(rows: np.ndarray, cols: np.ndarray, rank: np.ndarray,
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Keep at most `limit` seed pairs (row j, column f) per frame j, those where j ranks nearest for f. The working
     set is symmetrized, so a frame that is the nearest of thousands of frames would get a column of thousands of
-    entries, and the per-column Gram matrices (F, K, K) are padded to the largest column: measured on a
-    20,000-frame capture, the last frame of a video, where out-of-range anchors were clipped, was a seed of 255
-    columns (K = 258, > 12 GB)."""
+    entries, and the per-column Gram matrices (F, K, K) are padded to the largest column (the last frame of a
+    video, where out-of-range anchors are clipped, can be such a frame)."""
     keep = first_per_group(rows, rank, limit)
     return rows[keep], cols[keep]
 

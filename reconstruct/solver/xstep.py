@@ -30,21 +30,24 @@ class RayConstraint(enum.Enum):
 
 @dataclass(kw_only=True)
 class XStepOptions:
+    """Options of the X-step (`solve_x`); a solve builds them from its `SolverOptions` (`x_step_options`).
+
+    lambda2, lambda3: weights of the smoothness Psi2 and of the soft ray constraint.
+    constraint: points exactly on their rays (hard) or pulled to them (soft).
+    workers: points are independent systems: from PARALLEL_SIZE unknowns on they are split over this many threads
+    (numpy and the sparse products release the GIL).
+    """
+
     lambda2: float = 0.1
     lambda3: float = 100.0
     constraint: RayConstraint = RayConstraint.SOFT
-    # Relative residual of the batched conjugate-gradient solve. The alternation does not need exact X-steps: on a
-    # 1000-frame capture 1e-8 took 2x less X-step time than 1e-10 for the same accuracy (99.67 %), and HDM05 / walk
-    # were unchanged (benchmarks in docs/solver.md).
-    cg_tolerance: float = 1e-8
-    cg_max_iterations: int = 3000
-    # Points are independent systems: above PARALLEL_SIZE unknowns they are split over this many threads (numpy and
-    # the sparse products release the GIL). Measured on 2 cores (complexknee, P = 20): an X-step 1.7x faster at
-    # F = 20,000 (2.5 -> 1.5 s wall), all X-steps 1.3x at F = 5000; threads were slower at F = 700.
     workers: int = 2
 
 
 PARALLEL_SIZE = 100_000  # F * P at and above which the X-step splits the points over `workers` threads
+# Relative residual of the batched conjugate-gradient solve: the alternation does not need exact X-steps.
+CG_TOLERANCE = 1e-8
+CG_MAX_ITERATIONS = 3000
 
 
 def chain_links(video_index: np.ndarray) -> np.ndarray:
@@ -133,14 +136,13 @@ Operators = Callable[[np.ndarray], tuple[Operator, Operator]]  # points -> (appl
 def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: XStepOptions
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Independent CG solves, one per point: arrays are (F, 3, P), the point axis last so that the per-point dot
-    products reduce over contiguous memory (the (F, P, 3) layout made them 10x slower). `operators(points)` returns
+    products reduce over contiguous memory (the (F, P, 3) layout made them much slower). `operators(points)` returns
     (apply, precondition) for the points `points` (indices into the last axis): `apply(Y, out)` and
     `precondition(R, out)` write into `out`. Returns (x, converged).
 
-    Points converge at very different speeds (complexknee F = 20,000, one X-step: half of the 20 points within 20
-    iterations, two after 100), so converged points leave the batch once a quarter of it has: the products then
-    run over the points still iterating only. Every other update is in place: at F = 20,000 the arrays are 10 MB,
-    and a fresh temporary per operation cost a page-faulting allocation each."""
+    Points converge at very different speeds, so converged points leave the batch once a quarter of it has: the
+    products then run over the points still iterating only. Every other update is in place: on long captures the
+    arrays are large, and a fresh temporary per operation cost a page-faulting allocation each."""
     def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.einsum("fkp,fkp->p", a, b)
 
@@ -152,7 +154,7 @@ def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: X
     residual = np.empty_like(x)
     apply(x, residual)
     np.subtract(rhs, residual, out=residual)
-    target = options.cg_tolerance * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
+    target = CG_TOLERANCE * np.maximum(np.sqrt(dot(rhs, rhs)), 1e-300)
     z = np.empty_like(x)
     precondition(residual, z)
     direction = z.copy()
@@ -160,7 +162,7 @@ def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: X
     step = np.empty_like(x)
     rz = dot(residual, z)
     done = np.sqrt(dot(residual, residual)) <= target
-    for _ in range(options.cg_max_iterations):
+    for _ in range(CG_MAX_ITERATIONS):
         if done.all():
             break
         if done.sum() >= max(1, len(active) // 4):  # the finished points leave the batch
@@ -192,7 +194,7 @@ def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: X
 def _along(r: np.ndarray, Y: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """r (r . Y) per (frame, point), arrays (F, 3, P): the component of Y along its ray (zero where r = 0), written
     into `out` when given."""
-    # einsum reduces the (strided) axis 1 in one pass: 5x faster than three strided products at F = 20,000.
+    # einsum reduces the (strided) axis 1 in one pass, faster than three strided products.
     return np.multiply(r, np.einsum("fkp,fkp->fp", r, Y)[:, None, :], out=out)
 
 

@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import logging
+from typing import NoReturn
 
 import numpy as np
 
 from sfm.subject.bundle import Bundle, adjust, camera_residuals, residuals_px, rotation, supported
-from sfm.subject.chain import initial_poses, make_knots
+from sfm.subject.chain import Knots, initial_poses, make_knots
 from sfm.subject.focals import self_calibrate
 from sfm.subject.model import (
+    INLIER_PX,
+    MAX_RESIDUAL_PX,
+    MIN_DISTINCT,
+    MIN_INLIERS,
+    MIN_SHARED,
+    SEED,
     PairResult,
     SubjectCalibrationError,
     SubjectCamera,
@@ -30,8 +37,52 @@ def calibrate_from_subject(
 ) -> SubjectResult:
     """Pose static cameras (and their clock offsets, and unknown focals) from the 2D tracks of a moving subject."""
     options = options or SubjectOptions()
-    rng = np.random.default_rng(options.seed)
+    rng = np.random.default_rng(SEED)
     points, obs = build_observations(tracks, videos)
+    _check_scale_points(points, options)
+    with_tracks = [i for i, o in enumerate(obs) if o.count() > 0]
+    failed: dict[str, str] = {o.name: "no tracks" for o in obs if o.count() == 0}
+    if len(with_tracks) < 2:
+        raise SubjectCalibrationError(f"{len(with_tracks)} video(s) have tracks; track the subject in at least two")
+
+    fits = _fit_pairs(obs, with_tracks, options, rng)
+    pairs = [_pair_result(obs, f) for f in fits]
+    usable = [f for f in fits if f.usable]
+    if not usable:
+        _no_usable_pair(fits, options)
+
+    anchors = [i for i in with_tracks if videos[i].cam_from_world is not None]
+    reference = anchors[0] if anchors else with_tracks[0]
+    offsets, kept = _chain_offsets(obs, usable, reference)
+    for i in with_tracks:
+        if not np.isfinite(offsets[i]):
+            failed[obs[i].name] = _why(obs, fits, i)
+
+    kept_fits = _refit_to_offsets(obs, usable, kept, offsets)
+    if not kept_fits:
+        raise SubjectCalibrationError("no pair's epipolar geometry agrees with the chained time offsets")
+    _estimate_focals(obs, kept_fits)
+    knots = make_knots(obs, offsets, len(points))
+    poses = initial_poses(obs, offsets, kept_fits, knots, INLIER_PX, failed)
+    bundle = _initial_bundle(obs, poses, offsets, knots, reference)
+    adjust(bundle, obs, INLIER_PX)
+    _refuse_unsupported(bundle, obs, failed)
+    metric, fixed_anchor = _fix_frame(bundle, obs, videos)
+    bundle.knots.X[~supported(bundle, obs)] = np.nan  # knots no two cameras see are extrapolations
+    if options.scale is not None and not metric:
+        _apply_scale(bundle, points, options.scale, fixed_anchor)
+        metric = True
+    return SubjectResult(
+        cameras=_cameras(bundle, obs),
+        pairs=pairs,
+        failed=failed,
+        metric=metric,
+        points={p: bundle.knots.X[:, i].copy() for i, p in enumerate(points)},
+        times=bundle.knots.times,
+    )
+
+
+def _check_scale_points(points: list[str], options: SubjectOptions) -> None:
     if options.scale is not None:
         missing = [p for p in options.scale[:2] if p not in points]
         if missing:
@@ -39,19 +90,20 @@ def calibrate_from_subject(
                 f"scale point(s) {', '.join(missing)} are not in the tracks (points: "
                 f"{', '.join(points[:10])}); fix options.scale"
             )
-    with_tracks = [i for i, o in enumerate(obs) if o.count() > 0]
-    failed: dict[str, str] = {o.name: "no tracks" for o in obs if o.count() == 0}
-    if len(with_tracks) < 2:
-        raise SubjectCalibrationError(f"{len(with_tracks)} video(s) have tracks; track the subject in at least two")
 
+
+def _fit_pairs(
+    obs: list[VideoObs], with_tracks: list[int], options: SubjectOptions, rng: np.random.Generator
+) -> list[PairFit]:
+    """Every pair of tracked videos: its time offset (searched, or at the known offsets) and epipolar geometry."""
     fits: list[PairFit] = []
     for n, a in enumerate(with_tracks):
         for b in with_tracks[n + 1 :]:
             known = options.offsets or {}
             if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
-                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], options)
+                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name])
             else:
-                fit = fit_pair(obs[a], obs[b], a, b, options, rng)
+                fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng)
             log.info(
                 "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
                 obs[a].name,
@@ -64,58 +116,61 @@ def calibrate_from_subject(
                 fit.reason or "",
             )
             fits.append(fit)
-    pairs = [
-        PairResult(
-            a=obs[f.a].name,
-            b=obs[f.b].name,
-            offset=-f.shift,
-            inliers=f.inliers,
-            shared=f.shared,
-            runner_up_ratio=f.runner_up_ratio,
-            degenerate=f.degenerate,
-            ambiguous=f.ambiguous,
-            distinct=f.distinct,
-            reason=f.reason,
-        )
-        for f in fits
-    ]
-    usable = [f for f in fits if f.usable]
-    if not usable:
-        degenerate = sorted({f.degenerate for f in fits if f.degenerate})
-        if degenerate:
-            raise SubjectCalibrationError(
-                f"degenerate motion in every pair ({'; '.join(degenerate)}): the tracks cannot fix an epipolar "
-                "geometry; record a subject moving in all three dimensions across the views, or track more points"
-            )
-        most = max(f.shared for f in fits)
-        raise SubjectCalibrationError(
-            f"no pair of videos shares {options.min_shared} observations at any time offset "
-            f"within ±{options.max_offset:g} s (best {most}); record longer overlapping "
-            "motion, track more points or raise max_offset"
-        )
+    return fits
 
-    anchors = [i for i in with_tracks if videos[i].cam_from_world is not None]
-    reference = anchors[0] if anchors else with_tracks[0]
+
+def _pair_result(obs: list[VideoObs], f: PairFit) -> PairResult:
+    return PairResult(
+        a=obs[f.a].name,
+        b=obs[f.b].name,
+        offset=-f.shift,
+        inliers=f.inliers,
+        shared=f.shared,
+        runner_up_ratio=f.runner_up_ratio,
+        degenerate=f.degenerate,
+        ambiguous=f.ambiguous,
+        distinct=f.distinct,
+        reason=f.reason,
+    )
+
+
+def _no_usable_pair(fits: list[PairFit], options: SubjectOptions) -> NoReturn:
+    degenerate = sorted({f.degenerate for f in fits if f.degenerate})
+    if degenerate:
+        raise SubjectCalibrationError(
+            f"degenerate motion in every pair ({'; '.join(degenerate)}): the tracks cannot fix an epipolar "
+            "geometry; record a subject moving in all three dimensions across the views, or track more points"
+        )
+    most = max(f.shared for f in fits)
+    raise SubjectCalibrationError(
+        f"no pair of videos shares {MIN_SHARED} observations at any time offset "
+        f"within ±{options.max_offset:g} s (best {most}); record longer overlapping "
+        "motion, track more points or raise max_offset"
+    )
+
+
+def _chain_offsets(obs: list[VideoObs], usable: list[PairFit], reference: int) -> tuple[np.ndarray, list[int]]:
+    """Every video's clock offset from the pairs' offsets, `reference` at 0; returns the offsets (NaN where no
+    pair reaches) and the indices of the pairs kept."""
     period = max(o.period for o in obs)
     # an ambiguous pair barely counts: it decides an offset only where no trusted pair reaches
     edges = [(f.a, f.b, -f.shift, float(f.inliers) * (1e-3 if f.ambiguous else 1.0)) for f in usable]
     offsets, kept = solve_offsets(len(obs), edges, {reference: 0.0}, tolerance=1.5 * period)
     if not np.isfinite(offsets[reference]) or len(kept) == 0:
         raise SubjectCalibrationError("no usable pair includes the reference video; check the tracks overlap in time")
-    if not np.isfinite(offsets).all():
-        # the reference's group may not be the largest: re-anchor on the best pair's group
-        pass
-    for i in with_tracks:
-        if not np.isfinite(offsets[i]):
-            failed[obs[i].name] = _why(obs, fits, i)
+    return offsets, kept
 
-    kept_fits = _refit_to_offsets(obs, usable, kept, offsets, options)
-    if not kept_fits:
-        raise SubjectCalibrationError("no pair's epipolar geometry agrees with the chained time offsets")
-    _estimate_focals(obs, kept_fits)
-    knots = make_knots(obs, offsets, len(points))
-    poses = initial_poses(obs, offsets, kept_fits, knots, options.inlier_px, failed)
+
+def _initial_bundle(
+    obs: list[VideoObs],
+    poses: dict[int, tuple[np.ndarray, np.ndarray]],
+    offsets: np.ndarray,
+    knots: Knots,
+    reference: int,
+) -> Bundle:
+    """The chained poses as a bundle; the camera at the origin is held, the farthest one fixes the scale."""
     cams = sorted(poses)
+    first = next(j for j, c in enumerate(cams) if np.allclose(poses[c][1], 0) and np.allclose(poses[c][0], np.eye(3)))
     bundle = Bundle(
         cams=cams,
         rvec=np.array([rotation_vector(poses[c][0]) for c in cams]),
@@ -126,20 +181,23 @@ def calibrate_from_subject(
         pp=np.array([obs[c].K[:2, 2] for c in cams]),
         offsets=offsets.copy(),
         knots=knots,
-        fixed_pose={cams.index(min(cams, key=lambda c: 0 if c == kept_fits[0].a else 1))},
+        fixed_pose={first},
         fixed_offset={reference},
         gauge=None,
         keep=[_thinned(obs[c]) for c in cams],
     )
-    first = next(j for j, c in enumerate(cams) if np.allclose(poses[c][1], 0) and np.allclose(poses[c][0], np.eye(3)))
-    bundle.fixed_pose = {first}
     second = max((j for j in range(len(cams)) if j != first), key=lambda j: np.linalg.norm(bundle.t[j]))
     bundle.gauge = (first, second, float(np.linalg.norm(bundle.t[second])))
     finite = np.isfinite(knots.X[..., 0])
     bundle.depth = float(np.median(np.linalg.norm(knots.X[finite], axis=-1))) if finite.any() else 1.0
     bundle.focal_prior = bundle.focal.copy()
-    adjust(bundle, obs, options.inlier_px)
-    refused = _refuse(bundle, obs, options, failed)
+    return bundle
+
+
+def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> None:
+    """Drop the cameras the adjusted data do not support, and adjust the others again."""
+    cams = bundle.cams
+    refused = _refuse(bundle, obs, failed)
     if refused:
         _drop(bundle, refused)
         if len(bundle.cams) < 2:
@@ -147,9 +205,14 @@ def calibrate_from_subject(
                 "the bundle adjustment cannot support the cameras' poses: "
                 + "; ".join(f"{obs[c].name}: {failed[obs[c].name]}" for c in cams if obs[c].name in failed)
             )
-        adjust(bundle, obs, options.inlier_px, rounds=1)
-    cams = bundle.cams
+        adjust(bundle, obs, INLIER_PX, rounds=1)
 
+
+def _fix_frame(bundle: Bundle, obs: list[VideoObs], videos: list[SubjectVideo]) -> tuple[bool, list[int]]:
+    """Move the solution onto the anchors' frame (and scale, with two or more) and adjust once more.
+
+    Returns whether the scale is metric and the anchors' positions in `bundle.cams`."""
+    cams = bundle.cams
     metric = False
     fixed_anchor = [j for j, c in enumerate(cams) if videos[c].cam_from_world is not None]
     if fixed_anchor:
@@ -165,15 +228,14 @@ def calibrate_from_subject(
                 key=lambda i: np.linalg.norm(_centre(bundle, i) - _centre(bundle, j)),
             )
             bundle.gauge = (j, other, float(np.linalg.norm(_centre(bundle, other) - _centre(bundle, j))))
-        adjust(bundle, obs, options.inlier_px, rounds=1)
-    bundle.knots.X[~supported(bundle, obs)] = np.nan  # knots no two cameras see are extrapolations
-    if options.scale is not None and not metric:
-        _apply_scale(bundle, points, options.scale, fixed_anchor)
-        metric = True
+        adjust(bundle, obs, INLIER_PX, rounds=1)
+    return metric, fixed_anchor
 
+
+def _cameras(bundle: Bundle, obs: list[VideoObs]) -> list[SubjectCamera]:
     res = residuals_px(bundle, obs)
     cameras = []
-    for j, c in enumerate(cams):
+    for j, c in enumerate(bundle.cams):
         K = obs[c].K.copy()
         dist = obs[c].dist if obs[c].known_K else np.array([bundle.k1[j], bundle.k2[j], 0.0, 0.0, 0.0])
         cameras.append(
@@ -188,14 +250,7 @@ def calibrate_from_subject(
                 residual_px=float(np.median(res[j])) if len(res[j]) else float("nan"),
             )
         )
-    return SubjectResult(
-        cameras=cameras,
-        pairs=pairs,
-        failed=failed,
-        metric=metric,
-        points={p: bundle.knots.X[:, i].copy() for i, p in enumerate(points)},
-        times=bundle.knots.times,
-    )
+    return cameras
 
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
@@ -212,22 +267,22 @@ def _thinned(o: VideoObs, budget: int = 2500) -> np.ndarray:
     return seen
 
 
-def _refuse(b: Bundle, obs: list[VideoObs], options: SubjectOptions, failed: dict[str, str]) -> list[int]:
+def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> list[int]:
     """Positions in `b.cams` whose adjusted pose is not supported: large residuals or too few agreeing points."""
     out = []
     for j, (res, f, p) in enumerate(camera_residuals(b, obs)):
         o = obs[b.cams[j]]
-        good = res <= 3 * options.inlier_px
+        good = res <= 3 * INLIER_PX
         median = float(np.median(res)) if len(res) else float("inf")
         cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
         distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
-        if median > options.max_residual_px:
+        if median > MAX_RESIDUAL_PX:
             why = (
-                f"median reprojection error {median:.1f} px after the bundle adjustment (> {options.max_residual_px:g})"
+                f"median reprojection error {median:.1f} px after the bundle adjustment (> {MAX_RESIDUAL_PX:g})"
             )
-        elif int(good.sum()) < options.min_inliers:
-            why = f"only {int(good.sum())} observations agree with the others' trajectory (< {options.min_inliers})"
-        elif distinct < options.min_distinct // 2:
+        elif int(good.sum()) < MIN_INLIERS:
+            why = f"only {int(good.sum())} observations agree with the others' trajectory (< {MIN_INLIERS})"
+        elif distinct < MIN_DISTINCT // 2:
             why = f"its agreeing observations cover only {distinct} distinct image positions"
         else:
             continue
@@ -274,7 +329,7 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
 
 
 def _refit_to_offsets(
-    obs: list[VideoObs], usable: list[PairFit], kept: list[int], offsets: np.ndarray, options: SubjectOptions
+    obs: list[VideoObs], usable: list[PairFit], kept: list[int], offsets: np.ndarray
 ) -> list[PairFit]:
     """The pairs at the chained offsets: a pair whose own offset disagrees (dropped or ambiguous) is refitted there."""
     out = []
@@ -286,7 +341,7 @@ def _refit_to_offsets(
         if k in kept and abs(shift - f.shift) <= tol:
             out.append(f)
             continue
-        g = fit_at(obs[f.a], obs[f.b], f.a, f.b, shift, options)
+        g = fit_at(obs[f.a], obs[f.b], f.a, f.b, shift)
         log.info(
             "pair %s-%s refitted at the chained offset %.3f s (own %.3f s): %d inliers, %s",
             obs[f.a].name,

@@ -26,21 +26,22 @@ class SubjectVideo:
     cam_from_world: tuple[np.ndarray, np.ndarray] | None = None  # (R (3, 3), t (3,)) known pose: kept fixed
 
 
+SEED = 0  # of the pair search's RANSAC sampling
+MIN_SHARED = 15  # interpolated correspondences needed for a pair
+INLIER_PX = 3.0  # RANSAC threshold (pixels)
+MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
+MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
+MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused
+MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
+
+
 @dataclass(kw_only=True)
 class SubjectOptions:
     max_offset: float = 10.0  # seconds searched each way for a pair's time offset
-    offset_step: float | None = None  # fine search step, default a quarter of the smaller median frame period
-    min_shared: int = 15  # interpolated correspondences needed for a pair
-    inlier_px: float = 3.0  # RANSAC threshold (pixels)
-    min_distinct: int = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
-    min_ratio: float = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
-    max_residual_px: float = 6.0  # a camera whose median reprojection error ends above this is refused
-    min_inliers: int = 30  # a camera whose pose rests on fewer agreeing observations is refused
     scale: tuple[str, str, float] | None = None  # (point A, point B, metres): mean |A-B| sets the scale
     # Known clock offsets (s, global = own + offset; e.g. from an earlier solve): pairs are fitted at the offsets
     # they imply instead of searched.
     offsets: dict[str, float] | None = None
-    seed: int = 0
 
 
 @dataclass(kw_only=True)
@@ -68,7 +69,7 @@ class PairResult:
     shared: int
     runner_up_ratio: float  # best score / best score further than one frame period from the best (>= 1)
     degenerate: str | None  # "line", "plane", "few distinct positions (...)" or None
-    ambiguous: bool = False  # runner_up_ratio below options.min_ratio: the offset is trusted only without better pairs
+    ambiguous: bool = False  # runner_up_ratio below MIN_RATIO: the offset is trusted only without better pairs
     distinct: int = 0  # distinct positions among the pair's inliers
     reason: str | None = None  # why the pair is unusable, None when usable
 

@@ -56,7 +56,7 @@ def select_rows(tracks: Tracks, keep: np.ndarray) -> Tracks:
 
 
 def guess_K(video: SubjectVideo) -> np.ndarray:  # noqa: N802
-    f = 1.2 * max(video.width, video.height)  # a typical ~75° horizontal field of view
+    f = 1.2 * max(video.width, video.height)  # a guess: a field of view of about 45° across the long side
     return np.array([[f, 0, (video.width - 1) / 2], [0, f, (video.height - 1) / 2], [0, 0, 1.0]])
 
 

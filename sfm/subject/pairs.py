@@ -14,13 +14,14 @@ import cv2
 import numpy as np
 
 from sfm.subject.geometry import bougnoux, eight_point, sampson, weighted_fit
-from sfm.subject.model import SubjectOptions
+from sfm.subject.model import INLIER_PX, MIN_DISTINCT, MIN_RATIO, MIN_SHARED
 from sfm.subject.observations import VideoObs, interpolate
 
 log = logging.getLogger(__name__)
 
 CHUNK = 24  # shifts scored at once (bounds the (D, H, N) Sampson tensor)
 DISTINCT = 0.02  # cell size (fraction of the image size) that clusters correspondences into distinct positions
+FINE_STEP = 0.25  # fine offset search step, in frame periods of the faster video
 
 
 @dataclass(kw_only=True)
@@ -123,16 +124,17 @@ def _peaks(shifts: np.ndarray, scores: np.ndarray, separation: float, count: int
     return out
 
 
-def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions, rng: np.random.Generator) -> PairFit:
+def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng: np.random.Generator) -> PairFit:
+    """The pair's time shift (searched within `max_offset` seconds each way) and its geometry there."""
     essential = oa.known_K and ob.known_K  # an E needs both calibrations; else an F (up to the focal guess)
     f_mean = float(np.sqrt(oa.focal * ob.focal))
     period = max(oa.period, ob.period)
-    fine = options.offset_step or 0.25 * min(oa.period, ob.period)
+    fine = FINE_STEP * min(oa.period, ob.period)
     speed = max(_image_speed(oa), _image_speed(ob))
     # a coarse step whose motion blur stays near the inlier threshold, between the fine step and 3 frames
-    coarse = float(np.clip(4 * options.inlier_px / max(speed, 1e-9), fine, 3 * period))
-    lo = max(-options.max_offset, ob.times[0] - oa.times[-1])
-    hi = min(options.max_offset, ob.times[-1] - oa.times[0])
+    coarse = float(np.clip(4 * INLIER_PX / max(speed, 1e-9), fine, 3 * period))
+    lo = max(-max_offset, ob.times[0] - oa.times[-1])
+    hi = min(max_offset, ob.times[-1] - oa.times[0])
     empty = PairFit(
         a=a,
         b=b,
@@ -150,12 +152,12 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
         empty.reason = "the videos never overlap in time within max_offset"
         return empty
     grid = np.arange(lo, hi + coarse / 2, coarse)
-    thr_c = (options.inlier_px + 0.5 * coarse * speed) / f_mean
-    c_scores, c_counts = _score(oa, ob, grid, thr_c, 64, 200, False, options.min_shared, rng)
-    if c_counts.max() < options.min_shared:
+    thr_c = (INLIER_PX + 0.5 * coarse * speed) / f_mean
+    c_scores, c_counts = _score(oa, ob, grid, thr_c, 64, 200, False, MIN_SHARED, rng)
+    if c_counts.max() < MIN_SHARED:
         empty.shared = int(c_counts.max())
         empty.reason = (
-            f"at most {int(c_counts.max())} shared observations at any time offset (min_shared={options.min_shared})"
+            f"at most {int(c_counts.max())} shared observations at any time offset (min_shared={MIN_SHARED})"
         )
         return empty
     candidates: list[float] = []
@@ -165,7 +167,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
         f_grid = np.arange(peak - coarse, peak + coarse + step / 2, step)
         # the fine scores come from the full robust estimator (cv2 MAGSAC): the batched 8-point is too noisy here
         f_scores = np.array(
-            [_geometry(oa, ob, a, b, s, 1.0, essential, options, n_max=1500, iterations=1000).score for s in f_grid],
+            [_geometry(oa, ob, a, b, s, 1.0, essential, n_max=1500, iterations=1000).score for s in f_grid],
             dtype=float,
         )
         i = int(np.argmax(f_scores))
@@ -177,7 +179,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
                 shift += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
         candidates.append(shift)
     # the peaks compete on the full robust model's MSAC score (an E when both K are known: 5 dof discriminate best)
-    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, options) for shift in candidates]
+    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential) for shift in candidates]
     best = max(fits, key=lambda f: f.score)
     far = [f.score for f in fits if abs(f.shift - best.shift) > period]
     if far:  # best over the best elsewhere, with the same estimator: >= 1 by construction
@@ -188,14 +190,14 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, options: SubjectOptions
         c_near = float(c_scores[near].max()) if near.any() else 0.0
         best.runner_up_ratio = max(1.0, c_near / c_far) if c_far > 0 else float("inf")
     # one point gives fewer constraints per frame: a single-point pair needs a clearer win
-    margin = options.min_ratio - 1.0 if oa.xy.shape[1] > 1 else 3 * (options.min_ratio - 1.0)
+    margin = MIN_RATIO - 1.0 if oa.xy.shape[1] > 1 else 3 * (MIN_RATIO - 1.0)
     best.ambiguous = best.runner_up_ratio < 1.0 + margin
     return best
 
 
-def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float, options: SubjectOptions) -> PairFit:
+def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float) -> PairFit:
     """The pair's model at a given shift (own_b = own_a + shift), e.g. the one the chained offsets imply."""
-    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K, options)
+    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K)
 
 
 def _geometry(
@@ -206,7 +208,6 @@ def _geometry(
     shift: float,
     ratio: float,
     essential: bool,
-    options: SubjectOptions,
     n_max: int = 0,
     iterations: int = 5000,
 ) -> PairFit:
@@ -230,11 +231,11 @@ def _geometry(
         E=None,
         focals=(np.nan, np.nan),
     )
-    if len(xa) < max(8, options.min_shared):
+    if len(xa) < max(8, MIN_SHARED):
         fit.reason = f"only {len(xa)} shared observations at the best time offset"
         return fit
     f_mean = float(np.sqrt(oa.focal * ob.focal))
-    thr = options.inlier_px / f_mean
+    thr = INLIER_PX / f_mean
     F: np.ndarray | None = None
     if essential:
         E, mask = cv2.findEssentialMat(
@@ -243,7 +244,7 @@ def _geometry(
     else:
         # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
         pa, pb = xa * oa.focal, xb * ob.focal
-        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, options.inlier_px, 0.9999, iterations)
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, INLIER_PX, 0.9999, iterations)
         if F is not None and F.shape == (3, 3):
             fa, fb = bougnoux(F)
             fit.focals = (fa, fb)
@@ -261,7 +262,7 @@ def _geometry(
     fit.E, fit.inliers, fit.xa, fit.xb = E, int(inl.sum()), xa[inl], xb[inl]
     if not essential:
         fit.F_px = F
-    if fit.inliers < max(8, options.min_shared):
+    if fit.inliers < max(8, MIN_SHARED):
         fit.reason = f"only {fit.inliers} epipolar inliers"
         return fit
     if not n_max:
@@ -270,9 +271,9 @@ def _geometry(
             [np.floor(fit.xa * oa.focal / (DISTINCT * size_a)), np.floor(fit.xb * ob.focal / (DISTINCT * size_b))]
         )  # (M, 4) cell of each inlier in both images
         fit.distinct = len(np.unique(cells, axis=0))
-        if fit.distinct < options.min_distinct:
+        if fit.distinct < MIN_DISTINCT:
             # a handful of places explain any epipolar geometry (and every time offset): nothing to trust
-            fit.degenerate = f"few distinct positions ({fit.distinct} < {options.min_distinct})"
+            fit.degenerate = f"few distinct positions ({fit.distinct} < {MIN_DISTINCT})"
         else:
             fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
     return fit

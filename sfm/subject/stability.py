@@ -2,9 +2,9 @@
 
 The subject path has no ground truth to check against, and a poorly constrained problem (few distinct positions,
 little motion, a near-planar path) still returns poses with small residuals: its cameras are then set by noise.
-Each fold leaves out one block of time in `folds` (alternating blocks, so every fold sees the same kind of motion);
-where a camera's pose in a fold differs from the whole-data pose by more than the tolerance, the pose is not
-determined by the data and is not trusted.
+Each of the FOLDS folds leaves out every FOLDS-th block of time (alternating blocks, so every fold sees the same
+kind of motion); where a camera's pose in a fold differs from the whole-data pose by more than the tolerance, the
+pose is not determined by the data and is not trusted.
 """
 
 from __future__ import annotations
@@ -25,13 +25,11 @@ from tracking.tracks import Tracks
 log = logging.getLogger(__name__)
 
 
-@dataclass(kw_only=True)
-class StabilityOptions:
-    block: float = 0.5  # seconds of a video's own time per block
-    folds: int = 3  # fold k leaves out the blocks whose index is k modulo `folds`
-    # A garbage detector, not an accuracy bound: a fold holds 2/3 of the data, so valid poses move too.
-    max_centre: float = 0.1  # largest centre change between a fold and the whole, fraction of the camera spread
-    max_rotation_deg: float = 5.0
+BLOCK = 0.5  # seconds of a video's own time per block
+FOLDS = 3  # fold k leaves out the blocks whose index is k modulo FOLDS
+# A garbage detector, not an accuracy bound: a fold holds 2/3 of the data, so valid poses move too.
+MAX_CENTRE = 0.1  # largest centre change between a fold and the whole, fraction of the camera spread
+MAX_ROTATION_DEG = 5.0
 
 
 @dataclass(kw_only=True)
@@ -54,12 +52,12 @@ class Stability:
         }
 
 
-def _fold(tracks: Tracks, videos: list[SubjectVideo], fold: int, stability: StabilityOptions) -> Tracks:
+def _fold(tracks: Tracks, videos: list[SubjectVideo], fold: int) -> Tracks:
     times = {v.name: v.times for v in videos}
     keep = np.zeros(len(tracks), dtype=bool)
     for row, (video, frame) in enumerate(zip(tracks.video, tracks.frame, strict=True)):
         own = times[video][int(frame)] if video in times and int(frame) < len(times[video]) else 0.0
-        keep[row] = int(own // stability.block) % stability.folds != fold
+        keep[row] = int(own // BLOCK) % FOLDS != fold
     return select_rows(tracks, keep)
 
 
@@ -77,12 +75,10 @@ def check_stability(
     videos: list[SubjectVideo],
     result: SubjectResult,
     options: SubjectOptions | None = None,
-    stability: StabilityOptions | None = None,
 ) -> Stability:
     """Solve each fold of `tracks` and compare its cameras with `result` (the solution on all of them).
 
     A similarity needs 3 cameras; with 2, their relative rotation is compared."""
-    stability = stability or StabilityOptions()
     whole = _as_cameras(result.cameras)
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
@@ -91,9 +87,9 @@ def check_stability(
     failures = []
     # The folds keep the whole solution's clock offsets: they test the geometry, and skip the offset search.
     fold_options = dataclasses.replace(options or SubjectOptions(), offsets={c.name: c.offset for c in result.cameras})
-    for fold in range(stability.folds):
+    for fold in range(FOLDS):
         try:
-            part = calibrate_from_subject(_fold(tracks, videos, fold, stability), videos, fold_options)
+            part = calibrate_from_subject(_fold(tracks, videos, fold), videos, fold_options)
         except SubjectCalibrationError as error:
             failures.append(f"fold {fold + 1}: {error}")
             continue
@@ -120,16 +116,16 @@ def check_stability(
         )
         log.warning("subject path: poses unverified: %s", out.why_unchecked)
     for name, value in out.centre.items():
-        if value > stability.max_centre and name not in out.unstable:
+        if value > MAX_CENTRE and name not in out.unstable:
             out.unstable[name] = (
                 f"not determined by the tracks: its centre moves by {100 * value:.1f} % of the camera spread between "
-                f"folds of the data (> {100 * stability.max_centre:.0f} %)"
+                f"folds of the data (> {100 * MAX_CENTRE:.0f} %)"
             )
     for name, value in out.rotation_deg.items():
-        if value > stability.max_rotation_deg and name not in out.unstable:
+        if value > MAX_ROTATION_DEG and name not in out.unstable:
             out.unstable[name] = (
                 f"not determined by the tracks: its rotation moves by {value:.1f} deg between folds of the data "
-                f"(> {stability.max_rotation_deg:g} deg)"
+                f"(> {MAX_ROTATION_DEG:g} deg)"
             )
     return out
 
@@ -138,4 +134,4 @@ def _angle(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-__all__ = ["Stability", "StabilityOptions", "check_stability"]
+__all__ = ["Stability", "check_stability"]

@@ -1,9 +1,8 @@
 """Synthetic scenes with exact ground truth: a textured static room, moving cameras, moving textured spheres.
 
 `room` renders one view (numpy ray casting, OpenCV texture lookups); `scene` turns camera paths and object
-trajectories into videos plus ground-truth `cameras.json`. Used by the SfM tests and benchmarks, and meant to
-render a
-moving subject (spheres at mocap marker positions) for end-to-end samples.
+trajectories into videos plus ground-truth `cameras.json`. Used by the SfM tests and benchmarks, and meant to render
+a moving subject (spheres at mocap marker positions) for end-to-end samples.
 """
 
 from sfm.synthetic.room import Room, Spheres, render

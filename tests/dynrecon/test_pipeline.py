@@ -18,7 +18,7 @@ from dynrecon.errors import InputError
 from dynrecon.pipeline import (
     STAGES,
     PipelineOptions,
-    _default_register,
+    default_register,
     inputs_key,
     run_stages,
     score_against_truth,
@@ -87,7 +87,7 @@ def _write_labels(out: Path) -> None:
 
 
 def _options(labels: Path) -> PipelineOptions:
-    register = _default_register()
+    register = default_register()
     register.max_frames = 12
     # Small window and patch: the joints are ~10 px spheres on a textured background (measured: 1.7x more
     # tracked positions than the defaults, same accuracy).

@@ -17,7 +17,7 @@ from synthetic_motion import simulated_phones
 
 from dynrecon import pipeline
 from sfm.export import write_ply
-from sfm.register import RegisterOptions, RegistrationError
+from sfm.stage import RegisterOptions, RegistrationError
 
 
 @pytest.fixture(scope="module")

@@ -77,13 +77,13 @@ def test_desynchronize_keeps_disjoint_frames_with_their_numbers() -> None:
 def test_labels_are_consistent_with_the_lab_calibration(shared_dir: Path, tmp_path: Path) -> None:
     """Every label row names a demo video and lies inside its image; the labels of one frame seen from 3-4
     cameras triangulate with a small reprojection error (the correspondences are right)."""
-    from labeling.labels import read_labels
-    from sfm import import_calibration
+    from tracking.labels import read_labels
+    from sfm import calibration as import_calibration
 
     demo = shared_dir / check.DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
     import_calibration.run(demo / "calibration" / "Calib.qca.txt", list(videos), tmp_path,
-                           import_calibration.ImportOptions(scale=1000.0))
+                           import_calibration.ImportCalibrationOptions(scale=1000.0))
     cameras = check.read_cameras(tmp_path / "cameras.json")
     poses = {v.name: v for v in cameras.videos}
     labels = read_labels(LABELS)

@@ -17,9 +17,9 @@ import cv2
 import numpy as np
 import pytest
 
-from labeling.labels import Source, read_labels
-from labeling.serve import LabelOptions, LabelServer
-from labeling.workspace import Skeleton
+from labeling.skeleton import Skeleton
+from labeling.stage import LabelOptions, LabelServer
+from tracking.labels import Source, read_labels
 
 CHROMIUM = Path("/usr/bin/chromium")
 REPO = Path(__file__).resolve().parents[2]

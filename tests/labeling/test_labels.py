@@ -9,7 +9,8 @@ import pytest
 
 from dynrecon.errors import InputError
 from labeling import labels as labels_module
-from labeling.labels import Change, Label, LabelStore, Source, read_labels, write_labels
+from labeling.labels import Change, LabelStore
+from tracking.labels import Label, Source, read_labels, write_labels
 from tracking.workspace import read_labels as tracker_read_labels
 
 LABELS = {
@@ -114,4 +115,4 @@ def test_duplicate_rows_are_an_error_naming_both_lines(tmp_path: Path) -> None:
     path = tmp_path / "labels.csv"
     path.write_text("video,frame,point,x,y,source\na,0,p,1,2,label\na,1,p,1,2,label\na,0,p,3,4,label\n")
     with pytest.raises(InputError, match=r"line 4: .* labeled twice on frame 0 \(first on line 2\)"):
-        labels_module.read_labels(path)
+        read_labels(path)

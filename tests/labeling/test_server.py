@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from labeling_videos import FRAMES, HEIGHT, WIDTH
 
-from labeling.labels import read_labels
 from labeling.lock import LOCK_NAME, WorkspaceLockedError
-from labeling.serve import LabelOptions, LabelServer
-from labeling.workspace import Skeleton
+from labeling.skeleton import Skeleton
+from labeling.stage import LabelOptions, LabelServer
+from tracking.labels import read_labels
 from tracking.tracks import Tracks, write_tracks
 
 

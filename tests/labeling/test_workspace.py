@@ -8,15 +8,8 @@ from pathlib import Path
 import pytest
 
 from dynrecon.errors import InputError
-from labeling.workspace import (
-    Skeleton,
-    WorkspaceConfig,
-    load_config,
-    parse_points,
-    read_skeleton,
-    resolve_videos,
-    save_config,
-)
+from labeling.skeleton import Skeleton, parse_points, read_skeleton
+from labeling.workspace import WorkspaceConfig, load_config, resolve_videos, save_config
 from tracking.workspace import workspace_videos
 
 

@@ -10,7 +10,9 @@ from dynrecon.errors import InputError
 from reconstruct.solver.problem import Problem
 from reconstruct.trajectory import (
     BANDS,
-    ClockRefineOptions,
+    GCV_PASSES,
+    IRLS_ITERATIONS,
+    SMOOTHNESS_GRID,
     RefineOptions,
     RobustLoss,
     SmoothnessRule,
@@ -105,7 +107,7 @@ def test_noisy_rays_are_improved_over_the_input() -> None:
     after = np.sqrt(np.mean(error_mm(result.points, truth) ** 2))
     assert after < 0.5 * before
     # GCV picked a real amount of smoothing, not the grid's smallest value.
-    assert np.all(result.smoothness > RefineOptions().grid[0])
+    assert np.all(result.smoothness > SMOOTHNESS_GRID[0])
 
 
 def test_gcv_skips_smoothness_values_whose_fit_interpolates_its_rays() -> None:
@@ -135,7 +137,7 @@ def test_a_false_observation_is_down_weighted() -> None:
     assert robust.outliers.sum() <= 3  # the other observations keep their weight
     assert error_mm(robust.points[f, p], truth[f, p]) < 3.0
     # IRLS with a fixed scale majorizes the robust cost: it never increases within a GCV pass.
-    rounds = RefineOptions().iterations
+    rounds = IRLS_ITERATIONS
     for start_round in range(0, len(robust.cost), rounds):
         costs = np.array(robust.cost[start_round:start_round + rounds])
         assert np.all(np.diff(costs) <= 1e-9 * costs[0])
@@ -195,8 +197,7 @@ def test_fixed_smoothness_and_cost_history() -> None:
     assert np.all(weak.smoothness == 1e-6)
     # A huge weight flattens the motion into a straight line: far from the truth, larger residuals.
     assert np.nanmedian(strong.residual_px) > 10 * np.nanmedian(weak.residual_px)
-    options = RefineOptions()
-    assert len(weak.cost) == options.iterations * options.gcv_passes
+    assert len(weak.cost) == IRLS_ITERATIONS * GCV_PASSES
     one = refine(problem, truth, times, RefineOptions(rule=SmoothnessRule.GCV_GLOBAL))
     assert len(set(one.smoothness.tolist())) == 1
 
@@ -265,8 +266,9 @@ def test_clock_refinement_recovers_offset_and_rate_errors() -> None:
     wrong[camera_of == 3] += 0.01 * (times[camera_of == 3] - middle)
     start = start_points(problem, truth, error_mm=5.0)
     plain = refine(problem, start, wrong)
-    fixed = refine_with_clocks(problem, start, wrong, clock_options=ClockRefineOptions(reference=0))
-    assert fixed.offsets[0] == pytest.approx(0.0, abs=1e-12) and fixed.rates[0] == pytest.approx(0.0, abs=1e-12)
+    fixed = refine_with_clocks(problem, start, wrong, reference=0)
+    correction = fixed.correction
+    assert correction.offset[0] == pytest.approx(0.0, abs=1e-12) and correction.rate[0] == pytest.approx(0.0, abs=1e-12)
     # Every frame's time back within 1 ms of the truth (the gauge is video 0's clock, which was right).
     assert np.max(np.abs(fixed.times - times)) < 1e-3
     assert fixed.cost[-1] < fixed.cost[0]

@@ -10,8 +10,8 @@ import pytest
 
 from dynrecon.cli import main
 from dynrecon.errors import InputError
+from sfm.calibration import StaticCamera, Units, read_calibration, read_qca, read_toml, write_toml
 from sfm.cameras import FrameCamera, read_cameras
-from sfm.import_calibration import StaticCamera, Units, read_calibration, read_qca, read_toml, write_toml
 from sfm.intrinsics import known_intrinsics
 from sfm.video import probe_video
 

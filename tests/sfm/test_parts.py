@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +19,11 @@ from sfm.frames import Resize, select_frames
 from sfm.isolated import ColmapCrashError, run_isolated
 from sfm.masks import mask_from_points
 from sfm.pairs import build_pairs
-from sfm.video import VideoInfo
+from sfm.video import ProbedVideo
 
 
-def _info(times: np.ndarray) -> VideoInfo:
-    return VideoInfo(path=Path("v.mp4"), name="v", width=1920, height=1080, times=times, nominal_fps=30.0)
+def _info(times: np.ndarray) -> ProbedVideo:
+    return ProbedVideo(path=Path("v.mp4"), name="v", width=1920, height=1080, times=times, nominal_fps=30.0)
 
 
 def test_select_frames() -> None:
@@ -122,14 +124,14 @@ def test_compare_recovers_similarity() -> None:
 
 
 def test_known_intrinsics_from_toml_and_cameras_json(tmp_path: Path) -> None:
+    from sfm.calibration import StaticCamera, write_toml
     from sfm.cameras import write_cameras
-    from sfm.import_calibration import StaticCamera, write_toml
     from sfm.intrinsics import known_intrinsics
 
     K = np.array([[900.0, 0.0, 640.0], [0.0, 905.0, 360.0], [0.0, 0.0, 1.0]])
     dist = np.array([0.1, -0.01, 0.0, 0.0])
     infos = [
-        VideoInfo(path=Path(f"{n}.mp4"), name=n, width=1280, height=720, times=np.zeros(1), nominal_fps=None)
+        ProbedVideo(path=Path(f"{n}.mp4"), name=n, width=1280, height=720, times=np.zeros(1), nominal_fps=None)
         for n in ("cam_1", "cam_2")
     ]
     toml = write_toml(
@@ -165,7 +167,7 @@ def test_known_intrinsics_from_toml_and_cameras_json(tmp_path: Path) -> None:
 
 
 def test_wanted_frames_follow_tracks() -> None:
-    from sfm.register import Localize, _wanted_frames
+    from sfm.stage import Localize, _wanted_frames
     from tracking.tracks import Tracks
 
     info = _info(np.arange(50) / 30.0)
@@ -181,3 +183,23 @@ def test_frame_rate_follows_the_contract() -> None:
     assert _info(np.arange(10) / 30.0).fps == 30.0
     irregular = _info(np.array([0.0, 0.033, 0.070, 0.100, 0.150, 0.166]))
     assert irregular.variable_frame_rate and irregular.fps is None
+
+
+def test_public_front_is_lazy() -> None:
+    """`import sfm` and the CLI's parser load neither pycolmap nor OpenCV; the front names the stages."""
+    code = (
+        "import argparse, sys, sfm, sfm.cli\n"
+        "sfm.cli.add_commands(argparse.ArgumentParser().add_subparsers())\n"
+        "print([m for m in ('pycolmap', 'cv2', 'numpy', 'sfm.stage', 'sfm.calibration') if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+    import sfm
+    from sfm import calibration, cameras, options, stage
+
+    assert sfm.register is stage.run and sfm.import_calibration is calibration.run
+    assert sfm.RegisterOptions is options.RegisterOptions and sfm.read_cameras is cameras.read_cameras
+    assert all(hasattr(sfm, name) for name in sfm.__all__)
+    with pytest.raises(AttributeError):
+        _ = sfm.no_such_name

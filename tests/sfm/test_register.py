@@ -40,8 +40,7 @@ def test_register_synthetic_room(tmp_path: Path) -> None:
         "1500",
         "--mask-radius",
         "70",
-        # One thread makes COLMAP deterministic (random_seed is fixed); with threads the worst centre error of this
-        # small scene varied from 0.3 % to 1.4 % of the room between runs.
+        # One thread makes COLMAP deterministic (random_seed is fixed); with threads this small scene's errors vary.
         "--threads",
         "1",
     ]

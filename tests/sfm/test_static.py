@@ -13,7 +13,7 @@ from dynrecon.cli import main
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
 from sfm.frames import Resize
-from sfm.static import StaticOptions, background_image, measure_motion, sample_frames
+from sfm.static import background_image, measure_motion, sample_frames
 from sfm.synthetic.demo import mixed_cameras, render_demo, sphere_tracks
 from sfm.synthetic.room import Room, render
 from sfm.video import probe_video, read_frames
@@ -30,7 +30,7 @@ def mixed(tmp_path_factory: pytest.TempPathFactory) -> list:
 def test_motion_test_tells_static_from_handheld(mixed: list) -> None:
     decisions = {}
     for video in mixed:
-        test = measure_motion(probe_video(video.path), StaticOptions())
+        test = measure_motion(probe_video(video.path))
         decisions[video.cameras.name] = test
         assert len(test.frames) == 12 and test.corners >= 20
     # The spheres move through the static views: the test must see through them.

@@ -297,3 +297,14 @@ def test_hdm05_phones(shared_dir: Path) -> None:
     assert capture.truth.xyz.shape[1] == 44 and sum(record.frames.values()) == capture.truth.num_frames > 150
     projected, tracked, _ = reprojection(capture)
     np.testing.assert_allclose(tracked, projected, atol=1e-8)
+
+
+def test_true_clocks_are_the_solvers_clock_model() -> None:
+    """Each simulated camera's true clock is an affine `reconstruct.clocks.model.Clock`: its report form gives the
+    drawn offset and rate, and its inverse maps capture times back to own times."""
+    _, record = simulate_phones(mocap(240), PhoneCaptureOptions(cameras=3, drift_ppm=200.0, seed=2))
+    for true_clock in record.clocks:
+        values, _ = true_clock.clock.offset_rate_drift()
+        assert values.tolist() == [true_clock.offset_s, true_clock.rate, 0.0]
+        own = np.arange(10) / true_clock.fps
+        np.testing.assert_allclose(true_clock.own_time(true_clock.global_time(own)), own, atol=1e-12)

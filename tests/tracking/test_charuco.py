@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dynrecon.errors import InputError
-from sfm.import_calibration import read_calibration
+from sfm.calibration import read_calibration
 from tracking.charuco import CharucoBoard, board_corner_positions, charuco_tracks, read_charuco_board
 from tracking.cli import add_commands
 from tracking.tracks import read_tracks

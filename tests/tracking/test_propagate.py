@@ -7,9 +7,10 @@ import pytest
 from tracking.accuracy import labels_every, score
 from tracking.frames import ArrayFrames
 from tracking.options import Blend, Method, TrackOptions
-from tracking.propagate import SOURCE_LABEL, SOURCE_TRACK, track_video
+from tracking.propagate import track_video
 from tracking.steps import brightness, normalize_brightness
 from tracking.synthetic import SyntheticVideo
+from tracking.tracks import SOURCE_LABEL, SOURCE_TRACK
 
 
 def _frames(video: SyntheticVideo) -> ArrayFrames:
@@ -147,6 +148,6 @@ def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(small_vide
 
 
 def test_invalid_options_fail_at_construction() -> None:
-    for bad in ({"min_ncc": 1.0}, {"min_score": 1.5}, {"fb_threshold": 0.0}, {"win_size": 3}, {"patch": 1}):
+    for bad in ({"min_score": 1.5}, {"fb_threshold": 0.0}, {"win_size": 3}, {"patch": 1}):
         with pytest.raises(ValueError):
             TrackOptions(**bad)  # type: ignore[arg-type]

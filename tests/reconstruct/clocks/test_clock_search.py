@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reconstruct.clocks.estimate import ClockOptions, SearchMode, TimeSource, estimate_clocks, own_times
-from reconstruct.clocks.search import SearchOptions, gap_px, search_clocks
+from reconstruct.clocks.estimate import ClockOptions, SearchMode, estimate_clocks
+from reconstruct.clocks.model import TimeSource, own_times
+from reconstruct.clocks.search import gap_px, search_clocks
 
 # The synthetic capture generator lives beside the W-link tests.
 _spec = importlib.util.spec_from_file_location("clock_scenes", Path(__file__).with_name("test_clocks.py"))
@@ -19,12 +20,12 @@ assert _spec is not None and _spec.loader is not None
 scenes = importlib.util.module_from_spec(_spec)
 sys.modules.setdefault("clock_scenes", scenes)  # dataclasses look their module up there
 _spec.loader.exec_module(scenes)
-TrueClock = scenes.TrueClock
+ClockTruth = scenes.ClockTruth
 _FakeResult = scenes._FakeResult
 
-DRONE_CLOCKS = [TrueClock(fps=30.0, frames=240), TrueClock(fps=25.0, frames=200, offset=1.37, rate=1.0004),
-                TrueClock(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
-                TrueClock(fps=24.0, frames=190, offset=0.61, rate=1.0002)]
+DRONE_CLOCKS = [ClockTruth(fps=30.0, frames=240), ClockTruth(fps=25.0, frames=200, offset=1.37, rate=1.0004),
+                ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
+                ClockTruth(fps=24.0, frames=190, offset=0.61, rate=1.0002)]
 
 
 def test_gap_px_matches_geometry() -> None:
@@ -48,9 +49,9 @@ def test_drone_far_away_with_false_detections(seed: int) -> None:
     problem, g, _ = scenes.make_capture(DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True,
                                         handheld=True, outlier_share=0.05, seed=seed)
     own, _ = own_times(problem)
-    result = search_clocks(problem, own, 0, SearchOptions())
+    result = search_clocks(problem, own, 0)
     assert result.params.identified.all()
-    error = np.abs(result.params.times(own, problem.video_index) - g)
+    error = np.abs(result.params.global_time(own, problem.video_index) - g)
     assert np.median(error) < 0.25 / 60.0
     assert np.percentile(error, 90) < 0.5 / 60.0
     for v, clock in enumerate(DRONE_CLOCKS):
@@ -61,27 +62,27 @@ def test_drone_far_away_with_false_detections(seed: int) -> None:
 
 def test_unknown_frame_rate_is_found() -> None:
     """A video without decoder times or fps: own time = frame / 30 and the search tries the common rates."""
-    clocks = [TrueClock(fps=30.0, frames=240), TrueClock(fps=25.0, frames=200, offset=0.9)]
+    clocks = [ClockTruth(fps=30.0, frames=240), ClockTruth(fps=25.0, frames=200, offset=0.9)]
     problem, g, _ = scenes.make_capture(clocks, points=4, distance=8.0, noise_px=0.5, seed=3)
     problem.times[problem.video_index == 1] = np.nan
     own, sources = own_times(problem)
     assert sources[1] is TimeSource.NOMINAL
-    result = search_clocks(problem, own, 0, SearchOptions(time_source=sources))
+    result = search_clocks(problem, own, 0, sources=sources)
     values, _ = result.params.offset_rate_drift(1)
     assert values[1] == pytest.approx(30.0 / 25.0, rel=2e-3)  # rate carries the true frame rate
-    error = np.abs(result.params.times(own, problem.video_index) - g)
+    error = np.abs(result.params.global_time(own, problem.video_index) - g)
     assert np.median(error) < 0.25 / 30.0
 
 
 def test_no_overlap_is_reported() -> None:
     """A video that never overlaps the others in time gets a warning, not a number."""
-    clocks = [TrueClock(fps=30.0, frames=150), TrueClock(fps=30.0, frames=150, offset=0.4),
-              TrueClock(fps=30.0, frames=150, offset=40.0)]
+    clocks = [ClockTruth(fps=30.0, frames=150), ClockTruth(fps=30.0, frames=150, offset=0.4),
+              ClockTruth(fps=30.0, frames=150, offset=40.0)]
     problem, _, _ = scenes.make_capture(clocks, points=1, distance=60.0, drone=True, seed=2)
     own, _ = own_times(problem)
     # The third video films a different stretch of the flight: its track matches nothing of the others.
     problem.uv[problem.video_index == 2] += np.random.default_rng(0).normal(scale=200.0, size=(150, 1, 2))
-    result = search_clocks(problem, own, 0, SearchOptions())
+    result = search_clocks(problem, own, 0)
     assert not result.params.identified[2]
     assert any("cam2" in w for w in result.warnings)
 

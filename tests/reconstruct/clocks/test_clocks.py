@@ -12,22 +12,14 @@ import pytest
 import scipy.sparse as sp
 
 from dynrecon.errors import InputError
-from reconstruct.clocks.estimate import (
-    ClockModel,
-    ClockOptions,
-    Clocks,
-    SearchMode,
-    TimeSource,
-    estimate_clocks,
-    fit_links,
-    own_times,
-)
+from reconstruct.clocks.estimate import ClockOptions, SearchMode, estimate_clocks, fit_links
+from reconstruct.clocks.model import Clock, ClockCorrection, ClockModel, Clocks, ClockSet, TimeSource, own_times
 from reconstruct.solver.alternation import SolverOptions, solve
 from reconstruct.solver.problem import Problem
 
 
 @dataclass(kw_only=True)
-class TrueClock:
+class ClockTruth:
     fps: float
     frames: int
     offset: float = 0.0  # global = offset + rate * own + drift * own^2
@@ -67,7 +59,7 @@ def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def make_capture(clocks: list[TrueClock], *, points: int = 6, distance: float = 8.0, noise_px: float = 0.5,
+def make_capture(clocks: list[ClockTruth], *, points: int = 6, distance: float = 8.0, noise_px: float = 0.5,
                  seed: int = 0, drone: bool = False, handheld: bool = False, decoder_times: bool = True,
                  outlier_share: float = 0.0) -> tuple[Problem, np.ndarray, np.ndarray]:
     """A Problem of len(clocks) cameras on a ring around the motion; returns (problem, true global time (F,),
@@ -148,9 +140,9 @@ def ideal_w(video_index: np.ndarray, g: np.ndarray, seed: int, outliers: float =
     return sp.csc_matrix((vals, (rows, cols)), shape=(F, F))
 
 
-PHONES = [TrueClock(fps=30.0, frames=240), TrueClock(fps=24.0, frames=200, offset=1.37, rate=1.0004),
-          TrueClock(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
-          TrueClock(fps=25.0, frames=210, offset=0.511, rate=1.0002)]
+PHONES = [ClockTruth(fps=30.0, frames=240), ClockTruth(fps=24.0, frames=200, offset=1.37, rate=1.0004),
+          ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
+          ClockTruth(fps=25.0, frames=210, offset=0.511, rate=1.0002)]
 
 
 def clock_errors(problem: Problem, g: np.ndarray, estimate: np.ndarray) -> np.ndarray:
@@ -172,13 +164,13 @@ def test_own_times_sources() -> None:
 @pytest.mark.parametrize("model", [ClockModel.OFFSET, ClockModel.AFFINE])
 def test_links_recover_clocks_with_outliers(model: ClockModel) -> None:
     clocks = PHONES if model is ClockModel.AFFINE else [
-        TrueClock(fps=c.fps, frames=c.frames, offset=c.offset) for c in PHONES]
+        ClockTruth(fps=c.fps, frames=c.frames, offset=c.offset) for c in PHONES]
     problem, g, _ = make_capture(clocks, points=2)
     W = ideal_w(problem.video_index, g, seed=1, outliers=0.2)
     own, _ = own_times(problem)
-    fit = fit_links(W, own, problem.video_index, len(clocks), 0, ClockOptions(model=model))
+    fit = fit_links(W, own, problem.video_index, len(clocks), 0, model)
     assert fit.params.identified.all()
-    error = np.abs(fit.params.times(own, problem.video_index) - g)
+    error = np.abs(fit.params.global_time(own, problem.video_index) - g)
     assert np.median(error) < 0.25 / 60.0
     assert np.max(error) < 0.5 / 60.0
     for v, clock in enumerate(clocks):
@@ -191,15 +183,15 @@ def test_links_recover_clocks_with_outliers(model: ClockModel) -> None:
 
 
 def test_links_drift_model() -> None:
-    clocks = [TrueClock(fps=30.0, frames=600), TrueClock(fps=25.0, frames=500, offset=0.3, rate=1.001, drift=4e-4),
-              TrueClock(fps=50.0, frames=1000, offset=-0.4, rate=0.999)]
+    clocks = [ClockTruth(fps=30.0, frames=600), ClockTruth(fps=25.0, frames=500, offset=0.3, rate=1.001, drift=4e-4),
+              ClockTruth(fps=50.0, frames=1000, offset=-0.4, rate=0.999)]
     problem, g, _ = make_capture(clocks, points=2)
     W = ideal_w(problem.video_index, g, seed=2, outliers=0.1)
     own, _ = own_times(problem)
-    affine = fit_links(W, own, problem.video_index, 3, 0, ClockOptions(model=ClockModel.AFFINE))
-    drift = fit_links(W, own, problem.video_index, 3, 0, ClockOptions(model=ClockModel.DRIFT))
-    error_affine = np.abs(affine.params.times(own, problem.video_index) - g)
-    error_drift = np.abs(drift.params.times(own, problem.video_index) - g)
+    affine = fit_links(W, own, problem.video_index, 3, 0, ClockModel.AFFINE)
+    drift = fit_links(W, own, problem.video_index, 3, 0, ClockModel.DRIFT)
+    error_affine = np.abs(affine.params.global_time(own, problem.video_index) - g)
+    error_drift = np.abs(drift.params.global_time(own, problem.video_index) - g)
     assert np.max(error_drift) < 0.25 / 50.0
     assert np.median(error_drift) < 0.5 * np.median(error_affine)
     values, stds = drift.params.offset_rate_drift(1)
@@ -213,7 +205,7 @@ def test_unlinked_video_is_not_identified() -> None:
     W[cam2, :] = 0  # nobody uses cam2's frames ...
     W[:, cam2] = 0  # ... and cam2's frames use nobody
     own, _ = own_times(problem)
-    fit = fit_links(W.tocsc(), own, problem.video_index, 3, 0, ClockOptions(), ["cam0", "cam1", "cam2"])
+    fit = fit_links(W.tocsc(), own, problem.video_index, 3, 0, ClockModel.AFFINE, ["cam0", "cam1", "cam2"])
     assert list(fit.params.identified) == [True, True, False]
     assert any("cam2" in w and "not identified" in w for w in fit.warnings)
 
@@ -271,8 +263,8 @@ def test_unidentified_video_has_no_times() -> None:
 
 def test_estimate_clocks_after_solve() -> None:
     """The real solver's W on a small body capture: clocks within a quarter of the fastest frame period."""
-    clocks = [TrueClock(fps=30.0, frames=60), TrueClock(fps=24.0, frames=50, offset=0.213, rate=1.0),
-              TrueClock(fps=20.0, frames=40, offset=-0.171, rate=1.0)]
+    clocks = [ClockTruth(fps=30.0, frames=60), ClockTruth(fps=24.0, frames=50, offset=0.213, rate=1.0),
+              ClockTruth(fps=20.0, frames=40, offset=-0.171, rate=1.0)]
     problem, g, _ = make_capture(clocks, points=8, distance=5.0, noise_px=0.3, seed=4)
     result = solve(problem, SolverOptions(max_iterations=30))
     estimate = estimate_clocks(problem, result, ClockOptions(search=SearchMode.NEVER))
@@ -281,3 +273,42 @@ def test_estimate_clocks_after_solve() -> None:
     assert np.median(error) < 0.25 / 30.0
     assert all(v.identified for v in estimate.videos)
     assert estimate.videos[0].method == "reference" and estimate.videos[1].method == "links"
+
+
+def test_clock_model_inverse_report_form_and_set() -> None:
+    """One clock: own -> global and back (Newton with a drift term), the report form at own time 0, and a ClockSet
+    evaluating the same clocks per frame."""
+    clock = Clock(center=2.0, coef=np.array([3.1, 1.0004, 2e-4]), cov=np.diag([1e-6, 1e-8, 1e-10]))
+    own = np.linspace(0.0, 4.0, 9)
+    np.testing.assert_allclose(clock.own_time(clock.global_time(own)), own, atol=1e-12)
+    values, stds = clock.offset_rate_drift()
+    offset, rate, drift = values
+    np.testing.assert_allclose(offset + rate * own + drift * own ** 2, clock.global_time(own), atol=1e-12)
+    assert np.all(stds > 0)
+    affine = Clock.affine(0.25, 1.001)
+    assert affine.global_time(np.array([2.0]))[0] == 0.25 + 1.001 * 2.0
+    assert affine.own_time(np.array([0.25]))[0] == 0.0
+    clocks = ClockSet.reference_only(np.array([1.0, 2.0]), 0)
+    clocks.coef[1], clocks.cov[1], clocks.identified[1] = clock.coef, clock.cov, True
+    video_index = np.array([0, 0, 1, 1])
+    frames_own = np.array([0.5, 1.5, 1.0, 3.0])
+    times = clocks.global_time(frames_own, video_index)
+    np.testing.assert_allclose(times[:2], frames_own[:2])  # the reference's clock is the identity
+    np.testing.assert_allclose(times[2:], clock.global_time(frames_own[2:]))
+    assert np.all(clocks.global_std(frames_own, video_index)[:2] == 0)
+
+
+def test_clock_correction_fit_and_gauge() -> None:
+    """A correction fitted from its own result is recovered, and re-gauged it leaves the reference video alone."""
+    video_index = np.repeat([0, 1, 2], 50)
+    times = np.concatenate([np.linspace(0, 2, 50), np.linspace(0.3, 2.1, 50), np.linspace(-0.2, 1.5, 50)])
+    middle = np.array([np.median(times[video_index == v]) for v in range(3)])
+    truth = ClockCorrection(middle=middle, offset=np.array([0.002, -0.004, 0.001]), rate=np.array([1e-3, 0, -2e-3]))
+    moved = truth.apply(times, video_index)
+    fitted = ClockCorrection.fit(times, moved, video_index, 3)
+    np.testing.assert_allclose(fitted.offset, truth.offset, atol=1e-12)
+    np.testing.assert_allclose(fitted.rate, truth.rate, atol=1e-12)
+    adjusted, gauged = truth.in_gauge_of(0, times, video_index)
+    assert gauged.offset[0] == pytest.approx(0.0, abs=1e-15) and gauged.rate[0] == pytest.approx(0.0, abs=1e-15)
+    np.testing.assert_allclose(adjusted[video_index == 0], times[video_index == 0], atol=1e-12)
+    np.testing.assert_allclose(gauged.apply(times, video_index), adjusted, atol=1e-12)

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -249,8 +251,8 @@ def test_active_set_settles_columns_that_would_wander():
     """Restricting columns that keep changing makes the W-step reach the same optimum (up to degenerate ties)."""
     shapes, video_index, P = _shapes(F=60, P=3, videos=4, seed=5)
     options = WStepOptions(kkt_tolerance=1e-9, max_rounds=20, stall_iterations=10**6, max_active_set_iterations=500)
-    plain = solve_w(shapes, video_index, P, WStepOptions(**{**options.__dict__, "cycle_changes": 10**6}))[1]
-    limited = solve_w(shapes, video_index, P, WStepOptions(**{**options.__dict__, "cycle_changes": 1}))[1]
+    plain = solve_w(shapes, video_index, P, replace(options, cycle_changes=10**6))[1]
+    limited = solve_w(shapes, video_index, P, replace(options, cycle_changes=1))[1]
     assert plain.converged and limited.converged
     np.testing.assert_allclose(limited.objective, plain.objective, rtol=1e-4)
 

@@ -14,10 +14,13 @@ from dynrecon.errors import InputError
 from labeling.frames import probe_video
 from labeling.lock import WorkspaceLock
 from labeling.server import LabelingApp, make_server
+from labeling.skeleton import Skeleton
 from labeling.tracker import TrackFunction, track_with_tracking_stage
-from labeling.workspace import Skeleton, load_config, resolve_videos, save_config
+from labeling.workspace import load_config, resolve_videos, save_config
 
 log = logging.getLogger(__name__)
+
+JPEG_QUALITY = 90  # of the frames sent to the page
 
 
 @dataclass(kw_only=True)
@@ -27,7 +30,6 @@ class LabelOptions:
     host: str = "127.0.0.1"
     port: int = 0  # 0: any free port
     cache_mb: int = 256  # bound of the JPEG frame cache
-    jpeg_quality: int = 90
 
 
 class LabelServer:
@@ -50,7 +52,7 @@ class LabelServer:
             infos = {name: probe_video(name, path) for name, path in videos.items()}
             save_config(workspace, config)
             app = LabelingApp(workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20,
-                              jpeg_quality=options.jpeg_quality)
+                              jpeg_quality=JPEG_QUALITY)
             # Points already labeled (e.g. by hand in labels.csv) appear in the list even if not configured.
             for (_, _, point) in app.labels.snapshot():
                 config.skeleton.add_point(point)

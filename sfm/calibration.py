@@ -1,4 +1,5 @@
-"""`dynrecon import-calibration`: static, board-calibrated cameras instead of SfM.
+"""Calibration files, and the `dynrecon import-calibration` stage (`run`): static, board-calibrated cameras
+instead of SfM.
 
 Reads a Qualisys QCA XML or a TOML calibration (Pose2Sim/anipose/FreeMoCap `[cam_N]`, caliscope's
 `camera_array.toml` `[cameras.N]` and its `config.toml` `[cam_N]`) and writes `cameras.json` where every decoded
@@ -24,7 +25,6 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
 
 from __future__ import annotations
 
-import enum
 import logging
 import re
 import tomllib
@@ -39,28 +39,13 @@ from tqdm import tqdm
 
 from dynrecon.errors import InputError
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
-from sfm.video import VideoInfo, probe_video
+from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+from sfm.video import ProbedVideo, probe_video
 
 log = logging.getLogger(__name__)
 
 QCA_SUBPIXELS = 64.0
 QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # flips the y and z camera axes
-
-
-class CalibrationFormat(enum.Enum):
-    AUTO = "auto"
-    QCA = "qca"
-    TOML = "toml"  # every TOML layout: Pose2Sim/anipose/FreeMoCap [cam_N], caliscope [cameras.N] and [cam_N]
-
-
-class Units(enum.Enum):
-    """Length unit of TOML translations. AUTO: mm for FreeMoCap files (`[metadata] charuco_square_size`), else m."""
-
-    AUTO = "auto"
-    M = "m"
-    MM = "mm"
-
-
 FREEMOCAP_MM_KEY = "charuco_square_size"  # in FreeMoCap's [metadata]: the board's square size in mm
 
 
@@ -96,13 +81,6 @@ class StaticCamera:
     def center(self) -> np.ndarray:
         R, t = self.pose()
         return -R.T @ t
-
-
-@dataclass(kw_only=True)
-class ImportOptions:
-    format: CalibrationFormat = CalibrationFormat.AUTO
-    units: Units = Units.AUTO  # TOML translations' unit (see Units)
-    scale: float = 1.0  # multiplies the world coordinates (after conversion to metres)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -355,7 +333,7 @@ def _normalized(name: str) -> str:
     return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name.lower()))
 
 
-def match_cameras(cameras: list[StaticCamera], videos: list[VideoInfo], path: Path) -> list[StaticCamera]:
+def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:
     """The camera for each video: by name (ignoring case, separators and leading zeros), else by order."""
     by_name = {_normalized(c.name): c for c in cameras}
     matched = [by_name.get(_normalized(v.name)) for v in videos]
@@ -381,10 +359,10 @@ def run(
     calibration: str | Path,
     videos: Sequence[str | Path],
     out_dir: str | Path,
-    options: ImportOptions | None = None,
+    options: ImportCalibrationOptions | None = None,
 ) -> Path:
     """Write `out_dir/cameras.json`: every decoded frame of each video with its camera's static pose."""
-    options = options or ImportOptions()
+    options = options or ImportCalibrationOptions()
     calibration = Path(calibration)
     if not videos:
         raise InputError(calibration, "no videos given", fix="list the videos the calibration belongs to")
@@ -430,3 +408,18 @@ def run(
     path = write_cameras(out / "cameras.json", result)
     log.info("wrote %s: %d videos, %d frames", path, len(result.videos), result.num_frames)
     return path
+
+
+__all__ = [
+    "CalibrationFormat",
+    "ImportCalibrationOptions",
+    "StaticCamera",
+    "Units",
+    "match_cameras",
+    "read_calibration",
+    "read_qca",
+    "read_toml",
+    "run",
+    "toml_units",
+    "write_toml",
+]

@@ -1,0 +1,58 @@
+"""The `dynrecon` command's startup: `--help` loads no stage, and the listed commands are the registered ones."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import subprocess
+import sys
+
+import pytest
+
+from dynrecon import cli
+
+HEAVY = ("numpy", "scipy", "cv2", "pycolmap", "rerun", "tqdm")
+
+
+def _loaded_after(argv: list[str]) -> set[str]:
+    code = ("import sys\nfrom dynrecon.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})), file=sys.stderr)")
+    done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True)
+    return set(done.stderr.split())
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], []])
+def test_the_command_list_loads_no_stage(argv: list[str]) -> None:
+    loaded = _loaded_after(argv)
+    assert not loaded & set(HEAVY), f"`dynrecon {' '.join(argv)}` imports {sorted(loaded & set(HEAVY))}"
+
+
+def test_a_light_command_loads_only_its_stage() -> None:
+    loaded = _loaded_after(["track", "--help"])
+    assert not loaded & {"scipy", "pycolmap", "rerun"}
+
+
+@pytest.mark.parametrize("module_name", [m for m in cli.COMMAND_MODULES
+                                         if hasattr(importlib.import_module(m), "COMMANDS")])
+def test_listed_commands_are_the_registered_ones(module_name: str) -> None:
+    """`COMMANDS` (what `dynrecon --help` lists without loading the module's parsers) matches `add_commands`."""
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser()
+    subparsers = parser.add_subparsers()
+    module.add_commands(subparsers)
+    registered = {action.dest: action.help for action in subparsers._choices_actions}
+    assert registered == module.COMMANDS
+    assert list(registered) == list(module.COMMANDS)
+
+
+def test_full_and_listed_parsers_agree() -> None:
+    listed = cli.build_parser("")
+    full = cli.build_parser()
+    assert listed.format_help() == full.format_help()
+
+
+def test_a_user_error_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["-q", "solve", "--cameras", "none.json", "--tracks", "none.csv", "--out", "o",
+                     "--max-iterations", "0"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("dynrecon solve: error: ") and error.count("\n") == 1
