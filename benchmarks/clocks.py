@@ -58,14 +58,17 @@ def phone_capture(seed: int, seconds: float) -> tuple[Any, Any]:
     """4 handheld phones (30, 25, 59.94, 24 fps), starts within 1 s, +-50 ppm drift, 2 ms CFR jitter, 1 px."""
     window = next(w for w in WINDOWS if w.name == PHONE_WINDOW)
     mocap = load_window(replace(window, seconds=seconds))
-    return simulate_phones(mocap, PhoneCaptureOptions(
-        cameras=4, handheld=True, noise_px=1.0, offset_s=(0.0, 1.0), drift_ppm=50.0, jitter_ms=2.0, seed=seed))
+    return simulate_phones(
+        mocap,
+        PhoneCaptureOptions(
+            cameras=4, handheld=True, noise_px=1.0, offset_s=(0.0, 1.0), drift_ppm=50.0, jitter_ms=2.0, seed=seed
+        ),
+    )
 
 
 def flight_capture(seed: int, seconds: float) -> tuple[Any, Any]:
     """The flight defaults (5 handheld phones 30-100 m away, 1.5 px, 3 % false detections) + drift and jitter."""
-    capture, record, _ = simulate_flight(FlightOptions(seed=seed, duration_s=seconds, drift_ppm=50.0,
-                                                       jitter_ms=2.0))
+    capture, record, _ = simulate_flight(FlightOptions(seed=seed, duration_s=seconds, drift_ppm=50.0, jitter_ms=2.0))
     return capture, record
 
 
@@ -82,8 +85,15 @@ class _NoLinks:
         return sp.csc_matrix((self._F, self._F))
 
 
-def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOptions,
-          solver: SolverOptions, cache: Path | None = None) -> dict[str, Any]:
+def score(
+    scene: str,
+    seed: int,
+    capture: Any,
+    record: Any,
+    options: ClockOptions,
+    solver: SolverOptions,
+    cache: Path | None = None,
+) -> dict[str, Any]:
     problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
     cached = cache / f"{scene}-{seed}-{solver.max_iterations}.pickle" if cache else None
     t0 = time.perf_counter()
@@ -103,8 +113,12 @@ def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOption
     clocks_s = time.process_time() - t0
     links_only = estimate_clocks(problem, result, replace(options, search=SearchMode.NEVER))
     truth_index = capture.truth.index()
-    true_time = np.array([capture.truth.extra["time"][truth_index[(v, int(f))], 0]
-                          for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
+    true_time = np.array(
+        [
+            capture.truth.extra["time"][truth_index[(v, int(f))], 0]
+            for v, f in zip(problem.frame_videos, problem.frames, strict=True)
+        ]
+    )
     true_clocks = {c.name: c for c in record.clocks}
     ref = true_clocks[clocks.reference]
     estimate = ref.global_time(clocks.global_time)
@@ -115,20 +129,29 @@ def score(scene: str, seed: int, capture: Any, record: Any, options: ClockOption
     fastest = 1.0 / max(c.fps for c in record.clocks)
     median = float(np.median(error[known])) if known.any() else float("nan")
     return {
-        "scene": scene, "seed": seed, "videos": len(problem.video_names),
-        "fps": [round(true_clocks[n].fps, 2) for n in problem.video_names], "frames": problem.num_frames,
-        "points": problem.num_points, "median_ms": 1000 * median, "fraction_of_period": median / fastest,
+        "scene": scene,
+        "seed": seed,
+        "videos": len(problem.video_names),
+        "fps": [round(true_clocks[n].fps, 2) for n in problem.video_names],
+        "frames": problem.num_frames,
+        "points": problem.num_points,
+        "median_ms": 1000 * median,
+        "fraction_of_period": median / fastest,
         "p90_ms": 1000 * float(np.percentile(error[known], 90)) if known.any() else float("nan"),
         "within_2std": float(np.mean(error[known] <= 2 * std[known])) if known.any() else float("nan"),
         "unclocked_frames": int((~known).sum()),
         "methods": [v.method for v in clocks.videos],
-        "offset_error_ms": [1000 * (ref.offset_s + ref.rate * v.offset - true_clocks[v.name].offset_s)
-                            for v in clocks.videos],
+        "offset_error_ms": [
+            1000 * (ref.offset_s + ref.rate * v.offset - true_clocks[v.name].offset_s) for v in clocks.videos
+        ],
         "link_scale_ms": 1000 * clocks.diagnostics.get("link_scale_s", float("nan")),
         # Only when W's links clock every video (else the reference's frames alone would be scored).
-        "links_only_median_ms": 1000 * float(np.median(links_error)) if np.isfinite(links_error).all()
+        "links_only_median_ms": 1000 * float(np.median(links_error))
+        if np.isfinite(links_error).all()
         else float("nan"),
-        "clocks_s": clocks_s, "solve_s": solve_s, "warnings": clocks.warnings,
+        "clocks_s": clocks_s,
+        "solve_s": solve_s,
+        "warnings": clocks.warnings,
     }
 
 
@@ -139,21 +162,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=None, help="scene length (default phones 4, flight 12)")
     parser.add_argument("--search", choices=[m.value for m in SearchMode], default=ClockOptions().search.value)
     parser.add_argument("--model", choices=[m.value for m in ClockModel], default="affine")
-    parser.add_argument("--max-iterations", type=int, default=40,
-                        help="solver alternations per stage (default 40: W's links settle long before the points); "
-                        "0: no solve, clocks from the tracks alone")
+    parser.add_argument(
+        "--max-iterations",
+        type=int,
+        default=40,
+        help="solver alternations per stage (default 40: W's links settle long before the points); "
+        "0: no solve, clocks from the tracks alone",
+    )
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--cache", type=Path, default=None,
-                        help="keep each solve here and reuse it (to iterate on the clock options only)")
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="keep each solve here and reuse it (to iterate on the clock options only)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("reconstruct.clocks.search").setLevel(logging.INFO)
     options = ClockOptions(search=SearchMode(args.search), model=ClockModel(args.model))
     rows: list[dict[str, Any]] = []
-    print(f"solver {solver_version()}; search {args.search}, model {args.model}, "
-          f"{args.max_iterations} solver iterations per stage")
-    header = ("| scene | seed | videos | fps | F | median ms | / fastest period | p90 ms | within 2 std | methods | "
-              "links only: median ms | clocks CPU s | solve s |")
+    print(
+        f"solver {solver_version()}; search {args.search}, model {args.model}, "
+        f"{args.max_iterations} solver iterations per stage"
+    )
+    header = (
+        "| scene | seed | videos | fps | F | median ms | / fastest period | p90 ms | within 2 std | methods | "
+        "links only: median ms | clocks CPU s | solve s |"
+    )
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     for scene in args.scenes.split(","):
@@ -165,13 +200,17 @@ def main(argv: list[str] | None = None) -> int:
                 capture, record = flight_capture(seed, args.seconds or 12.0)
             else:
                 parser.error(f"unknown scene {scene!r}")
-            row = score(scene, seed, capture, record, options, SolverOptions(max_iterations=args.max_iterations),
-                        args.cache)
+            row = score(
+                scene, seed, capture, record, options, SolverOptions(max_iterations=args.max_iterations), args.cache
+            )
             rows.append(row)
-            print(f"| {scene} | {seed} | {row['videos']} | {'/'.join(f'{f:g}' for f in row['fps'])} | "
-                  f"{row['frames']} | {row['median_ms']:.2f} | {row['fraction_of_period']:.3f} | "
-                  f"{row['p90_ms']:.2f} | {row['within_2std']:.2f} | {','.join(row['methods'])} | "
-                  f"{row['links_only_median_ms']:.2f} | {row['clocks_s']:.1f} | {row['solve_s']:.0f} |", flush=True)
+            print(
+                f"| {scene} | {seed} | {row['videos']} | {'/'.join(f'{f:g}' for f in row['fps'])} | "
+                f"{row['frames']} | {row['median_ms']:.2f} | {row['fraction_of_period']:.3f} | "
+                f"{row['p90_ms']:.2f} | {row['within_2std']:.2f} | {','.join(row['methods'])} | "
+                f"{row['links_only_median_ms']:.2f} | {row['clocks_s']:.1f} | {row['solve_s']:.0f} |",
+                flush=True,
+            )
             if args.json:
                 args.json.write_text(json.dumps(rows, indent=1, default=float) + "\n")
     return 0

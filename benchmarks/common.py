@@ -44,10 +44,12 @@ def solver_version() -> str:
     import subprocess
 
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "reconstruct"], cwd=ROOT,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "reconstruct"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
     return f"{head}{' + uncommitted changes in reconstruct/' if dirty else ''}"
@@ -92,8 +94,9 @@ def module_at_revision(relative_path: str, revision: str, name: str) -> ModuleTy
         old_names = [old for old, new in PRE_SPLIT_MODULES.items() if new == module_name]
         if not old_names or (shown := show(old_names[0].replace(".", "/") + ".py")).returncode != 0:
             raise SystemExit(f"cannot find {relative_path} at {revision}")
-    source = re.sub(r"(?<![\w.])(reconstruct\.\w+)", lambda m: PRE_SPLIT_MODULES.get(m.group(1), m.group(1)),
-                    shown.stdout)
+    source = re.sub(
+        r"(?<![\w.])(reconstruct\.\w+)", lambda m: PRE_SPLIT_MODULES.get(m.group(1), m.group(1)), shown.stdout
+    )
     path = Path(tempfile.mkdtemp()) / f"{name}.py"
     path.write_text(source)
     spec = importlib.util.spec_from_file_location(name, path)
@@ -120,8 +123,10 @@ def solver_sources_digest() -> str:
 def require_mocap_dir() -> Path:
     """The shared mocap folder, or exit with a message saying where it was expected."""
     if not MOCAP_DIR.is_dir():
-        sys.exit(f"motion-capture data not found at {MOCAP_DIR}: these benchmarks need ../shared/data/mocap "
-                 "beside the repository (see its README.md)")
+        sys.exit(
+            f"motion-capture data not found at {MOCAP_DIR}: these benchmarks need ../shared/data/mocap "
+            "beside the repository (see its README.md)"
+        )
     return MOCAP_DIR
 
 
@@ -140,23 +145,47 @@ class Window:
 # the first 6. Files whose rate is a multiple of 120 Hz are stepped as they are; the others are resampled to
 # 120 Hz (cubic spline per coordinate) so that every window is seen at exactly 30 / 15 / 7.5 Hz per camera.
 WINDOWS: tuple[Window, ...] = (
-    Window(name="hdm05", path="hdm05/HDM_dg_06-03_03_120.c3d", motion="HDM05 clip (whole file, 202 frames)",
-           start_s=0.0, seconds=202 / 120),
+    Window(
+        name="hdm05",
+        path="hdm05/HDM_dg_06-03_03_120.c3d",
+        motion="HDM05 clip (whole file, 202 frames)",
+        start_s=0.0,
+        seconds=202 / 120,
+    ),
     Window(name="cmu-jumps", path="cmu/cmu_01_01.c3d", motion="playground jumps", start_s=5.0),
     Window(name="squat", path="lab/gatech_vicon/sehoon_squat.c3d", motion="squats", start_s=5.0),
-    Window(name="run-5ms", path="lab/sprinter/run0500cms.trc", motion="running 5 m/s (250 Hz, resampled)",
-           start_s=0.0, seconds=2.2),
-    Window(name="dropjump", path="lab/opencap_lab_subject4/DJ1.trc", motion="drop jump (100 Hz, resampled)",
-           start_s=0.0),
-    Window(name="walk", path="lab/misc/addbio_tutorial_walk.trc", motion="walking (100 Hz, resampled)",
-           start_s=0.0, seconds=2.3),
-    Window(name="freeform", path="lab/gatech_vicon/nick_freeform_001.c3d", motion="free-form movement",
-           start_s=2.5),
-    Window(name="run-4ms", path="lab/hamner2010_s04/run400.trc", motion="running 4 m/s (100 Hz, resampled)",
-           start_s=0.0, seconds=2.05),
+    Window(
+        name="run-5ms",
+        path="lab/sprinter/run0500cms.trc",
+        motion="running 5 m/s (250 Hz, resampled)",
+        start_s=0.0,
+        seconds=2.2,
+    ),
+    Window(
+        name="dropjump", path="lab/opencap_lab_subject4/DJ1.trc", motion="drop jump (100 Hz, resampled)", start_s=0.0
+    ),
+    Window(
+        name="walk",
+        path="lab/misc/addbio_tutorial_walk.trc",
+        motion="walking (100 Hz, resampled)",
+        start_s=0.0,
+        seconds=2.3,
+    ),
+    Window(name="freeform", path="lab/gatech_vicon/nick_freeform_001.c3d", motion="free-form movement", start_s=2.5),
+    Window(
+        name="run-4ms",
+        path="lab/hamner2010_s04/run400.trc",
+        motion="running 4 m/s (100 Hz, resampled)",
+        start_s=0.0,
+        seconds=2.05,
+    ),
     Window(name="cmu-late", path="cmu/cmu_01_01.c3d", motion="playground jumps, later part", start_s=15.0),
-    Window(name="sit-stand", path="lab/opencap_lab_subject4/STS1.trc", motion="sit-to-stand (100 Hz, resampled)",
-           start_s=3.0),
+    Window(
+        name="sit-stand",
+        path="lab/opencap_lab_subject4/STS1.trc",
+        motion="sit-to-stand (100 Hz, resampled)",
+        start_s=3.0,
+    ),
 )
 
 
@@ -222,8 +251,14 @@ class CaptureSetting:
     unconstrained: bool = False
 
     def simulation_options(self, mocap: Mocap, seed: int, camera_distance_mm: float | None) -> SimulationOptions:
-        return SimulationOptions(step=step_for(mocap, self.per_camera_hz), noise_px=self.noise_px, miss=self.miss,
-                                 unconstrained=self.unconstrained, seed=seed, camera_distance_mm=camera_distance_mm)
+        return SimulationOptions(
+            step=step_for(mocap, self.per_camera_hz),
+            noise_px=self.noise_px,
+            miss=self.miss,
+            unconstrained=self.unconstrained,
+            seed=seed,
+            camera_distance_mm=camera_distance_mm,
+        )
 
 
 # The paper's tables (HDM05, 4 cameras), share of points under 10, 20, 30, 40, 50, 100 mm:
@@ -270,20 +305,32 @@ class RunResult:
         return dict(self.__dict__)
 
 
-def solve_and_score(capture: SimulatedCapture, problem: Problem, options: SolverOptions | None = None
-                    ) -> tuple[RunResult, SolveResult]:
+def solve_and_score(
+    capture: SimulatedCapture, problem: Problem, options: SolverOptions | None = None
+) -> tuple[RunResult, SolveResult]:
     started = time.perf_counter()
     result = solve(problem, options or SolverOptions())
     seconds = time.perf_counter() - started
     accuracy = evaluate(frame_points(problem, result), capture.truth)
     init_xyz = fill_missing_points(result.init_points, problem.video_index)
-    init_fp = FramePoints(videos=problem.frame_videos, frames=problem.frames, point_names=problem.point_names,
-                          xyz=init_xyz, observed=problem.observed)
+    init_fp = FramePoints(
+        videos=problem.frame_videos,
+        frames=problem.frames,
+        point_names=problem.point_names,
+        xyz=init_xyz,
+        observed=problem.observed,
+    )
     init_accuracy = evaluate(init_fp, capture.truth)
-    run = RunResult(shares=[float(s) for s in accuracy.share_under],
-                    init_shares=[float(s) for s in init_accuracy.share_under], median_mm=accuracy.median,
-                    frames=problem.num_frames, points=problem.num_points, seconds=seconds,
-                    iterations=[s.iterations for s in result.stages], timings=dict(result.timings))
+    run = RunResult(
+        shares=[float(s) for s in accuracy.share_under],
+        init_shares=[float(s) for s in init_accuracy.share_under],
+        median_mm=accuracy.median,
+        frames=problem.num_frames,
+        points=problem.num_points,
+        seconds=seconds,
+        iterations=[s.iterations for s in result.stages],
+        timings=dict(result.timings),
+    )
     return run, result
 
 

@@ -69,8 +69,11 @@ def registration_table(cameras: CameraSet, truth_cameras: CameraSet, truth: Fram
     sim = similarity_to_truth(cameras, truth_cameras)
     true = frames_of(truth_cameras)
     index = truth.index()
-    rows = ["| video | frames registered | centre err mean / max (mm) | rotation err mean / max (deg) | "
-            "reprojection of true joints mean / max (px) |", "|---|---|---|---|---|"]
+    rows = [
+        "| video | frames registered | centre err mean / max (mm) | rotation err mean / max (deg) | "
+        "reprojection of true joints mean / max (px) |",
+        "|---|---|---|---|---|",
+    ]
     everything: list[np.ndarray] = []
     for video in cameras.videos:
         centre, rotation, pixels = [], [], []
@@ -83,11 +86,15 @@ def registration_table(cameras: CameraSet, truth_cameras: CameraSet, truth: Fram
             pixels.append(np.linalg.norm(project(aligned, xyz) - project(truth_camera, xyz), axis=1))
         px = np.concatenate(pixels)
         everything.append(px)
-        rows.append(f"| {video.name} | {len(video.frames)}/{len(truth_cameras.video(video.name).frames)} | "
-                    f"{np.mean(centre):.1f} / {np.max(centre):.1f} | {np.mean(rotation):.3f} / "
-                    f"{np.max(rotation):.3f} | {px.mean():.2f} / {px.max():.2f} |")
-    rows.append(f"\nscale {sim.scale:.2f} mm per SfM unit; all videos: true joints reproject "
-                f"{np.concatenate(everything).mean():.2f} px mean from where the registered cameras put them")
+        rows.append(
+            f"| {video.name} | {len(video.frames)}/{len(truth_cameras.video(video.name).frames)} | "
+            f"{np.mean(centre):.1f} / {np.max(centre):.1f} | {np.mean(rotation):.3f} / "
+            f"{np.max(rotation):.3f} | {px.mean():.2f} / {px.max():.2f} |"
+        )
+    rows.append(
+        f"\nscale {sim.scale:.2f} mm per SfM unit; all videos: true joints reproject "
+        f"{np.concatenate(everything).mean():.2f} px mean from where the registered cameras put them"
+    )
     return "\n".join(rows)
 
 
@@ -96,8 +103,12 @@ def true_tracks(tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints) ->
     true = frames_of(truth_cameras)
     index = truth.index()
     points = {name: i for i, name in enumerate(truth.point_names)}
-    xy = np.array([project(true[(v, int(f))], truth.xyz[index[(v, int(f))]][[points[p]]])[0]
-                   for v, f, p in zip(tracks.video, tracks.frame, tracks.point, strict=True)]).reshape(-1, 2)
+    xy = np.array(
+        [
+            project(true[(v, int(f))], truth.xyz[index[(v, int(f))]][[points[p]]])[0]
+            for v, f, p in zip(tracks.video, tracks.frame, tracks.point, strict=True)
+        ]
+    ).reshape(-1, 2)
     return dataclasses.replace(tracks, xy=xy, line=None, path=None)
 
 
@@ -120,21 +131,27 @@ def tracks_table(tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints) -
     error = np.linalg.norm(tracks.xy - exact, axis=1)
     source = np.array(tracks.extra.get("source", ["tracked"] * len(tracks)))
     visible = visible_tracks(truth_cameras, truth)
-    rows = ["| video | frames | joints in view | labels (err mean px) | tracked kept (err mean / p95 / max px) | "
-            "tracked > 3 px |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| video | frames | joints in view | labels (err mean px) | tracked kept (err mean / p95 / max px) | "
+        "tracked > 3 px |",
+        "|---|---|---|---|---|---|",
+    ]
     for video in truth_cameras.videos:
         mine = np.array([v == video.name for v in tracks.video])
         lab, trk = mine & (source == "label"), mine & (source != "label")
         in_view = sum(v == video.name for v in visible.video)
         e = error[trk]
-        rows.append(f"| {video.name} | {len(video.frames)} | {in_view} | {lab.sum()} ({error[lab].mean():.2f}) | "
-                    f"{trk.sum()} ({e.mean():.2f} / {np.percentile(e, 95):.2f} / {e.max():.1f}) | "
-                    f"{(e > 3).sum()} |")
+        rows.append(
+            f"| {video.name} | {len(video.frames)} | {in_view} | {lab.sum()} ({error[lab].mean():.2f}) | "
+            f"{trk.sum()} ({e.mean():.2f} / {np.percentile(e, 95):.2f} / {e.max():.1f}) | "
+            f"{(e > 3).sum()} |"
+        )
     return "\n".join(rows)
 
 
-def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints,
-                    work: Path) -> tuple[ReconstructionAccuracy, float]:
+def solve_and_score(
+    cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet, truth: FramePoints, work: Path
+) -> tuple[ReconstructionAccuracy, float]:
     work.mkdir(parents=True, exist_ok=True)
     write_cameras(work / "cameras.json", cameras)
     write_tracks(work / "tracks.csv", tracks)
@@ -148,30 +165,52 @@ def solve_and_score(cameras: CameraSet, tracks: Tracks, truth_cameras: CameraSet
     aligned = dataclasses.replace(points, xyz=sim.apply(points.xyz))
     index = aligned.index()
     keep = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True)) if (v, int(f)) in index]
-    subset = FramePoints(videos=[truth.videos[i] for i in keep], frames=truth.frames[keep],
-                         point_names=truth.point_names, xyz=truth.xyz[keep], observed=truth.observed[keep])
+    subset = FramePoints(
+        videos=[truth.videos[i] for i in keep],
+        frames=truth.frames[keep],
+        point_names=truth.point_names,
+        xyz=truth.xyz[keep],
+        observed=truth.observed[keep],
+    )
     return evaluate(aligned, subset), seconds
 
 
-def screenshot(recording: Path, png: Path, *, wait_s: float = 45.0, web_port: int = 9191,
-               grpc_port: int = 9877, zoom_steps: int = 1, zoom_at: tuple[int, int] = (420, 460)) -> Path:
+def screenshot(
+    recording: Path,
+    png: Path,
+    *,
+    wait_s: float = 45.0,
+    web_port: int = 9191,
+    grpc_port: int = 9877,
+    zoom_steps: int = 1,
+    zoom_at: tuple[int, int] = (420, 460),
+) -> Path:
     """A 1280 x 720 picture of `recording` in rerun's web viewer (headless chromium, swiftshader WebGL)."""
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
     # Own session: `rerun` is a launcher that starts the viewer binary as a child; ending the launcher alone left the
     # server running on the ports (and the next screenshot showed the old recording).
-    server = subprocess.Popen(["rerun", "--serve-web", "--web-viewer-port", str(web_port), "--port",
-                               str(grpc_port), str(recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                              start_new_session=True)
+    server = subprocess.Popen(
+        ["rerun", "--serve-web", "--web-viewer-port", str(web_port), "--port", str(grpc_port), str(recording)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         time.sleep(5)  # the server loads the file before the page asks for it
         source = urllib.parse.quote(f"rerun+http://localhost:{grpc_port}/proxy", safe="")
         with sync_playwright() as playwright:
             browser = playwright.chromium.launch(
-                executable_path="/usr/bin/chromium", headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                      "--ignore-gpu-blocklist"])
+                executable_path="/usr/bin/chromium",
+                headless=True,
+                args=[
+                    "--use-gl=angle",
+                    "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                    "--ignore-gpu-blocklist",
+                ],
+            )
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             page.goto(f"http://localhost:{web_port}/?url={source}&renderer=webgl")
             time.sleep(wait_s)  # software rendering: the first frames take tens of seconds
@@ -219,9 +258,18 @@ def main() -> None:
     if not args.solve:
         return
     registered = frames_of(cameras)
-    true_set = CameraSet(videos=[VideoCameras(name=v.name, width=v.width, height=v.height, fps=v.fps,
-                                              frames=[f for f in v.frames if (v.name, f.frame) in registered])
-                                 for v in truth_cameras.videos])
+    true_set = CameraSet(
+        videos=[
+            VideoCameras(
+                name=v.name,
+                width=v.width,
+                height=v.height,
+                fps=v.fps,
+                frames=[f for f in v.frames if (v.name, f.frame) in registered],
+            )
+            for v in truth_cameras.videos
+        ]
+    )
     exact = true_tracks(tracks, truth_cameras, truth)
     experiments = [
         ("true cameras + true 2D (tracked rows)", true_set, exact),
@@ -240,9 +288,12 @@ def main() -> None:
                 continue
             accuracy, seconds = solve_and_score(cams, trk, truth_cameras, truth, Path(scratch) / str(number))
             share = dict(zip(accuracy.thresholds, accuracy.share_under, strict=True))
-            print(f"| {number} | {name} | {len(trk)} | {100 * share[10.0]:.1f} % | "
-                  f"{100 * share[20.0]:.1f} % | {100 * share[50.0]:.1f} % | {accuracy.median:.1f} | "
-                  f"{seconds:.0f} |", flush=True)
+            print(
+                f"| {number} | {name} | {len(trk)} | {100 * share[10.0]:.1f} % | "
+                f"{100 * share[20.0]:.1f} % | {100 * share[50.0]:.1f} % | {accuracy.median:.1f} | "
+                f"{seconds:.0f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

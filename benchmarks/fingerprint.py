@@ -30,10 +30,14 @@ CASES: dict[str, tuple[list[str], list[str]]] = {
         [str(MOCAP / "hdm05/HDM_dg_06-03_03_120.c3d"), "--noise", "1", "--miss", "0.2", "--seed", "3"],
         ["--constraint", "soft"],
     ),
-    "paper-cmu-seed-only": ([str(MOCAP / "cmu/cmu_01_01.c3d"), "--start", "1800", "--length", "240"],
-                            ["--refinement", "none"]),
-    "phones-cmu": ([str(MOCAP / "cmu/cmu_01_01.c3d"), "--mode", "phones", "--start", "600", "--length", "300",
-                    "--seed", "1"], []),
+    "paper-cmu-seed-only": (
+        [str(MOCAP / "cmu/cmu_01_01.c3d"), "--start", "1800", "--length", "240"],
+        ["--refinement", "none"],
+    ),
+    "phones-cmu": (
+        [str(MOCAP / "cmu/cmu_01_01.c3d"), "--mode", "phones", "--start", "600", "--length", "300", "--seed", "1"],
+        [],
+    ),
     "flight-2s": (["--mode", "flight", "--duration", "2", "--seed", "2"], ["--refinement", "none"]),
 }
 
@@ -49,11 +53,19 @@ def run(cmd: list[str], timeout: float) -> float:
 
 
 def score(folder: Path) -> dict[str, float]:
-    out = subprocess.run([sys.executable, "-m", "dynrecon", "evaluate", str(folder), "--json"], check=True,
-                         capture_output=True, text=True, cwd=ROOT).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "dynrecon", "evaluate", str(folder), "--json"],
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    ).stdout
     numbers = json.loads(out)
-    return {"within_10mm": round(numbers["share_under"][0], 6), "within_30mm": round(numbers["share_under"][2], 6),
-            "median_mm": round(numbers["median"], 4)}
+    return {
+        "within_10mm": round(numbers["share_under"][0], 6),
+        "within_30mm": round(numbers["share_under"][2], 6),
+        "median_mm": round(numbers["median"], 4),
+    }
 
 
 def main() -> None:
@@ -67,11 +79,26 @@ def main() -> None:
         for name, (sim_args, solve_args) in CASES.items():
             folder = Path(tmp) / name
             run(["simulate", "--out", str(folder), *sim_args], args.timeout)
-            seconds = run(["solve", "--cameras", str(folder / "cameras.json"), "--tracks", str(folder / "tracks.csv"),
-                           "--out", str(folder), "--no-recording", *solve_args], args.timeout)
-            results[name] = {"points": digest(folder / "points3d.csv"),
-                             "sequencing": digest(folder / "sequencing.json"),
-                             "scores": score(folder), "seconds": round(seconds, 1)}
+            seconds = run(
+                [
+                    "solve",
+                    "--cameras",
+                    str(folder / "cameras.json"),
+                    "--tracks",
+                    str(folder / "tracks.csv"),
+                    "--out",
+                    str(folder),
+                    "--no-recording",
+                    *solve_args,
+                ],
+                args.timeout,
+            )
+            results[name] = {
+                "points": digest(folder / "points3d.csv"),
+                "sequencing": digest(folder / "sequencing.json"),
+                "scores": score(folder),
+                "seconds": round(seconds, 1),
+            }
             print(name, json.dumps(results[name]), flush=True)
         demo = Path(tmp) / "demo"
         seconds = run(["demo", "--simulated", "--out", str(demo)], args.timeout)
@@ -80,8 +107,10 @@ def main() -> None:
         print("demo-simulated", json.dumps(results["demo-simulated"]), flush=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
-    print("\n| case | points digest | sequencing digest | within 10 mm | s |" + (" same as before |" if args.compare
-                                                                              else ""))
+    print(
+        "\n| case | points digest | sequencing digest | within 10 mm | s |"
+        + (" same as before |" if args.compare else "")
+    )
     print("|---|---|---|---|---|" + ("---|" if args.compare else ""))
     before = json.loads(args.compare.read_text()) if args.compare else {}
     for name, row in results.items():
@@ -90,8 +119,11 @@ def main() -> None:
         same = ""
         if args.compare:
             old = before.get(name, {})
-            same = " yes |" if old.get("points") == row["points"] and old.get("sequencing") == row.get(
-                "sequencing") else " **no** |"
+            same = (
+                " yes |"
+                if old.get("points") == row["points"] and old.get("sequencing") == row.get("sequencing")
+                else " **no** |"
+            )
         print(f"| {name} | {row['points']} | {row.get('sequencing', '')} | {within} | {row['seconds']} |{same}")
 
 

@@ -68,8 +68,9 @@ def brute_force_error(args: tuple[np.ndarray, ...], result: Any, count: int) -> 
     centers, rays, _ = args
     frames = np.flatnonzero(result.partner >= 0)[:count]
     partner = result.partner[frames]
-    _, _, gap = initialize.closest_ray_points(centers[frames][:, None], rays[frames], centers[partner][:, None],
-                                              rays[partner])
+    _, _, gap = initialize.closest_ray_points(
+        centers[frames][:, None], rays[frames], centers[partner][:, None], rays[partner]
+    )
     usable = np.isfinite(gap)
     D = np.where(usable, gap, 0.0).sum(axis=1) / usable.sum(axis=1)
     return float(np.max(np.abs(result.cost[frames] - D) / D)) if len(frames) else 0.0
@@ -96,14 +97,19 @@ def main() -> None:
                     if reference is not None:
                         seconds, old = measure(reference, args)
                         old_times.append(seconds)
-                row: dict[str, Any] = {"F": frames, "missing": missing, "new_s": statistics.median(new_times),
-                                       "new_mb": peak_mb(initialize, args),
-                                       "brute": brute_force_error(args, new, options.brute_force)}
+                row: dict[str, Any] = {
+                    "F": frames,
+                    "missing": missing,
+                    "new_s": statistics.median(new_times),
+                    "new_mb": peak_mb(initialize, args),
+                    "brute": brute_force_error(args, new, options.brute_force),
+                }
                 if reference is not None:
                     finite = np.isfinite(old.cost)
                     both = np.isfinite(old.depth)
                     row |= {
-                        "old_s": statistics.median(old_times), "old_mb": peak_mb(reference, args),
+                        "old_s": statistics.median(old_times),
+                        "old_mb": peak_mb(reference, args),
                         "same_partner": bool(np.array_equal(old.partner, new.partner)),
                         "cost_rel": float(np.max(np.abs(new.cost[finite] / old.cost[finite] - 1), initial=0)),
                         "depth_rel": float(np.max(np.abs(new.depth[both] / old.depth[both] - 1), initial=0)),
@@ -116,14 +122,18 @@ def main() -> None:
         for r in rows:
             print(f"| {r['F']} | {r['missing']:.0%} | {r['new_s']:.3f} | {r['new_mb']:.1f} | {r['brute']:.1e} |")
         return
-    print(f"| F | missing | {options.reference} CPU s | now CPU s | speed-up | {options.reference} peak MB | "
-          "now peak MB | same partners | cost rel. diff | depth rel. diff | D vs brute force (rel) |")
+    print(
+        f"| F | missing | {options.reference} CPU s | now CPU s | speed-up | {options.reference} peak MB | "
+        "now peak MB | same partners | cost rel. diff | depth rel. diff | D vs brute force (rel) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['F']} | {r['missing']:.0%} | {r['old_s']:.3f} | {r['new_s']:.3f} | "
-              f"{r['old_s'] / r['new_s']:.1f}x | {r['old_mb']:.1f} | {r['new_mb']:.1f} | "
-              f"{'yes' if r['same_partner'] and r['same_nan'] else 'NO'} | {r['cost_rel']:.1e} | "
-              f"{r['depth_rel']:.1e} | {r['brute']:.1e} |")
+        print(
+            f"| {r['F']} | {r['missing']:.0%} | {r['old_s']:.3f} | {r['new_s']:.3f} | "
+            f"{r['old_s'] / r['new_s']:.1f}x | {r['old_mb']:.1f} | {r['new_mb']:.1f} | "
+            f"{'yes' if r['same_partner'] and r['same_nan'] else 'NO'} | {r['cost_rel']:.1e} | "
+            f"{r['depth_rel']:.1e} | {r['brute']:.1e} |"
+        )
 
 
 if __name__ == "__main__":

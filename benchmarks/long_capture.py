@@ -54,8 +54,9 @@ def long_motion(frames: int) -> tuple[np.ndarray, list[str]]:
     # The subject wanders slowly about the room (up to ~0.3 m): without it, passes k and k + 2 are exact copies and
     # every frame has several equally good matches 67 s apart, which no real capture has.
     t = np.arange(frames) / RATE_HZ
-    wander = WANDER_MM * np.stack([np.sin(2 * np.pi * t / 83.0), 1.0 - np.cos(2 * np.pi * t / 61.0),
-                                   np.zeros_like(t)], axis=1)
+    wander = WANDER_MM * np.stack(
+        [np.sin(2 * np.pi * t / 83.0), 1.0 - np.cos(2 * np.pi * t / 61.0), np.zeros_like(t)], axis=1
+    )
     return motion + wander[:, None, :], [mocap.marker_names[m] for m in markers]
 
 
@@ -84,10 +85,18 @@ def child(frames: int, dense: bool) -> dict[str, Any]:
     result = solve(problem, options)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     accuracy = evaluate(frame_points(problem, result), capture.truth)
-    return {"frames": problem.num_frames, "points": problem.num_points, "mode": "dense" if dense else "windowed",
-            "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "rss_before_mb": rss_before, "iterations": [s.iterations for s in result.stages],
-            "timings": result.timings, "share_under": [float(s) for s in accuracy.share_under]}
+    return {
+        "frames": problem.num_frames,
+        "points": problem.num_points,
+        "mode": "dense" if dense else "windowed",
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_before_mb": rss_before,
+        "iterations": [s.iterations for s in result.stages],
+        "timings": result.timings,
+        "share_under": [float(s) for s in accuracy.share_under],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -103,10 +112,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     results = []
     for frames in (int(s) for s in args.sizes.split(",")):
-        for dense in ([True, False] if frames <= args.dense_max else [False]):
+        for dense in [True, False] if frames <= args.dense_max else [False]:
             try:
-                out = subprocess.run([sys.executable, __file__, "--child", str(frames), "1" if dense else "0"],
-                                     capture_output=True, text=True, check=False, timeout=args.timeout)
+                out = subprocess.run(
+                    [sys.executable, __file__, "--child", str(frames), "1" if dense else "0"],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                    timeout=args.timeout,
+                )
             except subprocess.TimeoutExpired:
                 print(f"F = {frames} {'dense' if dense else 'windowed'}: over {args.timeout:.0f} s, abandoned")
                 continue
@@ -114,19 +128,23 @@ def main(argv: list[str] | None = None) -> int:
             if not lines:
                 print(f"F = {frames} {'dense' if dense else 'windowed'} failed:\n{out.stderr[-2000:]}")
                 continue
-            results.append(json.loads(lines[-1][len(RESULT_PREFIX):]))
+            results.append(json.loads(lines[-1][len(RESULT_PREFIX) :]))
             if args.json:
                 args.json.write_text(json.dumps({"solver": solver_version(), "results": results}, indent=1))
     from reconstruct.solver.alternation import SolverOptions
 
-    print(f"solver {solver_version()}; P = {POINTS}, 30 Hz per camera, noise-free, 1 BLAS thread, "
-          f"{SolverOptions().workers} solver threads (SolverOptions.workers)")
+    print(
+        f"solver {solver_version()}; P = {POINTS}, 30 Hz per camera, noise-free, 1 BLAS thread, "
+        f"{SolverOptions().workers} solver threads (SolverOptions.workers)"
+    )
     print("| F | dictionary | wall s | CPU s | peak RSS MB | iterations | < 10 mm % | < 20 mm % |")
     print("|---|---|---|---|---|---|---|---|")
     for r in results:
-        print(f"| {r['frames']} | {r['mode']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
-              f"{'+'.join(map(str, r['iterations']))} | {100 * r['share_under'][0]:.2f} | "
-              f"{100 * r['share_under'][1]:.2f} |")
+        print(
+            f"| {r['frames']} | {r['mode']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | "
+            f"{'+'.join(map(str, r['iterations']))} | {100 * r['share_under'][0]:.2f} | "
+            f"{100 * r['share_under'][1]:.2f} |"
+        )
     return 0
 
 

@@ -76,9 +76,11 @@ ROWS: tuple[Row, ...] = (
     *(Row(key=f"missing{m}", group="missing", label=f"missing {m} %", miss=m / 100) for m in range(10, 60, 10)),
 )
 GROUPS = ("frame", "noise", "missing")
-TITLES = {"frame": "Table 1: frame rate per camera (noise-free, nothing missing)",
-          "noise": "Table 2: Gaussian pixel noise (30 Hz per camera)",
-          "missing": "Table 3: missing observations (30 Hz per camera, noise-free)"}
+TITLES = {
+    "frame": "Table 1: frame rate per camera (noise-free, nothing missing)",
+    "noise": "Table 2: Gaussian pixel noise (30 Hz per camera)",
+    "missing": "Table 3: missing observations (30 Hz per camera, noise-free)",
+}
 
 
 @dataclass(kw_only=True)
@@ -151,8 +153,10 @@ def parse_rows(text: str) -> list[Row]:
         elif part in {r.key for r in ROWS}:
             chosen.extend(r for r in ROWS if r.key == part)
         else:
-            raise SystemExit(f"--rows: unknown {part!r}; give groups ({', '.join(GROUPS)}) or row keys "
-                             f"({', '.join(r.key for r in ROWS)})")
+            raise SystemExit(
+                f"--rows: unknown {part!r}; give groups ({', '.join(GROUPS)}) or row keys "
+                f"({', '.join(r.key for r in ROWS)})"
+            )
     return list(dict.fromkeys(chosen))
 
 
@@ -193,9 +197,14 @@ def print_tables(outcomes: list[Outcome], rows: list[Row], window_indices: list[
                     r = outcome.result
                     distance = r.get("camera_distance_mm")
                     where = f"cameras at {distance / 1000:.1f} m, " if distance else ""
-                    print(percent_row(f"&nbsp;&nbsp;{name}", r["shares"],
-                                      f" F={r['frames']} P={r['points']}, {where}{r['median_mm']:.2f} mm, "
-                                      f"{r['seconds']:.0f} s, init <10 mm {100 * r['init_shares'][0]:.1f} % |"))
+                    print(
+                        percent_row(
+                            f"&nbsp;&nbsp;{name}",
+                            r["shares"],
+                            f" F={r['frames']} P={r['points']}, {where}{r['median_mm']:.2f} mm, "
+                            f"{r['seconds']:.0f} s, init <10 mm {100 * r['init_shares'][0]:.1f} % |",
+                        )
+                    )
 
 
 def reprint(paths: list[Path], rows: list[Row], per_window: bool) -> int:
@@ -207,8 +216,9 @@ def reprint(paths: list[Path], rows: list[Row], per_window: bool) -> int:
         except (OSError, json.JSONDecodeError) as error:
             raise SystemExit(f"{path}: not a paper_tables --json file ({error})") from None
         for item in data.get("results", []):
-            outcome = Outcome(window=item["window"], row=item["row"], result=item.get("result") or {},
-                              error=item.get("error"))
+            outcome = Outcome(
+                window=item["window"], row=item["row"], result=item.get("result") or {}, error=item.get("error")
+            )
             merged[(outcome.window, outcome.row)] = outcome
     names = [w.name for w in WINDOWS]
     window_indices = sorted({names.index(w) for w, _ in merged if w in names})
@@ -222,19 +232,33 @@ def reprint(paths: list[Path], rows: list[Row], per_window: bool) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--windows", default="6",
-                        help=f"how many windows of the fixed list (1-{len(WINDOWS)}), or comma-separated names")
-    parser.add_argument("--rows", default="frame,noise,missing",
-                        help="groups (frame, noise, missing) and/or row keys, comma-separated")
+    parser.add_argument(
+        "--windows",
+        default="6",
+        help=f"how many windows of the fixed list (1-{len(WINDOWS)}), or comma-separated names",
+    )
+    parser.add_argument(
+        "--rows", default="frame,noise,missing", help="groups (frame, noise, missing) and/or row keys, comma-separated"
+    )
     parser.add_argument("--length", type=int, default=300, help="captures per window at 120 Hz (default 300)")
-    parser.add_argument("--distance", type=float, default=None, metavar="MM",
-                        help="fixed camera distance in mm, as in the paper's protocol (2700); default: cameras at "
-                             "twice the motion's extent, moved back until every point is inside the images")
+    parser.add_argument(
+        "--distance",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="fixed camera distance in mm, as in the paper's protocol (2700); default: cameras at "
+        "twice the motion's extent, moved back until every point is inside the images",
+    )
     parser.add_argument("--jobs", type=int, default=1, help="parallel worker processes (default 1)")
     parser.add_argument("--per-window", action="store_true", help="also print one line per window")
     parser.add_argument("--json", type=Path, help="write every result (updated after each solve) to this file")
-    parser.add_argument("--from-json", type=Path, nargs="+", metavar="JSON",
-                        help="solve nothing: print the tables of earlier --json files (merged; later files win)")
+    parser.add_argument(
+        "--from-json",
+        type=Path,
+        nargs="+",
+        metavar="JSON",
+        help="solve nothing: print the tables of earlier --json files (merged; later files win)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     for noisy in ("reconstruct", "common"):
@@ -253,28 +277,50 @@ def main(argv: list[str] | None = None) -> int:
     for i in window_indices:
         w = WINDOWS[i]
         print(f"  {i}. {w.name}: {w.path}, {w.motion}, from {w.start_s:g} s, {min(w.seconds, args.length / 120):.2f} s")
-    print(f"Rows: {', '.join(r.key for r in rows)}; {len(window_indices) * len(rows)} solves, {args.jobs} job(s)",
-          flush=True)
+    print(
+        f"Rows: {', '.join(r.key for r in rows)}; {len(window_indices) * len(rows)} solves, {args.jobs} job(s)",
+        flush=True,
+    )
 
-    tasks = [Task(window_index=i, row=r, length=args.length, distance_mm=args.distance)
-             for r in rows for i in window_indices]
+    tasks = [
+        Task(window_index=i, row=r, length=args.length, distance_mm=args.distance) for r in rows for i in window_indices
+    ]
     outcomes: list[Outcome] = []
     started = time.perf_counter()
 
     def record(outcome: Outcome) -> None:
         outcomes.append(outcome)
         if outcome.error:
-            log.info("[%d/%d] %s / %s FAILED: %s", len(outcomes), len(tasks), outcome.window, outcome.row,
-                     outcome.error)
+            log.info(
+                "[%d/%d] %s / %s FAILED: %s", len(outcomes), len(tasks), outcome.window, outcome.row, outcome.error
+            )
         else:
             r = outcome.result
-            log.info("[%d/%d] %s / %s: <10 mm %.2f %% (init %.2f %%), F=%d, %.0f s", len(outcomes), len(tasks),
-                     outcome.window, outcome.row, 100 * r["shares"][0], 100 * r["init_shares"][0], r["frames"],
-                     r["seconds"])
+            log.info(
+                "[%d/%d] %s / %s: <10 mm %.2f %% (init %.2f %%), F=%d, %.0f s",
+                len(outcomes),
+                len(tasks),
+                outcome.window,
+                outcome.row,
+                100 * r["shares"][0],
+                100 * r["init_shares"][0],
+                r["frames"],
+                r["seconds"],
+            )
         if args.json:
-            args.json.write_text(json.dumps({
-                "solver": version, "windows": [WINDOWS[i].__dict__ for i in window_indices], "length": args.length,
-                "paper": PAPER, "results": [o.__dict__ for o in outcomes]}, indent=1) + "\n")
+            args.json.write_text(
+                json.dumps(
+                    {
+                        "solver": version,
+                        "windows": [WINDOWS[i].__dict__ for i in window_indices],
+                        "length": args.length,
+                        "paper": PAPER,
+                        "results": [o.__dict__ for o in outcomes],
+                    },
+                    indent=1,
+                )
+                + "\n"
+            )
 
     if args.jobs <= 1:
         _limit_threads()

@@ -95,8 +95,13 @@ class CheckResult:
 
 def _project(camera: FrameCamera, X: np.ndarray) -> np.ndarray:
     """(N, 3) world -> (N, 2) pixels with distortion."""
-    uv, _ = cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(camera.R)[0], camera.t, camera.K,
-                              camera.dist if camera.dist is not None else np.zeros(4))
+    uv, _ = cv2.projectPoints(
+        X.reshape(-1, 3),
+        cv2.Rodrigues(camera.R)[0],
+        camera.t,
+        camera.K,
+        camera.dist if camera.dist is not None else np.zeros(4),
+    )
     return uv.reshape(-1, 2)
 
 
@@ -105,8 +110,9 @@ def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray,
     per-camera reprojection error (C,) in pixels."""
     rows = []
     for camera, p in zip(cameras, uv, strict=True):
-        n = cv2.undistortPoints(p.reshape(1, 1, 2), camera.K,
-                                camera.dist if camera.dist is not None else np.zeros(4)).reshape(2)
+        n = cv2.undistortPoints(
+            p.reshape(1, 1, 2), camera.K, camera.dist if camera.dist is not None else np.zeros(4)
+        ).reshape(2)
         P = np.c_[camera.R, camera.t]
         rows += [n[0] * P[2] - P[0], n[1] * P[2] - P[1]]
     X = np.linalg.svd(np.array(rows))[2][-1]
@@ -120,18 +126,23 @@ def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray,
 
 
 def _observations(tracks: Tracks) -> dict[tuple[str, int, str], np.ndarray]:
-    return {(v, int(f), p): tracks.xy[i] for i, (v, f, p) in enumerate(zip(tracks.video, tracks.frame, tracks.point,
-                                                                             strict=True))}
+    return {
+        (v, int(f), p): tracks.xy[i]
+        for i, (v, f, p) in enumerate(zip(tracks.video, tracks.frame, tracks.point, strict=True))
+    }
 
 
-def reference(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], points: list[str],
-              offsets: dict[str, int], window: tuple[int, int] = WINDOW,
-              ) -> tuple[dict[tuple[int, str], np.ndarray], dict[str, list[float]]]:
+def reference(
+    cameras: CameraSet,
+    obs: dict[tuple[str, int, str], np.ndarray],
+    points: list[str],
+    offsets: dict[str, int],
+    window: tuple[int, int] = WINDOW,
+) -> tuple[dict[tuple[int, str], np.ndarray], dict[str, list[float]]]:
     """Triangulate every (frame f in window, point) from the cameras that see it at frame f + offset[video]
     (>= 2). Returns {(f, point): X} and point -> reprojection errors (px) of every used observation."""
     by_video = {v.name: {c.frame: c for c in v.frames} for v in cameras.videos}
-    frames = sorted({f for v in cameras.videos for f in (c.frame for c in v.frames)
-                     if window[0] <= f <= window[1]})
+    frames = sorted({f for v in cameras.videos for f in (c.frame for c in v.frames) if window[0] <= f <= window[1]})
     result: dict[tuple[int, str], np.ndarray] = {}
     errors: dict[str, list[float]] = {p: [] for p in points}
     for f in frames:
@@ -150,8 +161,9 @@ def reference(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], p
     return result, errors
 
 
-def search_offsets(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], points: list[str],
-                   max_offset: int = 4) -> dict[str, int]:
+def search_offsets(
+    cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarray], points: list[str], max_offset: int = 4
+) -> dict[str, int]:
     """Integer frame offsets per video (the first video fixed at 0) minimizing the median reprojection error of
     the reference over points seen by >= 3 cameras; coordinate descent, two sweeps."""
     names = [v.name for v in cameras.videos]
@@ -174,22 +186,27 @@ def search_offsets(cameras: CameraSet, obs: dict[tuple[str, int, str], np.ndarra
 # Desynchronization
 
 
-def desynchronize(cameras: CameraSet, tracks: Tracks, stride: int = STRIDE,
-                  window: tuple[int, int] = WINDOW) -> tuple[CameraSet, Tracks]:
+def desynchronize(
+    cameras: CameraSet, tracks: Tracks, stride: int = STRIDE, window: tuple[int, int] = WINDOW
+) -> tuple[CameraSet, Tracks]:
     """Camera k (in file order) keeps frames k, k + stride, ... inside `window` (inclusive); tracks on dropped
     frames are dropped too. Frame numbers and times stay the videos' own."""
     keep: dict[str, set[int]] = {}
     out = CameraSet()
     for k, video in enumerate(cameras.videos):
-        frames = [f for f in video.frames
-                  if f.frame % stride == k % stride and window[0] <= f.frame <= window[1]]
+        frames = [f for f in video.frames if f.frame % stride == k % stride and window[0] <= f.frame <= window[1]]
         keep[video.name] = {f.frame for f in frames}
-        out.videos.append(type(video)(name=video.name, width=video.width, height=video.height, fps=video.fps,
-                                      frames=frames))
+        out.videos.append(
+            type(video)(name=video.name, width=video.width, height=video.height, fps=video.fps, frames=frames)
+        )
     rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep[v]]
-    kept = Tracks(video=[tracks.video[i] for i in rows], frame=tracks.frame[rows],
-                  point=[tracks.point[i] for i in rows], xy=tracks.xy[rows],
-                  extra={k: [v[i] for i in rows] for k, v in tracks.extra.items()})
+    kept = Tracks(
+        video=[tracks.video[i] for i in rows],
+        frame=tracks.frame[rows],
+        point=[tracks.point[i] for i in rows],
+        xy=tracks.xy[rows],
+        extra={k: [v[i] for i in rows] for k, v in tracks.extra.items()},
+    )
     return out, kept
 
 
@@ -206,15 +223,20 @@ def shift_clocks(cameras: CameraSet, shifts: tuple[float, ...] = CLOCK_SHIFTS) -
     return out
 
 
-def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool = True,
-              clock_shifts: bool = False) -> CheckResult:
+def run_check(
+    shared: Path, work: Path, labels: Path = LABELS, *, search: bool = True, clock_shifts: bool = False
+) -> CheckResult:
     demo = shared / DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
     work.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    import_calibration.run(demo / "calibration" / "Calib.qca.txt", list(videos), work,
-                           import_calibration.ImportCalibrationOptions(scale=1000.0))
+    import_calibration.run(
+        demo / "calibration" / "Calib.qca.txt",
+        list(videos),
+        work,
+        import_calibration.ImportCalibrationOptions(scale=1000.0),
+    )
     seconds["import"] = time.perf_counter() - started
 
     started = time.perf_counter()
@@ -230,8 +252,12 @@ def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool =
     write_cameras(work / "desync" / "cameras.json", desync_cameras)
     write_tracks(work / "desync" / "tracks.csv", desync_tracks)
     started = time.perf_counter()
-    solve_stage.run(work / "desync" / "cameras.json", work / "desync" / "tracks.csv", work / "desync",
-                    solve_stage.SolveOptions(recording=None))
+    solve_stage.run(
+        work / "desync" / "cameras.json",
+        work / "desync" / "tracks.csv",
+        work / "desync",
+        solve_stage.SolveOptions(recording=None),
+    )
     seconds["solve"] = time.perf_counter() - started
     solved = read_points(work / "desync" / "points3d.csv")
 
@@ -243,9 +269,13 @@ def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool =
     ref_off, ref_err_off = reference(cameras, obs, points, offsets)
     seconds["reference"] = time.perf_counter() - started
 
-    result = CheckResult(points=points, offsets=offsets, seconds=seconds,
-                         ref_error_px={p: np.asarray(e) for p, e in ref_err.items()},
-                         ref_error_offset_px={p: np.asarray(e) for p, e in ref_err_off.items()})
+    result = CheckResult(
+        points=points,
+        offsets=offsets,
+        seconds=seconds,
+        ref_error_px={p: np.asarray(e) for p, e in ref_err.items()},
+        ref_error_offset_px={p: np.asarray(e) for p, e in ref_err_off.items()},
+    )
     dist, dist_off, observed = [], [], []
     for i, (video, frame) in enumerate(zip(solved.videos, solved.frames, strict=True)):
         for p, name in enumerate(solved.point_names):
@@ -271,8 +301,10 @@ def run_check(shared: Path, work: Path, labels: Path = LABELS, *, search: bool =
 def _write_comparison(path: Path, result: CheckResult) -> None:
     lines = ["video,frame,point,observed,distance_mm,distance_offset_mm"]
     for i in range(len(result.point)):
-        lines.append(f"{result.video[i]},{result.frame[i]},{result.point[i]},{int(result.observed[i])},"
-                     f"{result.distance[i]:.2f},{result.distance_offset[i]:.2f}")
+        lines.append(
+            f"{result.video[i]},{result.frame[i]},{result.point[i]},{int(result.observed[i])},"
+            f"{result.distance[i]:.2f},{result.distance_offset[i]:.2f}"
+        )
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
@@ -286,14 +318,16 @@ def _stats(values: np.ndarray) -> str:
 def table(result: CheckResult) -> str:
     """Distances (mm) per point: all compared captures, the tracked ones only, and against the
     offset-corrected reference; then the reference's median reprojection error (px) without / with offsets."""
-    lines = [f"frames {WINDOW[0]}..{WINDOW[1]}; camera k keeps frames k mod {STRIDE}; frame offsets minimizing the "
-             f"reference's reprojection error (cam01 = 0): {result.offsets}", "",
-             f"{'':10} | {'sync-free vs reference (same frame index)':^44} | {'vs offset-corrected':^24} | "
-             f"{'reference':^15}",
-             f"{'':10} | {'all captures':^21} | {'tracked there':^20} | {'all captures':^24} | "
-             f"{'reproj. px':^15}",
-             f"{'point':10} | {'med':>6} {'p90':>8} {'n':>5} | {'med':>6} {'p90':>7} {'n':>5} | {'med':>6} {'p90':>8} "
-             f"{'n':>8} | {'med':>6} {'offs':>7}"]
+    lines = [
+        f"frames {WINDOW[0]}..{WINDOW[1]}; camera k keeps frames k mod {STRIDE}; frame offsets minimizing the "
+        f"reference's reprojection error (cam01 = 0): {result.offsets}",
+        "",
+        f"{'':10} | {'sync-free vs reference (same frame index)':^44} | {'vs offset-corrected':^24} | "
+        f"{'reference':^15}",
+        f"{'':10} | {'all captures':^21} | {'tracked there':^20} | {'all captures':^24} | {'reproj. px':^15}",
+        f"{'point':10} | {'med':>6} {'p90':>8} {'n':>5} | {'med':>6} {'p90':>7} {'n':>5} | {'med':>6} {'p90':>8} "
+        f"{'n':>8} | {'med':>6} {'offs':>7}",
+    ]
     for name in [*result.points, "ALL"]:
         mask = np.ones(len(result.point), bool) if name == "ALL" else np.array([p == name for p in result.point])
         if name == "ALL":
@@ -304,8 +338,10 @@ def table(result: CheckResult) -> str:
         med = f"{np.median(err):6.2f}" if len(err) else f"{'-':>6}"
         med_off = f"{np.median(err_off):7.2f}" if len(err_off) else f"{'-':>7}"
         tracked = result.distance[mask & result.observed]
-        lines.append(f"{name:10} | {_stats(result.distance[mask])} | {_stats(tracked)} | "
-                     f"{_stats(result.distance_offset[mask])} | {med} {med_off}")
+        lines.append(
+            f"{name:10} | {_stats(result.distance[mask])} | {_stats(tracked)} | "
+            f"{_stats(result.distance_offset[mask])} | {med} {med_off}"
+        )
     lines.append("")
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.seconds.items()))
     return "\n".join(lines)
@@ -315,8 +351,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--work", type=Path, default=Path("/tmp/pose2sim_check"))
     parser.add_argument("--labels", type=Path, default=LABELS)
-    parser.add_argument("--shift-clocks", action="store_true",
-                        help=f"add {CLOCK_SHIFTS} s to the videos' frame times the solver sees")
+    parser.add_argument(
+        "--shift-clocks", action="store_true", help=f"add {CLOCK_SHIFTS} s to the videos' frame times the solver sees"
+    )
     parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")

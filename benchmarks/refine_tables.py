@@ -74,14 +74,19 @@ DEFAULT_WINDOWS = "hdm05,cmu-jumps,squat,dropjump,walk"
 # Windows never used for the reported tables: the refinement's defaults were tuned on these.
 TUNING_WINDOWS = "run-5ms,freeform,run-4ms,cmu-late,sit-stand"
 METHODS = ("init", "seed", "refined_true", "refined_estimated", "refined_clocks", "solve_default")
-LABELS = {"init": "init only", "seed": "seed solver", "refined_true": "refined, true times (oracle)",
-          "refined_estimated": "refined, estimated times",
-          "refined_clocks": "refined, estimated times + clock refinement",
-          "solve_default": "dynrecon solve (default)"}
+LABELS = {
+    "init": "init only",
+    "seed": "seed solver",
+    "refined_true": "refined, true times (oracle)",
+    "refined_estimated": "refined, estimated times",
+    "refined_clocks": "refined, estimated times + clock refinement",
+    "solve_default": "dynrecon solve (default)",
+}
 
 
-def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | None
-                 ) -> tuple[SimulatedCapture, Problem]:
+def simulate_row(
+    window_index: int, row: Row, length: int, distance_mm: float | None
+) -> tuple[SimulatedCapture, Problem]:
     """The capture of paper_tables.run_task (same options, same seed)."""
     window = WINDOWS[window_index]
     mocap = load_window(replace(window, seconds=min(window.seconds, length / 120.0)))
@@ -90,8 +95,7 @@ def simulate_row(window_index: int, row: Row, length: int, distance_mm: float | 
     return capture, problem
 
 
-def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_mm: float | None,
-               digest: str) -> Path:
+def cache_path(cache: Path, window_index: int, row: Row, length: int, distance_mm: float | None, digest: str) -> Path:
     where = "pushback" if distance_mm is None else f"{distance_mm:g}mm"
     return cache / f"{WINDOWS[window_index].name}_{row.key}_{length}_{where}_{digest}.npz"
 
@@ -110,8 +114,16 @@ def seed_solve(problem: Problem, path: Path) -> dict[str, np.ndarray]:
     order = sequencing_order(points, sequencing(problem, result))
     init = fill_missing_points(result.init_points, problem.video_index)
     W = result.W.to_csc()
-    out = {"points": result.points, "init": init, "order": order, "seconds": np.array(seconds),
-           "w_data": W.data, "w_indices": W.indices, "w_indptr": W.indptr, "reconstructable": result.reconstructable}
+    out = {
+        "points": result.points,
+        "init": init,
+        "order": order,
+        "seconds": np.array(seconds),
+        "w_data": W.data,
+        "w_indices": W.indices,
+        "w_indptr": W.indptr,
+        "reconstructable": result.reconstructable,
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     scratch = path.with_suffix(".tmp.npz")
     np.savez(scratch, **out)
@@ -120,8 +132,13 @@ def seed_solve(problem: Problem, path: Path) -> dict[str, np.ndarray]:
 
 
 def score(problem: Problem, capture: SimulatedCapture, xyz: np.ndarray) -> list[float]:
-    estimate = FramePoints(videos=problem.frame_videos, frames=problem.frames, point_names=problem.point_names,
-                           xyz=xyz, observed=problem.observed)
+    estimate = FramePoints(
+        videos=problem.frame_videos,
+        frames=problem.frames,
+        point_names=problem.point_names,
+        xyz=xyz,
+        observed=problem.observed,
+    )
     return [float(s) for s in evaluate(estimate, capture.truth).share_under]
 
 
@@ -155,24 +172,34 @@ def shifted_problem(problem: Problem, seed: int) -> Problem:
     return replace(problem, times=problem.times + offsets[problem.video_index])
 
 
-def solve_default(problem: Problem, cached: dict[str, np.ndarray], seed: int, true_times: np.ndarray
-                  ) -> tuple[np.ndarray, dict[str, Any]]:
+def solve_default(
+    problem: Problem, cached: dict[str, np.ndarray], seed: int, true_times: np.ndarray
+) -> tuple[np.ndarray, dict[str, Any]]:
     """(F, P, 3) points of `dynrecon solve`'s temporal stage (recover_and_refine, default TemporalOptions) on the
     shifted problem, and its diagnostics: clock time error, path taken (report), clock model, seconds."""
     started = time.perf_counter()
-    temporal = recover_and_refine(shifted_problem(problem, seed), CachedResult(problem, cached),  # type: ignore[arg-type]
-                                  TemporalOptions())
+    temporal = recover_and_refine(
+        shifted_problem(problem, seed),
+        CachedResult(problem, cached),  # type: ignore[arg-type]
+        TemporalOptions(),
+    )
     seconds = time.perf_counter() - started
     error = temporal.times - true_times
     finite = np.isfinite(error)
-    error_ms = float(1000 * np.median(np.abs(error[finite] - np.median(error[finite])))) if finite.any() \
-        else float("nan")
+    error_ms = (
+        float(1000 * np.median(np.abs(error[finite] - np.median(error[finite])))) if finite.any() else float("nan")
+    )
     report = dict(temporal.report)
     if report.get("cost"):  # the polish guard: rejected when max(cost) > 1.01 cost[0] (or a rate moved far)
         report["cost_max_over_first"] = max(report["cost"]) / report["cost"][0]
-    return temporal.points, {"seconds": seconds, "clock_time_error_ms_median": error_ms,
-                             "untimed_frames": int(np.sum(~finite)), "clock_model": temporal.clocks.model.value,
-                             "path": solve_path(temporal.report), "report": report}
+    return temporal.points, {
+        "seconds": seconds,
+        "clock_time_error_ms_median": error_ms,
+        "untimed_frames": int(np.sum(~finite)),
+        "clock_model": temporal.clocks.model.value,
+        "path": solve_path(temporal.report),
+        "report": report,
+    }
 
 
 def solve_path(report: dict[str, Any]) -> str:
@@ -198,8 +225,9 @@ def estimated_times(problem: Problem, cached: dict[str, np.ndarray], seed: int) 
     times = np.asarray(clocks.global_time, dtype=float)
     if np.isfinite(times).all():
         return times, "clocks"
-    log.warning("estimate_clocks left %d frame(s) without a time: spectral order instead",
-                int(np.sum(~np.isfinite(times))))
+    log.warning(
+        "estimate_clocks left %d frame(s) without a time: spectral order instead", int(np.sum(~np.isfinite(times)))
+    )
     times = np.empty(problem.num_frames)
     times[cached["order"]] = np.arange(problem.num_frames) / (capture_rate(problem))
     return times, "spectral order"
@@ -211,13 +239,23 @@ def capture_rate(problem: Problem) -> float:
     return (problem.num_frames - 1) / span if span > 0 else 1.0
 
 
-def run_one(window_index: int, row: Row, length: int, distance_mm: float | None, cache: Path,
-            options: RefineOptions, clock_refinement: bool, digest: str) -> dict[str, Any]:
+def run_one(
+    window_index: int,
+    row: Row,
+    length: int,
+    distance_mm: float | None,
+    cache: Path,
+    options: RefineOptions,
+    clock_refinement: bool,
+    digest: str,
+) -> dict[str, Any]:
     capture, problem = simulate_row(window_index, row, length, distance_mm)
     cached = seed_solve(problem, cache_path(cache, window_index, row, length, distance_mm, digest))
     true_times = capture.truth.extra["time"][:, 0]
-    shares: dict[str, list[float]] = {"init": score(problem, capture, cached["init"]),
-                                      "seed": score(problem, capture, cached["points"])}
+    shares: dict[str, list[float]] = {
+        "init": score(problem, capture, cached["init"]),
+        "seed": score(problem, capture, cached["points"]),
+    }
     started = time.perf_counter()
     oracle = refine(problem, cached["points"], true_times, options)
     refine_seconds = time.perf_counter() - started
@@ -238,12 +276,20 @@ def run_one(window_index: int, row: Row, length: int, distance_mm: float | None,
         extra["clock_time_error_ms_median"] = float(1000 * np.median(np.abs(clock_error - np.median(clock_error))))
     default_points, extra["solve_default"] = solve_default(problem, cached, window_index, true_times)
     shares["solve_default"] = score(problem, capture, default_points)
-    return {**extra, "window": WINDOWS[window_index].name, "row": row.key, "shares": shares, "times": source,
-            "time_error_ms_median": float(1000 * np.median(np.abs(time_error))),
-            "frames": problem.num_frames, "points": problem.num_points,
-            "seed_seconds": float(cached["seconds"]), "refine_seconds": refine_seconds,
-            "smoothness_median": float(np.nanmedian(oracle.smoothness)),
-            "outliers": int(oracle.outliers.sum())}
+    return {
+        **extra,
+        "window": WINDOWS[window_index].name,
+        "row": row.key,
+        "shares": shares,
+        "times": source,
+        "time_error_ms_median": float(1000 * np.median(np.abs(time_error))),
+        "frames": problem.num_frames,
+        "points": problem.num_points,
+        "seed_seconds": float(cached["seconds"]),
+        "refine_seconds": refine_seconds,
+        "smoothness_median": float(np.nanmedian(oracle.smoothness)),
+        "outliers": int(oracle.outliers.sum()),
+    }
 
 
 def print_tables(results: list[dict[str, Any]], per_window: bool) -> None:
@@ -267,34 +313,43 @@ def print_tables(results: list[dict[str, Any]], per_window: bool) -> None:
             print(percent_row(f"{key}: paper", PAPER[key], " |"))
             if per_window:
                 for i in done:
-                    cells = ", ".join(f"{LABELS[m]} {100 * i['shares'][m][0]:.2f}" for m in METHODS
-                                      if m in i["shares"])
+                    cells = ", ".join(f"{LABELS[m]} {100 * i['shares'][m][0]:.2f}" for m in METHODS if m in i["shares"])
                     clocked = f" -> {i['clock_time_error_ms_median']:.2f} ms" if "clock_seconds" in i else ""
                     if "solve_default" in i:
                         d = i["solve_default"]
-                        clocked += (f", default ({d['clock_model']} clocks, {d['path']}) "
-                                    f"{d['clock_time_error_ms_median']:.2f} ms")
-                    print(f"| &nbsp;&nbsp;{i['window']} (<10 mm) | {cells}; F={i['frames']}, time error "
-                          f"{i['time_error_ms_median']:.2f} ms{clocked}, smoothness {i['smoothness_median']:.2g}, "
-                          f"{i['outliers']} outliers, refine {i['refine_seconds']:.1f} s |")
+                        clocked += (
+                            f", default ({d['clock_model']} clocks, {d['path']}) "
+                            f"{d['clock_time_error_ms_median']:.2f} ms"
+                        )
+                    print(
+                        f"| &nbsp;&nbsp;{i['window']} (<10 mm) | {cells}; F={i['frames']}, time error "
+                        f"{i['time_error_ms_median']:.2f} ms{clocked}, smoothness {i['smoothness_median']:.2g}, "
+                        f"{i['outliers']} outliers, refine {i['refine_seconds']:.1f} s |"
+                    )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--windows", default=DEFAULT_WINDOWS, help="comma-separated window names (common.WINDOWS)")
-    parser.add_argument("--rows", default="30Hz,7.5Hz,noise1,noise3",
-                        help="comma-separated row keys of paper_tables.py, or 'all'")
-    parser.add_argument("--distance", default="2700",
-                        help="camera distance in mm (the paper's 2700), or 'push' for cameras pushed back until "
-                             "every point is inside the images; comma-separated for both")
+    parser.add_argument(
+        "--rows", default="30Hz,7.5Hz,noise1,noise3", help="comma-separated row keys of paper_tables.py, or 'all'"
+    )
+    parser.add_argument(
+        "--distance",
+        default="2700",
+        help="camera distance in mm (the paper's 2700), or 'push' for cameras pushed back until "
+        "every point is inside the images; comma-separated for both",
+    )
     parser.add_argument("--length", type=int, default=300)
-    parser.add_argument("--cache", type=Path, default=Path("/tmp/dynrecon_refine_cache"),
-                        help="folder of cached seed solves")
+    parser.add_argument(
+        "--cache", type=Path, default=Path("/tmp/dynrecon_refine_cache"), help="folder of cached seed solves"
+    )
     parser.add_argument("--loss", default=RobustLoss.HUBER.value, choices=[x.value for x in RobustLoss])
     parser.add_argument("--rule", default=SmoothnessRule.GCV.value, choices=[x.value for x in SmoothnessRule])
     parser.add_argument("--smoothness", type=float, default=1.0, help="lambda for --rule fixed")
-    parser.add_argument("--no-clock-refinement", action="store_true",
-                        help="skip refine_with_clocks (the slowest column)")
+    parser.add_argument(
+        "--no-clock-refinement", action="store_true", help="skip refine_with_clocks (the slowest column)"
+    )
     parser.add_argument("--json", type=Path, help="write every result (after each window) to this file")
     parser.add_argument("--from-json", type=Path, nargs="+", help="print the tables of earlier --json files")
     parser.add_argument("--per-window", action="store_true")
@@ -313,8 +368,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = {r.key: r for r in ROWS}
     if args.rows == "all":
         args.rows = ",".join(rows)
-    unknown = [w for w in args.windows.split(",") if w not in names] + \
-        [r for r in args.rows.split(",") if r not in rows]
+    unknown = [w for w in args.windows.split(",") if w not in names] + [
+        r for r in args.rows.split(",") if r not in rows
+    ]
     if unknown:
         raise SystemExit(f"unknown window or row: {', '.join(unknown)}")
     options = RefineOptions(loss=RobustLoss(args.loss), rule=SmoothnessRule(args.rule), smoothness=args.smoothness)
@@ -324,28 +380,50 @@ def main(argv: list[str] | None = None) -> int:
     results: list[dict[str, Any]] = []
     for distance_text in args.distance.split(","):
         distance = None if distance_text == "push" else float(distance_text)
-        protocol = "cameras pushed back (default protocol)" if distance is None else \
-            f"paper protocol, cameras at {distance / 1000:g} m"
+        protocol = (
+            "cameras pushed back (default protocol)"
+            if distance is None
+            else f"paper protocol, cameras at {distance / 1000:g} m"
+        )
         for key in args.rows.split(","):
             for name in args.windows.split(","):
                 try:
-                    item = run_one(names.index(name), rows[key], args.length, distance, args.cache, options,
-                                   not args.no_clock_refinement, digest)
+                    item = run_one(
+                        names.index(name),
+                        rows[key],
+                        args.length,
+                        distance,
+                        args.cache,
+                        options,
+                        not args.no_clock_refinement,
+                        digest,
+                    )
                 except Exception:  # keep the other windows' results
                     log.exception("%s / %s failed", name, key)
                     continue
                 item["protocol"] = protocol
                 results.append(item)
                 s = item["shares"]
-                log.info("%s / %s / %s: <10 mm init %.2f seed %.2f refined(true) %.2f refined(%s) %.2f, "
-                         "+clocks %.2f, default %.2f (%s, %.2f ms)", protocol, name, key, 100 * s["init"][0],
-                         100 * s["seed"][0], 100 * s["refined_true"][0], item["times"],
-                         100 * s["refined_estimated"][0], 100 * s.get("refined_clocks", [np.nan])[0],
-                         100 * s["solve_default"][0], item["solve_default"]["path"],
-                         item["solve_default"]["clock_time_error_ms_median"])
+                log.info(
+                    "%s / %s / %s: <10 mm init %.2f seed %.2f refined(true) %.2f refined(%s) %.2f, "
+                    "+clocks %.2f, default %.2f (%s, %.2f ms)",
+                    protocol,
+                    name,
+                    key,
+                    100 * s["init"][0],
+                    100 * s["seed"][0],
+                    100 * s["refined_true"][0],
+                    item["times"],
+                    100 * s["refined_estimated"][0],
+                    100 * s.get("refined_clocks", [np.nan])[0],
+                    100 * s["solve_default"][0],
+                    item["solve_default"]["path"],
+                    item["solve_default"]["clock_time_error_ms_median"],
+                )
                 if args.json:
-                    args.json.write_text(json.dumps({"solver": version, "options": str(options),
-                                                     "results": results}, indent=1) + "\n")
+                    args.json.write_text(
+                        json.dumps({"solver": version, "options": str(options), "results": results}, indent=1) + "\n"
+                    )
     print_tables(results, args.per_window)
     return 0
 

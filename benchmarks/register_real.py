@@ -79,8 +79,13 @@ def truth_cameras(calibration: Path, names: list[str]) -> CameraSet:
 
 def score(cameras: CameraSet, truth: CameraSet) -> dict[str, Any]:
     """Worst centre error (% of the true camera spread) and rotation error (deg) over the posed videos."""
-    first = CameraSet(videos=[VideoCameras(name=v.name, width=v.width, height=v.height, frames=v.frames[:1])
-                              for v in cameras.videos if v.frames])
+    first = CameraSet(
+        videos=[
+            VideoCameras(name=v.name, width=v.width, height=v.height, frames=v.frames[:1])
+            for v in cameras.videos
+            if v.frames
+        ]
+    )
     for video in first.videos:
         video.frames = [FrameCamera(frame=0, K=f.K, R=f.R, t=f.t) for f in video.frames]
     if len(first.videos) < 3:

@@ -91,9 +91,7 @@ def pair_consistency(ws: Path, reference: CameraSet, long_side: int) -> dict[str
             R = fb.R @ fa.R.T
             E = skew(fb.t - R @ fa.t) @ R
             lines = np.c_[na, np.ones(len(na))] @ E.T
-            distance = np.abs((np.c_[nb, np.ones(len(nb))] * lines).sum(1)) / np.linalg.norm(
-                lines[:, :2], axis=1
-            )
+            distance = np.abs((np.c_[nb, np.ones(len(nb))] * lines).sum(1)) / np.linalg.norm(lines[:, :2], axis=1)
             key = "-".join(sorted((va, vb)))
             good = int((distance * fb.K[0, 0] < 5).sum())
             best = out.get(key, (0, 0))
@@ -103,9 +101,7 @@ def pair_consistency(ws: Path, reference: CameraSet, long_side: int) -> dict[str
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--configs", default="default,tuned")
     parser.add_argument("--out", type=Path, default=Path("/tmp/sfm_pose2sim"))
     args = parser.parse_args()
@@ -133,9 +129,7 @@ def main() -> None:
             path = None
         elapsed = time.perf_counter() - started
         report = json.loads((ws / "register_report.json").read_text())
-        registered = ", ".join(
-            f"{v['name']} ({v['registered']})" for v in report["videos"] if v["registered"]
-        )
+        registered = ", ".join(f"{v['name']} ({v['registered']})" for v in report["videos"] if v["registered"])
         accuracy = "n/a | n/a"
         if path is not None:
             result = compare(read_cameras(path), reference)
@@ -143,11 +137,7 @@ def main() -> None:
                 f"{result.rotation_errors_deg.mean():.2f} / {result.rotation_errors_deg.max():.2f} | "
                 f"{100 * result.center_errors.mean() / spread:.2f}"
             )
-        pairs = (
-            pair_consistency(ws, reference, options.long_side)
-            if (ws / "sfm" / "database.db").exists()
-            else {}
-        )
+        pairs = pair_consistency(ws, reference, options.long_side) if (ws / "sfm" / "database.db").exists() else {}
         print(
             f"| {config} | {registered or 'none'} | {accuracy} | "
             f"{', '.join(f'{k}: {v}' for k, v in pairs.items())} | {elapsed:.0f} |",

@@ -25,9 +25,7 @@ from sfm.synthetic.demo import render_demo, three_cameras
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--sfm-frames", type=int, default=30)
     parser.add_argument("--mapper", default="incremental")

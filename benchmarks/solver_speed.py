@@ -71,8 +71,13 @@ def capture_of(frames: int, seed: int = 0) -> tuple[SimulatedCapture, Problem]:
         xyz = np.concatenate([xyz, np.stack([(xyz[:, a] + xyz[:, b]) / 2 for a, b in pairs], axis=1)], axis=1)
         names += [f"mid_{names[a]}_{names[b]}" for a, b in pairs]
     xyz, names = xyz[:, :POINTS], names[:POINTS]
-    window = Mocap(xyz=np.ascontiguousarray(xyz), rate=mocap.rate, marker_names=names,
-                   times=mocap.times[rows] - mocap.times[rows[0]], path=mocap.path)
+    window = Mocap(
+        xyz=np.ascontiguousarray(xyz),
+        rate=mocap.rate,
+        marker_names=names,
+        times=mocap.times[rows] - mocap.times[rows[0]],
+        path=mocap.path,
+    )
     capture, problem, _ = simulate(window, SimulationOptions(seed=seed))
     return capture, problem
 
@@ -93,11 +98,20 @@ def child_full(frames: int, threads: int, repeats: int) -> dict[str, Any]:
     times = [r.seconds for r in runs]
     median_run = sorted(runs, key=lambda r: r.seconds)[len(runs) // 2]
     return {
-        "frames": problem.num_frames, "points": problem.num_points, "threads": threads, "times_s": times,
-        "median_s": statistics.median(times), "timings": median_run.timings, "iterations": median_run.iterations,
-        "peak_rss_mb": peak, "rss_before_solve_mb": rss_before, "share_under_10mm": median_run.shares[0],
-        "blas": [{k: v for k, v in info.items() if k in ("internal_api", "num_threads", "version")}
-                 for info in threadpool_info()],
+        "frames": problem.num_frames,
+        "points": problem.num_points,
+        "threads": threads,
+        "times_s": times,
+        "median_s": statistics.median(times),
+        "timings": median_run.timings,
+        "iterations": median_run.iterations,
+        "peak_rss_mb": peak,
+        "rss_before_solve_mb": rss_before,
+        "share_under_10mm": median_run.shares[0],
+        "blas": [
+            {k: v for k, v in info.items() if k in ("internal_api", "num_threads", "version")}
+            for info in threadpool_info()
+        ],
     }
 
 
@@ -105,30 +119,42 @@ def run_child(frames: int, threads: int, repeats: int) -> dict[str, Any]:
     env = dict(os.environ)
     for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         env[name] = str(threads)
-    command = [sys.executable, str(Path(__file__).resolve()), "--child-frames", str(frames), "--child-threads",
-               str(threads), "--repeats", str(repeats)]
+    command = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--child-frames",
+        str(frames),
+        "--child-threads",
+        str(threads),
+        "--repeats",
+        str(repeats),
+    ]
     log.info("full solve F=%d, %d thread(s), %d repeat(s) ...", frames, threads, repeats)
     started = time.perf_counter()
     done = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
     lines = [line for line in done.stdout.splitlines() if line.startswith(RESULT_PREFIX)]
     if done.returncode != 0 or not lines:
         raise SystemExit(f"child F={frames} threads={threads} failed ({done.returncode}):\n{done.stderr[-3000:]}")
-    result: dict[str, Any] = json.loads(lines[-1][len(RESULT_PREFIX):])
+    result: dict[str, Any] = json.loads(lines[-1][len(RESULT_PREFIX) :])
     log.info("... %.0f s wall", time.perf_counter() - started)
     return result
 
 
 def print_full(results: list[dict[str, Any]]) -> None:
     print("\n### Full solve (1 BLAS thread, fresh process per size)\n")
-    print("| F | P | median s (repeats) | initialize | W-step | X-step | iterations (stages) | peak RSS MB | "
-          "RSS before solve MB | <10 mm |")
+    print(
+        "| F | P | median s (repeats) | initialize | W-step | X-step | iterations (stages) | peak RSS MB | "
+        "RSS before solve MB | <10 mm |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         t = r["timings"]
-        print(f"| {r['frames']} | {r['points']} | {r['median_s']:.1f} ({len(r['times_s'])}) | "
-              f"{t.get('initialize', 0):.2f} | {t.get('w_step', 0):.1f} | {t.get('x_step', 0):.1f} | "
-              f"{'+'.join(str(i) for i in r['iterations'])} | {r['peak_rss_mb']:.0f} | "
-              f"{r['rss_before_solve_mb']:.0f} | {100 * r['share_under_10mm']:.2f} % |")
+        print(
+            f"| {r['frames']} | {r['points']} | {r['median_s']:.1f} ({len(r['times_s'])}) | "
+            f"{t.get('initialize', 0):.2f} | {t.get('w_step', 0):.1f} | {t.get('x_step', 0):.1f} | "
+            f"{'+'.join(str(i) for i in r['iterations'])} | {r['peak_rss_mb']:.0f} | "
+            f"{r['rss_before_solve_mb']:.0f} | {100 * r['share_under_10mm']:.2f} % |"
+        )
 
 
 def print_threads(results: list[dict[str, Any]]) -> None:
@@ -137,8 +163,10 @@ def print_threads(results: list[dict[str, Any]]) -> None:
     print("|---|---|---|---|---|---|")
     for r in results:
         blas = ", ".join(f"{b.get('internal_api')} {b.get('version')}" for b in r["blas"])
-        print(f"| {r['frames']} | {r['threads']} | {r['median_s']:.1f} ({len(r['times_s'])}) | "
-              f"{r['timings'].get('w_step', 0):.1f} | {r['timings'].get('x_step', 0):.1f} | {blas} |")
+        print(
+            f"| {r['frames']} | {r['threads']} | {r['median_s']:.1f} ({len(r['times_s'])}) | "
+            f"{r['timings'].get('w_step', 0):.1f} | {r['timings'].get('x_step', 0):.1f} | {blas} |"
+        )
     if len(results) >= 2:
         best = min(results, key=lambda r: r["median_s"])
         worst = max(results, key=lambda r: r["median_s"])
@@ -177,8 +205,9 @@ def frank_wolfe_gap(shapes: np.ndarray, video_index: np.ndarray, W: np.ndarray, 
 TIGHT: dict[str, Any] = {"kkt_tolerance": 1e-6, "max_rounds": 20}
 
 
-def ours(shapes: np.ndarray, video_index: np.ndarray, P: int, repeats: int, options: WStepOptions,
-         settings: dict[str, Any]) -> dict[str, Any]:
+def ours(
+    shapes: np.ndarray, video_index: np.ndarray, P: int, repeats: int, options: WStepOptions, settings: dict[str, Any]
+) -> dict[str, Any]:
     """Our W-step with `options`, reported under `settings` (how they differ from the default)."""
     times = []
     for _ in range(repeats):
@@ -186,10 +215,16 @@ def ours(shapes: np.ndarray, video_index: np.ndarray, P: int, repeats: int, opti
         W, stats = solve_w(shapes, video_index, P, options)
         times.append(time.perf_counter() - started)
     W_csc = W.to_csc()
-    return {"settings": settings, "seconds": statistics.median(times), "times_s": times,
-            "objective": objective_full(shapes, W_csc, LAMBDA1, P), "nonzeros": int(W_csc.nnz),
-            "fw_gap": frank_wolfe_gap(shapes, video_index, W_csc.toarray(), P),
-            "working_set": stats.working_set, "rounds": stats.rounds}
+    return {
+        "settings": settings,
+        "seconds": statistics.median(times),
+        "times_s": times,
+        "objective": objective_full(shapes, W_csc, LAMBDA1, P),
+        "nonzeros": int(W_csc.nnz),
+        "fw_gap": frank_wolfe_gap(shapes, video_index, W_csc.toarray(), P),
+        "working_set": stats.working_set,
+        "rounds": stats.rounds,
+    }
 
 
 def general_qp(shapes: np.ndarray, video_index: np.ndarray, P: int, solver: str) -> dict[str, Any]:
@@ -223,23 +258,30 @@ def general_qp(shapes: np.ndarray, video_index: np.ndarray, P: int, solver: str)
     feasible = project_rows_to_simplex(raw.T, allowed.T).T  # columns onto the masked simplex
     stats = qp.solver_stats
     return {
-        "solver": solver, "status": qp.status, "seconds": seconds,
+        "solver": solver,
+        "status": qp.status,
+        "seconds": seconds,
         "solver_seconds": float(stats.solve_time) if stats.solve_time is not None else float("nan"),
         "objective_raw": float(qp.value) / (F * P),
         "objective": objective_full(shapes, sp.csc_matrix(feasible), LAMBDA1, P),
         "fw_gap": frank_wolfe_gap(shapes, video_index, feasible, P),
-        "infeasibility": float(max(np.abs(raw.sum(axis=0) - 1).max(), max(0.0, -raw.min()),
-                                   np.abs(raw[~allowed]).max())),
+        "infeasibility": float(
+            max(np.abs(raw.sum(axis=0) - 1).max(), max(0.0, -raw.min()), np.abs(raw[~allowed]).max())
+        ),
         "nonzeros_above_1e-6": int((feasible > 1e-6).sum()),
     }
 
 
 def print_qp(rows: list[dict[str, Any]]) -> None:
     print("\n### W-step: ours (working set + exact active set, cold start) vs cvxpy (dense W)\n")
-    print("objective g(W) in the solver's units; 'above best' = (g - lowest g found by any solver) / lowest g; "
-          "cvxpy answers projected onto the feasible set before scoring.\n")
-    print("| F | P | solver | seconds (solver only) | ours faster by | objective g | above best | "
-          "FW gap / g | infeasibility before projection | nnz |")
+    print(
+        "objective g(W) in the solver's units; 'above best' = (g - lowest g found by any solver) / lowest g; "
+        "cvxpy answers projected onto the feasible set before scoring.\n"
+    )
+    print(
+        "| F | P | solver | seconds (solver only) | ours faster by | objective g | above best | "
+        "FW gap / g | infeasibility before projection | nnz |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         o = row["ours"]
@@ -251,30 +293,38 @@ def print_qp(rows: list[dict[str, Any]]) -> None:
         def above(value: float, best: float = best) -> str:
             return f"{100 * (value - best) / best:.2f} %"
 
-        print(f"| {row['frames']} | {row['points']} | ours (default) | {o['seconds']:.3f} (median of "
-              f"{len(o['times_s'])}) | 1 | {o['objective']:.9e} | {above(o['objective'])} | "
-              f"{o['fw_gap'] / o['objective']:.1e} | 0 | {o['nonzeros']} |")
+        print(
+            f"| {row['frames']} | {row['points']} | ours (default) | {o['seconds']:.3f} (median of "
+            f"{len(o['times_s'])}) | 1 | {o['objective']:.9e} | {above(o['objective'])} | "
+            f"{o['fw_gap'] / o['objective']:.1e} | 0 | {o['nonzeros']} |"
+        )
         for t in variants:
-            print(f"| {row['frames']} | {row['points']} | ours {t['settings']} | {t['seconds']:.3f} | "
-                  f"({t['seconds'] / o['seconds']:.1f}x slower) | {t['objective']:.9e} | {above(t['objective'])} | "
-                  f"{t['fw_gap'] / t['objective']:.1e} | 0 | "
-                  f"{t['nonzeros']} |")
+            print(
+                f"| {row['frames']} | {row['points']} | ours {t['settings']} | {t['seconds']:.3f} | "
+                f"({t['seconds'] / o['seconds']:.1f}x slower) | {t['objective']:.9e} | {above(t['objective'])} | "
+                f"{t['fw_gap'] / t['objective']:.1e} | 0 | "
+                f"{t['nonzeros']} |"
+            )
         for t in row["general"]:
             if "error" in t:
                 print(f"| {row['frames']} | {row['points']} | {t['solver']} | failed: {t['error']} | | | | | | |")
                 continue
-            print(f"| {row['frames']} | {row['points']} | cvxpy {t['solver']} ({t['status']}) | {t['seconds']:.2f} "
-                  f"({t['solver_seconds']:.2f}) | {t['seconds'] / o['seconds']:.0f}x "
-                  f"({t['solver_seconds'] / o['seconds']:.0f}x) | {t['objective']:.9e} | {above(t['objective'])} | "
-                  f"{t['fw_gap'] / t['objective']:.1e} | {t['infeasibility']:.1e} | {t['nonzeros_above_1e-6']} |")
+            print(
+                f"| {row['frames']} | {row['points']} | cvxpy {t['solver']} ({t['status']}) | {t['seconds']:.2f} "
+                f"({t['solver_seconds']:.2f}) | {t['seconds'] / o['seconds']:.0f}x "
+                f"({t['solver_seconds'] / o['seconds']:.0f}x) | {t['objective']:.9e} | {above(t['objective'])} | "
+                f"{t['fw_gap'] / t['objective']:.1e} | {t['infeasibility']:.1e} | {t['nonzeros_above_1e-6']} |"
+            )
     for row in rows:  # the exact mode against the general solvers: the same problem solved to its optimum
         if "ours_exact" not in row:
             continue
         exact = row["ours_exact"]
         for t in row["general"]:
             if "error" not in t:
-                print(f"\nF = {row['frames']}: ours exact {exact['seconds']:.2f} s, cvxpy {t['solver']} "
-                      f"{t['seconds']:.2f} s: {t['seconds'] / exact['seconds']:.0f}x faster")
+                print(
+                    f"\nF = {row['frames']}: ours exact {exact['seconds']:.2f} s, cvxpy {t['solver']} "
+                    f"{t['seconds']:.2f} s: {t['seconds'] / exact['seconds']:.0f}x faster"
+                )
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -325,11 +375,18 @@ def main(argv: list[str] | None = None) -> int:
             log.info("W-step F=%d: ours ...", F)
             default = WStepOptions(lambda1=LAMBDA1)
             row: dict[str, Any] = {
-                "frames": F, "points": P, "ours": ours(shapes, video_index, P, args.repeats, default, {}),
+                "frames": F,
+                "points": P,
+                "ours": ours(shapes, video_index, P, args.repeats, default, {}),
                 "ours_tight": ours(shapes, video_index, P, 1, WStepOptions(lambda1=LAMBDA1, **TIGHT), TIGHT),
-                "ours_exact": ours(shapes, video_index, P, 1, WStepOptions.exact(lambda1=LAMBDA1), {"exact": True})}
-            log.info("... ours %s; tight %s; exact %s", json.dumps(row["ours"]), json.dumps(row["ours_tight"]),
-                     json.dumps(row["ours_exact"]))
+                "ours_exact": ours(shapes, video_index, P, 1, WStepOptions.exact(lambda1=LAMBDA1), {"exact": True}),
+            }
+            log.info(
+                "... ours %s; tight %s; exact %s",
+                json.dumps(row["ours"]),
+                json.dumps(row["ours_tight"]),
+                json.dumps(row["ours_exact"]),
+            )
             row["general"] = []
             for solver in [s.strip() for s in args.qp.split(",") if s.strip()]:
                 log.info("W-step F=%d: cvxpy %s ...", F, solver)

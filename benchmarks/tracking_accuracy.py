@@ -43,28 +43,28 @@ VARIANTS = [
     ("lk", TrackOptions(method=Method.LK, blend=Blend.FORWARD)),
     ("lk", TrackOptions(method=Method.LK, blend=Blend.BEST)),
     ("lk", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED)),
-    ("lk, no brightness normalization", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED,
-                                                     normalize=False)),
+    ("lk, no brightness normalization", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED, normalize=False)),
     ("lk, no score memory", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED, score_memory=False)),
     ("lk, no closure check", TrackOptions(method=Method.LK, blend=Blend.WEIGHTED, closure_check=False)),
     ("lk+csrt", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED)),
-    ("lk+csrt, unrefined kept", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED,
-                                             accept_unrefined=True)),
+    ("lk+csrt, unrefined kept", TrackOptions(method=Method.LK_CSRT, blend=Blend.WEIGHTED, accept_unrefined=True)),
     ("csrt", TrackOptions(method=Method.CSRT, blend=Blend.WEIGHTED)),
 ]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--every", type=int, default=10, help="label 1 frame in N (default 10)")
     parser.add_argument("--frames", type=int, default=80)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--quick", action="store_true", help="one scenario, no CSRT-only variant")
     parser.add_argument("--default-only", action="store_true", help="only the default TrackOptions()")
-    parser.add_argument("--csrt-everywhere", action="store_true",
-                        help="run the slow CSRT-only variant on every scenario, not only the first")
+    parser.add_argument(
+        "--csrt-everywhere",
+        action="store_true",
+        help="run the slow CSRT-only variant on every scenario, not only the first",
+    )
     parser.add_argument("--out-dir", type=Path, help="keep the rendered videos here")
     args = parser.parse_args()
     scenarios = dict(list(SCENARIOS.items())[:1]) if args.quick else SCENARIOS
@@ -73,16 +73,17 @@ def main() -> None:
         variants = [("default", TrackOptions())]
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.out_dir or Path(tmp)
-        print(f"{args.width}x{args.height}, {args.frames} frames, 8 markers, "
-              f"labels on 1 frame in {args.every}\n")
-        print("| scenario | method | blend | median px | p95 px | max px | coverage | gave up when hidden "
-              "| s |")
+        print(f"{args.width}x{args.height}, {args.frames} frames, 8 markers, labels on 1 frame in {args.every}\n")
+        print("| scenario | method | blend | median px | p95 px | max px | coverage | gave up when hidden | s |")
         print("|---|---|---|---|---|---|---|---|---|")
         for seed, (name, (motion, fourcc, suffix)) in enumerate(scenarios.items()):
             path = folder / f"scenario{seed}{suffix}"
-            video = render_video(path, SyntheticOptions(width=args.width, height=args.height,
-                                                        frames=args.frames,
-                                                        fourcc=fourcc, seed=seed, **motion))
+            video = render_video(
+                path,
+                SyntheticOptions(
+                    width=args.width, height=args.height, frames=args.frames, fourcc=fourcc, seed=seed, **motion
+                ),
+            )
             frames = VideoFrames(path)
             labels = labels_every(video, args.every)
             for label, options in variants:
@@ -91,8 +92,10 @@ def main() -> None:
                 start = time.perf_counter()
                 result = track_video(frames, labels, options)
                 seconds = time.perf_counter() - start
-                print(f"| {name} | {label} | {options.blend.value} | {score(result, video).row()} "
-                      f"| {seconds:.1f} |", flush=True)
+                print(
+                    f"| {name} | {label} | {options.blend.value} | {score(result, video).row()} | {seconds:.1f} |",
+                    flush=True,
+                )
             frames.close()
 
 

@@ -94,8 +94,9 @@ def truth_in_problem_order(problem: Problem, truth: FramePoints) -> np.ndarray:
     return truth.xyz[frames][:, columns]
 
 
-def solved(window_index: int, setting: CaptureSetting, length: int, cache: Path | None, digest: str
-           ) -> tuple[Problem, SolveResult, FramePoints, float]:
+def solved(
+    window_index: int, setting: CaptureSetting, length: int, cache: Path | None, digest: str
+) -> tuple[Problem, SolveResult, FramePoints, float]:
     """Simulate and solve one (window, setting), or load it from the cache (`digest`: solver_sources_digest() at
     the start of the run, so that an edit during the run does not mix two solvers in one table)."""
     window = WINDOWS[window_index]
@@ -149,17 +150,20 @@ def print_table(results: dict[str, list[dict[str, Any]]]) -> None:
             continue
         total = {k: sum(r[k] for r in runs) for k in runs[0] if k != "window"}
         points = total["points"]
-        print(f"| {setting.label} | {points} | {100 * total['large30'] / points:.2f} % "
-              f"| {100 * total['flagged'] / points:.2f} % "
-              f"| {ratio(total['caught30'], total['flagged'])} | {ratio(total['caught30'], total['large30'])} "
-              f"| {ratio(total['caught10'], total['flagged'])} | {ratio(total['caught10'], total['large10'])} |")
+        print(
+            f"| {setting.label} | {points} | {100 * total['large30'] / points:.2f} % "
+            f"| {100 * total['flagged'] / points:.2f} % "
+            f"| {ratio(total['caught30'], total['flagged'])} | {ratio(total['caught30'], total['large30'])} "
+            f"| {ratio(total['caught10'], total['flagged'])} | {ratio(total['caught10'], total['large10'])} |"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--windows", default=REPORT_WINDOWS, help="comma-separated names from common.WINDOWS")
-    parser.add_argument("--settings", default="all",
-                        help="comma-separated keys (" + ", ".join(s.key for s in SETTINGS) + ") or all")
+    parser.add_argument(
+        "--settings", default="all", help="comma-separated keys (" + ", ".join(s.key for s in SETTINGS) + ") or all"
+    )
     parser.add_argument("--length", type=int, default=240, help="captures per window at 120 Hz (default 240)")
     parser.add_argument("--cache", type=Path, help="folder keeping each solve for reruns")
     parser.add_argument("--json", type=Path, help="write the counts per window and setting to this file")
@@ -179,15 +183,17 @@ def main(argv: list[str] | None = None) -> int:
         windows.append(names.index(name))
     keys = {s.key: s for s in SETTINGS}
     chosen = list(SETTINGS) if args.settings == "all" else []
-    for key in ([] if args.settings == "all" else args.settings.split(",")):
+    for key in [] if args.settings == "all" else args.settings.split(","):
         if key not in keys:
             raise SystemExit(f"--settings: unknown {key!r}; known: {', '.join(keys)}")
         chosen.append(keys[key])
     version = solver_version()
     digest = solver_sources_digest()
-    print(f"solver: {version} (sources digest {digest}); windows: {', '.join(names[i] for i in windows)}; "
-          f"{args.length} captures at 120 Hz; "
-          f"cameras at {DISTANCE_MM / 1000:g} m")
+    print(
+        f"solver: {version} (sources digest {digest}); windows: {', '.join(names[i] for i in windows)}; "
+        f"{args.length} captures at 120 Hz; "
+        f"cameras at {DISTANCE_MM / 1000:g} m"
+    )
     results: dict[str, dict[str, list[dict[str, Any]]]] = {name: {} for name in PRESETS}
     for setting in chosen:
         for index in windows:
@@ -196,13 +202,21 @@ def main(argv: list[str] | None = None) -> int:
                 counts["window"] = names[index]
                 results[name].setdefault(setting.key, []).append(counts)
             counts = results["default (balanced)"][setting.key][-1]
-            log.info("%s %s: %d points, %d flagged, %d > 30 mm (%d caught); solve %.0f s", names[index],
-                     setting.key, counts["points"], counts["flagged"], counts["large30"], counts["caught30"],
-                     seconds)
+            log.info(
+                "%s %s: %d points, %d flagged, %d > 30 mm (%d caught); solve %.0f s",
+                names[index],
+                setting.key,
+                counts["points"],
+                counts["flagged"],
+                counts["large30"],
+                counts["caught30"],
+                seconds,
+            )
             if args.json:
                 rules = {name: flag_rule(options) for name, options in PRESETS.items()}
-                args.json.write_text(json.dumps({"solver": version, "rules": rules, "results": results},
-                                                indent=1) + "\n")
+                args.json.write_text(
+                    json.dumps({"solver": version, "rules": rules, "results": results}, indent=1) + "\n"
+                )
     for name, options in PRESETS.items():
         print(f"\n### {name}: {flag_rule(options)}\n")
         print_table(results[name])

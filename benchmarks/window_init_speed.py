@@ -98,11 +98,15 @@ def differences(args: tuple[Any, ...], old: Any, new: Any, tie: float) -> dict[s
     small = same & ~large
     cost_rel = np.abs(init_new.cost[large] - init_old.cost[large]) / init_old.cost[large]
     depth_rel = np.abs(init_new.depth[same] - init_old.depth[same]) / np.abs(init_old.depth[same])
-    return {"anchors_differ": int(np.sum(anchor_old != anchor_new)), "partners_differ": len(differ), "ties": ties,
-            "cost_rel": float(cost_rel.max(initial=0.0)),
-            "cost_abs_small": float(np.abs(init_new.cost[small] - init_old.cost[small]).max(initial=0.0)),
-            "depth_rel": float(np.nanmax(depth_rel, initial=0.0)),
-            "nan_depths_same": bool(np.array_equal(np.isnan(init_old.depth), np.isnan(init_new.depth)))}
+    return {
+        "anchors_differ": int(np.sum(anchor_old != anchor_new)),
+        "partners_differ": len(differ),
+        "ties": ties,
+        "cost_rel": float(cost_rel.max(initial=0.0)),
+        "cost_abs_small": float(np.abs(init_new.cost[small] - init_old.cost[small]).max(initial=0.0)),
+        "depth_rel": float(np.nanmax(depth_rel, initial=0.0)),
+        "nan_depths_same": bool(np.array_equal(np.isnan(init_old.depth), np.isnan(init_new.depth))),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,14 +139,18 @@ def main(argv: list[str] | None = None) -> int:
         print(row, flush=True)
     print(f"\nCPU s: median of {args.repeats}, 1 BLAS thread; peak MB: tracemalloc, beyond the inputs")
     if reference:
-        print(f"| capture | F | P | {args.reference} s | new s | speed-up | {args.reference} MB | new MB | "
-              "partners differ (ties) | anchors differ | cost rel | depth rel |")
+        print(
+            f"| capture | F | P | {args.reference} s | new s | speed-up | {args.reference} MB | new MB | "
+            "partners differ (ties) | anchors differ | cost rel | depth rel |"
+        )
         print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['size'].split(':')[0]} | {r['F']} | {r['P']} | {r['old_s']:.3f} | {r['new_s']:.3f} | "
-                  f"{r['old_s'] / r['new_s']:.1f}x | {r['old_mb']:.0f} | {r['new_mb']:.0f} | "
-                  f"{r['partners_differ']} ({r['ties']}) | {r['anchors_differ']} | {r['cost_rel']:.1e} | "
-                  f"{r['depth_rel']:.1e} |")
+            print(
+                f"| {r['size'].split(':')[0]} | {r['F']} | {r['P']} | {r['old_s']:.3f} | {r['new_s']:.3f} | "
+                f"{r['old_s'] / r['new_s']:.1f}x | {r['old_mb']:.0f} | {r['new_mb']:.0f} | "
+                f"{r['partners_differ']} ({r['ties']}) | {r['anchors_differ']} | {r['cost_rel']:.1e} | "
+                f"{r['depth_rel']:.1e} |"
+            )
     else:
         print("| capture | F | P | CPU s | peak MB |\n|---|---|---|---|---|")
         for r in rows:

@@ -77,11 +77,21 @@ def recorded_calls(frames: int) -> list[Call]:
     calls: list[Call] = []
     original = solver.solve_x
 
-    def recording(W: Any, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray, options: Any,
-                  **kwargs: Any) -> np.ndarray:
+    def recording(
+        W: Any, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray, options: Any, **kwargs: Any
+    ) -> np.ndarray:
         start = kwargs.get("start")
-        calls.append(Call(W=W.copy(), centers=centers, rays=rays, video_index=video_index, lambda2=options.lambda2,
-                          start=None if start is None else start.copy(), label=f"#{len(calls)}"))
+        calls.append(
+            Call(
+                W=W.copy(),
+                centers=centers,
+                rays=rays,
+                video_index=video_index,
+                lambda2=options.lambda2,
+                start=None if start is None else start.copy(),
+                label=f"#{len(calls)}",
+            )
+        )
         return original(W, centers, rays, video_index, options, **kwargs)
 
     solver.solve_x = recording
@@ -97,7 +107,7 @@ def smooth_error(times: np.ndarray, P: int, scale: float, width: int, rng: np.ra
     F = len(times)
     noise = rng.normal(size=(F + 4 * width, P * 3))
     kernel = np.exp(-0.5 * (np.arange(-2 * width, 2 * width + 1) / width) ** 2)
-    kernel /= np.sqrt(np.sum(kernel ** 2))
+    kernel /= np.sqrt(np.sum(kernel**2))
     filtered = np.stack([np.convolve(noise[:, k], kernel, mode="valid")[:F] for k in range(P * 3)], axis=1)
     out = np.empty((F, P * 3))
     out[np.argsort(times)] = scale * filtered
@@ -111,8 +121,9 @@ def synthetic_calls(frames: int, seed: int = 0) -> list[Call]:
 
     capture, problem = long_problem(frames)
     rows = capture.truth.index()
-    order = np.array([rows[(problem.video_names[v], int(f))]
-                      for v, f in zip(problem.video_index, problem.frames, strict=True)])
+    order = np.array(
+        [rows[(problem.video_names[v], int(f))] for v, f in zip(problem.video_index, problem.frames, strict=True)]
+    )
     video_index = problem.video_index
     rays = viewing_rays(problem)
     normalization = camera_normalization(problem.centers, video_index)
@@ -124,24 +135,32 @@ def synthetic_calls(frames: int, seed: int = 0) -> list[Call]:
     layout = VideoLayout.of(video_index)
     anchor = np.zeros((F, len(layout.starts)), dtype=int)
     for b, (first, length) in enumerate(zip(layout.starts, layout.lengths, strict=True)):
-        anchor[:, b] = np.clip(np.searchsorted(times[first:first + length], times), 0, length - 1)
+        anchor[:, b] = np.clip(np.searchsorted(times[first : first + length], times), 0, length - 1)
     shapes = truth + smooth_error(times, P, 0.003, 20, rng)
-    W, _ = solve_w(shapes.reshape(F, -1), video_index, P, WStepOptions(full_kkt_check=False),
-                   pool=window_pool(anchor, video_index, layout, 12))
+    W, _ = solve_w(
+        shapes.reshape(F, -1),
+        video_index,
+        P,
+        WStepOptions(full_kkt_check=False),
+        pool=window_pool(anchor, video_index, layout, 12),
+    )
     W_csc = W.to_csc()
 
     def exact(lambda2: float, start: np.ndarray) -> np.ndarray:
-        return reference(Call(W=W_csc, centers=centers, rays=rays, video_index=video_index, lambda2=lambda2,
-                              start=start, label=""))
+        return reference(
+            Call(W=W_csc, centers=centers, rays=rays, video_index=video_index, lambda2=lambda2, start=start, label="")
+        )
 
     start = truth + smooth_error(times, P, 0.02, 40, rng) + 0.003 * rng.normal(size=truth.shape)
     smooth = exact(0.1, start)
     final = exact(0.0, smooth)
     late = final + smooth_error(times, P, 1e-4, 40, rng)
     common = {"W": W_csc, "centers": centers, "rays": rays, "video_index": video_index}
-    return [Call(**common, lambda2=0.1, start=start, label="smooth, first"),
-            Call(**common, lambda2=0.0, start=smooth, label="final, first"),
-            Call(**common, lambda2=0.0, start=late, label="final, late")]
+    return [
+        Call(**common, lambda2=0.1, start=start, label="smooth, first"),
+        Call(**common, lambda2=0.0, start=smooth, label="final, first"),
+        Call(**common, lambda2=0.0, start=late, label="final, late"),
+    ]
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -207,51 +226,74 @@ def reference(call: Call) -> np.ndarray:
     Q3 = sp.kron(current.quadratic_form(call.W, call.video_index, P, call.lambda2), sp.identity(3), format="csr")
     observed = ~np.isnan(call.rays[..., 0])
     weight = options.lambda3 / (F * P)
-    return np.stack([current._solve_soft(Q3, call.centers, call.rays[:, p], observed[:, p], weight)
-                     for p in range(P)], axis=1)
+    return np.stack(
+        [current._solve_soft(Q3, call.centers, call.rays[:, p], observed[:, p], weight) for p in range(P)], axis=1
+    )
 
 
-def measure(module: ModuleType, counter: IterationCounter, calls: list[Call], repeats: int,
-            references: list[np.ndarray]) -> list[dict[str, Any]]:
+def measure(
+    module: ModuleType, counter: IterationCounter, calls: list[Call], repeats: int, references: list[np.ndarray]
+) -> list[dict[str, Any]]:
     out = []
     for call, ref in zip(calls, references, strict=True):
         times = []
         for _ in range(repeats):
             counter.reset()
             started = time.process_time()
-            points = module.solve_x(call.W, call.centers, call.rays, call.video_index,
-                                    module.XStepOptions(lambda2=call.lambda2), start=call.start)
+            points = module.solve_x(
+                call.W,
+                call.centers,
+                call.rays,
+                call.video_index,
+                module.XStepOptions(lambda2=call.lambda2),
+                start=call.start,
+            )
             times.append(time.process_time() - started)
-        out.append({"label": call.label, "cpu_s": statistics.median(times), **counter.counts,
-                    "error": float(np.abs(points - ref).max() / np.abs(ref).max())})
+        out.append(
+            {
+                "label": call.label,
+                "cpu_s": statistics.median(times),
+                **counter.counts,
+                "error": float(np.abs(points - ref).max() / np.abs(ref).max()),
+            }
+        )
     return out
 
 
-def run_size(kind: str, frames: int, baseline: ModuleType, counters: dict[str, IterationCounter],
-             repeats: int) -> dict[str, Any]:
+def run_size(
+    kind: str, frames: int, baseline: ModuleType, counters: dict[str, IterationCounter], repeats: int
+) -> dict[str, Any]:
     started = time.perf_counter()
     calls = recorded_calls(frames) if kind == "real" else synthetic_calls(frames)
     log.info("F = %d (%s): %d calls prepared in %.0f s", frames, kind, len(calls), time.perf_counter() - started)
     references = [reference(call) for call in calls]
-    return {"kind": kind, "frames": int(calls[0].rays.shape[0]), "points": int(calls[0].rays.shape[1]),
-            "baseline": measure(baseline, counters["baseline"], calls, repeats, references),
-            "current": measure(current, counters["current"], calls, repeats, references)}
+    return {
+        "kind": kind,
+        "frames": int(calls[0].rays.shape[0]),
+        "points": int(calls[0].rays.shape[1]),
+        "baseline": measure(baseline, counters["baseline"], calls, repeats, references),
+        "current": measure(current, counters["current"], calls, repeats, references),
+    }
 
 
 def print_tables(results: list[dict[str, Any]], revision: str) -> None:
     print(f"\nsolver {solver_version()}; baseline xstep.py at {revision}; CPU s per call (median of repeats)\n")
-    print("| F | P | input | X-steps | baseline CPU s (total / per call) | current CPU s | speed-up | "
-          "baseline CG its (mean / max) | current Jacobi + two-level its (mean / max) | max error baseline / current |")
+    print(
+        "| F | P | input | X-steps | baseline CPU s (total / per call) | current CPU s | speed-up | "
+        "baseline CG its (mean / max) | current Jacobi + two-level its (mean / max) | max error baseline / current |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         b, c = r["baseline"], r["current"]
         tb, tc = sum(x["cpu_s"] for x in b), sum(x["cpu_s"] for x in c)
         ib = [x["jacobi"] for x in b]
         ic = [x["jacobi"] + x["two-level"] for x in c]
-        print(f"| {r['frames']} | {r['points']} | {r['kind']} | {len(b)} | {tb:.2f} / {tb / len(b):.3f} | "
-              f"{tc:.2f} / {tc / len(c):.3f} | {tb / tc:.1f}x | {np.mean(ib):.0f} / {max(ib)} | "
-              f"{np.mean([x['jacobi'] for x in c]):.0f} + {np.mean([x['two-level'] for x in c]):.1f} / {max(ic)} | "
-              f"{max(x['error'] for x in b):.0e} / {max(x['error'] for x in c):.0e} |")
+        print(
+            f"| {r['frames']} | {r['points']} | {r['kind']} | {len(b)} | {tb:.2f} / {tb / len(b):.3f} | "
+            f"{tc:.2f} / {tc / len(c):.3f} | {tb / tc:.1f}x | {np.mean(ib):.0f} / {max(ib)} | "
+            f"{np.mean([x['jacobi'] for x in c]):.0f} + {np.mean([x['two-level'] for x in c]):.1f} / {max(ic)} | "
+            f"{max(x['error'] for x in b):.0e} / {max(x['error'] for x in c):.0e} |"
+        )
     print("\nSynthetic calls one by one:\n")
     print("| F | call | baseline its | baseline s | current its (Jacobi + two-level) | current s |")
     print("|---|---|---|---|---|---|")
@@ -259,8 +301,10 @@ def print_tables(results: list[dict[str, Any]], revision: str) -> None:
         if r["kind"] != "synthetic":
             continue
         for b, c in zip(r["baseline"], r["current"], strict=True):
-            print(f"| {r['frames']} | {b['label']} | {b['jacobi']} | {b['cpu_s']:.3f} | "
-                  f"{c['jacobi']} + {c['two-level']} | {c['cpu_s']:.3f} |")
+            print(
+                f"| {r['frames']} | {b['label']} | {b['jacobi']} | {b['cpu_s']:.3f} | "
+                f"{c['jacobi']} + {c['two-level']} | {c['cpu_s']:.3f} |"
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -278,14 +322,24 @@ def main(argv: list[str] | None = None) -> int:
     threadpool_limits(args.threads)
     baseline = baseline_module(args.baseline)
     counters = {"baseline": IterationCounter(baseline), "current": IterationCounter(current)}
-    sizes = [("real", int(s)) for s in args.real.split(",") if s] + \
-            [("synthetic", int(s)) for s in args.synthetic.split(",") if s]
+    sizes = [("real", int(s)) for s in args.real.split(",") if s] + [
+        ("synthetic", int(s)) for s in args.synthetic.split(",") if s
+    ]
     results = []
     for kind, frames in sizes:
         results.append(run_size(kind, frames, baseline, counters, args.repeats))
         if args.json:
-            args.json.write_text(json.dumps({"solver": solver_version(), "baseline": args.baseline,
-                                             "threads": args.threads, "results": results}, indent=1))
+            args.json.write_text(
+                json.dumps(
+                    {
+                        "solver": solver_version(),
+                        "baseline": args.baseline,
+                        "threads": args.threads,
+                        "results": results,
+                    },
+                    indent=1,
+                )
+            )
     print_tables(results, args.baseline)
     return 0
 

@@ -72,12 +72,33 @@ class Shot:
 # Start times differ (as unsynchronized phones do) but by little, and all three videos end together, so nearly every
 # instant is seen by every video (an instant seen by one video only has no triangulation to lean on).
 SHOTS = (
-    Shot(name="cam0", fps=30.0, start_s=0.0, num_frames=57, focal_scale=1.0,
-         start=(2.45, 2.25, 1.5), move=(0.3, -0.3, 0.05)),
-    Shot(name="cam1", fps=24.0, start_s=0.05, num_frames=44, focal_scale=1.1,
-         start=(3.8, 1.6, 1.6), move=(0.35, -0.3, 0.0)),
-    Shot(name="cam2", fps=20.0, start_s=0.1, num_frames=36, focal_scale=0.95,
-         start=(5.4, 2.1, 1.3), move=(-0.3, -0.25, 0.1)),
+    Shot(
+        name="cam0",
+        fps=30.0,
+        start_s=0.0,
+        num_frames=57,
+        focal_scale=1.0,
+        start=(2.45, 2.25, 1.5),
+        move=(0.3, -0.3, 0.05),
+    ),
+    Shot(
+        name="cam1",
+        fps=24.0,
+        start_s=0.05,
+        num_frames=44,
+        focal_scale=1.1,
+        start=(3.8, 1.6, 1.6),
+        move=(0.35, -0.3, 0.0),
+    ),
+    Shot(
+        name="cam2",
+        fps=20.0,
+        start_s=0.1,
+        num_frames=36,
+        focal_scale=0.95,
+        start=(5.4, 2.1, 1.3),
+        move=(-0.3, -0.25, 0.1),
+    ),
 )
 
 
@@ -90,8 +111,9 @@ class HandheldPath(CameraPath):
     def pose(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         duration = max((self.num_frames - 1) / self.fps, 1e-9)
         s = time / duration
-        sway = np.array([np.sin(2.1 * time + self.phase), np.sin(1.3 * time + 2 * self.phase),
-                         np.sin(1.7 * time + 3 * self.phase)])
+        sway = np.array(
+            [np.sin(2.1 * time + self.phase), np.sin(1.3 * time + 2 * self.phase), np.sin(1.7 * time + 3 * self.phase)]
+        )
         center = (1 - s) * np.asarray(self.start) + s * np.asarray(self.end) + 0.02 * sway
         aim = np.array([np.sin(0.9 * time + self.phase), 0.0, np.cos(1.1 * time + self.phase)])
         target = (1 - s) * np.asarray(self.target_start) + s * np.asarray(self.target_end) + 0.04 * aim
@@ -139,13 +161,24 @@ def camera_path(shot: Shot, index: int) -> HandheldPath:
     K = np.array([[f, 0.0, (WIDTH - 1) / 2], [0.0, f, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]])
     start = np.array(shot.start)
     aim = np.array([*WALKER_OFFSET_M[:2], AIM_HEIGHT_M])
-    return HandheldPath(name=shot.name, K=K, width=WIDTH, height=HEIGHT, fps=shot.fps, num_frames=shot.num_frames,
-                        start=start, end=start + np.array(shot.move), target_start=aim, target_end=aim,
-                        phase=1.7 * index)
+    return HandheldPath(
+        name=shot.name,
+        K=K,
+        width=WIDTH,
+        height=HEIGHT,
+        fps=shot.fps,
+        num_frames=shot.num_frames,
+        start=start,
+        end=start + np.array(shot.move),
+        target_start=aim,
+        target_end=aim,
+        phase=1.7 * index,
+    )
 
 
-def _visible_projections(video: SceneVideo, joints_m: np.ndarray, start_s: float, fps: float,
-                         frame: int) -> dict[int, np.ndarray]:
+def _visible_projections(
+    video: SceneVideo, joints_m: np.ndarray, start_s: float, fps: float, frame: int
+) -> dict[int, np.ndarray]:
     """Joint index -> true pixel (2,) for joints whose own sphere is what the pixel shows (not occluded)."""
     camera = video.cameras.frames[frame]
     sample = round((start_s + frame / fps) * WALKER_RATE)
@@ -155,8 +188,12 @@ def _visible_projections(video: SceneVideo, joints_m: np.ndarray, start_s: float
     visible = {}
     for joint, (u, v) in enumerate(uv):
         col, row = round(u), round(v)
-        if x_cam[joint, 2] > 0 and 0 <= col < WIDTH and 0 <= row < HEIGHT and \
-                video.object_ids[frame, row, col] == joint:
+        if (
+            x_cam[joint, 2] > 0
+            and 0 <= col < WIDTH
+            and 0 <= row < HEIGHT
+            and video.object_ids[frame, row, col] == joint
+        ):
             visible[joint] = np.array([u, v])
     return visible
 
@@ -178,18 +215,27 @@ def main(out: Path = OUT) -> None:
         started = time.perf_counter()
         path = camera_path(shot, index)
         spheres = subject_at(joints_m)
-        video = render_video(room, path, out / f"{shot.name}.mp4",
-                             lambda t, s=shot, sp=spheres: sp(s.start_s + t), fourcc="vp09")
-        log.info("%s: %d frames at %.0f fps in %.1f s (%.0f kB)", shot.name, shot.num_frames, shot.fps,
-                 time.perf_counter() - started, video.path.stat().st_size / 1000)
+        video = render_video(
+            room, path, out / f"{shot.name}.mp4", lambda t, s=shot, sp=spheres: sp(s.start_s + t), fourcc="vp09"
+        )
+        log.info(
+            "%s: %d frames at %.0f fps in %.1f s (%.0f kB)",
+            shot.name,
+            shot.num_frames,
+            shot.fps,
+            time.perf_counter() - started,
+            video.path.stat().st_size / 1000,
+        )
         for frame in range(0, shot.num_frames, LABEL_EVERY):
             for joint, uv in _visible_projections(video, joints_m, shot.start_s, shot.fps, frame).items():
                 x, y = uv + rng.normal(0.0, LABEL_NOISE_PX, 2)
                 label_rows.append([shot.name, str(frame), JOINTS[joint], f"{x:.3f}", f"{y:.3f}", "label"])
-        frames_mm = [FrameCamera(frame=c.frame, time=c.time, K=c.K, R=c.R, t=c.t * 1000.0)
-                     for c in video.cameras.frames]
-        truth_cameras.videos.append(VideoCameras(name=shot.name, width=WIDTH, height=HEIGHT, fps=shot.fps,
-                                                 frames=frames_mm))
+        frames_mm = [
+            FrameCamera(frame=c.frame, time=c.time, K=c.K, R=c.R, t=c.t * 1000.0) for c in video.cameras.frames
+        ]
+        truth_cameras.videos.append(
+            VideoCameras(name=shot.name, width=WIDTH, height=HEIGHT, fps=shot.fps, frames=frames_mm)
+        )
         for frame in range(shot.num_frames):
             true_time = shot.start_s + frame / shot.fps
             truth_videos.append(shot.name)
@@ -201,20 +247,35 @@ def main(out: Path = OUT) -> None:
         writer.writerow(["video", "frame", "point", "x", "y", "source"])
         writer.writerows(label_rows)
     count = len(truth_videos)
-    write_points(out / "truth.csv", FramePoints(
-        videos=truth_videos, frames=np.array(truth_frames), point_names=list(JOINTS), xyz=np.array(truth_xyz),
-        observed=np.ones((count, len(JOINTS)), bool),
-        extra={"time": np.repeat(np.array(truth_time)[:, None], len(JOINTS), axis=1)}))
+    write_points(
+        out / "truth.csv",
+        FramePoints(
+            videos=truth_videos,
+            frames=np.array(truth_frames),
+            point_names=list(JOINTS),
+            xyz=np.array(truth_xyz),
+            observed=np.ones((count, len(JOINTS)), bool),
+            extra={"time": np.repeat(np.array(truth_time)[:, None], len(JOINTS), axis=1)},
+        ),
+    )
     write_cameras(out / "truth_cameras.json", truth_cameras)
     (out / "walker_skeleton.json").write_text(json.dumps({"points": JOINTS, "connections": BONES}, indent=1) + "\n")
-    (out / "sample.json").write_text(json.dumps({
-        "units": "mm (truth.csv, truth_cameras.json); the renderer works in metres",
-        "size_px": [WIDTH, HEIGHT], "joint_radius_mm": JOINT_RADIUS_M * 1000, "label_every": LABEL_EVERY,
-        "label_noise_px": LABEL_NOISE_PX, "seed": SEED,
-        "videos": [{"name": s.name, "fps": s.fps, "start_s": s.start_s, "frames": s.num_frames} for s in SHOTS],
-    }, indent=1) + "\n")
+    (out / "sample.json").write_text(
+        json.dumps(
+            {
+                "units": "mm (truth.csv, truth_cameras.json); the renderer works in metres",
+                "size_px": [WIDTH, HEIGHT],
+                "joint_radius_mm": JOINT_RADIUS_M * 1000,
+                "label_every": LABEL_EVERY,
+                "label_noise_px": LABEL_NOISE_PX,
+                "seed": SEED,
+                "videos": [{"name": s.name, "fps": s.fps, "start_s": s.start_s, "frames": s.num_frames} for s in SHOTS],
+            },
+            indent=1,
+        )
+        + "\n"
+    )
     log.info("wrote %s: %d labels, %d truth frames", out, len(label_rows), count)
-
 
 
 def cut_sample(out: Path, seconds: float, source: Path = OUT) -> Path:
@@ -234,22 +295,27 @@ def cut_sample(out: Path, seconds: float, source: Path = OUT) -> Path:
         fps = capture.get(cv2.CAP_PROP_FPS)
         frames = [capture.read()[1] for _ in range(count)]
         capture.release()
-        writer = cv2.VideoWriter(str(out / f"{name}.mp4"), cv2.VideoWriter.fourcc(*"vp09"), fps,
-                                 frames[0].shape[1::-1])
+        writer = cv2.VideoWriter(str(out / f"{name}.mp4"), cv2.VideoWriter.fourcc(*"vp09"), fps, frames[0].shape[1::-1])
         for image in frames:
             writer.write(image)
         writer.release()
     with (source / "labels.csv").open(newline="") as handle:
         rows = list(csv.reader(handle))
     with (out / "labels.csv").open("w", newline="") as handle:
-        csv.writer(handle, lineterminator="\n").writerows(
-            [rows[0], *(r for r in rows[1:] if int(r[1]) < keep[r[0]])])
+        csv.writer(handle, lineterminator="\n").writerows([rows[0], *(r for r in rows[1:] if int(r[1]) < keep[r[0]])])
     truth = read_points(source / "truth.csv")
     rows_kept = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True)) if f < keep[v]]
-    write_points(out / "truth.csv", FramePoints(
-        videos=[truth.videos[i] for i in rows_kept], frames=truth.frames[rows_kept], point_names=truth.point_names,
-        xyz=truth.xyz[rows_kept], observed=truth.observed[rows_kept],
-        extra={k: v[rows_kept] for k, v in truth.extra.items()}))
+    write_points(
+        out / "truth.csv",
+        FramePoints(
+            videos=[truth.videos[i] for i in rows_kept],
+            frames=truth.frames[rows_kept],
+            point_names=truth.point_names,
+            xyz=truth.xyz[rows_kept],
+            observed=truth.observed[rows_kept],
+            extra={k: v[rows_kept] for k, v in truth.extra.items()},
+        ),
+    )
     cameras = read_cameras(source / "truth_cameras.json")
     for video in cameras.videos:
         video.frames = [f for f in video.frames if f.frame < keep[video.name]]
@@ -260,6 +326,7 @@ def cut_sample(out: Path, seconds: float, source: Path = OUT) -> Path:
     meta["cut_from"] = {"seconds": seconds}
     (out / "sample.json").write_text(json.dumps(meta, indent=1) + "\n")
     return out
+
 
 if __name__ == "__main__":
     main()

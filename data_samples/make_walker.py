@@ -18,13 +18,46 @@ from reconstruct.outputs.mocap import Mocap, write_trc
 
 RATE = 120.0
 DURATION = 2.0
-JOINTS = ["pelvis", "spine", "neck", "head", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow",
-          "r_wrist", "l_hip", "l_knee", "l_ankle", "l_toe", "r_hip", "r_knee", "r_ankle", "r_toe"]
+JOINTS = [
+    "pelvis",
+    "spine",
+    "neck",
+    "head",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+    "r_shoulder",
+    "r_elbow",
+    "r_wrist",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "l_toe",
+    "r_hip",
+    "r_knee",
+    "r_ankle",
+    "r_toe",
+]
 # Pairs of joints drawn as the skeleton (see walker_skeleton.json).
-BONES = [("pelvis", "spine"), ("spine", "neck"), ("neck", "head"), ("neck", "l_shoulder"), ("l_shoulder", "l_elbow"),
-         ("l_elbow", "l_wrist"), ("neck", "r_shoulder"), ("r_shoulder", "r_elbow"), ("r_elbow", "r_wrist"),
-         ("pelvis", "l_hip"), ("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("l_ankle", "l_toe"),
-         ("pelvis", "r_hip"), ("r_hip", "r_knee"), ("r_knee", "r_ankle"), ("r_ankle", "r_toe")]
+BONES = [
+    ("pelvis", "spine"),
+    ("spine", "neck"),
+    ("neck", "head"),
+    ("neck", "l_shoulder"),
+    ("l_shoulder", "l_elbow"),
+    ("l_elbow", "l_wrist"),
+    ("neck", "r_shoulder"),
+    ("r_shoulder", "r_elbow"),
+    ("r_elbow", "r_wrist"),
+    ("pelvis", "l_hip"),
+    ("l_hip", "l_knee"),
+    ("l_knee", "l_ankle"),
+    ("l_ankle", "l_toe"),
+    ("pelvis", "r_hip"),
+    ("r_hip", "r_knee"),
+    ("r_knee", "r_ankle"),
+    ("r_ankle", "r_toe"),
+]
 
 
 def _limb(root: np.ndarray, angles: np.ndarray, lengths: list[float]) -> list[np.ndarray]:
@@ -51,14 +84,25 @@ def walker(rate: float = RATE, duration: float = DURATION) -> np.ndarray:
         lateral = np.array([0.0, sign * 180.0, 0.0])
         swing = sign * np.sin(phase)
         shoulder = neck + lateral
-        elbow, wrist = _limb(shoulder, np.stack([-0.5 * swing, 0.3 + 0.25 * np.maximum(-swing, 0)], axis=1),
-                             [290.0, 260.0])
+        elbow, wrist = _limb(
+            shoulder, np.stack([-0.5 * swing, 0.3 + 0.25 * np.maximum(-swing, 0)], axis=1), [290.0, 260.0]
+        )
         hip = pelvis + 0.55 * lateral
         bend = 0.9 * np.maximum(np.sin(phase * sign + 0.8), 0.0)
-        knee, ankle, toe = _limb(hip, np.stack([0.45 * swing, -bend, np.full_like(t, 1.45) + 0.3 * bend], axis=1),
-                                 [430.0, 420.0, 150.0])
-        joints.update({f"{side}_shoulder": shoulder, f"{side}_elbow": elbow, f"{side}_wrist": wrist,
-                       f"{side}_hip": hip, f"{side}_knee": knee, f"{side}_ankle": ankle, f"{side}_toe": toe})
+        knee, ankle, toe = _limb(
+            hip, np.stack([0.45 * swing, -bend, np.full_like(t, 1.45) + 0.3 * bend], axis=1), [430.0, 420.0, 150.0]
+        )
+        joints.update(
+            {
+                f"{side}_shoulder": shoulder,
+                f"{side}_elbow": elbow,
+                f"{side}_wrist": wrist,
+                f"{side}_hip": hip,
+                f"{side}_knee": knee,
+                f"{side}_ankle": ankle,
+                f"{side}_toe": toe,
+            }
+        )
     return np.stack([joints[name] for name in JOINTS], axis=1)
 
 

@@ -63,11 +63,13 @@ def require_writable(folder: str | Path) -> Path:
         os.close(fd)
         os.unlink(tmp_name)
     except FileExistsError:
-        raise InputError(folder, "cannot write here: it is a file, not a folder",
-                         fix="give the path of a folder for the outputs") from None
+        raise InputError(
+            folder, "cannot write here: it is a file, not a folder", fix="give the path of a folder for the outputs"
+        ) from None
     except OSError as error:
-        raise InputError(folder, f"cannot write here: {error.strerror or error}",
-                         fix="give a folder you can write to") from None
+        raise InputError(
+            folder, f"cannot write here: {error.strerror or error}", fix="give a folder you can write to"
+        ) from None
     finally:
         for path in made:  # deepest first
             with contextlib.suppress(OSError):

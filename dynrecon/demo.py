@@ -75,9 +75,11 @@ def _sample_files(sample: Path) -> list[Path]:
     wanted += [sample / name for name in ("labels.csv", "truth.csv", "truth_cameras.json", "walker_skeleton.json")]
     missing = [path for path in wanted if not path.is_file()]
     if missing:
-        raise DynreconError(f"{missing[0]}: the embedded video sample is incomplete "
-                            "(regenerate it with `python data_samples/make_video_sample.py`)")
-    return wanted[:len(VIDEO_NAMES)]
+        raise DynreconError(
+            f"{missing[0]}: the embedded video sample is incomplete "
+            "(regenerate it with `python data_samples/make_video_sample.py`)"
+        )
+    return wanted[: len(VIDEO_NAMES)]
 
 
 def pipeline_options(sample: Path, sfm_threads: int = ALL_CORES) -> PipelineOptions:
@@ -87,8 +89,9 @@ def pipeline_options(sample: Path, sfm_threads: int = ALL_CORES) -> PipelineOpti
     # and the refinement on such clocks moves the points far off.
     clocks = ClockOptions(model=ClockModel.OFFSET, search=SearchMode.NEVER)
     solve = SolveOptions(recording=None, temporal=TemporalOptions(refinement=Refinement.CLOCKS, clocks=clocks))
-    return PipelineOptions(register=register, solve=solve, labels=sample / "labels.csv",
-                           skeleton=sample / "walker_skeleton.json")
+    return PipelineOptions(
+        register=register, solve=solve, labels=sample / "labels.csv", skeleton=sample / "walker_skeleton.json"
+    )
 
 
 def run_video(out_dir: Path, options: DemoOptions) -> DemoResult:
@@ -96,10 +99,19 @@ def run_video(out_dir: Path, options: DemoOptions) -> DemoResult:
     ws = fresh_folder(out_dir)
     result = run_stages(list(videos), ws, pipeline_options(options.sample, options.sfm_threads))
     accuracy = score_against_truth(ws, options.sample / "truth.csv", options.sample / "truth_cameras.json")
-    atomic_write_text(ws / "accuracy.json", json.dumps(
-        {"truth": str(options.sample / "truth.csv"), "units": "mm",
-         "alignment": "similarity of the registered cameras onto the true cameras", **accuracy.as_dict()},
-        indent=1) + "\n")
+    atomic_write_text(
+        ws / "accuracy.json",
+        json.dumps(
+            {
+                "truth": str(options.sample / "truth.csv"),
+                "units": "mm",
+                "alignment": "similarity of the registered cameras onto the true cameras",
+                **accuracy.as_dict(),
+            },
+            indent=1,
+        )
+        + "\n",
+    )
     return DemoResult(workspace=ws, accuracy=accuracy, pipeline=result)
 
 
@@ -117,4 +129,3 @@ def run_simulated(out_dir: Path, options: DemoOptions) -> DemoResult:
 def run(out_dir: Path, options: DemoOptions | None = None) -> DemoResult:
     options = options or DemoOptions()
     return run_simulated(out_dir, options) if options.simulated else run_video(out_dir, options)
-

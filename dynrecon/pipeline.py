@@ -148,8 +148,7 @@ def _plain(value: Any) -> Any:
 
 def inputs_key(files: dict[str, Path], settings: Any) -> str:
     """Hash of the contents of `files` (by role) and of `settings`."""
-    document = {"files": {role: file_hash(path) for role, path in sorted(files.items())},
-                "settings": _plain(settings)}
+    document = {"files": {role: file_hash(path) for role, path in sorted(files.items())}, "settings": _plain(settings)}
     return hashlib.sha256(json.dumps(document, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -176,8 +175,12 @@ class State:
     def _valid_entry(entry: Any) -> bool:
         """A stage entry as `record` writes it: an inputs key and output paths -> hashes."""
         outputs = entry.get("outputs", {}) if isinstance(entry, dict) else None
-        return isinstance(entry, dict) and isinstance(entry.get("inputs"), str) and isinstance(outputs, dict) \
+        return (
+            isinstance(entry, dict)
+            and isinstance(entry.get("inputs"), str)
+            and isinstance(outputs, dict)
             and all(isinstance(k, str) and isinstance(v, str) for k, v in outputs.items())
+        )
 
     def up_to_date(self, name: str, key: str, workspace: Path) -> bool:
         entry = self.stages.get(name)
@@ -190,10 +193,12 @@ class State:
         return True
 
     def record(self, name: str, key: str, outputs: list[Path], workspace: Path, seconds: float) -> None:
-        self.stages[name] = {"inputs": key,
-                             "outputs": {str(p.relative_to(workspace)): file_hash(p) for p in outputs},
-                             "seconds": round(seconds, 3),
-                             "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        self.stages[name] = {
+            "inputs": key,
+            "outputs": {str(p.relative_to(workspace)): file_hash(p) for p in outputs},
+            "seconds": round(seconds, 3),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
         self.save()
 
     def forget(self, name: str) -> None:
@@ -213,8 +218,11 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         if not video.is_file():
             raise InputError(video, "video not found", fix="give the paths of existing video files")
     if options.labels is not None and options.tracks is not None:
-        raise InputError(options.tracks, "both labels and tracks were given",
-                         fix="give --labels (to track them) or --tracks (ready 2D tracks), not both")
+        raise InputError(
+            options.tracks,
+            "both labels and tracks were given",
+            fix="give --labels (to track them) or --tracks (ready 2D tracks), not both",
+        )
     for given in (options.labels, options.tracks, options.skeleton):
         if given is not None and not given.is_file():
             raise InputError(given, "file not found")
@@ -231,8 +239,7 @@ def run(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions 
     return run_stages(videos, out_dir, options).workspace
 
 
-def run_stages(videos: list[str | Path], out_dir: str | Path,
-               options: PipelineOptions | None = None) -> PipelineResult:
+def run_stages(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> PipelineResult:
     """Run every stage that is not up to date, in order (the module docstring says which run when)."""
     options = options or PipelineOptions()
     paths = [Path(v) for v in videos]
@@ -267,8 +274,9 @@ class _Stages:
         self.state = State(ws)
         self.result = PipelineResult(workspace=ws, stages=[])
 
-    def run(self, name: str, files: dict[str, Path], settings: Any, outputs: list[Path],
-            work: Callable[[], object]) -> None:
+    def run(
+        self, name: str, files: dict[str, Path], settings: Any, outputs: list[Path], work: Callable[[], object]
+    ) -> None:
         """Run `work` unless `files` (contents) and `settings` are those of the last run and `outputs` are intact."""
         number = STAGES.index(name) + 1
         key = inputs_key(files, settings)
@@ -309,10 +317,13 @@ def _stage_register(stages: _Stages, labels: Path | None) -> RegistrationError |
     registration = _Registration.in_folder(folder)
     register_options = options.background_register()
     try:
-        stages.run("register", stages.video_files,
-                   {"register": register_options, "videos": [p.stem for p in stages.videos]},
-                   [registration.cameras, registration.background],
-                   lambda: _register(stages.videos, folder, register_options))
+        stages.run(
+            "register",
+            stages.video_files,
+            {"register": register_options, "videos": [p.stem for p in stages.videos]},
+            [registration.cameras, registration.background],
+            lambda: _register(stages.videos, folder, register_options),
+        )
     except RegistrationError as error:
         if options.tracks is None and labels is None and not (stages.ws / "tracks.csv").is_file():
             raise
@@ -330,11 +341,19 @@ def _stage_track(stages: _Stages, labels: Path | None) -> Path | None:
         stages.state.forget("track")
     elif labels is not None:
         _copy_into(labels, ws / "labels.csv")
-        stages.run("track", {**stages.video_files, "labels": ws / "labels.csv"}, {"track": options.track},
-                   [tracks_path], lambda: _track(ws, tracks_path, stages.videos, options.track))
+        stages.run(
+            "track",
+            {**stages.video_files, "labels": ws / "labels.csv"},
+            {"track": options.track},
+            [tracks_path],
+            lambda: _track(ws, tracks_path, stages.videos, options.track),
+        )
     elif not tracks_path.is_file():
-        log.info("no labels and no tracks: registration only. Label the points with `dynrecon label %s "
-                 "--videos ...`, then run this command again", ws)
+        log.info(
+            "no labels and no tracks: registration only. Label the points with `dynrecon label %s "
+            "--videos ...`, then run this command again",
+            ws,
+        )
         return None
     if not tracks_path.is_file():
         raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
@@ -350,10 +369,13 @@ def _stage_subject(stages: _Stages, tracks: Path, background_failed: Registratio
     folder = stages.ws / SUBJECT_DIR
     registration = _Registration.in_folder(folder)
     subject_options = stages.options.subject_register(tracks)
-    stages.run("subject", {**stages.video_files, "tracks": tracks},
-               {"register": subject_options, "videos": [p.stem for p in stages.videos]},
-               [registration.cameras, registration.background],
-               lambda: _register(stages.videos, folder, subject_options))
+    stages.run(
+        "subject",
+        {**stages.video_files, "tracks": tracks},
+        {"register": subject_options, "videos": [p.stem for p in stages.videos]},
+        [registration.cameras, registration.background],
+        lambda: _register(stages.videos, folder, subject_options),
+    )
     return registration
 
 
@@ -368,24 +390,45 @@ def _stage_solve(stages: _Stages, registration: _Registration, tracks: Path, bon
     ws = stages.ws
     solve_options = stages.options.solve_options(bones)
     solved = [ws / "points3d.csv", ws / "sequencing.json", ws / "report.json"]
-    stages.run("solve", {"cameras": registration.cameras, "tracks": tracks}, {"solve": solve_options}, solved,
-               lambda: solve_run(registration.cameras, tracks, ws, solve_options))
+    stages.run(
+        "solve",
+        {"cameras": registration.cameras, "tracks": tracks},
+        {"solve": solve_options},
+        solved,
+        lambda: solve_run(registration.cameras, tracks, ws, solve_options),
+    )
 
 
 def _stage_record(stages: _Stages, registration: _Registration, tracks: Path, bones: Bones) -> None:
     ws = stages.ws
-    files = {**stages.video_files, "cameras": registration.cameras, "background": registration.background,
-             "tracks": tracks, "points": ws / "points3d.csv", "report": ws / "report.json",
-             "sequencing": ws / "sequencing.json"}
-    stages.run("record", files, {"skeleton": bones}, [ws / "recording.rrd"],
-               lambda: _record(ws, registration.cameras, registration.background, tracks, stages.videos, bones))
+    files = {
+        **stages.video_files,
+        "cameras": registration.cameras,
+        "background": registration.background,
+        "tracks": tracks,
+        "points": ws / "points3d.csv",
+        "report": ws / "report.json",
+        "sequencing": ws / "sequencing.json",
+    }
+    stages.run(
+        "record",
+        files,
+        {"skeleton": bones},
+        [ws / "recording.rrd"],
+        lambda: _record(ws, registration.cameras, registration.background, tracks, stages.videos, bones),
+    )
 
 
 def _stage_export(stages: _Stages, registration: _Registration) -> None:
     ws, units = stages.ws, stages.options.units
     files = {"cameras": registration.cameras, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"}
-    stages.run("export", files, {"units": units}, [ws / "points.trc", ws / "points.c3d"],
-               lambda: _export(ws, registration.cameras, units))
+    stages.run(
+        "export",
+        files,
+        {"units": units},
+        [ws / "points.trc", ws / "points.c3d"],
+        lambda: _export(ws, registration.cameras, units),
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -442,8 +485,9 @@ def export_rate(cameras: CameraSet, frames: int) -> float:
     return total if total > 0 else 30.0 * max(1, frames)
 
 
-def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Path, videos: list[Path],
-            bones: Bones) -> None:
+def _record(
+    ws: Path, cameras_path: Path, background_path: Path, tracks_path: Path, videos: list[Path], bones: Bones
+) -> None:
     cameras = read_cameras(cameras_path)
     points = read_points(ws / "points3d.csv")
     sequencing = read_sequencing(ws / "sequencing.json")
@@ -459,10 +503,17 @@ def _record(ws: Path, cameras_path: Path, background_path: Path, tracks_path: Pa
     keys = [(v, int(f)) for v, f in zip(points.videos, points.frames, strict=True)]
     known = set(points.point_names)
     skeleton = [(a, b) for a, b in bones if a in known and b in known]
-    write_recording(ws / "recording.rrd", cameras=cameras, points=points, tracks=read_tracks(tracks_path),
-                    skeleton=skeleton or None, residual=_residual(ws, keys), global_time=times,
-                    background=BackgroundCloud(xyz=xyz, colors=rgb),
-                    video_files={p.stem: p for p in videos if p.suffix.lower() == ".mp4"})
+    write_recording(
+        ws / "recording.rrd",
+        cameras=cameras,
+        points=points,
+        tracks=read_tracks(tracks_path),
+        skeleton=skeleton or None,
+        residual=_residual(ws, keys),
+        global_time=times,
+        background=BackgroundCloud(xyz=xyz, colors=rgb),
+        video_files={p.stem: p for p in videos if p.suffix.lower() == ".mp4"},
+    )
 
 
 def _export(ws: Path, cameras_path: Path, units: str) -> None:
@@ -472,12 +523,15 @@ def _export(ws: Path, cameras_path: Path, units: str) -> None:
     order, source = global_order(points, cameras, sequencing)
     rate = export_rate(cameras, points.num_frames)
     times = clock_times(points, sequencing) if source is OrderSource.CLOCKS else None
-    log.info("export: %s at %.1f Hz, ordered by %s", "resampled on the recovered clock" if times is not None
-             else f"{len(order)} rows", rate, source.value)
+    log.info(
+        "export: %s at %.1f Hz, ordered by %s",
+        "resampled on the recovered clock" if times is not None else f"{len(order)} rows",
+        rate,
+        source.value,
+    )
     write_trc_export(points, order, rate, ws / "points.trc", units=units, times=times)
     if times is not None:
-        write_c3d_export(points, order, rate, ws / "points.c3d", units=units, times=times,
-                         note=clock_note(sequencing))
+        write_c3d_export(points, order, rate, ws / "points.c3d", units=units, times=times, note=clock_note(sequencing))
     else:
         write_c3d_export(points, order, rate, ws / "points.c3d", units=units)
 
@@ -515,11 +569,18 @@ def similarity_to_truth(cameras: CameraSet, truth_cameras: CameraSet) -> Similar
     loose (a visible tilt on the video sample); orientations fix it.
     """
     true_frames = {(v.name, f.frame): f for v in truth_cameras.videos for f in v.frames}
-    pairs = [(f, true_frames[(v.name, f.frame)]) for v in cameras.videos for f in v.frames
-             if (v.name, f.frame) in true_frames]
+    pairs = [
+        (f, true_frames[(v.name, f.frame)])
+        for v in cameras.videos
+        for f in v.frames
+        if (v.name, f.frame) in true_frames
+    ]
     if len(pairs) < 3:
-        raise InputError(None, f"only {len(pairs)} registered frames have a true camera; need 3 to align",
-                         fix="score against the truth of the same videos")
+        raise InputError(
+            None,
+            f"only {len(pairs)} registered frames have a true camera; need 3 to align",
+            fix="score against the truth of the same videos",
+        )
     M = sum((true.R.T @ est.R for est, true in pairs), np.zeros((3, 3)))
     U, _, Vt = np.linalg.svd(M)
     R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -540,14 +601,24 @@ def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) ->
     """Accuracy of `WS/points3d.csv` after alignment to the true cameras, against `truth_path` (same layout as
     points3d.csv). Truth rows of frames the registration lost are left out (the log says how many)."""
     points = read_points(ws / "points3d.csv")
-    aligned = align_to_truth(points, read_cameras(ws / REGISTER_DIR / "cameras.json"),
-                             read_cameras(truth_cameras_path))
+    aligned = align_to_truth(points, read_cameras(ws / REGISTER_DIR / "cameras.json"), read_cameras(truth_cameras_path))
     truth = read_points(truth_path)
-    keep = [i for i, key in enumerate(zip(truth.videos, truth.frames, strict=True))
-            if (key[0], int(key[1])) in points.index()]
+    keep = [
+        i
+        for i, key in enumerate(zip(truth.videos, truth.frames, strict=True))
+        if (key[0], int(key[1])) in points.index()
+    ]
     if len(keep) < truth.num_frames:
-        log.warning("%d of %d truth frames have no registered camera; not scored", truth.num_frames - len(keep),
-                    truth.num_frames)
-    subset = FramePoints(videos=[truth.videos[i] for i in keep], frames=truth.frames[keep],
-                         point_names=truth.point_names, xyz=truth.xyz[keep], observed=truth.observed[keep])
+        log.warning(
+            "%d of %d truth frames have no registered camera; not scored",
+            truth.num_frames - len(keep),
+            truth.num_frames,
+        )
+    subset = FramePoints(
+        videos=[truth.videos[i] for i in keep],
+        frames=truth.frames[keep],
+        point_names=truth.point_names,
+        xyz=truth.xyz[keep],
+        observed=truth.observed[keep],
+    )
     return evaluate(aligned, subset, estimate_path=ws / "points3d.csv", truth_path=truth_path)

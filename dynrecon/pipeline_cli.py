@@ -27,26 +27,48 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
-        "run", help=COMMANDS["run"],
+        "run",
+        help=COMMANDS["run"],
         description="Run every stage whose inputs changed since the last run in WS (WS/pipeline.json keeps "
-                    "their hashes): register -> track (labels) -> subject (static videos the background left out, "
-                    "posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, points.c3d.")
+        "their hashes): register -> track (labels) -> subject (static videos the background left out, "
+        "posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, points.c3d.",
+    )
     parser.add_argument("videos", nargs="+", type=Path, metavar="VIDEO")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--labels", type=Path, help="labels.csv to track (default: WS/labels.csv if present)")
     source.add_argument("--tracks", type=Path, help="ready 2D tracks (tracks.csv); no tracking")
     parser.add_argument("--skeleton", type=Path, help="skeleton JSON (points, connections) for the recording")
-    parser.add_argument("--max-frames", type=int, default=default_register().max_frames,
-                        help="SfM frames per video at most (the others are localized)")
-    parser.add_argument("--track-window", type=int, default=TrackOptions().win_size,
-                        help="LK window side of the tracker, px (smaller for small markers)")
-    parser.add_argument("--track-patch", type=int, default=TrackOptions().patch,
-                        help="appearance patch side of the tracker, px (smaller for small markers)")
-    parser.add_argument("--intrinsics", type=Path, default=None,
-                        help="known intrinsics for registration (cameras.json, calib .toml or .qca); kept fixed")
-    parser.add_argument("--scale", default=None, metavar="A,B,METRES",
-                        help="distance between two tracked points: the scale of static videos posed from the subject")
+    parser.add_argument(
+        "--max-frames",
+        type=int,
+        default=default_register().max_frames,
+        help="SfM frames per video at most (the others are localized)",
+    )
+    parser.add_argument(
+        "--track-window",
+        type=int,
+        default=TrackOptions().win_size,
+        help="LK window side of the tracker, px (smaller for small markers)",
+    )
+    parser.add_argument(
+        "--track-patch",
+        type=int,
+        default=TrackOptions().patch,
+        help="appearance patch side of the tracker, px (smaller for small markers)",
+    )
+    parser.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="known intrinsics for registration (cameras.json, calib .toml or .qca); kept fixed",
+    )
+    parser.add_argument(
+        "--scale",
+        default=None,
+        metavar="A,B,METRES",
+        help="distance between two tracked points: the scale of static videos posed from the subject",
+    )
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.set_defaults(func=_run)
@@ -61,11 +83,19 @@ def _run(args: argparse.Namespace) -> int:
     scale = parse_scale(args.scale)
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
         raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
-    register = dataclasses.replace(default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics,
-                                   scale=scale)
+    register = dataclasses.replace(
+        default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale
+    )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
-    options = PipelineOptions(register=register, track=track, labels=args.labels, tracks=args.tracks,
-                              skeleton=args.skeleton, units=args.units, force=args.force)
+    options = PipelineOptions(
+        register=register,
+        track=track,
+        labels=args.labels,
+        tracks=args.tracks,
+        skeleton=args.skeleton,
+        units=args.units,
+        force=args.force,
+    )
     result = run_stages(args.videos, args.out, options)
     for stage in result.stages:
         print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
@@ -77,17 +107,33 @@ def _run(args: argparse.Namespace) -> int:
 def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon import demo
 
-    parser = subparsers.add_parser("demo", help=COMMANDS["demo"], description=demo.__doc__,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("dynrecon-demo"),
-                        help="folder for the results (a fresh one is made beside it if it has results)")
-    parser.add_argument("--simulated", action="store_true",
-                        help="simulated cameras instead of the videos: no registration or tracking (~30 s)")
-    parser.add_argument("--sample", type=Path, default=demo.VIDEO_SAMPLE,
-                        help="a folder laid out like data_samples/video_sample (default: that one)")
-    parser.add_argument("--threads", type=int, default=demo.DemoOptions().sfm_threads,
-                        help="COLMAP threads of the registration (default -1: all cores; 1: the same cameras on "
-                             "every run, ~25 %% slower)")
+    parser = subparsers.add_parser(
+        "demo", help=COMMANDS["demo"], description=demo.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("dynrecon-demo"),
+        help="folder for the results (a fresh one is made beside it if it has results)",
+    )
+    parser.add_argument(
+        "--simulated",
+        action="store_true",
+        help="simulated cameras instead of the videos: no registration or tracking (~30 s)",
+    )
+    parser.add_argument(
+        "--sample",
+        type=Path,
+        default=demo.VIDEO_SAMPLE,
+        help="a folder laid out like data_samples/video_sample (default: that one)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=demo.DemoOptions().sfm_threads,
+        help="COLMAP threads of the registration (default -1: all cores; 1: the same cameras on "
+        "every run, ~25 %% slower)",
+    )
     parser.set_defaults(func=_demo)
 
 
@@ -95,18 +141,23 @@ def _demo(args: argparse.Namespace) -> int:
     from dynrecon import demo
 
     started = time.perf_counter()
-    result = demo.run(args.out, demo.DemoOptions(simulated=args.simulated, sample=args.sample,
-                                                 sfm_threads=args.threads))
+    result = demo.run(
+        args.out, demo.DemoOptions(simulated=args.simulated, sample=args.sample, sfm_threads=args.threads)
+    )
     seconds = time.perf_counter() - started
     if result.pipeline is None:
-        print(f"demo (--simulated): 4 unsynchronized simulated cameras, walker sample, solved in "  # noqa: T201
-              f"{seconds:.0f} s")
+        print(  # noqa: T201
+            f"demo (--simulated): 4 unsynchronized simulated cameras, walker sample, solved in {seconds:.0f} s"
+        )
     else:
         stages = ", ".join(f"{s.name} {s.seconds:.0f} s" for s in result.pipeline.stages)
-        print(f"demo: 3 unsynchronized handheld videos (30/24/20 fps) of the video sample, {seconds:.0f} s "  # noqa: T201
-              f"({stages})")
-        print("points moved into the sample's true frame by the similarity (scale, rotation, translation) that "  # noqa: T201
-              "maps the registered cameras onto the true ones")
+        print(  # noqa: T201
+            f"demo: 3 unsynchronized handheld videos (30/24/20 fps) of the video sample, {seconds:.0f} s ({stages})"
+        )
+        print(  # noqa: T201
+            "points moved into the sample's true frame by the similarity (scale, rotation, translation) that "
+            "maps the registered cameras onto the true ones"
+        )
     print(f"accuracy vs ground truth, {result.accuracy.count} points (mm): {result.accuracy.table()}")  # noqa: T201
     print(f"results in {result.workspace}")  # noqa: T201
     print(f"open the recording with: rerun {result.recording}")  # noqa: T201

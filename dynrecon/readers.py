@@ -33,8 +33,9 @@ def loads_json(text: str, path: Path, *, fix: str | None = None) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as error:
-        raise InputError(path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}",
-                         fix=fix or "fix the JSON syntax") from None
+        raise InputError(
+            path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}", fix=fix or "fix the JSON syntax"
+        ) from None
     except ValueError as error:  # an integer literal of more than 4300 digits
         raise InputError(path, f"invalid JSON: {error}", fix=fix) from None
     except RecursionError:
@@ -51,8 +52,12 @@ def parse_frame(text: str, path: Path, where: str) -> int:
         frame = int(text)
     except ValueError:
         if text.strip().lstrip("+-").isdigit():  # over 4300 digits: int() refuses to convert it
-            raise InputError(path, f"frame of {len(text.strip())} digits is too large", where=where,
-                             fix=f"frame numbers are below 2^31 = {MAX_FRAME}") from None
+            raise InputError(
+                path,
+                f"frame of {len(text.strip())} digits is too large",
+                where=where,
+                fix=f"frame numbers are below 2^31 = {MAX_FRAME}",
+            ) from None
         raise InputError(path, f"frame {shown(text)} is not an integer", where=where) from None
     return check_frame(frame, path, where)
 
@@ -64,8 +69,9 @@ def check_frame(frame: Any, path: Path | None, where: str, *, name: str = "frame
     if frame < 0:
         raise InputError(path, f"{name} {frame} is negative", where=where, fix="frames are 0-based")
     if frame >= MAX_FRAME:
-        raise InputError(path, f"{name} {shown(frame)} is too large", where=where,
-                         fix=f"frame numbers are below 2^31 = {MAX_FRAME}")
+        raise InputError(
+            path, f"{name} {shown(frame)} is too large", where=where, fix=f"frame numbers are below 2^31 = {MAX_FRAME}"
+        )
     return frame
 
 
@@ -78,4 +84,4 @@ def shown(value: Any, limit: int = 40) -> str:
         text = repr(value)
     except (RecursionError, ValueError):  # nested hundreds deep, or a huge integer inside
         return f"<{type(value).__name__}>"
-    return text if len(text) <= limit else f"{text[:limit // 2]}...({len(text)} characters)"
+    return text if len(text) <= limit else f"{text[: limit // 2]}...({len(text)} characters)"

@@ -36,8 +36,11 @@ def probe_video(name: str, path: Path) -> VideoInfo:
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
-            raise InputError(path, "OpenCV cannot open this video",
-                             fix="use a format OpenCV decodes here (mp4 with H.264/HEVC/mp4v, avi MJPG, ...)")
+            raise InputError(
+                path,
+                "OpenCV cannot open this video",
+                fix="use a format OpenCV decodes here (mp4 with H.264/HEVC/mp4v, avi MJPG, ...)",
+            )
         ok, frame = cap.read()
         if not ok or frame is None:
             raise InputError(path, "no frame could be decoded", fix="check the codec (AV1 is not supported)")
@@ -79,8 +82,12 @@ class _Reader:
     def read(self, index: int) -> np.ndarray | None:
         with self.lock:
             frame = self._read(index)
-            if frame is not None and index < len(self.fingerprints) \
-                    and fingerprint(frame) != self.fingerprints[index] and self.seek_ok:
+            if (
+                frame is not None
+                and index < len(self.fingerprints)
+                and fingerprint(frame) != self.fingerprints[index]
+                and self.seek_ok
+            ):
                 log.warning("%s: seeking is not exact for this video; decoding sequentially", self.info.path)
                 self.seek_ok = False
                 self._close()
@@ -129,8 +136,12 @@ class _Reader:
         if not stop.is_set():
             self.scanned = True
             if len(self.fingerprints) != self.info.frames:
-                log.info("%s: %d frames decoded (the container says %d)", self.info.path,
-                         len(self.fingerprints), self.info.frames)
+                log.info(
+                    "%s: %d frames decoded (the container says %d)",
+                    self.info.path,
+                    len(self.fingerprints),
+                    self.info.frames,
+                )
 
     def close(self) -> None:
         with self.lock:

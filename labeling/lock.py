@@ -62,7 +62,8 @@ class WorkspaceLock:
                 pid = owner.get("pid") if owner else "?"
                 raise WorkspaceLockedError(  # noqa: B904 (not raised from an exception)
                     f"{self.path}: another labeling server (pid {pid}){where} is using this workspace "
-                    f"(use that one, or stop it; delete the lock file only if no server is running)")
+                    f"(use that one, or stop it; delete the lock file only if no server is running)"
+                )
             with os.fdopen(fd, "w", encoding="utf-8") as handle:
                 handle.write(body)
             self.held = True
@@ -72,8 +73,10 @@ class WorkspaceLock:
     def update_url(self, url: str) -> None:
         """Record the final URL (known only after binding) for the refusal message of a second server."""
         if self.held:
-            self.path.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url,
-                                             "token": self.token}), encoding="utf-8")
+            self.path.write_text(
+                json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token}),
+                encoding="utf-8",
+            )
 
     def _age(self) -> float:
         try:

@@ -43,10 +43,16 @@ log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 MAX_BODY = 1 << 20
-CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png",
-                 ".csv": "text/csv; charset=utf-8", ".json": "application/json",
-                 ".txt": "text/plain; charset=utf-8"}
+CONTENT_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8",
+    ".svg": "image/svg+xml",
+    ".png": "image/png",
+    ".csv": "text/csv; charset=utf-8",
+    ".json": "application/json",
+    ".txt": "text/plain; charset=utf-8",
+}
 
 
 class BadRequestError(Exception):
@@ -73,8 +79,16 @@ class TrackRow:
 class LabelingApp:
     """State shared by all request threads; `LabelStore` serializes label writes, `_config_lock` the rest."""
 
-    def __init__(self, workspace: Path, config: WorkspaceConfig, videos: dict[str, VideoInfo], *,
-                 track: TrackFunction, cache_bytes: int = 256 << 20, jpeg_quality: int = 90):
+    def __init__(
+        self,
+        workspace: Path,
+        config: WorkspaceConfig,
+        videos: dict[str, VideoInfo],
+        *,
+        track: TrackFunction,
+        cache_bytes: int = 256 << 20,
+        jpeg_quality: int = 90,
+    ):
         self.workspace = workspace.resolve()
         self.config = config
         self.videos = videos
@@ -103,8 +117,16 @@ class LabelingApp:
             connections = [list(c) for c in self.skeleton.connections]
         return {
             "workspace": str(self.workspace),
-            "videos": [{"name": v.name, "frames": self.frames.frame_count(v.name), "width": v.width,
-                        "height": v.height, "fps": v.fps} for v in self.videos.values()],
+            "videos": [
+                {
+                    "name": v.name,
+                    "frames": self.frames.frame_count(v.name),
+                    "width": v.width,
+                    "height": v.height,
+                    "fps": v.fps,
+                }
+                for v in self.videos.values()
+            ],
             "points": points,
             "connections": connections,
             "track": self.track_status(),
@@ -132,8 +154,10 @@ class LabelingApp:
         return rows
 
     def tracks_of(self, video: str) -> list[dict[str, Any]]:
-        return [{"frame": r.frame, "point": r.point, "x": r.x, "y": r.y, "score": r.score}
-                for r in self._read_tracks().get(video, [])]
+        return [
+            {"frame": r.frame, "point": r.point, "x": r.x, "y": r.y, "score": r.score}
+            for r in self._read_tracks().get(video, [])
+        ]
 
     def _read_tracks(self) -> dict[str, list[TrackRow]]:
         """tracks.csv rows made by the tracker (labels come from labels.csv), cached until it changes."""
@@ -162,9 +186,15 @@ class LabelingApp:
                         score = None
                     if score is not None and not math.isfinite(score):
                         score = None
-                    by_video.setdefault(tracks.video[i], []).append(TrackRow(
-                        frame=int(tracks.frame[i]), point=tracks.point[i], x=float(tracks.xy[i, 0]),
-                        y=float(tracks.xy[i, 1]), score=score))
+                    by_video.setdefault(tracks.video[i], []).append(
+                        TrackRow(
+                            frame=int(tracks.frame[i]),
+                            point=tracks.point[i],
+                            x=float(tracks.xy[i, 0]),
+                            y=float(tracks.xy[i, 1]),
+                            score=score,
+                        )
+                    )
             self._tracks_cache = (signature, by_video)
             return by_video
 
@@ -287,8 +317,7 @@ def _number(body: dict, name: str) -> float:
 def _point_name(body: Any, name: str) -> str:
     value = _field(body, name, str)
     if not valid_point_name(value):
-        raise BadRequestError(f"invalid point name {value!r}: up to 64 printable characters, "
-                              "none of , \" ' \\ / < >")
+        raise BadRequestError(f"invalid point name {value!r}: up to 64 printable characters, none of , \" ' \\ / < >")
     return value
 
 
@@ -422,8 +451,9 @@ class Handler(BaseHTTPRequestHandler):
     def _json(self, obj: Any, status: HTTPStatus = HTTPStatus.OK) -> None:
         self._bytes(json.dumps(obj).encode("utf-8"), "application/json", status=status)
 
-    def _bytes(self, data: bytes, content_type: str, *, status: HTTPStatus = HTTPStatus.OK,
-               cache: bool = False) -> None:
+    def _bytes(
+        self, data: bytes, content_type: str, *, status: HTTPStatus = HTTPStatus.OK, cache: bool = False
+    ) -> None:
         self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(data)))
@@ -445,9 +475,11 @@ def make_server(app: LabelingApp, host: str, port: int) -> ThreadingHTTPServer:
         server = _Server6((host, port), handler) if ":" in host else ThreadingHTTPServer((host, port), handler)
     except OSError as error:  # port in use, address not on this machine, unknown host name
         reason = error.strerror or str(error)
-        raise InputError(None, f"cannot listen on {host}:{port}: {reason}",
-                         fix="choose another --port (0: any free port) or an address of this machine for --host") \
-            from None
+        raise InputError(
+            None,
+            f"cannot listen on {host}:{port}: {reason}",
+            fix="choose another --port (0: any free port) or an address of this machine for --host",
+        ) from None
     server.daemon_threads = True
     bound_port = server.server_address[1]
     if host in ("127.0.0.1", "localhost", "::1"):

@@ -40,8 +40,13 @@ class Skeleton:
 
 def valid_point_name(name: str) -> bool:
     """Names go into CSV cells and the page; keep them printable, short and free of separators."""
-    return bool(name) and len(name) <= 64 and name == name.strip() and name.isprintable() \
-        and not any(c in name for c in ',"\'\\/<>')
+    return (
+        bool(name)
+        and len(name) <= 64
+        and name == name.strip()
+        and name.isprintable()
+        and not any(c in name for c in ",\"'\\/<>")
+    )
 
 
 def parse_points(text: str) -> Skeleton:
@@ -49,8 +54,11 @@ def parse_points(text: str) -> Skeleton:
     names = [n.strip() for n in text.split(",") if n.strip()]
     bad = [n for n in names if not valid_point_name(n)]
     if bad:
-        raise InputError(None, f"--points: invalid point name {bad[0]!r}",
-                         fix="names are up to 64 printable characters without , \" ' \\ / < >")
+        raise InputError(
+            None,
+            f"--points: invalid point name {bad[0]!r}",
+            fix="names are up to 64 printable characters without , \" ' \\ / < >",
+        )
     return Skeleton(points=list(dict.fromkeys(names)))
 
 
@@ -73,10 +81,17 @@ def skeleton_from_json(path: Path, data: object) -> Skeleton:
     if not isinstance(connections, list):
         raise InputError(path, "'connections' must be a list of pairs", fix=fix)
     for i, pair in enumerate(connections):
-        if not (isinstance(pair, list | tuple) and len(pair) == 2
-                and all(isinstance(p, str) and valid_point_name(p) for p in pair)) or pair[0] == pair[1]:
-            raise InputError(path, f"connection {i} ({shown(pair)}) is not a pair of two different point names",
-                             fix=fix)
+        if (
+            not (
+                isinstance(pair, list | tuple)
+                and len(pair) == 2
+                and all(isinstance(p, str) and valid_point_name(p) for p in pair)
+            )
+            or pair[0] == pair[1]
+        ):
+            raise InputError(
+                path, f"connection {i} ({shown(pair)}) is not a pair of two different point names", fix=fix
+            )
         skeleton.add_point(pair[0])
         skeleton.add_point(pair[1])
         skeleton.connections.append((pair[0], pair[1]))

@@ -35,8 +35,7 @@ class LabelOptions:
 class LabelServer:
     """A running server (in a background thread); `stop()` shuts it down and releases the workspace lock."""
 
-    def __init__(self, workspace: Path, options: LabelOptions,
-                 track: TrackFunction = track_with_tracking_stage):
+    def __init__(self, workspace: Path, options: LabelOptions, track: TrackFunction = track_with_tracking_stage):
         if workspace.exists() and not workspace.is_dir():
             raise InputError(workspace, "workspace is not a directory", fix="give a folder (made if missing)")
         workspace.mkdir(parents=True, exist_ok=True)
@@ -51,10 +50,11 @@ class LabelServer:
             config.skeleton.merge(options.skeleton)
             infos = {name: probe_video(name, path) for name, path in videos.items()}
             save_config(workspace, config)
-            app = LabelingApp(workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20,
-                              jpeg_quality=JPEG_QUALITY)
+            app = LabelingApp(
+                workspace, config, infos, track=track, cache_bytes=options.cache_mb << 20, jpeg_quality=JPEG_QUALITY
+            )
             # Points already labeled (e.g. by hand in labels.csv) appear in the list even if not configured.
-            for (_, _, point) in app.labels.snapshot():
+            for _, _, point in app.labels.snapshot():
                 config.skeleton.add_point(point)
             httpd = make_server(app, options.host, options.port)
             host = options.host if ":" not in options.host else f"[{options.host}]"
@@ -71,8 +71,7 @@ class LabelServer:
             raise
         self.app, self.httpd = app, httpd
         if options.host not in ("127.0.0.1", "localhost", "::1"):
-            log.warning("serving on %s: anyone who can reach this address can read and change the labels",
-                        options.host)
+            log.warning("serving on %s: anyone who can reach this address can read and change the labels", options.host)
         self._thread: threading.Thread | None = None
 
     def start(self) -> LabelServer:

@@ -45,8 +45,13 @@ class JobStatus:
     seconds: float = 0.0
 
     def as_json(self) -> dict:
-        return {"state": self.state.value, "videos": self.videos, "message": self.message, "seq": self.seq,
-                "seconds": round(self.seconds, 2)}
+        return {
+            "state": self.state.value,
+            "videos": self.videos,
+            "message": self.message,
+            "seq": self.seq,
+            "seconds": round(self.seconds, 2),
+        }
 
 
 class TrackJob:
@@ -69,8 +74,12 @@ class TrackJob:
         with self._lock:
             if self._status.state is JobState.RUNNING:
                 return False
-            self._status = JobStatus(state=JobState.RUNNING, videos=list(videos), seq=self._status.seq,
-                                     message=f"tracking {', '.join(videos)}")
+            self._status = JobStatus(
+                state=JobState.RUNNING,
+                videos=list(videos),
+                seq=self._status.seq,
+                message=f"tracking {', '.join(videos)}",
+            )
             self._thread = threading.Thread(target=self._run, args=(videos,), name="track", daemon=True)
             self._thread.start()
             return True
@@ -92,6 +101,11 @@ class TrackJob:
             log.exception("tracking failed")
             state, message = JobState.FAILED, f"tracker crashed: {type(error).__name__}: {error}"
         with self._lock:
-            self._status = JobStatus(state=state, videos=list(videos), message=message,
-                                     seq=self._status.seq + 1, seconds=time.perf_counter() - start)
+            self._status = JobStatus(
+                state=state,
+                videos=list(videos),
+                message=message,
+                seq=self._status.seq + 1,
+                seconds=time.perf_counter() - start,
+            )
         log.info("%s (%.1f s)", message, time.perf_counter() - start)

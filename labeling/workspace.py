@@ -74,7 +74,10 @@ def resolve_videos(workspace: Path, given: list[Path] | None, remembered: dict[s
             raise InputError(path, "video file not found", fix="check the path given to --videos")
         name = path.stem
         if name in videos:
-            raise InputError(path, f"two videos are named {name!r} (also {videos[name]})",
-                             fix="video names are file stems and must be unique: rename one file")
+            raise InputError(
+                path,
+                f"two videos are named {name!r} (also {videos[name]})",
+                fix="video names are file stems and must be unique: rename one file",
+            )
         videos[name] = path.resolve()
     return videos

@@ -21,31 +21,56 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     from reconstruct.trust import TrustPreset
 
     parser = subparsers.add_parser(
-        "solve", help=COMMANDS["solve"],
+        "solve",
+        help=COMMANDS["solve"],
         description="Self-expressive reconstruction (Zheng et al.): writes points3d.csv, sequencing.json, "
-                    "report.json and recording.rrd into OUT.")
+        "report.json and recording.rrd into OUT.",
+    )
     parser.add_argument("--cameras", type=Path, required=True, help="cameras.json (per-frame poses)")
     parser.add_argument("--tracks", type=Path, required=True, help="tracks.csv (2D observations)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     defaults = SolverOptions()
     parser.add_argument("--lambda1", type=float, default=defaults.lambda1, help="structural coherence weight")
-    parser.add_argument("--lambda2", type=float, default=defaults.lambda2,
-                        help="smoothness weight of the first stage (0 skips that stage)")
+    parser.add_argument(
+        "--lambda2",
+        type=float,
+        default=defaults.lambda2,
+        help="smoothness weight of the first stage (0 skips that stage)",
+    )
     parser.add_argument("--lambda3", type=float, default=defaults.lambda3, help="soft ray constraint weight")
-    parser.add_argument("--constraint", choices=[c.value for c in RayConstraint], default=defaults.constraint.value,
-                        help="points exactly on their rays (hard) or pulled to them (soft, for noisy tracks)")
-    parser.add_argument("--max-iterations", type=int, default=defaults.max_iterations,
-                        help="alternations per stage")
-    parser.add_argument("--refinement", choices=[r.value for r in Refinement], default=Refinement.CLOCKS.value,
-                        help="after the self-expressive solve: recover the video clocks and refine each trajectory on "
-                             "them (clocks, default), or keep the paper's solve (none)")
-    parser.add_argument("--clock-model", choices=["auto", *(m.value for m in ClockModel)], default="auto",
-                        help="per-video clock: offset only, offset and rate, or with drift (auto: offset when every "
-                             "frame has a decoder time, else affine)")
-    parser.add_argument("--trust", choices=[t.value for t in TrustPreset], default=TrustPreset.SENSITIVE.value,
-                        help="operating point of the trust flag in points3d.csv (sensitive flags more, misses less)")
-    parser.add_argument("--skeleton", type=Path, help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
-                        "recording (the labeling page's skeleton file)")
+    parser.add_argument(
+        "--constraint",
+        choices=[c.value for c in RayConstraint],
+        default=defaults.constraint.value,
+        help="points exactly on their rays (hard) or pulled to them (soft, for noisy tracks)",
+    )
+    parser.add_argument("--max-iterations", type=int, default=defaults.max_iterations, help="alternations per stage")
+    parser.add_argument(
+        "--refinement",
+        choices=[r.value for r in Refinement],
+        default=Refinement.CLOCKS.value,
+        help="after the self-expressive solve: recover the video clocks and refine each trajectory on "
+        "them (clocks, default), or keep the paper's solve (none)",
+    )
+    parser.add_argument(
+        "--clock-model",
+        choices=["auto", *(m.value for m in ClockModel)],
+        default="auto",
+        help="per-video clock: offset only, offset and rate, or with drift (auto: offset when every "
+        "frame has a decoder time, else affine)",
+    )
+    parser.add_argument(
+        "--trust",
+        choices=[t.value for t in TrustPreset],
+        default=TrustPreset.SENSITIVE.value,
+        help="operating point of the trust flag in points3d.csv (sensitive flags more, misses less)",
+    )
+    parser.add_argument(
+        "--skeleton",
+        type=Path,
+        help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
+        "recording (the labeling page's skeleton file)",
+    )
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
     parser.set_defaults(func=_solve)
 
@@ -65,16 +90,32 @@ def _solve(args: argparse.Namespace) -> int:
     for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
         if not (math.isfinite(value) and value >= 0):  # argparse's float() accepts nan, inf and negatives
             raise InputError(None, f"{flag} {value} must be a finite number >= 0")
-    solver = SolverOptions(lambda1=args.lambda1, lambda2=args.lambda2, lambda3=args.lambda3,
-                           constraint=RayConstraint(args.constraint), max_iterations=args.max_iterations,
-                           progress=True)
+    solver = SolverOptions(
+        lambda1=args.lambda1,
+        lambda2=args.lambda2,
+        lambda3=args.lambda3,
+        constraint=RayConstraint(args.constraint),
+        max_iterations=args.max_iterations,
+        progress=True,
+    )
     skeleton = tuple(read_skeleton(args.skeleton).connections) if args.skeleton else ()
     model = None if args.clock_model == "auto" else ClockModel(args.clock_model)
     temporal = TemporalOptions(clock_model=model, refinement=Refinement(args.refinement))
-    points = run(args.cameras, args.tracks, args.out,
-                 SolveOptions(solver=solver, temporal=temporal, trust=preset_options(TrustPreset(args.trust)),
-                              recording=None if args.no_recording else SolveOptions().recording, skeleton=skeleton))
-    print(f"wrote {points} (+ sequencing.json, report.json" +  # noqa: T201
-          ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
-          + ")")
+    points = run(
+        args.cameras,
+        args.tracks,
+        args.out,
+        SolveOptions(
+            solver=solver,
+            temporal=temporal,
+            trust=preset_options(TrustPreset(args.trust)),
+            recording=None if args.no_recording else SolveOptions().recording,
+            skeleton=skeleton,
+        ),
+    )
+    print(  # noqa: T201
+        f"wrote {points} (+ sequencing.json, report.json"
+        + ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")
+        + ")"
+    )
     return 0

@@ -24,7 +24,8 @@ def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | N
     if len(videos) < 2:
         raise NotEnoughDataError(
             f"{len(videos)} video(s) with posed frames in the cameras file: the solver needs at least 2 "
-            "(register more videos, or check that their frames got poses)")
+            "(register more videos, or check that their frames got poses)"
+        )
     video_names = [v.name for v in videos]
     frame_lists = [sorted(v.frames, key=lambda f: f.frame) for v in videos]
     index: dict[tuple[str, int], int] = {}
@@ -42,9 +43,12 @@ def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | N
     for row in range(len(tracks)):
         video_name = tracks.video[row]
         if video_name not in known_videos:
-            raise InputError(tracks.path, f"video {video_name!r} is not in the cameras file",
-                             where=tracks.where(row),
-                             fix=f"known videos: {', '.join(sorted(known_videos))}; rename or register it")
+            raise InputError(
+                tracks.path,
+                f"video {video_name!r} is not in the cameras file",
+                where=tracks.where(row),
+                fix=f"known videos: {', '.join(sorted(known_videos))}; rename or register it",
+            )
         fi = index.get((video_name, int(tracks.frame[row])))
         if fi is None:
             unposed.append(row)
@@ -54,12 +58,19 @@ def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | N
             continue
         uv[fi, pi] = tracks.xy[row]
     if unposed:
-        log.warning("%s: %d observation(s) on frames without a pose were ignored (first: %s, video %r frame %d)",
-                    tracks.path or "tracks", len(unposed), tracks.where(unposed[0]), tracks.video[unposed[0]],
-                    int(tracks.frame[unposed[0]]))
+        log.warning(
+            "%s: %d observation(s) on frames without a pose were ignored (first: %s, video %r frame %d)",
+            tracks.path or "tracks",
+            len(unposed),
+            tracks.where(unposed[0]),
+            tracks.video[unposed[0]],
+            int(tracks.frame[unposed[0]]),
+        )
     if not np.any(~np.isnan(uv[..., 0])):
-        raise NotEnoughDataError(f"{tracks.path or 'tracks'}: no observation falls on a posed frame "
-                                 "(check video names and frame numbers against the cameras file)")
+        raise NotEnoughDataError(
+            f"{tracks.path or 'tracks'}: no observation falls on a posed frame "
+            "(check video names and frame numbers against the cameras file)"
+        )
     return Problem(
         video_names=video_names,
         video_index=np.array([vi for vi, frames in enumerate(frame_lists) for _ in frames], dtype=np.int64),

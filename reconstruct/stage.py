@@ -96,13 +96,21 @@ class Reconstruction:
         known = set(self.problem.point_names)
         bones = [bone for bone in self.options.skeleton if bone[0] in known and bone[1] in known]
         times = self.temporal.times
-        return write_recording(path, cameras=self.cameras, points=self.points, tracks=self.tracks,
-                               residual=self.seed.residual, skeleton=bones or None,
-                               global_time=times if np.isfinite(times).any() else None, options=options)
+        return write_recording(
+            path,
+            cameras=self.cameras,
+            points=self.points,
+            tracks=self.tracks,
+            residual=self.seed.residual,
+            skeleton=bones or None,
+            global_time=times if np.isfinite(times).any() else None,
+            options=options,
+        )
 
 
-def solve(cameras: CameraSet | str | Path, tracks: Tracks | str | Path, options: SolveOptions | None = None
-          ) -> Reconstruction:
+def solve(
+    cameras: CameraSet | str | Path, tracks: Tracks | str | Path, options: SolveOptions | None = None
+) -> Reconstruction:
     """Reconstruct the points of `tracks` (tracks.csv or its `Tracks`) seen by `cameras` (cameras.json or its
     `CameraSet`): the self-expressive solve, then the video clocks and trajectory refinement, then trust.
 
@@ -112,8 +120,13 @@ def solve(cameras: CameraSet | str | Path, tracks: Tracks | str | Path, options:
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
     problem = build_problem(camera_set, track_set)
-    log.info("solving %d frames of %d videos, %d points, %d observations", problem.num_frames,
-             len(problem.video_names), problem.num_points, int(problem.observed.sum()))
+    log.info(
+        "solving %d frames of %d videos, %d points, %d observations",
+        problem.num_frames,
+        len(problem.video_names),
+        problem.num_points,
+        int(problem.observed.sum()),
+    )
     result = solve_problem(problem, options.solver)
     t0 = time.perf_counter()
     temporal = recover_and_refine(problem, result, options.temporal)
@@ -127,14 +140,24 @@ def solve(cameras: CameraSet | str | Path, tracks: Tracks | str | Path, options:
     report["clocks"]["registration_check"] = check_registered_clocks(camera_set, temporal.clocks)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
-    return Reconstruction(points=frame_points(problem, result, temporal, trust),
-                          sequencing=sequencing(problem, result, temporal), temporal=temporal, trust=trust,
-                          report=report, seed=result, problem=problem, cameras=camera_set, tracks=track_set,
-                          options=options, started=started)
+    return Reconstruction(
+        points=frame_points(problem, result, temporal, trust),
+        sequencing=sequencing(problem, result, temporal),
+        temporal=temporal,
+        trust=trust,
+        report=report,
+        seed=result,
+        problem=problem,
+        cameras=camera_set,
+        tracks=track_set,
+        options=options,
+        started=started,
+    )
 
 
-def run(cameras_path: str | Path, tracks_path: str | Path, out_dir: str | Path, options: SolveOptions | None = None
-        ) -> Path:
+def run(
+    cameras_path: str | Path, tracks_path: str | Path, out_dir: str | Path, options: SolveOptions | None = None
+) -> Path:
     """The file-level stage: `solve` cameras_path + tracks_path and write the outputs into `out_dir`; returns the
     path of points3d.csv."""
     require_writable(out_dir)  # before minutes of solving, not after
@@ -148,8 +171,9 @@ def _input_name(given: object, fallback: Path | None) -> str | None:
     return None if fallback is None else str(fallback)
 
 
-def frame_points(problem: Problem, result: SolveResult, temporal: Temporal | None = None,
-                 trust: Trust | None = None) -> FramePoints:
+def frame_points(
+    problem: Problem, result: SolveResult, temporal: Temporal | None = None, trust: Trust | None = None
+) -> FramePoints:
     """The points3d.csv content: refined points when `temporal` refined them, with the global `time` of each frame
     and the trust columns as extra columns."""
     extra: dict[str, np.ndarray] = {}
@@ -158,8 +182,14 @@ def frame_points(problem: Problem, result: SolveResult, temporal: Temporal | Non
     if trust is not None:
         extra.update(trust.columns())
     xyz = temporal.points if temporal is not None else result.points
-    return FramePoints(videos=problem.frame_videos, frames=problem.frames, point_names=problem.point_names,
-                       xyz=xyz, observed=problem.observed, extra=extra)
+    return FramePoints(
+        videos=problem.frame_videos,
+        frames=problem.frames,
+        point_names=problem.point_names,
+        xyz=xyz,
+        observed=problem.observed,
+        extra=extra,
+    )
 
 
 def sequencing(problem: Problem, result: SolveResult, temporal: Temporal | None = None) -> Sequencing:
@@ -170,28 +200,38 @@ def sequencing(problem: Problem, result: SolveResult, temporal: Temporal | None 
         neighbours.append(j[order])
         weights.append(w[order])
     extra = {"clocks": temporal.clocks.to_json()} if temporal is not None else {}
-    return Sequencing(videos=problem.frame_videos, frames=problem.frames, neighbours=neighbours, weights=weights,
-                      extra=extra)
+    return Sequencing(
+        videos=problem.frame_videos, frames=problem.frames, neighbours=neighbours, weights=weights, extra=extra
+    )
 
 
-def build_report(problem: Problem, result: SolveResult, options: SolveOptions, inputs: dict[str, str | None]
-                 ) -> dict[str, Any]:
+def build_report(
+    problem: Problem, result: SolveResult, options: SolveOptions, inputs: dict[str, str | None]
+) -> dict[str, Any]:
     unreconstructable = [n for n, ok in zip(problem.point_names, result.reconstructable, strict=True) if not ok]
     return {
         "inputs": inputs,
         "parameters": dataclasses.asdict(options.solver, dict_factory=_options_dict),
         "temporal_parameters": dataclasses.asdict(options.temporal, dict_factory=_options_dict),
-        "size": {"frames": problem.num_frames, "videos": len(problem.video_names), "points": problem.num_points,
-                 "observations": int(problem.observed.sum())},
+        "size": {
+            "frames": problem.num_frames,
+            "videos": len(problem.video_names),
+            "points": problem.num_points,
+            "observations": int(problem.observed.sum()),
+        },
         "normalization": {"offset": result.normalization.offset.tolist(), "scale": result.normalization.scale},
         "unreconstructable_points": unreconstructable,
         "initialization": {"frames_without_partner": int(np.sum(result.init.partner < 0))},
         "stages": [dataclasses.asdict(stage) for stage in result.stages],
         "timings": dict(result.timings),
-        "residual": {"unit": "input units, RMS over points of S_f - sum_j W_jf S_j",
-                     "median": float(np.nanmedian(result.residual)),
-                     "per_frame": [{"video": v, "frame": int(f), "residual": float(r)} for v, f, r in
-                                   zip(problem.frame_videos, problem.frames, result.residual, strict=True)]},
+        "residual": {
+            "unit": "input units, RMS over points of S_f - sum_j W_jf S_j",
+            "median": float(np.nanmedian(result.residual)),
+            "per_frame": [
+                {"video": v, "frame": int(f), "residual": float(r)}
+                for v, f, r in zip(problem.frame_videos, problem.frames, result.residual, strict=True)
+            ],
+        },
     }
 
 

@@ -74,46 +74,61 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
     if not np.all(np.isfinite(times)):
         missing = [c.name for c in clocks.videos if not c.identified]
-        log.warning("clocks of %s could not be recovered: the trajectories are not refined (the self-expressive "
-                    "solve is kept)", ", ".join(missing) or "some frames")
+        log.warning(
+            "clocks of %s could not be recovered: the trajectories are not refined (the self-expressive solve is kept)",
+            ", ".join(missing) or "some frames",
+        )
         report["skipped"] = f"unidentified clocks: {', '.join(missing)}"
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
     # The polish's cost does not see a global affine change of time: hold the clocks' reference video fixed so
     # that the polished times stay in the clocks' gauge (reference: offset 0, rate 1). Offset-only clocks trust the
     # decoder's rate: a polish fitting rates anyway made short clips unstable.
-    polished = refine_with_clocks(problem, result.points, times, options.refine,
-                                  reference=problem.video_names.index(clocks.reference),
-                                  rates=clock_options.model is not ClockModel.OFFSET)
+    polished = refine_with_clocks(
+        problem,
+        result.points,
+        times,
+        options.refine,
+        reference=problem.video_names.index(clocks.reference),
+        rates=clock_options.model is not ClockModel.OFFSET,
+    )
     correction = polished.correction
     cost = [float(c) for c in polished.cost]
     if _plausible(polished.cost, correction.rate, MAX_RATE_CORRECTION):
         clocks = clocks.refit(problem.video_index, polished.times)
         refined = polished.result
-        report["clock_corrections"] = [{"video": name, "offset_s": float(o), "rate": float(r)} for name, o, r in
-                                       zip(problem.video_names, correction.offset, correction.rate, strict=True)]
+        report["clock_corrections"] = [
+            {"video": name, "offset_s": float(o), "rate": float(r)}
+            for name, o, r in zip(problem.video_names, correction.offset, correction.rate, strict=True)
+        ]
     else:
         # A polish started from a seed solve far off can stretch clocks while its cost rises: keep the estimated
         # clocks.
-        log.warning("the clock polish of the refinement was rejected (its cost rose or a rate moved by more than "
-                    "%.0f %%): refining on the estimated clocks", 100 * MAX_RATE_CORRECTION)
+        log.warning(
+            "the clock polish of the refinement was rejected (its cost rose or a rate moved by more than "
+            "%.0f %%): refining on the estimated clocks",
+            100 * MAX_RATE_CORRECTION,
+        )
         report["clock_polish_rejected"] = True
         refined = refine(problem, result.points, times, options.refine)
         cost.extend(float(c) for c in refined.cost)
     points = np.where(np.isfinite(refined.points), refined.points, result.points)
-    report.update({
-        "refined": True,
-        "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
-        "outlier_observations": int(refined.outliers.sum()),
-        "cost": cost,
-    })
+    report.update(
+        {
+            "refined": True,
+            "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
+            "outlier_observations": int(refined.outliers.sum()),
+            "cost": cost,
+        }
+    )
     return Temporal(clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report)
 
 
 def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> bool:
     """A clock polish is kept when its trajectory cost never rose above its start and no rate moved far."""
     finite = np.isfinite(cost)
-    return bool(np.all(finite) and max(cost) <= POLISH_COST_SLACK * cost[0]
-                and np.all(np.abs(rates) <= max_rate_correction))
+    return bool(
+        np.all(finite) and max(cost) <= POLISH_COST_SLACK * cost[0] and np.all(np.abs(rates) <= max_rate_correction)
+    )
 
 
 def _finite(value: float) -> float | None:

@@ -138,8 +138,9 @@ def prior_bands(nodes: TimeNodes) -> np.ndarray:
     return bands
 
 
-def _data_blocks(rays: np.ndarray, centers: np.ndarray, weight: np.ndarray, node: np.ndarray, n: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _data_blocks(
+    rays: np.ndarray, centers: np.ndarray, weight: np.ndarray, node: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Sum over observations of weight (I - r r^T) per node, (n, 3, 3), and the right-hand sides, (n, 3)."""
     projector = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # (m, 3, 3)
     blocks = weight[:, None, None] * projector
@@ -182,7 +183,7 @@ def selected_inverse(factors: np.ndarray) -> np.ndarray:
         block = Z[:, gap, j + 1 + low]  # (B, b, b): Z[j+1.., j+1..]
         column = -np.einsum("gxy,gy->gx", block, below) / diagonal[:, None]
         Z[:, 1:, j] = column
-        Z[:, 0, j] = 1.0 / diagonal ** 2 - np.einsum("gx,gx->g", below, column) / diagonal
+        Z[:, 0, j] = 1.0 / diagonal**2 - np.einsum("gx,gx->g", below, column) / diagonal
     return Z[:, :, :N]
 
 
@@ -197,8 +198,9 @@ def _diagonal_blocks(band: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fit(prior: np.ndarray, scale2: float, smoothness: float, blocks: np.ndarray, rhs: np.ndarray,
-         anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _fit(
+    prior: np.ndarray, scale2: float, smoothness: float, blocks: np.ndarray, rhs: np.ndarray, anchor: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Solve (lambda s^2 P + D + eps I) Y = d + eps Y0 for one point (blocks already carry w s^2); returns the
     positions (n, 3) and the banded Cholesky factor (for the GCV trace)."""
     n = len(blocks)
@@ -230,14 +232,19 @@ def _check_inputs(problem: Problem, points: np.ndarray, times: np.ndarray) -> No
     if points.shape != (F, P, 3):
         raise InputError(None, f"refine: points have shape {points.shape}, the problem needs ({F}, {P}, 3)")
     if times.shape != (F,):
-        raise InputError(None, f"refine: times have shape {times.shape}, the problem has {F} frames",
-                         fix="give one global time per frame")
+        raise InputError(
+            None,
+            f"refine: times have shape {times.shape}, the problem has {F} frames",
+            fix="give one global time per frame",
+        )
     bad = np.flatnonzero(~np.isfinite(times))
     if bad.size:
         f = int(bad[0])
-        raise InputError(None, f"refine: frame {f} (video {problem.frame_videos[f]!r} frame "
-                               f"{int(problem.frames[f])}) has no global time",
-                         fix="estimate the clocks first, every frame needs a time")
+        raise InputError(
+            None,
+            f"refine: frame {f} (video {problem.frame_videos[f]!r} frame {int(problem.frames[f])}) has no global time",
+            fix="estimate the clocks first, every frame needs a time",
+        )
 
 
 @dataclass(kw_only=True)
@@ -268,8 +275,9 @@ class _Track:
         return _data_blocks(self.rays, self.centers, self.weights * self.s2, self.node, n)
 
 
-def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None
-           ) -> RefineResult:
+def refine(
+    problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None
+) -> RefineResult:
     """Smooth trajectories through the rays of `problem`, started from `points (F, P, 3)` (e.g. the seed
     solver's, input units) at global `times (F,)` seconds."""
     options = options or RefineOptions()
@@ -329,14 +337,27 @@ def refine(problem: Problem, points: np.ndarray, times: np.ndarray, options: Ref
         smoothness[p] = track.smoothness
         scale_px[p] = track.scale
     if tracks:
-        log.info("refined %d point(s) on %d instants: smoothness median %.3g, %d outlier observation(s)",
-                 len(tracks), n, float(np.nanmedian(smoothness)), int(outliers.sum()))
-    return RefineResult(points=normalization.undo(out), weights=weights, outliers=outliers,
-                        residual_px=residual_px, smoothness=smoothness, scale_px=scale_px, cost=cost)
+        log.info(
+            "refined %d point(s) on %d instants: smoothness median %.3g, %d outlier observation(s)",
+            len(tracks),
+            n,
+            float(np.nanmedian(smoothness)),
+            int(outliers.sum()),
+        )
+    return RefineResult(
+        points=normalization.undo(out),
+        weights=weights,
+        outliers=outliers,
+        residual_px=residual_px,
+        smoothness=smoothness,
+        scale_px=scale_px,
+        cost=cost,
+    )
 
 
-def _make_tracks(problem: Problem, start: np.ndarray, rays: np.ndarray, centers: np.ndarray, focal: np.ndarray,
-                 nodes: TimeNodes) -> list[_Track]:
+def _make_tracks(
+    problem: Problem, start: np.ndarray, rays: np.ndarray, centers: np.ndarray, focal: np.ndarray, nodes: TimeNodes
+) -> list[_Track]:
     """One _Track per point that has observations and a start position (normalized units)."""
     tracks: list[_Track] = []
     for p in range(problem.num_points):
@@ -349,14 +370,26 @@ def _make_tracks(problem: Problem, start: np.ndarray, rays: np.ndarray, centers:
         typical = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
         depth = np.where(depth > 0.05 * typical, depth, typical)  # a start behind the camera: typical depth
         s = focal[seen] / depth
-        tracks.append(_Track(point=p, seen=seen, node=node, rays=rays[seen, p], centers=centers[seen], s2=s * s,
-                             mean_s2=float(np.mean(s)) ** 2, anchor=anchor, positions=anchor,
-                             weights=np.ones(seen.size)))
+        tracks.append(
+            _Track(
+                point=p,
+                seen=seen,
+                node=node,
+                rays=rays[seen, p],
+                centers=centers[seen],
+                s2=s * s,
+                mean_s2=float(np.mean(s)) ** 2,
+                anchor=anchor,
+                positions=anchor,
+                weights=np.ones(seen.size),
+            )
+        )
     return tracks
 
 
-def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int,
-                       options: RefineOptions) -> None:
+def _choose_smoothness(
+    tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int, options: RefineOptions
+) -> None:
     """Smoothness by GCV over `grid` with the tracks' current weights, score = (RSS / m) / (1 - tr(H) / m)^2
     (m = 2 per ray), and the robust scale from the noise level the fit implies, sigma^2 = RSS / (m - tr(H)).
 
@@ -378,15 +411,18 @@ def _choose_smoothness(tracks: list[_Track], prior: np.ndarray, grid: list[float
             factors.append(factor)
     # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i); the recursion runs on batches of
     # systems (its loop over unknowns is Python, its work per step numpy).
-    batch = max(1, 2 ** 22 // (BANDS * 3 * n * 8))  # ~32 MB of factors per batch
-    inverse_blocks = np.concatenate([_diagonal_blocks(selected_inverse(np.stack(factors[i:i + batch])))
-                                     for i in range(0, len(factors), batch)])
-    trace[:] = np.einsum("kgnij,knji->kg", inverse_blocks.reshape(len(tracks), len(grid), n, 3, 3),
-                         np.stack(all_blocks))
+    batch = max(1, 2**22 // (BANDS * 3 * n * 8))  # ~32 MB of factors per batch
+    inverse_blocks = np.concatenate(
+        [_diagonal_blocks(selected_inverse(np.stack(factors[i : i + batch]))) for i in range(0, len(factors), batch)]
+    )
+    trace[:] = np.einsum(
+        "kgnij,knji->kg", inverse_blocks.reshape(len(tracks), len(grid), n, 3, 3), np.stack(all_blocks)
+    )
     if options.rule is SmoothnessRule.GCV_GLOBAL:
         total = float(m.sum())
-        chosen = np.full(len(tracks), int(_least_gcv(rss.sum(axis=0)[None], trace.sum(axis=0)[None],
-                                                     np.array([[total]]))[0]))
+        chosen = np.full(
+            len(tracks), int(_least_gcv(rss.sum(axis=0)[None], trace.sum(axis=0)[None], np.array([[total]]))[0])
+        )
     else:
         chosen = _least_gcv(rss, trace, m)
     for k, track in enumerate(tracks):
@@ -442,10 +478,10 @@ def _loss_scale(residual: np.ndarray) -> float:
 def _rho(residual: np.ndarray, loss: RobustLoss, scale: float) -> np.ndarray:
     """The robust loss of residual norms (px^2 units; r^2 for small residuals)."""
     if loss is RobustLoss.NONE:
-        return residual ** 2
+        return residual**2
     if loss is RobustLoss.HUBER:
-        return np.where(residual <= scale, residual ** 2, 2 * scale * residual - scale ** 2)
-    return scale ** 2 * np.log1p((residual / scale) ** 2)
+        return np.where(residual <= scale, residual**2, 2 * scale * residual - scale**2)
+    return scale**2 * np.log1p((residual / scale) ** 2)
 
 
 def _prior_value(bands: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -474,8 +510,15 @@ class ClockRefineResult:
     result: RefineResult  # the refinement at the adjusted times
 
 
-def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None,
-                       *, reference: int | None = None, rates: bool = True) -> ClockRefineResult:
+def refine_with_clocks(
+    problem: Problem,
+    points: np.ndarray,
+    times: np.ndarray,
+    options: RefineOptions | None = None,
+    *,
+    reference: int | None = None,
+    rates: bool = True,
+) -> ClockRefineResult:
     """`refine`, then per-video time offsets (and, with `rates`, rates) that minimize the refinement's own cost,
     then `refine` again; POLISH_ROUNDS times (each round re-chooses the smoothness: wrong times make GCV smooth
     more, which flattens the cost the clocks are searched on). Video `reference` keeps its clock (default: the one
@@ -493,8 +536,9 @@ def refine_with_clocks(problem: Problem, points: np.ndarray, times: np.ndarray, 
     return ClockRefineResult(times=result.times, correction=correction, cost=history, result=result.result)
 
 
-def _clock_round(problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions,
-                 reference: int | None, rates: bool) -> ClockRefineResult:
+def _clock_round(
+    problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions, reference: int | None, rates: bool
+) -> ClockRefineResult:
     """One round of refine_with_clocks.
 
     Estimated clocks can be off by a fraction of a frame, which folds the trajectory into a zig-zag the prior pays
@@ -512,11 +556,16 @@ def _clock_round(problem: Problem, points: np.ndarray, times: np.ndarray, option
     correction = ClockCorrection.none(middle)
     history = _coordinate_descent(cost, times, problem.video_index, correction, rates)
     adjusted, correction = correction.in_gauge_of(reference, times, problem.video_index)
-    log.info("clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
-             ", ".join(f"{1000 * o:+.2f}" for o in correction.offset),
-             ", ".join(f"{1000 * r:+.2f}" for r in correction.rate), history[0], history[-1])
-    return ClockRefineResult(times=adjusted, correction=correction, cost=history,
-                             result=refine(problem, points, adjusted, options))
+    log.info(
+        "clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
+        ", ".join(f"{1000 * o:+.2f}" for o in correction.offset),
+        ", ".join(f"{1000 * r:+.2f}" for r in correction.rate),
+        history[0],
+        history[-1],
+    )
+    return ClockRefineResult(
+        times=adjusted, correction=correction, cost=history, result=refine(problem, points, adjusted, options)
+    )
 
 
 class _PolishCost:
@@ -580,8 +629,9 @@ class _PolishCost:
         return total + float(np.sum(self.strength * _prior_value(prior, solved.reshape(len(keep), -1))))
 
 
-def _coordinate_descent(cost: _PolishCost, times: np.ndarray, video_index: np.ndarray, correction: ClockCorrection,
-                        rates: bool) -> list[float]:
+def _coordinate_descent(
+    cost: _PolishCost, times: np.ndarray, video_index: np.ndarray, correction: ClockCorrection, rates: bool
+) -> list[float]:
     """Sweeps over the videos, each video's offset (then rate) by golden-section search with the others held;
     `correction` is updated in place. Returns the cost before and after each sweep."""
     history = [cost(times)]

@@ -89,8 +89,14 @@ class TrustPreset(enum.Enum):
 
 def preset_options(preset: TrustPreset) -> TrustOptions:
     if preset is TrustPreset.SENSITIVE:
-        return TrustOptions(residual_px=3.0, bound_px=15.0, relative=2.0, sequence_jump=12.0, smoothness_px=30.0,
-                            smoothness_relative=5.0)
+        return TrustOptions(
+            residual_px=3.0,
+            bound_px=15.0,
+            relative=2.0,
+            sequence_jump=12.0,
+            smoothness_px=30.0,
+            smoothness_relative=5.0,
+        )
     return TrustOptions()
 
 
@@ -136,12 +142,19 @@ class Trust:
         """The report.json `trust` block: distribution of each measure and the flag count."""
         done = self.reconstructed
         measures = {}
-        for name, values in (("condition", self.condition), ("residual", self.residual),
-                             ("residual_px", self.residual_px), ("bound_px", self.bound_px),
-                             ("ray_distance", self.ray_distance), ("reprojection_px", self.reprojection_px),
-                             ("support", self.support), ("sequence_jump", self.sequence_jump),
-                             ("component", self.component), ("smoothness", self.smoothness),
-                             ("smoothness_px", self.smoothness_px)):
+        for name, values in (
+            ("condition", self.condition),
+            ("residual", self.residual),
+            ("residual_px", self.residual_px),
+            ("bound_px", self.bound_px),
+            ("ray_distance", self.ray_distance),
+            ("reprojection_px", self.reprojection_px),
+            ("support", self.support),
+            ("sequence_jump", self.sequence_jump),
+            ("component", self.component),
+            ("smoothness", self.smoothness),
+            ("smoothness_px", self.smoothness_px),
+        ):
             v = values[done & np.isfinite(values)]
             measures[name] = {
                 "median": _number(np.median(v)) if v.size else None,
@@ -153,13 +166,24 @@ class Trust:
         per_video = {}
         for v, name in enumerate(self.video_names):
             rows = self.video_index == v
-            per_video[name] = {"flagged": int(np.sum(self.flag[rows] & done[rows])),
-                               "reconstructed": int(done[rows].sum())}
+            per_video[name] = {
+                "flagged": int(np.sum(self.flag[rows] & done[rows])),
+                "reconstructed": int(done[rows].sum()),
+            }
         return {
-            "units": {"condition": "dimensionless", "residual": "input units", "ray_distance": "input units",
-                      "residual_px": "pixels", "bound_px": "pixels", "reprojection_px": "pixels",
-                      "support": "fraction", "sequence_jump": "frame gaps",
-                      "component": "frames", "smoothness": "input units", "smoothness_px": "pixels"},
+            "units": {
+                "condition": "dimensionless",
+                "residual": "input units",
+                "ray_distance": "input units",
+                "residual_px": "pixels",
+                "bound_px": "pixels",
+                "reprojection_px": "pixels",
+                "support": "fraction",
+                "sequence_jump": "frame gaps",
+                "component": "frames",
+                "smoothness": "input units",
+                "smoothness_px": "pixels",
+            },
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
@@ -173,13 +197,19 @@ class Trust:
 
 def flag_rule(options: TrustOptions) -> str:
     k = f"{options.relative:g}"
-    return (f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
-            f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
-            f"sequence_jump > {options.sequence_jump:g}"
-            + (f" or component < {options.min_component}" if options.min_component > 0 else "")
-            + (f" or smoothness_px > max({options.smoothness_px:g}, {options.smoothness_relative:g} x median "
-               "smoothness_px)" if options.smoothness_px > 0 else "")
-            + "; medians over the solve's reconstructed points")
+    return (
+        f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
+        f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
+        f"sequence_jump > {options.sequence_jump:g}"
+        + (f" or component < {options.min_component}" if options.min_component > 0 else "")
+        + (
+            f" or smoothness_px > max({options.smoothness_px:g}, {options.smoothness_relative:g} x median "
+            "smoothness_px)"
+            if options.smoothness_px > 0
+            else ""
+        )
+        + "; medians over the solve's reconstructed points"
+    )
 
 
 def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
@@ -203,7 +233,7 @@ def neighbourhoods(W: sp.csc_matrix, min_weight: float, max_neighbours: int) -> 
         keep = values >= min_weight
         rows, values = rows[keep], values[keep]
         chosen = rows[np.argsort(-values, kind="stable")[:max_neighbours]]
-        out[f, 1:1 + len(chosen)] = chosen
+        out[f, 1 : 1 + len(chosen)] = chosen
     return out
 
 
@@ -246,8 +276,7 @@ def components(W: sp.csc_matrix, min_weight: float) -> np.ndarray:
     return np.bincount(label)[label]
 
 
-def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, min_mass: float = 0.2
-                  ) -> np.ndarray:
+def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, min_mass: float = 0.2) -> np.ndarray:
     """(F,) how far the local sequencing breaks at each frame, in frame gaps; NaN where times are unknown.
 
     Frames f, f' consecutive in one video advance by dt = t_f' - t_f. Their neighbours in another video u (weighted
@@ -293,8 +322,7 @@ def sequence_jump(W: sp.csc_matrix, video_index: np.ndarray, times: np.ndarray, 
     return out
 
 
-def video_smoothness(points: np.ndarray, video_index: np.ndarray, frames: np.ndarray, times: np.ndarray
-                     ) -> np.ndarray:
+def video_smoothness(points: np.ndarray, video_index: np.ndarray, frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     """(F, P) distance of each point from the linear interpolation of the same point in the previous and next frame
     of its own video (input units); NaN at a video's first and last frame. The paper's Psi2 as a check: W never
     links frames of one video, so a shape that jumps away from its own video's neighbours (a run of frames expressed
@@ -341,24 +369,38 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
     smoothness = video_smoothness(points, problem.video_index, problem.frames, problem.times)
     smoothness_px = focal[:, None] * smoothness / np.maximum(depth, 1e-300)
     flag, limits = _flag(options, reconstructed, residual_px, bound_px, jump, component, smoothness_px)
-    log.info("trust: %d of %d reconstructed points flagged (%s)", int(flag.sum()), int(reconstructed.sum()),
-             flag_rule(options))
+    log.info(
+        "trust: %d of %d reconstructed points flagged (%s)",
+        int(flag.sum()),
+        int(reconstructed.sum()),
+        flag_rule(options),
+    )
     nan = ~reconstructed
     return Trust(
-        condition=np.where(nan, np.nan, condition), residual=np.where(nan, np.nan, residual),
-        residual_px=np.where(nan, np.nan, residual_px), bound_px=np.where(nan, np.nan, bound_px),
+        condition=np.where(nan, np.nan, condition),
+        residual=np.where(nan, np.nan, residual),
+        residual_px=np.where(nan, np.nan, residual_px),
+        bound_px=np.where(nan, np.nan, bound_px),
         ray_distance=np.where(nan, np.nan, ray_distance),
-        reprojection_px=np.where(nan, np.nan, reprojection_px), support=np.where(nan, np.nan, support),
-        sequence_jump=np.where(nan, np.nan, jump), component=np.where(nan, np.nan, component),
-        smoothness=np.where(nan, np.nan, smoothness), smoothness_px=np.where(nan, np.nan, smoothness_px),
-        videos=np.broadcast_to(videos[:, None], (F, P)).astype(float), flag=flag, limits=limits,
+        reprojection_px=np.where(nan, np.nan, reprojection_px),
+        support=np.where(nan, np.nan, support),
+        sequence_jump=np.where(nan, np.nan, jump),
+        component=np.where(nan, np.nan, component),
+        smoothness=np.where(nan, np.nan, smoothness),
+        smoothness_px=np.where(nan, np.nan, smoothness_px),
+        videos=np.broadcast_to(videos[:, None], (F, P)).astype(float),
+        flag=flag,
+        limits=limits,
         reconstructed=reconstructed,
-        video_names=list(problem.video_names), video_index=problem.video_index.copy(), options=options,
+        video_names=list(problem.video_names),
+        video_index=problem.video_index.copy(),
+        options=options,
     )
 
 
-def _self_expression(points: np.ndarray, W: sp.csc_matrix, focal: np.ndarray, depth: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _self_expression(
+    points: np.ndarray, W: sp.csc_matrix, focal: np.ndarray, depth: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(F, P) each point's self-expression residual, in input units and seen from its frame's camera in pixels."""
     F, P = points.shape[:2]
     shapes = np.nan_to_num(points).reshape(F, -1)
@@ -367,14 +409,14 @@ def _self_expression(points: np.ndarray, W: sp.csc_matrix, focal: np.ndarray, de
     return residual, focal[:, None] * residual / np.maximum(depth, 1e-300)
 
 
-def _ray_distances(offset: np.ndarray, rays: np.ndarray, observed: np.ndarray, focal: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def _ray_distances(
+    offset: np.ndarray, rays: np.ndarray, observed: np.ndarray, focal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(F, P) distance from the viewing ray (input units) and that angle in pixels; NaN where unobserved."""
     along = np.sum(offset * rays, axis=-1)
     perpendicular = np.linalg.norm(offset - along[..., None] * rays, axis=-1)
     ray_distance = np.where(observed, perpendicular, np.nan)
-    reprojection_px = np.where(observed, focal[:, None] * np.arctan2(perpendicular, np.maximum(along, 1e-300)),
-                               np.nan)
+    reprojection_px = np.where(observed, focal[:, None] * np.arctan2(perpendicular, np.maximum(along, 1e-300)), np.nan)
     return ray_distance, reprojection_px
 
 
@@ -399,8 +441,15 @@ def _conditions(W: sp.csc_matrix, rays: np.ndarray, reconstructed: np.ndarray, h
     return condition
 
 
-def _flag(options: TrustOptions, reconstructed: np.ndarray, residual_px: np.ndarray, bound_px: np.ndarray,
-          jump: np.ndarray, component: np.ndarray, smoothness_px: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+def _flag(
+    options: TrustOptions,
+    reconstructed: np.ndarray,
+    residual_px: np.ndarray,
+    bound_px: np.ndarray,
+    jump: np.ndarray,
+    component: np.ndarray,
+    smoothness_px: np.ndarray,
+) -> tuple[np.ndarray, dict[str, float]]:
     """(F, P) the flag rule's verdict, and its effective limits in this solve."""
     limits = {"residual_px": options.residual_px, "bound_px": options.bound_px}
     if reconstructed.any():
@@ -408,8 +457,12 @@ def _flag(options: TrustOptions, reconstructed: np.ndarray, residual_px: np.ndar
             "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
             "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
         }
-    flag = reconstructed & ((residual_px > limits["residual_px"]) | (bound_px > limits["bound_px"])
-                            | (np.nan_to_num(jump) > options.sequence_jump) | (component < options.min_component))
+    flag = reconstructed & (
+        (residual_px > limits["residual_px"])
+        | (bound_px > limits["bound_px"])
+        | (np.nan_to_num(jump) > options.sequence_jump)
+        | (component < options.min_component)
+    )
     if options.smoothness_px > 0:
         known = reconstructed & np.isfinite(smoothness_px)
         median = float(np.median(smoothness_px[known])) if known.any() else 0.0

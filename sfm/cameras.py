@@ -123,8 +123,9 @@ def read_cameras(path: str | Path) -> CameraSet:
 
 def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
     if not isinstance(data, dict) or not isinstance(data.get("videos"), list):
-        raise InputError(path, 'top level must be an object with a list "videos"',
-                         fix="see docs/formats.md#camerasjson")
+        raise InputError(
+            path, 'top level must be an object with a list "videos"', fix="see docs/formats.md#camerasjson"
+        )
     videos = []
     for vi, vdata in enumerate(data["videos"]):
         where = f"videos[{vi}]"
@@ -142,19 +143,30 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
             raise InputError(path, f'"fps" must be a positive number or null, got {repr(fps)[:40]}', where=where)
         width, height = vdata["width"], vdata["height"]
         if not (isinstance(width, int) and isinstance(height, int) and 0 < width < 2**31 and 0 < height < 2**31):
-            raise InputError(path, f'"width" and "height" must be positive integers below 2^31, got '
-                             f'{repr(width)[:40]}x{repr(height)[:40]}', where=where)
+            raise InputError(
+                path,
+                f'"width" and "height" must be positive integers below 2^31, got '
+                f"{repr(width)[:40]}x{repr(height)[:40]}",
+                where=where,
+            )
         if not isinstance(vdata["frames"], list):
             raise InputError(path, '"frames" must be a list', where=where)
         clock_offset = vdata.get("clock_offset")
         if clock_offset is not None and not _finite_number(clock_offset):
-            raise InputError(path, f'"clock_offset" must be a finite number or absent, got {repr(clock_offset)[:40]}',
-                             where=where)
-        frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]")
-                  for fi, fdata in enumerate(vdata["frames"])]
-        videos.append(VideoCameras(name=name, fps=None if fps is None else float(fps), width=width,
-                                   height=height, frames=frames,
-                                   clock_offset=None if clock_offset is None else float(clock_offset)))
+            raise InputError(
+                path, f'"clock_offset" must be a finite number or absent, got {repr(clock_offset)[:40]}', where=where
+            )
+        frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]") for fi, fdata in enumerate(vdata["frames"])]
+        videos.append(
+            VideoCameras(
+                name=name,
+                fps=None if fps is None else float(fps),
+                width=width,
+                height=height,
+                frames=frames,
+                clock_offset=None if clock_offset is None else float(clock_offset),
+            )
+        )
     return CameraSet(videos=videos)
 
 
@@ -176,8 +188,7 @@ def _matrix(value: Any, shape: tuple[int, ...], key: str, path: Path | None, whe
     if array.shape != shape:
         raise InputError(path, f'"{key}" has shape {array.shape}, expected {shape}', where=where)
     if not np.all(np.isfinite(array)):
-        raise InputError(path, f'"{key}" contains NaN or infinity', where=where,
-                         fix="drop frames without a valid pose")
+        raise InputError(path, f'"{key}" contains NaN or infinity', where=where, fix="drop frames without a valid pose")
     return array
 
 
@@ -231,10 +242,17 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
             orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
             if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
                 raise InputError(
-                    path, f'"R" is not a rotation (|R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})',
-                    where=where, fix="R must be the orthonormal cam_from_world rotation with det +1")
+                    path,
+                    f'"R" is not a rotation (|R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})',
+                    where=where,
+                    fix="R must be the orthonormal cam_from_world rotation with det +1",
+                )
             K = frame.K
-            if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9 or np.any(np.abs(K[2, :2]) > 1e-12) \
-                    or abs(K[1, 0]) > 1e-12:
-                raise InputError(path, '"K" must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0',
-                                 where=where)
+            if (
+                K[0, 0] <= 0
+                or K[1, 1] <= 0
+                or abs(K[2, 2] - 1) > 1e-9
+                or np.any(np.abs(K[2, :2]) > 1e-12)
+                or abs(K[1, 0]) > 1e-12
+            ):
+                raise InputError(path, '"K" must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0', where=where)

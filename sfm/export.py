@@ -105,9 +105,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     data = open(path, "rb").read()  # noqa: SIM115
     end = data.index(b"end_header\n") + len(b"end_header\n")
     count = int(
-        next(
-            line for line in data[:end].decode("ascii").splitlines() if line.startswith("element vertex")
-        ).split()[-1]
+        next(line for line in data[:end].decode("ascii").splitlines() if line.startswith("element vertex")).split()[-1]
     )
     vertex = np.frombuffer(
         data[end:],

@@ -58,9 +58,7 @@ class Resize:
     def for_video_size(cls, width: int, height: int, long_side: int) -> Resize:
         longest = max(width, height)
         scale = min(1.0, long_side / longest) if long_side > 0 else 1.0
-        return cls(
-            scale=scale, width=max(1, round(width * scale)), height=max(1, round(height * scale))
-        )
+        return cls(scale=scale, width=max(1, round(width * scale)), height=max(1, round(height * scale)))
 
     def to_small(self, xy: np.ndarray) -> np.ndarray:
         return (np.asarray(xy, dtype=float) + 0.5) * self.scale - 0.5

@@ -48,11 +48,7 @@ def run_isolated(stage: str, func: Callable[..., Any], kwargs: dict[str, Any], l
         )
         code = process.returncode
         if code != 0 or not result.exists():
-            how = (
-                f"was killed by signal {signal.Signals(-code).name}"
-                if code < 0
-                else f"exited with status {code}"
-            )
+            how = f"was killed by signal {signal.Signals(-code).name}" if code < 0 else f"exited with status {code}"
             raise ColmapCrashError(f"pycolmap {stage} {how}; the end of COLMAP's log {log_path} says why")
         status, value = pickle.loads(result.read_bytes())
     if status != "ok":

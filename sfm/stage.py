@@ -259,9 +259,7 @@ def _write_images(videos: list[VideoPlan], tracks: Tracks | None, ws: _Workspace
     Returns video name -> its SfM image names, and how many masks were written."""
     options = ws.options
     names_of = {}
-    masked = (
-        _write_masks([v for v in videos if not v.static], tracks, options, ws.mask_dir) if options.use_masks else 0
-    )
+    masked = _write_masks([v for v in videos if not v.static], tracks, options, ws.mask_dir) if options.use_masks else 0
     for video in videos:
         names_of[video.info.name] = write_frames(video.info, video.sfm_frames, ws.frames_dir, video.resize)
         if video.static:

@@ -133,9 +133,7 @@ def read_frames(path: Path, frames: np.ndarray) -> Iterator[tuple[int, np.ndarra
         for target in wanted:
             while index < target:
                 if not capture.grab():
-                    raise InputError(
-                        path, f"frame {target} cannot be decoded", fix="the video may be truncated"
-                    )
+                    raise InputError(path, f"frame {target} cannot be decoded", fix="the video may be truncated")
                 index += 1
             ok, image = capture.retrieve()
             if not ok:

@@ -22,12 +22,23 @@ COMMANDS = {
 MODES = ("paper", "phones", "flight")
 # Options that only some modes read, by argparse dest; giving one to another mode is a mistake, not a no-op.
 MODE_OPTIONS = {
-    "step": ("paper",), "unconstrained": ("paper",),
-    "start": ("paper", "phones"), "length": ("paper", "phones"), "distance": ("paper", "phones"),
-    "fps": ("phones", "flight"), "offsets": ("phones", "flight"), "drift_ppm": ("phones", "flight"),
-    "jitter_ms": ("phones", "flight"), "vfr": ("phones", "flight"), "handheld": ("phones", "flight"),
-    "shake_mm": ("phones", "flight"), "shake_deg": ("phones", "flight"), "false_fraction": ("phones", "flight"),
-    "duration": ("flight",), "speed": ("flight",), "distance_m": ("flight",),
+    "step": ("paper",),
+    "unconstrained": ("paper",),
+    "start": ("paper", "phones"),
+    "length": ("paper", "phones"),
+    "distance": ("paper", "phones"),
+    "fps": ("phones", "flight"),
+    "offsets": ("phones", "flight"),
+    "drift_ppm": ("phones", "flight"),
+    "jitter_ms": ("phones", "flight"),
+    "vfr": ("phones", "flight"),
+    "handheld": ("phones", "flight"),
+    "shake_mm": ("phones", "flight"),
+    "shake_deg": ("phones", "flight"),
+    "false_fraction": ("phones", "flight"),
+    "duration": ("flight",),
+    "speed": ("flight",),
+    "distance_m": ("flight",),
 }
 FLAG_OF = {"distance_m": "--distance-m", "false_fraction": "--false"}
 
@@ -43,22 +54,37 @@ def _remember(namespace: argparse.Namespace, dest: str) -> None:
 class _Store(argparse._StoreAction):
     """Store, and note that the user gave the option (a mode's own defaults apply otherwise)."""
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
         super().__call__(parser, namespace, values, option_string)
         _remember(namespace, self.dest)
 
 
 class _StoreTrue(argparse._StoreTrueAction):
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
         super().__call__(parser, namespace, values, option_string)
         _remember(namespace, self.dest)
 
 
 class _Boolean(argparse.BooleanOptionalAction):
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
         super().__call__(parser, namespace, values, option_string)
         _remember(namespace, self.dest)
 
@@ -77,76 +103,163 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
     phones = phone_capture.PhoneCaptureOptions()
     flight = flight_module.FlightOptions()
     sim = subparsers.add_parser(
-        "simulate", help=COMMANDS["simulate"],
+        "simulate",
+        help=COMMANDS["simulate"],
         description="--mode paper (default): the seed paper's protocol, static virtual cameras (1000x1000 px, "
-                    "f = 1000) around the motion, each mocap sample seen by one camera. --mode phones: each "
-                    "camera records on its own clock (own fps, start offset, optional drift and jitter), "
-                    "optionally handheld; truth interpolated at each capture time. --mode flight: one point on "
-                    "a drone's flight path, cameras 30-100 m away (no MOCAP). Writes cameras.json, tracks.csv, "
-                    "truth.csv, simulation.json (+ clocks_truth.json for phones and flight); units: mm.")
+        "f = 1000) around the motion, each mocap sample seen by one camera. --mode phones: each "
+        "camera records on its own clock (own fps, start offset, optional drift and jitter), "
+        "optionally handheld; truth interpolated at each capture time. --mode flight: one point on "
+        "a drone's flight path, cameras 30-100 m away (no MOCAP). Writes cameras.json, tracks.csv, "
+        "truth.csv, simulation.json (+ clocks_truth.json for phones and flight); units: mm.",
+    )
     sim.add_argument("mocap", type=Path, nargs="?", help="a .c3d or .trc motion-capture file (not for flight)")
     sim.add_argument("--out", type=Path, required=True, help="output folder")
     sim.add_argument("--mode", choices=MODES, default="paper", help="capture model (default %(default)s)")
-    sim.add_argument("--cameras", type=int, default=defaults.cameras, action=_Store,
-                     help=f"number of cameras (default {defaults.cameras}; flight {flight.cameras})")
-    sim.add_argument("--step", type=int, default=defaults.step, action=_Store,
-                     help="paper: keep every STEP-th mocap sample (120 Hz mocap, 4 cameras: 1 = 30 Hz per camera)")
-    sim.add_argument("--noise", type=float, default=defaults.noise_px, metavar="PX", action=_Store,
-                     help=f"Gaussian pixel noise sigma (default {defaults.noise_px}; flight {flight.noise_px})")
-    sim.add_argument("--miss", type=float, default=defaults.miss, metavar="FRAC", action=_Store,
-                     help="fraction of observations removed at random (default %(default)s)")
-    sim.add_argument("--unconstrained", action=_StoreTrue,
-                     help="paper: allow a camera to take two consecutive captures")
-    sim.add_argument("--seed", type=int, default=defaults.seed, action=_Store,
-                     help="random seed (default %(default)s)")
-    sim.add_argument("--start", type=int, default=defaults.start, action=_Store,
-                     help="first mocap frame (default 0)")
-    sim.add_argument("--length", type=int, default=defaults.length, action=_Store,
-                     help="window length in mocap frames, before --step (default: to the end)")
-    sim.add_argument("--distance", type=float, default=None, metavar="MM", action=_Store,
-                     help="fixed camera distance to the motion's centroid in mm (the paper averages 2700); default: "
-                          "twice the motion's extent, moved back until every point is inside the images")
+    sim.add_argument(
+        "--cameras",
+        type=int,
+        default=defaults.cameras,
+        action=_Store,
+        help=f"number of cameras (default {defaults.cameras}; flight {flight.cameras})",
+    )
+    sim.add_argument(
+        "--step",
+        type=int,
+        default=defaults.step,
+        action=_Store,
+        help="paper: keep every STEP-th mocap sample (120 Hz mocap, 4 cameras: 1 = 30 Hz per camera)",
+    )
+    sim.add_argument(
+        "--noise",
+        type=float,
+        default=defaults.noise_px,
+        metavar="PX",
+        action=_Store,
+        help=f"Gaussian pixel noise sigma (default {defaults.noise_px}; flight {flight.noise_px})",
+    )
+    sim.add_argument(
+        "--miss",
+        type=float,
+        default=defaults.miss,
+        metavar="FRAC",
+        action=_Store,
+        help="fraction of observations removed at random (default %(default)s)",
+    )
+    sim.add_argument(
+        "--unconstrained", action=_StoreTrue, help="paper: allow a camera to take two consecutive captures"
+    )
+    sim.add_argument("--seed", type=int, default=defaults.seed, action=_Store, help="random seed (default %(default)s)")
+    sim.add_argument("--start", type=int, default=defaults.start, action=_Store, help="first mocap frame (default 0)")
+    sim.add_argument(
+        "--length",
+        type=int,
+        default=defaults.length,
+        action=_Store,
+        help="window length in mocap frames, before --step (default: to the end)",
+    )
+    sim.add_argument(
+        "--distance",
+        type=float,
+        default=None,
+        metavar="MM",
+        action=_Store,
+        help="fixed camera distance to the motion's centroid in mm (the paper averages 2700); default: "
+        "twice the motion's extent, moved back until every point is inside the images",
+    )
     clocks = sim.add_argument_group("phones and flight")
-    clocks.add_argument("--fps", metavar="F1,F2,...", action=_Store,
-                        help="nominal frame rate of each camera (default: "
-                             f"{','.join(f'{f:g}' for f in phone_capture.DEFAULT_FPS)}, cycled)")
-    clocks.add_argument("--offsets", metavar="MIN,MAX", action=_Store,
-                        help="each camera starts at a time drawn uniformly in MIN..MAX s (default "
-                             f"{phones.offset_s[0]:g},{phones.offset_s[1]:g}; flight "
-                             f"{flight.offset_s[0]:g},{flight.offset_s[1]:g})")
-    clocks.add_argument("--drift-ppm", type=float, metavar="PPM", action=_Store,
-                        help="clock rate errors drawn uniformly in +-PPM parts per million (default 0)")
-    clocks.add_argument("--jitter-ms", type=float, metavar="MS", action=_Store,
-                        help="std of each frame's capture-time jitter (default 0)")
-    clocks.add_argument("--vfr", action=_StoreTrue,
-                        help="cameras.json times carry the jitter (variable frame rate); default k / fps")
-    clocks.add_argument("--handheld", action=_Boolean,
-                        help="shake the cameras (smooth random sway of centre and orientation); default off for "
-                             "phones, on for flight")
-    clocks.add_argument("--shake-mm", type=float, metavar="MM", action=_Store,
-                        help=f"handheld: std of the centre's excursion per axis (default {phones.shake_mm:g}; "
-                             f"flight {flight.shake_mm:g})")
-    clocks.add_argument("--shake-deg", type=float, metavar="DEG", action=_Store,
-                        help=f"handheld: std of the orientation's excursion per axis (default {phones.shake_deg:g}; "
-                             f"flight {flight.shake_deg:g})")
-    clocks.add_argument("--false", dest="false_fraction", type=float, metavar="FRAC", action=_Store,
-                        help="share of detections replaced by a random pixel far from the truth (default 0; "
-                             f"flight {flight.false_fraction:g})")
+    clocks.add_argument(
+        "--fps",
+        metavar="F1,F2,...",
+        action=_Store,
+        help="nominal frame rate of each camera (default: "
+        f"{','.join(f'{f:g}' for f in phone_capture.DEFAULT_FPS)}, cycled)",
+    )
+    clocks.add_argument(
+        "--offsets",
+        metavar="MIN,MAX",
+        action=_Store,
+        help="each camera starts at a time drawn uniformly in MIN..MAX s (default "
+        f"{phones.offset_s[0]:g},{phones.offset_s[1]:g}; flight "
+        f"{flight.offset_s[0]:g},{flight.offset_s[1]:g})",
+    )
+    clocks.add_argument(
+        "--drift-ppm",
+        type=float,
+        metavar="PPM",
+        action=_Store,
+        help="clock rate errors drawn uniformly in +-PPM parts per million (default 0)",
+    )
+    clocks.add_argument(
+        "--jitter-ms",
+        type=float,
+        metavar="MS",
+        action=_Store,
+        help="std of each frame's capture-time jitter (default 0)",
+    )
+    clocks.add_argument(
+        "--vfr", action=_StoreTrue, help="cameras.json times carry the jitter (variable frame rate); default k / fps"
+    )
+    clocks.add_argument(
+        "--handheld",
+        action=_Boolean,
+        help="shake the cameras (smooth random sway of centre and orientation); default off for phones, on for flight",
+    )
+    clocks.add_argument(
+        "--shake-mm",
+        type=float,
+        metavar="MM",
+        action=_Store,
+        help=f"handheld: std of the centre's excursion per axis (default {phones.shake_mm:g}; "
+        f"flight {flight.shake_mm:g})",
+    )
+    clocks.add_argument(
+        "--shake-deg",
+        type=float,
+        metavar="DEG",
+        action=_Store,
+        help=f"handheld: std of the orientation's excursion per axis (default {phones.shake_deg:g}; "
+        f"flight {flight.shake_deg:g})",
+    )
+    clocks.add_argument(
+        "--false",
+        dest="false_fraction",
+        type=float,
+        metavar="FRAC",
+        action=_Store,
+        help="share of detections replaced by a random pixel far from the truth (default 0; "
+        f"flight {flight.false_fraction:g})",
+    )
     scene = sim.add_argument_group("flight")
-    scene.add_argument("--duration", type=float, metavar="S", action=_Store,
-                       help=f"length of the flight (default {flight.duration_s:g} s)")
-    scene.add_argument("--speed", type=float, metavar="M/S", action=_Store,
-                       help=f"mean speed of the drone (default {flight.speed_mps:g} m/s)")
-    scene.add_argument("--distance-m", metavar="MIN,MAX", action=_Store,
-                       help="horizontal camera distance to the path's centre, drawn in MIN..MAX m (default "
-                            f"{flight.distance_m[0]:g},{flight.distance_m[1]:g})")
+    scene.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        action=_Store,
+        help=f"length of the flight (default {flight.duration_s:g} s)",
+    )
+    scene.add_argument(
+        "--speed",
+        type=float,
+        metavar="M/S",
+        action=_Store,
+        help=f"mean speed of the drone (default {flight.speed_mps:g} m/s)",
+    )
+    scene.add_argument(
+        "--distance-m",
+        metavar="MIN,MAX",
+        action=_Store,
+        help="horizontal camera distance to the path's centre, drawn in MIN..MAX m (default "
+        f"{flight.distance_m[0]:g},{flight.distance_m[1]:g})",
+    )
     sim.set_defaults(func=_simulate)
 
 
 def _add_evaluate(subparsers: argparse._SubParsersAction) -> None:
     ev = subparsers.add_parser(
-        "evaluate", help=COMMANDS["evaluate"],
-        description="Compare DIR/points3d.csv with DIR/truth.csv row by row (video, frame, point).")
+        "evaluate",
+        help=COMMANDS["evaluate"],
+        description="Compare DIR/points3d.csv with DIR/truth.csv row by row (video, frame, point).",
+    )
     ev.add_argument("dir", type=Path, help="folder with points3d.csv (and truth.csv unless --truth)")
     ev.add_argument("--truth", type=Path, default=None, help="truth.csv of the simulation")
     ev.add_argument("--json", action="store_true", help="print the numbers as JSON instead of a table")
@@ -188,9 +301,20 @@ def _capture_fields(args: argparse.Namespace, given: set[str]) -> dict[str, Any]
     from simulation.phones import Timestamps
 
     fields: dict[str, Any] = {}
-    plain = {"cameras": "cameras", "noise": "noise_px", "miss": "miss", "seed": "seed", "drift_ppm": "drift_ppm",
-             "jitter_ms": "jitter_ms", "handheld": "handheld", "shake_mm": "shake_mm", "shake_deg": "shake_deg",
-             "false_fraction": "false_fraction", "start": "start", "length": "length"}
+    plain = {
+        "cameras": "cameras",
+        "noise": "noise_px",
+        "miss": "miss",
+        "seed": "seed",
+        "drift_ppm": "drift_ppm",
+        "jitter_ms": "jitter_ms",
+        "handheld": "handheld",
+        "shake_mm": "shake_mm",
+        "shake_deg": "shake_deg",
+        "false_fraction": "false_fraction",
+        "start": "start",
+        "length": "length",
+    }
     for dest, name in plain.items():
         if dest in given:
             fields[name] = getattr(args, dest)
@@ -213,9 +337,16 @@ def _simulate(args: argparse.Namespace) -> int:
     require_writable(args.out)  # a traceback after the simulation otherwise
     if args.mode == "paper":
         options = simulate_module.SimulationOptions(
-            cameras=args.cameras, step=args.step, noise_px=args.noise, miss=args.miss,
-            unconstrained=args.unconstrained, seed=args.seed, start=args.start, length=args.length,
-            camera_distance_mm=args.distance)
+            cameras=args.cameras,
+            step=args.step,
+            noise_px=args.noise,
+            miss=args.miss,
+            unconstrained=args.unconstrained,
+            seed=args.seed,
+            start=args.start,
+            length=args.length,
+            camera_distance_mm=args.distance,
+        )
         out = simulate_module.run(args.mocap, args.out, options)
     elif args.mode == "phones":
         fields = _capture_fields(args, given)
@@ -241,8 +372,10 @@ def _simulate(args: argparse.Namespace) -> int:
     else:
         rates = ", ".join(f"{c['fps']:g}" for c in _clocks(out))
         where = f"{rates} fps, {record['false_detections']} false detections"
-    summary = (f"{out}: {record['captures']} captures of {len(record['points'])} points in {cameras} "
-               f"cameras {where}, {record['observations']} observations")
+    summary = (
+        f"{out}: {record['captures']} captures of {len(record['points'])} points in {cameras} "
+        f"cameras {where}, {record['observations']} observations"
+    )
     print(summary)  # noqa: T201
     return 0
 

@@ -40,8 +40,10 @@ class ReconstructionAccuracy:
     def table(self) -> str:
         """One line: the shares under each threshold, median, mean and failures."""
         cells = [f"<{t:g}: {100 * s:6.2f}%" for t, s in zip(self.thresholds, self.share_under, strict=True)]
-        return (" | ".join(cells) + f" | median {self.median:.2f} | mean {self.mean:.2f} | "
-                f"unreconstructed {self.unreconstructed}/{self.count}")
+        return (
+            " | ".join(cells) + f" | median {self.median:.2f} | mean {self.mean:.2f} | "
+            f"unreconstructed {self.unreconstructed}/{self.count}"
+        )
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready numbers (NaN and inf as null)."""
@@ -50,8 +52,11 @@ class ReconstructionAccuracy:
             "share_under": _json_list(self.share_under),
             "share_under_observed": _json_list(self.share_under_observed),
             "share_under_unobserved": _json_list(self.share_under_unobserved),
-            "median": _json_number(self.median), "mean": _json_number(self.mean), "count": self.count,
-            "unreconstructed": self.unreconstructed, "no_truth": self.no_truth,
+            "median": _json_number(self.median),
+            "mean": _json_number(self.mean),
+            "count": self.count,
+            "unreconstructed": self.unreconstructed,
+            "no_truth": self.no_truth,
         }
 
 
@@ -69,8 +74,14 @@ def _shares(errors: np.ndarray, thresholds: tuple[float, ...]) -> np.ndarray:
     return np.array([float(np.mean(errors < t)) for t in thresholds])
 
 
-def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float, ...] = THRESHOLDS_MM, *,
-             estimate_path: Path | None = None, truth_path: Path | None = None) -> ReconstructionAccuracy:
+def evaluate(
+    estimate: FramePoints,
+    truth: FramePoints,
+    thresholds: tuple[float, ...] = THRESHOLDS_MM,
+    *,
+    estimate_path: Path | None = None,
+    truth_path: Path | None = None,
+) -> ReconstructionAccuracy:
     """Compare `estimate` with `truth` row by row; both must have the same (video, frame) rows and points."""
     if not thresholds or any(not t > 0 for t in thresholds):
         raise InputError(None, f"thresholds must be positive numbers, got {thresholds}")
@@ -78,21 +89,33 @@ def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float,
     estimate_rows = estimate.index()
     for key in estimate_rows:
         if key not in truth_rows:
-            raise InputError(estimate_path, f"video {key[0]!r} frame {key[1]} is not in the truth",
-                             fix=f"evaluate against the truth of the same capture ({truth_path or 'truth'})")
+            raise InputError(
+                estimate_path,
+                f"video {key[0]!r} frame {key[1]} is not in the truth",
+                fix=f"evaluate against the truth of the same capture ({truth_path or 'truth'})",
+            )
     for key in truth_rows:
         if key not in estimate_rows:
-            raise InputError(estimate_path, f"video {key[0]!r} frame {key[1]} of the truth has no row",
-                             fix="the estimate must have one row for every posed frame and point")
+            raise InputError(
+                estimate_path,
+                f"video {key[0]!r} frame {key[1]} of the truth has no row",
+                fix="the estimate must have one row for every posed frame and point",
+            )
     extra_points = sorted(set(estimate.point_names) - set(truth.point_names))
     if extra_points:
-        raise InputError(estimate_path, f"point {extra_points[0]!r} is not in the truth",
-                         fix=f"evaluate against the truth of the same capture ({truth_path or 'truth'})")
+        raise InputError(
+            estimate_path,
+            f"point {extra_points[0]!r} is not in the truth",
+            fix=f"evaluate against the truth of the same capture ({truth_path or 'truth'})",
+        )
     estimate_points = {name: i for i, name in enumerate(estimate.point_names)}
     lacking = [name for name in truth.point_names if name not in estimate_points]
     if lacking:
-        raise InputError(estimate_path, f"point {lacking[0]!r} of the truth has no rows",
-                         fix="the estimate must have one row for every posed frame and point")
+        raise InputError(
+            estimate_path,
+            f"point {lacking[0]!r} of the truth has no rows",
+            fix="the estimate must have one row for every posed frame and point",
+        )
 
     # Estimate rearranged into the truth's frame and point order.
     frame_order = np.array([estimate_rows[key] for key in truth_rows], dtype=np.int64)
@@ -123,17 +146,29 @@ def evaluate(estimate: FramePoints, truth: FramePoints, thresholds: tuple[float,
     return accuracy
 
 
-def run(directory: str | Path, truth_path: str | Path | None = None,
-        thresholds: tuple[float, ...] = THRESHOLDS_MM) -> ReconstructionAccuracy:
+def run(
+    directory: str | Path, truth_path: str | Path | None = None, thresholds: tuple[float, ...] = THRESHOLDS_MM
+) -> ReconstructionAccuracy:
     """Score `DIR/points3d.csv` against `DIR/truth.csv` (or `truth_path`)."""
     directory = Path(directory)
     estimate_path = directory / "points3d.csv"
     truth_file = Path(truth_path) if truth_path is not None else directory / "truth.csv"
     if not estimate_path.is_file():
-        raise InputError(estimate_path, "file not found",
-                         fix="run `dynrecon solve --out DIR` first, or give the folder of points3d.csv")
+        raise InputError(
+            estimate_path,
+            "file not found",
+            fix="run `dynrecon solve --out DIR` first, or give the folder of points3d.csv",
+        )
     if not truth_file.is_file():
-        raise InputError(truth_file, "file not found",
-                         fix="give the simulation's truth.csv with --truth or put it beside points3d.csv")
-    return evaluate(read_points(estimate_path), read_points(truth_file), thresholds,
-                    estimate_path=estimate_path, truth_path=truth_file)
+        raise InputError(
+            truth_file,
+            "file not found",
+            fix="give the simulation's truth.csv with --truth or put it beside points3d.csv",
+        )
+    return evaluate(
+        read_points(estimate_path),
+        read_points(truth_file),
+        thresholds,
+        estimate_path=estimate_path,
+        truth_path=truth_file,
+    )

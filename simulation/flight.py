@@ -99,8 +99,9 @@ def flight_scene(options: FlightOptions, rng: np.random.Generator) -> FlightScen
     frequency = rng.uniform(0.3, 1.0, (COMPONENTS, 3))
     phase = rng.uniform(0, 2 * np.pi, (COMPONENTS, 3))
     centre = np.array([0.0, 0.0, options.altitude_m * MM_PER_M])
-    scene = FlightScene(centre=centre, amplitude=amplitude, frequency=frequency, phase=phase,
-                        camera_centres=np.zeros((0, 3)))
+    scene = FlightScene(
+        centre=centre, amplitude=amplitude, frequency=frequency, phase=phase, camera_centres=np.zeros((0, 3))
+    )
     # Frequencies scale the speed without changing the shape; the mean over a finite window is not exactly
     # linear in them, so iterate.
     grid = np.linspace(0.0, options.duration_s, 2001)
@@ -110,8 +111,9 @@ def flight_scene(options: FlightOptions, rng: np.random.Generator) -> FlightScen
     C = options.cameras
     azimuth = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(C) / C + rng.uniform(-0.2, 0.2, C)
     distance = rng.uniform(options.distance_m[0], options.distance_m[1], C) * MM_PER_M
-    scene.camera_centres = np.stack([distance * np.cos(azimuth), distance * np.sin(azimuth),
-                                     np.full(C, options.camera_height_m * MM_PER_M)], axis=1)
+    scene.camera_centres = np.stack(
+        [distance * np.cos(azimuth), distance * np.sin(azimuth), np.full(C, options.camera_height_m * MM_PER_M)], axis=1
+    )
     return scene
 
 
@@ -122,16 +124,30 @@ def simulate_flight(options: FlightOptions | None = None) -> tuple[SimulatedCapt
     rng = np.random.default_rng(options.seed)
     scene = flight_scene(options, rng)
     poses = [look_at(c, scene.centre, UP) for c in scene.camera_centres]
-    K = np.array([[options.focal_px, 0, (options.image_width - 1) / 2],
-                  [0, options.focal_px, (options.image_height - 1) / 2], [0, 0, 1.0]])
+    K = np.array(
+        [
+            [options.focal_px, 0, (options.image_width - 1) / 2],
+            [0, options.focal_px, (options.image_height - 1) / 2],
+            [0, 0, 1.0],
+        ]
+    )
 
     def valid(times: np.ndarray) -> np.ndarray:
         return np.ones(len(times), dtype=bool)
 
     capture, record = capture_scene(
-        scene.position, valid, (0.0, options.duration_s), ["drone"], K, np.stack([p[0] for p in poses]),
-        np.stack([p[1] for p in poses]), (options.image_width, options.image_height), options, rng,
-        min_depth=MIN_DEPTH_MM)
+        scene.position,
+        valid,
+        (0.0, options.duration_s),
+        ["drone"],
+        K,
+        np.stack([p[0] for p in poses]),
+        np.stack([p[1] for p in poses]),
+        (options.image_width, options.image_height),
+        options,
+        rng,
+        min_depth=MIN_DEPTH_MM,
+    )
     return capture, record, scene
 
 
@@ -145,9 +161,14 @@ def run(out_dir: str | Path, options: FlightOptions | None = None) -> Path:
         "mode": "flight",
         "units": "mm",
         "options": options_record(options),
-        "path": {"centre_mm": scene.centre.tolist(), "amplitude_mm": scene.amplitude.tolist(),
-                 "frequency_hz": scene.frequency.tolist(), "phase_rad": scene.phase.tolist(),
-                 "mean_speed_mps": float(speeds.mean()), "max_speed_mps": float(speeds.max())},
+        "path": {
+            "centre_mm": scene.centre.tolist(),
+            "amplitude_mm": scene.amplitude.tolist(),
+            "frequency_hz": scene.frequency.tolist(),
+            "phase_rad": scene.phase.tolist(),
+            "mean_speed_mps": float(speeds.mean()),
+            "max_speed_mps": float(speeds.max()),
+        },
         "camera_centres_mm": scene.camera_centres.tolist(),
     }
     return write_capture(Path(out_dir), capture, record, simulation, time_origin="the start of the flight")

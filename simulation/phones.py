@@ -182,16 +182,28 @@ def _check_capture_options(options: CaptureOptions) -> None:
 
 def draw_clocks(options: CaptureOptions, rng: np.random.Generator) -> list[TrueClock]:
     """One true clock per camera `cam0..`: nominal rate, start offset and drift."""
-    rates = options.fps if options.fps is not None else tuple(
-        DEFAULT_FPS[c % len(DEFAULT_FPS)] for c in range(options.cameras))
+    rates = (
+        options.fps
+        if options.fps is not None
+        else tuple(DEFAULT_FPS[c % len(DEFAULT_FPS)] for c in range(options.cameras))
+    )
     offsets = rng.uniform(options.offset_s[0], options.offset_s[1], size=options.cameras)
     drifts = rng.uniform(-1.0, 1.0, size=options.cameras) * options.drift_ppm * 1e-6
-    return [TrueClock(name=f"cam{c}", fps=float(rates[c]), offset_s=float(offsets[c]), rate=1.0 + float(drifts[c]),
-                      drift=float(drifts[c])) for c in range(options.cameras)]
+    return [
+        TrueClock(
+            name=f"cam{c}",
+            fps=float(rates[c]),
+            offset_s=float(offsets[c]),
+            rate=1.0 + float(drifts[c]),
+            drift=float(drifts[c]),
+        )
+        for c in range(options.cameras)
+    ]
 
 
-def capture_times(clock: TrueClock, span: tuple[float, float], jitter_s: float,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def capture_times(
+    clock: TrueClock, span: tuple[float, float], jitter_s: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Frame numbers (N,) whose nominal time lies in `span` (global s) and their true capture times (N,).
 
     The jitter is drawn for every frame and clipped to MAX_JITTER_FRAMES of a period; a jittered time may
@@ -212,8 +224,7 @@ def capture_times(clock: TrueClock, span: tuple[float, float], jitter_s: float,
 # Handheld motion
 
 
-def smooth_walk(times: np.ndarray, dims: int, std: float, correlation_s: float,
-                rng: np.random.Generator) -> np.ndarray:
+def smooth_walk(times: np.ndarray, dims: int, std: float, correlation_s: float, rng: np.random.Generator) -> np.ndarray:
     """A smooth, stationary random motion at `times` (N,): (N, dims), each coordinate N(0, std^2).
 
     White noise on knots every KNOT_SPACING_S, Gaussian-filtered so that the covariance is
@@ -234,8 +245,14 @@ def smooth_walk(times: np.ndarray, dims: int, std: float, correlation_s: float,
     return np.asarray(CubicSpline(knots_t, std * smooth, axis=0)(times))
 
 
-def handheld_poses(R: np.ndarray, t: np.ndarray, times: np.ndarray, options: CaptureOptions,
-                   rng: np.random.Generator, scale_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def handheld_poses(
+    R: np.ndarray,
+    t: np.ndarray,
+    times: np.ndarray,
+    options: CaptureOptions,
+    rng: np.random.Generator,
+    scale_mm: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """cam_from_world of each frame (N, 3, 3), (N, 3): a base pose (3, 3), (3,) shaken at the true `times` (N,).
 
     The orientation excursion is a rotation about the camera's own axes; the centre moves by `shake_mm` x
@@ -265,8 +282,9 @@ def _project(points: np.ndarray, K: np.ndarray, Rs: np.ndarray, ts: np.ndarray) 
     return uv, depth
 
 
-def detect(uv: np.ndarray, inside: np.ndarray, size: tuple[int, int], options: CaptureOptions,
-           rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def detect(
+    uv: np.ndarray, inside: np.ndarray, size: tuple[int, int], options: CaptureOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Detections of true projections `uv (N, P, 2)`; `inside (N, P)` = in the image.
 
     Returns pixels (N, P, 2), observed (N, P) (in tracks.csv) and false (N, P) (a random pixel at least
@@ -293,8 +311,10 @@ def detect(uv: np.ndarray, inside: np.ndarray, size: tuple[int, int], options: C
                 if np.linalg.norm(candidate - flat_uv[index]) >= options.false_min_px:
                     break
             else:
-                raise DynreconError(f"cannot place a false detection {options.false_min_px} px from the truth in a "
-                                    f"{width} x {height} image: use a smaller distance")
+                raise DynreconError(
+                    f"cannot place a false detection {options.false_min_px} px from the truth in a "
+                    f"{width} x {height} image: use a smaller distance"
+                )
             flat_xy[index] = candidate
         false.reshape(-1)[chosen] = True
     return xy, observed, false
@@ -304,10 +324,21 @@ def detect(uv: np.ndarray, inside: np.ndarray, size: tuple[int, int], options: C
 # The core: any scene, any cameras
 
 
-def capture_scene(position: Callable[[np.ndarray], np.ndarray], valid: Callable[[np.ndarray], np.ndarray],
-                  span: tuple[float, float], point_names: list[str], K: np.ndarray, base_R: np.ndarray,
-                  base_t: np.ndarray, size: tuple[int, int], options: CaptureOptions, rng: np.random.Generator,
-                  *, min_depth: float, world_per_mm: float = 1.0) -> tuple[SimulatedCapture, CaptureRecord]:
+def capture_scene(
+    position: Callable[[np.ndarray], np.ndarray],
+    valid: Callable[[np.ndarray], np.ndarray],
+    span: tuple[float, float],
+    point_names: list[str],
+    K: np.ndarray,
+    base_R: np.ndarray,
+    base_t: np.ndarray,
+    size: tuple[int, int],
+    options: CaptureOptions,
+    rng: np.random.Generator,
+    *,
+    min_depth: float,
+    world_per_mm: float = 1.0,
+) -> tuple[SimulatedCapture, CaptureRecord]:
     """Every camera records the scene on its own clock.
 
     position(times (N,)) -> (N, P, 3) world points at global times; valid(times) -> (N,) bool (False: no
@@ -343,15 +374,25 @@ def capture_scene(position: Callable[[np.ndarray], np.ndarray], valid: Callable[
         if depth.size and depth.min() < min_depth:
             raise DynreconError(
                 f"camera {clock.name} comes within {max(float(depth.min()), 0.0):.0f} units of a point (or has it "
-                "behind): use a larger camera distance or less handheld shake")
-        inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & \
-            (uv[..., 1] <= height - 0.5)
+                "behind): use a larger camera distance or less handheld shake"
+            )
+        inside = (
+            (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= height - 0.5)
+        )
         # VFR: the capture instant on the camera's own clock; CFR: the nominal frame time.
         own = clock.own_time(times) if options.timestamps is Timestamps.VFR else frames / clock.fps
-        videos.append(VideoCameras(
-            name=clock.name, width=width, height=height, fps=clock.fps,
-            frames=[FrameCamera(frame=int(f), K=K.copy(), R=Rs[i].copy(), t=ts[i].copy(), time=float(own[i]))
-                    for i, f in enumerate(frames)]))
+        videos.append(
+            VideoCameras(
+                name=clock.name,
+                width=width,
+                height=height,
+                fps=clock.fps,
+                frames=[
+                    FrameCamera(frame=int(f), K=K.copy(), R=Rs[i].copy(), t=ts[i].copy(), time=float(own[i]))
+                    for i, f in enumerate(frames)
+                ],
+            )
+        )
         centres[clock.name] = -np.einsum("nji,nj->ni", Rs, ts)
         names.extend([clock.name] * len(frames))
         frame_numbers.append(frames)
@@ -366,23 +407,49 @@ def capture_scene(position: Callable[[np.ndarray], np.ndarray], valid: Callable[
     frame_of = np.concatenate(frame_numbers)
     time_of = np.concatenate(true_times)
     if len(frame_of) == 0:
-        raise DynreconError("no camera captured a frame inside the window: use smaller start offsets or a "
-                            "longer window")
+        raise DynreconError(
+            "no camera captured a frame inside the window: use smaller start offsets or a longer window"
+        )
     xy, observed, false = detect(uv, inside, size, options, rng)
-    truth = FramePoints(videos=names, frames=frame_of, point_names=list(point_names), xyz=xyz,
-                        observed=observed, extra={"time": np.repeat(time_of[:, None], P, axis=1),
-                                                  "false_detection": false.astype(float)})
+    truth = FramePoints(
+        videos=names,
+        frames=frame_of,
+        point_names=list(point_names),
+        xyz=xyz,
+        observed=observed,
+        extra={"time": np.repeat(time_of[:, None], P, axis=1), "false_detection": false.astype(float)},
+    )
     seen_frame, seen_point = np.nonzero(observed)
-    tracks = Tracks(video=[names[i] for i in seen_frame], frame=frame_of[seen_frame],
-                    point=[point_names[p] for p in seen_point], xy=xy[seen_frame, seen_point])
-    record = CaptureRecord(clocks=clocks, timestamps=options.timestamps, jitter_ms=options.jitter_ms,
-                           frames=frames_count, dropped=dropped, out_of_image=int((~inside).sum()),
-                           false_detections=int(false.sum()), centres=centres)
+    tracks = Tracks(
+        video=[names[i] for i in seen_frame],
+        frame=frame_of[seen_frame],
+        point=[point_names[p] for p in seen_point],
+        xy=xy[seen_frame, seen_point],
+    )
+    record = CaptureRecord(
+        clocks=clocks,
+        timestamps=options.timestamps,
+        jitter_ms=options.jitter_ms,
+        frames=frames_count,
+        dropped=dropped,
+        out_of_image=int((~inside).sum()),
+        false_detections=int(false.sum()),
+        centres=centres,
+    )
     if record.out_of_image:
-        log.info("%d of %d true projections fall outside their image: left out of tracks.csv",
-                 record.out_of_image, inside.size)
-    log.info("captured %d frames of %d points in %d cameras: %d observations (%d false)", len(frame_of), P,
-             len(clocks), len(tracks), record.false_detections)
+        log.info(
+            "%d of %d true projections fall outside their image: left out of tracks.csv",
+            record.out_of_image,
+            inside.size,
+        )
+    log.info(
+        "captured %d frames of %d points in %d cameras: %d observations (%d false)",
+        len(frame_of),
+        P,
+        len(clocks),
+        len(tracks),
+        record.false_detections,
+    )
     return SimulatedCapture(cameras=CameraSet(videos=videos), tracks=tracks, truth=truth), record
 
 
@@ -413,8 +480,7 @@ def mocap_truth(window: Mocap) -> tuple[Callable[[np.ndarray], np.ndarray], Call
     return position, valid
 
 
-def simulate_phones(mocap: Mocap, options: PhoneCaptureOptions | None = None
-                    ) -> tuple[SimulatedCapture, CaptureRecord]:
+def simulate_phones(mocap: Mocap, options: PhoneCaptureOptions | None = None) -> tuple[SimulatedCapture, CaptureRecord]:
     """Window and clean `mocap` (mm), place the cameras as the paper does, and let each phone record it."""
     options = options or PhoneCaptureOptions()
     _check_capture_options(options)
@@ -422,13 +488,31 @@ def simulate_phones(mocap: Mocap, options: PhoneCaptureOptions | None = None
     window = drop_incomplete(window, max_missing=options.max_marker_missing)
     position, valid = mocap_truth(window)
     rng = np.random.default_rng(options.seed)
-    rig = place_cameras(window.xyz, SimulationOptions(
-        cameras=options.cameras, image_size=options.image_size, focal_px=options.focal_px,
-        distance_factor=options.distance_factor, camera_distance_mm=options.camera_distance_mm), rng)
+    rig = place_cameras(
+        window.xyz,
+        SimulationOptions(
+            cameras=options.cameras,
+            image_size=options.image_size,
+            focal_px=options.focal_px,
+            distance_factor=options.distance_factor,
+            camera_distance_mm=options.camera_distance_mm,
+        ),
+        rng,
+    )
     span = (0.0, float(window.times[-1] - window.times[0]))
     capture, record = capture_scene(
-        position, valid, span, list(window.marker_names), rig.K, rig.R, rig.t,
-        (options.image_size, options.image_size), options, rng, min_depth=MIN_DEPTH_FRACTION * rig.distance)
+        position,
+        valid,
+        span,
+        list(window.marker_names),
+        rig.K,
+        rig.R,
+        rig.t,
+        (options.image_size, options.image_size),
+        options,
+        rng,
+        min_depth=MIN_DEPTH_FRACTION * rig.distance,
+    )
     record.rig = rig
     return capture, record
 
@@ -444,8 +528,18 @@ def clocks_document(record: CaptureRecord, time_origin: str) -> dict[str, Any]:
         "time_origin": time_origin,
         "timestamps": record.timestamps.value,
         "jitter_ms": record.jitter_ms,
-        "videos": [{"name": c.name, "fps": c.fps, "offset_s": c.offset_s, "rate": c.rate, "drift": c.drift,
-                    "drift_ppm": c.drift * 1e6, "frames": record.frames[c.name]} for c in record.clocks],
+        "videos": [
+            {
+                "name": c.name,
+                "fps": c.fps,
+                "offset_s": c.offset_s,
+                "rate": c.rate,
+                "drift": c.drift,
+                "drift_ppm": c.drift * 1e6,
+                "frames": record.frames[c.name],
+            }
+            for c in record.clocks
+        ],
     }
 
 
@@ -454,15 +548,15 @@ def options_record(options: CaptureOptions) -> dict[str, Any]:
     return {k: v.value if isinstance(v, enum.Enum) else v for k, v in asdict(options).items()}
 
 
-def write_capture(out: Path, capture: SimulatedCapture, record: CaptureRecord, simulation: dict[str, Any],
-                  time_origin: str) -> Path:
+def write_capture(
+    out: Path, capture: SimulatedCapture, record: CaptureRecord, simulation: dict[str, Any], time_origin: str
+) -> Path:
     """cameras.json, tracks.csv, truth.csv, clocks_truth.json and simulation.json into `out`."""
     out.mkdir(parents=True, exist_ok=True)
     write_cameras(out / "cameras.json", capture.cameras)
     write_tracks(out / "tracks.csv", capture.tracks)
     write_points(out / "truth.csv", capture.truth)
-    atomic_write_text(out / "clocks_truth.json",
-                      json.dumps(clocks_document(record, time_origin), indent=1) + "\n")
+    atomic_write_text(out / "clocks_truth.json", json.dumps(clocks_document(record, time_origin), indent=1) + "\n")
     simulation = {
         **simulation,
         "captures": capture.truth.num_frames,
@@ -494,5 +588,4 @@ def run(mocap_path: str | Path, out_dir: str | Path, options: PhoneCaptureOption
         "scale_mm": rig.scale,
         "camera_distance_mm": rig.distance,
     }
-    return write_capture(Path(out_dir), capture, record, simulation,
-                         time_origin="the first sample of the mocap window")
+    return write_capture(Path(out_dir), capture, record, simulation, time_origin="the first sample of the mocap window")

@@ -145,9 +145,17 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
                 raise DynreconError(
                     f"--distance {distance:.0f} mm puts the motion within {max(depth.min(), 0):.0f} mm of camera "
                     f"{k} (or behind it): the motion spans {2 * scale:.0f} mm; use a larger distance or a shorter "
-                    "window")
-        return Rig(centroid=centroid, up=up, scale=scale, distance=distance, K=K,
-                   R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]))
+                    "window"
+                )
+        return Rig(
+            centroid=centroid,
+            up=up,
+            scale=scale,
+            distance=distance,
+            K=K,
+            R=np.stack([p[0] for p in poses]),
+            t=np.stack([p[1] for p in poses]),
+        )
     distance = options.distance_factor * scale
     for _ in range(200):
         poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
@@ -163,10 +171,20 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
     else:  # pragma: no cover - 1.05^200 is far beyond any finite motion
         raise DynreconError("could not place the cameras so that every point is inside the images")
     if distance > options.distance_factor * scale * 1.001:
-        log.info("cameras moved back to %.0f mm (%.2f x the motion scale) to keep every point in the images",
-                 distance, distance / scale)
-    return Rig(centroid=centroid, up=up, scale=scale, distance=distance, K=K,
-               R=np.stack([p[0] for p in poses]), t=np.stack([p[1] for p in poses]))
+        log.info(
+            "cameras moved back to %.0f mm (%.2f x the motion scale) to keep every point in the images",
+            distance,
+            distance / scale,
+        )
+    return Rig(
+        centroid=centroid,
+        up=up,
+        scale=scale,
+        distance=distance,
+        K=K,
+        R=np.stack([p[0] for p in poses]),
+        t=np.stack([p[1] for p in poses]),
+    )
 
 
 def assign_cameras(count: int, cameras: int, unconstrained: bool, rng: np.random.Generator) -> np.ndarray:
@@ -219,21 +237,38 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
         order.extend(captures.tolist())
         if len(captures) == 0:
             log.warning("camera cam%d got no capture (only %d captures)", c, T)
-        videos.append(VideoCameras(
-            name=f"cam{c}", width=options.image_size, height=options.image_size,
-            # Captures are assigned at random, so frame / fps is not a capture time: leave fps unknown and
-            # give each frame its `time`.
-            fps=None,
-            frames=[FrameCamera(frame=int(frame_of[k]), K=rig.K.copy(), R=rig.R[c].copy(), t=rig.t[c].copy(),
-                                time=float(times[k])) for k in captures],
-        ))
+        videos.append(
+            VideoCameras(
+                name=f"cam{c}",
+                width=options.image_size,
+                height=options.image_size,
+                # Captures are assigned at random, so frame / fps is not a capture time: leave fps unknown and
+                # give each frame its `time`.
+                fps=None,
+                frames=[
+                    FrameCamera(
+                        frame=int(frame_of[k]),
+                        K=rig.K.copy(),
+                        R=rig.R[c].copy(),
+                        t=rig.t[c].copy(),
+                        time=float(times[k]),
+                    )
+                    for k in captures
+                ],
+            )
+        )
     cameras = CameraSet(videos=videos)
 
     rows = np.array(order, dtype=np.int64)  # captures grouped by video, then in time order = frame order
     names = [f"cam{c}" for c in assignment[rows]]
-    truth = FramePoints(videos=names, frames=frame_of[rows], point_names=list(window.marker_names),
-                        xyz=xyz[rows].copy(), observed=observed[rows].copy(),
-                        extra={"time": np.repeat(times[rows, None], M, axis=1)})
+    truth = FramePoints(
+        videos=names,
+        frames=frame_of[rows],
+        point_names=list(window.marker_names),
+        xyz=xyz[rows].copy(),
+        observed=observed[rows].copy(),
+        extra={"time": np.repeat(times[rows, None], M, axis=1)},
+    )
     seen_capture, seen_marker = np.nonzero(observed[rows])
     tracks = Tracks(
         video=[names[i] for i in seen_capture],
@@ -241,13 +276,21 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
         point=[window.marker_names[p] for p in seen_marker],
         xy=uv[rows][seen_capture, seen_marker],
     )
-    log.info("simulated %d captures x %d markers into %d cameras at %.0f mm (scale %.0f mm): %d observations",
-             T, M, options.cameras, rig.distance, rig.scale, len(tracks))
+    log.info(
+        "simulated %d captures x %d markers into %d cameras at %.0f mm (scale %.0f mm): %d observations",
+        T,
+        M,
+        options.cameras,
+        rig.distance,
+        rig.scale,
+        len(tracks),
+    )
     return SimulatedCapture(cameras=cameras, tracks=tracks, truth=truth), rig
 
 
-def simulate_capture(xyz: np.ndarray, rate: float, options: SimulationOptions | None = None, *,
-                     marker_names: list[str] | None = None) -> SimulatedCapture:
+def simulate_capture(
+    xyz: np.ndarray, rate: float, options: SimulationOptions | None = None, *, marker_names: list[str] | None = None
+) -> SimulatedCapture:
     """In-memory simulation of `xyz (T, M, 3)` mm sampled at `rate` Hz (NaN = missing sample)."""
     xyz = np.asarray(xyz, dtype=float)
     if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.shape[0] == 0 or xyz.shape[1] == 0:

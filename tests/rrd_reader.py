@@ -31,9 +31,15 @@ def chunks(path: str | Path) -> list[ChunkInfo]:
     out = []
     for chunk in RrdReader(Path(path)).stream().to_chunks():
         batch = chunk.to_record_batch()
-        out.append(ChunkInfo(entity=chunk.entity_path, static=chunk.is_static,
-                             timelines=list(chunk.timeline_names), num_rows=chunk.num_rows,
-                             columns=list(batch.schema.names)))
+        out.append(
+            ChunkInfo(
+                entity=chunk.entity_path,
+                static=chunk.is_static,
+                timelines=list(chunk.timeline_names),
+                num_rows=chunk.num_rows,
+                columns=list(batch.schema.names),
+            )
+        )
     return out
 
 
@@ -105,8 +111,11 @@ def blueprint_views(path: str | Path) -> list[tuple[str, str]]:
             if "ViewBlueprint:space_origin" not in names:
                 continue
             origins = batch.column("ViewBlueprint:space_origin").to_pylist()
-            titles = (batch.column("ViewBlueprint:display_name").to_pylist()
-                      if "ViewBlueprint:display_name" in names else [None] * len(origins))
+            titles = (
+                batch.column("ViewBlueprint:display_name").to_pylist()
+                if "ViewBlueprint:display_name" in names
+                else [None] * len(origins)
+            )
             for title, origin in zip(titles, origins, strict=True):
                 if origin is not None:
                     views.append((_first(title) or "", _first(origin)))
@@ -117,5 +126,6 @@ def verify(path: str | Path) -> subprocess.CompletedProcess:
     """Run `rerun rrd verify PATH` (the CLI shipped with rerun-sdk), falling back to `python -m rerun`."""
     exe = shutil.which("rerun")
     command = [exe] if exe else [sys.executable, "-m", "rerun"]
-    return subprocess.run([*command, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120,
-                          check=False)
+    return subprocess.run(
+        [*command, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120, check=False
+    )

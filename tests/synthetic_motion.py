@@ -22,11 +22,11 @@ def smooth_motion(frames: int = 160, points: int = 8, seed: int = 0, rate: float
     return base[None] + 200.0 * np.sin(2 * np.pi * frequency[None] * t[:, None, None] + phase[None])
 
 
-def synthetic_problem(frames: int = 160, points: int = 8, seed: int = 0, **options: float) -> tuple[
-        Problem, FramePoints]:
+def synthetic_problem(
+    frames: int = 160, points: int = 8, seed: int = 0, **options: float
+) -> tuple[Problem, FramePoints]:
     """A simulated 4-camera capture of `smooth_motion` and its truth aligned to the problem's frame order."""
-    capture = simulate_capture(smooth_motion(frames, points, seed), 120.0,
-                               SimulationOptions(seed=seed, **options))  # type: ignore[arg-type]
+    capture = simulate_capture(smooth_motion(frames, points, seed), 120.0, SimulationOptions(seed=seed, **options))  # type: ignore[arg-type]
     problem = build_problem(capture.cameras, capture.tracks, point_names=capture.truth.point_names)
     return problem, capture.truth
 
@@ -45,9 +45,31 @@ def simulated_phones(out: Path, rate: float = 120.0) -> Path:
     from reconstruct.outputs.mocap import Mocap, write_trc
 
     xyz = smooth_motion(frames=180, points=8, rate=rate)
-    source = write_trc(out / "motion.trc", Mocap(xyz=xyz, rate=rate, marker_names=[f"m{i}" for i in range(8)],
-                                                 times=np.arange(180) / rate), units="mm")
-    if main(["simulate", str(source), "--out", str(out / "sim"), "--mode", "phones", "--cameras", "3", "--fps",
-             "30,25,20", "--offsets", "0,0.3", "--seed", "2"]) != 0:
+    source = write_trc(
+        out / "motion.trc",
+        Mocap(xyz=xyz, rate=rate, marker_names=[f"m{i}" for i in range(8)], times=np.arange(180) / rate),
+        units="mm",
+    )
+    if (
+        main(
+            [
+                "simulate",
+                str(source),
+                "--out",
+                str(out / "sim"),
+                "--mode",
+                "phones",
+                "--cameras",
+                "3",
+                "--fps",
+                "30,25,20",
+                "--offsets",
+                "0,0.3",
+                "--seed",
+                "2",
+            ]
+        )
+        != 0
+    ):
         raise RuntimeError("the phone simulation failed")
     return out / "sim"

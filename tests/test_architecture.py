@@ -71,7 +71,7 @@ def _resolve(source: str, node: ast.ImportFrom) -> str:
     if not node.level:
         return node.module or ""
     base = source.split(".") if _is_package(source) else source.split(".")[:-1]
-    base = base[:len(base) - (node.level - 1)]
+    base = base[: len(base) - (node.level - 1)]
     return ".".join([*base, node.module] if node.module else base)
 
 

@@ -48,9 +48,11 @@ class Accuracy:
         return self.gave_up / self.hidden if self.hidden else float("nan")
 
     def row(self) -> str:
-        return (f"{self.median:.3f} | {self.p95:.3f} | {np.max(self.errors, initial=0):.2f} | "
-                f"{100 * self.coverage:.1f}% | {100 * self.gave_up_share:.1f}% "
-                f"({self.gave_up}/{self.hidden})")
+        return (
+            f"{self.median:.3f} | {self.p95:.3f} | {np.max(self.errors, initial=0):.2f} | "
+            f"{100 * self.coverage:.1f}% | {100 * self.gave_up_share:.1f}% "
+            f"({self.gave_up}/{self.hidden})"
+        )
 
 
 def score(result: dict[str, dict[int, TrackedPoint]], video: SyntheticVideo) -> Accuracy:

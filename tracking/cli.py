@@ -12,7 +12,7 @@ from pathlib import Path
 COMMANDS = {
     "track": "carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
     "import-tracks": "import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board "
-                     "corners found in videos into tracks.csv",
+    "corners found in videos into tracks.csv",
 }
 
 
@@ -27,22 +27,44 @@ def _add_track(subparsers: argparse._SubParsersAction) -> None:
 
     defaults = TrackOptions()
     parser = subparsers.add_parser(
-        "track", help=COMMANDS["track"],
+        "track",
+        help=COMMANDS["track"],
         description="Headless version of the labeling page's 'track' button. Videos come from --videos, else "
-                    "WS/labeling.json, else WS/videos/*; a video's name is its file stem.")
+        "WS/labeling.json, else WS/videos/*; a video's name is its file stem.",
+    )
     parser.add_argument("workspace", type=Path, metavar="WS", help="workspace folder with labels.csv")
     parser.add_argument("--videos", type=Path, nargs="+", metavar="VIDEO", help="track only these videos")
     parser.add_argument("--out", type=Path, help="output file (default WS/tracks.csv)")
-    parser.add_argument("--method", choices=[m.value for m in Method], default=defaults.method.value,
-                        help=f"step tracker (default {defaults.method.value})")
-    parser.add_argument("--blend", choices=[b.value for b in Blend], default=defaults.blend.value,
-                        help=f"combining forward and backward tracks (default {defaults.blend.value})")
-    parser.add_argument("--min-score", type=float, default=defaults.min_score,
-                        help=f"leave out tracked positions with a lower score (default {defaults.min_score})")
-    parser.add_argument("--fb-threshold", type=float, default=defaults.fb_threshold,
-                        help=f"LK forward-backward error limit in pixels (default {defaults.fb_threshold})")
-    parser.add_argument("--win-size", type=int, default=defaults.win_size,
-                        help=f"LK window side in pixels (default {defaults.win_size})")
+    parser.add_argument(
+        "--method",
+        choices=[m.value for m in Method],
+        default=defaults.method.value,
+        help=f"step tracker (default {defaults.method.value})",
+    )
+    parser.add_argument(
+        "--blend",
+        choices=[b.value for b in Blend],
+        default=defaults.blend.value,
+        help=f"combining forward and backward tracks (default {defaults.blend.value})",
+    )
+    parser.add_argument(
+        "--min-score",
+        type=float,
+        default=defaults.min_score,
+        help=f"leave out tracked positions with a lower score (default {defaults.min_score})",
+    )
+    parser.add_argument(
+        "--fb-threshold",
+        type=float,
+        default=defaults.fb_threshold,
+        help=f"LK forward-backward error limit in pixels (default {defaults.fb_threshold})",
+    )
+    parser.add_argument(
+        "--win-size",
+        type=int,
+        default=defaults.win_size,
+        help=f"LK window side in pixels (default {defaults.win_size})",
+    )
     parser.set_defaults(func=_run_track)
 
 
@@ -57,8 +79,13 @@ def _run_track(args: argparse.Namespace) -> int:
         raise InputError(None, f"--min-score {args.min_score} is outside 0..1")
     if args.fb_threshold <= 0 or args.win_size < 5:
         raise InputError(None, "--fb-threshold must be > 0 and --win-size at least 5")
-    options = TrackOptions(method=Method(args.method), blend=Blend(args.blend), min_score=args.min_score,
-                           fb_threshold=args.fb_threshold, win_size=args.win_size)
+    options = TrackOptions(
+        method=Method(args.method),
+        blend=Blend(args.blend),
+        min_score=args.min_score,
+        fb_threshold=args.fb_threshold,
+        win_size=args.win_size,
+    )
     path = run(args.workspace, args.out, options, videos=args.videos)
     print(path)  # noqa: T201
     return 0
@@ -68,25 +95,39 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     from tracking.importing import Format
 
     parser = subparsers.add_parser(
-        "import-tracks", help=COMMANDS["import-tracks"],
+        "import-tracks",
+        help=COMMANDS["import-tracks"],
         description="Rows of other videos and manual labels already in the output are kept; the imported "
-                    "videos' other rows are replaced.")
-    parser.add_argument("inputs", type=Path, nargs="+", metavar="INPUT",
-                        help="DLC .csv, OpenPose JSON file or folder, plain .csv, or a video (with --board)")
+        "videos' other rows are replaced.",
+    )
+    parser.add_argument(
+        "inputs",
+        type=Path,
+        nargs="+",
+        metavar="INPUT",
+        help="DLC .csv, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
-    parser.add_argument("--format", choices=[f.value for f in Format], default="auto",
-                        help="input format (default: detected from the file)")
+    parser.add_argument(
+        "--format",
+        choices=[f.value for f in Format],
+        default="auto",
+        help="input format (default: detected from the file)",
+    )
     parser.add_argument("--video", help="video name for DLC/OpenPose input (default: from the file name)")
-    parser.add_argument("--map", default="", metavar="OLD=NEW,...",
-                        help="rename points, e.g. nose=head,Neck=neck")
-    parser.add_argument("--drop-unmapped", action="store_true",
-                        help="with --map, keep only the mapped points")
-    parser.add_argument("--min-score", type=float, default=0.0,
-                        help="leave out detections with a lower confidence (default 0)")
+    parser.add_argument("--map", default="", metavar="OLD=NEW,...", help="rename points, e.g. nose=head,Neck=neck")
+    parser.add_argument("--drop-unmapped", action="store_true", help="with --map, keep only the mapped points")
+    parser.add_argument(
+        "--min-score", type=float, default=0.0, help="leave out detections with a lower confidence (default 0)"
+    )
     parser.add_argument("--person", type=int, default=0, help="OpenPose: index in people[] (default 0)")
-    parser.add_argument("--board", type=Path, metavar="TOML",
-                        help="ChArUco (videos as inputs): caliscope's charuco.toml or config.toml; points are "
-                             "the board's inner corners corner_<id>")
+    parser.add_argument(
+        "--board",
+        type=Path,
+        metavar="TOML",
+        help="ChArUco (videos as inputs): caliscope's charuco.toml or config.toml; points are "
+        "the board's inner corners corner_<id>",
+    )
     parser.set_defaults(func=_run_import)
 
 
@@ -96,9 +137,15 @@ def _run_import(args: argparse.Namespace) -> int:
 
     if args.person < 0:
         raise InputError(None, f"--person {args.person} is negative")
-    options = ImportOptions(format=Format(args.format), video=args.video, mapping=parse_mapping(args.map),
-                            drop_unmapped=args.drop_unmapped, min_score=args.min_score, person=args.person,
-                            board=args.board)
+    options = ImportOptions(
+        format=Format(args.format),
+        video=args.video,
+        mapping=parse_mapping(args.map),
+        drop_unmapped=args.drop_unmapped,
+        min_score=args.min_score,
+        person=args.person,
+        board=args.board,
+    )
     path = run_import(args.inputs, args.out, options)
     print(path)  # noqa: T201
     return 0

@@ -100,8 +100,9 @@ class VideoFrames:
     def __init__(self, path: str | Path, *, cache_bytes: int = 1 << 30, block: int = 32):
         self.path = Path(path)
         if not self.path.is_file():
-            raise InputError(self.path, "video file not found",
-                             fix="check the path in videos.json or on the command line")
+            raise InputError(
+                self.path, "video file not found", fix="check the path in videos.json or on the command line"
+            )
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self._cache_bytes = cache_bytes
         self._bytes = 0
@@ -144,8 +145,9 @@ class VideoFrames:
     def _open(self) -> cv2.VideoCapture:
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
-            raise InputError(self.path, "cannot open the video (unknown container or codec)",
-                             fix="convert it to H.264/HEVC/VP9 mp4")
+            raise InputError(
+                self.path, "cannot open the video (unknown container or codec)", fix="convert it to H.264/HEVC/VP9 mp4"
+            )
         return cap
 
     def _scan(self) -> None:
@@ -176,8 +178,11 @@ class VideoFrames:
         assert self._cap is not None  # _seek or _scan opened it
         ok, frame = self._cap.read()
         if not ok:
-            raise InputError(self.path, f"frame {self._next} could not be decoded on a second read",
-                             fix="the file may have changed while tracking")
+            raise InputError(
+                self.path,
+                f"frame {self._next} could not be decoded on a second read",
+                fix="the file may have changed while tracking",
+            )
         gray = to_gray(frame)
         if _fingerprint(gray) != self._fingerprints[self._next]:
             if self._seek_ok:
@@ -191,8 +196,11 @@ class VideoFrames:
                 self._seek(target)
                 self._read_next()
                 return
-            raise InputError(self.path, f"frame {self._next} decodes differently on a second read",
-                             fix="the file may have changed while tracking")
+            raise InputError(
+                self.path,
+                f"frame {self._next} decodes differently on a second read",
+                fix="the file may have changed while tracking",
+            )
         if self._next not in self._cache:
             self._store(self._next, gray)
         self._next += 1

@@ -61,8 +61,12 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
     for col in range(first, len(coords)):
         coord = coords[col]
         if coord not in ("x", "y", "likelihood"):
-            raise InputError(path, f"column {col + 1} of the coords row is {coord!r}", where=f"line {line}",
-                             fix="coordinates must be x, y or likelihood")
+            raise InputError(
+                path,
+                f"column {col + 1} of the coords row is {coord!r}",
+                where=f"line {line}",
+                fix="coordinates must be x, y or likelihood",
+            )
         part = parts[col] if col < len(parts) else ""
         if not part:
             raise InputError(path, f"column {col + 1} has no bodypart name", where="bodyparts row", fix=fix)
@@ -85,8 +89,17 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
             likelihood = _number(path, number, row, cols["likelihood"]) if "likelihood" in cols else None
             if x is None or y is None:
                 continue
-            detections.append(Detection(video=video, frame=frame, point=point, x=x, y=y, score=likelihood,
-                                        where=f"{path.name}:line {number}"))
+            detections.append(
+                Detection(
+                    video=video,
+                    frame=frame,
+                    point=point,
+                    x=x,
+                    y=y,
+                    score=likelihood,
+                    where=f"{path.name}:line {number}",
+                )
+            )
     return detections
 
 
@@ -96,21 +109,23 @@ def _frame_of(path: Path, number: int, index_cells: list[str]) -> int:
         return parse_frame(text, path, f"line {number}")
     match = _LAST_NUMBER.search(text)
     if match is None:
-        raise InputError(path, f"cannot tell the frame number from {shown(text)}", where=f"line {number}",
-                         fix="the first column must be the frame index or an image name ending in a number")
+        raise InputError(
+            path,
+            f"cannot tell the frame number from {shown(text)}",
+            where=f"line {number}",
+            fix="the first column must be the frame index or an image name ending in a number",
+        )
     return parse_frame(match.group(1), path, f"line {number}")
 
 
 def _number(path: Path, number: int, row: list[str], col: int) -> float | None:
     if col >= len(row):
-        raise InputError(path, f"expected at least {col + 1} fields, found {len(row)}",
-                         where=f"line {number}")
+        raise InputError(path, f"expected at least {col + 1} fields, found {len(row)}", where=f"line {number}")
     cell = row[col].strip()
     if not cell:
         return None
     try:
         value = float(cell)
     except ValueError:
-        raise InputError(path, f"{cell!r} in column {col + 1} is not a number",
-                         where=f"line {number}") from None
+        raise InputError(path, f"{cell!r} in column {col + 1} is not a number", where=f"line {number}") from None
     return value if math.isfinite(value) else None

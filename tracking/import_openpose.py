@@ -15,11 +15,53 @@ from dynrecon.errors import InputError
 from dynrecon.readers import parse_frame
 from tracking.detections import Detection
 
-BODY_25 = ("Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip", "RHip",
-           "RKnee", "RAnkle", "LHip", "LKnee", "LAnkle", "REye", "LEye", "REar", "LEar", "LBigToe",
-           "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
-COCO_18 = ("Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "RHip", "RKnee",
-           "RAnkle", "LHip", "LKnee", "LAnkle", "REye", "LEye", "REar", "LEar")
+BODY_25 = (
+    "Nose",
+    "Neck",
+    "RShoulder",
+    "RElbow",
+    "RWrist",
+    "LShoulder",
+    "LElbow",
+    "LWrist",
+    "MidHip",
+    "RHip",
+    "RKnee",
+    "RAnkle",
+    "LHip",
+    "LKnee",
+    "LAnkle",
+    "REye",
+    "LEye",
+    "REar",
+    "LEar",
+    "LBigToe",
+    "LSmallToe",
+    "LHeel",
+    "RBigToe",
+    "RSmallToe",
+    "RHeel",
+)
+COCO_18 = (
+    "Nose",
+    "Neck",
+    "RShoulder",
+    "RElbow",
+    "RWrist",
+    "LShoulder",
+    "LElbow",
+    "LWrist",
+    "RHip",
+    "RKnee",
+    "RAnkle",
+    "LHip",
+    "LKnee",
+    "LAnkle",
+    "REye",
+    "LEye",
+    "REar",
+    "LEar",
+)
 _FRAME = re.compile(r"(\d+)(?!.*\d)")
 
 
@@ -59,8 +101,9 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
         match = _FRAME.search(file.stem)
         frame = parse_frame(match.group(1), file, "file name") if match else order
         if frame in seen:
-            raise InputError(file, f"frame {frame} again (also {seen[frame].name})",
-                             fix="one JSON file per frame, numbered by frame")
+            raise InputError(
+                file, f"frame {frame} again (also {seen[frame].name})", fix="one JSON file per frame, numbered by frame"
+            )
         seen[frame] = file
         try:
             data = json.loads(file.read_text(encoding="utf-8"))
@@ -78,9 +121,8 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
             raise InputError(file, f"people[{person}].pose_keypoints_2d is not a list of x, y, c triplets")
         names = keypoint_names(len(flat) // 3)
         for k, name in enumerate(names):
-            x, y, c = (float(v) for v in flat[3 * k:3 * k + 3])
+            x, y, c = (float(v) for v in flat[3 * k : 3 * k + 3])
             if c <= 0.0:
                 continue
-            detections.append(Detection(video=video, frame=frame, point=name, x=x, y=y, score=c,
-                                        where=file.name))
+            detections.append(Detection(video=video, frame=frame, point=name, x=x, y=y, score=c, where=file.name))
     return detections

@@ -56,8 +56,7 @@ def parse_mapping(text: str) -> dict[str, str]:
             continue
         old, sep, new = item.partition("=")
         if not sep or not old.strip() or not new.strip():
-            raise InputError(None, f"--map: {item!r} is not old=new",
-                             fix="write --map nose=head,lwrist=wrist_l")
+            raise InputError(None, f"--map: {item!r} is not old=new", fix="write --map nose=head,lwrist=wrist_l")
         if old.strip() in mapping:
             raise InputError(None, f"--map: {old.strip()!r} is mapped twice")
         mapping[old.strip()] = new.strip()
@@ -70,8 +69,11 @@ def detect_format(path: Path) -> Format:
     if path.is_dir() or path.suffix.lower() == ".json":
         return Format.OPENPOSE
     if path.suffix.lower() in (".h5", ".hdf5"):
-        raise InputError(path, "DeepLabCut .h5 files are not read directly",
-                         fix="export it with pandas: pd.read_hdf(p).to_csv('out.csv'), then import the CSV")
+        raise InputError(
+            path,
+            "DeepLabCut .h5 files are not read directly",
+            fix="export it with pandas: pd.read_hdf(p).to_csv('out.csv'), then import the CSV",
+        )
     try:
         with path.open(encoding="utf-8") as handle:
             first = handle.readline()
@@ -105,9 +107,18 @@ def _read_charuco(path: Path, options: ImportOptions) -> list[Detection]:
         raise InputError(path, "ChArUco corners need the board", fix="add --board charuco.toml (caliscope's)")
     tracks = charuco_tracks([path], options.board)
     video = options.video or path.stem
-    return [Detection(video=video, frame=int(tracks.frame[i]), point=tracks.point[i], x=float(tracks.xy[i, 0]),
-                      y=float(tracks.xy[i, 1]), score=None, where=f"{path.name} frame {int(tracks.frame[i])}")
-            for i in range(len(tracks))]
+    return [
+        Detection(
+            video=video,
+            frame=int(tracks.frame[i]),
+            point=tracks.point[i],
+            x=float(tracks.xy[i, 0]),
+            y=float(tracks.xy[i, 1]),
+            score=None,
+            where=f"{path.name} frame {int(tracks.frame[i])}",
+        )
+        for i in range(len(tracks))
+    ]
 
 
 def _read_plain(path: Path, video: str | None) -> list[Detection]:
@@ -121,11 +132,18 @@ def _read_plain(path: Path, video: str | None) -> list[Detection]:
             try:
                 score = float(text)
             except ValueError:
-                raise InputError(path, f"{score_column} {text!r} is not a number",
-                                 where=tracks.where(i)) from None
-        detections.append(Detection(video=video or tracks.video[i], frame=int(tracks.frame[i]),
-                                    point=tracks.point[i], x=float(tracks.xy[i, 0]), y=float(tracks.xy[i, 1]),
-                                    score=score, where=f"{path.name}:{tracks.where(i)}"))
+                raise InputError(path, f"{score_column} {text!r} is not a number", where=tracks.where(i)) from None
+        detections.append(
+            Detection(
+                video=video or tracks.video[i],
+                frame=int(tracks.frame[i]),
+                point=tracks.point[i],
+                x=float(tracks.xy[i, 0]),
+                y=float(tracks.xy[i, 1]),
+                score=score,
+                where=f"{path.name}:{tracks.where(i)}",
+            )
+        )
     return detections
 
 
@@ -137,15 +155,17 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         fmt, detections = read_detections(Path(path), options)
         kept = 0
         for d in detections:
-            point = options.mapping.get(d.point,
-                                        None if options.drop_unmapped and options.mapping else d.point)
+            point = options.mapping.get(d.point, None if options.drop_unmapped and options.mapping else d.point)
             if point is None or (d.score is not None and d.score < options.min_score):
                 continue
             key = (d.video, d.frame, point)
             if key in rows:
-                raise InputError(Path(path), f"two detections of point {point!r} on frame {d.frame} of video "
-                                 f"{d.video!r}", where=d.where,
-                                 fix="check --map: two names were mapped to one")
+                raise InputError(
+                    Path(path),
+                    f"two detections of point {point!r} on frame {d.frame} of video {d.video!r}",
+                    where=d.where,
+                    fix="check --map: two names were mapped to one",
+                )
             score = "" if d.score is None else f"{d.score:.3f}"
             rows[key] = (d.x, d.y, fmt.value, score)
             imported_videos.add(d.video)
@@ -162,6 +182,9 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
             if sources[i] == SOURCE_LABEL or old.video[i] not in imported_videos:
                 rows[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i])
     keys = list(rows)
-    tracks = Tracks.from_rows([(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],
-                              source=[rows[k][2] for k in keys], score=[rows[k][3] for k in keys])
+    tracks = Tracks.from_rows(
+        [(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],
+        source=[rows[k][2] for k in keys],
+        score=[rows[k][3] for k in keys],
+    )
     return write_tracks(out, tracks)

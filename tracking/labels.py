@@ -59,8 +59,12 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
             raise InputError(path, f"not a CSV file: {error}", where="line 1") from None
         missing = [c for c in COLUMNS[:5] if c not in header]
         if missing:
-            raise InputError(path, f"header lacks column(s) {', '.join(missing)}", where="line 1",
-                             fix="the header must be video,frame,point,x,y,source")
+            raise InputError(
+                path,
+                f"header lacks column(s) {', '.join(missing)}",
+                where="line 1",
+                fix="the header must be video,frame,point,x,y,source",
+            )
         col = {name: header.index(name) for name in COLUMNS if name in header}
         first_line: dict[Key, int] = {}
         try:
@@ -72,9 +76,13 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
                     raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
                 key = _parse_key(path, where, row, col)
                 if key in first_line:
-                    raise InputError(path, f"point {key[2]!r} of video {key[0]!r} is labeled twice on frame "
-                                     f"{key[1]} (first on line {first_line[key]})", where=where,
-                                     fix="keep one row per video, frame and point")
+                    raise InputError(
+                        path,
+                        f"point {key[2]!r} of video {key[0]!r} is labeled twice on frame "
+                        f"{key[1]} (first on line {first_line[key]})",
+                        where=where,
+                        fix="keep one row per video, frame and point",
+                    )
                 first_line[key] = reader.line_num
                 labels[key] = _parse_label(path, where, row, col)
         except csv.Error as error:
@@ -96,15 +104,18 @@ def _parse_label(path: Path, where: str, row: list[str], col: dict[str, int]) ->
     try:
         source = Source(raw_source or "label")
     except ValueError:
-        raise InputError(path, f"source {raw_source!r} is neither 'label' nor 'hidden'",
-                         where=where) from None
+        raise InputError(path, f"source {raw_source!r} is neither 'label' nor 'hidden'", where=where) from None
     if source is Source.HIDDEN:
         return Label(source=source)
     try:
         x, y = float(row[col["x"]]), float(row[col["y"]])
     except ValueError:
-        raise InputError(path, f"x, y = {row[col['x']]!r}, {row[col['y']]!r} are not numbers", where=where,
-                         fix="write source=hidden with empty x,y for a point that is not visible") from None
+        raise InputError(
+            path,
+            f"x, y = {row[col['x']]!r}, {row[col['y']]!r} are not numbers",
+            where=where,
+            fix="write source=hidden with empty x,y for a point that is not visible",
+        ) from None
     if not (math.isfinite(x) and math.isfinite(y)):
         raise InputError(path, f"x, y = {x}, {y} is not finite", where=where)
     return Label(source=source, xy=(x, y))

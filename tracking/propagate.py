@@ -56,8 +56,13 @@ _Sweep = dict[str, dict[int, tuple[float, float, float]]]
 _Failed = dict[str, list[list[int]]]
 
 
-def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | None = None, *,
-                progress: Callable[[int, int], None] | None = None) -> dict[str, dict[int, TrackedPoint]]:
+def track_video(
+    frames: FrameSource,
+    labels: Labels,
+    options: TrackOptions | None = None,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, dict[int, TrackedPoint]]:
     """Propagate `labels` through `frames`.
 
     Returns point -> frame -> `TrackedPoint`, with every visible label (`source="label"`, score 1) and the
@@ -72,8 +77,9 @@ def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | Non
         clean[point] = {}
         for frame, xy in by_frame.items():
             if not 0 <= int(frame) < num_frames:
-                log.warning("label of %r on frame %d is outside the video's %d frames; ignored", point, frame,
-                            num_frames)
+                log.warning(
+                    "label of %r on frame %d is outside the video's %d frames; ignored", point, frame, num_frames
+                )
                 continue
             clean[point][int(frame)] = None if xy is None else np.asarray(xy, dtype=float).reshape(2)
     total = 2 * num_frames
@@ -89,8 +95,10 @@ def track_video(frames: FrameSource, labels: Labels, options: TrackOptions | Non
     if options.closure_check:
         # A track that arrives at the next label far from it drifted somewhere on the way: its positions count
         # only where the track from the other side confirms them.
-        forward, backward = (_confirmed_only(forward, failed_forward, backward, options),
-                             _confirmed_only(backward, failed_backward, forward, options))
+        forward, backward = (
+            _confirmed_only(forward, failed_forward, backward, options),
+            _confirmed_only(backward, failed_backward, forward, options),
+        )
     return _combine(clean, forward, backward, options, num_frames)
 
 
@@ -99,17 +107,26 @@ def _confirmed_only(sweep: _Sweep, failed: _Failed, other: _Sweep, options: Trac
     for point, tracks in failed.items():
         theirs = other.get(point, {})
         for visited in tracks:
-            agree = [i for i, frame in enumerate(visited) if frame in theirs and np.hypot(
-                sweep[point][frame][0] - theirs[frame][0], sweep[point][frame][1] - theirs[frame][1])
-                <= AGREE_PX]
+            agree = [
+                i
+                for i, frame in enumerate(visited)
+                if frame in theirs
+                and np.hypot(sweep[point][frame][0] - theirs[frame][0], sweep[point][frame][1] - theirs[frame][1])
+                <= AGREE_PX
+            ]
             # Drift grows along a track: trust it up to the last frame the other side confirms, not after.
-            for frame in visited[agree[-1] + 1 if agree else 0:]:
+            for frame in visited[agree[-1] + 1 if agree else 0 :]:
                 kept[point].pop(frame, None)
     return kept
 
 
-def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]], options: TrackOptions,
-           direction: int, tick: Callable[[], None]) -> tuple[_Sweep, _Failed]:
+def _sweep(
+    frames: FrameSource,
+    labels: dict[str, dict[int, np.ndarray | None]],
+    options: TrackOptions,
+    direction: int,
+    tick: Callable[[], None],
+) -> tuple[_Sweep, _Failed]:
     """One pass over the frames in `direction` (+1 forward, -1 backward), all points at once."""
     num_frames = len(frames)
     out: _Sweep = {point: {} for point in labels}
@@ -156,8 +173,9 @@ def _sweep(frames: FrameSource, labels: dict[str, dict[int, np.ndarray | None]],
     return out, failed
 
 
-def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], options: TrackOptions, out: _Sweep,
-             frame: int) -> None:
+def _advance(
+    prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], options: TrackOptions, out: _Sweep, frame: int
+) -> None:
     """Move every active track from `prev` to `cur`; record survivors in `out[point][frame]`, drop others."""
     names = list(active)
     xy0 = np.array([active[n].xy for n in names]).reshape(-1, 2)
@@ -181,8 +199,9 @@ def _advance(prev: np.ndarray, cur: np.ndarray, active: dict[str, _Track], optio
         track.frames.append(frame)
 
 
-def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: TrackOptions,
-            penalty: float = 1.0) -> tuple[np.ndarray, float] | None:
+def _accept(
+    cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: TrackOptions, penalty: float = 1.0
+) -> tuple[np.ndarray, float] | None:
     """The new position and its score, or None when the step fails the forward-backward check, leaves the
     picture, or the patch there no longer looks like the label's."""
     height, width = cur.shape[:2]
@@ -197,8 +216,9 @@ def _accept(cur: np.ndarray, xy: np.ndarray, fb: float, track: _Track, options: 
     return xy.copy(), float(np.clip(min(s_app, 1.0) * s_fb * penalty, 0.0, 1.0))
 
 
-def _fallback(prev: np.ndarray, cur: np.ndarray, xy0: np.ndarray, track: _Track, options: TrackOptions
-              ) -> tuple[np.ndarray, float] | None:
+def _fallback(
+    prev: np.ndarray, cur: np.ndarray, xy0: np.ndarray, track: _Track, options: TrackOptions
+) -> tuple[np.ndarray, float] | None:
     """One CSRT step around the point, refined by LK from CSRT's answer."""
     guess = csrt_step(prev, cur, xy0, FALLBACK_BOX_PX)
     if guess is None:
@@ -214,8 +234,13 @@ def _fallback(prev: np.ndarray, cur: np.ndarray, xy0: np.ndarray, track: _Track,
     return None
 
 
-def _combine(labels: dict[str, dict[int, np.ndarray | None]], forward: _Sweep, backward: _Sweep,
-             options: TrackOptions, num_frames: int) -> dict[str, dict[int, TrackedPoint]]:
+def _combine(
+    labels: dict[str, dict[int, np.ndarray | None]],
+    forward: _Sweep,
+    backward: _Sweep,
+    options: TrackOptions,
+    num_frames: int,
+) -> dict[str, dict[int, TrackedPoint]]:
     result: dict[str, dict[int, TrackedPoint]] = {}
     for point, marks in labels.items():
         anchors = sorted(marks)
@@ -239,8 +264,13 @@ def _combine(labels: dict[str, dict[int, np.ndarray | None]], forward: _Sweep, b
     return result
 
 
-def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] | None, frame: int,
-           anchors: list[int], options: TrackOptions) -> tuple[float, float, float] | None:
+def _blend(
+    f: tuple[float, float, float] | None,
+    b: tuple[float, float, float] | None,
+    frame: int,
+    anchors: list[int],
+    options: TrackOptions,
+) -> tuple[float, float, float] | None:
     if f is None or b is None:
         return f if b is None else b
     # Drift grows with the distance from the label a track started at: weight each by closeness to its label.
@@ -262,4 +292,3 @@ def _blend(f: tuple[float, float, float] | None, b: tuple[float, float, float] |
     x = (wf * f[0] + wb * b[0]) / (wf + wb)
     y = (wf * f[1] + wb * b[1]) / (wf + wb)
     return x, y, score
-

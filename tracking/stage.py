@@ -19,8 +19,13 @@ from tracking.workspace import LABELS_NAME, TRACKS_NAME, AllLabels, read_labels,
 log = logging.getLogger(__name__)
 
 
-def run(workspace: str | Path, out: str | Path | None = None, options: TrackOptions | None = None, *,
-        videos: dict[str, Path] | list[Path] | None = None) -> Path:
+def run(
+    workspace: str | Path,
+    out: str | Path | None = None,
+    options: TrackOptions | None = None,
+    *,
+    videos: dict[str, Path] | list[Path] | None = None,
+) -> Path:
     """Track the labeled points of `videos` (default: all of the workspace's) and write `out` (default
     `WS/tracks.csv`). Rows of other videos already in `out` are kept, except where the labels now say
     otherwise. Returns the path written."""
@@ -37,8 +42,7 @@ def run(workspace: str | Path, out: str | Path | None = None, options: TrackOpti
     labels = read_labels(workspace / LABELS_NAME)
     unknown = sorted(set(labels) - set(chosen)) if videos is None else []
     if unknown:
-        log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked",
-                    ", ".join(unknown))
+        log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked", ", ".join(unknown))
     results: dict[str, dict[str, dict[int, TrackedPoint]]] = {}
     for name, path in chosen.items():
         marks = labels.get(name, {})
@@ -48,10 +52,10 @@ def run(workspace: str | Path, out: str | Path | None = None, options: TrackOpti
             continue
         frames = VideoFrames(path)
         try:
-            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False,
-                      disable=None) as bar:
-                results[name] = track_video(frames, marks, options,
-                                            progress=lambda done, total: bar.update(done - bar.n))
+            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False, disable=None) as bar:
+                results[name] = track_video(
+                    frames, marks, options, progress=lambda done, total: bar.update(done - bar.n)
+                )
         finally:
             frames.close()
         tracked = sum(1 for pts in results[name].values() for p in pts.values() if p.source != SOURCE_LABEL)
@@ -65,9 +69,12 @@ Row = tuple[str, int, str, float, float, str, str]  # video, frame, point, x, y,
 
 
 def _rows(results: dict[str, dict[str, dict[int, TrackedPoint]]]) -> list[Row]:
-    return [(video, frame, point, p.x, p.y, p.source, f"{p.score:.3f}")
-            for video, points in results.items() for point, by_frame in points.items()
-            for frame, p in by_frame.items()]
+    return [
+        (video, frame, point, p.x, p.y, p.source, f"{p.score:.3f}")
+        for video, points in results.items()
+        for point, by_frame in points.items()
+        for frame, p in by_frame.items()
+    ]
 
 
 def _kept_rows(out: Path, replaced: set[str], labels: AllLabels) -> list[Row]:

@@ -19,8 +19,9 @@ def _lk_params(options: TrackOptions) -> dict:
     }
 
 
-def lk_step(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, options: TrackOptions,
-            guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def lk_step(
+    prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, options: TrackOptions, guess: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Track `xy: (N, 2)` from `prev` to `cur` (both (H, W) uint8).
 
     Returns `new_xy: (N, 2)` and `fb_error: (N,)` pixels (inf where LK lost the point either way).
@@ -34,11 +35,15 @@ def lk_step(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, options: TrackOpt
         p1, st, _ = (np.asarray(a) for a in cv2.calcOpticalFlowPyrLK(prev, cur, p0, p0.copy(), **params))
     else:
         start = guess.astype(np.float32).reshape(-1, 1, 2).copy()
-        p1, st, _ = (np.asarray(a) for a in cv2.calcOpticalFlowPyrLK(
-            prev, cur, p0, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params))
+        p1, st, _ = (
+            np.asarray(a)
+            for a in cv2.calcOpticalFlowPyrLK(prev, cur, p0, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params)
+        )
     # The backward check starts from the original point, so LK's own basin decides, not the guess.
-    p0r, st_b, _ = (np.asarray(a) for a in cv2.calcOpticalFlowPyrLK(
-        cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params))
+    p0r, st_b, _ = (
+        np.asarray(a)
+        for a in cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params)
+    )
     fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1).astype(float)
     fb[(st.ravel() == 0) | (st_b.ravel() == 0) | ~np.isfinite(fb)] = np.inf
     return p1.reshape(-1, 2).astype(float), fb

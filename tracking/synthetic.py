@@ -89,8 +89,12 @@ class _Scene:
             self.marker_textures.append(tex)
         # Paths in picture coordinates of frame 0 (the camera moves on top): a centre plus two sinusoids.
         margin = 0.15
-        self.centres = np.column_stack([rng.uniform(margin * w, (1 - margin) * w, options.markers),
-                                        rng.uniform(margin * h, (1 - margin) * h, options.markers)])
+        self.centres = np.column_stack(
+            [
+                rng.uniform(margin * w, (1 - margin) * w, options.markers),
+                rng.uniform(margin * h, (1 - margin) * h, options.markers),
+            ]
+        )
         self.freq = rng.uniform(0.5, 2.0, (options.markers, 2, 2)) * 2 * math.pi / max(options.frames, 1)
         self.phase = rng.uniform(0, 2 * math.pi, (options.markers, 2, 2))
         amplitude = options.speed / self.freq / 2  # two sinusoids per axis: speed about options.speed
@@ -132,8 +136,9 @@ class _Scene:
         A = self.camera(t)
         # The background texture's pixel (pad, pad) is frame-0 picture pixel (0, 0).
         to_bg = A @ np.array([[1, 0, -self.pad], [0, 1, -self.pad], [0, 0, 1]], float)
-        picture = cv2.warpAffine(self.background, to_bg, (o.width, o.height), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REFLECT)
+        picture = cv2.warpAffine(
+            self.background, to_bg, (o.width, o.height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        )
         xy = self.marker_xy(t)
         r = self.marker_half
         for p in range(o.markers):
@@ -152,22 +157,29 @@ class _Scene:
             roi = M.copy()
             roi[:, 2] -= (cx0, cy0)
             size = (cx1 - cx0, cy1 - cy0)
-            tex = cv2.warpAffine(self.marker_textures[p], roi, size, flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT)
-            alpha = cv2.warpAffine(self.alpha, roi, size, flags=cv2.INTER_LINEAR,
-                                   borderMode=cv2.BORDER_CONSTANT)
+            tex = cv2.warpAffine(
+                self.marker_textures[p], roi, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+            )
+            alpha = cv2.warpAffine(self.alpha, roi, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             window = picture[cy0:cy1, cx0:cx1]
             window[:] = window * (1 - alpha[:, :, None]) + tex * alpha[:, :, None]
         left = self.occluder_x(t)
         if left is not None:
             bar = self.occluder_tex.shape[1]
             shift = np.array([[1, 0, left], [0, 1, 0]], float)
-            tex = cv2.warpAffine(self.occluder_tex, shift, (o.width, o.height), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(-1, -1, -1))
+            tex = cv2.warpAffine(
+                self.occluder_tex,
+                shift,
+                (o.width, o.height),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=(-1, -1, -1),
+            )
             if -bar < left < o.width:
                 ones = np.ones((o.height, bar), np.float32)
-                mask = cv2.warpAffine(ones, shift, (o.width, o.height), flags=cv2.INTER_LINEAR,
-                                      borderMode=cv2.BORDER_CONSTANT)
+                mask = cv2.warpAffine(
+                    ones, shift, (o.width, o.height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+                )
                 picture = picture * (1 - mask[:, :, None]) + np.maximum(tex, 0) * mask[:, :, None]
         return picture
 
@@ -184,8 +196,13 @@ class _Scene:
         return uv, visible
 
 
-def render_video(path: str | Path | None, options: SyntheticOptions | None = None, *,
-                 keep_frames: bool = False, progress: Callable[[int], None] | None = None) -> SyntheticVideo:
+def render_video(
+    path: str | Path | None,
+    options: SyntheticOptions | None = None,
+    *,
+    keep_frames: bool = False,
+    progress: Callable[[int], None] | None = None,
+) -> SyntheticVideo:
     """Render the video to `path` with `cv2.VideoWriter` (None: only in memory, then `keep_frames` is
     implied)."""
     options = options or SyntheticOptions()
@@ -195,8 +212,9 @@ def render_video(path: str | Path | None, options: SyntheticOptions | None = Non
     if path is not None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*options.fourcc), FPS,
-                                 (options.width, options.height))
+        writer = cv2.VideoWriter(
+            str(path), cv2.VideoWriter.fourcc(*options.fourcc), FPS, (options.width, options.height)
+        )
         if not writer.isOpened():
             raise RuntimeError(f"cv2.VideoWriter cannot write {options.fourcc!r} to {path}")
     keep = keep_frames or path is None
@@ -220,6 +238,10 @@ def render_video(path: str | Path | None, options: SyntheticOptions | None = Non
             progress(f)
     if writer is not None:
         writer.release()
-    return SyntheticVideo(path=Path(path) if path is not None else None,
-                          names=[f"m{p}" for p in range(options.markers)], uv=uv, visible=visible,
-                          frames=frames if keep else None)
+    return SyntheticVideo(
+        path=Path(path) if path is not None else None,
+        names=[f"m{p}" for p in range(options.markers)],
+        uv=uv,
+        visible=visible,
+        frames=frames if keep else None,
+    )

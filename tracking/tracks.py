@@ -78,15 +78,20 @@ def read_tracks(path: str | Path) -> Tracks:
         try:
             header = next(reader)
         except StopIteration:
-            raise InputError(path, "file is empty", where="line 1",
-                             fix="the first line must be the header video,frame,point,x,y") from None
+            raise InputError(
+                path, "file is empty", where="line 1", fix="the first line must be the header video,frame,point,x,y"
+            ) from None
         except (csv.Error, UnicodeDecodeError) as error:
             raise InputError(path, f"not a CSV file: {error}", where="line 1") from None
         header = [h.strip() for h in header]
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
         if missing:
-            raise InputError(path, f"header lacks column(s) {', '.join(missing)}", where="line 1",
-                             fix="the header must contain video,frame,point,x,y")
+            raise InputError(
+                path,
+                f"header lacks column(s) {', '.join(missing)}",
+                where="line 1",
+                fix="the header must contain video,frame,point,x,y",
+            )
         index = {name: header.index(name) for name in REQUIRED_COLUMNS}
         extra_names = [h for h in header if h not in REQUIRED_COLUMNS and h]
         extra_index = {name: header.index(name) for name in extra_names}
@@ -98,8 +103,7 @@ def read_tracks(path: str | Path) -> Tracks:
                 if not row or all(not cell.strip() for cell in row):
                     continue
                 if len(row) < len(header):
-                    raise InputError(path, f"expected {len(header)} fields, found {len(row)}",
-                                     where=f"line {number}")
+                    raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=f"line {number}")
                 video = row[index["video"]].strip()
                 point = row[index["point"]].strip()
                 if not video or not point:
@@ -108,16 +112,25 @@ def read_tracks(path: str | Path) -> Tracks:
                 try:
                     x, y = float(row[index["x"]]), float(row[index["y"]])
                 except ValueError:
-                    raise InputError(path, f"x, y = {row[index['x']]!r}, {row[index['y']]!r} are not numbers",
-                                     where=f"line {number}") from None
+                    raise InputError(
+                        path, f"x, y = {row[index['x']]!r}, {row[index['y']]!r} are not numbers", where=f"line {number}"
+                    ) from None
                 if not (math.isfinite(x) and math.isfinite(y)):
-                    raise InputError(path, f"x, y = {x}, {y} is not finite", where=f"line {number}",
-                                     fix="leave unobserved points out instead of writing NaN")
+                    raise InputError(
+                        path,
+                        f"x, y = {x}, {y} is not finite",
+                        where=f"line {number}",
+                        fix="leave unobserved points out instead of writing NaN",
+                    )
                 key = (video, frame, point)
                 if key in seen:
-                    raise InputError(path, f"duplicate observation of point {point!r} in video {video!r} frame "
-                                     f"{frame} (first on line {seen[key]})", where=f"line {number}",
-                                     fix="keep one row per video, frame and point")
+                    raise InputError(
+                        path,
+                        f"duplicate observation of point {point!r} in video {video!r} frame "
+                        f"{frame} (first on line {seen[key]})",
+                        where=f"line {number}",
+                        fix="keep one row per video, frame and point",
+                    )
                 seen[key] = number
                 videos.append(video)
                 frames.append(frame)
@@ -145,14 +158,22 @@ def write_tracks(path: str | Path, tracks: Tracks) -> Path:
     """Write `tracks.csv` atomically, sorted by video, frame, point order of first appearance."""
     path = Path(path)
     point_order = {name: i for i, name in enumerate(tracks.point_names())}
-    order = sorted(range(len(tracks)), key=lambda i: (tracks.video[i], int(tracks.frame[i]),
-                                                      point_order[tracks.point[i]]))
+    order = sorted(
+        range(len(tracks)), key=lambda i: (tracks.video[i], int(tracks.frame[i]), point_order[tracks.point[i]])
+    )
     extra_names = list(tracks.extra)
     with atomic_open(path, "w", newline="") as handle:
         writer = csv.writer(handle, lineterminator="\n")
         writer.writerow([*REQUIRED_COLUMNS, *extra_names])
         for i in order:
-            writer.writerow([tracks.video[i], int(tracks.frame[i]), tracks.point[i],
-                             repr(float(tracks.xy[i, 0])), repr(float(tracks.xy[i, 1])),
-                             *(tracks.extra[name][i] for name in extra_names)])
+            writer.writerow(
+                [
+                    tracks.video[i],
+                    int(tracks.frame[i]),
+                    tracks.point[i],
+                    repr(float(tracks.xy[i, 0])),
+                    repr(float(tracks.xy[i, 1])),
+                    *(tracks.extra[name][i] for name in extra_names),
+                ]
+            )
     return path

@@ -35,21 +35,30 @@ def workspace_videos(workspace: Path, given: list[Path] | None = None) -> dict[s
             raise InputError(config, f"not valid JSON: {str(error)[:200]}", fix="fix or delete the file") from None
         raw = data.get("videos", {}) if isinstance(data, dict) else None
         if not isinstance(raw, dict) or not all(isinstance(v, str) for v in raw.values()):
-            raise InputError(config, "'videos' must map video names to file paths",
-                             fix='write {"videos": {"cam01": "videos/cam01.mp4"}}')
+            raise InputError(
+                config,
+                "'videos' must map video names to file paths",
+                fix='write {"videos": {"cam01": "videos/cam01.mp4"}}',
+            )
         if raw:
             videos = {str(name): workspace / p for name, p in raw.items()}  # an absolute p replaces workspace
             for name, path in videos.items():
                 if not path.is_file():
-                    raise InputError(config, f"video {name!r}: file {path} not found",
-                                     fix="fix the path or give the videos with --videos")
+                    raise InputError(
+                        config,
+                        f"video {name!r}: file {path} not found",
+                        fix="fix the path or give the videos with --videos",
+                    )
             return videos
     folder = workspace / "videos"
     listed = sorted(folder.iterdir()) if folder.is_dir() else []
     files = [p for p in listed if p.suffix.lower() in VIDEO_SUFFIXES]
     if not files:
-        raise InputError(workspace, "no videos found (no labeling.json, no videos/ folder)",
-                         fix="pass --videos V1 V2 ... or put them in WS/videos/")
+        raise InputError(
+            workspace,
+            "no videos found (no labeling.json, no videos/ folder)",
+            fix="pass --videos V1 V2 ... or put them in WS/videos/",
+        )
     return _by_stem(files)
 
 
@@ -59,8 +68,11 @@ def _by_stem(files: list[Path]) -> dict[str, Path]:
         if not path.is_file():
             raise InputError(path, "video file not found", fix="check the path given to --videos")
         if path.stem in videos:
-            raise InputError(path, f"two videos are named {path.stem!r} (also {videos[path.stem]})",
-                             fix="video names are file stems and must be unique: rename one file")
+            raise InputError(
+                path,
+                f"two videos are named {path.stem!r} (also {videos[path.stem]})",
+                fix="video names are file stems and must be unique: rename one file",
+            )
         videos[path.stem] = path
     return videos
 
@@ -75,7 +87,6 @@ def read_labels(path: Path) -> AllLabels:
     labels: AllLabels = {}
     for (video, frame, point), label in labels_csv.read_labels(path).items():
         labels.setdefault(video, {}).setdefault(point, {})[frame] = (
-            None if label.source is labels_csv.Source.HIDDEN else label.xy)
+            None if label.source is labels_csv.Source.HIDDEN else label.xy
+        )
     return labels
-
-

@@ -12,8 +12,9 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from reconstruct.clocks.model import Clock
 
 
-def chain_clocks(strength: np.ndarray, ref: int, centers: np.ndarray,
-                 relation: Callable[[int, int], tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+def chain_clocks(
+    strength: np.ndarray, ref: int, centers: np.ndarray, relation: Callable[[int, int], tuple[float, float]]
+) -> tuple[np.ndarray, np.ndarray]:
     """Clock coefficients (N, 3) and `reached` (N,) by composing pair relations along a maximum spanning tree of
     `strength` (N, N symmetric, 0 = no relation) from the reference. `relation(v, u)` gives (alpha, beta) with
     own_u = alpha + beta own_v. Composed clocks are affine (no drift term)."""
@@ -29,7 +30,7 @@ def chain_clocks(strength: np.ndarray, ref: int, centers: np.ndarray,
     queue = [ref]
     while queue:
         v = queue.pop()
-        for u in tree.indices[tree.indptr[v]:tree.indptr[v + 1]]:
+        for u in tree.indices[tree.indptr[v] : tree.indptr[v + 1]]:
             if reached[u]:
                 continue
             alpha, beta = relation(v, int(u))

@@ -121,8 +121,9 @@ def w_links(W: sp.spmatrix, video_index: np.ndarray, min_weight: float) -> Links
     return Links(frame=frames, neighbour=rows, weight=vals / totals[cols], row=link_of[cols])
 
 
-def _pair_relations(links: Links, own: np.ndarray, video_index: np.ndarray, periods: np.ndarray, num_videos: int,
-                    model: ClockModel) -> dict[tuple[int, int], tuple[float, float, int]]:
+def _pair_relations(
+    links: Links, own: np.ndarray, video_index: np.ndarray, periods: np.ndarray, num_videos: int, model: ClockModel
+) -> dict[tuple[int, int], tuple[float, float, int]]:
     """Robust affine relation own_u ~ alpha + beta own_v for each pair (v, u) linked by W: (alpha, beta, inliers).
 
     For each link of a frame f of v, the neighbours in video u give one sample (own_f, weighted mean own time of
@@ -178,8 +179,9 @@ def _pair_relations(links: Links, own: np.ndarray, video_index: np.ndarray, peri
     return relations
 
 
-def _chain_start(relations: dict[tuple[int, int], tuple[float, float, int]], ref: int, num_videos: int,
-                 centers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _chain_start(
+    relations: dict[tuple[int, int], tuple[float, float, int]], ref: int, num_videos: int, centers: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Start coefficients by composing pair relations along a maximum spanning tree (most inliers) from `ref`."""
     strength = np.zeros((num_videos, num_videos))
     for (v, u), (_, _, n) in relations.items():
@@ -232,18 +234,30 @@ class _LinkSolution:
     cov: np.ndarray  # (n_free, n_free)
 
 
-def fit_links(W: sp.spmatrix, own: np.ndarray, video_index: np.ndarray, num_videos: int, ref: int,
-              model: ClockModel, names: list[str] | None = None) -> LinkFit:
+def fit_links(
+    W: sp.spmatrix,
+    own: np.ndarray,
+    video_index: np.ndarray,
+    num_videos: int,
+    ref: int,
+    model: ClockModel,
+    names: list[str] | None = None,
+) -> LinkFit:
     """Robust affine (or offset / drift) clocks from the links of W; see the module docstring."""
     names = names or [f"video {v}" for v in range(num_videos)]
     periods = frame_periods(own, video_index, num_videos)
     centers = video_centers(own, video_index, num_videos)
     links = w_links(W, video_index, MIN_WEIGHT)
     if len(links.frame) == 0:
-        return LinkFit(params=ClockSet.reference_only(centers, ref), scale=math.nan, inlier_share=0.0,
-                       links_per_video=np.zeros(num_videos, dtype=np.int64), residuals=np.zeros(0),
-                       frame_scatter=np.full(num_videos, np.nan),
-                       warnings=["W has no links between videos: no clock can be estimated from it"])
+        return LinkFit(
+            params=ClockSet.reference_only(centers, ref),
+            scale=math.nan,
+            inlier_share=0.0,
+            links_per_video=np.zeros(num_videos, dtype=np.int64),
+            residuals=np.zeros(0),
+            frame_scatter=np.full(num_videos, np.nan),
+            warnings=["W has no links between videos: no clock can be estimated from it"],
+        )
     relations = _pair_relations(links, own, video_index, periods, num_videos, model)
     coef, reached = _chain_start(relations, ref, num_videos, centers)
     system = _link_system(links, own, video_index, centers, coef, reached, ref, model)
@@ -252,17 +266,33 @@ def fit_links(W: sp.spmatrix, own: np.ndarray, video_index: np.ndarray, num_vide
     params, warnings = _link_clocks(system, solution, touching, centers, coef, ref, names)
     for v in range(num_videos):
         if not reached[v]:
-            warnings.append(f"video {names[v]!r}: W does not link it to the reference video {names[ref]!r} "
-                            f"with {MIN_LINKS}+ consistent links: its clock is not identified by the sequencing")
+            warnings.append(
+                f"video {names[v]!r}: W does not link it to the reference video {names[ref]!r} "
+                f"with {MIN_LINKS}+ consistent links: its clock is not identified by the sequencing"
+            )
     used = system.use_link.sum()
     share = float(solution.inlier.sum() / used) if used else 0.0
-    return LinkFit(params=params, scale=solution.scale, inlier_share=share, links_per_video=touching,
-                   residuals=solution.residual, frame_scatter=_link_scatter(links, video_index, num_videos, solution),
-                   warnings=warnings)
+    return LinkFit(
+        params=params,
+        scale=solution.scale,
+        inlier_share=share,
+        links_per_video=touching,
+        residuals=solution.residual,
+        frame_scatter=_link_scatter(links, video_index, num_videos, solution),
+        warnings=warnings,
+    )
 
 
-def _link_system(links: Links, own: np.ndarray, video_index: np.ndarray, centers: np.ndarray, coef: np.ndarray,
-                 reached: np.ndarray, ref: int, model: ClockModel) -> _LinkSystem:
+def _link_system(
+    links: Links,
+    own: np.ndarray,
+    video_index: np.ndarray,
+    centers: np.ndarray,
+    coef: np.ndarray,
+    reached: np.ndarray,
+    ref: int,
+    model: ClockModel,
+) -> _LinkSystem:
     """Design: for frame f (row L) coefficient +phi(s_f) on video(f)'s block, -w phi(s_j) on video(j)'s blocks."""
     num_videos = len(centers)
     k = model.free_terms
@@ -296,8 +326,7 @@ def _link_system(links: Links, own: np.ndarray, video_index: np.ndarray, centers
     fixed_values[is_free] = 0.0
     y = -np.bincount(entry_rows, weights=fixed_values, minlength=n_links)
     theta = np.concatenate([coef[v, :k] for v in free_videos]) if free_videos else np.zeros(0)
-    return _LinkSystem(A=A, y=y, theta=theta, use_link=use_link, free_videos=free_videos, fixed_coef=fixed_coef,
-                       k=k)
+    return _LinkSystem(A=A, y=y, theta=theta, use_link=use_link, free_videos=free_videos, fixed_coef=fixed_coef, k=k)
 
 
 def _solve_links(system: _LinkSystem, periods: np.ndarray) -> _LinkSolution:
@@ -332,7 +361,7 @@ def _solve_links(system: _LinkSystem, periods: np.ndarray) -> _LinkSolution:
         Aw = A.multiply(weights[:, None]).tocsr()
         normal = (A.T @ Aw).toarray()
         dof = max(int(inlier.sum()) - n_free, 1)
-        sigma2 = float(np.sum(weights * residual ** 2)) / dof
+        sigma2 = float(np.sum(weights * residual**2)) / dof
         try:
             cov_free = sigma2 * np.linalg.inv(normal)
         except np.linalg.LinAlgError:
@@ -346,27 +375,39 @@ def _inliers_per_video(links: Links, video_index: np.ndarray, num_videos: int, i
     touching = np.zeros(num_videos, dtype=np.int64)
     for v in range(num_videos):
         involved = video_index[links.frame] == v
-        involved |= np.bincount(links.row, weights=(video_index[links.neighbour] == v).astype(float),
-                                minlength=n_links) > 0
+        involved |= (
+            np.bincount(links.row, weights=(video_index[links.neighbour] == v).astype(float), minlength=n_links) > 0
+        )
         touching[v] = int(np.sum(involved & inlier))
     return touching
 
 
-def _link_clocks(system: _LinkSystem, solution: _LinkSolution, touching: np.ndarray, centers: np.ndarray,
-                 coef: np.ndarray, ref: int, names: list[str]) -> tuple[ClockSet, list[str]]:
+def _link_clocks(
+    system: _LinkSystem,
+    solution: _LinkSolution,
+    touching: np.ndarray,
+    centers: np.ndarray,
+    coef: np.ndarray,
+    ref: int,
+    names: list[str],
+) -> tuple[ClockSet, list[str]]:
     """The fitted clocks; a video is identified with MIN_LINKS inlier links, a finite covariance and a positive
     rate."""
     k = system.k
     warnings: list[str] = []
-    params = ClockSet(center=centers, coef=np.full((len(centers), 3), np.nan),
-                      cov=np.full((len(centers), 3, 3), np.nan), identified=np.zeros(len(centers), dtype=bool))
+    params = ClockSet(
+        center=centers,
+        coef=np.full((len(centers), 3), np.nan),
+        cov=np.full((len(centers), 3, 3), np.nan),
+        identified=np.zeros(len(centers), dtype=bool),
+    )
     params.coef[ref] = coef[ref]
     params.cov[ref] = 0.0
     params.identified[ref] = True
     for i, v in enumerate(system.free_videos):
         c = system.fixed_coef[v].copy()
-        c[:k] = solution.theta[i * k:(i + 1) * k]
-        block = solution.cov[i * k:(i + 1) * k, i * k:(i + 1) * k]
+        c[:k] = solution.theta[i * k : (i + 1) * k]
+        block = solution.cov[i * k : (i + 1) * k, i * k : (i + 1) * k]
         cv = np.zeros((3, 3))
         cv[:k, :k] = block
         ok = touching[v] >= MIN_LINKS and np.all(np.isfinite(block)) and c[1] > 0
@@ -374,21 +415,26 @@ def _link_clocks(system: _LinkSystem, solution: _LinkSolution, touching: np.ndar
         params.cov[v] = cv
         params.identified[v] = bool(ok)
         if not ok:
-            warnings.append(f"video {names[v]!r}: only {touching[v]} consistent W link(s) to other videos "
-                            f"(needs {MIN_LINKS}): its clock is not identified by the sequencing")
+            warnings.append(
+                f"video {names[v]!r}: only {touching[v]} consistent W link(s) to other videos "
+                f"(needs {MIN_LINKS}): its clock is not identified by the sequencing"
+            )
     return params, warnings
 
 
 def _link_scatter(links: Links, video_index: np.ndarray, num_videos: int, solution: _LinkSolution) -> np.ndarray:
     """(N,) s: each video's per-frame timing spread from its inlier link residuals."""
     # residual = jitter_f - sum_j w_j jitter_j: variance (1 + sum w^2) times one frame's.
-    sum_w2 = np.bincount(links.row, weights=links.weight ** 2, minlength=len(links.frame))
+    sum_w2 = np.bincount(links.row, weights=links.weight**2, minlength=len(links.frame))
     scatter = np.full(num_videos, np.nan)
     for v in range(num_videos):
         sel = solution.inlier & (video_index[links.frame] == v)
         if sel.sum() >= 3:
-            scatter[v] = MAD_TO_SIGMA * float(np.median(np.abs(solution.residual[sel]))) / math.sqrt(
-                1.0 + float(np.mean(sum_w2[sel])))
+            scatter[v] = (
+                MAD_TO_SIGMA
+                * float(np.median(np.abs(solution.residual[sel])))
+                / math.sqrt(1.0 + float(np.mean(sum_w2[sel])))
+            )
     return scatter
 
 
@@ -399,8 +445,11 @@ def _link_scatter(links: Links, video_index: np.ndarray, num_videos: int, soluti
 def choose_reference(problem: Problem, sources: list[TimeSource], requested: str | None) -> int:
     if requested is not None:
         if requested not in problem.video_names:
-            raise InputError(None, f"clock reference video {requested!r} is not one of the solved videos",
-                             fix=f"choose one of: {', '.join(problem.video_names)}")
+            raise InputError(
+                None,
+                f"clock reference video {requested!r} is not one of the solved videos",
+                fix=f"choose one of: {', '.join(problem.video_names)}",
+            )
         return problem.video_names.index(requested)
     for v, source in enumerate(sources):
         if source is TimeSource.DECODER:
@@ -430,8 +479,10 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
     run_search = _run_search(options.search, link_fit, int(np.sum(result.reconstructable)))
     warnings = list(link_fit.warnings)
     diagnostics: dict[str, Any] = {
-        "link_scale_s": link_fit.scale, "link_inlier_share": link_fit.inlier_share,
-        "links": len(link_fit.residuals), "search": run_search,
+        "link_scale_s": link_fit.scale,
+        "link_inlier_share": link_fit.inlier_share,
+        "links": len(link_fit.residuals),
+        "search": run_search,
     }
     params = link_fit.params
     methods = ["links" if params.identified[v] else "unidentified" for v in range(N)]
@@ -444,23 +495,29 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         diagnostics["track_residual_px"] = search.residual_px
         track_rms = search.video_residual_px
         precise = bool(link_fit.scale <= PRECISE_LINK_PERIODS * float(np.nanmin(periods)))
-        params, methods, fuse_notes = _combine(link_fit.params, search.params, periods, ref, problem.video_names,
-                                               precise)
+        params, methods, fuse_notes = _combine(
+            link_fit.params, search.params, periods, ref, problem.video_names, precise
+        )
         diagnostics["links_precise"] = precise
         warnings.extend(fuse_notes)
         _take_track_scatter(scatter, search, methods)
     for w in warnings:
         log.warning("clocks: %s", w)
-    return _report(problem, own, sources, ref, model, params, methods, periods, scatter, link_fit, track_rms,
-                   warnings, diagnostics)
+    return _report(
+        problem, own, sources, ref, model, params, methods, periods, scatter, link_fit, track_rms, warnings, diagnostics
+    )
 
 
 def _usable_model(model: ClockModel, sources: list[TimeSource], names: list[str]) -> ClockModel:
     """The requested model, or AFFINE where an offset-only clock cannot hold (a video without decoder times)."""
     for name, source in zip(names, sources, strict=True):
         if source is TimeSource.NOMINAL:
-            log.warning("video %r has neither decoder times nor a known frame rate: own time = frame / %g s, its "
-                        "rate absorbs the true frame rate", name, DEFAULT_FPS)
+            log.warning(
+                "video %r has neither decoder times nor a known frame rate: own time = frame / %g s, its "
+                "rate absorbs the true frame rate",
+                name,
+                DEFAULT_FPS,
+            )
     if model is ClockModel.OFFSET and any(s is not TimeSource.DECODER for s in sources):
         log.warning("clock model 'offset' needs decoder times for every video; using 'affine'")
         return ClockModel.AFFINE
@@ -486,9 +543,21 @@ def _take_track_scatter(scatter: np.ndarray, search: SearchResult, methods: list
             scatter[v] = pooled
 
 
-def _report(problem: Problem, own: np.ndarray, sources: list[TimeSource], ref: int, model: ClockModel,
-            params: ClockSet, methods: list[str], periods: np.ndarray, scatter: np.ndarray, link_fit: LinkFit,
-            track_rms: np.ndarray, warnings: list[str], diagnostics: dict[str, Any]) -> Clocks:
+def _report(
+    problem: Problem,
+    own: np.ndarray,
+    sources: list[TimeSource],
+    ref: int,
+    model: ClockModel,
+    params: ClockSet,
+    methods: list[str],
+    periods: np.ndarray,
+    scatter: np.ndarray,
+    link_fit: LinkFit,
+    track_rms: np.ndarray,
+    warnings: list[str],
+    diagnostics: dict[str, Any],
+) -> Clocks:
     """Per-frame times and stds, and every video's clock at own time 0 (NaN for unidentified videos)."""
     global_time = params.global_time(own, problem.video_index)
     # Per frame: the clock's own uncertainty, the frames' timing spread around it (jitter) and a floor for the
@@ -504,20 +573,40 @@ def _report(problem: Problem, own: np.ndarray, sources: list[TimeSource], ref: i
             global_time[problem.video_index == v] = np.nan
             global_std[problem.video_index == v] = np.nan
             values = stds = np.full(3, math.nan)
-        videos.append(VideoClockReport(
-            name=name, time_source=sources[v], method=methods[v] if identified else "unidentified",
-            identified=identified, offset=float(values[0]), rate=float(values[1]), drift=float(values[2]),
-            offset_std=float(stds[0]), rate_std=float(stds[1]), drift_std=float(stds[2]),
-            links=int(link_fit.links_per_video[v]), track_residual_px=float(track_rms[v]),
-            frame_scatter=float(frame_sd[v]),
-        ))
-    return Clocks(model=model, reference=problem.video_names[ref], videos=videos, frame_videos=problem.frame_videos,
-                  frames=problem.frames.copy(), own_time=own, global_time=global_time, global_std=global_std,
-                  warnings=warnings, diagnostics=diagnostics)
+        videos.append(
+            VideoClockReport(
+                name=name,
+                time_source=sources[v],
+                method=methods[v] if identified else "unidentified",
+                identified=identified,
+                offset=float(values[0]),
+                rate=float(values[1]),
+                drift=float(values[2]),
+                offset_std=float(stds[0]),
+                rate_std=float(stds[1]),
+                drift_std=float(stds[2]),
+                links=int(link_fit.links_per_video[v]),
+                track_residual_px=float(track_rms[v]),
+                frame_scatter=float(frame_sd[v]),
+            )
+        )
+    return Clocks(
+        model=model,
+        reference=problem.video_names[ref],
+        videos=videos,
+        frame_videos=problem.frame_videos,
+        frames=problem.frames.copy(),
+        own_time=own,
+        global_time=global_time,
+        global_std=global_std,
+        warnings=warnings,
+        diagnostics=diagnostics,
+    )
 
 
-def _combine(links: ClockSet, tracks: ClockSet, periods: np.ndarray, ref: int, names: list[str],
-             links_precise: bool = True) -> tuple[ClockSet, list[str], list[str]]:
+def _combine(
+    links: ClockSet, tracks: ClockSet, periods: np.ndarray, ref: int, names: list[str], links_precise: bool = True
+) -> tuple[ClockSet, list[str], list[str]]:
     """Per video: the tracks' clock, the links' clock, or both fused (see estimate_clocks); methods and notes."""
     N = len(links.center)
     out = ClockSet.reference_only(links.center.copy(), ref)
@@ -542,8 +631,9 @@ def _combine(links: ClockSet, tracks: ClockSet, periods: np.ndarray, ref: int, n
     return out, methods, notes
 
 
-def _choose(link: Clock, track: Clock, out: ClockSet, v: int, period: float, name: str, links_precise: bool
-            ) -> tuple[str, str | None]:
+def _choose(
+    link: Clock, track: Clock, out: ClockSet, v: int, period: float, name: str, links_precise: bool
+) -> tuple[str, str | None]:
     """Video v clocked by both: fused when the links are precise and agree, else the tracks' clock (with a note)."""
     # Both centred at the same own time: a is the clock at the video's middle.
     gap = abs(link.coef[0] - track.coef[0])
@@ -551,15 +641,19 @@ def _choose(link: Clock, track: Clock, out: ClockSet, v: int, period: float, nam
     if not links_precise:
         out.coef[v], out.cov[v] = track.coef, track.cov
         if gap > AGREE_PERIODS * period:
-            return "tracks", (f"video {name!r}: W links put its middle {gap / period:.1f} frame periods from the "
-                              "tracks' clock: kept the tracks' clock")
+            return "tracks", (
+                f"video {name!r}: W links put its middle {gap / period:.1f} frame periods from the "
+                "tracks' clock: kept the tracks' clock"
+            )
         return "tracks", None
     if gap <= max(AGREE_SIGMAS * sigma, AGREE_PERIODS * period):
         out.coef[v], out.cov[v] = _fuse(link.coef, link.cov, track.coef, track.cov)
         return "combined", None
     out.coef[v], out.cov[v] = track.coef, track.cov
-    return "tracks", (f"video {name!r}: W links put its middle at {link.coef[0]:.4f} s, the tracks at "
-                      f"{track.coef[0]:.4f} s ({gap / period:.1f} frame periods apart): kept the tracks' clock")
+    return "tracks", (
+        f"video {name!r}: W links put its middle at {link.coef[0]:.4f} s, the tracks at "
+        f"{track.coef[0]:.4f} s ({gap / period:.1f} frame periods apart): kept the tracks' clock"
+    )
 
 
 def _fuse(c1: np.ndarray, v1: np.ndarray, c2: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -123,8 +123,12 @@ class ClockSet:
     def reference_only(cls, center: np.ndarray, ref: int) -> ClockSet:
         """Every clock unknown but the reference's, which is the identity (exact)."""
         N = len(center)
-        clocks = cls(center=center, coef=np.full((N, 3), np.nan), cov=np.full((N, 3, 3), np.nan),
-                     identified=np.zeros(N, dtype=bool))
+        clocks = cls(
+            center=center,
+            coef=np.full((N, 3), np.nan),
+            cov=np.full((N, 3, 3), np.nan),
+            identified=np.zeros(N, dtype=bool),
+        )
         clocks.coef[ref] = Clock.identity(center[ref]).coef
         clocks.cov[ref] = 0.0
         clocks.identified[ref] = True
@@ -172,8 +176,9 @@ class ClockCorrection:
         v = video_index
         return times + self.offset[v] + self.rate[v] * (times - self.middle[v])
 
-    def in_gauge_of(self, reference: int, times: np.ndarray, video_index: np.ndarray
-                    ) -> tuple[np.ndarray, ClockCorrection]:
+    def in_gauge_of(
+        self, reference: int, times: np.ndarray, video_index: np.ndarray
+    ) -> tuple[np.ndarray, ClockCorrection]:
         """The corrected times and this correction after the affine map A(g) = (g - b) / a of global time that gives
         video `reference` its uncorrected clock back (a global affine change of time is the gauge)."""
         a = 1.0 + self.rate[reference]
@@ -242,8 +247,7 @@ def frame_periods(own: np.ndarray, video_index: np.ndarray, num_videos: int) -> 
 
 def video_centers(own: np.ndarray, video_index: np.ndarray, num_videos: int) -> np.ndarray:
     """(N,) mean own time of each video (0 for a video without frames): the centres of the clock polynomials."""
-    return np.array([np.mean(own[video_index == v]) if np.any(video_index == v) else 0.0
-                     for v in range(num_videos)])
+    return np.array([np.mean(own[video_index == v]) if np.any(video_index == v) else 0.0 for v in range(num_videos)])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -278,22 +282,38 @@ class VideoClockReport:
 
     def to_json(self) -> dict[str, Any]:
         return {
-            "video": self.name, "time_source": self.time_source.value, "method": self.method,
-            "identified": self.identified, "offset": _num(self.offset), "offset_std": _num(self.offset_std),
-            "rate": _num(self.rate), "rate_std": _num(self.rate_std), "drift": _num(self.drift),
-            "drift_std": _num(self.drift_std), "links": int(self.links),
-            "track_residual_px": _num(self.track_residual_px), "frame_scatter": _num(self.frame_scatter),
+            "video": self.name,
+            "time_source": self.time_source.value,
+            "method": self.method,
+            "identified": self.identified,
+            "offset": _num(self.offset),
+            "offset_std": _num(self.offset_std),
+            "rate": _num(self.rate),
+            "rate_std": _num(self.rate_std),
+            "drift": _num(self.drift),
+            "drift_std": _num(self.drift_std),
+            "links": int(self.links),
+            "track_residual_px": _num(self.track_residual_px),
+            "frame_scatter": _num(self.frame_scatter),
         }
 
     @classmethod
     def from_json(cls, v: Any) -> VideoClockReport:
         """Inverse of `to_json`; malformed input raises KeyError, TypeError or ValueError."""
         return cls(
-            name=str(v["video"]), time_source=TimeSource(v["time_source"]), method=str(v["method"]),
-            identified=bool(v["identified"]), offset=_float(v["offset"]), offset_std=_float(v["offset_std"]),
-            rate=_float(v["rate"]), rate_std=_float(v["rate_std"]), drift=_float(v["drift"]),
-            drift_std=_float(v["drift_std"]), links=int(v.get("links", 0)),
-            track_residual_px=_float(v.get("track_residual_px")), frame_scatter=_float(v.get("frame_scatter")),
+            name=str(v["video"]),
+            time_source=TimeSource(v["time_source"]),
+            method=str(v["method"]),
+            identified=bool(v["identified"]),
+            offset=_float(v["offset"]),
+            offset_std=_float(v["offset_std"]),
+            rate=_float(v["rate"]),
+            rate_std=_float(v["rate_std"]),
+            drift=_float(v["drift"]),
+            drift_std=_float(v["drift_std"]),
+            links=int(v.get("links", 0)),
+            track_residual_px=_float(v.get("track_residual_px")),
+            frame_scatter=_float(v.get("frame_scatter")),
         )
 
 
@@ -338,9 +358,12 @@ class Clocks:
             "unit": "s",
             "reference": self.reference,
             "videos": [c.to_json() for c in self.videos],
-            "frames": [{"video": v, "frame": int(f), "own_time": _num(o), "time": _num(g), "time_std": _num(s)}
-                       for v, f, o, g, s in zip(self.frame_videos, self.frames, self.own_time, self.global_time,
-                                                self.global_std, strict=True)],
+            "frames": [
+                {"video": v, "frame": int(f), "own_time": _num(o), "time": _num(g), "time_std": _num(s)}
+                for v, f, o, g, s in zip(
+                    self.frame_videos, self.frames, self.own_time, self.global_time, self.global_std, strict=True
+                )
+            ],
             "warnings": list(self.warnings),
             "diagnostics": _plain(self.diagnostics),
         }
@@ -352,7 +375,9 @@ class Clocks:
             videos = [VideoClockReport.from_json(v) for v in document["videos"]]
             entries = document["frames"]
             return cls(
-                model=ClockModel(document["model"]), reference=str(document["reference"]), videos=videos,
+                model=ClockModel(document["model"]),
+                reference=str(document["reference"]),
+                videos=videos,
                 frame_videos=[str(e["video"]) for e in entries],
                 frames=np.array([int(e["frame"]) for e in entries], dtype=np.int64),
                 own_time=np.array([_float(e["own_time"]) for e in entries]),
@@ -362,8 +387,11 @@ class Clocks:
                 diagnostics=dict(document.get("diagnostics", {})),
             )
         except (KeyError, TypeError, ValueError, OverflowError, RecursionError) as error:
-            raise InputError(path, f"invalid 'clocks' entry: {repr(error)[:200]}",
-                             fix="rewrite it with `dynrecon solve`, or remove the key") from None
+            raise InputError(
+                path,
+                f"invalid 'clocks' entry: {repr(error)[:200]}",
+                fix="rewrite it with `dynrecon solve`, or remove the key",
+            ) from None
 
 
 def _num(value: float) -> float | None:

@@ -45,16 +45,22 @@ def check_registered_clocks(cameras: CameraSet, clocks: Clocks) -> dict[str, Any
         std = math.hypot(solved[name].offset_std, solved[reference].offset_std)
         period = _frame_period(cameras, name)
         tolerance = max(period if math.isfinite(period) else 0.0, 3 * std if math.isfinite(std) else 0.0)
-        videos.append({
-            "video": name,
-            "registered_s": round(expected, 6),
-            "recovered_s": round(found, 6),
-            "difference_s": round(found - expected, 6),
-            "tolerance_s": round(tolerance, 6),
-            "agree": bool(abs(found - expected) <= tolerance),
-        })
+        videos.append(
+            {
+                "video": name,
+                "registered_s": round(expected, 6),
+                "recovered_s": round(found, 6),
+                "difference_s": round(found - expected, 6),
+                "tolerance_s": round(tolerance, 6),
+                "agree": bool(abs(found - expected) <= tolerance),
+            }
+        )
     disagree = [str(v["video"]) for v in videos if not v["agree"]]
     if disagree:
-        log.warning("recovered clocks of %s disagree with the offsets registration found (relative to %s); see "
-                    "report.json clocks.registration_check", ", ".join(disagree), reference)
+        log.warning(
+            "recovered clocks of %s disagree with the offsets registration found (relative to %s); see "
+            "report.json clocks.registration_check",
+            ", ".join(disagree),
+            reference,
+        )
     return {"reference": reference, "videos": videos, "agree": not disagree}

@@ -135,13 +135,28 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_Vide
     for v in range(len(problem.video_names)):
         rows = np.flatnonzero(problem.video_index == v)
         rows = rows[np.argsort(own[rows], kind="stable")]
-        tracks.append(_VideoRays(own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows],
-                             max_gap=MAX_GAP_PERIODS * float(periods[v])))
+        tracks.append(
+            _VideoRays(
+                own=own[rows],
+                centers=centers[rows],
+                rays=rays[rows],
+                focal=focal[rows],
+                max_gap=MAX_GAP_PERIODS * float(periods[v]),
+            )
+        )
     return tracks
 
 
-def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: np.ndarray,
-           f2: np.ndarray, signed_depth: bool = True, vector: bool = False) -> np.ndarray:
+def gap_px(
+    c1: np.ndarray,
+    r1: np.ndarray,
+    f1: np.ndarray,
+    c2: np.ndarray,
+    r2: np.ndarray,
+    f2: np.ndarray,
+    signed_depth: bool = True,
+    vector: bool = False,
+) -> np.ndarray:
     """(m, P) pixel gap between ray pairs: the distance between the rays, half to each, over each depth, times
     each focal length (RMS of the two). NaN where a ray is missing, the rays are parallel or (with `signed_depth`)
     a depth is negative; without it, depths count by magnitude (continuous, for the refinement). `vector`: the
@@ -167,8 +182,9 @@ def gap_px(c1: np.ndarray, r1: np.ndarray, f1: np.ndarray, c2: np.ndarray, r2: n
     return np.where(bad, np.nan, px)
 
 
-def _query(tracks: list[_VideoRays], v: int, u: int, own_u: np.ndarray, rows: np.ndarray,
-           smooth: bool = False) -> np.ndarray:
+def _query(
+    tracks: list[_VideoRays], v: int, u: int, own_u: np.ndarray, rows: np.ndarray, smooth: bool = False
+) -> np.ndarray:
     """(m, P) gaps between video v's frames `rows` and video u's track interpolated at own_u (m,); `smooth`:
     continuous in own_u (clamped interpolation, unsigned depths)."""
     tv = tracks[v]
@@ -187,8 +203,18 @@ def _rate_scales(source: TimeSource) -> np.ndarray:
     return np.array([1.0])
 
 
-def _grid_cost(tracks: list[_VideoRays], v: int, u: int, qv: np.ndarray, qu: np.ndarray, alphas: np.ndarray,
-               beta: float, need: int, c2: float, chunk_samples: int = 400_000) -> np.ndarray:
+def _grid_cost(
+    tracks: list[_VideoRays],
+    v: int,
+    u: int,
+    qv: np.ndarray,
+    qu: np.ndarray,
+    alphas: np.ndarray,
+    beta: float,
+    need: int,
+    c2: float,
+    chunk_samples: int = 400_000,
+) -> np.ndarray:
     """(A,) mean truncated squared gap of each hypothesis alpha (inf with fewer than `need` samples), vectorized
     over chunks of hypotheses."""
     tv, tu = tracks[v], tracks[u]
@@ -196,21 +222,23 @@ def _grid_cost(tracks: list[_VideoRays], v: int, u: int, qv: np.ndarray, qu: np.
     per = max(1, chunk_samples // max(1, (len(qv) + len(qu)) * P))
     cost = np.full(len(alphas), np.inf)
     for start in range(0, len(alphas), per):
-        a = alphas[start:start + per]
+        a = alphas[start : start + per]
         A = len(a)
         g1 = _query(tracks, v, u, (a[:, None] + beta * tv.own[qv][None]).ravel(), np.tile(qv, A))
         g2 = _query(tracks, u, v, ((tu.own[qu][None] - a[:, None]) / beta).ravel(), np.tile(qu, A))
         g1 = g1.reshape(A, -1)
         g2 = g2.reshape(A, -1)
         n = np.isfinite(g1).sum(axis=1) + np.isfinite(g2).sum(axis=1)
-        total = (np.minimum(np.nan_to_num(g1, nan=0.0) ** 2, c2).sum(axis=1)
-                 + np.minimum(np.nan_to_num(g2, nan=0.0) ** 2, c2).sum(axis=1))
-        cost[start:start + per] = np.where(n >= need, total / np.maximum(n, 1), np.inf)
+        total = np.minimum(np.nan_to_num(g1, nan=0.0) ** 2, c2).sum(axis=1) + np.minimum(
+            np.nan_to_num(g2, nan=0.0) ** 2, c2
+        ).sum(axis=1)
+        cost[start : start + per] = np.where(n >= need, total / np.maximum(n, 1), np.inf)
     return cost
 
 
-def search_pair(tracks: list[_VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray,
-                sources: list[TimeSource]) -> PairHypothesis | None:
+def search_pair(
+    tracks: list[_VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray, sources: list[TimeSource]
+) -> PairHypothesis | None:
     """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
     tv, tu = tracks[v], tracks[u]
     qv = _subsample(len(tv.own), options.max_queries)
@@ -219,7 +247,7 @@ def search_pair(tracks: list[_VideoRays], v: int, u: int, options: SearchOptions
     seen_u = np.isfinite(tu.rays[qu, :, 0])
     need = max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
     step = COARSE_STEP_PERIODS * float(np.nanmax([periods[v], periods[u]]))
-    c2 = options.inlier_px ** 2
+    c2 = options.inlier_px**2
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
     best: PairHypothesis | None = None
     for beta in betas:
@@ -241,8 +269,15 @@ def search_pair(tracks: list[_VideoRays], v: int, u: int, options: SearchOptions
             j = int(np.argmin(fine_cost))
             if fine_cost[j] < best_cost:
                 alpha, best_cost = float(fine[j]), float(fine_cost[j])
-        hypothesis = PairHypothesis(v=v, u=u, alpha=alpha, beta=float(beta), cost=best_cost,
-                                    runner_up=runner, samples=int(np.sum(np.isfinite(cost))))
+        hypothesis = PairHypothesis(
+            v=v,
+            u=u,
+            alpha=alpha,
+            beta=float(beta),
+            cost=best_cost,
+            runner_up=runner,
+            samples=int(np.sum(np.isfinite(cost))),
+        )
         if best is None or hypothesis.cost < best.cost:
             if best is not None:
                 hypothesis.runner_up = min(hypothesis.runner_up, best.cost)
@@ -252,8 +287,9 @@ def search_pair(tracks: list[_VideoRays], v: int, u: int, options: SearchOptions
     return best
 
 
-def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _chain(
+    pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Clock coefficients (N, 3) by composing pair relations along a maximum spanning tree of distinctness."""
     usable = {(p.v, p.u): p for p in pairs if p.distinctness >= MIN_DISTINCTNESS and np.isfinite(p.cost)}
     strength = np.zeros((num_videos, num_videos))
@@ -270,8 +306,18 @@ def _chain(pairs: list[PairHypothesis], ref: int, num_videos: int, centers: np.n
 class _Joint:
     """Robust least squares over the clocks of the free videos, on the gaps of every ordered pair of videos."""
 
-    def __init__(self, tracks: list[_VideoRays], centers: np.ndarray, ref_coef: np.ndarray, ref: int, free: list[int],
-                 model: ClockModel, max_residuals: int, block_s: float, rate_sigma: np.ndarray):
+    def __init__(
+        self,
+        tracks: list[_VideoRays],
+        centers: np.ndarray,
+        ref_coef: np.ndarray,
+        ref: int,
+        free: list[int],
+        model: ClockModel,
+        max_residuals: int,
+        block_s: float,
+        rate_sigma: np.ndarray,
+    ):
         self.raw, self.tracks, self.centers, self.ref, self.free = tracks, list(tracks), centers, ref, free
         self.k = model.free_terms
         # Prior rate 1 +- rate_sigma (per video, inf = none) as extra residuals, in units of the gap scale.
@@ -289,14 +335,15 @@ class _Joint:
         # they form one cluster of the covariance.
         self.block: dict[int, np.ndarray] = {
             v: np.floor((tracks[v].own[self.rows[v]] - tracks[v].own[0]) / block_s).astype(np.int64) + 100_000 * v
-            for v in active}
+            for v in active
+        }
 
     def coefficients(self, theta: np.ndarray) -> np.ndarray:
         coef = np.full((len(self.tracks), 3), np.nan)
         coef[self.ref] = self.ref_coef
         for i, v in enumerate(self.free):
             coef[v] = [0.0, 1.0, 0.0]
-            coef[v, :self.k] = theta[i * self.k:(i + 1) * self.k]
+            coef[v, : self.k] = theta[i * self.k : (i + 1) * self.k]
         return coef
 
     def clock(self, coef: np.ndarray, v: int) -> Clock:
@@ -333,23 +380,31 @@ class _Joint:
             dropped += int(bad.sum())
             rays = track.rays.copy()
             rays[bad] = np.nan
-            cleaned[v] = _VideoRays(own=track.own, centers=track.centers, rays=rays, focal=track.focal,
-                                max_gap=track.max_gap)
+            cleaned[v] = _VideoRays(
+                own=track.own, centers=track.centers, rays=rays, focal=track.focal, max_gap=track.max_gap
+            )
         self.tracks = cleaned
         return dropped
 
     def fix_mask(self, theta: np.ndarray, threshold: float) -> int:
         """Samples of this round: interpolable, positive depths, gap below `threshold` px (outlier detections)."""
         gaps = self.gaps(theta)
-        self.mask = {key: np.isfinite(value) & (np.nan_to_num(value, nan=np.inf) < threshold)
-                     for key, value in gaps.items()}
+        self.mask = {
+            key: np.isfinite(value) & (np.nan_to_num(value, nan=np.inf) < threshold) for key, value in gaps.items()
+        }
         return int(sum(m.sum() for m in self.mask.values()))
 
     def residuals(self, theta: np.ndarray) -> np.ndarray:
         gaps = self.gaps(theta, smooth=True)
         parts = [np.nan_to_num(value[self.mask[key]], nan=0.0) for key, value in gaps.items()]
-        parts.append(np.array([(theta[i * self.k + 1] - 1.0) / self.rate_sigma[self.free[i]] * self.prior_scale
-                               for i in self.prior_videos]))
+        parts.append(
+            np.array(
+                [
+                    (theta[i * self.k + 1] - 1.0) / self.rate_sigma[self.free[i]] * self.prior_scale
+                    for i in self.prior_videos
+                ]
+            )
+        )
         return np.concatenate(parts)
 
     def clusters(self) -> np.ndarray:
@@ -395,7 +450,7 @@ class _Joint:
                 continue
             delta = -num[usable] / den[usable]
             total = MAD_TO_SIGMA * float(np.median(np.abs(delta - np.median(delta))))
-            noise_var = float(np.median(noise_px ** 2 / den[usable]))
+            noise_var = float(np.median(noise_px**2 / den[usable]))
             spread[v] = math.sqrt(max(total * total - noise_var, 0.0))
         return spread
 
@@ -406,7 +461,7 @@ class _Joint:
             values = np.concatenate([gaps[key][np.isfinite(gaps[key])] for key in gaps if v in key])
             inl = values[values < 4 * scale]
             if len(inl):
-                rms[v] = float(np.sqrt(np.mean(inl ** 2)))
+                rms[v] = float(np.sqrt(np.mean(inl**2)))
         return rms
 
 
@@ -432,8 +487,9 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
         joint.clean(theta, threshold)
         if joint.fix_mask(theta, threshold) <= len(theta):
             break
-        fit = least_squares(joint.residuals, theta, loss="soft_l1", f_scale=scale, x_scale=steps,
-                            diff_step=None, max_nfev=100)
+        fit = least_squares(
+            joint.residuals, theta, loss="soft_l1", f_scale=scale, x_scale=steps, diff_step=None, max_nfev=100
+        )
         theta = fit.x
     values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
     if len(values):
@@ -441,7 +497,7 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
     cleaned, joint.tracks = joint.tracks, joint.raw  # starts are compared on the same (raw) observations
     raw = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])
     joint.tracks = cleaned
-    cost = float(np.mean(np.minimum(raw ** 2, options.inlier_px ** 2))) if len(raw) else math.inf
+    cost = float(np.mean(np.minimum(raw**2, options.inlier_px**2))) if len(raw) else math.inf
     cov = np.full((len(theta), len(theta)), np.inf)
     if joint.fix_mask(theta, max(4.0 * scale, 1.0)) > len(theta):
         r = joint.residuals(theta)
@@ -475,8 +531,7 @@ def cluster_covariance(J: np.ndarray, r: np.ndarray, weights: np.ndarray, cluste
     return (H_inv @ M @ H_inv) * n / (n - p)
 
 
-def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.ndarray,
-                      steps: np.ndarray) -> np.ndarray:
+def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Central differences with steps of a fraction of a frame period: the gaps are piecewise smooth between
     frames, and the slope across a kink is what the clock estimate feels."""
     columns = []
@@ -487,16 +542,21 @@ def _central_jacobian(function: Callable[[np.ndarray], np.ndarray], theta: np.nd
     return np.stack(columns, axis=1)
 
 
-
 def _parameter_steps(period: float, own: np.ndarray, k: int) -> np.ndarray:
     """Typical changes of (a, b, c): a tenth of a frame period at the ends of the video."""
     half = max(float(np.ptp(own)) / 2, period)
-    return np.array([0.1 * period, 0.1 * period / half, 0.1 * period / half ** 2])[:k]
+    return np.array([0.1 * period, 0.1 * period / half, 0.1 * period / half**2])[:k]
 
 
-def search_clocks(problem: Problem, own: np.ndarray, ref: int, model: ClockModel = ClockModel.AFFINE,
-                  sources: list[TimeSource] | None = None, options: SearchOptions | None = None,
-                  start: ClockSet | None = None) -> SearchResult:
+def search_clocks(
+    problem: Problem,
+    own: np.ndarray,
+    ref: int,
+    model: ClockModel = ClockModel.AFFINE,
+    sources: list[TimeSource] | None = None,
+    options: SearchOptions | None = None,
+    start: ClockSet | None = None,
+) -> SearchResult:
     """Clocks of all videos from the tracks (`sources`: each video's own time source, NOMINAL ones search frame
     rates; default DECODER); `start` (link clocks of W) is tried as a second start."""
     options = options or SearchOptions()
@@ -515,32 +575,58 @@ def search_clocks(problem: Problem, own: np.ndarray, ref: int, model: ClockModel
     return _search_result(best, pairs, centers, ref, periods, problem.video_names)
 
 
-def _pairs_and_chain(problem: Problem, own: np.ndarray, ref: int, sources: list[TimeSource],
-                     options: SearchOptions, counts: np.ndarray, periods: np.ndarray, centers: np.ndarray
-                     ) -> tuple[list[PairHypothesis], np.ndarray, np.ndarray]:
+def _pairs_and_chain(
+    problem: Problem,
+    own: np.ndarray,
+    ref: int,
+    sources: list[TimeSource],
+    options: SearchOptions,
+    counts: np.ndarray,
+    periods: np.ndarray,
+    centers: np.ndarray,
+) -> tuple[list[PairHypothesis], np.ndarray, np.ndarray]:
     """Steps 1 and 2: the coarse pair searches on the most observed points, chained into start clocks."""
     N = len(problem.video_names)
     names = problem.video_names
-    coarse_points = np.argsort(-counts, kind="stable")[:options.max_points]
+    coarse_points = np.argsort(-counts, kind="stable")[: options.max_points]
     coarse_points = coarse_points[counts[coarse_points] > 0]
     tracks = _tracks(problem, own, coarse_points)
-    pairs = [p for v in range(N) for u in range(v + 1, N)
-             if (p := search_pair(tracks, v, u, options, periods, sources)) is not None]
+    pairs = [
+        p
+        for v in range(N)
+        for u in range(v + 1, N)
+        if (p := search_pair(tracks, v, u, options, periods, sources)) is not None
+    ]
     for p in pairs:
-        log.info("clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f",
-                 names[p.v], names[p.u], p.alpha, p.beta, p.cost, p.distinctness)
+        log.info(
+            "clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f",
+            names[p.v],
+            names[p.u],
+            p.alpha,
+            p.beta,
+            p.cost,
+            p.distinctness,
+        )
     coef, reached = _chain(pairs, ref, N, centers)
     return pairs, coef, reached
 
 
-def _best_start(starts: list[tuple[str, np.ndarray, np.ndarray]], full_tracks: list[_VideoRays],
-                centers: np.ndarray, ref: int, model: ClockModel, sources: list[TimeSource],
-                options: SearchOptions, periods: np.ndarray) -> tuple[tuple[int, float], str, _Refined, _Joint] | None:
+def _best_start(
+    starts: list[tuple[str, np.ndarray, np.ndarray]],
+    full_tracks: list[_VideoRays],
+    centers: np.ndarray,
+    ref: int,
+    model: ClockModel,
+    sources: list[TimeSource],
+    options: SearchOptions,
+    periods: np.ndarray,
+) -> tuple[tuple[int, float], str, _Refined, _Joint] | None:
     """Step 3 from every start: the refinement that clocks the most videos, then at the lower truncated cost."""
     N = len(centers)
     # Decoder clocks are quartz: rate 1 within a few hundred ppm. Nominal own times carry an unknown frame rate.
-    rate_sigma = np.array([options.rate_prior if s is not TimeSource.NOMINAL and options.rate_prior > 0 else np.inf
-                           for s in sources])
+    rate_sigma = np.array(
+        [options.rate_prior if s is not TimeSource.NOMINAL and options.rate_prior > 0 else np.inf for s in sources]
+    )
     best: tuple[tuple[int, float], str, _Refined, _Joint] | None = None
     for label, c, ok in starts:
         free = [v for v in range(N) if ok[v] and v != ref]
@@ -551,8 +637,13 @@ def _best_start(starts: list[tuple[str, np.ndarray, np.ndarray]], full_tracks: l
         theta0 = np.concatenate([c[v, :k] for v in free])
         steps = np.concatenate([_parameter_steps(float(periods[v]), full_tracks[v].own, k) for v in free])
         refined = _refine(joint, theta0, options, steps)
-        log.info("clock search: start from %s -> truncated cost %.3f px^2 (gap scale %.2f px, %d videos)", label,
-                 refined.cost, refined.scale, len(free) + 1)
+        log.info(
+            "clock search: start from %s -> truncated cost %.3f px^2 (gap scale %.2f px, %d videos)",
+            label,
+            refined.cost,
+            refined.scale,
+            len(free) + 1,
+        )
         # More clocked videos first, then the lower truncated cost.
         key = (-len(free), refined.cost)
         if best is None or key < best[0]:
@@ -560,8 +651,14 @@ def _best_start(starts: list[tuple[str, np.ndarray, np.ndarray]], full_tracks: l
     return best
 
 
-def _search_result(best: tuple[tuple[int, float], str, _Refined, _Joint] | None, pairs: list[PairHypothesis],
-                   centers: np.ndarray, ref: int, periods: np.ndarray, names: list[str]) -> SearchResult:
+def _search_result(
+    best: tuple[tuple[int, float], str, _Refined, _Joint] | None,
+    pairs: list[PairHypothesis],
+    centers: np.ndarray,
+    ref: int,
+    periods: np.ndarray,
+    names: list[str],
+) -> SearchResult:
     """The refined clocks (identified with a finite covariance and a positive rate), residuals and jitter."""
     N = len(centers)
     params = ClockSet.reference_only(centers, ref)
@@ -574,7 +671,7 @@ def _search_result(best: tuple[tuple[int, float], str, _Refined, _Joint] | None,
         coef_all = joint.coefficients(refined.theta)
         k = joint.k
         for i, v in enumerate(joint.free):
-            block = refined.cov[i * k:(i + 1) * k, i * k:(i + 1) * k]
+            block = refined.cov[i * k : (i + 1) * k, i * k : (i + 1) * k]
             params.coef[v] = coef_all[v]
             params.cov[v] = 0.0
             params.cov[v, :k, :k] = block
@@ -582,8 +679,18 @@ def _search_result(best: tuple[tuple[int, float], str, _Refined, _Joint] | None,
         video_rms = joint.video_rms(refined.theta, refined.scale)
         residual = refined.scale
         spread = joint.timing_spread(refined.theta, periods, refined.scale)
-    warnings = [f"video {names[v]!r}: the track search found no distinct offset to the other videos (too little "
-                "overlap, or motion that every offset explains): its clock is not identified by the tracks"
-                for v in range(N) if not params.identified[v]]
-    return SearchResult(params=params, pairs=pairs, residual_px=residual, video_residual_px=video_rms,
-                        timing_spread=spread, start=label, warnings=warnings)
+    warnings = [
+        f"video {names[v]!r}: the track search found no distinct offset to the other videos (too little "
+        "overlap, or motion that every offset explains): its clock is not identified by the tracks"
+        for v in range(N)
+        if not params.identified[v]
+    ]
+    return SearchResult(
+        params=params,
+        pairs=pairs,
+        residual_px=residual,
+        video_residual_px=video_rms,
+        timing_spread=spread,
+        start=label,
+        warnings=warnings,
+    )

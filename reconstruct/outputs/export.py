@@ -30,9 +30,11 @@ from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
 
-TIMING_NOTE = ("dynrecon: rows are frames of unsynchronized videos in an estimated global order, evenly spaced "
-               "at the file rate; the true spacing (and, with decoder times, the start offsets between videos) "
-               "is unknown")
+TIMING_NOTE = (
+    "dynrecon: rows are frames of unsynchronized videos in an estimated global order, evenly spaced "
+    "at the file rate; the true spacing (and, with decoder times, the start offsets between videos) "
+    "is unknown"
+)
 
 
 MAX_GAP_FACTOR = 4.0
@@ -122,13 +124,14 @@ def clock_note(sequencing: Sequencing) -> str:
     stds = [e.get("time_std") for e in sequencing.extra.get("clocks", {}).get("frames", [])]
     finite = [float(s) for s in stds if isinstance(s, int | float) and np.isfinite(s)]
     spread = f"{1000 * float(np.median(finite)):.1f} ms" if finite else "unknown"
-    return ("dynrecon: rows are a uniform resampling of the trajectories on the global clock recovered from the "
-            f"unsynchronized videos (median 1-sigma uncertainty of a frame's global time: {spread}); "
-            "time 0 is the reference video's first frame")
+    return (
+        "dynrecon: rows are a uniform resampling of the trajectories on the global clock recovered from the "
+        f"unsynchronized videos (median 1-sigma uncertainty of a frame's global time: {spread}); "
+        "time 0 is the reference video's first frame"
+    )
 
 
-def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Trajectories on a uniform grid of the global clock: (xyz (N, P, 3), grid times (N,)).
 
     Frames at the same instant are averaged. A grid time gets a position only between two reconstructed frames no
@@ -151,8 +154,7 @@ def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float
             continue
         instants, inverse = np.unique(times[known], return_inverse=True)
         counts = np.bincount(inverse)
-        values = np.stack([np.bincount(inverse, weights=points.xyz[known, p, k]) / counts for k in range(3)],
-                          axis=1)
+        values = np.stack([np.bincount(inverse, weights=points.xyz[known, p, k]) / counts for k in range(3)], axis=1)
         if len(instants) < 2:
             continue
         right = np.clip(np.searchsorted(instants, grid), 1, len(instants) - 1)
@@ -164,8 +166,9 @@ def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float
     return xyz, grid - start
 
 
-def global_order(points: FramePoints, cameras: CameraSet | None = None,
-                 sequencing: Sequencing | None = None) -> tuple[np.ndarray, OrderSource]:
+def global_order(
+    points: FramePoints, cameras: CameraSet | None = None, sequencing: Sequencing | None = None
+) -> tuple[np.ndarray, OrderSource]:
     """(F,) frame indices of `points` in the best global order available, and where it came from."""
     clock = clock_times(points, sequencing)
     if clock is not None:
@@ -184,8 +187,11 @@ def _ordered(points: FramePoints, order: np.ndarray | None) -> np.ndarray:
     if order is None:
         return points.xyz
     order = np.asarray(order)
-    if order.ndim != 1 or not np.issubdtype(order.dtype, np.integer) or \
-            (order.size and (order.min() < 0 or order.max() >= points.num_frames)):
+    if (
+        order.ndim != 1
+        or not np.issubdtype(order.dtype, np.integer)
+        or (order.size and (order.min() < 0 or order.max() >= points.num_frames))
+    ):
         raise InputError(None, f"export order must be frame indices in [0, {points.num_frames}), got {order!r}")
     return points.xyz[order]
 
@@ -197,19 +203,38 @@ def _check_rate_units(rate_hz: float, units: str) -> None:
         raise InputError(None, f"unknown export units {units!r}", fix=f"use one of {', '.join(UNIT_TO_MM)}")
 
 
-def write_trc_export(points: FramePoints, order: np.ndarray | None, rate_hz: float, path: str | Path, *,
-                     units: str = "mm", times: np.ndarray | None = None) -> Path:
+def write_trc_export(
+    points: FramePoints,
+    order: np.ndarray | None,
+    rate_hz: float,
+    path: str | Path,
+    *,
+    units: str = "mm",
+    times: np.ndarray | None = None,
+) -> Path:
     """OpenSim TRC: row k = frame order[k] at time k / rate_hz; positions as stored (in `units`), empty = NaN.
     With `times` (F,) global seconds (`clock_times`), rows are instead the uniform resampling on that clock."""
     _check_rate_units(rate_hz, units)
     xyz = _ordered(points, order) if times is None else resample_on_clock(points, times, rate_hz)[0]
-    mocap = Mocap(xyz=xyz * UNIT_TO_MM[units], rate=float(rate_hz), marker_names=list(points.point_names),
-                  times=np.arange(len(xyz)) / float(rate_hz))
+    mocap = Mocap(
+        xyz=xyz * UNIT_TO_MM[units],
+        rate=float(rate_hz),
+        marker_names=list(points.point_names),
+        times=np.arange(len(xyz)) / float(rate_hz),
+    )
     return write_trc(path, mocap, units=units)
 
 
-def write_c3d_export(points: FramePoints, order: np.ndarray | None, rate_hz: float, path: str | Path, *,
-                     units: str = "mm", times: np.ndarray | None = None, note: str = TIMING_NOTE) -> Path:
+def write_c3d_export(
+    points: FramePoints,
+    order: np.ndarray | None,
+    rate_hz: float,
+    path: str | Path,
+    *,
+    units: str = "mm",
+    times: np.ndarray | None = None,
+    note: str = TIMING_NOTE,
+) -> Path:
     """C3D (via ezc3d): POINT data in `order` at `rate_hz`, NaN = invalid sample; a DYNRECON parameter group
     keeps the timing note and the source (video, frame) of every row. With `times` (F,) global seconds the rows
     are the uniform resampling on that clock (`clock_note` for `note`) and carry no source frame."""

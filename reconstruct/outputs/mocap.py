@@ -20,8 +20,15 @@ from dynrecon.errors import InputError
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".c3d", ".trc")
-UNIT_TO_MM = {"mm": 1.0, "millimeters": 1.0, "millimetres": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0,
-              "metres": 1000.0}
+UNIT_TO_MM = {
+    "mm": 1.0,
+    "millimeters": 1.0,
+    "millimetres": 1.0,
+    "cm": 10.0,
+    "m": 1000.0,
+    "meters": 1000.0,
+    "metres": 1000.0,
+}
 
 
 @dataclass(kw_only=True)
@@ -56,8 +63,9 @@ def read_mocap(path: str | Path) -> Mocap:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
-        raise InputError(path, f"unknown motion-capture format {path.suffix or '(no extension)'!r}",
-                         fix="give a .c3d or .trc file")
+        raise InputError(
+            path, f"unknown motion-capture format {path.suffix or '(no extension)'!r}", fix="give a .c3d or .trc file"
+        )
     if not path.is_file():
         raise InputError(path, "file not found", fix="give the path of a .c3d or .trc file")
     mocap = _read_c3d(path) if suffix == ".c3d" else _read_trc(path)
@@ -105,8 +113,11 @@ def _read_c3d(path: Path) -> Mocap:
     try:
         c3d = ezc3d.c3d(str(path))
     except Exception as error:  # ezc3d raises bare RuntimeError/IOError subclasses on corrupt files
-        raise InputError(path, f"not a readable C3D file ({str(error).strip() or type(error).__name__})",
-                         fix="check that the file is complete") from None
+        raise InputError(
+            path,
+            f"not a readable C3D file ({str(error).strip() or type(error).__name__})",
+            fix="check that the file is complete",
+        ) from None
     point = c3d["parameters"].get("POINT", {})
     points = np.asarray(c3d["data"]["points"], dtype=float)  # (4, M, T)
     if points.ndim != 3 or points.shape[1] == 0:
@@ -156,8 +167,9 @@ def _read_trc(path: Path) -> Mocap:
         text = raw.decode("latin-1")  # Windows exports put non-UTF-8 paths in line 1
     lines = text.splitlines()
     if len(lines) < 5:
-        raise InputError(path, f"only {len(lines)} line(s); a TRC file has 5 header lines",
-                         fix="check that the file is complete")
+        raise InputError(
+            path, f"only {len(lines)} line(s); a TRC file has 5 header lines", fix="check that the file is complete"
+        )
     # Columns of lines 2-3 are padded with extra tabs in some exports: pair the non-empty tokens instead.
     keys = lines[1].split()
     values = lines[2].split()
@@ -167,8 +179,9 @@ def _read_trc(path: Path) -> Mocap:
         declared_markers = int(float(header["NumMarkers"]))
         declared_frames = int(float(header["NumFrames"]))
     except (KeyError, ValueError):
-        raise InputError(path, "lines 2-3 lack DataRate, NumFrames or NumMarkers", where="line 3",
-                         fix="see the OpenSim TRC format") from None
+        raise InputError(
+            path, "lines 2-3 lack DataRate, NumFrames or NumMarkers", where="line 3", fix="see the OpenSim TRC format"
+        ) from None
     units = header.get("Units", "mm")
     scale = UNIT_TO_MM.get(units.strip().lower())
     if scale is None:
@@ -178,8 +191,12 @@ def _read_trc(path: Path) -> Mocap:
     if declared_markers == 0 or not names:
         raise InputError(path, "the file has no markers", where="line 4")
     if len(names) != declared_markers:
-        raise InputError(path, f"line 4 names {len(names)} markers but NumMarkers is {declared_markers}",
-                         where="line 4", fix="make the marker names and NumMarkers agree")
+        raise InputError(
+            path,
+            f"line 4 names {len(names)} markers but NumMarkers is {declared_markers}",
+            where="line 4",
+            fix="make the marker names and NumMarkers agree",
+        )
     width = 2 + 3 * declared_markers
     rows: list[list[float]] = []
     first_time = math.nan
@@ -188,11 +205,16 @@ def _read_trc(path: Path) -> Mocap:
             continue
         fields = line.split("\t")
         if len(fields) < width:
-            raise InputError(path, f"expected {width} tab-separated fields, found {len(fields)}",
-                             where=f"line {number}", fix="the file may be truncated")
+            raise InputError(
+                path,
+                f"expected {width} tab-separated fields, found {len(fields)}",
+                where=f"line {number}",
+                fix="the file may be truncated",
+            )
         if any(f.strip() for f in fields[width:]):
-            raise InputError(path, f"more than {width} fields", where=f"line {number}",
-                             fix="make the columns agree with NumMarkers")
+            raise InputError(
+                path, f"more than {width} fields", where=f"line {number}", fix="make the columns agree with NumMarkers"
+            )
         try:
             values_row = [float(f) if f.strip() else math.nan for f in fields[2:width]]
             if not rows:
@@ -203,13 +225,15 @@ def _read_trc(path: Path) -> Mocap:
     if not rows:
         raise InputError(path, "the file has no frames", fix="data rows start on line 6")
     if len(rows) < declared_frames:
-        raise InputError(path, f"NumFrames is {declared_frames} but only {len(rows)} data rows were found",
-                         fix="the file may be truncated")
+        raise InputError(
+            path,
+            f"NumFrames is {declared_frames} but only {len(rows)} data rows were found",
+            fix="the file may be truncated",
+        )
     xyz = _mask_gaps(np.array(rows, dtype=float).reshape(len(rows), declared_markers, 3)) * scale
     t0 = first_time if math.isfinite(first_time) else 0.0
     times = t0 + np.arange(len(rows)) / rate if rate > 0 else np.arange(len(rows), dtype=float)
-    return Mocap(xyz=xyz, rate=rate, marker_names=_unique_names(names, declared_markers), times=times,
-                 path=path)
+    return Mocap(xyz=xyz, rate=rate, marker_names=_unique_names(names, declared_markers), times=times, path=path)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -251,17 +275,27 @@ def select_window(mocap: Mocap, start: int = 0, length: int | None = None, step:
     if step < 1:
         raise InputError(mocap.path, f"step must be >= 1, got {step}")
     if start < 0 or start >= mocap.num_frames:
-        raise InputError(mocap.path, f"window start {start} is outside the file's {mocap.num_frames} frames",
-                         fix=f"use a start between 0 and {mocap.num_frames - 1}")
+        raise InputError(
+            mocap.path,
+            f"window start {start} is outside the file's {mocap.num_frames} frames",
+            fix=f"use a start between 0 and {mocap.num_frames - 1}",
+        )
     if length is not None and length < 1:
         raise InputError(mocap.path, f"window length must be >= 1, got {length}")
     stop = mocap.num_frames if length is None else min(mocap.num_frames, start + length)
     if length is not None and start + length > mocap.num_frames:
-        log.info("%s: window %d..%d runs past the last frame %d; using %d frames", mocap.path, start,
-                    start + length - 1, mocap.num_frames - 1, stop - start)
+        log.info(
+            "%s: window %d..%d runs past the last frame %d; using %d frames",
+            mocap.path,
+            start,
+            start + length - 1,
+            mocap.num_frames - 1,
+            stop - start,
+        )
     index = np.arange(start, stop, step)
-    return replace(mocap, xyz=mocap.xyz[index].copy(), times=mocap.times[index].copy(),
-                   marker_names=list(mocap.marker_names))
+    return replace(
+        mocap, xyz=mocap.xyz[index].copy(), times=mocap.times[index].copy(), marker_names=list(mocap.marker_names)
+    )
 
 
 def drop_incomplete(mocap: Mocap, max_missing: float = 0.1) -> Mocap:
@@ -275,19 +309,30 @@ def drop_incomplete(mocap: Mocap, max_missing: float = 0.1) -> Mocap:
     missing = mocap.missing()
     keep_markers = missing.mean(axis=0) <= max_missing
     if not keep_markers.any():
-        raise InputError(mocap.path, f"every marker is missing in more than {max_missing:.0%} of the frames",
-                         fix="choose another window or file")
+        raise InputError(
+            mocap.path,
+            f"every marker is missing in more than {max_missing:.0%} of the frames",
+            fix="choose another window or file",
+        )
     keep_frames = ~missing[:, keep_markers].any(axis=1)
     if not keep_frames.any():
-        raise InputError(mocap.path, "no frame has all the usable markers",
-                         fix="choose another window or file")
+        raise InputError(mocap.path, "no frame has all the usable markers", fix="choose another window or file")
     dropped_markers = [n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if not k]
     if dropped_markers:
-        log.info("%s: dropped %d marker(s) missing in more than %.0f%% of the frames: %s", mocap.path,
-                 len(dropped_markers), 100 * max_missing, ", ".join(dropped_markers))
+        log.info(
+            "%s: dropped %d marker(s) missing in more than %.0f%% of the frames: %s",
+            mocap.path,
+            len(dropped_markers),
+            100 * max_missing,
+            ", ".join(dropped_markers),
+        )
     if not keep_frames.all():
-        log.info("%s: dropped %d of %d frames with a missing marker", mocap.path, int((~keep_frames).sum()),
-                 mocap.num_frames)
-    return replace(mocap, xyz=mocap.xyz[keep_frames][:, keep_markers].copy(),
-                   times=mocap.times[keep_frames].copy(),
-                   marker_names=[n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if k])
+        log.info(
+            "%s: dropped %d of %d frames with a missing marker", mocap.path, int((~keep_frames).sum()), mocap.num_frames
+        )
+    return replace(
+        mocap,
+        xyz=mocap.xyz[keep_frames][:, keep_markers].copy(),
+        times=mocap.times[keep_frames].copy(),
+        marker_names=[n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if k],
+    )

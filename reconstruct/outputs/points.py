@@ -55,9 +55,18 @@ def write_points(path: str | Path, points: FramePoints) -> Path:
         for i in range(points.num_frames):
             for p, name in enumerate(points.point_names):
                 x, y, z = points.xyz[i, p]
-                writer.writerow([points.videos[i], int(points.frames[i]), name, _format(x), _format(y), _format(z),
-                                 int(bool(points.observed[i, p])),
-                                 *(_format(points.extra[e][i, p]) for e in extra_names)])
+                writer.writerow(
+                    [
+                        points.videos[i],
+                        int(points.frames[i]),
+                        name,
+                        _format(x),
+                        _format(y),
+                        _format(z),
+                        int(bool(points.observed[i, p])),
+                        *(_format(points.extra[e][i, p]) for e in extra_names),
+                    ]
+                )
     return path
 
 
@@ -109,8 +118,14 @@ def read_points(path: str | Path) -> FramePoints:
         for name, value in zip(extra_names, extras, strict=True):
             extra[name][fi, pi] = value
     keys = list(frame_index)
-    return FramePoints(videos=[k[0] for k in keys], frames=np.array([k[1] for k in keys], dtype=np.int64),
-                       point_names=list(point_index), xyz=xyz, observed=observed_arr, extra=extra)
+    return FramePoints(
+        videos=[k[0] for k in keys],
+        frames=np.array([k[1] for k in keys], dtype=np.int64),
+        point_names=list(point_index),
+        xyz=xyz,
+        observed=observed_arr,
+        extra=extra,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -131,14 +146,16 @@ class Sequencing:
 def write_sequencing(path: str | Path, sequencing: Sequencing) -> Path:
     frames = []
     for i in range(len(sequencing.videos)):
-        frames.append({
-            "video": sequencing.videos[i],
-            "frame": int(sequencing.frames[i]),
-            "neighbours": [
-                {"video": sequencing.videos[int(j)], "frame": int(sequencing.frames[int(j)]), "weight": float(w)}
-                for j, w in zip(sequencing.neighbours[i], sequencing.weights[i], strict=True)
-            ],
-        })
+        frames.append(
+            {
+                "video": sequencing.videos[i],
+                "frame": int(sequencing.frames[i]),
+                "neighbours": [
+                    {"video": sequencing.videos[int(j)], "frame": int(sequencing.frames[int(j)]), "weight": float(w)}
+                    for j, w in zip(sequencing.neighbours[i], sequencing.weights[i], strict=True)
+                ],
+            }
+        )
     document = {"frames": frames, **sequencing.extra}
     atomic_write_text(path, json.dumps(document, indent=1) + "\n")
     return Path(path)
@@ -156,11 +173,13 @@ def read_sequencing(path: str | Path) -> Sequencing:
     try:
         entries = document["frames"]
         videos = [e["video"] for e in entries]
-        frames = np.array([check_frame(e["frame"], path, f"frames[{i}]") for i, e in enumerate(entries)],
-                          dtype=np.int64)
+        frames = np.array(
+            [check_frame(e["frame"], path, f"frames[{i}]") for i, e in enumerate(entries)], dtype=np.int64
+        )
         index = {(v, int(f)): i for i, (v, f) in enumerate(zip(videos, frames, strict=True))}
-        neighbours = [np.array([index[(n["video"], n["frame"])] for n in e["neighbours"]], dtype=np.int64)
-                      for e in entries]
+        neighbours = [
+            np.array([index[(n["video"], n["frame"])] for n in e["neighbours"]], dtype=np.int64) for e in entries
+        ]
         weights = [np.array([float(n["weight"]) for n in e["neighbours"]]) for e in entries]
     except (ValueError, KeyError, TypeError, OverflowError) as error:
         raise InputError(path, f"not a valid sequencing.json: {_short(error)}") from None

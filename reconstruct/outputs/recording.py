@@ -51,9 +51,11 @@ TRACK_RADIUS = 5.0
 REPROJECTION_RADIUS = 3.0
 BACKGROUND_RADIUS = 1.5
 
-VIEW_COORDINATES = {WorldAxes.Y_DOWN: rr.ViewCoordinates.RIGHT_HAND_Y_DOWN,
-                    WorldAxes.Z_UP: rr.ViewCoordinates.RIGHT_HAND_Z_UP,
-                    WorldAxes.Y_UP: rr.ViewCoordinates.RIGHT_HAND_Y_UP}
+VIEW_COORDINATES = {
+    WorldAxes.Y_DOWN: rr.ViewCoordinates.RIGHT_HAND_Y_DOWN,
+    WorldAxes.Z_UP: rr.ViewCoordinates.RIGHT_HAND_Z_UP,
+    WorldAxes.Y_UP: rr.ViewCoordinates.RIGHT_HAND_Y_UP,
+}
 
 
 @dataclass(kw_only=True)
@@ -68,17 +70,28 @@ class BackgroundCloud:
 # Input checks
 
 
-def _check_inputs(cameras: CameraSet, points: FramePoints, skeleton: Sequence[tuple[str, str]] | None,
-                  residual: np.ndarray | None, global_time: np.ndarray | None) -> None:
+def _check_inputs(
+    cameras: CameraSet,
+    points: FramePoints,
+    skeleton: Sequence[tuple[str, str]] | None,
+    residual: np.ndarray | None,
+    global_time: np.ndarray | None,
+) -> None:
     F, P = points.num_frames, len(points.point_names)
     if points.xyz.shape != (F, P, 3) or points.observed.shape != (F, P) or len(points.frames) != F:
-        raise InputError(None, f"points: xyz {points.xyz.shape}, observed {points.observed.shape} and "
-                         f"{len(points.frames)} frames do not match {F} frames x {P} points")
+        raise InputError(
+            None,
+            f"points: xyz {points.xyz.shape}, observed {points.observed.shape} and "
+            f"{len(points.frames)} frames do not match {F} frames x {P} points",
+        )
     posed = {(v.name, f.frame) for v in cameras.videos for f in v.frames}
     for video, frame in zip(points.videos, points.frames, strict=True):
         if (video, int(frame)) not in posed:
-            raise InputError(None, f"points of video {video!r} frame {int(frame)} have no camera",
-                             fix="points3d.csv and cameras.json must come from the same run")
+            raise InputError(
+                None,
+                f"points of video {video!r} frame {int(frame)} have no camera",
+                fix="points3d.csv and cameras.json must come from the same run",
+            )
     for name, values in (("residual", residual), ("global_time", global_time)):
         if values is not None and np.shape(values) != (F,):
             raise InputError(None, f"{name} has shape {np.shape(values)}, expected ({F},): one per frame")
@@ -86,8 +99,11 @@ def _check_inputs(cameras: CameraSet, points: FramePoints, skeleton: Sequence[tu
     for a, b in skeleton or ():
         for name in (a, b):
             if name not in known:
-                raise InputError(None, f"skeleton bone ({a!r}, {b!r}) names unknown point {name!r}",
-                                 fix="bones must join point names of points3d.csv")
+                raise InputError(
+                    None,
+                    f"skeleton bone ({a!r}, {b!r}) names unknown point {name!r}",
+                    fix="bones must join point names of points3d.csv",
+                )
 
 
 # -----------------------------------------------------------------------------------------------------------
@@ -101,8 +117,9 @@ def build_blueprint(cameras: CameraSet, *, residual: bool, global_time: bool) ->
     if residual:
         right.append(rrb.TimeSeriesView(origin="metrics", name="residual"))
     main = rrb.Spatial3DView(origin="world", name="3D")
-    layout: rrb.Container | rrb.View = (rrb.Horizontal(main, rrb.Vertical(*right), column_shares=[2, 1])
-                                        if right else main)
+    layout: rrb.Container | rrb.View = (
+        rrb.Horizontal(main, rrb.Vertical(*right), column_shares=[2, 1]) if right else main
+    )
     parts: list = [layout]
     if global_time:
         parts.append(rrb.TimePanel(timeline="global_time"))
@@ -137,16 +154,21 @@ def log_recording(
     gtime_all = None if global_time is None else np.asarray(global_time, dtype=float)
     lookup = None
     if gtime_all is not None:
-        lookup = {(v, int(f)): float(g)
-                  for v, f, g in zip(points.videos, points.frames, gtime_all, strict=True)}
+        lookup = {(v, int(f)): float(g) for v, f, g in zip(points.videos, points.frames, gtime_all, strict=True)}
     colors = parts.point_colors(len(points.point_names))
     parts.log_world(rec, points.point_names, skeleton, colors, VIEW_COORDINATES[options.world_axes])
     if background is not None and len(background.xyz):
         xyz = np.asarray(background.xyz, dtype=float).reshape(-1, 3)
         keep = np.isfinite(xyz).all(axis=1)
-        rec.log("world/background", rr.Points3D(
-            xyz[keep], colors=None if background.colors is None else np.asarray(background.colors)[keep],
-            radii=rr.Radius.ui_points(BACKGROUND_RADIUS)), static=True)
+        rec.log(
+            "world/background",
+            rr.Points3D(
+                xyz[keep],
+                colors=None if background.colors is None else np.asarray(background.colors)[keep],
+                radii=rr.Radius.ui_points(BACKGROUND_RADIUS),
+            ),
+            static=True,
+        )
     plane = parts.auto_plane_distance(cameras, points)  # 1/10 of the median camera-point distance
     for video in cameras.videos:
         parts.log_camera(rec, video, lookup, plane)
@@ -185,23 +207,40 @@ def write_recording(
     path.parent.mkdir(parents=True, exist_ok=True)
     _check_inputs(cameras, points, skeleton, residual, global_time)  # fail before creating any file
     start = time.perf_counter()
-    blueprint = (build_blueprint(cameras, residual=residual is not None, global_time=global_time is not None)
-                 if options.blueprint else None)
+    blueprint = (
+        build_blueprint(cameras, residual=residual is not None, global_time=global_time is not None)
+        if options.blueprint
+        else None
+    )
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
     try:
         rec.save(tmp, default_blueprint=blueprint)  # the sink must exist before the first log call
-        log_recording(rec, cameras=cameras, points=points, tracks=tracks, skeleton=skeleton,
-                      residual=residual, global_time=global_time, background=background,
-                      video_files=video_files, options=options)
+        log_recording(
+            rec,
+            cameras=cameras,
+            points=points,
+            tracks=tracks,
+            skeleton=skeleton,
+            residual=residual,
+            global_time=global_time,
+            background=background,
+            video_files=video_files,
+            options=options,
+        )
         rec.disconnect()  # flushes and writes the footer, without which readers see a "legacy RRD"
         publish(tmp, path)
     except BaseException:
         rec.disconnect()
         tmp.unlink(missing_ok=True)
         raise
-    log.info("wrote %s (%d frames, %d points) in %.2f s", path, points.num_frames, len(points.point_names),
-             time.perf_counter() - start)
+    log.info(
+        "wrote %s (%d frames, %d points) in %.2f s",
+        path,
+        points.num_frames,
+        len(points.point_names),
+        time.perf_counter() - start,
+    )
     return path

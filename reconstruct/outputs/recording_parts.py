@@ -53,8 +53,14 @@ def frame_timeline(video: str) -> str:
 # Batch logging helpers
 
 
-def send_rows(rec: rr.RecordingStream, entity: str, video: str, frames: np.ndarray, gtime: np.ndarray | None,
-              columns_for: Callable[[np.ndarray], Columns]) -> None:
+def send_rows(
+    rec: rr.RecordingStream,
+    entity: str,
+    video: str,
+    frames: np.ndarray,
+    gtime: np.ndarray | None,
+    columns_for: Callable[[np.ndarray], Columns],
+) -> None:
     """Send one batch of rows of `video`, on `frame:<video>` and, where finite, on `global_time`.
 
     `columns_for(mask)` returns the component columns of the rows selected by the boolean mask (F_v,).
@@ -85,8 +91,9 @@ def row_slices(lengths: np.ndarray, mask: np.ndarray) -> np.ndarray:
 # Geometry
 
 
-def project(X: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-            dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    X: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, dist: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Project world points with OpenCV's model (and distortion) in pixels.
 
     X: (F, P, 3); K, R: (F, 3, 3); t: (F, 3); dist: (F, 5) k1, k2, p1, p2, k3 or None.
@@ -102,8 +109,10 @@ def project(X: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
         k1, k2, p1, p2, k3 = (dist[:, i, None] for i in range(5))
         r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+        x, y = (
+            x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
+        )
     u = K[:, 0, 0, None] * x + K[:, 0, 1, None] * y + K[:, 0, 2, None]
     v = K[:, 1, 1, None] * y + K[:, 1, 2, None]
     return np.stack([u, v], axis=-1), in_front
@@ -126,22 +135,36 @@ def auto_plane_distance(cameras: CameraSet, points: FramePoints) -> float:
 # The parts of the recording
 
 
-def log_world(rec: rr.RecordingStream, point_names: Sequence[str], skeleton: Sequence[tuple[str, str]] | None,
-              colors: np.ndarray, axes: rr.components.ViewCoordinates) -> None:
+def log_world(
+    rec: rr.RecordingStream,
+    point_names: Sequence[str],
+    skeleton: Sequence[tuple[str, str]] | None,
+    colors: np.ndarray,
+    axes: rr.components.ViewCoordinates,
+) -> None:
     """`world`: the axes convention and the annotation context (colour, label, bones of every point)."""
     rec.log("world", axes, static=True)
     index = {name: i for i, name in enumerate(point_names)}
     connections = [(index[a], index[b]) for a, b in skeleton or ()]
-    rec.log("world", rr.AnnotationContext([rr.ClassDescription(
-        info=rr.AnnotationInfo(id=POINTS_CLASS_ID, label="points"),
-        keypoint_annotations=[rr.AnnotationInfo(id=i, label=name, color=tuple(int(c) for c in colors[i]))
-                              for i, name in enumerate(point_names)],
-        keypoint_connections=connections,
-    )]), static=True)
+    rec.log(
+        "world",
+        rr.AnnotationContext(
+            [
+                rr.ClassDescription(
+                    info=rr.AnnotationInfo(id=POINTS_CLASS_ID, label="points"),
+                    keypoint_annotations=[
+                        rr.AnnotationInfo(id=i, label=name, color=tuple(int(c) for c in colors[i]))
+                        for i, name in enumerate(point_names)
+                    ],
+                    keypoint_connections=connections,
+                )
+            ]
+        ),
+        static=True,
+    )
 
 
-def log_points(rec: rr.RecordingStream, points: FramePoints, gtime_all: np.ndarray | None,
-               radius: float) -> None:
+def log_points(rec: rr.RecordingStream, points: FramePoints, gtime_all: np.ndarray | None, radius: float) -> None:
     """`world/points`: the finite points of every frame, with keypoint ids (colour, bones) and names."""
     P = len(points.point_names)
     names = np.array(points.point_names, dtype=object)
@@ -154,30 +177,39 @@ def log_points(rec: rr.RecordingStream, points: FramePoints, gtime_all: np.ndarr
         ids = np.broadcast_to(np.arange(P), finite.shape)[finite]
         flat = xyz[finite]
 
-        def columns(mask: np.ndarray, flat: np.ndarray = flat, ids: np.ndarray = ids,
-                    lengths: np.ndarray = lengths) -> Columns:
+        def columns(
+            mask: np.ndarray, flat: np.ndarray = flat, ids: np.ndarray = ids, lengths: np.ndarray = lengths
+        ) -> Columns:
             sel = row_slices(lengths, mask)
             n = len(sel)
-            return list(rr.Points3D.columns(
-                positions=flat[sel], keypoint_ids=ids[sel].astype(np.uint16),
-                class_ids=np.full(n, POINTS_CLASS_ID, np.uint16), labels=names[ids[sel]].tolist(),
-                radii=np.full(n, -radius, np.float32),  # negative = UI points
-            ).partition(lengths[mask]))
+            return list(
+                rr.Points3D.columns(
+                    positions=flat[sel],
+                    keypoint_ids=ids[sel].astype(np.uint16),
+                    class_ids=np.full(n, POINTS_CLASS_ID, np.uint16),
+                    labels=names[ids[sel]].tolist(),
+                    radii=np.full(n, -radius, np.float32),  # negative = UI points
+                ).partition(lengths[mask])
+            )
 
-        send_rows(rec, "world/points", video, points.frames[rows].astype(np.int64),
-                   None if gtime_all is None else gtime_all[rows], columns)
+        send_rows(
+            rec,
+            "world/points",
+            video,
+            points.frames[rows].astype(np.int64),
+            None if gtime_all is None else gtime_all[rows],
+            columns,
+        )
 
 
-def video_global_time(video: VideoCameras, frames: np.ndarray,
-                      lookup: GlobalTimes | None) -> np.ndarray | None:
+def video_global_time(video: VideoCameras, frames: np.ndarray, lookup: GlobalTimes | None) -> np.ndarray | None:
     """(n,) global time of these frames of `video`, NaN where unknown; None without global times."""
     if lookup is None:
         return None
     return np.array([lookup.get((video.name, int(f)), np.nan) for f in frames])
 
 
-def log_camera(rec: rr.RecordingStream, video: VideoCameras, lookup: GlobalTimes | None,
-               plane_distance: float) -> None:
+def log_camera(rec: rr.RecordingStream, video: VideoCameras, lookup: GlobalTimes | None, plane_distance: float) -> None:
     """`world/cameras/<video>`: Pinhole (static when K is constant) and cam_from_world of each posed frame."""
     entity = camera_entity(video.name)
     frames_sorted = sorted(video.frames, key=lambda f: f.frame)
@@ -191,19 +223,29 @@ def log_camera(rec: rr.RecordingStream, video: VideoCameras, lookup: GlobalTimes
     resolution = [video.width, video.height]
     if np.allclose(K, K[0]):
         # One intrinsic matrix for the whole video (the usual case): static, so it shows on every timeline.
-        rec.log(entity, rr.Pinhole(image_from_camera=K[0], resolution=resolution,
-                                   image_plane_distance=plane_distance), static=True)
+        rec.log(
+            entity,
+            rr.Pinhole(image_from_camera=K[0], resolution=resolution, image_plane_distance=plane_distance),
+            static=True,
+        )
     else:
-        rec.log(entity, rr.Pinhole.from_fields(resolution=resolution, image_plane_distance=plane_distance),
-                static=True)
-        send_rows(rec, entity, video.name, numbers, gtime,
-                   lambda m: rr.Pinhole.columns(image_from_camera=K[m]))
-    send_rows(rec, entity, video.name, numbers, gtime, lambda m: rr.Transform3D.columns(
-        translation=t[m], mat3x3=R[m], relation=[rr.TransformRelation.ChildFromParent] * int(m.sum())))
+        rec.log(entity, rr.Pinhole.from_fields(resolution=resolution, image_plane_distance=plane_distance), static=True)
+        send_rows(rec, entity, video.name, numbers, gtime, lambda m: rr.Pinhole.columns(image_from_camera=K[m]))
+    send_rows(
+        rec,
+        entity,
+        video.name,
+        numbers,
+        gtime,
+        lambda m: rr.Transform3D.columns(
+            translation=t[m], mat3x3=R[m], relation=[rr.TransformRelation.ChildFromParent] * int(m.sum())
+        ),
+    )
 
 
-def log_reprojection(rec: rr.RecordingStream, cameras: CameraSet, points: FramePoints,
-                     gtime_all: np.ndarray | None, radius: float) -> None:
+def log_reprojection(
+    rec: rr.RecordingStream, cameras: CameraSet, points: FramePoints, gtime_all: np.ndarray | None, radius: float
+) -> None:
     """`world/cameras/<video>/image/reprojection`: each frame's 3D points projected by its own camera."""
     P = len(points.point_names)
     videos = np.array(points.videos, dtype=object)
@@ -219,26 +261,36 @@ def log_reprojection(rec: rr.RecordingStream, cameras: CameraSet, points: FrameP
             dist = np.zeros((len(rows), 5))
             for j, c in enumerate(frame_cams):
                 if c.dist is not None:
-                    dist[j, :len(c.dist)] = c.dist
+                    dist[j, : len(c.dist)] = c.dist
         uv, in_front = project(points.xyz[rows], K, R, t, dist)
         shown = in_front & np.isfinite(uv).all(axis=-1)
         lengths = shown.sum(axis=1)
         ids = np.broadcast_to(np.arange(P), shown.shape)[shown]
         flat = uv[shown]
 
-        def columns(mask: np.ndarray, flat: np.ndarray = flat, ids: np.ndarray = ids,
-                    lengths: np.ndarray = lengths) -> Columns:
+        def columns(
+            mask: np.ndarray, flat: np.ndarray = flat, ids: np.ndarray = ids, lengths: np.ndarray = lengths
+        ) -> Columns:
             sel = row_slices(lengths, mask)
             n = len(sel)
-            return list(rr.Points2D.columns(
-                positions=flat[sel], keypoint_ids=ids[sel].astype(np.uint16),
-                class_ids=np.full(n, POINTS_CLASS_ID, np.uint16),
-                radii=np.full(n, -radius, np.float32),
-            ).partition(lengths[mask]))
+            return list(
+                rr.Points2D.columns(
+                    positions=flat[sel],
+                    keypoint_ids=ids[sel].astype(np.uint16),
+                    class_ids=np.full(n, POINTS_CLASS_ID, np.uint16),
+                    radii=np.full(n, -radius, np.float32),
+                ).partition(lengths[mask])
+            )
 
         entity = f"{camera_entity(video)}/image/reprojection"
-        send_rows(rec, entity, video, points.frames[rows].astype(np.int64),
-                   None if gtime_all is None else gtime_all[rows], columns)
+        send_rows(
+            rec,
+            entity,
+            video,
+            points.frames[rows].astype(np.int64),
+            None if gtime_all is None else gtime_all[rows],
+            columns,
+        )
 
 
 def track_colors(tracks: Tracks) -> np.ndarray:
@@ -252,8 +304,9 @@ def track_colors(tracks: Tracks) -> np.ndarray:
     return colors
 
 
-def log_tracks(rec: rr.RecordingStream, cameras: CameraSet, tracks: Tracks, lookup: GlobalTimes | None,
-               radius: float) -> None:
+def log_tracks(
+    rec: rr.RecordingStream, cameras: CameraSet, tracks: Tracks, lookup: GlobalTimes | None, radius: float
+) -> None:
     """`world/cameras/<video>/image/tracks`: the 2D observations, coloured by their `source`."""
     known = {v.name for v in cameras.videos}
     all_colors = track_colors(tracks)
@@ -271,17 +324,25 @@ def log_tracks(rec: rr.RecordingStream, cameras: CameraSet, tracks: Tracks, look
         labels = track_points[rows]
         colors = all_colors[rows]
 
-        def columns(mask: np.ndarray, xy: np.ndarray = xy, labels: np.ndarray = labels,
-                    colors: np.ndarray = colors, lengths: np.ndarray = lengths) -> Columns:
+        def columns(
+            mask: np.ndarray,
+            xy: np.ndarray = xy,
+            labels: np.ndarray = labels,
+            colors: np.ndarray = colors,
+            lengths: np.ndarray = lengths,
+        ) -> Columns:
             sel = row_slices(lengths, mask)
-            return list(rr.Points2D.columns(
-                positions=xy[sel], colors=colors[sel], labels=labels[sel].tolist(),
-                radii=np.full(len(sel), -radius, np.float32),
-            ).partition(lengths[mask]))
+            return list(
+                rr.Points2D.columns(
+                    positions=xy[sel],
+                    colors=colors[sel],
+                    labels=labels[sel].tolist(),
+                    radii=np.full(len(sel), -radius, np.float32),
+                ).partition(lengths[mask])
+            )
 
         gtime = None if lookup is None else np.array([lookup.get((video, int(f)), np.nan) for f in numbers])
-        send_rows(rec, f"{camera_entity(video)}/image/tracks", video, numbers.astype(np.int64), gtime,
-                   columns)
+        send_rows(rec, f"{camera_entity(video)}/image/tracks", video, numbers.astype(np.int64), gtime, columns)
 
 
 def log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path, lookup: GlobalTimes | None) -> None:
@@ -292,14 +353,23 @@ def log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path, lookup: 
         timestamps = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
     except (OSError, RuntimeError, ValueError) as error:
         # A recording without the images is still useful; say why they are missing instead of failing.
-        log.warning("%s: video not embedded in the recording (%s); rerun plays H.264/H.265/AV1/VP8/VP9 "
-                    "in .mp4, re-encode e.g. OpenCV's mp4v as vp09", file, error)
+        log.warning(
+            "%s: video not embedded in the recording (%s); rerun plays H.264/H.265/AV1/VP8/VP9 "
+            "in .mp4, re-encode e.g. OpenCV's mp4v as vp09",
+            file,
+            error,
+        )
         return
     numbers = np.array(sorted(f.frame for f in video.frames), dtype=np.int64)
     beyond = numbers >= len(timestamps)
     if beyond.any():
-        log.warning("%s has %d frames but cameras.json poses frame %d of video %r: those have no image",
-                    file, len(timestamps), int(numbers[beyond][0]), video.name)
+        log.warning(
+            "%s has %d frames but cameras.json poses frame %d of video %r: those have no image",
+            file,
+            len(timestamps),
+            int(numbers[beyond][0]),
+            video.name,
+        )
         numbers = numbers[~beyond]
     rec.log(entity, asset, static=True)
     if len(numbers) == 0:
@@ -312,8 +382,9 @@ def log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path, lookup: 
     send_rows(rec, entity, video.name, numbers, video_global_time(video, numbers, lookup), columns)
 
 
-def log_residual(rec: rr.RecordingStream, points: FramePoints, residual: np.ndarray,
-                 gtime_all: np.ndarray | None) -> None:
+def log_residual(
+    rec: rr.RecordingStream, points: FramePoints, residual: np.ndarray, gtime_all: np.ndarray | None
+) -> None:
     """`metrics/residual`: one scalar per frame; NaN frames are left out."""
     videos = np.array(points.videos, dtype=object)
     values = np.asarray(residual, dtype=float)
@@ -326,5 +397,11 @@ def log_residual(rec: rr.RecordingStream, points: FramePoints, residual: np.ndar
         def columns(mask: np.ndarray, vals: np.ndarray = values[rows]) -> Columns:
             return rr.Scalars.columns(scalars=vals[mask])
 
-        send_rows(rec, "metrics/residual", video, points.frames[rows].astype(np.int64),
-                   None if gtime_all is None else gtime_all[rows], columns)
+        send_rows(
+            rec,
+            "metrics/residual",
+            video,
+            points.frames[rows].astype(np.int64),
+            None if gtime_all is None else gtime_all[rows],
+            columns,
+        )

@@ -110,8 +110,9 @@ def column_grams(
 class WorkingSetProblem:
     """g restricted to a working set, with the per-column Gram matrices precomputed."""
 
-    def __init__(self, shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray, lambda1: float, num_points: int,
-                 workers: int = 1):
+    def __init__(
+        self, shapes: np.ndarray, cand: np.ndarray, valid: np.ndarray, lambda1: float, num_points: int, workers: int = 1
+    ):
         F = len(shapes)
         self.cand, self.valid = cand, valid
         self.data_weight = 1.0 / (F * num_points)
@@ -145,8 +146,10 @@ class WorkingSetProblem:
         partner = self.transpose.ravel()[flat]
         sym = 4.0 * self.sym_weight
         # Psi1: sym on the diagonal, -sym between partners
-        psi1 = sp.csr_matrix((np.r_[np.full(len(flat), sym), np.full(len(flat), -sym)],
-                              (np.r_[flat, flat], np.r_[flat, partner])), shape=(n, n))
+        psi1 = sp.csr_matrix(
+            (np.r_[np.full(len(flat), sym), np.full(len(flat), -sym)], (np.r_[flat, flat], np.r_[flat, partner])),
+            shape=(n, n),
+        )
         return sp.csr_matrix(2.0 * self.data_weight * self.gram + psi1)
 
     def project(self, V: np.ndarray) -> np.ndarray:
@@ -269,7 +272,7 @@ class FreeSetSolver:
             return [columns]
         load = np.zeros(self.workers)
         worker_of = np.zeros(len(size), dtype=np.int64)
-        for component in np.argsort(-size)[:np.count_nonzero(size)]:  # largest first, to the least loaded
+        for component in np.argsort(-size)[: np.count_nonzero(size)]:  # largest first, to the least loaded
             worker_of[component] = np.argmin(load)
             load[worker_of[component]] += size[component]
         return [columns & (worker_of[label] == w) for w in range(self.workers) if load[w] > 0]
@@ -318,8 +321,13 @@ class FreeSetSolver:
             reduced = sp.csc_matrix(Z_free.T @ (H_rows @ Z_all))
             rhs = -(Z_free.T @ (H_rows @ v))
             try:
-                factor = spla.splu(reduced, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, panel_size=1,
-                                   options={"SymmetricMode": True})
+                factor = spla.splu(
+                    reduced,
+                    permc_spec="MMD_AT_PLUS_A",
+                    diag_pivot_thresh=0.0,
+                    panel_size=1,
+                    options={"SymmetricMode": True},
+                )
             except RuntimeError:
                 log.debug("active set: singular reduced system")
                 return None
@@ -417,18 +425,20 @@ def active_set(
         free = proposal
         key = np.packbits(free).tobytes()
         if key in seen:
-            log.debug("active set: PDAS cycles after %d iterations; primal active set from the best iterate",
-                      len(seen))
+            log.debug("active set: PDAS cycles after %d iterations; primal active set from the best iterate", len(seen))
             return primal_active_set(problem, solver, best, options, stats)
         seen.add(key)
         solver.ensure_nonempty_columns(free, v)
-    log.debug("active set: PDAS has not settled in %d iterations; primal active set from the best iterate",
-              options.max_active_set_iterations)
+    log.debug(
+        "active set: PDAS has not settled in %d iterations; primal active set from the best iterate",
+        options.max_active_set_iterations,
+    )
     return primal_active_set(problem, solver, best, options, stats)
 
 
-def limit_changes(free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violation: np.ndarray,
-                   restricted: np.ndarray, F: int, K: int) -> np.ndarray:
+def limit_changes(
+    free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violation: np.ndarray, restricted: np.ndarray, F: int, K: int
+) -> np.ndarray:
     """The proposed free set (flat F*K), with one change per `restricted` column (F,): its most negative entry
     leaves, else its most violating entry enters. PDAS swaps whole sets and can wander for dozens of iterations on
     columns with nearly degenerate entries; single changes there (Murty's rule) settle them like the primal method
@@ -449,7 +459,10 @@ def limit_changes(free: np.ndarray, proposal: np.ndarray, v: np.ndarray, violati
 
 
 def primal_active_set(
-    problem: WorkingSetProblem, solver: FreeSetSolver, start: np.ndarray, options: WStepOptions,
+    problem: WorkingSetProblem,
+    solver: FreeSetSolver,
+    start: np.ndarray,
+    options: WStepOptions,
     stats: WStepStats,
 ) -> np.ndarray:
     """Primal active-set method (Nocedal & Wright, Alg. 16.3) from a feasible start: every step solves the QP on

@@ -107,8 +107,15 @@ class SolveResult:
 
 
 def frame_costs(
-    points: np.ndarray, W: sp.spmatrix, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray,
-    lambda1: float, lambda2: float, lambda3: float, constraint: RayConstraint,
+    points: np.ndarray,
+    W: sp.spmatrix,
+    centers: np.ndarray,
+    rays: np.ndarray,
+    video_index: np.ndarray,
+    lambda1: float,
+    lambda2: float,
+    lambda3: float,
+    constraint: RayConstraint,
 ) -> np.ndarray:
     """(F,) each frame's share of the objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized
     units: its self-expression residual, its column's asymmetry, its rays, and the smoothness link to the next frame
@@ -136,8 +143,15 @@ def frame_costs(
 
 
 def total_cost(
-    points: np.ndarray, W: sp.spmatrix, centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray,
-    lambda1: float, lambda2: float, lambda3: float, constraint: RayConstraint,
+    points: np.ndarray,
+    W: sp.spmatrix,
+    centers: np.ndarray,
+    rays: np.ndarray,
+    video_index: np.ndarray,
+    lambda1: float,
+    lambda2: float,
+    lambda3: float,
+    constraint: RayConstraint,
 ) -> float:
     """The objective of the paper's Eq. (ourproblem_final) (+ soft ray term), normalized units."""
     return float(np.sum(frame_costs(points, W, centers, rays, video_index, lambda1, lambda2, lambda3, constraint)))
@@ -174,8 +188,12 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     started = time.perf_counter()
     keep = _reconstructable(problem)
     normalization = camera_normalization(problem.centers, problem.video_index)
-    scene = _Scene(centers=normalization.apply(problem.centers), rays=viewing_rays(problem)[:, keep],
-                   video_index=problem.video_index, observed=problem.observed[:, keep])
+    scene = _Scene(
+        centers=normalization.apply(problem.centers),
+        rays=viewing_rays(problem)[:, keep],
+        video_index=problem.video_index,
+        observed=problem.observed[:, keep],
+    )
     timings["rays"] = time.perf_counter() - started
 
     t0 = time.perf_counter()
@@ -183,8 +201,7 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     init_points = scene.centers[:, None, :] + init.depth[..., None] * scene.rays
     unmatched = int(np.sum(init.partner < 0))
     if unmatched:
-        log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated",
-                 unmatched)
+        log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated", unmatched)
     points = fill_missing_points(init_points, scene.video_index)
     timings["initialize"] = time.perf_counter() - t0
 
@@ -220,7 +237,8 @@ def _reconstructable(problem: Problem) -> np.ndarray:
     if not keep.any():
         raise NotEnoughDataError(
             f"none of the {problem.num_points} point(s) is seen in two different videos: nothing can be "
-            "reconstructed (each point needs observations from at least two videos)")
+            "reconstructed (each point needs observations from at least two videos)"
+        )
     return keep
 
 
@@ -229,16 +247,21 @@ def _initialize(problem: Problem, scene: _Scene, options: SolverOptions) -> Pair
     F = scene.num_frames
     if options.dense_limit >= F:
         return initialize_depths(scene.centers, scene.rays, scene.video_index)
-    init, anchor = coarse_to_fine_init(scene.centers, scene.rays, scene.video_index, options.candidates,
-                                       times=problem.times)
+    init, anchor = coarse_to_fine_init(
+        scene.centers, scene.rays, scene.video_index, options.candidates, times=problem.times
+    )
     scene.windows = MovingWindows(anchor, scene.video_index, options.candidates, times=problem.times)
-    log.info("%d frames: dictionaries restricted to +-%d frames of each other video around each frame's "
-             "matches", F, options.candidates.half_window)
+    log.info(
+        "%d frames: dictionaries restricted to +-%d frames of each other video around each frame's matches",
+        F,
+        options.candidates.half_window,
+    )
     return init
 
 
-def _alternate(points: np.ndarray, scene: _Scene, options: SolverOptions, timings: dict[str, float]
-               ) -> tuple[list[StageLog], np.ndarray, SparseW]:
+def _alternate(
+    points: np.ndarray, scene: _Scene, options: SolverOptions, timings: dict[str, float]
+) -> tuple[list[StageLog], np.ndarray, SparseW]:
     """Both stages from the start `points` (F, P, 3); adds the W-step and X-step times to `timings`."""
     stages: list[StageLog] = []
     plan = [("smooth", options.lambda2), ("final", 0.0)] if options.lambda2 > 0 else [("final", 0.0)]
@@ -249,15 +272,27 @@ def _alternate(points: np.ndarray, scene: _Scene, options: SolverOptions, timing
         stage = StageLog(name=name, lambda2=lambda2)
         stages.append(stage)
         points, W = _run_stage(stage, points, W, scene, options, w_options, timings)
-        log.info("stage %s: %d iterations, cost %.4e, converged: %s", name, stage.iterations,
-                 stage.cost[-1] if stage.cost else float("nan"), stage.converged)
+        log.info(
+            "stage %s: %d iterations, cost %.4e, converged: %s",
+            name,
+            stage.iterations,
+            stage.cost[-1] if stage.cost else float("nan"),
+            stage.converged,
+        )
     if W is None:
         raise ValueError("max_iterations must be at least 1")
     return stages, points, W
 
 
-def _run_stage(stage: StageLog, points: np.ndarray, W: SparseW | None, scene: _Scene, options: SolverOptions,
-               w_options: WStepOptions, timings: dict[str, float]) -> tuple[np.ndarray, SparseW | None]:
+def _run_stage(
+    stage: StageLog,
+    points: np.ndarray,
+    W: SparseW | None,
+    scene: _Scene,
+    options: SolverOptions,
+    w_options: WStepOptions,
+    timings: dict[str, float],
+) -> tuple[np.ndarray, SparseW | None]:
     """Alternations of one stage until it converges or runs out of iterations; returns its points and W."""
     lambda2 = stage.lambda2
     x_options = options.x_step_options(lambda2)
@@ -265,12 +300,17 @@ def _run_stage(stage: StageLog, points: np.ndarray, W: SparseW | None, scene: _S
     previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
     mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
     candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
-    bar = tqdm(range(options.max_iterations), desc=f"solve ({stage.name})", disable=None if options.progress else True,
-               leave=False)
+    bar = tqdm(
+        range(options.max_iterations),
+        desc=f"solve ({stage.name})",
+        disable=None if options.progress else True,
+        leave=False,
+    )
     for _ in bar:
         t0 = time.perf_counter()
-        W, W_matrix, w_stats, candidate = _w_step(stage, candidate, points, W, previous_cost, mixer, scene, options,
-                                                  w_options)
+        W, W_matrix, w_stats, candidate = _w_step(
+            stage, candidate, points, W, previous_cost, mixer, scene, options, w_options
+        )
         timings["w_step"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         new_points = solve_x(W_matrix, scene.centers, scene.rays, scene.video_index, x_options, start=candidate)
@@ -279,16 +319,24 @@ def _run_stage(stage: StageLog, points: np.ndarray, W: SparseW | None, scene: _S
         moved = np.abs(new_points - candidate)
         change = float(np.max(moved))
         settled = float(np.quantile(moved, POINT_QUANTILE))
-        frames_cost = frame_costs(new_points, W_matrix, scene.centers, scene.rays, scene.video_index, options.lambda1,
-                                  lambda2, options.lambda3, options.constraint)
+        frames_cost = frame_costs(
+            new_points,
+            W_matrix,
+            scene.centers,
+            scene.rays,
+            scene.video_index,
+            options.lambda1,
+            lambda2,
+            options.lambda3,
+            options.constraint,
+        )
         cost = float(np.sum(frames_cost))
         stage.iterations += 1
         stage.cost.append(cost)
         stage.w_iterations.append(w_stats.iterations)
         stage.max_point_change.append(change)
         bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
-        decrease = (np.inf if previous_frames is None
-                    else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE))
+        decrease = np.inf if previous_frames is None else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE)
         if lambda2 > 0:
             converged = decrease < SMOOTH_TOLERANCE
         else:
@@ -302,9 +350,17 @@ def _run_stage(stage: StageLog, points: np.ndarray, W: SparseW | None, scene: _S
     return points, W
 
 
-def _w_step(stage: StageLog, candidate: np.ndarray, points: np.ndarray, W: SparseW | None, previous_cost: float,
-            mixer: AndersonMixer | None, scene: _Scene, options: SolverOptions, w_options: WStepOptions
-            ) -> tuple[SparseW, sp.csc_matrix, WStepStats, np.ndarray]:
+def _w_step(
+    stage: StageLog,
+    candidate: np.ndarray,
+    points: np.ndarray,
+    W: SparseW | None,
+    previous_cost: float,
+    mixer: AndersonMixer | None,
+    scene: _Scene,
+    options: SolverOptions,
+    w_options: WStepOptions,
+) -> tuple[SparseW, sp.csc_matrix, WStepStats, np.ndarray]:
     """The W-step from `candidate` (an Anderson mix, or the last X-step's `points`); a mix whose cost exceeds
     `previous_cost` is dropped for the plain step. Returns W, as a matrix, its stats and the start actually used."""
     F, P = scene.num_frames, scene.num_points
@@ -312,15 +368,23 @@ def _w_step(stage: StageLog, candidate: np.ndarray, points: np.ndarray, W: Spars
     W_next, w_stats = solve_w(candidate.reshape(F, -1), scene.video_index, P, w_options, previous=W, pool=pool)
     W_matrix = W_next.to_csc()
     if candidate is not points:
-        mixed_cost = total_cost(candidate, W_matrix, scene.centers, scene.rays, scene.video_index, options.lambda1,
-                                stage.lambda2, options.lambda3, options.constraint)
+        mixed_cost = total_cost(
+            candidate,
+            W_matrix,
+            scene.centers,
+            scene.rays,
+            scene.video_index,
+            options.lambda1,
+            stage.lambda2,
+            options.lambda3,
+            options.constraint,
+        )
         if mixed_cost > previous_cost:  # the mix lost ground: fall back to the plain alternation
             stage.rejected_mixes += 1
             if mixer is not None:
                 mixer.reset()
             candidate = points
-            W_next, w_stats = solve_w(candidate.reshape(F, -1), scene.video_index, P, w_options, previous=W,
-                                      pool=pool)
+            W_next, w_stats = solve_w(candidate.reshape(F, -1), scene.video_index, P, w_options, previous=W, pool=pool)
             W_matrix = W_next.to_csc()
     if scene.windows is not None:
         scene.windows.follow(W_matrix)
@@ -333,12 +397,21 @@ def _check_finite(points: np.ndarray, stage: StageLog, scene: _Scene) -> None:
         raise DynreconError(
             f"the solve diverged in stage {stage.name!r} after {stage.iterations} alternation(s); "
             f"{sparse_frames} of {scene.num_frames} frames observe fewer than 2 points: track more points per frame, "
-            "or drop frames where almost nothing is observed")
+            "or drop frames where almost nothing is observed"
+        )
 
 
-def _result(problem: Problem, keep: np.ndarray, normalization: Normalization, init: PairInit,
-            init_points: np.ndarray, points: np.ndarray, W: SparseW, stages: list[StageLog],
-            timings: dict[str, float]) -> SolveResult:
+def _result(
+    problem: Problem,
+    keep: np.ndarray,
+    normalization: Normalization,
+    init: PairInit,
+    init_points: np.ndarray,
+    points: np.ndarray,
+    W: SparseW,
+    stages: list[StageLog],
+    timings: dict[str, float],
+) -> SolveResult:
     """Back to input units, with NaN for the points that could not be reconstructed."""
     F, P_all = problem.num_frames, problem.num_points
     W_matrix = W.to_csc()
@@ -347,6 +420,13 @@ def _result(problem: Problem, keep: np.ndarray, normalization: Normalization, in
     init_out = np.full((F, P_all, 3), np.nan)
     init_out[:, keep] = normalization.undo(init_points)
     return SolveResult(
-        points=out, W=W, reconstructable=keep, init=init, normalization=normalization, stages=stages,
-        timings=timings, residual=frame_residuals(points, W_matrix) * normalization.scale, init_points=init_out,
+        points=out,
+        W=W,
+        reconstructable=keep,
+        init=init,
+        normalization=normalization,
+        stages=stages,
+        timings=timings,
+        residual=frame_residuals(points, W_matrix) * normalization.scale,
+        init_points=init_out,
     )

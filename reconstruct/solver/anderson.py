@@ -47,7 +47,7 @@ class AndersonMixer:
         self._last_x, self._last_g = x_flat.copy(), g_flat.copy()
         if self._count == 0 or self._df is None or self._dg is None:
             return g.copy()
-        dF, dG = self._df[:self._count], self._dg[:self._count]
+        dF, dG = self._df[: self._count], self._dg[: self._count]
         gram = dF @ dF.T
         # Tikhonov on the normal equations: the rows become nearly dependent as the iteration settles.
         gram += self.regularization * max(float(np.trace(gram)), 1e-300) * np.eye(len(gram))

@@ -92,7 +92,12 @@ def pair_distances(
 
 
 def _window_distances(
-    lines: _Lines, frames_a: np.ndarray, first: np.ndarray, side_b: _Side, window: int, pair_block: int,
+    lines: _Lines,
+    frames_a: np.ndarray,
+    first: np.ndarray,
+    side_b: _Side,
+    window: int,
+    pair_block: int,
     back: tuple[np.ndarray, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """D (R, window) of each frame of `frames_a` (R,) against the `window` consecutive frames of video b from
@@ -127,8 +132,11 @@ def _window_distances(
         with np.errstate(invalid="ignore", divide="ignore"):
             block = np.divide(total, count, out=total)  # NaN where nothing is shared: below every need
         pick = (first[at] - c0)[:, None] + offsets[None, :]
-        D[at] = np.where(np.take_along_axis(count, pick, axis=1) >= need_a[at][:, None],
-                         np.take_along_axis(block, pick, axis=1), np.inf)
+        D[at] = np.where(
+            np.take_along_axis(count, pick, axis=1) >= need_a[at][:, None],
+            np.take_along_axis(block, pick, axis=1),
+            np.inf,
+        )
         if back is not None:
             slot[at] = np.arange(len(at))
             row = slot[first_b[c0:c1, None] + offsets_b[None, :]]  # (S, window_b): the run's row, -1 outside
@@ -141,8 +149,13 @@ def _window_distances(
 
 
 def _fill_uncovered(
-    lines: _Lines, D: np.ndarray, frames: np.ndarray, first_col: np.ndarray, members_b: np.ndarray,
-    first: np.ndarray, pair_block: int,
+    lines: _Lines,
+    D: np.ndarray,
+    frames: np.ndarray,
+    first_col: np.ndarray,
+    members_b: np.ndarray,
+    first: np.ndarray,
+    pair_block: int,
 ) -> None:
     """Fill the NaN entries of D (R, K) of `frames` (R,) against frames first_col + k: a few pair by pair, or, when
     they are many (the two videos' anchors disagree), the rows that hold them by runs (`_window_distances`
@@ -153,12 +166,13 @@ def _fill_uncovered(
     if missing.mean() <= 0.25:
         r, k = np.nonzero(missing)
         for start in range(0, len(r), EXPLICIT_PAIRS):
-            rr, kk = r[start:start + EXPLICIT_PAIRS], k[start:start + EXPLICIT_PAIRS]
+            rr, kk = r[start : start + EXPLICIT_PAIRS], k[start : start + EXPLICIT_PAIRS]
             D[rr, kk] = _explicit_distances(lines, frames[rr], first_col[rr] + kk)
         return
     rows = missing.any(axis=1)
-    D[rows], _ = _window_distances(lines, frames[rows], first[rows], _Side.cols(lines, members_b), D.shape[1],
-                                   pair_block)
+    D[rows], _ = _window_distances(
+        lines, frames[rows], first[rows], _Side.cols(lines, members_b), D.shape[1], pair_block
+    )
 
 
 def _explicit_distances(lines: _Lines, f: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -176,9 +190,7 @@ def _explicit_distances(lines: _Lines, f: np.ndarray, j: np.ndarray) -> np.ndarr
     return np.where(count >= lines.need[f], D, np.inf)
 
 
-def _run_gap_sums(
-    lines: _Lines, rows: np.ndarray, side_b: _Side, c0: int, c1: int
-) -> tuple[np.ndarray, np.ndarray]:
+def _run_gap_sums(lines: _Lines, rows: np.ndarray, side_b: _Side, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
     """`initialize._gap_sums` for the frames `rows` (R,) against side_b's frames c0 ... c1 - 1 (S): the sum over
     shared, non-parallel points of the squared ray gap, and their number (R, S). All points in one stacked product:
     a run's (P, R, S) buffers are small, and the per-call overhead of a loop over points would dominate them."""
@@ -204,14 +216,16 @@ def _window_best(
     """Per row of D (R, K; modified: diverging pairs become inf) the first offset k of least D among the
     non-diverging pairs (rows[r], first_col[r] + k), and that D; -1 and inf where none (`initialize.lazy_best`:
     divergence checked for each row's best candidate in turn, then for all finite candidates of the rest)."""
+
     def diverging_rows(pending: np.ndarray, sub: np.ndarray) -> np.ndarray:
         r, k = np.nonzero(np.isfinite(sub))
         out = np.zeros(sub.shape, dtype=bool)
         out[r, k] = _diverging(lines, rows[pending[r]], first_col[pending[r]] + k)
         return out
 
-    best, cost, _ = lazy_best(D, lambda pending, pick: _diverging(lines, rows[pending], first_col[pending] + pick),
-                              diverging_rows)
+    best, cost, _ = lazy_best(
+        D, lambda pending, pick: _diverging(lines, rows[pending], first_col[pending] + pick), diverging_rows
+    )
     return best, cost
 
 
@@ -255,8 +269,13 @@ def _all_timed(times: np.ndarray | None) -> bool:
 
 
 def consistent_anchors(
-    anchor: np.ndarray, video_index: np.ndarray, layout: VideoLayout, *, tolerance: int,
-    times: np.ndarray | None = None, trials: int = 200,
+    anchor: np.ndarray,
+    video_index: np.ndarray,
+    layout: VideoLayout,
+    *,
+    tolerance: int,
+    times: np.ndarray | None = None,
+    trials: int = 200,
 ) -> np.ndarray:
     """Every video's clock runs forward at a steady rate, so the anchors of a's frames in video b lie on a line:
     time in b against time in a when every frame has a decoder time (`times` (F,)), else position in b against
@@ -278,7 +297,7 @@ def consistent_anchors(
         for b in range(V):
             if a == b or layout.lengths[b] < 2:
                 continue
-            b_axis = axis[layout.starts[b]:layout.starts[b] + layout.lengths[b]]
+            b_axis = axis[layout.starts[b] : layout.starts[b] + layout.lengths[b]]
             # tolerance in b's axis units: positions, or that many of b's median frame periods
             scale = float(np.median(np.diff(b_axis))) if timed else 1.0
             y = b_axis[fixed[members, b]]
@@ -335,7 +354,10 @@ def window_pool(anchor: np.ndarray, video_index: np.ndarray, layout: VideoLayout
 
 
 def coarse_to_fine_init(
-    centers: np.ndarray, rays: np.ndarray, video_index: np.ndarray, options: CandidateOptions,
+    centers: np.ndarray,
+    rays: np.ndarray,
+    video_index: np.ndarray,
+    options: CandidateOptions,
     times: np.ndarray | None = None,
 ) -> tuple[PairInit, np.ndarray]:
     """The pairwise initialization restricted to anchor windows. Returns (init, anchor (F, V)). `times` (F,):
@@ -376,10 +398,12 @@ def coarse_to_fine_init(
                 continue
             first_ab = np.clip(anchor[members[a], b] - half, 0, layout.lengths[b] - window[b])
             first_ba = np.clip(anchor[members[b], a] - half, 0, layout.lengths[a] - window[a])
-            D_ab, D_ba = _window_distances(lines, members[a], first_ab, side_b, int(window[b]), options.pair_block,
-                                           back=(first_ba, int(window[a])))
-            _fill_uncovered(lines, D_ba, members[b], layout.starts[a] + first_ba, members[a], first_ba,
-                            options.pair_block)
+            D_ab, D_ba = _window_distances(
+                lines, members[a], first_ab, side_b, int(window[b]), options.pair_block, back=(first_ba, int(window[a]))
+            )
+            _fill_uncovered(
+                lines, D_ba, members[b], layout.starts[a] + first_ba, members[a], first_ba, options.pair_block
+            )
             for rows, cols, first, D in ((a, b, first_ab, D_ab), (b, a, first_ba, D_ba)):
                 best, best_d[members[rows], cols] = _window_best(lines, D, members[rows], layout.starts[cols] + first)
                 position[members[rows], cols] = np.where(best >= 0, first + best, -1)
@@ -417,8 +441,9 @@ class MovingWindows:
     candidate pool they give. Once the matches settle, most alternations leave the anchors where they were, and the
     pool is then reused instead of rebuilt."""
 
-    def __init__(self, anchor: np.ndarray, video_index: np.ndarray, options: CandidateOptions,
-                 times: np.ndarray | None = None):
+    def __init__(
+        self, anchor: np.ndarray, video_index: np.ndarray, options: CandidateOptions, times: np.ndarray | None = None
+    ):
         self.anchor = anchor
         self.video_index = video_index
         self.layout = VideoLayout.of(video_index)
@@ -429,13 +454,20 @@ class MovingWindows:
     def pool(self) -> np.ndarray:
         """(F, C) each frame's candidates (`window_pool`)."""
         if self._pool is None or not np.array_equal(self._pool[0], self.anchor):
-            self._pool = (self.anchor, window_pool(self.anchor, self.video_index, self.layout,
-                                                   self.options.half_window))
+            self._pool = (
+                self.anchor,
+                window_pool(self.anchor, self.video_index, self.layout, self.options.half_window),
+            )
         return self._pool[1]
 
     def follow(self, W: sp.csc_matrix) -> None:
         """Move the anchors to W's matches (`follow_w`) and back onto their video pairs' lines
         (`consistent_anchors`)."""
         followed = follow_w(self.anchor, W, self.video_index, self.layout, slack=self.options.recentre)
-        self.anchor = consistent_anchors(followed, self.video_index, self.layout, times=self.times,
-                                         tolerance=anchor_tolerance(self.options, self.times))
+        self.anchor = consistent_anchors(
+            followed,
+            self.video_index,
+            self.layout,
+            times=self.times,
+            tolerance=anchor_tolerance(self.options, self.times),
+        )

@@ -82,8 +82,14 @@ class _Lines:
         left = np.empty((P, F, 6))
         left[..., :3] = np.cross((centers - origin)[:, None, :], zeroed).transpose(1, 0, 2)
         left[..., 3:] = zeroed.transpose(1, 0, 2)
-        return cls(centers=centers, rays=zeroed, seen=seen, seen_float=seen.astype(float),
-                   need=np.minimum(MIN_COMMON_POINTS, np.maximum(seen.sum(axis=1), 1)), left=left)
+        return cls(
+            centers=centers,
+            rays=zeroed,
+            seen=seen,
+            seen_float=seen.astype(float),
+            need=np.minimum(MIN_COMMON_POINTS, np.maximum(seen.sum(axis=1), 1)),
+            left=left,
+        )
 
 
 @dataclass(kw_only=True)
@@ -190,8 +196,11 @@ def _best_partners(
     """Per row of D (R, C; modified: diverging pairs become inf), the first column of least D among the
     non-diverging ones. Returns the column position (R,) (-1 where none), its D (R,), and the diverging pairs
     found (row positions, column positions)."""
-    return lazy_best(D, lambda pending, pick: _pair_depths(lines, rows[pending], cols[pick])[1],
-                     lambda pending, sub: _pair_matrix(lines, rows[pending], cols))
+    return lazy_best(
+        D,
+        lambda pending, pick: _pair_depths(lines, rows[pending], cols[pick])[1],
+        lambda pending, sub: _pair_matrix(lines, rows[pending], cols),
+    )
 
 
 def lazy_best(
@@ -237,7 +246,11 @@ def lazy_best(
 
 
 def _merge(
-    partner: np.ndarray, cost: np.ndarray, frames: np.ndarray, best: np.ndarray, best_cost: np.ndarray,
+    partner: np.ndarray,
+    cost: np.ndarray,
+    frames: np.ndarray,
+    best: np.ndarray,
+    best_cost: np.ndarray,
     cols: np.ndarray,
 ) -> None:
     """Merge the best column positions (-1: none) of `frames` among `cols` into partner / cost (F,): least cost
@@ -270,7 +283,7 @@ def bundle_distances(
         step = max(1, TILE_PAIRS // len(cols))
         b = _Side.cols(lines, cols)
         for start in range(0, len(positions), step):
-            at = positions[start:start + step]
+            at = positions[start : start + step]
             f = rows[at]
             total, count = _gap_sums(lines, _Side.rows(lines, f), b, slice(None), slice(None))
             depth_block = np.empty((P, len(f), len(cols)))
@@ -296,9 +309,10 @@ def initialize_depths(
     cost = np.full(F, np.inf)
     members = [np.flatnonzero(video_index == v) for v in np.unique(video_index)]
     for ia, frames_a in enumerate(members):
-        for frames_b in members[ia + 1:]:
-            (best_a, cost_a), (best_b, cost_b) = video_pair_best(lines, frames_a, frames_b,
-                                                                 memory_elements=memory_elements)
+        for frames_b in members[ia + 1 :]:
+            (best_a, cost_a), (best_b, cost_b) = video_pair_best(
+                lines, frames_a, frames_b, memory_elements=memory_elements
+            )
             _merge(partner, cost, frames_a, best_a, cost_a, frames_b)
             _merge(partner, cost, frames_b, best_b, cost_b, frames_a)
     return PairInit(partner=partner, cost=cost, depth=partner_depths(lines, partner))
@@ -324,9 +338,9 @@ def video_pair_best(
         best_cost = np.full(len(rows_all), np.inf)
         band = max(1, memory_elements // len(cols))
         for start in range(0, len(rows_all), band):
-            rows = rows_all[start:start + band]
+            rows = rows_all[start : start + band]
             D_rows, _ = _distance_block(lines, rows, cols, both=False)
-            best[start:start + band], best_cost[start:start + band], _ = _best_partners(lines, D_rows, rows, cols)
+            best[start : start + band], best_cost[start : start + band], _ = _best_partners(lines, D_rows, rows, cols)
         found.append((best, best_cost))
     return found[0], found[1]
 
@@ -337,14 +351,12 @@ def partner_depths(lines: _Lines, partner: np.ndarray) -> np.ndarray:
     depth = np.full(lines.rays.shape[:2], np.nan)
     matched = np.flatnonzero(partner >= 0)
     for start in range(0, len(matched), 256):
-        f = matched[start:start + 256]
+        f = matched[start : start + 256]
         depth[f], _ = _pair_depths(lines, f, partner[f])
     return depth
 
 
-def _distance_block(
-    lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, both: bool
-) -> tuple[np.ndarray, np.ndarray]:
+def _distance_block(lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, both: bool) -> tuple[np.ndarray, np.ndarray]:
     """D for rows x cols (R, C), inf where the pair shares too few points for the row frame; with `both`, also
     the same for the column frames, transposed (C, R) (else an empty array). Divergence is not checked here.
     Evaluated in cache-sized tiles."""
@@ -380,8 +392,9 @@ def fill_missing_points(points: np.ndarray, video_index: np.ndarray) -> np.ndarr
                 continue
             positions = np.arange(len(members))
             for axis in range(3):
-                filled[members[~known], p, axis] = np.interp(positions[~known], positions[known],
-                                                             filled[members[known], p, axis])
+                filled[members[~known], p, axis] = np.interp(
+                    positions[~known], positions[known], filled[members[known], p, axis]
+                )
     for p in range(P):
         missing = np.isnan(filled[:, p, 0])
         if missing.any() and not missing.all():

@@ -61,8 +61,10 @@ def _videos_contiguous(video_index: np.ndarray) -> tuple[np.ndarray, list[tuple[
     order): masking a video's own frames is then a slice, not an (F, F) boolean mask."""
     order = np.argsort(video_index, kind="stable")
     _, starts, counts = np.unique(video_index[order], return_index=True, return_counts=True)
-    groups = [(order[start:start + count], int(start), int(start + count))
-              for start, count in zip(starts, counts, strict=True)]
+    groups = [
+        (order[start : start + count], int(start), int(start + count))
+        for start, count in zip(starts, counts, strict=True)
+    ]
     return order, groups
 
 
@@ -77,7 +79,7 @@ def nearest_other_video(shapes: np.ndarray, video_index: np.ndarray, k: int, *, 
     result = np.empty((F, k), dtype=np.int64)
     for members, lo, hi in groups:
         for start in range(0, len(members), block):
-            rows = members[start:start + block]
+            rows = members[start : start + block]
             d2 = shapes[rows] @ ordered.T
             d2 *= -2.0
             d2 += norms
@@ -172,8 +174,14 @@ def _pack_pairs(rows: np.ndarray, cols: np.ndarray, F: int) -> tuple[np.ndarray,
 
 
 def kkt_violations(
-    shapes: np.ndarray, video_index: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions,
-    *, block: int = 1024, pool: np.ndarray | None = None,
+    shapes: np.ndarray,
+    video_index: np.ndarray,
+    W: SparseW,
+    problem: WorkingSetProblem,
+    options: WStepOptions,
+    *,
+    block: int = 1024,
+    pool: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Allowed entries (rows j, columns f) outside the working set whose gradient lies below the column's simplex
     multiplier by more than kkt_tolerance * L_f: moving weight onto them would lower g. With a candidate `pool`
@@ -199,7 +207,7 @@ def kkt_violations(
     found_inner: list[np.ndarray] = []
     for members, lo, hi in groups:
         for start in range(0, len(members), block):
-            cols = members[start:start + block]
+            cols = members[start : start + block]
             inner = residual[cols] @ ordered.T  # (B, F): r_f . S_j, columns in video order
             inner[:, lo:hi] = np.inf
             local, slot = np.nonzero(W.valid[cols])
@@ -225,8 +233,13 @@ def kkt_violations(
 
 
 def _pool_violations(
-    shapes: np.ndarray, W: SparseW, problem: WorkingSetProblem, options: WStepOptions, mu: np.ndarray,
-    residual: np.ndarray, pool: np.ndarray,
+    shapes: np.ndarray,
+    W: SparseW,
+    problem: WorkingSetProblem,
+    options: WStepOptions,
+    mu: np.ndarray,
+    residual: np.ndarray,
+    pool: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     inner = local_inner(residual, shapes, pool, workers=options.workers)
     g = 2.0 * problem.data_weight * (inner - np.einsum("fd,fd->f", residual, shapes)[:, None])
@@ -246,8 +259,12 @@ def _pool_violations(
 
 
 def solve_w(
-    shapes: np.ndarray, video_index: np.ndarray, num_points: int, options: WStepOptions,
-    previous: SparseW | None = None, pool: np.ndarray | None = None,
+    shapes: np.ndarray,
+    video_index: np.ndarray,
+    num_points: int,
+    options: WStepOptions,
+    previous: SparseW | None = None,
+    pool: np.ndarray | None = None,
 ) -> tuple[SparseW, WStepStats]:
     """Solve the W-step for shapes (F, 3P), warm-started from `previous`. With a candidate `pool` (F, C) of frame
     indices (-1 = none; reconstruct/solver/candidates.py) W is restricted to it: cost O(F C) instead of O(F^2)."""
@@ -260,8 +277,9 @@ def solve_w(
     near_cols = np.repeat(np.arange(F), near.shape[1])
     # fewer other-video frames than `nearest`, or a short pool
     other = (near.ravel() >= 0) & (video_index[near.ravel()] != video_index[near_cols])
-    seed_rows, seed_cols = _limit_seeds_per_frame(near.ravel()[other], near_cols[other],
-                                                  np.tile(np.arange(near.shape[1]), F)[other], 3 * options.nearest)
+    seed_rows, seed_cols = _limit_seeds_per_frame(
+        near.ravel()[other], near_cols[other], np.tile(np.arange(near.shape[1]), F)[other], 3 * options.nearest
+    )
     rows = [seed_rows]
     cols = [seed_cols]
     if previous is not None:
@@ -297,8 +315,9 @@ def solve_w(
     return W, stats
 
 
-def _limit_seeds_per_frame(rows: np.ndarray, cols: np.ndarray, rank: np.ndarray, limit: int
-                           ) -> tuple[np.ndarray, np.ndarray]:
+def _limit_seeds_per_frame(
+    rows: np.ndarray, cols: np.ndarray, rank: np.ndarray, limit: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Keep at most `limit` seed pairs (row j, column f) per frame j, those where j ranks nearest for f. The working
     set is symmetrized, so a frame that is the nearest of thousands of frames would get a column of thousands of
     entries, and the per-column Gram matrices (F, K, K) are padded to the largest column (the last frame of a

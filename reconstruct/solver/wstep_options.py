@@ -49,9 +49,14 @@ class WStepOptions:
         """Settings under which the W-step returns the minimizer of g on the full problem: KKT tests at round-off,
         no stall guard, budgets that are not reached (`SolverOptions(w_step=WStepOptions.exact())`). The default
         stops above the optimum with a sparser W that reconstructs better (docs/solver.md)."""
-        settings: dict[str, Any] = {"kkt_tolerance": 1e-12, "tolerance": 1e-12, "max_rounds": 100,
-                                    "stall_iterations": 10**6, "max_active_set_iterations": 500,
-                                    "max_primal_iterations": 500}
+        settings: dict[str, Any] = {
+            "kkt_tolerance": 1e-12,
+            "tolerance": 1e-12,
+            "max_rounds": 100,
+            "stall_iterations": 10**6,
+            "max_active_set_iterations": 500,
+            "max_primal_iterations": 500,
+        }
         return cls(**{**settings, **overrides})
 
 

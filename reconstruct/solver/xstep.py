@@ -133,8 +133,9 @@ Operator = Callable[[np.ndarray, np.ndarray], None]  # op(Y, out): writes into o
 Operators = Callable[[np.ndarray], tuple[Operator, Operator]]  # points -> (apply, precondition) for those points
 
 
-def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: XStepOptions
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _batched_cg(
+    operators: Operators, rhs: np.ndarray, x: np.ndarray, options: XStepOptions
+) -> tuple[np.ndarray, np.ndarray]:
     """Independent CG solves, one per point: arrays are (F, 3, P), the point axis last so that the per-point dot
     products reduce over contiguous memory (the (F, P, 3) layout made them much slower). `operators(points)` returns
     (apply, precondition) for the points `points` (indices into the last axis): `apply(Y, out)` and
@@ -143,6 +144,7 @@ def _batched_cg(operators: Operators, rhs: np.ndarray, x: np.ndarray, options: X
     Points converge at very different speeds, so converged points leave the batch once a quarter of it has: the
     products then run over the points still iterating only. Every other update is in place: on long captures the
     arrays are large, and a fresh temporary per operation cost a page-faulting allocation each."""
+
     def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.einsum("fkp,fkp->p", a, b)
 
@@ -203,8 +205,13 @@ def _to_fkp(a: np.ndarray) -> np.ndarray:
 
 
 def _cg_soft(
-    Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, weight: float,
-    options: XStepOptions, start: np.ndarray | None,
+    Q: sp.csr_matrix,
+    centers: np.ndarray,
+    r: np.ndarray,
+    observed: np.ndarray,
+    weight: float,
+    options: XStepOptions,
+    start: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The 3x3 ray blocks weight (I - r r^T) and the block-Jacobi preconditioner are applied in closed form:
     (d I + w (I - r r^T))^-1 = (I - r r^T) / (d + w) + r r^T / d for a unit ray r."""
@@ -244,7 +251,11 @@ def _cg_soft(
 
 
 def _cg_hard(
-    Q: sp.csr_matrix, centers: np.ndarray, r: np.ndarray, observed: np.ndarray, options: XStepOptions,
+    Q: sp.csr_matrix,
+    centers: np.ndarray,
+    r: np.ndarray,
+    observed: np.ndarray,
+    options: XStepOptions,
     start: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observed points move along their ray only: CG on Y = y0 + Pi z with Pi = r r^T (observed) or I (missing)."""
@@ -293,8 +304,9 @@ def _solve_hard(Q3: sp.csr_matrix, centers: np.ndarray, rays: np.ndarray, observ
         rows.append(3 * mis + axis)
         cols.append(first[mis] + axis)
         vals.append(np.ones(len(mis)))
-    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * F, int(n_unknowns.sum())))
+    J = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * F, int(n_unknowns.sum()))
+    )
     y0 = np.where(observed[:, None], centers, 0.0).ravel()
     H = (J.T @ Q3 @ J).tocsc()
     rhs = -(J.T @ (Q3 @ y0))

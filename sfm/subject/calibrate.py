@@ -277,9 +277,7 @@ def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> list[int]
         cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
         distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
         if median > MAX_RESIDUAL_PX:
-            why = (
-                f"median reprojection error {median:.1f} px after the bundle adjustment (> {MAX_RESIDUAL_PX:g})"
-            )
+            why = f"median reprojection error {median:.1f} px after the bundle adjustment (> {MAX_RESIDUAL_PX:g})"
         elif int(good.sum()) < MIN_INLIERS:
             why = f"only {int(good.sum())} observations agree with the others' trajectory (< {MIN_INLIERS})"
         elif distinct < MIN_DISTINCT // 2:

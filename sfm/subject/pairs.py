@@ -156,9 +156,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng:
     c_scores, c_counts = _score(oa, ob, grid, thr_c, 64, 200, False, MIN_SHARED, rng)
     if c_counts.max() < MIN_SHARED:
         empty.shared = int(c_counts.max())
-        empty.reason = (
-            f"at most {int(c_counts.max())} shared observations at any time offset (min_shared={MIN_SHARED})"
-        )
+        empty.reason = f"at most {int(c_counts.max())} shared observations at any time offset (min_shared={MIN_SHARED})"
         return empty
     candidates: list[float] = []
     step = max(fine, 2 * coarse / 8)  # at most 9 robust fits per peak

@@ -16,13 +16,9 @@ from tracking.tracks import Tracks
 def orbiting_spheres(time: float, count: int = 4) -> Spheres:
     """`count` spheres circling the room's middle, each spinning about z (known 3D motion)."""
     phase = 1.5 * time + np.arange(count) * 2 * np.pi / count
-    centers = np.stack(
-        [4.0 + 0.9 * np.cos(phase), 3.2 + 0.9 * np.sin(phase), 0.9 + 0.25 * np.arange(count)], 1
-    )
+    centers = np.stack([4.0 + 0.9 * np.cos(phase), 3.2 + 0.9 * np.sin(phase), 0.9 + 0.25 * np.arange(count)], 1)
     spin = 2.0 * time
-    rotation = np.array(
-        [[np.cos(spin), np.sin(spin), 0.0], [-np.sin(spin), np.cos(spin), 0.0], [0.0, 0.0, 1.0]]
-    )
+    rotation = np.array([[np.cos(spin), np.sin(spin), 0.0], [-np.sin(spin), np.cos(spin), 0.0], [0.0, 0.0, 1.0]])
     return Spheres(centers=centers, radii=0.3, rotations=np.repeat(rotation[None], count, axis=0))
 
 
@@ -40,9 +36,7 @@ def three_cameras(
         (1.12, [4.0, 0.6, 1.7], [-1.0, 0.5, 0.3], [4.2, 5.5, 1.2]),
         (0.92, [6.8, 0.9, 1.3], [-0.6, 1.0, 0.4], [2.0, 5.0, 1.4]),
     ]
-    for index, ((focal, start, move, target), count, rate) in enumerate(
-        zip(setups, frames, fps, strict=True)
-    ):
+    for index, ((focal, start, move, target), count, rate) in enumerate(zip(setups, frames, fps, strict=True)):
         f = 0.78 * width * focal
         K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
         start_c = np.array(start)
@@ -92,9 +86,7 @@ def mixed_cameras(width: int = 480, height: int = 360, frames: int = 12) -> list
     return paths
 
 
-def render_demo(
-    out_dir: str | Path, cameras: list[CameraPath] | None = None, seed: int = 0
-) -> list[SceneVideo]:
+def render_demo(out_dir: str | Path, cameras: list[CameraPath] | None = None, seed: int = 0) -> list[SceneVideo]:
     """Render the demo scene's videos (mp4v) into out_dir; returns them with their ground-truth cameras."""
     room = Room(seed=seed)
     return [

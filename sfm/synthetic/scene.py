@@ -80,9 +80,7 @@ def render_video(
     s)."""
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    writer = cv2.VideoWriter(
-        str(out_path), cv2.VideoWriter.fourcc(*fourcc), camera.fps, (camera.width, camera.height)
-    )
+    writer = cv2.VideoWriter(str(out_path), cv2.VideoWriter.fourcc(*fourcc), camera.fps, (camera.width, camera.height))
     if not writer.isOpened():
         raise RuntimeError(f"cannot write {out_path} with fourcc {fourcc}")
     frames, ids = [], []
@@ -96,7 +94,5 @@ def render_video(
             frames.append(FrameCamera(frame=index, time=float(time), K=camera.K.copy(), R=R, t=t))
     finally:
         writer.release()
-    video = VideoCameras(
-        name=camera.name, width=camera.width, height=camera.height, fps=camera.fps, frames=frames
-    )
+    video = VideoCameras(name=camera.name, width=camera.width, height=camera.height, fps=camera.fps, frames=frames)
     return SceneVideo(path=out_path, cameras=video, object_ids=np.stack(ids))

@@ -15,8 +15,10 @@ HEAVY = ("numpy", "scipy", "cv2", "pycolmap", "rerun", "tqdm")
 
 
 def _loaded_after(argv: list[str]) -> set[str]:
-    code = ("import sys\nfrom dynrecon.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
-            "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})), file=sys.stderr)")
+    code = (
+        "import sys\nfrom dynrecon.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})), file=sys.stderr)"
+    )
     done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True)
     return set(done.stderr.split())
 
@@ -32,8 +34,9 @@ def test_a_light_command_loads_only_its_stage() -> None:
     assert not loaded & {"scipy", "pycolmap", "rerun"}
 
 
-@pytest.mark.parametrize("module_name", [m for m in cli.COMMAND_MODULES
-                                         if hasattr(importlib.import_module(m), "COMMANDS")])
+@pytest.mark.parametrize(
+    "module_name", [m for m in cli.COMMAND_MODULES if hasattr(importlib.import_module(m), "COMMANDS")]
+)
 def test_listed_commands_are_the_registered_ones(module_name: str) -> None:
     """`COMMANDS` (what `dynrecon --help` lists without loading the module's parsers) matches `add_commands`."""
     module = importlib.import_module(module_name)
@@ -52,7 +55,11 @@ def test_full_and_listed_parsers_agree() -> None:
 
 
 def test_a_user_error_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli.main(["-q", "solve", "--cameras", "none.json", "--tracks", "none.csv", "--out", "o",
-                     "--max-iterations", "0"]) == 2
+    assert (
+        cli.main(
+            ["-q", "solve", "--cameras", "none.json", "--tracks", "none.csv", "--out", "o", "--max-iterations", "0"]
+        )
+        == 2
+    )
     error = capsys.readouterr().err
     assert error.startswith("dynrecon solve: error: ") and error.count("\n") == 1

@@ -72,8 +72,9 @@ def _one_line_error(capsys: pytest.CaptureFixture[str], status: int, *names: str
 
 
 def _solve(cameras: Path, tracks: Path, out: Path, *extra: str) -> int:
-    return main(["-q", "solve", "--cameras", str(cameras), "--tracks", str(tracks), "--out", str(out),
-                 "--no-recording", *extra])
+    return main(
+        ["-q", "solve", "--cameras", str(cameras), "--tracks", str(tracks), "--out", str(out), "--no-recording", *extra]
+    )
 
 
 # ---- frame numbers
@@ -122,8 +123,11 @@ def test_hostile_cameras_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     _one_line_error(capsys, status, str(cameras), "invalid JSON")
 
 
-@pytest.mark.parametrize("text", [LONG_NUMBER_JSON, DEEP_JSON, '{"points": ["a"], "connections": [' + "[" * 900
-                                  + "]" * 900 + "]}"], ids=["5000 digits", "deeply nested", "nested pair"])
+@pytest.mark.parametrize(
+    "text",
+    [LONG_NUMBER_JSON, DEEP_JSON, '{"points": ["a"], "connections": [' + "[" * 900 + "]" * 900 + "]}"],
+    ids=["5000 digits", "deeply nested", "nested pair"],
+)
 def test_hostile_skeleton(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str) -> None:
     skeleton = tmp_path / "skeleton.json"
     skeleton.write_text(text)
@@ -131,9 +135,11 @@ def test_hostile_skeleton(tmp_path: Path, capsys: pytest.CaptureFixture[str], te
     _one_line_error(capsys, status, str(skeleton))
 
 
-@pytest.mark.parametrize("text", [LONG_NUMBER_JSON, DEEP_JSON, json.dumps({"frames": [{"video": "a", "frame": 2**63,
-                                                                                        "neighbours": []}]})],
-                         ids=["5000 digits", "deeply nested", "frame 2^63"])
+@pytest.mark.parametrize(
+    "text",
+    [LONG_NUMBER_JSON, DEEP_JSON, json.dumps({"frames": [{"video": "a", "frame": 2**63, "neighbours": []}]})],
+    ids=["5000 digits", "deeply nested", "frame 2^63"],
+)
 def test_hostile_sequencing_json(tmp_path: Path, text: str) -> None:
     path = tmp_path / "sequencing.json"
     path.write_text(text)
@@ -153,10 +159,19 @@ def test_input_that_is_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[st
     _one_line_error(capsys, status, str(folder))
 
 
-@pytest.mark.parametrize("document", [
-    "[" * 100_000, "1" * 5000, "[1, 2]", '{"stages": [1]}', '{"stages": {"solve": 3}}',
-    '{"stages": {"solve": {"inputs": 1}}}', '{"stages": {"solve": {"inputs": "k", "outputs": [1]}}}',
-], ids=["deep", "digits", "list", "stages list", "entry int", "inputs int", "outputs list"])
+@pytest.mark.parametrize(
+    "document",
+    [
+        "[" * 100_000,
+        "1" * 5000,
+        "[1, 2]",
+        '{"stages": [1]}',
+        '{"stages": {"solve": 3}}',
+        '{"stages": {"solve": {"inputs": 1}}}',
+        '{"stages": {"solve": {"inputs": "k", "outputs": [1]}}}',
+    ],
+    ids=["deep", "digits", "list", "stages list", "entry int", "inputs int", "outputs list"],
+)
 def test_corrupted_pipeline_json_reruns_the_stage(tmp_path: Path, document: str) -> None:
     (tmp_path / "pipeline.json").write_text(document)
     state = State(tmp_path)  # warns instead of crashing
@@ -194,8 +209,17 @@ def test_track_into_unwritable_folder(tmp_path: Path, unwritable: Path, capsys: 
     ws = tmp_path / "ws"
     ws.mkdir()
     _labels(ws / "labels.csv")
-    status = main(["-q", "track", str(ws), "--videos", str(_video(tmp_path / "cam1.avi", frames=2)),
-                   "--out", str(unwritable / "tracks.csv")])
+    status = main(
+        [
+            "-q",
+            "track",
+            str(ws),
+            "--videos",
+            str(_video(tmp_path / "cam1.avi", frames=2)),
+            "--out",
+            str(unwritable / "tracks.csv"),
+        ]
+    )
     _one_line_error(capsys, status, str(unwritable), "cannot write")
 
 
@@ -240,10 +264,16 @@ def test_label_startup_failures_exit_2_without_abort(tmp_path: Path) -> None:
     # 192.0.2.1 (TEST-NET-1) is not an address of this machine: bind() fails with EADDRNOTAVAIL.
     cases["unreachable host"] = ([str(workspace("host")), "--host", "192.0.2.1"], "192.0.2.1")
     try:
-        processes = {name: subprocess.Popen(
-            [sys.executable, "-m", "dynrecon", "-q", "label", *args, "--videos", str(video)],
-            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            for name, (args, _) in cases.items()}
+        processes = {
+            name: subprocess.Popen(
+                [sys.executable, "-m", "dynrecon", "-q", "label", *args, "--videos", str(video)],
+                cwd=REPO,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for name, (args, _) in cases.items()
+        }
         results = {name: (p.wait(timeout=60), p.communicate()[1]) for name, p in processes.items()}
     finally:
         busy.close()

@@ -50,15 +50,29 @@ def _cut_sample(out: Path) -> dict[str, Path]:
         writer.release()
         videos[name] = path
     truth = read_points(SAMPLE / "truth.csv")
-    keep = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True))
-            if f % STEP == 0 and f // STEP < CUT[v]]
-    write_points(out / "truth.csv", FramePoints(
-        videos=[truth.videos[i] for i in keep], frames=truth.frames[keep] // STEP, point_names=truth.point_names,
-        xyz=truth.xyz[keep], observed=truth.observed[keep], extra={k: v[keep] for k, v in truth.extra.items()}))
+    keep = [
+        i
+        for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True))
+        if f % STEP == 0 and f // STEP < CUT[v]
+    ]
+    write_points(
+        out / "truth.csv",
+        FramePoints(
+            videos=[truth.videos[i] for i in keep],
+            frames=truth.frames[keep] // STEP,
+            point_names=truth.point_names,
+            xyz=truth.xyz[keep],
+            observed=truth.observed[keep],
+            extra={k: v[keep] for k, v in truth.extra.items()},
+        ),
+    )
     cameras = read_cameras(SAMPLE / "truth_cameras.json")
     for video in cameras.videos:
-        video.frames = [replace(f, frame=f.frame // STEP) for f in video.frames
-                        if f.frame % STEP == 0 and f.frame // STEP < CUT[video.name]]
+        video.frames = [
+            replace(f, frame=f.frame // STEP)
+            for f in video.frames
+            if f.frame % STEP == 0 and f.frame // STEP < CUT[video.name]
+        ]
     write_cameras(out / "truth_cameras.json", cameras)
     _write_labels(out)
     return videos
@@ -93,8 +107,13 @@ def _options(labels: Path) -> PipelineOptions:
     # tracked positions than the defaults, same accuracy).
     # The demo's clock settings: the sample's treadmill walk is periodic, and the default affine clocks came out a
     # stride off (median error 52 mm here instead of ~5 mm; see dynrecon.demo.pipeline_options).
-    return PipelineOptions(register=register, track=TrackOptions(patch=11, win_size=11), labels=labels,
-                           skeleton=SAMPLE / "walker_skeleton.json", solve=pipeline_options(SAMPLE).solve)
+    return PipelineOptions(
+        register=register,
+        track=TrackOptions(patch=11, win_size=11),
+        labels=labels,
+        skeleton=SAMPLE / "walker_skeleton.json",
+        solve=pipeline_options(SAMPLE).solve,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -112,8 +131,17 @@ def test_first_run_runs_every_stage(first_run):
     _, _, ws, result = first_run
     assert [s.name for s in result.stages] == [s for s in STAGES if s != "subject"]  # no static video left out
     assert not any(s.skipped for s in result.stages)
-    for name in ("register/cameras.json", "tracks.csv", "points3d.csv", "sequencing.json", "report.json",
-                 "recording.rrd", "points.trc", "points.c3d", "pipeline.json"):
+    for name in (
+        "register/cameras.json",
+        "tracks.csv",
+        "points3d.csv",
+        "sequencing.json",
+        "report.json",
+        "recording.rrd",
+        "points.trc",
+        "points.c3d",
+        "pipeline.json",
+    ):
         assert (ws / name).is_file(), name
     state = json.loads((ws / "pipeline.json").read_text())
     assert set(state["stages"]) == set(STAGES) - {"subject"}
@@ -184,9 +212,20 @@ def test_cli_run_reports_skipped_stages(first_run, monkeypatch, capsys):
     base, videos, ws, _ = first_run
     assert "dynrecon.pipeline_cli" in cli.COMMAND_MODULES
     # The CLI's default track options differ from the test's: only track and later stages run again.
-    code = cli.main(["run", *map(str, videos.values()), "--out", str(ws), "--labels",
-                     str(base / "sample" / "labels.csv"), "--max-frames", "12",
-                     "--skeleton", str(SAMPLE / "walker_skeleton.json")])
+    code = cli.main(
+        [
+            "run",
+            *map(str, videos.values()),
+            "--out",
+            str(ws),
+            "--labels",
+            str(base / "sample" / "labels.csv"),
+            "--max-frames",
+            "12",
+            "--skeleton",
+            str(SAMPLE / "walker_skeleton.json"),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0
     assert "register  skipped (up to date)" in out
@@ -237,8 +276,9 @@ def test_similarity_to_truth_recovers_a_known_similarity():
     rotation = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
     # X_sfm = (R^T (X_true - t)) / s, i.e. truth = s R X_sfm + t
     known = Similarity(scale=250.0, rotation=rotation, translation=np.array([900.0, -40.0, 1300.0]))
-    inverse = Similarity(scale=1 / known.scale, rotation=rotation.T,
-                         translation=-(rotation.T @ known.translation) / known.scale)
+    inverse = Similarity(
+        scale=1 / known.scale, rotation=rotation.T, translation=-(rotation.T @ known.translation) / known.scale
+    )
     moved = read_cameras(SAMPLE / "truth_cameras.json")
     for video in moved.videos:
         video.frames = [inverse.camera(f) for f in video.frames]

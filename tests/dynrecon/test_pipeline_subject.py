@@ -26,8 +26,9 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulated_phones(tmp_path_factory.mktemp("capture"))
 
 
-def test_static_videos_left_out_are_registered_from_the_tracks(capture: Path, tmp_path: Path,
-                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_static_videos_left_out_are_registered_from_the_tracks(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     calls: list[RegisterOptions] = []
 
     def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
@@ -76,8 +77,10 @@ def test_a_static_video_the_background_left_out_triggers_the_subject_stage(
         shutil.copyfile(capture / "cameras.json", register_dir / "cameras.json")
         write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
         left_out = "none" if options.tracks is None else "subject"
-        videos_report = [{"name": "cam0", "camera": "static", "posed_by": left_out},
-                         {"name": "cam1", "camera": "moving", "posed_by": "background SfM"}]
+        videos_report = [
+            {"name": "cam0", "camera": "static", "posed_by": left_out},
+            {"name": "cam1", "camera": "moving", "posed_by": "background SfM"},
+        ]
         (register_dir / "register_report.json").write_text(json.dumps({"videos": videos_report}))
 
     monkeypatch.setattr(pipeline, "_register", register)

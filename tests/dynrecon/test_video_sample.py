@@ -75,8 +75,9 @@ def test_generator_makes_a_consistent_sample(tmp_path, monkeypatch):
 
     monkeypatch.setattr(make, "WIDTH", 160)
     monkeypatch.setattr(make, "HEIGHT", 120)
-    monkeypatch.setattr(make, "SHOTS", tuple(replace(s, num_frames=n) for s, n in zip(make.SHOTS, (11, 9, 7),
-                                                                                     strict=True)))
+    monkeypatch.setattr(
+        make, "SHOTS", tuple(replace(s, num_frames=n) for s, n in zip(make.SHOTS, (11, 9, 7), strict=True))
+    )
     make.main(tmp_path)
     _check_sample(tmp_path, max_label_error_px=3.0)
     truth = read_points(tmp_path / "truth.csv")

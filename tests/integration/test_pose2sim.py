@@ -38,8 +38,9 @@ def _camera(rng: np.random.Generator, center: list[float]) -> FrameCamera:
     down = np.cross(forward, right)
     R = np.stack([right, down, forward])
     K = np.array([[1000.0, 0.0, 499.5], [0.0, 1000.0, 499.5], [0.0, 0.0, 1.0]])
-    return FrameCamera(frame=0, K=K, R=R, t=-R @ position, dist=np.array([-0.05, 0.02, 0.0, 0.0]) *
-                       rng.uniform(0.5, 1.0))
+    return FrameCamera(
+        frame=0, K=K, R=R, t=-R @ position, dist=np.array([-0.05, 0.02, 0.0, 0.0]) * rng.uniform(0.5, 1.0)
+    )
 
 
 def test_triangulate_recovers_point_through_distortion() -> None:
@@ -64,26 +65,30 @@ def test_desynchronize_keeps_disjoint_frames_with_their_numbers() -> None:
     rows = [(f"cam0{k + 1}", f, "p", 1.0, 2.0) for k in range(4) for f in range(20)]
     cameras, tracks = check.desynchronize(CameraSet(videos=videos), Tracks.from_rows(rows), window=(2, 17))
     kept = {v.name: [f.frame for f in v.frames] for v in cameras.videos}
-    assert kept == {"cam01": [4, 8, 12, 16], "cam02": [5, 9, 13, 17], "cam03": [2, 6, 10, 14],
-                    "cam04": [3, 7, 11, 15]}
+    assert kept == {"cam01": [4, 8, 12, 16], "cam02": [5, 9, 13, 17], "cam03": [2, 6, 10, 14], "cam04": [3, 7, 11, 15]}
     assert all(f.time == pytest.approx(f.frame / 60.0) for v in cameras.videos for f in v.frames)
     instants = [f for frames in kept.values() for f in frames]
     assert len(instants) == len(set(instants))  # no two cameras share an instant
     assert sorted(zip(tracks.video, tracks.frame.tolist(), strict=True)) == sorted(
-        (v, f) for v, frames in kept.items() for f in frames)
+        (v, f) for v, frames in kept.items() for f in frames
+    )
 
 
 @pytest.mark.shared
 def test_labels_are_consistent_with_the_lab_calibration(shared_dir: Path, tmp_path: Path) -> None:
     """Every label row names a demo video and lies inside its image; the labels of one frame seen from 3-4
     cameras triangulate with a small reprojection error (the correspondences are right)."""
-    from tracking.labels import read_labels
     from sfm import calibration as import_calibration
+    from tracking.labels import read_labels
 
     demo = shared_dir / check.DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
-    import_calibration.run(demo / "calibration" / "Calib.qca.txt", list(videos), tmp_path,
-                           import_calibration.ImportCalibrationOptions(scale=1000.0))
+    import_calibration.run(
+        demo / "calibration" / "Calib.qca.txt",
+        list(videos),
+        tmp_path,
+        import_calibration.ImportCalibrationOptions(scale=1000.0),
+    )
     cameras = check.read_cameras(tmp_path / "cameras.json")
     poses = {v.name: v for v in cameras.videos}
     labels = read_labels(LABELS)

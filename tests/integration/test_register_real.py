@@ -67,8 +67,15 @@ def test_caliscope_static_rig_from_the_subject(caliscope: tuple[list[Path], Path
 def test_caliscope_scale_from_two_tracked_points(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
     videos, tracks = caliscope
     # Corners 0 and 1 are neighbours on the board: one 5.4 cm square apart.
-    report = _register(videos, tmp_path / "ws", tracks, "--intrinsics", str(real.CALISCOPE / "camera_array.toml"),
-                       "--scale", "corner_0,corner_1,0.054")
+    report = _register(
+        videos,
+        tmp_path / "ws",
+        tracks,
+        "--intrinsics",
+        str(real.CALISCOPE / "camera_array.toml"),
+        "--scale",
+        "corner_0,corner_1,0.054",
+    )
     assert report["subject"]["metric"]
     cameras = read_cameras(tmp_path / "ws" / "cameras.json")
     truth = real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)])
@@ -79,8 +86,9 @@ def test_caliscope_scale_from_two_tracked_points(caliscope: tuple[list[Path], Pa
     assert abs(spread / true_spread - 1) < 0.05
 
 
-def test_caliscope_background_alone_says_what_is_missing(shared_dir: Path, tmp_path: Path,
-                                                          capsys: pytest.CaptureFixture[str]) -> None:
+def test_caliscope_background_alone_says_what_is_missing(
+    shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     videos = [real.CALISCOPE / "calibration" / "extrinsic" / f"cam_{i}.mp4" for i in range(4)]
     assert main(["register", *(str(v) for v in videos), "--out", str(tmp_path / "ws")]) == 2
     err = capsys.readouterr().err
@@ -90,8 +98,9 @@ def test_caliscope_background_alone_says_what_is_missing(shared_dir: Path, tmp_p
     assert any("dynrecon track" in w for w in report["warnings"])  # the way out: the subject's tracks
 
 
-def test_pose2sim_markers_too_few_to_pose_are_refused(shared_dir: Path, tmp_path: Path,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_pose2sim_markers_too_few_to_pose_are_refused(
+    shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """3-5 tracked markers of a person balancing on the spot: every pair's correspondences come from too few
     distinct positions. Registration must refuse with the reason, not report wrong poses."""
     from tracking import stage as track_stage

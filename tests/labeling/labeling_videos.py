@@ -24,7 +24,7 @@ def render_frame(frame: int, background: np.ndarray, texture: np.ndarray) -> np.
     size = 2 * BLOB_RADIUS + 1
     yy, xx = np.mgrid[:size, :size]
     inside = (xx - BLOB_RADIUS) ** 2 + (yy - BLOB_RADIUS) ** 2 <= BLOB_RADIUS**2
-    region = image[y0:y0 + size, x0:x0 + size]
+    region = image[y0 : y0 + size, x0 : x0 + size]
     region[inside] = texture[inside]
     return image
 

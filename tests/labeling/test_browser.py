@@ -45,16 +45,18 @@ def truth(point: str, frame: int) -> tuple[float, float]:
 def write_scene(path: Path) -> Path:
     rng = np.random.default_rng(7)
     # A soft, floor-like texture: coarse blotches plus a little fine grain.
-    coarse = cv2.resize(rng.integers(0, 256, size=(HEIGHT // 24, WIDTH // 24), dtype=np.uint8),
-                        (WIDTH, HEIGHT), interpolation=cv2.INTER_CUBIC).astype(np.float32)[..., None]
+    coarse = cv2.resize(
+        rng.integers(0, 256, size=(HEIGHT // 24, WIDTH // 24), dtype=np.uint8),
+        (WIDTH, HEIGHT),
+        interpolation=cv2.INTER_CUBIC,
+    ).astype(np.float32)[..., None]
     grain = rng.normal(0.0, 12.0, size=(HEIGHT, WIDTH, 1)).astype(np.float32)
     background = np.clip(0.45 * coarse + np.float32([55, 62, 70]) + grain, 0, 255).astype(np.uint8)
     size = 2 * RADIUS + 1
     yy, xx = np.mgrid[:size, :size]
     inside = (xx - RADIUS) ** 2 + (yy - RADIUS) ** 2 <= RADIUS**2
     # Random blobs of texture (no periodic pattern: LK would lock onto the wrong period).
-    blotches = {p: cv2.resize(rng.random((size // 3, size // 3)).astype(np.float32), (size, size))
-                for p in POINTS}
+    blotches = {p: cv2.resize(rng.random((size // 3, size // 3)).astype(np.float32), (size, size)) for p in POINTS}
     # Muted colours, so the page's markers stand out in the screenshot.
     tints = {"head": (190, 200, 215), "hand": (215, 195, 175), "foot": (185, 215, 190)}
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (WIDTH, HEIGHT))
@@ -66,10 +68,11 @@ def write_scene(path: Path) -> Path:
             cx, cy = truth(point, frame)
             x0, y0 = int(np.floor(cx)) - RADIUS, int(np.floor(cy)) - RADIUS
             shift = np.float32([[1, 0, cx - np.floor(cx)], [0, 1, cy - np.floor(cy)]])
-            moved = cv2.warpAffine(texture, shift, (size, size), flags=cv2.INTER_LINEAR,
-                                   borderMode=cv2.BORDER_REPLICATE)
+            moved = cv2.warpAffine(
+                texture, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
             mask = cv2.warpAffine(inside.astype(np.uint8), shift, (size, size)).astype(bool)
-            region = image[y0:y0 + size, x0:x0 + size]
+            region = image[y0 : y0 + size, x0 : x0 + size]
             region[mask] = moved[mask]
         writer.write(image)
     writer.release()
@@ -87,9 +90,19 @@ def browser():
         pytest.skip("needs Debian's chromium at /usr/bin/chromium (apt-get install -y chromium)")
     sync_api = pytest.importorskip("playwright.sync_api", reason="needs Playwright's Python package")
     with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=[
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        browser = playwright.chromium.launch(
+            executable_path=str(CHROMIUM),
+            args=[
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+            ],
+        )
         try:
             yield browser
         finally:
@@ -115,8 +128,8 @@ def goto_frame(page, frame: int) -> None:
     page.fill("#frame", str(frame))
     page.press("#frame", "Enter")
     page.wait_for_function(
-        "f => window.dynreconLabel.state.frame === f && window.dynreconLabel.state.imgKey.endsWith('|' + f)",
-        arg=frame)
+        "f => window.dynreconLabel.state.frame === f && window.dynreconLabel.state.imgKey.endsWith('|' + f)", arg=frame
+    )
 
 
 def wait_saved(page) -> None:
@@ -128,7 +141,9 @@ def run_tracking(page, runs_before: int) -> None:
     page.click("#track")
     page.wait_for_function(
         "n => document.body.dataset.trackState !== 'running' && Number(document.body.dataset.trackSeq) > n",
-        arg=runs_before, timeout=120_000)
+        arg=runs_before,
+        timeout=120_000,
+    )
     assert page.evaluate("document.body.dataset.trackState") == "done", page.inner_text("#track-status")
 
 
@@ -188,10 +203,18 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path, capsys: pytest
         tracks = read_rows(workspace / "tracks.csv")
         tracked = [r for r in tracks if r["source"] == "track"]
         assert {int(r["frame"]) for r in tracked if r["point"] == "head"} >= set(range(1, 20))
-        errors_px = [np.hypot(float(r["x"]) - truth(r["point"], int(r["frame"]))[0],
-                              float(r["y"]) - truth(r["point"], int(r["frame"]))[1]) for r in tracked]
-        show(capsys, f"tracked positions: {len(tracked)}, median error {np.median(errors_px):.2f} px, "
-                      f"max {np.max(errors_px):.2f} px")
+        errors_px = [
+            np.hypot(
+                float(r["x"]) - truth(r["point"], int(r["frame"]))[0],
+                float(r["y"]) - truth(r["point"], int(r["frame"]))[1],
+            )
+            for r in tracked
+        ]
+        show(
+            capsys,
+            f"tracked positions: {len(tracked)}, median error {np.median(errors_px):.2f} px, "
+            f"max {np.max(errors_px):.2f} px",
+        )
         assert np.median(errors_px) < 1.0
         assert not [r for r in tracks if r["point"] == "foot" and int(r["frame"]) == 25]
         goto_frame(page, 10)
@@ -237,8 +260,12 @@ def test_label_track_correct_undo_reload(browser, tmp_path: Path, capsys: pytest
         page.wait_for_function("window.dynreconLabel.state.imgKey === 'swing|10'")
         state = page.evaluate("""() => { const s = window.dynreconLabel.state;
             return {labels: s.labels.size, tracks: s.tracks.size, frame: s.frame, selected: s.selected}; }""")
-        assert state == {"labels": 8, "tracks": sum(1 for r in tracks if r["source"] == "track"),
-                         "frame": 10, "selected": "hand"}
+        assert state == {
+            "labels": 8,
+            "tracks": sum(1 for r in tracks if r["source"] == "track"),
+            "frame": 10,
+            "selected": "hand",
+        }
         goto_frame(page, 10)
         middle = np.mean([truth(p, 10) for p in POINTS], axis=0)
         x, y = page.evaluate("([u, v]) => window.dynreconLabel.toClient(u, v)", [float(m) for m in middle])
@@ -285,8 +312,10 @@ def test_points_keys_and_auto_track(browser, tmp_path: Path) -> None:
         page.wait_for_function("window.dynreconLabel.state.frame === 29")
         page.click("li[data-point='heel']")
         click_image(page, *truth("foot", 29))
-        page.wait_for_function("Number(document.body.dataset.trackSeq) >= 1 && "
-                               "document.body.dataset.trackState === 'done'", timeout=120_000)
+        page.wait_for_function(
+            "Number(document.body.dataset.trackSeq) >= 1 && document.body.dataset.trackState === 'done'",
+            timeout=120_000,
+        )
         tracks = read_rows(workspace / "tracks.csv")
         page.wait_for_function("window.dynreconLabel.state.tracks.size > 0")
         assert {r["point"] for r in tracks} == {"heel"}

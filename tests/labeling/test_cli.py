@@ -18,15 +18,19 @@ from labeling.lock import LOCK_NAME
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_label_command_serves_and_a_second_one_is_refused(workspace: Path, video: Path, tmp_path: Path,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_label_command_serves_and_a_second_one_is_refused(
+    workspace: Path, video: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     skeleton = tmp_path / "skeleton.json"
     skeleton.write_text(json.dumps({"points": ["head"], "connections": [["head", "tail"]]}))
     code = "import sys; from dynrecon.cli import main; sys.exit(main(sys.argv[1:]))"
     process = subprocess.Popen(
-        [sys.executable, "-c", code, "label", str(workspace), "--videos", str(video),
-         "--skeleton", str(skeleton)],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [sys.executable, "-c", code, "label", str(workspace), "--videos", str(video), "--skeleton", str(skeleton)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert process.stdout is not None
         line = process.stdout.readline()
@@ -56,29 +60,35 @@ def test_label_command_serves_and_a_second_one_is_refused(workspace: Path, video
     assert Path(config["videos"]["cam1"]) == video.resolve()
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--points", "a,b/c"], "invalid point name"),
-    (["--skeleton", "missing.json"], "file not found"),
-    (["--port", "70000"], "not a port number"),
-])
-def test_label_command_input_errors_are_one_line(workspace: Path, video: Path, args: list[str], message: str,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--points", "a,b/c"], "invalid point name"),
+        (["--skeleton", "missing.json"], "file not found"),
+        (["--port", "70000"], "not a port number"),
+    ],
+)
+def test_label_command_input_errors_are_one_line(
+    workspace: Path, video: Path, args: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["label", str(workspace), "--videos", str(video), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and "\n" not in err
     assert not (workspace / LOCK_NAME).exists()
 
 
-def test_label_command_without_videos_says_how_to_give_them(workspace: Path,
-                                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_label_command_without_videos_says_how_to_give_them(
+    workspace: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["label", str(workspace)]) == 2
     err = capsys.readouterr().err
     assert "no videos" in err and "--videos" in err
     assert not (workspace / LOCK_NAME).exists()
 
 
-def test_bad_skeleton_file_names_the_problem(workspace: Path, video: Path, tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_skeleton_file_names_the_problem(
+    workspace: Path, video: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     skeleton = tmp_path / "bad.json"
     skeleton.write_text(json.dumps({"points": ["a"], "connections": [["a", "a"]]}))
     assert main(["label", str(workspace), "--videos", str(video), "--skeleton", str(skeleton)]) == 2
@@ -86,16 +96,18 @@ def test_bad_skeleton_file_names_the_problem(workspace: Path, video: Path, tmp_p
     assert str(skeleton) in err and "connection 0" in err
 
 
-def test_video_that_opencv_cannot_read_is_an_input_error(workspace: Path, tmp_path: Path,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_video_that_opencv_cannot_read_is_an_input_error(
+    workspace: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     broken = tmp_path / "broken.mp4"
     broken.write_bytes(os.urandom(2000))
     assert main(["label", str(workspace), "--videos", str(broken)]) == 2
     assert str(broken) in capsys.readouterr().err
 
 
-def test_broken_labels_file_is_named_with_its_line(workspace: Path, video: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_broken_labels_file_is_named_with_its_line(
+    workspace: Path, video: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     (workspace / "labels.csv").write_text("video,frame,point,x,y,source\ncam1,zero,head,1,2,label\n")
     assert main(["label", str(workspace), "--videos", str(video)]) == 2
     err = capsys.readouterr().err.strip()
@@ -103,8 +115,9 @@ def test_broken_labels_file_is_named_with_its_line(workspace: Path, video: Path,
     assert not (workspace / LOCK_NAME).exists()
 
 
-def test_workspace_that_is_a_file_is_an_input_error(tmp_path: Path, video: Path,
-                                                    capsys: pytest.CaptureFixture[str]) -> None:
+def test_workspace_that_is_a_file_is_an_input_error(
+    tmp_path: Path, video: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     not_a_folder = tmp_path / "ws.txt"
     not_a_folder.write_text("")
     assert main(["label", str(not_a_folder), "--videos", str(video)]) == 2

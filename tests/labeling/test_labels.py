@@ -47,15 +47,18 @@ def test_missing_or_empty_file_is_no_labels(tmp_path: Path) -> None:
     assert read_labels(tmp_path / "empty.csv") == {}
 
 
-@pytest.mark.parametrize(("row", "message"), [
-    ("cam1,x,hip,1,2,label", "line 3: frame 'x' is not an integer"),
-    ("cam1,-1,hip,1,2,label", "line 3: frame -1 is negative"),
-    ("cam1,1,hip,,,label", "line 3: x, y = '', '' are not numbers"),
-    ("cam1,1,hip,nan,2,label", "line 3: x, y = nan, 2.0 is not finite"),
-    ("cam1,1,hip,1,2,guess", "line 3: source 'guess'"),
-    (",1,hip,1,2,label", "line 3: empty video or point name"),
-    ("cam1,1,hip,1", "line 3: expected 6 fields, found 4"),
-])
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("cam1,x,hip,1,2,label", "line 3: frame 'x' is not an integer"),
+        ("cam1,-1,hip,1,2,label", "line 3: frame -1 is negative"),
+        ("cam1,1,hip,,,label", "line 3: x, y = '', '' are not numbers"),
+        ("cam1,1,hip,nan,2,label", "line 3: x, y = nan, 2.0 is not finite"),
+        ("cam1,1,hip,1,2,guess", "line 3: source 'guess'"),
+        (",1,hip,1,2,label", "line 3: empty video or point name"),
+        ("cam1,1,hip,1", "line 3: expected 6 fields, found 4"),
+    ],
+)
 def test_errors_name_file_and_line(tmp_path: Path, row: str, message: str) -> None:
     path = tmp_path / "labels.csv"
     path.write_text(f"video,frame,point,x,y,source\ncam1,0,hip,1,2,label\n{row}\n")
@@ -103,8 +106,12 @@ def test_a_failed_write_keeps_file_and_memory(tmp_path: Path, monkeypatch: pytes
 
 def test_rename_refuses_to_merge_points(tmp_path: Path) -> None:
     store = LabelStore(tmp_path / "labels.csv")
-    store.apply([Change(key=("cam1", 0, "a"), label=Label(source=Source.LABEL, xy=(1, 2))),
-                 Change(key=("cam1", 0, "b"), label=Label(source=Source.HIDDEN))])
+    store.apply(
+        [
+            Change(key=("cam1", 0, "a"), label=Label(source=Source.LABEL, xy=(1, 2))),
+            Change(key=("cam1", 0, "b"), label=Label(source=Source.HIDDEN)),
+        ]
+    )
     with pytest.raises(ValueError, match="already has labels"):
         store.rename_point("a", "b")
     assert store.rename_point("a", "c") == 1

@@ -29,12 +29,12 @@ def fake_tracker(workspace: Path, videos: dict[str, Path]) -> Path:
         if label.xy is not None and video in videos and frame + 1 < FRAMES:
             rows.append((video, frame + 1, point, label.xy[0] + 1.0, label.xy[1]))
             scores.append("0.5")
-    return write_tracks(workspace / "tracks.csv", Tracks.from_rows(rows, source=["track"] * len(rows),
-                                                                   score=scores))
+    return write_tracks(workspace / "tracks.csv", Tracks.from_rows(rows, source=["track"] * len(rows), score=scores))
 
 
-def request(server: LabelServer, method: str, path: str, body: bytes | str | None = None,
-            headers: dict[str, str] | None = None) -> tuple[int, bytes]:
+def request(
+    server: LabelServer, method: str, path: str, body: bytes | str | None = None, headers: dict[str, str] | None = None
+) -> tuple[int, bytes]:
     host, port = server.httpd.server_address[:2]
     conn = http.client.HTTPConnection(str(host), int(port), timeout=10)
     if method == "POST":
@@ -54,8 +54,7 @@ def post(server: LabelServer, path: str, obj: object) -> tuple[int, dict]:
 
 @pytest.fixture
 def server(workspace: Path, video: Path):
-    options = LabelOptions(videos=[video], skeleton=Skeleton(points=["head", "tail"],
-                                                             connections=[("head", "tail")]))
+    options = LabelOptions(videos=[video], skeleton=Skeleton(points=["head", "tail"], connections=[("head", "tail")]))
     with LabelServer(workspace, options, track=fake_tracker) as running:
         yield running
 
@@ -64,8 +63,7 @@ def test_state_lists_videos_points_and_skeleton(server: LabelServer) -> None:
     status, data = request(server, "GET", "/api/state")
     state = json.loads(data)
     assert status == 200
-    assert state["videos"] == [{"name": "cam1", "frames": FRAMES, "width": WIDTH, "height": HEIGHT,
-                                "fps": 10.0}]
+    assert state["videos"] == [{"name": "cam1", "frames": FRAMES, "width": WIDTH, "height": HEIGHT, "fps": 10.0}]
     assert state["points"] == ["head", "tail"]
     assert state["connections"] == [["head", "tail"]]
     assert server.url.startswith("http://127.0.0.1:")
@@ -130,31 +128,44 @@ def test_label_round_trip_and_hidden_and_delete(server: LabelServer, workspace: 
     status, data = request(server, "GET", "/api/labels?video=cam1")
     labels = json.loads(data)["labels"]
     assert {(r["frame"], r["point"], r["source"]) for r in labels} == {
-        (3, "head", "label"), (3, "tail", "hidden"), (7, "head", "label")}
-    status, _ = post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 7, "point": "head",
-                                                          "source": "none"}]})
+        (3, "head", "label"),
+        (3, "tail", "hidden"),
+        (7, "head", "label"),
+    }
+    status, _ = post(
+        server, "/api/labels", {"changes": [{"video": "cam1", "frame": 7, "point": "head", "source": "none"}]}
+    )
     assert status == 200
     assert set(read_labels(workspace / "labels.csv")) == {("cam1", 3, "head"), ("cam1", 3, "tail")}
 
 
 def test_labels_of_other_videos_and_outside_edits_are_kept(server: LabelServer, workspace: Path) -> None:
     path = workspace / "labels.csv"
-    post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 0, "point": "head", "source": "label",
-                                              "x": 1, "y": 2}]})
+    post(
+        server,
+        "/api/labels",
+        {"changes": [{"video": "cam1", "frame": 0, "point": "head", "source": "label", "x": 1, "y": 2}]},
+    )
     # Someone else (an import, a text editor) adds a row for another video between two clicks.
     text = path.read_text() + "other,4,knee,5.000,6.000,label\n"
     os.utime(path, ns=(0, 0))  # the stat signature must change even on coarse-mtime file systems
     path.write_text(text)
-    post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label",
-                                              "x": 3, "y": 4}]})
+    post(
+        server,
+        "/api/labels",
+        {"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 3, "y": 4}]},
+    )
     assert set(read_labels(path)) == {("cam1", 0, "head"), ("cam1", 1, "head"), ("other", 4, "knee")}
 
 
 def test_points_add_and_rename_update_labels_and_tracks(server: LabelServer, workspace: Path) -> None:
     status, answer = post(server, "/api/points", {"op": "add", "name": "fin"})
     assert status == 200 and answer["points"] == ["head", "tail", "fin"]
-    post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 2, "point": "head", "source": "label",
-                                              "x": 30, "y": 40}]})
+    post(
+        server,
+        "/api/labels",
+        {"changes": [{"video": "cam1", "frame": 2, "point": "head", "source": "label", "x": 30, "y": 40}]},
+    )
     fake_tracker(workspace, {"cam1": Path()})
     status, answer = post(server, "/api/points", {"op": "rename", "old": "head", "new": "nose"})
     assert status == 200
@@ -169,8 +180,11 @@ def test_points_add_and_rename_update_labels_and_tracks(server: LabelServer, wor
 
 
 def test_track_runs_in_background_and_tracks_are_served(server: LabelServer) -> None:
-    post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 4, "point": "tail", "source": "label",
-                                              "x": 60, "y": 70}]})
+    post(
+        server,
+        "/api/labels",
+        {"changes": [{"video": "cam1", "frame": 4, "point": "tail", "source": "label", "x": 60, "y": 70}]},
+    )
     status, answer = post(server, "/api/track", {"videos": ["cam1"]})
     assert status == 202 and answer["videos"] == ["cam1"]
     final = server.app.track_job.wait(30)
@@ -197,26 +211,29 @@ def test_tracker_failure_is_reported_not_fatal(workspace: Path, video: Path) -> 
         assert request(running, "GET", "/api/state")[0] == 200
 
 
-@pytest.mark.parametrize("path", [
-    "/static/../../../../etc/passwd",
-    "/static/..%2f..%2f..%2fetc%2fpasswd",
-    "/static/%2e%2e/server.py",
-    "/static/../server.py",
-    "/ws/../cam1.avi",
-    "/ws/%2e%2e/cam1.avi",
-    "/ws/..%2fcam1.avi",
-    "/ws/%2fetc%2fpasswd",
-    "/ws//etc/passwd",
-    "/ws/" + LOCK_NAME,
-    "/frame/..%2fcam1/0.jpg",
-    "/frame/cam1/../../etc/passwd",
-    "/frame/cam1/999.jpg",
-    "/frame/cam1/-1.jpg",
-    "/frame/nope/0.jpg",
-    "/etc/passwd",
-    "//etc/passwd",
-    "/api/nothing",
-])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/static/../../../../etc/passwd",
+        "/static/..%2f..%2f..%2fetc%2fpasswd",
+        "/static/%2e%2e/server.py",
+        "/static/../server.py",
+        "/ws/../cam1.avi",
+        "/ws/%2e%2e/cam1.avi",
+        "/ws/..%2fcam1.avi",
+        "/ws/%2fetc%2fpasswd",
+        "/ws//etc/passwd",
+        "/ws/" + LOCK_NAME,
+        "/frame/..%2fcam1/0.jpg",
+        "/frame/cam1/../../etc/passwd",
+        "/frame/cam1/999.jpg",
+        "/frame/cam1/-1.jpg",
+        "/frame/nope/0.jpg",
+        "/etc/passwd",
+        "//etc/passwd",
+        "/api/nothing",
+    ],
+)
 def test_path_traversal_and_unknown_paths_are_404(server: LabelServer, workspace: Path, path: str) -> None:
     (workspace.parent / "secret.txt").write_text("secret")
     status, data = request(server, "GET", path)
@@ -231,32 +248,39 @@ def test_symlink_out_of_the_workspace_is_404(server: LabelServer, workspace: Pat
 
 
 def test_workspace_files_are_served(server: LabelServer) -> None:
-    post(server, "/api/labels", {"changes": [{"video": "cam1", "frame": 0, "point": "head", "source": "label",
-                                              "x": 1, "y": 2}]})
+    post(
+        server,
+        "/api/labels",
+        {"changes": [{"video": "cam1", "frame": 0, "point": "head", "source": "label", "x": 1, "y": 2}]},
+    )
     status, data = request(server, "GET", "/ws/labels.csv")
     assert status == 200 and data.startswith(b"video,frame,point,x,y,source\n")
 
 
-@pytest.mark.parametrize("body", [
-    "not json",
-    "[1, 2]",
-    "{}",
-    '{"changes": 5}',
-    '{"changes": [5]}',
-    '{"changes": [{"video": "cam1", "frame": "3", "point": "head", "source": "label", "x": 1, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": true, "point": "head", "source": "label", "x": 1, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 99, "point": "head", "source": "label", "x": 1, "y": 1}]}',
-    '{"changes": [{"video": "nope", "frame": 1, "point": "head", "source": "label", "x": 1, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "nope", "source": "label", "x": 1, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": "a", "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": NaN, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 1e9, "y": 1}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "magic"}]}',
-    '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 1, "y": 1}, 7]}',
-    b"\xff\xfe\x00garbage",
-])
-def test_malformed_label_posts_are_400_and_change_nothing(server: LabelServer, workspace: Path,
-                                                          body: str | bytes) -> None:
+@pytest.mark.parametrize(
+    "body",
+    [
+        "not json",
+        "[1, 2]",
+        "{}",
+        '{"changes": 5}',
+        '{"changes": [5]}',
+        '{"changes": [{"video": "cam1", "frame": "3", "point": "head", "source": "label", "x": 1, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": true, "point": "head", "source": "label", "x": 1, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 99, "point": "head", "source": "label", "x": 1, "y": 1}]}',
+        '{"changes": [{"video": "nope", "frame": 1, "point": "head", "source": "label", "x": 1, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "nope", "source": "label", "x": 1, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": "a", "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": NaN, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 1e9, "y": 1}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "magic"}]}',
+        '{"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 1, "y": 1}, 7]}',
+        b"\xff\xfe\x00garbage",
+    ],
+)
+def test_malformed_label_posts_are_400_and_change_nothing(
+    server: LabelServer, workspace: Path, body: str | bytes
+) -> None:
     status, data = request(server, "POST", "/api/labels", body)
     assert status == 400, data
     assert "error" in json.loads(data)
@@ -264,14 +288,17 @@ def test_malformed_label_posts_are_400_and_change_nothing(server: LabelServer, w
     assert request(server, "GET", "/api/state")[0] == 200  # still serving
 
 
-@pytest.mark.parametrize(("path", "body"), [
-    ("/api/points", '{"op": "explode"}'),
-    ("/api/points", '{"op": "add", "name": "a,b"}'),
-    ("/api/points", '{"op": "add", "name": ""}'),
-    ("/api/points", '{"op": "rename", "old": "nope", "new": "x"}'),
-    ("/api/track", '{"videos": ["nope"]}'),
-    ("/api/track", '{"videos": 3}'),
-])
+@pytest.mark.parametrize(
+    ("path", "body"),
+    [
+        ("/api/points", '{"op": "explode"}'),
+        ("/api/points", '{"op": "add", "name": "a,b"}'),
+        ("/api/points", '{"op": "add", "name": ""}'),
+        ("/api/points", '{"op": "rename", "old": "nope", "new": "x"}'),
+        ("/api/track", '{"videos": ["nope"]}'),
+        ("/api/track", '{"videos": 3}'),
+    ],
+)
 def test_malformed_point_and_track_posts_are_400(server: LabelServer, path: str, body: str) -> None:
     assert request(server, "POST", path, body)[0] == 400
 
@@ -296,8 +323,7 @@ def test_foreign_host_header_is_refused(server: LabelServer) -> None:
 
 
 def test_cross_site_posts_change_nothing(server: LabelServer, workspace: Path) -> None:
-    body = json.dumps({"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label",
-                                    "x": 1, "y": 1}]})
+    body = json.dumps({"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 1, "y": 1}]})
     # What a form or a no-cors fetch on another site can send: text/plain, and an Origin header.
     assert request(server, "POST", "/api/labels", body, {"Content-Type": "text/plain"})[0] == 400
     assert request(server, "POST", "/api/labels", body, {"Origin": "http://evil.example"})[0] == 403
@@ -306,20 +332,21 @@ def test_cross_site_posts_change_nothing(server: LabelServer, workspace: Path) -
     assert request(server, "POST", "/api/labels", body, {"Origin": f"http://127.0.0.1:{port}"})[0] == 200
 
 
-def test_second_server_on_the_same_workspace_is_refused(server: LabelServer, workspace: Path,
-                                                        video: Path) -> None:
+def test_second_server_on_the_same_workspace_is_refused(server: LabelServer, workspace: Path, video: Path) -> None:
     with pytest.raises(WorkspaceLockedError, match="another labeling server"):
         LabelServer(workspace, LabelOptions(videos=[video]), track=fake_tracker)
     assert request(server, "GET", "/api/state")[0] == 200  # the first one is unaffected
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(workspace: Path, video: Path) -> None:
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True, check=True)
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
+    )
     import socket
 
-    (workspace / LOCK_NAME).write_text(json.dumps({"pid": int(dead.stdout), "host": socket.gethostname(),
-                                                   "url": "http://127.0.0.1:1/"}))
+    (workspace / LOCK_NAME).write_text(
+        json.dumps({"pid": int(dead.stdout), "host": socket.gethostname(), "url": "http://127.0.0.1:1/"})
+    )
     with LabelServer(workspace, LabelOptions(videos=[video]), track=fake_tracker) as running:
         assert json.loads((workspace / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert request(running, "GET", "/api/state")[0] == 200

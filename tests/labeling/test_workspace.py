@@ -27,8 +27,9 @@ def test_skeleton_connections_add_their_points(tmp_path: Path) -> None:
     assert skeleton.connections == [("a", "b"), ("b", "c")]
 
 
-@pytest.mark.parametrize("content", ["[1]", "{", '{"points": "a"}', '{"connections": [["a"]]}',
-                                     '{"connections": [["a", 3]]}'])
+@pytest.mark.parametrize(
+    "content", ["[1]", "{", '{"points": "a"}', '{"connections": [["a"]]}', '{"connections": [["a", 3]]}']
+)
 def test_bad_skeleton_files(tmp_path: Path, content: str) -> None:
     path = tmp_path / "s.json"
     path.write_text(content)
@@ -43,8 +44,9 @@ def test_config_round_trip_keeps_workspace_paths_relative(tmp_path: Path) -> Non
     inside, outside = ws / "videos" / "a.mp4", tmp_path / "b.mp4"
     inside.write_bytes(b"")
     outside.write_bytes(b"")
-    config = WorkspaceConfig(videos={"a": inside, "b": outside},
-                             skeleton=Skeleton(points=["x", "y"], connections=[("x", "y")]))
+    config = WorkspaceConfig(
+        videos={"a": inside, "b": outside}, skeleton=Skeleton(points=["x", "y"], connections=[("x", "y")])
+    )
     save_config(ws, config)
     data = json.loads((ws / "labeling.json").read_text())
     assert data["videos"] == {"a": "videos/a.mp4", "b": str(outside.resolve())}

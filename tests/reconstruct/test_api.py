@@ -33,8 +33,10 @@ def test_every_public_name_resolves():
 
 
 def test_import_is_light():
-    code = ("import sys, reconstruct; reconstruct.SolveOptions; "
-            "print(sorted(m for m in ('rerun', 'pycolmap', 'cv2') if m in sys.modules))")
+    code = (
+        "import sys, reconstruct; reconstruct.SolveOptions; "
+        "print(sorted(m for m in ('rerun', 'pycolmap', 'cv2') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip() == "[]"
 
@@ -57,7 +59,8 @@ def test_solve_write_equals_the_stage(capture, tmp_path):
 
 def test_paths_are_named_in_the_report(capture):
     folder, _ = capture
-    result = reconstruct.solve(folder / "cameras.json", str(folder / "tracks.csv"),
-                               reconstruct.SolveOptions(recording=None))
+    result = reconstruct.solve(
+        folder / "cameras.json", str(folder / "tracks.csv"), reconstruct.SolveOptions(recording=None)
+    )
     assert result.report["inputs"] == {"cameras": str(folder / "cameras.json"), "tracks": str(folder / "tracks.csv")}
     assert "stage_total" not in result.report["timings"]

@@ -21,15 +21,23 @@ def _capture(tmp_path, frames=80, points=4):
 def test_solve_writes_every_output(tmp_path, capsys):
     capture = _capture(tmp_path)
     out = tmp_path / "out"
-    code = main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
-                 "--out", str(out)])
+    code = main(
+        [
+            "solve",
+            "--cameras",
+            str(tmp_path / "cameras.json"),
+            "--tracks",
+            str(tmp_path / "tracks.csv"),
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
     assert "recording.rrd" in capsys.readouterr().out
     points = read_points(out / "points3d.csv")
     assert points.xyz.shape == (capture.truth.num_frames, 4, 3)
     index = capture.truth.index()
-    truth = np.stack([capture.truth.xyz[index[(v, int(f))]] for v, f in zip(points.videos, points.frames,
-                                                                             strict=True)])
+    truth = np.stack([capture.truth.xyz[index[(v, int(f))]] for v, f in zip(points.videos, points.frames, strict=True)])
     assert np.median(np.linalg.norm(points.xyz - truth, axis=-1)) < 1.0
     sequencing = read_sequencing(out / "sequencing.json")
     assert all(abs(w.sum() - 1) < 1e-3 for w in sequencing.weights)
@@ -45,8 +53,21 @@ def test_simulate_solve_evaluate_chain(tmp_path, capsys, shared_dir):
     mocap = shared_dir / "data" / "mocap" / "hdm05" / "HDM_dg_06-03_03_120.c3d"
     sim = tmp_path / "sim"
     assert main(["simulate", str(mocap), "--out", str(sim), "--length", "120", "--step", "2"]) == 0
-    assert main(["solve", "--cameras", str(sim / "cameras.json"), "--tracks", str(sim / "tracks.csv"),
-                 "--out", str(sim), "--no-recording"]) == 0
+    assert (
+        main(
+            [
+                "solve",
+                "--cameras",
+                str(sim / "cameras.json"),
+                "--tracks",
+                str(sim / "tracks.csv"),
+                "--out",
+                str(sim),
+                "--no-recording",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["evaluate", str(sim)]) == 0
     assert "<10:" in capsys.readouterr().out
@@ -55,8 +76,17 @@ def test_simulate_solve_evaluate_chain(tmp_path, capsys, shared_dir):
 def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
     _capture(tmp_path, frames=20, points=2)
     (tmp_path / "tracks.csv").write_text("video,frame,point,x,y\ncam0,0,p,1,2\nghost,0,p,1,2\n")
-    code = main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
-                 "--out", str(tmp_path / "out")])
+    code = main(
+        [
+            "solve",
+            "--cameras",
+            str(tmp_path / "cameras.json"),
+            "--tracks",
+            str(tmp_path / "tracks.csv"),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and "tracks.csv:line 3: video 'ghost' is not in the cameras file" in err[0]
@@ -66,13 +96,27 @@ def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
 def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path):
     capture = _capture(tmp_path)
     out = tmp_path / "out"
-    assert main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
-                 "--out", str(out), "--no-recording"]) == 0
+    assert (
+        main(
+            [
+                "solve",
+                "--cameras",
+                str(tmp_path / "cameras.json"),
+                "--tracks",
+                str(tmp_path / "tracks.csv"),
+                "--out",
+                str(out),
+                "--no-recording",
+            ]
+        )
+        == 0
+    )
     points = read_points(out / "points3d.csv")
     assert {"time", "condition", "residual_px", "flag"} <= set(points.extra)
     index = capture.truth.index()
-    true_time = np.array([capture.truth.extra["time"][index[(v, int(f))], 0]
-                          for v, f in zip(points.videos, points.frames, strict=True)])
+    true_time = np.array(
+        [capture.truth.extra["time"][index[(v, int(f))], 0] for v, f in zip(points.videos, points.frames, strict=True)]
+    )
     # The simulation's decoder times are one shared clock: the recovered global time is that clock.
     assert np.median(np.abs(points.extra["time"][:, 0] - true_time)) < 0.25 / 30
     clocks = read_sequencing(out / "sequencing.json").extra["clocks"]
@@ -80,6 +124,23 @@ def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path)
     report = json.loads((out / "report.json").read_text())
     assert report["temporal"]["refined"] and "flagged" in report["trust"]
     plain = tmp_path / "plain"
-    assert main(["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv"),
-                 "--out", str(plain), "--no-recording", "--refinement", "none", "--trust", "balanced"]) == 0
+    assert (
+        main(
+            [
+                "solve",
+                "--cameras",
+                str(tmp_path / "cameras.json"),
+                "--tracks",
+                str(tmp_path / "tracks.csv"),
+                "--out",
+                str(plain),
+                "--no-recording",
+                "--refinement",
+                "none",
+                "--trust",
+                "balanced",
+            ]
+        )
+        == 0
+    )
     assert json.loads((plain / "report.json").read_text())["temporal"]["refined"] is False

@@ -38,8 +38,9 @@ def trajectories(times: np.ndarray, points: int = 4) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
-def capture(times: np.ndarray, camera_of: np.ndarray, noise_px: float = 0.0, seed: int = 0,
-            cameras: int = 4) -> tuple[Problem, np.ndarray]:
+def capture(
+    times: np.ndarray, camera_of: np.ndarray, noise_px: float = 0.0, seed: int = 0, cameras: int = 4
+) -> tuple[Problem, np.ndarray]:
     """A Problem seeing `trajectories(times)` with camera camera_of[f] at frame f; returns (problem, truth)."""
     truth = trajectories(times)
     F, P = truth.shape[:2]
@@ -56,9 +57,18 @@ def capture(times: np.ndarray, camera_of: np.ndarray, noise_px: float = 0.0, see
     frames = np.zeros(F, dtype=np.int64)
     for c in range(cameras):
         frames[camera_of == c] = np.arange(np.sum(camera_of == c))
-    problem = Problem(video_names=[f"cam{c}" for c in range(cameras)], video_index=np.asarray(camera_of),
-                      frames=frames, times=times.copy(), point_names=[f"p{i}" for i in range(P)],
-                      K=np.repeat(K[None], F, axis=0), R=R, t=t, dist=[None] * F, uv=uv)
+    problem = Problem(
+        video_names=[f"cam{c}" for c in range(cameras)],
+        video_index=np.asarray(camera_of),
+        frames=frames,
+        times=times.copy(),
+        point_names=[f"p{i}" for i in range(P)],
+        K=np.repeat(K[None], F, axis=0),
+        R=R,
+        t=t,
+        dist=[None] * F,
+        uv=uv,
+    )
     return problem, truth
 
 
@@ -139,7 +149,7 @@ def test_a_false_observation_is_down_weighted() -> None:
     # IRLS with a fixed scale majorizes the robust cost: it never increases within a GCV pass.
     rounds = IRLS_ITERATIONS
     for start_round in range(0, len(robust.cost), rounds):
-        costs = np.array(robust.cost[start_round:start_round + rounds])
+        costs = np.array(robust.cost[start_round : start_round + rounds])
         assert np.all(np.diff(costs) <= 1e-9 * costs[0])
     assert error_mm(plain.points[f, p], truth[f, p]) > 3 * error_mm(robust.points[f, p], truth[f, p])
     huber = refine(problem, start, times, RefineOptions(loss=RobustLoss.HUBER))
@@ -208,7 +218,7 @@ def test_prior_is_the_second_difference_on_uniform_times() -> None:
     n = 6
     D = np.zeros((n - 2, n))
     for i in range(n - 2):
-        D[i, i:i + 3] = [1.0, -2.0, 1.0]
+        D[i, i : i + 3] = [1.0, -2.0, 1.0]
     expected = np.kron(D.T @ D, np.eye(3))
     dense = np.zeros((3 * n, 3 * n))
     for d in range(BANDS):

@@ -69,7 +69,7 @@ def test_condition_matches_a_dense_construction_with_missing_observations():
     for g in range(n):
         basis = np.eye(3) if np.isnan(rays[g]).any() else rays[g][:, None]
         block = np.zeros((3 * n, basis.shape[1]))
-        block[3 * g:3 * g + 3] = basis
+        block[3 * g : 3 * g + 3] = basis
         columns.append(block)
     B = np.hstack(columns)
     A = B.T @ np.kron(gram, np.eye(3)) @ B
@@ -99,8 +99,9 @@ def test_parallel_rays_are_degenerate_and_converging_rays_are_not():
 
 
 def test_neighbourhoods_take_both_directions_strongest_first():
-    W = sp.csc_matrix(np.array([[0.0, 0.7, 0.0, 0.01], [0.6, 0.0, 0.0, 0.0], [0.4, 0.3, 0.0, 0.99],
-                                [0.0, 0.0, 1.0, 0.0]]))
+    W = sp.csc_matrix(
+        np.array([[0.0, 0.7, 0.0, 0.01], [0.6, 0.0, 0.0, 0.0], [0.4, 0.3, 0.0, 0.99], [0.0, 0.0, 1.0, 0.0]])
+    )
     hood = neighbourhoods(W, min_weight=0.02, max_neighbours=2)
     np.testing.assert_array_equal(hood[0], [0, 1, 2])  # W_10 = 0.6 / W_01 = 0.7 -> 0.7, W_20 = 0.4
     np.testing.assert_array_equal(hood[3], [3, 2, -1])  # W_03 = 0.01 is dust
@@ -187,8 +188,19 @@ def test_summary_and_columns_are_json_ready(solved):
     assert set(summary["measures"]) >= {"condition", "residual", "ray_distance"}
     assert json.loads(text)["measures"]["residual"]["median"] > 0
     columns = trust.columns()
-    assert set(columns) == {"condition", "residual", "residual_px", "bound_px", "ray_distance", "reprojection_px",
-                            "support", "sequence_jump", "component", "smoothness_px", "flag"}
+    assert set(columns) == {
+        "condition",
+        "residual",
+        "residual_px",
+        "bound_px",
+        "ray_distance",
+        "reprojection_px",
+        "support",
+        "sequence_jump",
+        "component",
+        "smoothness_px",
+        "flag",
+    }
     assert set(np.unique(columns["flag"])) == {1.0}
 
 

@@ -63,8 +63,24 @@ def test_register_mixed_static_and_handheld(mixed: list, tmp_path: Path) -> None
     truth = CameraSet(videos=[v.cameras for v in mixed])
     ws = tmp_path / "ws"
     write_tracks(ws / "tracks.csv", sphere_tracks(mixed))  # masks the spheres out of SfM
-    args = ["register", *(str(v.path) for v in mixed), "--out", str(ws), "--long-side", "480", "--threads", "1",
-            "--max-frames", "12", "--max-features", "2000", "--background-features", "4000", "--mask-radius", "40"]
+    args = [
+        "register",
+        *(str(v.path) for v in mixed),
+        "--out",
+        str(ws),
+        "--long-side",
+        "480",
+        "--threads",
+        "1",
+        "--max-frames",
+        "12",
+        "--max-features",
+        "2000",
+        "--background-features",
+        "4000",
+        "--mask-radius",
+        "40",
+    ]
     assert main(args) == 0
     report = json.loads((ws / "register_report.json").read_text())
     by_name = {v["name"]: v for v in report["videos"]}

@@ -33,17 +33,25 @@ def frame_points(errors: list[list[float]], *, observed: list[list[bool]] | None
     videos = ["a", "b"] * (F // 2) + ["a"] * (F % 2)
     frames = np.arange(F) // 2
     names = [f"p{i}" for i in range(P)]
-    truth = FramePoints(videos=list(videos), frames=frames, point_names=names, xyz=truth_xyz, observed=obs,
-                        extra={"time": np.repeat(np.arange(F)[:, None] / 120.0, P, axis=1)})
-    estimate = FramePoints(videos=list(videos), frames=frames.copy(), point_names=list(names),
-                           xyz=estimate_xyz, observed=obs.copy())
+    truth = FramePoints(
+        videos=list(videos),
+        frames=frames,
+        point_names=names,
+        xyz=truth_xyz,
+        observed=obs,
+        extra={"time": np.repeat(np.arange(F)[:, None] / 120.0, P, axis=1)},
+    )
+    estimate = FramePoints(
+        videos=list(videos), frames=frames.copy(), point_names=list(names), xyz=estimate_xyz, observed=obs.copy()
+    )
     return estimate, truth
 
 
 def test_hand_made_errors() -> None:
-    estimate, truth = frame_points([[1.0, 9.99, 10.0], [15.0, 45.0, 99.0], [150.0, math.nan, 0.0],
-                                    [5.0, 5.0, 5.0]],
-                                   observed=[[1, 1, 1], [1, 0, 1], [1, 0, 1], [1, 1, 1]])
+    estimate, truth = frame_points(
+        [[1.0, 9.99, 10.0], [15.0, 45.0, 99.0], [150.0, math.nan, 0.0], [5.0, 5.0, 5.0]],
+        observed=[[1, 1, 1], [1, 0, 1], [1, 0, 1], [1, 1, 1]],
+    )
     accuracy = evaluate(estimate, truth)
     assert accuracy.count == 12 and accuracy.unreconstructed == 1 and accuracy.no_truth == 0
     # Under 10: 1, 9.99, 0, 5, 5, 5 -> 6 of 12 (10.0 is not under 10); the NaN fails everywhere.
@@ -59,9 +67,13 @@ def test_hand_made_errors() -> None:
 
 def test_rows_are_matched_by_key_not_position() -> None:
     estimate, truth = frame_points([[1.0, 2.0], [3.0, 400.0], [5.0, 6.0]])
-    shuffled = FramePoints(videos=estimate.videos[::-1], frames=estimate.frames[::-1],
-                           point_names=estimate.point_names[::-1], xyz=estimate.xyz[::-1, ::-1],
-                           observed=estimate.observed[::-1, ::-1])
+    shuffled = FramePoints(
+        videos=estimate.videos[::-1],
+        frames=estimate.frames[::-1],
+        point_names=estimate.point_names[::-1],
+        xyz=estimate.xyz[::-1, ::-1],
+        observed=estimate.observed[::-1, ::-1],
+    )
     a, b = evaluate(estimate, truth), evaluate(shuffled, truth)
     np.testing.assert_allclose(np.sort(a.errors), np.sort(b.errors))
     np.testing.assert_allclose(np.sort(a.errors), [1, 2, 3, 5, 6, 400])
@@ -77,21 +89,42 @@ def test_nan_truth_is_not_scored() -> None:
 
 def test_mismatched_rows_are_errors() -> None:
     estimate, truth = frame_points([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
-    fewer = FramePoints(videos=estimate.videos[:2], frames=estimate.frames[:2],
-                        point_names=estimate.point_names, xyz=estimate.xyz[:2],
-                        observed=estimate.observed[:2])
+    fewer = FramePoints(
+        videos=estimate.videos[:2],
+        frames=estimate.frames[:2],
+        point_names=estimate.point_names,
+        xyz=estimate.xyz[:2],
+        observed=estimate.observed[:2],
+    )
     with pytest.raises(InputError, match="video 'a' frame 1 of the truth has no row"):
         evaluate(fewer, truth)
     with pytest.raises(InputError, match="video 'a' frame 1 is not in the truth"):
-        evaluate(estimate, FramePoints(videos=truth.videos[:2], frames=truth.frames[:2],
-                                       point_names=truth.point_names, xyz=truth.xyz[:2],
-                                       observed=truth.observed[:2]))
-    renamed = FramePoints(videos=estimate.videos, frames=estimate.frames, point_names=["p0", "q"],
-                          xyz=estimate.xyz, observed=estimate.observed)
+        evaluate(
+            estimate,
+            FramePoints(
+                videos=truth.videos[:2],
+                frames=truth.frames[:2],
+                point_names=truth.point_names,
+                xyz=truth.xyz[:2],
+                observed=truth.observed[:2],
+            ),
+        )
+    renamed = FramePoints(
+        videos=estimate.videos,
+        frames=estimate.frames,
+        point_names=["p0", "q"],
+        xyz=estimate.xyz,
+        observed=estimate.observed,
+    )
     with pytest.raises(InputError, match="point 'q' is not in the truth"):
         evaluate(renamed, truth)
-    one_point = FramePoints(videos=estimate.videos, frames=estimate.frames, point_names=["p0"],
-                            xyz=estimate.xyz[:, :1], observed=estimate.observed[:, :1])
+    one_point = FramePoints(
+        videos=estimate.videos,
+        frames=estimate.frames,
+        point_names=["p0"],
+        xyz=estimate.xyz[:, :1],
+        observed=estimate.observed[:, :1],
+    )
     with pytest.raises(InputError, match="point 'p1' of the truth has no rows"):
         evaluate(one_point, truth)
 
@@ -132,19 +165,43 @@ def cli(argv: list[str], monkeypatch: pytest.MonkeyPatch) -> int:
 def _mocap_file(tmp_path: Path) -> Path:
     rng = np.random.default_rng(4)
     t = np.arange(120) / 120.0
-    base = np.stack([rng.uniform(-300, 300, 10), rng.uniform(0, 1700, 10), rng.uniform(-200, 200, 10)],
-                    axis=1)
+    base = np.stack([rng.uniform(-300, 300, 10), rng.uniform(0, 1700, 10), rng.uniform(-200, 200, 10)], axis=1)
     xyz = base[None] + 100 * np.sin(2 * np.pi * t[:, None, None] + rng.uniform(0, 6, (10, 3)))
     mocap = Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(10)], times=t)
     return write_trc(tmp_path / "motion.trc", mocap, units="m")
 
 
-def test_cli_simulate_then_evaluate_truth_against_itself(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_simulate_then_evaluate_truth_against_itself(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     source = _mocap_file(tmp_path)
     out = tmp_path / "sim"
-    assert cli(["simulate", str(source), "--out", str(out), "--cameras", "3", "--step", "2", "--noise", "0.5",
-                "--miss", "0.2", "--seed", "9", "--start", "10", "--length", "100"], monkeypatch) == 0
+    assert (
+        cli(
+            [
+                "simulate",
+                str(source),
+                "--out",
+                str(out),
+                "--cameras",
+                "3",
+                "--step",
+                "2",
+                "--noise",
+                "0.5",
+                "--miss",
+                "0.2",
+                "--seed",
+                "9",
+                "--start",
+                "10",
+                "--length",
+                "100",
+            ],
+            monkeypatch,
+        )
+        == 0
+    )
     assert "50 captures of 10 points in 3 cameras" in capsys.readouterr().out
     truth = read_points(out / "truth.csv")
     tracks = read_tracks(out / "tracks.csv")
@@ -162,8 +219,9 @@ def test_cli_simulate_then_evaluate_truth_against_itself(tmp_path: Path, monkeyp
     assert numbers["count"] == 500
 
 
-def test_cli_unconstrained_and_bad_input(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_unconstrained_and_bad_input(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     source = _mocap_file(tmp_path)
     assert cli(["simulate", str(source), "--out", str(tmp_path / "u"), "--unconstrained"], monkeypatch) == 0
     capsys.readouterr()

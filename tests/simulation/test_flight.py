@@ -64,8 +64,15 @@ def test_detections_noise_and_false_share() -> None:
 
 
 def test_noise_free_flight_is_exact_and_clocks_round_trip() -> None:
-    options = FlightOptions(duration_s=4.0, noise_px=0.0, false_fraction=0.0, handheld=False, drift_ppm=500.0,
-                            fps=(30.0, 25.0, 59.94, 24.0, 29.97), seed=4)
+    options = FlightOptions(
+        duration_s=4.0,
+        noise_px=0.0,
+        false_fraction=0.0,
+        handheld=False,
+        drift_ppm=500.0,
+        fps=(30.0, 25.0, 59.94, 24.0, 29.97),
+        seed=4,
+    )
     capture, record, _ = simulate_flight(options)
     error, false = residuals(capture)
     assert not false.any()
@@ -88,15 +95,44 @@ def test_bad_flight_options() -> None:
     with pytest.raises(DynreconError, match="give one per camera"):
         simulate_flight(FlightOptions(fps=(30.0, 25.0)))
 
+
 def test_run_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = run(tmp_path / "lib", FlightOptions(duration_s=2.0, seed=1))
     simulation = json.loads((out / "simulation.json").read_text())
     assert simulation["mode"] == "flight" and simulation["units"] == "mm"
     assert simulation["path"]["mean_speed_mps"] == pytest.approx(10.0, rel=1e-3)
     cli_out = tmp_path / "cli"
-    assert main(["simulate", "--mode", "flight", "--out", str(cli_out), "--duration", "2", "--speed", "8",
-                 "--distance-m", "40,60", "--cameras", "4", "--fps", "30,25,24,59.94", "--offsets", "0,1",
-                 "--noise", "2", "--false", "0.05", "--no-handheld", "--seed", "5"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--mode",
+                "flight",
+                "--out",
+                str(cli_out),
+                "--duration",
+                "2",
+                "--speed",
+                "8",
+                "--distance-m",
+                "40,60",
+                "--cameras",
+                "4",
+                "--fps",
+                "30,25,24,59.94",
+                "--offsets",
+                "0,1",
+                "--noise",
+                "2",
+                "--false",
+                "0.05",
+                "--no-handheld",
+                "--seed",
+                "5",
+            ]
+        )
+        == 0
+    )
     assert "in 4 cameras" in capsys.readouterr().out
     truth = read_points(cli_out / "truth.csv")
     tracks = read_tracks(cli_out / "tracks.csv")
@@ -114,15 +150,18 @@ def test_run_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None
         assert 40000 <= np.linalg.norm(centres[0, :2]) <= 60000
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["MOCAP", "--mode", "flight"], "drop the MOCAP argument"),
-    (["--mode", "flight", "--step", "2"], "--step does not apply to --mode flight"),
-    (["--mode", "flight", "--start", "2"], "--start does not apply"),
-    (["--mode", "flight", "--distance", "2700"], "--distance does not apply"),
-    (["--mode", "flight", "--distance-m", "30"], "--distance-m '30'"),
-    (["--mode", "flight", "--duration", "-1"], "duration"),
-    (["--distance-m", "30,50"], "--distance-m does not apply to --mode paper"),
-])
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["MOCAP", "--mode", "flight"], "drop the MOCAP argument"),
+        (["--mode", "flight", "--step", "2"], "--step does not apply to --mode flight"),
+        (["--mode", "flight", "--start", "2"], "--start does not apply"),
+        (["--mode", "flight", "--distance", "2700"], "--distance does not apply"),
+        (["--mode", "flight", "--distance-m", "30"], "--distance-m '30'"),
+        (["--mode", "flight", "--duration", "-1"], "duration"),
+        (["--distance-m", "30,50"], "--distance-m does not apply to --mode paper"),
+    ],
+)
 def test_cli_flight_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str) -> None:
     argv = [str(tmp_path / "m.c3d") if a == "MOCAP" else a for a in argv]
     if "--mode" not in argv:

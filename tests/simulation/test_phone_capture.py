@@ -28,8 +28,9 @@ RATE = 120.0
 def body(times: np.ndarray, markers: int = 10, seed: int = 1) -> np.ndarray:
     """A smooth Z-up 'body' (1.7 m tall) swinging while it walks along x, at any times (N,) -> (N, M, 3) mm."""
     rng = np.random.default_rng(seed)
-    base = np.stack([rng.uniform(-250, 250, markers), rng.uniform(-150, 150, markers),
-                     rng.uniform(0, 1700, markers)], axis=1)
+    base = np.stack(
+        [rng.uniform(-250, 250, markers), rng.uniform(-150, 150, markers), rng.uniform(0, 1700, markers)], axis=1
+    )
     phase = rng.uniform(0, 6, markers)[:, None]
     amplitude = rng.uniform(50, 200, (markers, 3))
     swing = amplitude * np.sin(2 * np.pi * 1.2 * times[:, None, None] + phase)
@@ -121,8 +122,9 @@ def test_truth_is_the_mocap_interpolated_at_each_capture_time() -> None:
 
 
 def test_captures_are_concurrent_and_rates_are_free() -> None:
-    capture, record = simulate_phones(mocap(), PhoneCaptureOptions(cameras=3, fps=(30.0, 30.0, 59.94),
-                                                                   offset_s=(0.0, 0.0)))
+    capture, record = simulate_phones(
+        mocap(), PhoneCaptureOptions(cameras=3, fps=(30.0, 30.0, 59.94), offset_s=(0.0, 0.0))
+    )
     truth = capture.truth
     times = {v: truth.extra["time"][[i for i, n in enumerate(truth.videos) if n == v], 0] for v in record.frames}
     np.testing.assert_allclose(times["cam0"], times["cam1"])  # the same instants, both captured
@@ -158,8 +160,9 @@ def test_noise_free_tracks_are_the_projections_by_each_frames_camera() -> None:
 
 def test_handheld_cameras_move_smoothly_and_see_the_points() -> None:
     motion = mocap(480)
-    capture, record = simulate_phones(motion, PhoneCaptureOptions(handheld=True, shake_mm=20.0, shake_deg=1.0,
-                                                                  fps=(59.94, 30.0, 25.0, 24.0), seed=6))
+    capture, record = simulate_phones(
+        motion, PhoneCaptureOptions(handheld=True, shake_mm=20.0, shake_deg=1.0, fps=(59.94, 30.0, 25.0, 24.0), seed=6)
+    )
     static, _ = simulate_phones(motion, PhoneCaptureOptions(fps=(59.94, 30.0, 25.0, 24.0), seed=6))
     rig = record.rig
     assert rig is not None
@@ -220,23 +223,25 @@ def test_mocap_gaps_and_window_edges_drop_captures() -> None:
     for video in capture.cameras.videos:  # dropped frames are absent, the others keep their numbers
         frames = video.frame_numbers()
         assert len(frames) == record.frames[video.name] and np.all(np.diff(frames) >= 1)
-    np.testing.assert_allclose(capture.truth.xyz, body(times + 10 / RATE)[:, capture_points(capture)],
-                               atol=0.05)
+    np.testing.assert_allclose(capture.truth.xyz, body(times + 10 / RATE)[:, capture_points(capture)], atol=0.05)
 
 
 def capture_points(capture: SimulatedCapture) -> list[int]:
     return [int(name[1:]) for name in capture.truth.point_names]
 
 
-@pytest.mark.parametrize(("options", "message"), [
-    (PhoneCaptureOptions(cameras=1), "at least 2"),
-    (PhoneCaptureOptions(fps=(30.0, 25.0)), "give one per camera"),
-    (PhoneCaptureOptions(cameras=2, fps=(30.0, 0.0)), "within 1..1000"),
-    (PhoneCaptureOptions(offset_s=(1.0, 0.0)), "min <= max"),
-    (PhoneCaptureOptions(jitter_ms=-1.0), "jitter"),
-    (PhoneCaptureOptions(false_fraction=1.0), "false fraction"),
-    (PhoneCaptureOptions(miss=1.0), "miss"),
-])
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (PhoneCaptureOptions(cameras=1), "at least 2"),
+        (PhoneCaptureOptions(fps=(30.0, 25.0)), "give one per camera"),
+        (PhoneCaptureOptions(cameras=2, fps=(30.0, 0.0)), "within 1..1000"),
+        (PhoneCaptureOptions(offset_s=(1.0, 0.0)), "min <= max"),
+        (PhoneCaptureOptions(jitter_ms=-1.0), "jitter"),
+        (PhoneCaptureOptions(false_fraction=1.0), "false fraction"),
+        (PhoneCaptureOptions(miss=1.0), "miss"),
+    ],
+)
 def test_bad_options(options: PhoneCaptureOptions, message: str) -> None:
     with pytest.raises(DynreconError, match=message):
         simulate_phones(mocap(40), options)
@@ -252,10 +257,45 @@ def test_impossible_captures_are_errors() -> None:
 def test_cli_phones(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     source = write_trc(tmp_path / "walk.trc", mocap(), units="m")
     out = tmp_path / "sim"
-    assert main(["simulate", str(source), "--out", str(out), "--mode", "phones", "--cameras", "3", "--fps",
-                 "30,25,59.94", "--offsets", "0,0.2", "--drift-ppm", "100", "--jitter-ms", "1", "--vfr",
-                 "--handheld", "--shake-mm", "10", "--shake-deg", "0.5", "--noise", "1", "--miss", "0.1",
-                 "--false", "0.02", "--seed", "3", "--length", "200"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(source),
+                "--out",
+                str(out),
+                "--mode",
+                "phones",
+                "--cameras",
+                "3",
+                "--fps",
+                "30,25,59.94",
+                "--offsets",
+                "0,0.2",
+                "--drift-ppm",
+                "100",
+                "--jitter-ms",
+                "1",
+                "--vfr",
+                "--handheld",
+                "--shake-mm",
+                "10",
+                "--shake-deg",
+                "0.5",
+                "--noise",
+                "1",
+                "--miss",
+                "0.1",
+                "--false",
+                "0.02",
+                "--seed",
+                "3",
+                "--length",
+                "200",
+            ]
+        )
+        == 0
+    )
     assert "in 3 cameras" in capsys.readouterr().out
     clocks = json.loads((out / "clocks_truth.json").read_text())
     simulation = json.loads((out / "simulation.json").read_text())
@@ -270,19 +310,23 @@ def test_cli_phones(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert [v.fps for v in cameras.videos] == [30.0, 25.0, 59.94]
 
 
-@pytest.mark.parametrize(("argv", "message"), [
-    (["--mode", "phones"], "needs a MOCAP file"),
-    (["MOCAP", "--mode", "phones", "--step", "2"], "--step does not apply to --mode phones"),
-    (["MOCAP", "--mode", "phones", "--unconstrained"], "--unconstrained does not apply"),
-    (["MOCAP", "--jitter-ms", "2"], "--jitter-ms does not apply to --mode paper"),
-    (["MOCAP", "--mode", "phones", "--fps", "30,x,25,24"], "comma-separated numbers"),
-    (["MOCAP", "--mode", "phones", "--fps", "30,25"], "give one per camera"),
-    (["MOCAP", "--mode", "phones", "--offsets", "0.5"], "--offsets '0.5'"),
-    (["MOCAP", "--mode", "phones", "--duration", "3"], "--duration does not apply"),
-    (["MOCAP", "--mode", "phones", "--false", "1.5"], "false fraction"),
-])
-def test_cli_bad_options_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                             argv: list[str], message: str) -> None:
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--mode", "phones"], "needs a MOCAP file"),
+        (["MOCAP", "--mode", "phones", "--step", "2"], "--step does not apply to --mode phones"),
+        (["MOCAP", "--mode", "phones", "--unconstrained"], "--unconstrained does not apply"),
+        (["MOCAP", "--jitter-ms", "2"], "--jitter-ms does not apply to --mode paper"),
+        (["MOCAP", "--mode", "phones", "--fps", "30,x,25,24"], "comma-separated numbers"),
+        (["MOCAP", "--mode", "phones", "--fps", "30,25"], "give one per camera"),
+        (["MOCAP", "--mode", "phones", "--offsets", "0.5"], "--offsets '0.5'"),
+        (["MOCAP", "--mode", "phones", "--duration", "3"], "--duration does not apply"),
+        (["MOCAP", "--mode", "phones", "--false", "1.5"], "false fraction"),
+    ],
+)
+def test_cli_bad_options_are_one_line_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
     source = write_trc(tmp_path / "walk.trc", mocap(40), units="m")
     argv = [str(source) if a == "MOCAP" else a for a in argv]
     assert main(["simulate", *argv, "--out", str(tmp_path / "x")]) == 2

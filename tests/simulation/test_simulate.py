@@ -26,8 +26,9 @@ def walking_body(frames: int = 240, markers: int = 12, rate: float = 120.0, seed
     """A 1.7 m tall, Z-up 'body' of markers swinging while it walks along x, (T, M, 3) mm."""
     rng = np.random.default_rng(seed)
     t = np.arange(frames) / rate
-    base = np.stack([rng.uniform(-250, 250, markers), rng.uniform(-150, 150, markers),
-                     rng.uniform(0, 1700, markers)], axis=1)
+    base = np.stack(
+        [rng.uniform(-250, 250, markers), rng.uniform(-150, 150, markers), rng.uniform(0, 1700, markers)], axis=1
+    )
     phase = rng.uniform(0, 6, markers)[:, None]
     swing = rng.uniform(50, 200, (markers, 3)) * np.sin(2 * np.pi * 1.2 * t[:, None, None] + phase)
     walk = np.stack([800 * t, np.zeros_like(t), np.zeros_like(t)], axis=1)
@@ -83,8 +84,10 @@ def test_protocol_noise_free() -> None:
 
 def test_cameras_are_static_around_the_centroid_at_twice_the_scale() -> None:
     xyz = walking_body()
-    capture, rig = simulate_mocap(Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)],
-                                        times=np.arange(240) / 120.0), SimulationOptions(seed=0))
+    capture, rig = simulate_mocap(
+        Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)], times=np.arange(240) / 120.0),
+        SimulationOptions(seed=0),
+    )
     centroid = xyz.reshape(-1, 3).mean(axis=0)
     scale = np.linalg.norm(xyz.reshape(-1, 3) - centroid, axis=1).max()
     np.testing.assert_allclose(rig.centroid, centroid)
@@ -179,10 +182,15 @@ def test_missing_mocap_samples_are_cleaned() -> None:
     assert 10 / 120 not in set(np.round(capture.truth.extra["time"][:, 0], 9))
 
 
-@pytest.mark.parametrize("options", [
-    SimulationOptions(cameras=1), SimulationOptions(miss=1.0), SimulationOptions(noise_px=-1),
-    SimulationOptions(step=0),
-])
+@pytest.mark.parametrize(
+    "options",
+    [
+        SimulationOptions(cameras=1),
+        SimulationOptions(miss=1.0),
+        SimulationOptions(noise_px=-1),
+        SimulationOptions(step=0),
+    ],
+)
 def test_bad_options(options: SimulationOptions) -> None:
     with pytest.raises(DynreconError, match="invalid simulation options"):
         simulate_capture(walking_body(frames=20), 120.0, options)
@@ -190,8 +198,7 @@ def test_bad_options(options: SimulationOptions) -> None:
 
 def test_run_writes_readable_files(tmp_path: Path) -> None:
     xyz = walking_body(frames=120)
-    mocap = Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)],
-                  times=np.arange(120) / 120.0)
+    mocap = Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)], times=np.arange(120) / 120.0)
     source = write_trc(tmp_path / "walk.trc", mocap, units="m")
     out = run(source, tmp_path / "sim", SimulationOptions(noise_px=1.0, miss=0.1, seed=2))
     cameras = read_cameras(out / "cameras.json")
@@ -215,8 +222,9 @@ def test_run_writes_readable_files(tmp_path: Path) -> None:
 
 
 def test_hdm05_protocol(shared_dir: Path) -> None:
-    capture, rig = simulate_mocap(read_mocap(shared_dir / "data/mocap/hdm05/HDM_dg_06-03_03_120.c3d"),
-                                  SimulationOptions())
+    capture, rig = simulate_mocap(
+        read_mocap(shared_dir / "data/mocap/hdm05/HDM_dg_06-03_03_120.c3d"), SimulationOptions()
+    )
     assert capture.truth.xyz.shape == (202, 44, 3)
     assert 2 * rig.scale <= rig.distance <= 2.5 * rig.scale
     projected, tracked = reprojection(capture)

@@ -8,8 +8,19 @@ import pytest
 
 from tracking.synthetic import SyntheticOptions, SyntheticVideo, render_video
 
-SMALL = SyntheticOptions(width=320, height=240, frames=40, markers=5, marker_radius=9.0, speed=3.0, pan=1.5,
-                         blur_samples=3, exposure=0.6, fourcc="FFV1", seed=7)
+SMALL = SyntheticOptions(
+    width=320,
+    height=240,
+    frames=40,
+    markers=5,
+    marker_radius=9.0,
+    speed=3.0,
+    pan=1.5,
+    blur_samples=3,
+    exposure=0.6,
+    fourcc="FFV1",
+    seed=7,
+)
 
 
 @pytest.fixture(scope="session")

@@ -16,8 +16,7 @@ def _workspace(tmp_path: Path, video: SyntheticVideo, every: int = 10) -> Path:
     assert video.path is not None
     ws = tmp_path / "ws"
     ws.mkdir()
-    (ws / "labeling.json").write_text(json.dumps({"videos": {"cam0": str(video.path)},
-                                                  "points": video.names}))
+    (ws / "labeling.json").write_text(json.dumps({"videos": {"cam0": str(video.path)}, "points": video.names}))
     lines = ["video,frame,point,x,y,source"]
     for name, marks in labels_every(video, every).items():
         for frame, xy in marks.items():
@@ -27,8 +26,9 @@ def _workspace(tmp_path: Path, video: SyntheticVideo, every: int = 10) -> Path:
     return ws
 
 
-def test_track_command_writes_labels_and_accurate_tracks(tmp_path: Path, small_video: SyntheticVideo,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_track_command_writes_labels_and_accurate_tracks(
+    tmp_path: Path, small_video: SyntheticVideo, capsys: pytest.CaptureFixture[str]
+) -> None:
     ws = _workspace(tmp_path, small_video)
     assert main(["track", str(ws)]) == 0
     assert capsys.readouterr().out.strip() == str(ws / "tracks.csv")
@@ -53,22 +53,42 @@ def test_track_only_given_videos_keeps_the_rest(tmp_path: Path, small_video: Syn
     ws = _workspace(tmp_path, small_video, every=20)
     with (ws / "labels.csv").open("a") as handle:
         handle.write("other,3,m0,5.0,6.0,label\n")
-    (ws / "tracks.csv").write_text("video,frame,point,x,y,source,score\n"
-                                   "other,3,m0,1.0,1.0,track,0.5\nother,4,m0,2.0,2.0,track,0.5\n")
+    (ws / "tracks.csv").write_text(
+        "video,frame,point,x,y,source,score\nother,3,m0,1.0,1.0,track,0.5\nother,4,m0,2.0,2.0,track,0.5\n"
+    )
     assert small_video.path is not None
     out = tmp_path / "custom.csv"
     (ws / "tracks.csv").replace(out)
-    assert main(["track", str(ws), "--videos", str(small_video.path), "--out", str(out), "--method", "lk",
-                 "--blend", "best"]) == 0
+    assert (
+        main(
+            [
+                "track",
+                str(ws),
+                "--videos",
+                str(small_video.path),
+                "--out",
+                str(out),
+                "--method",
+                "lk",
+                "--blend",
+                "best",
+            ]
+        )
+        == 0
+    )
     tracks = read_tracks(out)
-    other = {(int(tracks.frame[i]), tracks.extra["source"][i]): tuple(tracks.xy[i])
-             for i in range(len(tracks)) if tracks.video[i] == "other"}
+    other = {
+        (int(tracks.frame[i]), tracks.extra["source"][i]): tuple(tracks.xy[i])
+        for i in range(len(tracks))
+        if tracks.video[i] == "other"
+    }
     assert other == {(3, "label"): (5.0, 6.0), (4, "track"): (2.0, 2.0)}  # the new label replaced the old row
     assert "cam0" in set(tracks.video)
 
 
-def test_track_command_errors_are_one_line(tmp_path: Path, small_video: SyntheticVideo,
-                                           capsys: pytest.CaptureFixture[str]) -> None:
+def test_track_command_errors_are_one_line(
+    tmp_path: Path, small_video: SyntheticVideo, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["track", str(tmp_path / "missing")]) == 2
     assert "workspace folder not found" in capsys.readouterr().err
     empty = tmp_path / "empty"
@@ -99,8 +119,22 @@ def test_import_tracks_command(tmp_path: Path, capsys: pytest.CaptureFixture[str
     src = tmp_path / "in.csv"
     src.write_text("video,frame,point,x,y,score\nv,0,Nose,1,2,0.9\nv,1,Nose,1,2,0.1\nv,0,Neck,3,4,0.9\n")
     out = tmp_path / "ws" / "tracks.csv"
-    assert main(["import-tracks", str(src), "--out", str(out), "--map", "Nose=nose", "--drop-unmapped",
-                 "--min-score", "0.5"]) == 0
+    assert (
+        main(
+            [
+                "import-tracks",
+                str(src),
+                "--out",
+                str(out),
+                "--map",
+                "Nose=nose",
+                "--drop-unmapped",
+                "--min-score",
+                "0.5",
+            ]
+        )
+        == 0
+    )
     assert capsys.readouterr().out.strip() == str(out)
     tracks = read_tracks(out)
     assert list(tracks.point) == ["nose"] and tracks.extra["source"] == ["csv"]

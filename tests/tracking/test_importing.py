@@ -36,10 +36,15 @@ labeled-data/cam2/img012.png,5.5,6.5
 
 
 def _rows(tracks: Tracks) -> dict[tuple[str, int, str], tuple[float, float, str, str]]:
-    return {(tracks.video[i], int(tracks.frame[i]), tracks.point[i]):
-            (float(tracks.xy[i, 0]), float(tracks.xy[i, 1]), tracks.extra["source"][i],
-             tracks.extra["score"][i])
-            for i in range(len(tracks))}
+    return {
+        (tracks.video[i], int(tracks.frame[i]), tracks.point[i]): (
+            float(tracks.xy[i, 0]),
+            float(tracks.xy[i, 1]),
+            tracks.extra["source"][i],
+            tracks.extra["score"][i],
+        )
+        for i in range(len(tracks))
+    }
 
 
 def test_deeplabcut_csv_with_threshold_and_mapping(tmp_path: Path) -> None:
@@ -77,12 +82,13 @@ def test_openpose_folder_body25(tmp_path: Path) -> None:
         for k in range(25):
             flat += [100.0 + k + frame, 200.0 + k, 0.0 if k == 3 else 0.1 + 0.03 * k]
         people = [{"pose_keypoints_2d": flat}] if frame != 1 else []
-        (folder / f"cam03_{frame:012d}_keypoints.json").write_text(json.dumps({"version": 1.3,
-                                                                               "people": people}))
+        (folder / f"cam03_{frame:012d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
     assert detect_format(folder) is Format.OPENPOSE
-    out = run_import([folder], tmp_path / "tracks.csv",
-                     ImportOptions(min_score=0.2, mapping={"Nose": "nose", "RWrist": "wrist_r"},
-                                   drop_unmapped=True))
+    out = run_import(
+        [folder],
+        tmp_path / "tracks.csv",
+        ImportOptions(min_score=0.2, mapping={"Nose": "nose", "RWrist": "wrist_r"}, drop_unmapped=True),
+    )
     rows = _rows(read_tracks(out))
     # Nose has confidence 0.1 (< 0.2): dropped; RWrist (k=4) 0.22 kept; frame 1 has nobody.
     assert set(rows) == {("cam03", 0, "wrist_r"), ("cam03", 5, "wrist_r")}
@@ -94,9 +100,14 @@ def test_openpose_folder_body25(tmp_path: Path) -> None:
 
 def test_plain_csv_with_score_column_and_merge_keeps_labels_and_other_videos(tmp_path: Path) -> None:
     out = tmp_path / "tracks.csv"
-    write_tracks(out, Tracks.from_rows(
-        [("a", 0, "p", 1.0, 2.0), ("a", 1, "p", 3.0, 4.0), ("b", 0, "p", 5.0, 6.0)],
-        source=["label", "track", "track"], score=["1.000", "0.5", "0.7"]))
+    write_tracks(
+        out,
+        Tracks.from_rows(
+            [("a", 0, "p", 1.0, 2.0), ("a", 1, "p", 3.0, 4.0), ("b", 0, "p", 5.0, 6.0)],
+            source=["label", "track", "track"],
+            score=["1.000", "0.5", "0.7"],
+        ),
+    )
     src = tmp_path / "plain.csv"
     src.write_text("video,frame,point,x,y,likelihood\na,0,p,9,9,0.9\na,2,p,7,8,0.9\na,3,p,7,8,0.1\n")
     run_import([src], out, ImportOptions(min_score=0.5))
@@ -108,17 +119,18 @@ def test_plain_csv_with_score_column_and_merge_keeps_labels_and_other_videos(tmp
     }
 
 
-@pytest.mark.parametrize(("name", "text", "message"), [
-    ("bad.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1.0,oops\n", r"bad.csv:line 4: 'oops' in column 3"),
-    ("nohead.csv", "scorer,a,a\ncoords,x,y\n0,1,2\n", r"nohead.csv:line 3: no 'bodyparts' header row"),
-    ("noy.csv", "scorer,a\nbodyparts,n\ncoords,x\n0,1\n", r"noy.csv:coords row: point 'n' lacks an x or y"),
-    ("short.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1\n",
-     r"short.csv:line 4: expected at least 3 fields"),
-    ("frame.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\nabc,1,2\n",
-     r"frame.csv:line 4: cannot tell the frame"),
-    ("plain.csv", "video,frame,point,x\na,0,p,1\n", r"plain.csv:line 1: header lacks column\(s\) y"),
-    ("plain2.csv", "video,frame,point,x,y,score\na,0,p,1,2,high\n", r"plain2.csv:line 2: score 'high'"),
-])
+@pytest.mark.parametrize(
+    ("name", "text", "message"),
+    [
+        ("bad.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1.0,oops\n", r"bad.csv:line 4: 'oops' in column 3"),
+        ("nohead.csv", "scorer,a,a\ncoords,x,y\n0,1,2\n", r"nohead.csv:line 3: no 'bodyparts' header row"),
+        ("noy.csv", "scorer,a\nbodyparts,n\ncoords,x\n0,1\n", r"noy.csv:coords row: point 'n' lacks an x or y"),
+        ("short.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1\n", r"short.csv:line 4: expected at least 3 fields"),
+        ("frame.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\nabc,1,2\n", r"frame.csv:line 4: cannot tell the frame"),
+        ("plain.csv", "video,frame,point,x\na,0,p,1\n", r"plain.csv:line 1: header lacks column\(s\) y"),
+        ("plain2.csv", "video,frame,point,x,y,score\na,0,p,1,2,high\n", r"plain2.csv:line 2: score 'high'"),
+    ],
+)
 def test_malformed_files_give_one_line_errors(tmp_path: Path, name: str, text: str, message: str) -> None:
     src = tmp_path / name
     src.write_text(text)

@@ -35,9 +35,10 @@ def test_labels_every_tenth_frame_meet_the_acceptance_bounds(small_video: Synthe
 
 def test_every_blend_is_accurate_and_blending_beats_forward_only(small_video: SyntheticVideo) -> None:
     labels = labels_every(small_video, 10)
-    accuracy = {blend: score(track_video(_frames(small_video), labels, TrackOptions(blend=blend)),
-                             small_video)
-                for blend in Blend}
+    accuracy = {
+        blend: score(track_video(_frames(small_video), labels, TrackOptions(blend=blend)), small_video)
+        for blend in Blend
+    }
     for blend in Blend:
         assert accuracy[blend].median < 1.0
     # Both-sided tracks halve the distance to the nearest label, so they drift less and reach more frames.
@@ -54,8 +55,7 @@ def test_csrt_fallback_tracks_the_same_points(small_video: SyntheticVideo) -> No
         for name in labels:
             common = set(lk[name]) & set(other[name])
             assert len(common) >= 0.8 * len(lk[name])
-            gap = max(np.hypot(lk[name][f].x - other[name][f].x,
-                               lk[name][f].y - other[name][f].y) for f in common)
+            gap = max(np.hypot(lk[name][f].x - other[name][f].x, lk[name][f].y - other[name][f].y) for f in common)
             assert gap < 1.0
 
 
@@ -75,8 +75,9 @@ def test_labels_win_and_reanchor(small_video: SyntheticVideo) -> None:
 def test_a_hidden_label_stops_tracks_from_both_sides(small_video: SyntheticVideo) -> None:
     uv = small_video.uv
     p = int(np.flatnonzero(small_video.visible[:20].all(axis=0))[0])  # a marker visible on frames 0..19
-    labels = {"m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])), 8: None,
-                    16: (float(uv[16, p, 0]), float(uv[16, p, 1]))}}
+    labels = {
+        "m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])), 8: None, 16: (float(uv[16, p, 0]), float(uv[16, p, 1]))}
+    }
     result = track_video(_frames(small_video), labels, TrackOptions())["m"]
     assert 8 not in result
     assert all(f in result for f in range(0, 8))  # forward from 0 up to the hidden mark
@@ -93,8 +94,12 @@ def test_labels_outside_the_video_are_ignored_and_no_labels_give_nothing(small_v
 
 def test_progress_is_reported(small_video: SyntheticVideo) -> None:
     calls: list[tuple[int, int]] = []
-    track_video(_frames(small_video), {"m0": {0: tuple(small_video.uv[0, 0])}}, TrackOptions(),
-                progress=lambda done, total: calls.append((done, total)))
+    track_video(
+        _frames(small_video),
+        {"m0": {0: tuple(small_video.uv[0, 0])}},
+        TrackOptions(),
+        progress=lambda done, total: calls.append((done, total)),
+    )
     assert calls[-1] == (80, 80)
     assert [c[0] for c in calls] == list(range(1, 81))
 
@@ -103,7 +108,7 @@ def test_a_point_leaving_the_picture_stops() -> None:
     rng = np.random.default_rng(3)
     texture = (rng.random((120, 400)) * 255).astype(np.uint8)
     # The scene slides left 6 px per frame; a point at x=40 leaves the 160 px window after ~7 frames.
-    frames = ArrayFrames([np.ascontiguousarray(texture[:, 6 * t:6 * t + 160]) for t in range(20)])
+    frames = ArrayFrames([np.ascontiguousarray(texture[:, 6 * t : 6 * t + 160]) for t in range(20)])
     result = track_video(frames, {"p": {0: (40.0, 60.0)}}, TrackOptions())["p"]
     assert max(result) < 8
     for f, point in result.items():
@@ -118,7 +123,7 @@ def test_brightness_normalization_survives_auto_exposure_flicker() -> None:
     frames = []
     for t in range(12):
         gain = 1.0 if t % 2 == 0 else 1.35  # every other frame 35% brighter, as auto exposure does
-        window = texture[20:180, 2 * t:2 * t + 200]
+        window = texture[20:180, 2 * t : 2 * t + 200]
         frames.append(np.clip(gain * (110 + 30 * window), 0, 255).astype(np.uint8))
     labels = {"p": {0: (100.0, 80.0)}}
     truth = {t: (100.0 - 2 * t, 80.0) for t in range(12)}
@@ -138,8 +143,7 @@ def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(small_vide
     p = int(np.flatnonzero(small_video.visible[:12].all(axis=0))[0])
     # Two labels 5 px apart from what the video shows between them: each track arrives 5 px off the other
     # label, so neither can be trusted and the frames between stay unobserved.
-    labels = {"m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])),
-                    10: (float(uv[10, p, 0]) + 5, float(uv[10, p, 1]))}}
+    labels = {"m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])), 10: (float(uv[10, p, 0]) + 5, float(uv[10, p, 1]))}}
     checked = track_video(_frames(small_video), labels, TrackOptions())["m"]
     assert not any(f in checked for f in range(1, 10))
     assert 11 in checked  # after the last label nothing can be checked: tracked as usual

@@ -14,8 +14,9 @@ from tracking.synthetic import SyntheticOptions, render_video
 def test_ground_truth_matches_the_pictures_without_blur_or_noise(tmp_path: Path) -> None:
     # With a sharp, noise-free, lossless video, one LK step from a true position must land on the ground truth
     # to a small fraction of a pixel; an offset in the renderer's conventions (e.g. half a pixel) would show.
-    options = SyntheticOptions(width=240, height=180, frames=12, markers=3, blur_samples=1, noise=0.0,
-                               occluder=False, seed=3)
+    options = SyntheticOptions(
+        width=240, height=180, frames=12, markers=3, blur_samples=1, noise=0.0, occluder=False, seed=3
+    )
     video = render_video(tmp_path / "sharp.avi", options)
     frames = VideoFrames(tmp_path / "sharp.avi")
     assert len(frames) == 12 and frames.shape == (180, 240)

@@ -19,16 +19,21 @@ def test_read_labels_with_hidden_marks(tmp_path: Path) -> None:
     assert read_labels(no_source) == {"a": {"p": {0: (1.0, 2.0)}}}
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("video,frame,point,x\n", "line 1: header lacks column(s) y"),
-    ("video,frame,point,x,y,source\na,0,p,1,2,label\na,0,p,3,4,label\n",
-     "line 3: point 'p' of video 'a' is labeled twice"),
-    ("video,frame,point,x,y,source\na,-1,p,1,2,label\n", "line 2: frame -1 is negative"),
-    ("video,frame,point,x,y,source\na,0,p,,,label\n", "line 2: x, y = '', '' are not numbers"),
-    ("video,frame,point,x,y,source\na,0,p,inf,2,label\n", "line 2: x, y = inf, 2.0 is not finite"),
-    ("video,frame,point,x,y,source\na,0,p,1\n", "line 2: expected 6 fields, found 4"),
-    ("video,frame,point,x,y,source\n,0,p,1,2,label\n", "line 2: empty video or point name"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("video,frame,point,x\n", "line 1: header lacks column(s) y"),
+        (
+            "video,frame,point,x,y,source\na,0,p,1,2,label\na,0,p,3,4,label\n",
+            "line 3: point 'p' of video 'a' is labeled twice",
+        ),
+        ("video,frame,point,x,y,source\na,-1,p,1,2,label\n", "line 2: frame -1 is negative"),
+        ("video,frame,point,x,y,source\na,0,p,,,label\n", "line 2: x, y = '', '' are not numbers"),
+        ("video,frame,point,x,y,source\na,0,p,inf,2,label\n", "line 2: x, y = inf, 2.0 is not finite"),
+        ("video,frame,point,x,y,source\na,0,p,1\n", "line 2: expected 6 fields, found 4"),
+        ("video,frame,point,x,y,source\n,0,p,1,2,label\n", "line 2: empty video or point name"),
+    ],
+)
 def test_bad_labels_name_the_line(tmp_path: Path, text: str, message: str) -> None:
     path = tmp_path / "labels.csv"
     path.write_text(text)

@@ -23,9 +23,12 @@ _spec.loader.exec_module(scenes)
 ClockTruth = scenes.ClockTruth
 _FakeResult = scenes._FakeResult
 
-DRONE_CLOCKS = [ClockTruth(fps=30.0, frames=240), ClockTruth(fps=25.0, frames=200, offset=1.37, rate=1.0004),
-                ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
-                ClockTruth(fps=24.0, frames=190, offset=0.61, rate=1.0002)]
+DRONE_CLOCKS = [
+    ClockTruth(fps=30.0, frames=240),
+    ClockTruth(fps=25.0, frames=200, offset=1.37, rate=1.0004),
+    ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
+    ClockTruth(fps=24.0, frames=190, offset=0.61, rate=1.0002),
+]
 
 
 def test_gap_px_matches_geometry() -> None:
@@ -46,8 +49,9 @@ def test_gap_px_matches_geometry() -> None:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_drone_far_away_with_false_detections(seed: int) -> None:
     """P = 1, cameras 60 m away, handheld, 1 px noise, 5 % false detections: within a quarter of 1/60 s."""
-    problem, g, _ = scenes.make_capture(DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True,
-                                        handheld=True, outlier_share=0.05, seed=seed)
+    problem, g, _ = scenes.make_capture(
+        DRONE_CLOCKS, points=1, distance=60.0, noise_px=1.0, drone=True, handheld=True, outlier_share=0.05, seed=seed
+    )
     own, _ = own_times(problem)
     result = search_clocks(problem, own, 0)
     assert result.params.identified.all()
@@ -76,8 +80,11 @@ def test_unknown_frame_rate_is_found() -> None:
 
 def test_no_overlap_is_reported() -> None:
     """A video that never overlaps the others in time gets a warning, not a number."""
-    clocks = [ClockTruth(fps=30.0, frames=150), ClockTruth(fps=30.0, frames=150, offset=0.4),
-              ClockTruth(fps=30.0, frames=150, offset=40.0)]
+    clocks = [
+        ClockTruth(fps=30.0, frames=150),
+        ClockTruth(fps=30.0, frames=150, offset=0.4),
+        ClockTruth(fps=30.0, frames=150, offset=40.0),
+    ]
     problem, _, _ = scenes.make_capture(clocks, points=1, distance=60.0, drone=True, seed=2)
     own, _ = own_times(problem)
     # The third video films a different stretch of the flight: its track matches nothing of the others.

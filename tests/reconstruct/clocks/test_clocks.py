@@ -38,13 +38,17 @@ def trajectory(g: np.ndarray, points: int, seed: int, drone: bool) -> np.ndarray
         c = amp * np.sin(2 * np.pi * f * g[:, None] + phase) + np.array([0.0, 0.0, 25.0])
         return c[:, None, :]
     base = rng.normal(size=(points, 3)) * 0.4
-    centre = np.stack([1.5 * np.sin(0.4 * g + 0.3), 1.0 * np.sin(0.55 * g + 1.0), 1.0 + 0.2 * np.sin(1.3 * g)],
-                      axis=1)
+    centre = np.stack([1.5 * np.sin(0.4 * g + 0.3), 1.0 * np.sin(0.55 * g + 1.0), 1.0 + 0.2 * np.sin(1.3 * g)], axis=1)
     angle = 0.8 * g
     c, s = np.cos(angle), np.sin(angle)
-    rotated = np.stack([c[:, None] * base[None, :, 0] - s[:, None] * base[None, :, 1],
-                        s[:, None] * base[None, :, 0] + c[:, None] * base[None, :, 1],
-                        np.broadcast_to(base[None, :, 2], (len(g), points))], axis=-1)
+    rotated = np.stack(
+        [
+            c[:, None] * base[None, :, 0] - s[:, None] * base[None, :, 1],
+            s[:, None] * base[None, :, 0] + c[:, None] * base[None, :, 1],
+            np.broadcast_to(base[None, :, 2], (len(g), points)),
+        ],
+        axis=-1,
+    )
     wobble = 0.1 * np.sin(2 * np.pi * 1.1 * g[:, None, None] + base[None] * 3)
     return centre[:, None, :] + rotated + wobble
 
@@ -59,9 +63,18 @@ def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def make_capture(clocks: list[ClockTruth], *, points: int = 6, distance: float = 8.0, noise_px: float = 0.5,
-                 seed: int = 0, drone: bool = False, handheld: bool = False, decoder_times: bool = True,
-                 outlier_share: float = 0.0) -> tuple[Problem, np.ndarray, np.ndarray]:
+def make_capture(
+    clocks: list[ClockTruth],
+    *,
+    points: int = 6,
+    distance: float = 8.0,
+    noise_px: float = 0.5,
+    seed: int = 0,
+    drone: bool = False,
+    handheld: bool = False,
+    decoder_times: bool = True,
+    outlier_share: float = 0.0,
+) -> tuple[Problem, np.ndarray, np.ndarray]:
     """A Problem of len(clocks) cameras on a ring around the motion; returns (problem, true global time (F,),
     true points (F, P, 3)). Outliers: that share of observations replaced by random pixels."""
     rng = np.random.default_rng(seed + 1)
@@ -70,7 +83,7 @@ def make_capture(clocks: list[ClockTruth], *, points: int = 6, distance: float =
     for v, clock in enumerate(clocks):
         own = np.arange(clock.frames) / clock.fps
         own_l.append(own)
-        glob_l.append(clock.offset + clock.rate * own + clock.drift * own ** 2)
+        glob_l.append(clock.offset + clock.rate * own + clock.drift * own**2)
         vid_l.append(np.full(clock.frames, v))
         frm_l.append(np.arange(clock.frames))
     own, g = np.concatenate(own_l), np.concatenate(glob_l)
@@ -99,9 +112,17 @@ def make_capture(clocks: list[ClockTruth], *, points: int = 6, distance: float =
         bad = rng.random((F, P)) < outlier_share
         uv[bad] = rng.uniform([0, 0], [1920, 1080], size=(int(bad.sum()), 2))
     problem = Problem(
-        video_names=[f"cam{v}" for v in range(len(clocks))], video_index=video_index, frames=frames,
-        times=own if decoder_times else np.full(F, np.nan), point_names=[f"p{p}" for p in range(P)],
-        K=np.broadcast_to(K, (F, 3, 3)).copy(), R=R, t=t, dist=[None] * F, uv=uv)
+        video_names=[f"cam{v}" for v in range(len(clocks))],
+        video_index=video_index,
+        frames=frames,
+        times=own if decoder_times else np.full(F, np.nan),
+        point_names=[f"p{p}" for p in range(P)],
+        K=np.broadcast_to(K, (F, 3, 3)).copy(),
+        R=R,
+        t=t,
+        dist=[None] * F,
+        uv=uv,
+    )
     return problem, g, X
 
 
@@ -140,9 +161,12 @@ def ideal_w(video_index: np.ndarray, g: np.ndarray, seed: int, outliers: float =
     return sp.csc_matrix((vals, (rows, cols)), shape=(F, F))
 
 
-PHONES = [ClockTruth(fps=30.0, frames=240), ClockTruth(fps=24.0, frames=200, offset=1.37, rate=1.0004),
-          ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
-          ClockTruth(fps=25.0, frames=210, offset=0.511, rate=1.0002)]
+PHONES = [
+    ClockTruth(fps=30.0, frames=240),
+    ClockTruth(fps=24.0, frames=200, offset=1.37, rate=1.0004),
+    ClockTruth(fps=60.0, frames=420, offset=-0.82, rate=0.9997),
+    ClockTruth(fps=25.0, frames=210, offset=0.511, rate=1.0002),
+]
 
 
 def clock_errors(problem: Problem, g: np.ndarray, estimate: np.ndarray) -> np.ndarray:
@@ -163,8 +187,11 @@ def test_own_times_sources() -> None:
 
 @pytest.mark.parametrize("model", [ClockModel.OFFSET, ClockModel.AFFINE])
 def test_links_recover_clocks_with_outliers(model: ClockModel) -> None:
-    clocks = PHONES if model is ClockModel.AFFINE else [
-        ClockTruth(fps=c.fps, frames=c.frames, offset=c.offset) for c in PHONES]
+    clocks = (
+        PHONES
+        if model is ClockModel.AFFINE
+        else [ClockTruth(fps=c.fps, frames=c.frames, offset=c.offset) for c in PHONES]
+    )
     problem, g, _ = make_capture(clocks, points=2)
     W = ideal_w(problem.video_index, g, seed=1, outliers=0.2)
     own, _ = own_times(problem)
@@ -183,8 +210,11 @@ def test_links_recover_clocks_with_outliers(model: ClockModel) -> None:
 
 
 def test_links_drift_model() -> None:
-    clocks = [ClockTruth(fps=30.0, frames=600), ClockTruth(fps=25.0, frames=500, offset=0.3, rate=1.001, drift=4e-4),
-              ClockTruth(fps=50.0, frames=1000, offset=-0.4, rate=0.999)]
+    clocks = [
+        ClockTruth(fps=30.0, frames=600),
+        ClockTruth(fps=25.0, frames=500, offset=0.3, rate=1.001, drift=4e-4),
+        ClockTruth(fps=50.0, frames=1000, offset=-0.4, rate=0.999),
+    ]
     problem, g, _ = make_capture(clocks, points=2)
     W = ideal_w(problem.video_index, g, seed=2, outliers=0.1)
     own, _ = own_times(problem)
@@ -252,8 +282,11 @@ def test_unidentified_video_has_no_times() -> None:
     cam2 = np.flatnonzero(problem.video_index == 2)
     W[cam2, :] = 0
     W[:, cam2] = 0
-    clocks = estimate_clocks(problem, _FakeResult(W.tocsc(), 8),  # type: ignore[arg-type]
-                             ClockOptions(search=SearchMode.NEVER))
+    clocks = estimate_clocks(
+        problem,
+        _FakeResult(W.tocsc(), 8),  # type: ignore[arg-type]
+        ClockOptions(search=SearchMode.NEVER),
+    )
     cam2_clock = clocks.video("cam2")
     assert not cam2_clock.identified and cam2_clock.method == "unidentified" and math.isnan(cam2_clock.offset)
     assert np.all(np.isnan(clocks.global_time[cam2]))
@@ -263,8 +296,11 @@ def test_unidentified_video_has_no_times() -> None:
 
 def test_estimate_clocks_after_solve() -> None:
     """The real solver's W on a small body capture: clocks within a quarter of the fastest frame period."""
-    clocks = [ClockTruth(fps=30.0, frames=60), ClockTruth(fps=24.0, frames=50, offset=0.213, rate=1.0),
-              ClockTruth(fps=20.0, frames=40, offset=-0.171, rate=1.0)]
+    clocks = [
+        ClockTruth(fps=30.0, frames=60),
+        ClockTruth(fps=24.0, frames=50, offset=0.213, rate=1.0),
+        ClockTruth(fps=20.0, frames=40, offset=-0.171, rate=1.0),
+    ]
     problem, g, _ = make_capture(clocks, points=8, distance=5.0, noise_px=0.3, seed=4)
     result = solve(problem, SolverOptions(max_iterations=30))
     estimate = estimate_clocks(problem, result, ClockOptions(search=SearchMode.NEVER))
@@ -283,7 +319,7 @@ def test_clock_model_inverse_report_form_and_set() -> None:
     np.testing.assert_allclose(clock.own_time(clock.global_time(own)), own, atol=1e-12)
     values, stds = clock.offset_rate_drift()
     offset, rate, drift = values
-    np.testing.assert_allclose(offset + rate * own + drift * own ** 2, clock.global_time(own), atol=1e-12)
+    np.testing.assert_allclose(offset + rate * own + drift * own**2, clock.global_time(own), atol=1e-12)
     assert np.all(stds > 0)
     affine = Clock.affine(0.25, 1.001)
     assert affine.global_time(np.array([2.0]))[0] == 0.25 + 1.001 * 2.0

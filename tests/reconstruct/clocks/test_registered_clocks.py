@@ -25,8 +25,21 @@ def _solve_with_offsets(sim: Path, work: Path, shift: dict[str, float]) -> dict:
         truth = next(v for v in clocks["videos"] if v["name"] == video.name)
         video.clock_offset = truth["offset_s"] + shift.get(video.name, 0.0) + 5.0  # any common origin
     write_cameras(work / "cameras.json", cameras)
-    assert main(["solve", "--cameras", str(work / "cameras.json"), "--tracks", str(sim / "tracks.csv"), "--out",
-                 str(work), "--no-recording"]) == 0
+    assert (
+        main(
+            [
+                "solve",
+                "--cameras",
+                str(work / "cameras.json"),
+                "--tracks",
+                str(sim / "tracks.csv"),
+                "--out",
+                str(work),
+                "--no-recording",
+            ]
+        )
+        == 0
+    )
     return json.loads((work / "report.json").read_text())["clocks"]["registration_check"]
 
 

@@ -32,8 +32,13 @@ def _interleaved(num_videos: int = 3, per_video: int = 8, seed: int = 0) -> tupl
     true_time = np.array(times, dtype=float)
     xyz = rng.normal(size=(len(videos), 4, 3)) * 500.0
     xyz[2, 1] = np.nan  # one unreconstructed point
-    points = FramePoints(videos=videos, frames=np.array(frames), point_names=["a", "b", "c", "d"], xyz=xyz,
-                         observed=np.ones((len(videos), 4), bool))
+    points = FramePoints(
+        videos=videos,
+        frames=np.array(frames),
+        point_names=["a", "b", "c", "d"],
+        xyz=xyz,
+        observed=np.ones((len(videos), 4), bool),
+    )
     return points, true_time
 
 
@@ -94,13 +99,18 @@ def test_order_by_decoder_time(tmp_path):
     points, _ = _interleaved(per_video=4)
     videos = []
     for v in range(3):
-        frames = [FrameCamera(frame=f, time=f / 30.0 + 0.001 * v, K=np.eye(3), R=np.eye(3), t=np.zeros(3))
-                  for f in range(4)]
+        frames = [
+            FrameCamera(frame=f, time=f / 30.0 + 0.001 * v, K=np.eye(3), R=np.eye(3), t=np.zeros(3)) for f in range(4)
+        ]
         videos.append(VideoCameras(name=f"cam{v}", width=10, height=10, fps=30.0, frames=frames))
     order, source = global_order(points, CameraSet(videos=videos))
     assert source is OrderSource.TIME
-    assert [(points.videos[i], int(points.frames[i])) for i in order[:4]] == \
-        [("cam0", 0), ("cam1", 0), ("cam2", 0), ("cam0", 1)]
+    assert [(points.videos[i], int(points.frames[i])) for i in order[:4]] == [
+        ("cam0", 0),
+        ("cam1", 0),
+        ("cam2", 0),
+        ("cam0", 1),
+    ]
     # Without times for every frame, and without sequencing, the file order stays.
     videos[0].frames[0].time = None
     order, source = global_order(points, CameraSet(videos=videos))
@@ -127,10 +137,17 @@ def test_order_from_sequencing_recovers_time():
 
 
 def _with_clocks(points: FramePoints, times: np.ndarray, std: float = 0.002) -> Sequencing:
-    frames = [{"video": v, "frame": int(f), "own_time": float(t), "time": float(t), "time_std": std}
-              for v, f, t in zip(points.videos, points.frames, times, strict=True)]
-    return Sequencing(videos=points.videos, frames=points.frames, neighbours=[np.zeros(0, int)] * points.num_frames,
-                      weights=[np.zeros(0)] * points.num_frames, extra={"clocks": {"frames": frames}})
+    frames = [
+        {"video": v, "frame": int(f), "own_time": float(t), "time": float(t), "time_std": std}
+        for v, f, t in zip(points.videos, points.frames, times, strict=True)
+    ]
+    return Sequencing(
+        videos=points.videos,
+        frames=points.frames,
+        neighbours=[np.zeros(0, int)] * points.num_frames,
+        weights=[np.zeros(0)] * points.num_frames,
+        extra={"clocks": {"frames": frames}},
+    )
 
 
 def test_recovered_clocks_order_the_frames_before_decoder_times():
@@ -149,14 +166,15 @@ def test_trc_on_the_clock_is_a_uniform_resampling_of_linear_motion(tmp_path):
     velocity = np.array([100.0, -50.0, 20.0])
     xyz = (times[:, None] * velocity)[:, None, :].repeat(2, axis=1)
     xyz[5, 1] = np.nan
-    points = FramePoints(videos=["a", "b"] * 30, frames=np.arange(60), point_names=["p", "q"], xyz=xyz,
-                         observed=np.ones((60, 2), bool))
+    points = FramePoints(
+        videos=["a", "b"] * 30, frames=np.arange(60), point_names=["p", "q"], xyz=xyz, observed=np.ones((60, 2), bool)
+    )
     back = read_mocap(write_trc_export(points, None, 50.0, tmp_path / "c.trc", times=times))
     grid = back.times
     np.testing.assert_allclose(np.diff(grid), 1 / 50.0, atol=1e-6)
     hole = (grid + times[0] > times[29] + 1e-9) & (grid + times[0] < times[30] - 1e-9)
     assert hole.any() and np.all(np.isnan(back.xyz[hole]))
-    expected = ((grid + times[0])[:, None] * velocity)
+    expected = (grid + times[0])[:, None] * velocity
     ok = ~hole
     np.testing.assert_allclose(back.xyz[ok, 0], expected[ok], atol=1e-6)
     np.testing.assert_allclose(back.xyz[ok, 1], expected[ok], atol=1e-6)

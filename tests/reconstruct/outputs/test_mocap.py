@@ -12,8 +12,9 @@ from reconstruct.outputs.mocap import Mocap, drop_incomplete, read_mocap, select
 def _synthetic(frames: int = 20, markers: int = 3, seed: int = 0) -> Mocap:
     rng = np.random.default_rng(seed)
     xyz = rng.uniform(-1000, 1000, size=(frames, markers, 3))
-    return Mocap(xyz=xyz, rate=100.0, marker_names=[f"m{i}" for i in range(markers)],
-                 times=0.5 + np.arange(frames) / 100.0)
+    return Mocap(
+        xyz=xyz, rate=100.0, marker_names=[f"m{i}" for i in range(markers)], times=0.5 + np.arange(frames) / 100.0
+    )
 
 
 def test_every_shared_file_reads(shared_dir: Path) -> None:
@@ -68,13 +69,15 @@ def test_trc_zero_samples_are_missing(tmp_path: Path) -> None:
 
 def test_trc_with_padded_header_and_crlf(tmp_path: Path) -> None:
     # Windows exports: CRLF line ends, header values separated by double tabs, names two tabs apart.
-    text = ("PathFileType  4\t(X/Y/Z) C:\\x\r\n"
-            "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\r\n"
-            "  50.0\t\t  50.0\t\t 2\t\t 2\t\t mm\r\n"
-            "Frame#\tTime\t\tA\t\tB\r\n"
-            "\t\t\tX1\tY1\tZ1\tX2\tY2\tZ2\r\n"
-            "1\t0.0\t1\t2\t3\t4\t5\t6\t\r\n"
-            "2\t0.02\t7\t8\t9\t\t\t\t\r\n")
+    text = (
+        "PathFileType  4\t(X/Y/Z) C:\\x\r\n"
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\r\n"
+        "  50.0\t\t  50.0\t\t 2\t\t 2\t\t mm\r\n"
+        "Frame#\tTime\t\tA\t\tB\r\n"
+        "\t\t\tX1\tY1\tZ1\tX2\tY2\tZ2\r\n"
+        "1\t0.0\t1\t2\t3\t4\t5\t6\t\r\n"
+        "2\t0.02\t7\t8\t9\t\t\t\t\r\n"
+    )
     path = tmp_path / "win.trc"
     path.write_bytes(text.encode())
     back = read_mocap(path)
@@ -83,16 +86,24 @@ def test_trc_with_padded_header_and_crlf(tmp_path: Path) -> None:
     assert back.missing().tolist() == [[False, False], [False, True]]
 
 
-@pytest.mark.parametrize(("name", "content", "message"), [
-    ("motion.bvh", "HIERARCHY", "unknown motion-capture format"),
-    ("short.trc", "PathFileType\t4\n", "5 header lines"),
-    ("nomarkers.trc", "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t0\tmm\nFrame#\tTime\n\t\n1\t0\n",
-     "no markers"),
-    ("units.trc",
-     "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t1\tinch\nFrame#\tTime\tA\n\t\tX1\n1\t0\t1\t2\t3\n",
-     "unknown Units"),
-    ("bad.c3d", "not a c3d file at all", "not a readable C3D file"),
-])
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("motion.bvh", "HIERARCHY", "unknown motion-capture format"),
+        ("short.trc", "PathFileType\t4\n", "5 header lines"),
+        (
+            "nomarkers.trc",
+            "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t0\tmm\nFrame#\tTime\n\t\n1\t0\n",
+            "no markers",
+        ),
+        (
+            "units.trc",
+            "P\nDataRate\tNumFrames\tNumMarkers\tUnits\n100\t1\t1\tinch\nFrame#\tTime\tA\n\t\tX1\n1\t0\t1\t2\t3\n",
+            "unknown Units",
+        ),
+        ("bad.c3d", "not a c3d file at all", "not a readable C3D file"),
+    ],
+)
 def test_bad_files_are_one_line_errors(tmp_path: Path, name: str, content: str, message: str) -> None:
     path = tmp_path / name
     path.write_text(content)

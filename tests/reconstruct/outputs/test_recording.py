@@ -49,8 +49,9 @@ def look_at(center: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndar
     return R, -R @ center
 
 
-def make_scene(seed: int = 0, *, videos: tuple[str, ...] = VIDEOS, frames_per_video: int = FRAMES_PER_VIDEO
-               ) -> tuple[CameraSet, FramePoints]:
+def make_scene(
+    seed: int = 0, *, videos: tuple[str, ...] = VIDEOS, frames_per_video: int = FRAMES_PER_VIDEO
+) -> tuple[CameraSet, FramePoints]:
     """Cameras on a circle around the origin, moving a little; frames interleaved so no two share a number."""
     rng = np.random.default_rng(seed)
     camera_videos, point_videos, point_frames = [], [], []
@@ -69,8 +70,13 @@ def make_scene(seed: int = 0, *, videos: tuple[str, ...] = VIDEOS, frames_per_vi
     xyz = rng.normal(scale=0.4, size=(F, len(POINT_NAMES), 3))
     xyz[1, 2] = np.nan  # "hand_r" not reconstructed in frame 1 of the first video
     observed = np.isfinite(xyz).all(axis=-1)
-    points = FramePoints(videos=point_videos, frames=np.array(point_frames, dtype=np.int64),
-                         point_names=list(POINT_NAMES), xyz=xyz, observed=observed)
+    points = FramePoints(
+        videos=point_videos,
+        frames=np.array(point_frames, dtype=np.int64),
+        point_names=list(POINT_NAMES),
+        xyz=xyz,
+        observed=observed,
+    )
     return CameraSet(videos=camera_videos), points
 
 
@@ -100,13 +106,20 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
     residual = np.linspace(0.5, 2.0, F)
     residual[3] = np.nan
     global_time = 0.01 * np.arange(F)[np.argsort(points.frames, kind="stable").argsort()]
-    background = BackgroundCloud(xyz=np.random.default_rng(1).normal(size=(50, 3)) * 5,
-                                 colors=np.full((50, 3), 128, np.uint8))
-    path = write_recording(tmp_path_factory.mktemp("rec") / "recording.rrd", cameras=cameras, points=points,
-                           tracks=tracks, skeleton=SKELETON, residual=residual, global_time=global_time,
-                           background=background)
-    return dict(path=path, cameras=cameras, points=points, tracks=tracks, residual=residual,
-                global_time=global_time)
+    background = BackgroundCloud(
+        xyz=np.random.default_rng(1).normal(size=(50, 3)) * 5, colors=np.full((50, 3), 128, np.uint8)
+    )
+    path = write_recording(
+        tmp_path_factory.mktemp("rec") / "recording.rrd",
+        cameras=cameras,
+        points=points,
+        tracks=tracks,
+        skeleton=SKELETON,
+        residual=residual,
+        global_time=global_time,
+        background=background,
+    )
+    return dict(path=path, cameras=cameras, points=points, tracks=tracks, residual=residual, global_time=global_time)
 
 
 def rows_per_timeline(path: Path, entity: str) -> dict[str, int]:
@@ -122,8 +135,11 @@ def test_entity_paths_and_timelines(scene: dict) -> None:
     path = scene["path"]
     expected = {"/world", "/world/background", "/world/points", "/metrics/residual"}
     for video in VIDEOS:
-        expected |= {f"/world/cameras/{video}", f"/world/cameras/{video}/image/tracks",
-                     f"/world/cameras/{video}/image/reprojection"}
+        expected |= {
+            f"/world/cameras/{video}",
+            f"/world/cameras/{video}/image/tracks",
+            f"/world/cameras/{video}/image/reprojection",
+        }
     assert rrd_reader.entities(path) - {"/__properties"} == expected
     assert rrd_reader.timelines(path) == {f"frame:{v}" for v in VIDEOS} | {"global_time"}
 
@@ -148,7 +164,8 @@ def test_point_positions_labels_and_ids_equal_input(scene: dict) -> None:
         timeline = f"frame:{video}"
         positions, labels, ids = (
             rrd_reader.component_rows(path, "/world/points", f"Points3D:{component}", timeline)[int(frame)]
-            for component in ("positions", "labels", "keypoint_ids"))
+            for component in ("positions", "labels", "keypoint_ids")
+        )
         finite = np.isfinite(points.xyz[i]).all(axis=1)
         # float32 in the file
         np.testing.assert_allclose(positions, points.xyz[i][finite], rtol=1e-6, atol=1e-6)
@@ -194,7 +211,8 @@ def test_reprojection_equals_noise_free_tracks(scene: dict) -> None:
         base = f"/world/cameras/{video}/image"
         reproj, tracks = (
             rrd_reader.component_rows(path, f"{base}/{entity}", "Points2D:positions", f"frame:{video}")
-            for entity in ("reprojection", "tracks"))
+            for entity in ("reprojection", "tracks")
+        )
         assert sorted(reproj) == sorted(tracks) and len(reproj) == FRAMES_PER_VIDEO
         for frame in reproj:
             np.testing.assert_allclose(reproj[frame], tracks[frame], atol=1e-3)
@@ -217,8 +235,9 @@ def test_annotation_context_and_view_coordinates(scene: dict) -> None:
     assert entry["class_id"] == 0
     description = entry["class_description"]
     assert [k["label"] for k in description["keypoint_annotations"]] == POINT_NAMES
-    assert [k["color"] for k in description["keypoint_annotations"]] == \
-        [rgba(tuple(int(x) for x in c)) for c in point_colors(len(POINT_NAMES))]
+    assert [k["color"] for k in description["keypoint_annotations"]] == [
+        rgba(tuple(int(x) for x in c)) for c in point_colors(len(POINT_NAMES))
+    ]
     connections = [(c["keypoint0"], c["keypoint1"]) for c in description["keypoint_connections"]]
     assert connections == [(0, 1), (0, 2), (0, 3)]
     assert rrd_reader.static_component(path, "/world", "ViewCoordinates:xyz") == [[3, 2, 5]]  # R, D, F
@@ -242,8 +261,9 @@ def test_background_is_static(scene: dict) -> None:
 
 def test_default_blueprint(scene: dict) -> None:
     views = rrd_reader.blueprint_views(scene["path"])
-    assert sorted(views) == sorted([("3D", "world"), ("residual", "metrics")]
-                                   + [(v, f"world/cameras/{v}") for v in VIDEOS])
+    assert sorted(views) == sorted(
+        [("3D", "world"), ("residual", "metrics")] + [(v, f"world/cameras/{v}") for v in VIDEOS]
+    )
 
 
 def test_rrd_verify_passes(scene: dict) -> None:
@@ -261,7 +281,10 @@ def test_minimal_recording_and_escaped_video_names(tmp_path: Path) -> None:
     assert "/" + camera_entity("cam 1/left") in found
     # no residual: the blueprint has no time-series view
     assert sorted(rrd_reader.blueprint_views(path)) == [
-        ("3D", "world"), ("cam 1/left", r"world/cameras/cam\ 1\/left"), ("cam.2", "world/cameras/cam.2")]
+        ("3D", "world"),
+        ("cam 1/left", r"world/cameras/cam\ 1\/left"),
+        ("cam.2", "world/cameras/cam.2"),
+    ]
     assert rrd_reader.verify(path).returncode == 0
 
 
@@ -271,8 +294,9 @@ def test_varying_intrinsics_logged_per_frame(tmp_path: Path) -> None:
     for j, cam in enumerate(zoom):
         cam.K = cam.K.copy()
         cam.K[0, 0] = cam.K[1, 1] = 700.0 + 50 * j
-    path = write_recording(tmp_path / "zoom.rrd", cameras=cameras, points=points,
-                           options=RecordingOptions(blueprint=False))
+    path = write_recording(
+        tmp_path / "zoom.rrd", cameras=cameras, points=points, options=RecordingOptions(blueprint=False)
+    )
     assert rrd_reader.blueprint_views(path) == []
     entity = "/" + camera_entity(VIDEOS[0])
     rows = rrd_reader.component_rows(path, entity, "Pinhole:image_from_camera", f"frame:{VIDEOS[0]}")
@@ -326,12 +350,22 @@ def test_write_speed_2000_frames_44_points(tmp_path: Path) -> None:
     names = [f"p{i}" for i in range(44)]
     cameras, points = make_scene(videos=("a", "b", "c", "d"), frames_per_video=500)
     rng = np.random.default_rng(5)
-    points = FramePoints(videos=points.videos, frames=points.frames, point_names=names,
-                         xyz=rng.normal(size=(2000, 44, 3)), observed=np.ones((2000, 44), bool))
+    points = FramePoints(
+        videos=points.videos,
+        frames=points.frames,
+        point_names=names,
+        xyz=rng.normal(size=(2000, 44, 3)),
+        observed=np.ones((2000, 44), bool),
+    )
     start = time.perf_counter()
-    path = write_recording(tmp_path / "big.rrd", cameras=cameras, points=points,
-                           skeleton=[(names[i], names[i + 1]) for i in range(43)],
-                           residual=rng.random(2000), global_time=np.arange(2000) / 120.0)
+    path = write_recording(
+        tmp_path / "big.rrd",
+        cameras=cameras,
+        points=points,
+        skeleton=[(names[i], names[i + 1]) for i in range(43)],
+        residual=rng.random(2000),
+        global_time=np.arange(2000) / 120.0,
+    )
     elapsed = time.perf_counter() - start
     assert elapsed < 5.0, f"{elapsed:.2f} s"
     assert rows_per_timeline(path, "/world/points")["global_time"] == 2000
@@ -350,23 +384,28 @@ def test_video_files_embedded_with_frame_references(tmp_path: Path, caplog: pyte
     """A vp09 video is embedded and each posed frame references its timestamp; mp4v (which rerun cannot play),
     too-short files and unknown videos are skipped with a warning, and the rest of the recording is intact."""
     cameras, points = make_scene()  # posed frames: left 0,3,6,9; right 1,4,7,10; top 2,5,8,11
-    files = {"left": write_video(tmp_path / "left.mp4", "vp09", 12),
-             "right": write_video(tmp_path / "right.mp4", "mp4v", 12),
-             "top": write_video(tmp_path / "top.mp4", "vp09", 6),
-             "nobody": tmp_path / "nobody.mp4"}
+    files = {
+        "left": write_video(tmp_path / "left.mp4", "vp09", 12),
+        "right": write_video(tmp_path / "right.mp4", "mp4v", 12),
+        "top": write_video(tmp_path / "top.mp4", "vp09", 6),
+        "nobody": tmp_path / "nobody.mp4",
+    }
     with caplog.at_level("WARNING", logger="reconstruct.outputs.recording"):
-        path = write_recording(tmp_path / "video.rrd", cameras=cameras, points=points, video_files=files,
-                               global_time=np.arange(points.num_frames) * 0.1)
+        path = write_recording(
+            tmp_path / "video.rrd",
+            cameras=cameras,
+            points=points,
+            video_files=files,
+            global_time=np.arange(points.num_frames) * 0.1,
+        )
     warnings = caplog.text
     assert "right.mp4: video not embedded" in warnings and "mp4v" in warnings
     assert "top.mp4 has 6 frames" in warnings and "'nobody'" in warnings
     found = rrd_reader.entities(path)
     assert "/world/cameras/left/image" in found and "/world/cameras/right/image" not in found
-    refs = rrd_reader.component_rows(path, "/world/cameras/left/image", "VideoFrameReference:timestamp",
-                                     "frame:left")
+    refs = rrd_reader.component_rows(path, "/world/cameras/left/image", "VideoFrameReference:timestamp", "frame:left")
     assert {f: int(v[0]) for f, v in refs.items()} == {0: 0, 3: 300_000_000, 6: 600_000_000, 9: 900_000_000}
-    top = rrd_reader.component_rows(path, "/world/cameras/top/image", "VideoFrameReference:timestamp",
-                                    "global_time")
+    top = rrd_reader.component_rows(path, "/world/cameras/top/image", "VideoFrameReference:timestamp", "global_time")
     assert len(top) == 2  # frames 2 and 5; 8 and 11 lie beyond the 6-frame file
     blob = rrd_reader.static_component(path, "/world/cameras/left/image", "AssetVideo:blob")
     assert bytes(blob[0]) == files["left"].read_bytes()
@@ -375,8 +414,9 @@ def test_video_files_embedded_with_frame_references(tmp_path: Path, caplog: pyte
 
 def test_world_axes_option(tmp_path: Path) -> None:
     cameras, points = make_scene(frames_per_video=2)
-    path = write_recording(tmp_path / "zup.rrd", cameras=cameras, points=points,
-                           options=RecordingOptions(world_axes=WorldAxes.Z_UP))
+    path = write_recording(
+        tmp_path / "zup.rrd", cameras=cameras, points=points, options=RecordingOptions(world_axes=WorldAxes.Z_UP)
+    )
     assert rrd_reader.static_component(path, "/world", "ViewCoordinates:xyz") == [[3, 5, 1]]  # R, F, U
 
 
@@ -398,6 +438,7 @@ def test_unknown_track_source_gets_its_own_colour(tmp_path: Path) -> None:
     tracks = make_tracks(cameras, points)
     tracks.extra["source"] = ["label", "track", "detector"] + ["track"] * (len(tracks) - 3)
     path = write_recording(tmp_path / "src.rrd", cameras=cameras, points=points, tracks=tracks)
-    colors = rrd_reader.component_rows(path, f"/world/cameras/{VIDEOS[0]}/image/tracks", "Points2D:colors",
-                                       f"frame:{VIDEOS[0]}")[0]
+    colors = rrd_reader.component_rows(
+        path, f"/world/cameras/{VIDEOS[0]}/image/tracks", "Points2D:colors", f"frame:{VIDEOS[0]}"
+    )[0]
     assert colors[:3].tolist() == [rgba(LABEL_COLOR), rgba(TRACK_COLOR), rgba(OTHER_SOURCE_COLOR)]

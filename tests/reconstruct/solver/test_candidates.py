@@ -90,7 +90,8 @@ def _two_clocks(seed=0):
     for b in range(2):
         truth[:, b] = np.clip(np.searchsorted(times[b], all_times - 0.5 / 30), 0, len(times[b]) - 1)
         nearest = np.abs(times[b][np.minimum(truth[:, b] + 1, len(times[b]) - 1)] - all_times) < np.abs(
-            times[b][truth[:, b]] - all_times)
+            times[b][truth[:, b]] - all_times
+        )
         truth[:, b] += nearest
     return video_index, layout, all_times, truth
 
@@ -219,8 +220,9 @@ def _uneven_capture(seed=0):
     rays[layout.starts[1] + 9, 2:] = np.nan
     # An antiparallel pair of rays (not counted) between a frame and its time match, which share 5 points.
     seen = ~np.isnan(rays[..., 0])
-    match = layout.starts[1] + np.argmin(np.abs(times[video_index == 1][None] - times[video_index == 0][:, None]),
-                                         axis=1)
+    match = layout.starts[1] + np.argmin(
+        np.abs(times[video_index == 1][None] - times[video_index == 0][:, None]), axis=1
+    )
     shared = np.sum(seen[video_index == 0] & seen[match], axis=1)
     parallel = np.flatnonzero(shared[80:] >= 5)[0] + 80
     point = np.flatnonzero(seen[parallel] & seen[match[parallel]])[0]
@@ -228,10 +230,13 @@ def _uneven_capture(seed=0):
     return centers, rays, video_index, times, target, mirrored, parallel
 
 
-@pytest.mark.parametrize(("stride", "half_window", "pair_block", "blocks", "timed"), [
-    (8, 4, 40_000, (2_000_000, 4096), True),  # defaults' shape: runs of frames, one coarse block per video pair
-    (5, 3, 16, (7, 5), False),  # one frame per run, coarse bands of one row, explicit pairs 5 at a time; no times
-])
+@pytest.mark.parametrize(
+    ("stride", "half_window", "pair_block", "blocks", "timed"),
+    [
+        (8, 4, 40_000, (2_000_000, 4096), True),  # defaults' shape: runs of frames, one coarse block per video pair
+        (5, 3, 16, (7, 5), False),  # one frame per run, coarse bands of one row, explicit pairs 5 at a time; no times
+    ],
+)
 def test_windowed_initialization_equals_the_explicit_pair_reference(
     monkeypatch, stride, half_window, pair_block, blocks, timed
 ):
@@ -273,10 +278,12 @@ def test_window_distances_of_both_videos_equal_the_dense_block():
     rng = np.random.default_rng(2)
     first_a = np.clip(match - 6 + rng.integers(-3, 4, len(match)), 0, len(frames_b) - 13)
     first_b = np.clip(back - 5 + rng.integers(-9, 10, len(back)), 0, len(frames_a) - 11)
-    D, D_back = candidates._window_distances(lines, frames_a, first_a, _Side.cols(lines, frames_b), 13, 40_000,
-                                             back=(first_b, 11))
-    np.testing.assert_allclose(D, np.take_along_axis(dense, first_a[:, None] + np.arange(13), axis=1), rtol=1e-12,
-                               atol=1e-20)  # the mirrored frames: D = 0 up to rounding
+    D, D_back = candidates._window_distances(
+        lines, frames_a, first_a, _Side.cols(lines, frames_b), 13, 40_000, back=(first_b, 11)
+    )
+    np.testing.assert_allclose(
+        D, np.take_along_axis(dense, first_a[:, None] + np.arange(13), axis=1), rtol=1e-12, atol=1e-20
+    )  # the mirrored frames: D = 0 up to rounding
     expected_back = np.take_along_axis(dense_back, first_b[:, None] + np.arange(11), axis=1)
     covered = ~np.isnan(D_back)
     assert 0.5 < covered.mean() < 1.0  # the shifted windows stick out of the runs' ranges

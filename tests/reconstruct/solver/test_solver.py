@@ -19,8 +19,12 @@ def test_noise_free_smooth_motion_is_recovered(constraint):
     assert np.mean(error < 10.0) > 0.99
     assert np.median(error) < 1.0  # mm, cameras ~2 m away
     # The recovered neighbours are frames of other videos close in time.
-    times = np.array([truth.extra["time"][truth.index()[(v, int(f))], 0]
-                      for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
+    times = np.array(
+        [
+            truth.extra["time"][truth.index()[(v, int(f))], 0]
+            for v, f in zip(problem.frame_videos, problem.frames, strict=True)
+        ]
+    )
     gaps = [abs(times[j] - times[f]) for f in range(problem.num_frames) for j in result.W.column(f, 0.05)[0]]
     assert np.median(gaps) <= 2.5 / 120
 
@@ -132,8 +136,9 @@ def test_frame_costs_split_the_objective_frame_by_frame():
                 offset = points[f, p] - centers[f]
                 expected += 100.0 / (F * P) * np.sum((offset - (offset @ rays[f, p]) * rays[f, p]) ** 2)
         np.testing.assert_allclose(costs[f], expected, rtol=1e-12)
-    np.testing.assert_allclose(total_cost(points, W, centers, rays, video_index, 0.05, 0.1, 100.0,
-                                          RayConstraint.SOFT), costs.sum(), rtol=1e-14)
+    np.testing.assert_allclose(
+        total_cost(points, W, centers, rays, video_index, 0.05, 0.1, 100.0, RayConstraint.SOFT), costs.sum(), rtol=1e-14
+    )
 
 
 def test_settled_decrease_leaves_out_the_few_frames_that_still_move():
@@ -148,6 +153,9 @@ def test_settled_decrease_leaves_out_the_few_frames_that_still_move():
     # 0.999 of 5000 frames: the 5 whose cost changed most are left out, the three movers among them
     assert settled_decrease(previous, current, 0.999) < 2e-5
     # Below 1000 frames nothing is left out: the plain relative decrease.
-    np.testing.assert_allclose(settled_decrease(previous[:999], current[:999], 0.999),
-                               (previous[:999].sum() - current[:999].sum()) / current[:999].sum(), rtol=1e-12)
+    np.testing.assert_allclose(
+        settled_decrease(previous[:999], current[:999], 0.999),
+        (previous[:999].sum() - current[:999].sum()) / current[:999].sum(),
+        rtol=1e-12,
+    )
     assert settled_decrease(previous, current, 1.0) == pytest.approx(plain, rel=1e-12)

@@ -11,7 +11,7 @@ def _shapes(F=24, P=4, videos=3, seed=0):
     rng = np.random.default_rng(seed)
     t = np.sort(rng.uniform(0, 2, F))
     base = rng.normal(size=(P, 3))
-    shapes = (base[None] + 0.3 * np.sin(3 * t[:, None, None] + rng.normal(size=(P, 3))[None]))
+    shapes = base[None] + 0.3 * np.sin(3 * t[:, None, None] + rng.normal(size=(P, 3))[None])
     shapes += rng.normal(scale=0.01, size=shapes.shape)
     video_index = rng.integers(0, videos, F)
     return shapes.reshape(F, -1), video_index, P
@@ -69,8 +69,14 @@ def test_w_step_matches_a_general_qp_solver():
     constraints = [{"type": "eq", "fun": lambda x, f=f: unpack(x)[:, f].sum() - 1.0} for f in range(F)]
     x0 = np.concatenate([np.full(allowed[:, f].sum(), 1.0 / allowed[:, f].sum()) for f in range(F)])
     x0 = unpack(x0)[rows, cols]
-    reference = minimize(cost, x0, method="SLSQP", bounds=[(0, 1)] * len(rows), constraints=constraints,
-                         options={"maxiter": 1000, "ftol": 1e-14})
+    reference = minimize(
+        cost,
+        x0,
+        method="SLSQP",
+        bounds=[(0, 1)] * len(rows),
+        constraints=constraints,
+        options={"maxiter": 1000, "ftol": 1e-14},
+    )
     assert ours <= reference.fun * (1 + 1e-6) + 1e-12
 
 
@@ -99,8 +105,9 @@ def test_primal_active_set_descends_to_the_working_set_optimum():
     options = WStepOptions(max_primal_iterations=2)
     short = primal_active_set(problem, FreeSetSolver(problem), start, options, WStepStats())
     assert problem.objective(short) <= problem.objective(start)
-    exact = primal_active_set(problem, FreeSetSolver(problem), start, WStepOptions(max_primal_iterations=500),
-                               WStepStats())
+    exact = primal_active_set(
+        problem, FreeSetSolver(problem), start, WStepOptions(max_primal_iterations=500), WStepStats()
+    )
     reference = active_set(problem, start, WStepOptions(), WStepStats())
     assert reference is not None
     assert problem.objective(exact) <= problem.objective(short)
@@ -153,8 +160,7 @@ def test_seed_pairs_are_limited_per_frame_keeping_the_nearest_ranks():
     cols = np.array([0, 1, 3, 4, 6, 7, 8])
     rank = np.array([3, 0, 1, 2, 0, 0, 5])
     kept_rows, kept_cols = _limit_seeds_per_frame(rows, cols, rank, 3)
-    assert sorted(zip(kept_rows.tolist(), kept_cols.tolist(), strict=True)) == [
-        (2, 6), (2, 8), (5, 1), (5, 3), (5, 7)]
+    assert sorted(zip(kept_rows.tolist(), kept_cols.tolist(), strict=True)) == [(2, 6), (2, 8), (5, 1), (5, 3), (5, 7)]
 
 
 def _windowed_problem(seed):
@@ -274,7 +280,7 @@ def test_projected_objective_from_h_v_equals_the_objective(seed):
     projected = problem.project(v.reshape(F, K))
     assert np.any(projected.ravel() != v)
     hv = solver.H @ v
-    np.testing.assert_allclose(solver.projected_objective(v, hv, projected), problem.objective(projected),
-                               rtol=1e-12)
-    np.testing.assert_allclose(solver.projected_objective(v, hv, v.reshape(F, K)), problem.objective(v.reshape(F, K)),
-                               rtol=1e-12)
+    np.testing.assert_allclose(solver.projected_objective(v, hv, projected), problem.objective(projected), rtol=1e-12)
+    np.testing.assert_allclose(
+        solver.projected_objective(v, hv, v.reshape(F, K)), problem.objective(v.reshape(F, K)), rtol=1e-12
+    )

@@ -31,9 +31,9 @@ def _dense_solution(W, centers, rays, video_index, options):
             for f in range(F):
                 if observed[f]:
                     col = np.zeros(3 * F)
-                    col[3 * f:3 * f + 3] = rays[f, p]
+                    col[3 * f : 3 * f + 3] = rays[f, p]
                     columns.append(col)
-                    y0[3 * f:3 * f + 3] = centers[f]
+                    y0[3 * f : 3 * f + 3] = centers[f]
                 else:
                     for axis in range(3):
                         col = np.zeros(3 * F)
@@ -48,8 +48,8 @@ def _dense_solution(W, centers, rays, video_index, options):
             weight = options.lambda3 / (F * P)
             for f in np.flatnonzero(observed):
                 block = weight * (np.eye(3) - np.outer(rays[f, p], rays[f, p]))
-                H[3 * f:3 * f + 3, 3 * f:3 * f + 3] += block
-                rhs[3 * f:3 * f + 3] = block @ centers[f]
+                H[3 * f : 3 * f + 3, 3 * f : 3 * f + 3] += block
+                rhs[3 * f : 3 * f + 3] = block @ centers[f]
             out[:, p] = np.linalg.solve(H, rhs).reshape(F, 3)
     return out
 
