@@ -12,6 +12,7 @@ The seed paper stops at local sequencing (W). dynrecon goes on (docs/clocks.md, 
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 from dataclasses import dataclass, field, replace
@@ -23,7 +24,8 @@ from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
 from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
-from reconstruct.trajectory import RefineOptions, refine, refine_with_clocks
+from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks
+from reconstruct.trajectory import RefineOptions, RefineResult, refine, refine_with_clocks
 
 log = logging.getLogger(__name__)
 
@@ -65,21 +67,56 @@ class Temporal:
 
 
 def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalOptions | None = None) -> Temporal:
+    """Clocks, then the trajectories on the first time hypothesis that passes its checks (docs/refinement.md,
+    "Never worse"): the clock model's times, else a time per frame without a clock model, else the seed solve."""
     options = options or TemporalOptions()
     clock_options = options.clock_options(problem)
     clocks = estimate_clocks(problem, result, clock_options)
     times = clocks.global_time.copy()
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False}
     if options.refinement is Refinement.NONE:
+        report["path"] = TimePath.SEED.value
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
-    if not np.all(np.isfinite(times)):
-        missing = [c.name for c in clocks.videos if not c.identified]
-        log.warning(
-            "clocks of %s could not be recovered: the trajectories are not refined (the self-expressive solve is kept)",
-            ", ".join(missing) or "some frames",
-        )
-        report["skipped"] = f"unidentified clocks: {', '.join(missing)}"
-        return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+    judge = RefinementJudge(problem, result, options.refine)
+    checks = clock_checks(problem, clocks)
+    if all(c.passed for c in checks):
+        on_clocks = _refine_on_clocks(problem, result, clocks, clock_options.model, options.refine)
+        checks.extend(judge.clock_fit(on_clocks.result))
+        if all(c.passed for c in checks):
+            report.update(on_clocks.report)
+            return _finish(problem, result, on_clocks.clocks, on_clocks.result, TimePath.CLOCKS, checks, report)
+    failed = next(c for c in checks if not c.passed)
+    log.warning("clock model not used: %s; refining without a clock model", failed.sentence())
+    free = judge.free()
+    free_checks = judge.seed_agreement(free.result, "free_times")
+    checks.extend(free_checks)
+    if all(c.passed for c in free_checks):
+        points, kept = judge.keep_seed_where_far(free.result)
+        report.update({"free_times_residual_px": free.residual_px, "seed_points_kept": kept})
+        refitted = clocks.refit(problem.video_index, free.times)
+        kept_free = dataclasses.replace(free.result, points=points)
+        return _finish(problem, result, refitted, kept_free, TimePath.FREE_TIMES, checks, report)
+    log.warning(
+        "refinement without a clock model not used either: %s; the self-expressive solve is kept",
+        free_checks[-1].sentence(),
+    )
+    report.update({"path": TimePath.SEED.value, "checks": [c.to_json() for c in checks]})
+    return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+
+
+@dataclass(kw_only=True)
+class _OnClocks:
+    clocks: Clocks
+    result: RefineResult
+    report: dict[str, Any]
+
+
+def _refine_on_clocks(
+    problem: Problem, result: SolveResult, clocks: Clocks, model: ClockModel, options: RefineOptions
+) -> _OnClocks:
+    """The trajectories on the clocks' times, with the clock polish when it is plausible."""
+    times = clocks.global_time.copy()
+    report: dict[str, Any] = {}
     # The polish's cost does not see a global affine change of time: hold the clocks' reference video fixed so
     # that the polished times stay in the clocks' gauge (reference: offset 0, rate 1). Offset-only clocks trust the
     # decoder's rate: a polish fitting rates anyway made short clips unstable.
@@ -87,9 +124,9 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
         problem,
         result.points,
         times,
-        options.refine,
+        options,
         reference=problem.video_names.index(clocks.reference),
-        rates=clock_options.model is not ClockModel.OFFSET,
+        rates=model is not ClockModel.OFFSET,
     )
     correction = polished.correction
     cost = [float(c) for c in polished.cost]
@@ -109,15 +146,29 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
             100 * MAX_RATE_CORRECTION,
         )
         report["clock_polish_rejected"] = True
-        refined = refine(problem, result.points, times, options.refine)
+        refined = refine(problem, result.points, times, options)
         cost.extend(float(c) for c in refined.cost)
+    report["cost"] = cost
+    return _OnClocks(clocks=clocks, result=refined, report=report)
+
+
+def _finish(
+    problem: Problem,
+    result: SolveResult,
+    clocks: Clocks,
+    refined: RefineResult,
+    path: TimePath,
+    checks: list[Check],
+    report: dict[str, Any],
+) -> Temporal:
     points = np.where(np.isfinite(refined.points), refined.points, result.points)
     report.update(
         {
             "refined": True,
+            "path": path.value,
+            "checks": [c.to_json() for c in checks],
             "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
             "outlier_observations": int(refined.outliers.sum()),
-            "cost": cost,
         }
     )
     return Temporal(clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report)

@@ -24,6 +24,7 @@ MODES = ("paper", "phones", "flight")
 MODE_OPTIONS = {
     "step": ("paper",),
     "unconstrained": ("paper",),
+    "times": ("paper",),
     "start": ("paper", "phones"),
     "length": ("paper", "phones"),
     "distance": ("paper", "phones"),
@@ -40,7 +41,7 @@ MODE_OPTIONS = {
     "speed": ("flight",),
     "distance_m": ("flight",),
 }
-FLAG_OF = {"distance_m": "--distance-m", "false_fraction": "--false"}
+FLAG_OF = {"distance_m": "--distance-m", "false_fraction": "--false", "times": "--no-times"}
 
 
 def _remember(namespace: argparse.Namespace, dest: str) -> None:
@@ -66,6 +67,18 @@ class _Store(argparse._StoreAction):
 
 
 class _StoreTrue(argparse._StoreTrueAction):
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        super().__call__(parser, namespace, values, option_string)
+        _remember(namespace, self.dest)
+
+
+class _StoreFalse(argparse._StoreFalseAction):
     def __call__(
         self,
         parser: argparse.ArgumentParser,
@@ -147,6 +160,12 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
     )
     sim.add_argument(
         "--unconstrained", action=_StoreTrue, help="paper: allow a camera to take two consecutive captures"
+    )
+    sim.add_argument(
+        "--no-times",
+        dest="times",
+        action=_StoreFalse,
+        help="paper: cameras.json gives neither frame times nor fps (the paper's protocol as published)",
     )
     sim.add_argument("--seed", type=int, default=defaults.seed, action=_Store, help="random seed (default %(default)s)")
     sim.add_argument("--start", type=int, default=defaults.start, action=_Store, help="first mocap frame (default 0)")
@@ -342,6 +361,7 @@ def _simulate(args: argparse.Namespace) -> int:
             noise_px=args.noise,
             miss=args.miss,
             unconstrained=args.unconstrained,
+            times=args.times,
             seed=args.seed,
             start=args.start,
             length=args.length,

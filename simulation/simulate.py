@@ -39,6 +39,8 @@ class SimulationOptions:
     noise_px: float = 0.0  # standard deviation of the Gaussian noise on each pixel coordinate
     miss: float = 0.0  # fraction of the observations removed at random (exactly round(miss * T * M) of them)
     unconstrained: bool = False  # allow a camera to take two consecutive captures
+    # Each frame's capture time in cameras.json; False: neither times nor fps, the paper's protocol as published.
+    times: bool = True
     seed: int = 0
     start: int = 0  # first mocap frame of the window
     length: int | None = None  # window length in mocap frames (before `step`); None = to the end
@@ -251,7 +253,7 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
                         K=rig.K.copy(),
                         R=rig.R[c].copy(),
                         t=rig.t[c].copy(),
-                        time=float(times[k]),
+                        time=float(times[k]) if options.times else None,
                     )
                     for k in captures
                 ],

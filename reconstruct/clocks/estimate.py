@@ -493,6 +493,8 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         search = search_clocks(problem, own, ref, model, sources, options.track_search, start=link_fit.params)
         warnings.extend(search.warnings)
         diagnostics["track_residual_px"] = search.residual_px
+        distinct = [p.distinctness for p in search.pairs if np.isfinite(p.distinctness)]
+        diagnostics["track_distinctness"] = float(np.median(distinct)) if distinct else None
         track_rms = search.video_residual_px
         precise = bool(link_fit.scale <= PRECISE_LINK_PERIODS * float(np.nanmin(periods)))
         params, methods, fuse_notes = _combine(

@@ -1,0 +1,183 @@
+"""Time hypotheses are checked before they are trusted (docs/refinement.md, "Never worse").
+
+Before the clock model is used: every video clocked, W's links agree with it to within a frame period where frames
+have no decoder times (the model then assumes even spacing), and the track search found a distinct best offset.
+After a refinement: it fits its rays about as well as trajectories on free per-frame times do (the clock model
+costs no residual), and it moves the seed solve's points no further than the noise it removes. Every check has a
+name, a number and its limit, in report.json `temporal.checks`.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from reconstruct.clocks.model import Clocks, TimeSource, frame_periods
+from reconstruct.free_times import FreeTimes, refine_free_times, reprojection_px
+from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import viewing_rays
+from reconstruct.trajectory import RefineOptions, RefineResult
+
+LINK_MAX_PERIODS = 1.0  # W links' robust time residual, in the fastest video's frame periods
+MIN_DISTINCTNESS = 1.05  # the track search's runner-up cost over its best
+FIT_PX = 0.5  # a refinement whose median reprojection residual is below this fits its rays: nothing to compare
+CLOCK_COST_FACTOR = 1.25  # the clock refinement's residual may exceed the free-time one by this factor...
+CLOCK_COST_PX = 0.25  # ... plus this
+SEED_SHIFT_FACTOR = 3.0  # a refinement may move the seed's points by this x its median residual...
+SEED_SHIFT_PX = 1.0  # ... plus this
+
+
+class TimePath(enum.Enum):
+    CLOCKS = "clocks"  # trajectories on the clock model's times
+    FREE_TIMES = "free_times"  # trajectories on a time per frame, without a clock model
+    SEED = "seed"  # the self-expressive solve's points, not refined
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    value: float
+    limit: float
+    passed: bool
+    meaning: str  # what the number is, for the log and the report
+
+    def sentence(self) -> str:
+        relation = "<=" if self.name not in ("track_distinctness",) else ">="
+        return f"check {self.name!r} failed: {self.meaning} {self.value:.3g} (limit {relation} {self.limit:.3g})"
+
+    def to_json(self) -> dict[str, Any]:
+        value = self.value if math.isfinite(self.value) else None
+        return {"name": self.name, "value": value, "limit": self.limit, "passed": self.passed, "meaning": self.meaning}
+
+
+def clock_checks(problem: Problem, clocks: Clocks) -> list[Check]:
+    """The clock model tested against the data before it is used."""
+    identified = sum(c.identified for c in clocks.videos)
+    checks = [
+        Check(
+            name="identified",
+            value=float(len(clocks.videos) - identified),
+            limit=0.0,
+            passed=identified == len(clocks.videos),
+            meaning="videos whose clock could not be recovered",
+        )
+    ]
+    periods = frame_periods(clocks.own_time, problem.video_index, len(problem.video_names))
+    scale = clocks.diagnostics.get("link_scale_s")
+    # Without decoder times the clock model assumes evenly spaced frames, which W's links test. With them the
+    # spacing is measured, and links may join other cycles of a periodic motion: the refinement's fit decides.
+    assumed = any(c.time_source is not TimeSource.DECODER for c in clocks.videos)
+    if assumed and isinstance(scale, float) and math.isfinite(scale) and np.isfinite(periods).any():
+        ratio = scale / float(np.nanmin(periods))
+        checks.append(
+            Check(
+                name="link_residual",
+                value=ratio,
+                limit=LINK_MAX_PERIODS,
+                passed=ratio <= LINK_MAX_PERIODS,
+                meaning="W links' robust time residual in frame periods",
+            )
+        )
+    distinct = clocks.diagnostics.get("track_distinctness")
+    if isinstance(distinct, float) and math.isfinite(distinct):
+        checks.append(
+            Check(
+                name="track_distinctness",
+                value=distinct,
+                limit=MIN_DISTINCTNESS,
+                passed=distinct >= MIN_DISTINCTNESS,
+                meaning="track search's runner-up cost over its best (median over video pairs)",
+            )
+        )
+    return checks
+
+
+class RefinementJudge:
+    """Measures refinements of one solve on equal terms; the free-time refinement is computed once, when needed."""
+
+    def __init__(self, problem: Problem, result: SolveResult, options: RefineOptions) -> None:
+        self.problem = problem
+        self.result = result
+        self.options = options
+        self.rays = viewing_rays(problem)
+        self._free: FreeTimes | None = None
+
+    def residual(self, points: np.ndarray) -> float:
+        """Median reprojection residual (px) of `points (F, P, 3)` over the observations."""
+        values = reprojection_px(self.problem, points, self.rays)
+        finite = values[np.isfinite(values)]
+        return float(np.median(finite)) if len(finite) else math.nan
+
+    def free(self) -> FreeTimes:
+        if self._free is None:
+            self._free = refine_free_times(self.problem, self.result.points, self.result.W.to_csc(), self.options)
+        return self._free
+
+    def clock_fit(self, refined: RefineResult) -> list[Check]:
+        """The clock model costs no residual: its trajectories fit the rays to FIT_PX, or about as well as
+        trajectories on free per-frame times."""
+        residual = self.residual(refined.points)
+        if residual <= FIT_PX:
+            return [
+                Check(
+                    name="clock_fit",
+                    value=residual,
+                    limit=FIT_PX,
+                    passed=True,
+                    meaning="median reprojection residual (px) of the trajectories on the clocks",
+                )
+            ]
+        free = self.residual(self.free().result.points)
+        limit = CLOCK_COST_FACTOR * free + CLOCK_COST_PX
+        return [
+            Check(
+                name="clock_fit",
+                value=residual,
+                limit=limit,
+                passed=residual <= limit,
+                meaning=f"median reprojection residual (px) on the clocks, against {free:.3g} px on free times",
+            )
+        ]
+
+    def seed_agreement(self, refined: RefineResult, label: str) -> list[Check]:
+        """The refinement moves the seed's points (reprojected, px) no further than the noise it removes."""
+        residual = self.residual(refined.points)
+        shift = self.shift_px(refined.points)
+        limit = SEED_SHIFT_FACTOR * residual + SEED_SHIFT_PX
+        return [
+            Check(
+                name=f"{label}_seed_shift",
+                value=shift,
+                limit=limit,
+                passed=shift <= limit,
+                meaning=f"median shift (px) of the seed's points by the refinement (its residual {residual:.3g} px)",
+            )
+        ]
+
+    def shift_px(self, points: np.ndarray) -> float:
+        shift = self.shifts_px(points)
+        shift = shift[self.problem.observed & np.isfinite(shift)]
+        return float(np.median(shift)) if len(shift) else math.nan
+
+    def shifts_px(self, points: np.ndarray) -> np.ndarray:
+        """(F, P) distance of `points` from the seed's, in pixels at the seed point's distance from the camera."""
+        problem, seed = self.problem, self.result.points
+        centers = -np.einsum("fji,fj->fi", problem.R, problem.t)
+        depth = np.linalg.norm(seed - centers[:, None, :], axis=-1)
+        return np.linalg.norm(points - seed, axis=-1) * problem.K[:, 0, 0][:, None] / np.maximum(depth, 1e-9)
+
+    def keep_seed_where_far(self, refined: RefineResult) -> tuple[np.ndarray, float]:
+        """The refined points, except where one moved the seed's by more than the seed-agreement limit: there the
+        seed's point is kept (a frame whose free time went wrong fits its rays at a wrong depth). Returns the
+        points (F, P, 3) and the share of points kept from the seed."""
+        limit = SEED_SHIFT_FACTOR * self.residual(refined.points) + SEED_SHIFT_PX
+        shift = self.shifts_px(refined.points)
+        far = ~(shift <= limit) & np.isfinite(self.result.points[..., 0])
+        points = np.where(far[..., None], self.result.points, refined.points)
+        counted = np.isfinite(self.result.points[..., 0])
+        return points, float(far[counted].mean()) if counted.any() else 0.0
