@@ -93,7 +93,9 @@ def column_grams(
             at = offset[cols][:, None] + np.arange(size * size)
             data[at] = block.reshape(len(cols), -1)
             indices[at] = (cols * K)[:, None] + np.tile(np.arange(size), size)
-            lam_max[cols] = np.linalg.eigvalsh(block)[:, -1]
+            # B B^T and B^T B share their nonzero eigenvalues: with few points (3P < size) the small one is far cheaper
+            small = np.matmul(B.transpose(0, 2, 1), B) if B.shape[2] < size else block
+            lam_max[cols] = np.linalg.eigvalsh(small)[:, -1]
 
     nonempty = np.flatnonzero(counts > 0)
     if workers > 1 and len(data) >= PARALLEL_GRAMS:
