@@ -7,8 +7,8 @@ Method (solves the same convex problem as the paper's ADMM; see docs/solver.md):
 * Working set. Solutions are sparse and local, so each column only carries the entries in a working set: its nearest
   shapes of other videos (or of its candidate pool on long captures) plus the previous support, symmetrized so that
   Psi1's partner entry W_fj is always in the set.
-* Exact solve on the working set (reconstruct/solver/active_set.py): a primal-dual active-set method, one sparse KKT
-  solve per iteration, warm-started from the previous W.
+* Exact solve on the working set (reconstruct/solver/active_set.py): a primal-dual active-set method, one reduced
+  positive definite solve on the free set per iteration, warm-started from the previous W.
 * Optimality on the full problem: the gradient of every allowed entry outside the set is then checked against the
   column's simplex multiplier (KKT); violators join the set and the solve continues. When no entry violates, the
   working-set solution is a solution of the full problem.

@@ -1,9 +1,9 @@
 """The X-step: minimize over the 3D points, with W fixed,
 
-    1/(F P) ||S^T (I - W)||_F^2 + lambda2/M Psi2 + [soft rays] lambda3/(F P) sum_observed ||(I - r r^T)(Y - C)||^2
+    1/(F P) ||S^T (I - W)||_F^2 + lambda2/(M P) Psi2 + [soft rays] lambda3/(F P) sum_observed ||(I - r r^T)(Y - C)||^2
 
 Points decouple: for point p with positions Y_p (F, 3) the cost is sum_fg Q_fg <Y_pf, Y_pg> (+ ray terms) with
-Q = 1/(FP) (I - W)(I - W)^T + lambda2/M L, L the Laplacian of consecutive frames of one video (M links). Each
+Q = 1/(FP) (I - W)(I - W)^T + lambda2/(M P) L, L the Laplacian of consecutive frames of one video (M links). Each
 point is one sparse symmetric linear system:
 * hard rays: an observed Y_pf = C_f + d r_f has one unknown d; a missing one has three free coordinates;
 * soft rays: every Y_pf is free, observed ones are pulled to their ray by lambda3/(FP) (I - r r^T).
