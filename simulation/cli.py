@@ -11,9 +11,14 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dynrecon.errors import DynreconError
+
+if TYPE_CHECKING:  # the simulators load numpy and scipy: only the type checker imports them here
+    from simulation.flight import FlightOptions
+    from simulation.phones import PhoneCaptureOptions
+    from simulation.simulate import SimulationOptions
 
 COMMANDS = {
     "simulate": "simulate unsynchronized cameras watching a motion-capture file (or a drone flight)",
@@ -125,6 +130,14 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
         "a drone's flight path, cameras 30-100 m away (no MOCAP). Writes cameras.json, tracks.csv, "
         "truth.csv, simulation.json (+ clocks_truth.json for phones and flight); units: mm.",
     )
+    _add_capture_arguments(sim, defaults, flight)
+    _add_phone_arguments(sim.add_argument_group("phones and flight"), phones, flight, phone_capture.DEFAULT_FPS)
+    _add_flight_arguments(sim.add_argument_group("flight"), flight)
+    sim.set_defaults(func=_simulate)
+
+
+def _add_capture_arguments(sim: argparse.ArgumentParser, defaults: SimulationOptions, flight: FlightOptions) -> None:
+    """Arguments every mode reads: input, output, mode and the paper-style capture settings."""
     sim.add_argument("mocap", type=Path, nargs="?", help="a .c3d or .trc motion-capture file (not for flight)")
     sim.add_argument("--out", type=Path, required=True, help="output folder")
     sim.add_argument("--mode", choices=MODES, default="paper", help="capture model (default %(default)s)")
@@ -185,13 +198,20 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
         help="fixed camera distance to the motion's centroid in mm (the paper averages 2700); default: "
         "twice the motion's extent, moved back until every point is inside the images",
     )
-    clocks = sim.add_argument_group("phones and flight")
+
+
+def _add_phone_arguments(
+    clocks: argparse._ArgumentGroup,
+    phones: PhoneCaptureOptions,
+    flight: FlightOptions,
+    default_fps: Sequence[float],
+) -> None:
+    """The "phones and flight" group: per-camera clocks, handheld shake and false detections."""
     clocks.add_argument(
         "--fps",
         metavar="F1,F2,...",
         action=_Store,
-        help="nominal frame rate of each camera (default: "
-        f"{','.join(f'{f:g}' for f in phone_capture.DEFAULT_FPS)}, cycled)",
+        help=f"nominal frame rate of each camera (default: {','.join(f'{f:g}' for f in default_fps)}, cycled)",
     )
     clocks.add_argument(
         "--offsets",
@@ -248,7 +268,10 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
         help="share of detections replaced by a random pixel far from the truth (default 0; "
         f"flight {flight.false_fraction:g})",
     )
-    scene = sim.add_argument_group("flight")
+
+
+def _add_flight_arguments(scene: argparse._ArgumentGroup, flight: FlightOptions) -> None:
+    """The "flight" group: the drone's path and the cameras' distance to it."""
     scene.add_argument(
         "--duration",
         type=float,
@@ -270,7 +293,6 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
         help="horizontal camera distance to the path's centre, drawn in MIN..MAX m (default "
         f"{flight.distance_m[0]:g},{flight.distance_m[1]:g})",
     )
-    sim.set_defaults(func=_simulate)
 
 
 def _add_evaluate(subparsers: argparse._SubParsersAction) -> None:

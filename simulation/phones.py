@@ -324,6 +324,115 @@ def detect(
 # The core: any scene, any cameras
 
 
+@dataclass(kw_only=True)
+class _CameraShots:
+    """What one camera recorded: its posed frames and the true projections of every point at each."""
+
+    video: VideoCameras
+    dropped: int  # captures outside the window or in a gap of the truth
+    frames: np.ndarray  # (N,) frame numbers
+    times: np.ndarray  # (N,) true global capture times
+    xyz: np.ndarray  # (N, P, 3) true points
+    uv: np.ndarray  # (N, P, 2) true projections
+    inside: np.ndarray  # (N, P) projection inside the image
+    centres: np.ndarray  # (N, 3) camera centre of each frame
+
+
+def _shoot_camera(
+    clock: TrueClock,
+    R: np.ndarray,
+    t: np.ndarray,
+    position: Callable[[np.ndarray], np.ndarray],
+    valid: Callable[[np.ndarray], np.ndarray],
+    span: tuple[float, float],
+    point_count: int,
+    K: np.ndarray,
+    size: tuple[int, int],
+    options: CaptureOptions,
+    rng: np.random.Generator,
+    min_depth: float,
+    world_per_mm: float,
+) -> _CameraShots:
+    """One camera's frames inside `span`, posed (and shaken) at their true times, and the true projections."""
+    width, height = size
+    frames, times = capture_times(clock, span, options.jitter_ms / 1000.0, rng)
+    keep = (times >= span[0]) & (times <= span[1])
+    keep[keep] = valid(times[keep])
+    dropped = int((~keep).sum())
+    frames, times = frames[keep], times[keep]
+    if len(frames) < 2:
+        log.warning("camera %s has %d frame(s) inside the window", clock.name, len(frames))
+    Rs, ts = handheld_poses(R, t, times, options, rng, scale_mm=world_per_mm)
+    points = position(times) if len(times) else np.zeros((0, point_count, 3))
+    uv, depth = _project(points, K, Rs, ts)
+    if depth.size and depth.min() < min_depth:
+        raise DynreconError(
+            f"camera {clock.name} comes within {max(float(depth.min()), 0.0):.0f} units of a point (or has it "
+            "behind): use a larger camera distance or less handheld shake"
+        )
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= height - 0.5)
+    # VFR: the capture instant on the camera's own clock; CFR: the nominal frame time.
+    own = clock.own_time(times) if options.timestamps is Timestamps.VFR else frames / clock.fps
+    video = VideoCameras(
+        name=clock.name,
+        width=width,
+        height=height,
+        fps=clock.fps,
+        frames=[
+            FrameCamera(frame=int(f), K=K.copy(), R=Rs[i].copy(), t=ts[i].copy(), time=float(own[i]))
+            for i, f in enumerate(frames)
+        ],
+    )
+    return _CameraShots(
+        video=video,
+        dropped=dropped,
+        frames=frames,
+        times=times,
+        xyz=points,
+        uv=uv,
+        inside=inside,
+        centres=-np.einsum("nji,nj->ni", Rs, ts),
+    )
+
+
+def _detect_shots(
+    shots: list[_CameraShots],
+    point_names: list[str],
+    size: tuple[int, int],
+    options: CaptureOptions,
+    rng: np.random.Generator,
+) -> tuple[FramePoints, Tracks, np.ndarray, np.ndarray]:
+    """Truth and tracks of every camera's frames (rows grouped by video then frame); also inside and false (F, P)."""
+    P = len(point_names)
+    names = [shot.video.name for shot in shots for _ in range(len(shot.frames))]
+    xyz = np.concatenate([shot.xyz for shot in shots])  # (F, P, 3)
+    uv = np.concatenate([shot.uv for shot in shots])
+    inside = np.concatenate([shot.inside for shot in shots])
+    frame_of = np.concatenate([shot.frames for shot in shots])
+    time_of = np.concatenate([shot.times for shot in shots])
+    if len(frame_of) == 0:
+        raise DynreconError(
+            "no camera captured a frame inside the window: use smaller start offsets or a longer window"
+        )
+    xy, observed, false = detect(uv, inside, size, options, rng)
+    truth = FramePoints(
+        videos=names,
+        frames=frame_of,
+        point_names=list(point_names),
+        xyz=xyz,
+        observed=observed,
+        extra={"time": np.repeat(time_of[:, None], P, axis=1), "false_detection": false.astype(float)},
+    )
+    seen_frame, seen_point = np.nonzero(observed)
+    tracks = Tracks(
+        video=[names[i] for i in seen_frame],
+        frame=frame_of[seen_frame],
+        point=[point_names[p] for p in seen_point],
+        xy=xy[seen_frame, seen_point],
+    )
+    return truth, tracks, inside, false
+
+
 def capture_scene(
     position: Callable[[np.ndarray], np.ndarray],
     valid: Callable[[np.ndarray], np.ndarray],
@@ -347,94 +456,35 @@ def capture_scene(
     """
     _check_capture_options(options)
     clocks = draw_clocks(options, rng)
-    width, height = size
-    P = len(point_names)
-    videos: list[VideoCameras] = []
-    names: list[str] = []
-    frame_numbers: list[np.ndarray] = []
-    true_times: list[np.ndarray] = []
-    xyz_parts: list[np.ndarray] = []
-    uv_parts: list[np.ndarray] = []
-    inside_parts: list[np.ndarray] = []
-    frames_count: dict[str, int] = {}
-    dropped: dict[str, int] = {}
-    centres: dict[str, np.ndarray] = {}
-    for c, clock in enumerate(clocks):
-        frames, times = capture_times(clock, span, options.jitter_ms / 1000.0, rng)
-        keep = (times >= span[0]) & (times <= span[1])
-        keep[keep] = valid(times[keep])
-        dropped[clock.name] = int((~keep).sum())
-        frames, times = frames[keep], times[keep]
-        frames_count[clock.name] = len(frames)
-        if len(frames) < 2:
-            log.warning("camera %s has %d frame(s) inside the window", clock.name, len(frames))
-        Rs, ts = handheld_poses(base_R[c], base_t[c], times, options, rng, scale_mm=world_per_mm)
-        points = position(times) if len(times) else np.zeros((0, P, 3))
-        uv, depth = _project(points, K, Rs, ts)
-        if depth.size and depth.min() < min_depth:
-            raise DynreconError(
-                f"camera {clock.name} comes within {max(float(depth.min()), 0.0):.0f} units of a point (or has it "
-                "behind): use a larger camera distance or less handheld shake"
-            )
-        inside = (
-            (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= height - 0.5)
+    # One camera at a time, in clock order: the random draws keep the order of the seeded runs.
+    shots = [
+        _shoot_camera(
+            clock,
+            base_R[c],
+            base_t[c],
+            position,
+            valid,
+            span,
+            len(point_names),
+            K,
+            size,
+            options,
+            rng,
+            min_depth,
+            world_per_mm,
         )
-        # VFR: the capture instant on the camera's own clock; CFR: the nominal frame time.
-        own = clock.own_time(times) if options.timestamps is Timestamps.VFR else frames / clock.fps
-        videos.append(
-            VideoCameras(
-                name=clock.name,
-                width=width,
-                height=height,
-                fps=clock.fps,
-                frames=[
-                    FrameCamera(frame=int(f), K=K.copy(), R=Rs[i].copy(), t=ts[i].copy(), time=float(own[i]))
-                    for i, f in enumerate(frames)
-                ],
-            )
-        )
-        centres[clock.name] = -np.einsum("nji,nj->ni", Rs, ts)
-        names.extend([clock.name] * len(frames))
-        frame_numbers.append(frames)
-        true_times.append(times)
-        xyz_parts.append(points)
-        uv_parts.append(uv)
-        inside_parts.append(inside)
-
-    xyz = np.concatenate(xyz_parts)  # (F, P, 3), rows grouped by video then frame
-    uv = np.concatenate(uv_parts)
-    inside = np.concatenate(inside_parts)
-    frame_of = np.concatenate(frame_numbers)
-    time_of = np.concatenate(true_times)
-    if len(frame_of) == 0:
-        raise DynreconError(
-            "no camera captured a frame inside the window: use smaller start offsets or a longer window"
-        )
-    xy, observed, false = detect(uv, inside, size, options, rng)
-    truth = FramePoints(
-        videos=names,
-        frames=frame_of,
-        point_names=list(point_names),
-        xyz=xyz,
-        observed=observed,
-        extra={"time": np.repeat(time_of[:, None], P, axis=1), "false_detection": false.astype(float)},
-    )
-    seen_frame, seen_point = np.nonzero(observed)
-    tracks = Tracks(
-        video=[names[i] for i in seen_frame],
-        frame=frame_of[seen_frame],
-        point=[point_names[p] for p in seen_point],
-        xy=xy[seen_frame, seen_point],
-    )
+        for c, clock in enumerate(clocks)
+    ]
+    truth, tracks, inside, false = _detect_shots(shots, point_names, size, options, rng)
     record = CaptureRecord(
         clocks=clocks,
         timestamps=options.timestamps,
         jitter_ms=options.jitter_ms,
-        frames=frames_count,
-        dropped=dropped,
+        frames={clock.name: len(shot.frames) for clock, shot in zip(clocks, shots, strict=True)},
+        dropped={clock.name: shot.dropped for clock, shot in zip(clocks, shots, strict=True)},
         out_of_image=int((~inside).sum()),
         false_detections=int(false.sum()),
-        centres=centres,
+        centres={clock.name: shot.centres for clock, shot in zip(clocks, shots, strict=True)},
     )
     if record.out_of_image:
         log.info(
@@ -444,13 +494,15 @@ def capture_scene(
         )
     log.info(
         "captured %d frames of %d points in %d cameras: %d observations (%d false)",
-        len(frame_of),
-        P,
+        len(truth.frames),
+        len(point_names),
         len(clocks),
         len(tracks),
         record.false_detections,
     )
-    return SimulatedCapture(cameras=CameraSet(videos=videos), tracks=tracks, truth=truth), record
+    return SimulatedCapture(
+        cameras=CameraSet(videos=[shot.video for shot in shots]), tracks=tracks, truth=truth
+    ), record
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -204,17 +204,11 @@ def assign_cameras(count: int, cameras: int, unconstrained: bool, rng: np.random
     return assignment
 
 
-def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedCapture, Rig]:
-    """Window, clean and simulate one capture; returns the capture and where the cameras were."""
-    _check_options(options)
-    window = select_window(mocap, start=options.start, length=options.length, step=options.step)
-    window = drop_incomplete(window, max_missing=options.max_marker_missing)
-    xyz = window.xyz  # (T, M, 3) complete
+def _observe(
+    xyz: np.ndarray, assignment: np.ndarray, rig: Rig, options: SimulationOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy pixels (T, M, 2) of each capture in its camera, and observed (T, M) after the random misses."""
     T, M = xyz.shape[:2]
-    rng = np.random.default_rng(options.seed)
-    rig = place_cameras(xyz, options, rng)
-    assignment = assign_cameras(T, options.cameras, options.unconstrained, rng)
-
     uv = np.empty((T, M, 2))
     for c in range(options.cameras):
         chosen = assignment == c
@@ -225,11 +219,15 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
     removed = round(options.miss * T * M)
     if removed:
         observed.reshape(-1)[rng.choice(T * M, size=removed, replace=False)] = False
+    return uv, observed
 
-    # Every virtual camera starts recording at the first capture; rounding hides the float noise of the
-    # subtraction (the file's clock can start at an arbitrary offset).
-    times = np.round(window.times - window.times[0], 12)
-    # Frame number of each capture inside its own video.
+
+def _video_cameras(
+    assignment: np.ndarray, times: np.ndarray, rig: Rig, options: SimulationOptions
+) -> tuple[list[VideoCameras], np.ndarray, np.ndarray]:
+    """Each camera's video, the frame number of each capture inside its video, and the captures grouped by
+    video then in time order (= frame order)."""
+    T = len(assignment)
     frame_of = np.empty(T, dtype=np.int64)
     videos = []
     order: list[int] = []
@@ -259,9 +257,25 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
                 ],
             )
         )
-    cameras = CameraSet(videos=videos)
+    return videos, frame_of, np.array(order, dtype=np.int64)
 
-    rows = np.array(order, dtype=np.int64)  # captures grouped by video, then in time order = frame order
+
+def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedCapture, Rig]:
+    """Window, clean and simulate one capture; returns the capture and where the cameras were."""
+    _check_options(options)
+    window = select_window(mocap, start=options.start, length=options.length, step=options.step)
+    window = drop_incomplete(window, max_missing=options.max_marker_missing)
+    xyz = window.xyz  # (T, M, 3) complete
+    T, M = xyz.shape[:2]
+    rng = np.random.default_rng(options.seed)
+    rig = place_cameras(xyz, options, rng)
+    assignment = assign_cameras(T, options.cameras, options.unconstrained, rng)
+    uv, observed = _observe(xyz, assignment, rig, options, rng)
+
+    # Every virtual camera starts recording at the first capture; rounding hides the float noise of the
+    # subtraction (the file's clock can start at an arbitrary offset).
+    times = np.round(window.times - window.times[0], 12)
+    videos, frame_of, rows = _video_cameras(assignment, times, rig, options)
     names = [f"cam{c}" for c in assignment[rows]]
     truth = FramePoints(
         videos=names,
@@ -287,7 +301,7 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
         rig.scale,
         len(tracks),
     )
-    return SimulatedCapture(cameras=cameras, tracks=tracks, truth=truth), rig
+    return SimulatedCapture(cameras=CameraSet(videos=videos), tracks=tracks, truth=truth), rig
 
 
 def simulate_capture(
