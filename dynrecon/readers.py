@@ -1,11 +1,14 @@
-"""Hostile-input-safe pieces shared by the file readers: JSON loading and frame numbers.
+"""Hostile-input-safe pieces shared by the file readers: CSV records, JSON loading, frame numbers, video names.
 
 Every failure is an InputError naming the file, so a broken or malicious file never shows a traceback.
 """
 
 from __future__ import annotations
 
+import csv
 import json
+import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -85,3 +88,76 @@ def shown(value: Any, limit: int = 40) -> str:
     except (RecursionError, ValueError):  # nested hundreds deep, or a huge integer inside
         return f"<{type(value).__name__}>"
     return text if len(text) <= limit else f"{text[: limit // 2]}...({len(text)} characters)"
+
+
+def csv_records(path: Path, *, missing_fix: str | None = None) -> Iterator[tuple[int, list[str]]]:
+    """(first line, cells) of every record of the CSV file `path`, the header included.
+
+    A UTF-8 BOM is dropped and CRLF, LF or CR line ends are accepted. Line numbers are those of the line where a
+    record starts (csv's `line_num` is where it ends); a record spanning lines is an error naming where it starts,
+    since no dynrecon CSV has cells with line breaks and it is almost always an unterminated quote. A missing file,
+    a folder, bad UTF-8 and malformed CSV are InputErrors naming the line.
+    """
+    try:
+        handle = path.open(newline="", encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError(path, "file not found", fix=missing_fix) from None
+    except IsADirectoryError:
+        raise InputError(path, "is a folder, not a file", fix="give the path of a CSV file") from None
+    except OSError as error:
+        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
+    start = 1
+    with handle:
+        reader = csv.reader(handle, strict=True)  # strict: an unterminated quote is an error, not a 1000-line cell
+        try:
+            for row in reader:
+                if reader.line_num > start:
+                    raise InputError(
+                        path,
+                        f"a quoted cell runs from line {start} to line {reader.line_num}",
+                        where=f"line {start}",
+                        fix="close the quote on that line; cells cannot hold line breaks",
+                    )
+                yield start, row
+                start = reader.line_num + 1
+        except csv.Error as error:
+            what = str(error)
+            if "unexpected end of data" in what:
+                what = "a quote opened here is never closed"
+            raise InputError(path, f"malformed CSV: {what}", where=f"line {start}") from None
+        except UnicodeDecodeError:
+            raise InputError(path, "not UTF-8 text", where=f"near line {start}", fix="save the file as UTF-8") from None
+        except OSError as error:
+            raise InputError(path, f"cannot read: {error.strerror or error}") from None
+
+
+def finite_float(text: str) -> float | None:
+    """The number in a CSV cell, or None when it is not a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def check_video_name(name: str, path: Path | None = None) -> str:
+    """A video name that is safe as a folder or file name: not `.`/`..`, no path separator or control character.
+
+    Video names become folders (`frames/<video>/`) and file names, so `..` (from `...mp4`) would write elsewhere.
+    """
+    bad = None
+    if not name or not name.strip():
+        bad = "is empty"
+    elif name in (".", "..") or set(name) <= {"."}:
+        bad = "is only dots"
+    elif "/" in name or "\\" in name:
+        bad = "contains a path separator"
+    elif any(ord(c) < 32 or ord(c) == 127 for c in name):
+        bad = "contains a control character"
+    if bad is not None:
+        raise InputError(
+            path,
+            f"video name {shown(name)} {bad}",
+            fix="rename the video file: its name without extension names the video everywhere",
+        )
+    return name

@@ -38,7 +38,8 @@ import numpy as np
 from tqdm import tqdm
 
 from dynrecon.errors import InputError
-from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
+from dynrecon.readers import read_text, shown
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, write_cameras
 from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
 from sfm.video import ProbedVideo, probe_video
 
@@ -223,12 +224,13 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
     `[charuco]`... silently), as are caliscope cameras with `ignore = true`.
     """
     path = Path(path)
+    text = read_text(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
         raise InputError(path, f"not valid TOML: {error}") from None
+    except RecursionError:
+        raise InputError(path, "not valid TOML: nested too deeply") from None
     metres = toml_units(data, units)
     if metres != 1.0:
         log.info("%s: translations read in millimetres", path)
@@ -257,7 +259,10 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
             )
         size = _toml_array(section, "size", (2,), path, where)
         K = _toml_array(section, "matrix", (3, 3), path, where)
-        dist = np.asarray(section.get("distortions", [0.0, 0.0, 0.0, 0.0]), dtype=float).ravel()
+        try:
+            dist = np.asarray(section.get("distortions", [0.0, 0.0, 0.0, 0.0]), dtype=float).ravel()
+        except (TypeError, ValueError, OverflowError):
+            raise InputError(path, '"distortions" must be 4 or 5 numbers', where=where) from None
         if dist.shape not in ((4,), (5,)):
             raise InputError(path, f'"distortions" has {dist.size} values, expected 4 or 5', where=where)
         R: np.ndarray | None = None
@@ -321,7 +326,15 @@ def read_calibration(
                 "cannot tell the calibration format from the name",
                 fix="pass --format qca or --format toml",
             )
-    return read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
+    cameras = read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
+    for camera in cameras:
+        where = f"camera {shown(camera.name)}"
+        if not (0 < camera.width < 2**31 and 0 < camera.height < 2**31):
+            raise InputError(path, f"image size {camera.width}x{camera.height} is not positive", where=where)
+        check_plausible(camera.K, camera.t, camera.dist, path, where)
+        if camera.R is not None and not np.all(np.isfinite(camera.R)):
+            raise InputError(path, "rotation contains NaN or infinity", where=where)
+    return cameras
 
 
 # ----------------------------------------------------------------------------------------------------------

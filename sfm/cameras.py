@@ -20,6 +20,11 @@ from dynrecon.errors import InputError
 from dynrecon.readers import check_frame, read_json
 
 ROTATION_TOLERANCE = 1e-5
+# Plausibility limits: finite values beyond them are typos or corrupt files that would silently spoil a solve.
+FOCAL_RANGE_PX = (1.0, 1e6)  # fx, fy: below 1 px is a field of view near 180 degrees at any image size
+MAX_PRINCIPAL_PX = 1e6  # |cx|, |cy| and the skew
+MAX_TRANSLATION = 1e9  # each |t| component, world units (1000 km in mm)
+MAX_DISTORTION = 1e3  # |k1|, |k2|, |p1|, |p2|, |k3|
 
 
 @dataclass(kw_only=True)
@@ -256,3 +261,43 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
                 or abs(K[1, 0]) > 1e-12
             ):
                 raise InputError(path, '"K" must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0', where=where)
+            check_plausible(frame.K, frame.t, frame.dist, path, where)
+
+
+def check_plausible(
+    K: np.ndarray, t: np.ndarray | None, dist: np.ndarray | None, path: Path | None, where: str
+) -> None:
+    """Refuse finite values that no camera has: focal lengths, principal point, translation, distortion."""
+    for name, value in (("K", K), ("t", t), ("dist", dist)):
+        if value is not None and not np.all(np.isfinite(value)):
+            raise InputError(path, f'"{name}" contains NaN or infinity', where=where)
+    low, high = FOCAL_RANGE_PX
+    for name, focal in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not low <= focal < high:
+            raise InputError(
+                path,
+                f'"K" {name} = {focal:.6g} px is implausible',
+                where=where,
+                fix=f"focal lengths are in pixels, between {low:g} and {high:g}",
+            )
+    if max(abs(K[0, 1]), abs(K[0, 2]), abs(K[1, 2])) >= MAX_PRINCIPAL_PX:
+        raise InputError(
+            path,
+            f'"K" principal point ({K[0, 2]:.6g}, {K[1, 2]:.6g}) or skew {K[0, 1]:.6g} is implausible',
+            where=where,
+            fix=f"they are in pixels, below {MAX_PRINCIPAL_PX:g} in magnitude",
+        )
+    if t is not None and float(np.max(np.abs(t))) >= MAX_TRANSLATION:  # not the norm: it overflows near 1e308
+        raise InputError(
+            path,
+            f'"t" {np.asarray(t).tolist()} is implausible',
+            where=where,
+            fix=f"translations are below {MAX_TRANSLATION:g} world units",
+        )
+    if dist is not None and np.any(np.abs(dist) >= MAX_DISTORTION):
+        raise InputError(
+            path,
+            f'"dist" {np.asarray(dist).tolist()} is implausible',
+            where=where,
+            fix=f"OpenCV distortion coefficients are below {MAX_DISTORTION:g} in magnitude",
+        )

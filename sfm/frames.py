@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from dynrecon.readers import check_video_name
 from sfm.video import ProbedVideo, read_frames
 
 JPEG_QUALITY = 95
@@ -72,7 +73,7 @@ def write_frames(
     Files of an earlier run are reused only when they come from the same video file at the same size (a
     `.source` stamp in the folder says which); otherwise the folder is emptied first."""
     names = []
-    folder = frames_dir / info.name
+    folder = frames_dir / check_video_name(info.name, info.path)  # the folder may be emptied: never `..`
     stat = info.path.stat()
     stamp = f"{info.path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{resize.width}x{resize.height}\n"
     marker = folder / ".source"

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from dynrecon.errors import InputError
+from dynrecon.readers import check_video_name
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +53,9 @@ class ProbedVideo:
 
 
 def video_name(path: Path) -> str:
-    """The name a video goes by in every workspace file: its file name without extension."""
-    return path.stem
+    """The name a video goes by in every workspace file: its file name without extension, checked because it
+    becomes a folder name (`frames/<video>/`)."""
+    return check_video_name(path.stem, path)
 
 
 def _open(path: Path) -> cv2.VideoCapture:
@@ -76,6 +78,7 @@ def _open(path: Path) -> cv2.VideoCapture:
 def probe_video(path: str | Path) -> ProbedVideo:
     """Decode every frame header once to count frames and read their timestamps."""
     path = Path(path)
+    video_name(path)  # before decoding the whole video, not after
     capture = _open(path)
     try:
         nominal = capture.get(cv2.CAP_PROP_FPS)

@@ -7,13 +7,12 @@ last number is the frame (`labeled-data/cam01/img0012.png`). Empty or NaN cells 
 
 from __future__ import annotations
 
-import csv
 import math
 import re
 from pathlib import Path
 
 from dynrecon.errors import InputError
-from dynrecon.readers import parse_frame, shown
+from dynrecon.readers import csv_records, parse_frame, shown
 from tracking.detections import Detection
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
@@ -28,19 +27,8 @@ def video_name_from_dlc(path: Path) -> str:
 
 
 def read_dlc(path: Path, video: str) -> list[Detection]:
-    try:
-        handle = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except OSError as error:  # a folder, or no permission
-        raise InputError(path, f"cannot read: {error.strerror or error}") from None
-    with handle:
-        try:
-            rows = list(csv.reader(handle))
-        except csv.Error as error:
-            raise InputError(path, f"malformed CSV: {error}") from None
-        except UnicodeDecodeError:
-            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
+    # Records never span lines (csv_records refuses that), so list index + 1 is the file line.
+    rows = [row for _, row in csv_records(path)]
     header: dict[str, list[str]] = {}
     line = 0
     while line < len(rows) and rows[line] and rows[line][0].strip().lower() in HEADER_NAMES:

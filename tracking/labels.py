@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
-from dynrecon.readers import parse_frame
+from dynrecon.readers import csv_records, parse_frame, shown
 
 COLUMNS = ("video", "frame", "point", "x", "y", "source")
 
@@ -34,6 +34,8 @@ class Label:
 
     source: Source
     xy: tuple[float, float] | None = None
+    # The labels.csv line it was read from, for error messages; not part of the label's value.
+    line: int | None = field(default=None, compare=False)
 
 
 Key = tuple[str, int, str]  # (video, frame, point)
@@ -43,52 +45,40 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
     """Read `labels.csv`; a missing file is an empty set of labels. Errors name the line and the fix."""
     path = Path(path)
     labels: dict[Key, Label] = {}
-    try:
-        handle = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
+    if not path.exists() and not path.is_symlink():
         return labels
-    except OSError as error:  # a folder, or no permission
-        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
-    with handle:
-        reader = csv.reader(handle)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            return labels
-        except (csv.Error, UnicodeDecodeError) as error:
-            raise InputError(path, f"not a CSV file: {error}", where="line 1") from None
-        missing = [c for c in COLUMNS[:5] if c not in header]
-        if missing:
+    records = csv_records(path)
+    first = next(records, None)
+    if first is None:
+        return labels
+    header = [h.strip() for h in first[1]]
+    missing = [c for c in COLUMNS[:5] if c not in header]
+    if missing:
+        raise InputError(
+            path,
+            f"header lacks column(s) {', '.join(missing)}",
+            where=f"line {first[0]}",
+            fix="the header must be video,frame,point,x,y,source",
+        )
+    col = {name: header.index(name) for name in COLUMNS if name in header}
+    first_line: dict[Key, int] = {}
+    for number, row in records:
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        where = f"line {number}"
+        if len(row) < len(header):
+            raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
+        key = _parse_key(path, where, row, col)
+        if key in first_line:
             raise InputError(
                 path,
-                f"header lacks column(s) {', '.join(missing)}",
-                where="line 1",
-                fix="the header must be video,frame,point,x,y,source",
+                f"point {shown(key[2])} of video {shown(key[0])} is labeled twice on frame "
+                f"{key[1]} (first on line {first_line[key]})",
+                where=where,
+                fix="keep one row per video, frame and point",
             )
-        col = {name: header.index(name) for name in COLUMNS if name in header}
-        first_line: dict[Key, int] = {}
-        try:
-            for row in reader:
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                where = f"line {reader.line_num}"
-                if len(row) < len(header):
-                    raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
-                key = _parse_key(path, where, row, col)
-                if key in first_line:
-                    raise InputError(
-                        path,
-                        f"point {key[2]!r} of video {key[0]!r} is labeled twice on frame "
-                        f"{key[1]} (first on line {first_line[key]})",
-                        where=where,
-                        fix="keep one row per video, frame and point",
-                    )
-                first_line[key] = reader.line_num
-                labels[key] = _parse_label(path, where, row, col)
-        except csv.Error as error:
-            raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None
-        except UnicodeDecodeError:
-            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
+        first_line[key] = number
+        labels[key] = replace(_parse_label(path, where, row, col), line=number)
     return labels
 
 
@@ -104,7 +94,7 @@ def _parse_label(path: Path, where: str, row: list[str], col: dict[str, int]) ->
     try:
         source = Source(raw_source or "label")
     except ValueError:
-        raise InputError(path, f"source {raw_source!r} is neither 'label' nor 'hidden'", where=where) from None
+        raise InputError(path, f"source {shown(raw_source)} is neither 'label' nor 'hidden'", where=where) from None
     if source is Source.HIDDEN:
         return Label(source=source)
     try:
@@ -112,7 +102,7 @@ def _parse_label(path: Path, where: str, row: list[str], col: dict[str, int]) ->
     except ValueError:
         raise InputError(
             path,
-            f"x, y = {row[col['x']]!r}, {row[col['y']]!r} are not numbers",
+            f"x, y = {shown(row[col['x']])}, {shown(row[col['y']])} are not numbers",
             where=where,
             fix="write source=hidden with empty x,y for a point that is not visible",
         ) from None

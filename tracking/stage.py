@@ -6,15 +6,18 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
+from dynrecon.readers import shown
+from tracking import labels as labels_csv
 from tracking.frames import VideoFrames
 from tracking.options import TrackOptions
 from tracking.propagate import TrackedPoint, track_video
-from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
-from tracking.workspace import LABELS_NAME, TRACKS_NAME, AllLabels, read_labels, workspace_videos
+from tracking.tracks import IMAGE_MARGIN, SOURCE_LABEL, Tracks, inside_image, read_tracks, write_tracks
+from tracking.workspace import LABELS_NAME, TRACKS_NAME, AllLabels, workspace_videos
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +42,9 @@ def run(
         chosen = {name: Path(p) for name, p in videos.items()}
     else:
         chosen = workspace_videos(workspace, [Path(p) for p in videos] if videos else None)
-    labels = read_labels(workspace / LABELS_NAME)
+    labels_path = workspace / LABELS_NAME
+    raw_labels = labels_csv.read_labels(labels_path)
+    labels = _grouped(raw_labels)
     unknown = sorted(set(labels) - set(chosen)) if videos is None else []
     if unknown:
         log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked", ", ".join(unknown))
@@ -52,6 +57,7 @@ def run(
             continue
         frames = VideoFrames(path)
         try:
+            _check_inside(raw_labels, labels_path, name, frames.shape)
             with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False, disable=None) as bar:
                 results[name] = track_video(
                     frames, marks, options, progress=lambda done, total: bar.update(done - bar.n)
@@ -63,6 +69,29 @@ def run(
     rows = _rows(results)
     rows += _kept_rows(out, set(results), labels)
     return write_tracks(out, _to_tracks(rows))
+
+
+def _grouped(raw: dict[labels_csv.Key, labels_csv.Label]) -> AllLabels:
+    """video -> point -> frame -> (x, y), or None for `source=hidden`."""
+    labels: AllLabels = {}
+    for (video, frame, point), label in raw.items():
+        labels.setdefault(video, {}).setdefault(point, {})[frame] = label.xy
+    return labels
+
+
+def _check_inside(raw: dict[labels_csv.Key, labels_csv.Label], path: Path, video: str, shape: tuple[int, int]) -> None:
+    """Refuse a label of `video` outside its image: it would go into tracks.csv with score 1 and spoil the solve."""
+    height, width = shape
+    for (name, frame, point), label in raw.items():
+        if name != video or label.xy is None or inside_image(np.array(label.xy), width, height)[0]:
+            continue
+        raise InputError(
+            path,
+            f"label of point {shown(point)} in video {shown(video)} frame {frame} at x, y = "
+            f"{label.xy[0]:.6g}, {label.xy[1]:.6g} is outside the {width}x{height} image",
+            where=f"line {label.line}" if label.line is not None else None,
+            fix=f"labels lie inside the image (within {round(100 * IMAGE_MARGIN)} % of its size): fix or delete it",
+        )
 
 
 Row = tuple[str, int, str, float, float, str, str]  # video, frame, point, x, y, source, score

@@ -15,12 +15,27 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
-from dynrecon.readers import parse_frame
+from dynrecon.readers import csv_records, parse_frame, shown
 
 REQUIRED_COLUMNS = ("video", "frame", "point", "x", "y")
 # Values of the optional `source` column written by dynrecon (importers write their own, e.g. "charuco").
 SOURCE_LABEL = "label"  # a manual label, copied from labels.csv
 SOURCE_TRACK = "track"  # carried there by the tracker
+# Observations and labels may lie this share of the image size outside it (a point just off the edge, or on an
+# undistorted image); further out they are false detections or typos.
+IMAGE_MARGIN = 0.1
+
+
+def inside_image(xy: np.ndarray, width: float | np.ndarray, height: float | np.ndarray) -> np.ndarray:
+    """(N,) bool: which (N, 2) pixel positions are finite and inside the image (sizes scalar or (N,)) with
+    IMAGE_MARGIN of its size around it."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    size = np.stack(np.broadcast_arrays(np.asarray(width, dtype=float), np.asarray(height, dtype=float)), axis=-1)
+    # OpenCV pixels: the image covers [-0.5, width - 0.5] x [-0.5, height - 0.5].
+    low = -0.5 - IMAGE_MARGIN * size
+    high = size - 0.5 + IMAGE_MARGIN * size
+    with np.errstate(invalid="ignore"):
+        return np.all(np.isfinite(xy) & (xy >= low) & (xy <= high), axis=1)
 
 
 @dataclass(kw_only=True)
@@ -62,87 +77,73 @@ class Tracks:
 def read_tracks(path: str | Path) -> Tracks:
     """Read and validate `tracks.csv`. Errors name the line; duplicates name both lines."""
     path = Path(path)
-    try:
-        handle = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, "file not found", fix="run `dynrecon track` or give the right path") from None
-    except OSError as error:  # a folder, or no permission
-        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
     videos: list[str] = []
     frames: list[int] = []
     points: list[str] = []
     xy: list[tuple[float, float]] = []
     lines: list[int] = []
-    with handle:
-        reader = csv.reader(handle)
+    records = csv_records(path, missing_fix="run `dynrecon track` or give the right path")
+    first = next(records, None)
+    if first is None:
+        raise InputError(
+            path, "file is empty", where="line 1", fix="the first line must be the header video,frame,point,x,y"
+        )
+    header = [h.strip() for h in first[1]]
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise InputError(
+            path,
+            f"header lacks column(s) {', '.join(missing)}",
+            where=f"line {first[0]}",
+            fix="the header must contain video,frame,point,x,y",
+        )
+    index = {name: header.index(name) for name in REQUIRED_COLUMNS}
+    extra_names = [h for h in header if h not in REQUIRED_COLUMNS and h]
+    extra_index = {name: header.index(name) for name in extra_names}
+    extras: dict[str, list[str]] = {name: [] for name in extra_names}
+    seen: dict[tuple[str, int, str], int] = {}
+    for number, row in records:
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) < len(header):
+            raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=f"line {number}")
+        video = row[index["video"]].strip()
+        point = row[index["point"]].strip()
+        if not video or not point:
+            raise InputError(path, "empty video or point name", where=f"line {number}")
+        frame = parse_frame(row[index["frame"]], path, f"line {number}")
         try:
-            header = next(reader)
-        except StopIteration:
-            raise InputError(
-                path, "file is empty", where="line 1", fix="the first line must be the header video,frame,point,x,y"
-            ) from None
-        except (csv.Error, UnicodeDecodeError) as error:
-            raise InputError(path, f"not a CSV file: {error}", where="line 1") from None
-        header = [h.strip() for h in header]
-        missing = [c for c in REQUIRED_COLUMNS if c not in header]
-        if missing:
+            x, y = float(row[index["x"]]), float(row[index["y"]])
+        except ValueError:
             raise InputError(
                 path,
-                f"header lacks column(s) {', '.join(missing)}",
-                where="line 1",
-                fix="the header must contain video,frame,point,x,y",
+                f"x, y = {shown(row[index['x']])}, {shown(row[index['y']])} are not numbers",
+                where=f"line {number}",
+            ) from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise InputError(
+                path,
+                f"x, y = {x}, {y} is not finite",
+                where=f"line {number}",
+                fix="leave unobserved points out instead of writing NaN",
             )
-        index = {name: header.index(name) for name in REQUIRED_COLUMNS}
-        extra_names = [h for h in header if h not in REQUIRED_COLUMNS and h]
-        extra_index = {name: header.index(name) for name in extra_names}
-        extras: dict[str, list[str]] = {name: [] for name in extra_names}
-        seen: dict[tuple[str, int, str], int] = {}
-        try:
-            for row in reader:
-                number = reader.line_num
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                if len(row) < len(header):
-                    raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=f"line {number}")
-                video = row[index["video"]].strip()
-                point = row[index["point"]].strip()
-                if not video or not point:
-                    raise InputError(path, "empty video or point name", where=f"line {number}")
-                frame = parse_frame(row[index["frame"]], path, f"line {number}")
-                try:
-                    x, y = float(row[index["x"]]), float(row[index["y"]])
-                except ValueError:
-                    raise InputError(
-                        path, f"x, y = {row[index['x']]!r}, {row[index['y']]!r} are not numbers", where=f"line {number}"
-                    ) from None
-                if not (math.isfinite(x) and math.isfinite(y)):
-                    raise InputError(
-                        path,
-                        f"x, y = {x}, {y} is not finite",
-                        where=f"line {number}",
-                        fix="leave unobserved points out instead of writing NaN",
-                    )
-                key = (video, frame, point)
-                if key in seen:
-                    raise InputError(
-                        path,
-                        f"duplicate observation of point {point!r} in video {video!r} frame "
-                        f"{frame} (first on line {seen[key]})",
-                        where=f"line {number}",
-                        fix="keep one row per video, frame and point",
-                    )
-                seen[key] = number
-                videos.append(video)
-                frames.append(frame)
-                points.append(point)
-                xy.append((x, y))
-                lines.append(number)
-                for name, column in extra_index.items():
-                    extras[name].append(row[column] if column < len(row) else "")
-        except csv.Error as error:
-            raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None
-        except UnicodeDecodeError:
-            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
+        key = (video, frame, point)
+        if key in seen:
+            raise InputError(
+                path,
+                f"duplicate observation of point {shown(point)} in video {shown(video)} frame "
+                f"{frame} (first on line {seen[key]})",
+                where=f"line {number}",
+                fix="keep one row per video, frame and point",
+            )
+        seen[key] = number
+        videos.append(video)
+        frames.append(frame)
+        points.append(point)
+        xy.append((x, y))
+        lines.append(number)
+        for name, column in extra_index.items():
+            extras[name].append(row[column] if column < len(row) else "")
     return Tracks(
         video=videos,
         frame=np.array(frames, dtype=np.int64),

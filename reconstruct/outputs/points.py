@@ -18,7 +18,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open, atomic_write_text
 from dynrecon.errors import InputError
-from dynrecon.readers import check_frame, parse_frame, read_json
+from dynrecon.readers import check_frame, csv_records, parse_frame, read_json, shown
 
 POINT_COLUMNS = ("video", "frame", "point", "x", "y", "z", "observed")
 
@@ -73,41 +73,30 @@ def write_points(path: str | Path, points: FramePoints) -> Path:
 def read_points(path: str | Path) -> FramePoints:
     """Read `points3d.csv` or `truth.csv` back into arrays."""
     path = Path(path)
-    try:
-        handle = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except OSError as error:  # a folder, or no permission
-        raise InputError(path, f"cannot read: {error.strerror or error}", fix="give the path of a CSV file") from None
     frame_index: dict[tuple[str, int], int] = {}
     point_index: dict[str, int] = {}
     records: list[tuple[int, int, list[float], bool, list[float]]] = []
-    with handle:
-        reader = csv.reader(handle)
+    rows = csv_records(path)
+    first = next(rows, None)
+    header = None if first is None else first[1]
+    if header is None or any(c not in header for c in POINT_COLUMNS):
+        raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
+    col = {name: header.index(name) for name in header}
+    extra_names = [h for h in header if h not in POINT_COLUMNS]
+    for number, row in rows:
+        if not row:
+            continue
+        where = f"line {number}"
         try:
-            header = next(reader, None)
-            if header is None or any(c not in header for c in POINT_COLUMNS):
-                raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
-            col = {name: header.index(name) for name in header}
-            extra_names = [h for h in header if h not in POINT_COLUMNS]
-            for row in reader:
-                if not row:
-                    continue
-                where = f"line {reader.line_num}"
-                try:
-                    key = (row[col["video"]], parse_frame(row[col["frame"]], path, where))
-                    values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
-                    observed = row[col["observed"]].strip() == "1"
-                    extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
-                except (ValueError, IndexError):
-                    raise InputError(path, "malformed row", where=where) from None
-                fi = frame_index.setdefault(key, len(frame_index))
-                pi = point_index.setdefault(row[col["point"]], len(point_index))
-                records.append((fi, pi, values, observed, extras))
-        except csv.Error as error:
-            raise InputError(path, f"malformed CSV: {error}", where=f"line {reader.line_num}") from None
-        except UnicodeDecodeError:
-            raise InputError(path, "not UTF-8 text", fix="save the file as UTF-8 CSV") from None
+            key = (row[col["video"]], parse_frame(row[col["frame"]], path, where))
+            values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
+            observed = row[col["observed"]].strip() == "1"
+            extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
+        except (ValueError, IndexError):
+            raise InputError(path, "malformed row", where=where) from None
+        fi = frame_index.setdefault(key, len(frame_index))
+        pi = point_index.setdefault(row[col["point"]], len(point_index))
+        records.append((fi, pi, values, observed, extras))
     F, P = len(frame_index), len(point_index)
     xyz = np.full((F, P, 3), np.nan)
     observed_arr = np.zeros((F, P), dtype=bool)
@@ -183,5 +172,14 @@ def read_sequencing(path: str | Path) -> Sequencing:
         weights = [np.array([float(n["weight"]) for n in e["neighbours"]]) for e in entries]
     except (ValueError, KeyError, TypeError, OverflowError) as error:
         raise InputError(path, f"not a valid sequencing.json: {_short(error)}") from None
+    for i, w in enumerate(weights):
+        bad = np.flatnonzero(~(np.isfinite(w) & (w >= 0)))
+        if bad.size:
+            raise InputError(
+                path,
+                f"weight {float(w[bad[0]])} of neighbour {int(bad[0])} is not a finite number >= 0",
+                where=f"video {shown(videos[i])} frame {int(frames[i])}",
+                fix="weights are >= 0 and sum to 1 per frame; write sequencing.json again with dynrecon solve",
+            )
     extra = {k: v for k, v in document.items() if k != "frames"}
     return Sequencing(videos=videos, frames=frames, neighbours=neighbours, weights=weights, extra=extra)

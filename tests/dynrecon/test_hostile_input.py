@@ -12,6 +12,7 @@ import os
 import socket
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -21,7 +22,13 @@ import pytest
 from dynrecon.cli import main
 from dynrecon.errors import InputError
 from dynrecon.pipeline import State
-from reconstruct.outputs.points import read_sequencing
+from reconstruct.inputs import build_problem_checked
+from reconstruct.outputs.points import read_points, read_sequencing
+from sfm.calibration import read_calibration
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras
+from sfm.video import probe_video
+from tracking.labels import read_labels
+from tracking.tracks import read_tracks
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -281,3 +288,181 @@ def test_label_startup_failures_exit_2_without_abort(tmp_path: Path) -> None:
         lines = err.strip().splitlines()
         assert status == 2 and len(lines) == 1, f"{name}: exit {status}\n{err}"
         assert lines[0].startswith("dynrecon label: error:") and cases[name][1] in lines[0], f"{name}: {err}"
+
+
+# ---- spreadsheet CSVs: BOM, CRLF, exact line numbers
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n", "\r"], ids=["LF", "CRLF", "CR"])
+def test_csv_readers_accept_bom_and_line_ends(tmp_path: Path, newline: str) -> None:
+    tracks = tmp_path / "tracks.csv"
+    tracks.write_bytes(newline.join(["\ufeffvideo,frame,point,x,y", "a,0,p,1,2", "a,1,p,3,4", ""]).encode())
+    read = read_tracks(tracks)
+    assert read.video == ["a", "a"] and read.line is not None and read.line.tolist() == [2, 3]
+    labels = tmp_path / "labels.csv"
+    labels.write_bytes(newline.join(["\ufeffvideo,frame,point,x,y,source", "a,0,p,1,2,label", ""]).encode())
+    assert read_labels(labels)[("a", 0, "p")].xy == (1.0, 2.0)
+
+
+def _unterminated_quote_on_line_4(header: str, row: str, rows: int) -> str:
+    return "\n".join([header, row, row.replace(",0,", ",1,", 1), '"' + row.replace(",0,", ",2,", 1)] + [row] * rows)
+
+
+# 20000 rows: the quoted cell outgrows csv's field size limit before the end of the file
+@pytest.mark.parametrize("rows", [900, 20000])
+@pytest.mark.parametrize("reader", ["tracks", "labels", "points"])
+def test_unterminated_quote_names_its_line(tmp_path: Path, reader: str, rows: int) -> None:
+    path = tmp_path / f"{reader}.csv"
+    call: Callable[[Path], object]
+    if reader == "tracks":
+        path.write_text(_unterminated_quote_on_line_4("video,frame,point,x,y", "a,0,p,1,2", rows))
+        call = read_tracks
+    elif reader == "labels":
+        path.write_text(_unterminated_quote_on_line_4("video,frame,point,x,y,source", "a,0,p,1,2,label", rows))
+        call = read_labels
+    else:
+        path.write_text(_unterminated_quote_on_line_4("video,frame,point,x,y,z,observed", "a,0,p,1,2,3,1", rows))
+        call = read_points
+    with pytest.raises(InputError, match=r":line 4: ") as caught:
+        call(path)
+    assert "\n" not in str(caught.value)
+
+
+def test_csv_errors_name_the_line_of_the_row(tmp_path: Path) -> None:
+    path = tmp_path / "tracks.csv"
+    path.write_text("\r\n".join(["\ufeffvideo,frame,point,x,y", 'a,0,p,"1",2', "", "a,1,p,1", "a,9,p,1,2", ""]))
+    with pytest.raises(InputError, match=r":line 4: expected 5 fields"):
+        read_tracks(path)
+    path.write_text("\r\n".join(["\ufeffvideo,frame,point,x,y", 'a,0,p,"1",2', "", "a,1,p,1,2", ""]))
+    assert read_tracks(path).line.tolist() == [2, 4]  # type: ignore[union-attr]
+
+
+# ---- observations and labels outside the image
+
+
+def _two_videos() -> CameraSet:
+    def frame(number: int, x: float) -> FrameCamera:
+        K = np.array([[1000.0, 0, 499.5], [0, 1000.0, 499.5], [0, 0, 1]])
+        return FrameCamera(frame=number, K=K, R=np.eye(3), t=np.array([x, 0.0, 10.0]))
+
+    return CameraSet(
+        videos=[
+            VideoCameras(name=name, width=1000, height=800, frames=[frame(0, x), frame(1, x)])
+            for name, x in (("a", 0.0), ("b", 1.0))
+        ]
+    )
+
+
+@pytest.mark.parametrize("x, y", [(99999, 99999), (-101, 5), (5, 880), (1e308, 0)])
+def test_observations_outside_the_image_are_counted(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, x: float, y: float
+) -> None:
+    path = tmp_path / "tracks.csv"
+    path.write_text(f"video,frame,point,x,y\na,0,p,10,20\nb,0,p,30,40\na,1,p,{x},{y}\nb,1,p,-99,879\n")
+    with caplog.at_level("WARNING"):
+        problem, rejected = build_problem_checked(_two_videos(), read_tracks(path))
+    assert rejected.count == 1 and rejected.first == f"{path}:line 4"
+    assert rejected.to_json() == {"outside_image": 1, "first": f"{path}:line 4", "margin": 0.1}
+    assert int(problem.observed.sum()) == 3  # the row at the edge's margin (-99, 879) stays
+    warning = [r.getMessage() for r in caplog.records if "outside the image" in r.getMessage()]
+    assert len(warning) == 1 and "line 4" in warning[0] and "1 observation(s)" in warning[0]
+
+
+def test_valid_observations_reject_nothing(tmp_path: Path) -> None:
+    path = tmp_path / "tracks.csv"
+    path.write_text("video,frame,point,x,y\na,0,p,-0.5,-0.5\nb,0,p,999.5,799.5\na,1,p,500,400\n")
+    problem, rejected = build_problem_checked(_two_videos(), read_tracks(path))
+    assert rejected.count == 0 and rejected.first is None and int(problem.observed.sum()) == 3
+
+
+def test_track_refuses_a_label_outside_the_image(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    labels = ws / "labels.csv"
+    labels.write_text("video,frame,point,x,y,source\ncam1,0,p,10,20,label\ncam1,1,p,99999,99999,label\n")
+    video = _video(tmp_path / "cam1.avi", frames=2)
+    status = main(["-q", "track", str(ws), "--videos", str(video)])
+    line = _one_line_error(capsys, status, str(labels), "line 3", "outside the 320x240 image")
+    assert "99999" in line
+    assert not (ws / "tracks.csv").exists()
+
+
+# ---- cameras.json and calibration files: finite but absurd values
+
+
+def _camera_document(**changes: object) -> dict:
+    frame = _identity_frame(0) | {"dist": [0.0, 0.0, 0.0, 0.0]}
+    frame.update(changes)
+    return {"videos": [{"name": "a", "width": 100, "height": 100, "frames": [frame]}]}
+
+
+ABSURD_CAMERAS = {
+    "focal 1e-300": {"K": [[1e-300, 0, 50], [0, 100, 50], [0, 0, 1]]},
+    "focal 1e308": {"K": [[100, 0, 50], [0, 1e308, 50], [0, 0, 1]]},
+    "principal point 1e300": {"K": [[100, 0, 1e300], [0, 100, 50], [0, 0, 1]]},
+    "k1 1e308": {"dist": [1e308, 0.0, 0.0, 0.0]},
+    "t 1e308": {"t": [1e308, 0, 0]},
+    "t 1e9": {"t": [0, 0, 1e9]},
+    "R det -1": {"R": np.diag([1.0, 1.0, -1.0]).tolist()},
+    "R scaled": {"R": (np.eye(3) * (1 + 1e-4)).tolist()},
+}
+
+
+@pytest.mark.parametrize("changes", list(ABSURD_CAMERAS.values()), ids=list(ABSURD_CAMERAS))
+def test_absurd_cameras_json(tmp_path: Path, capsys: pytest.CaptureFixture[str], changes: dict) -> None:
+    cameras = tmp_path / "cameras.json"
+    cameras.write_text(json.dumps(_camera_document(**changes)))
+    status = _solve(cameras, _tracks(tmp_path / "tracks.csv"), tmp_path / "out")
+    _one_line_error(capsys, status, str(cameras), "video 'a' frame 0")
+
+
+def test_plausible_cameras_json_reads(tmp_path: Path) -> None:
+    cameras = tmp_path / "cameras.json"
+    cameras.write_text(json.dumps(_camera_document(t=[1e8, -1e8, 5.0], dist=[-0.4, 0.2, 0.001, -0.001, 999.0])))
+    assert read_cameras(cameras).videos[0].frames[0].dist is not None
+
+
+@pytest.mark.parametrize(
+    "matrix", ["[[1e308, 0, 50], [0, 100, 50], [0, 0, 1]]", "[[0.5, 0, 50], [0, 0.5, 50], [0, 0, 1]]"]
+)
+def test_absurd_calibration_toml(tmp_path: Path, matrix: str) -> None:
+    path = tmp_path / "calib.toml"
+    path.write_text(
+        f'[cam_1]\nname = "a"\nsize = [100, 100]\nmatrix = {matrix}\ndistortions = [0, 0, 0, 0]\n'
+        "rotation = [0, 0, 0]\ntranslation = [0, 0, 1]\n"
+    )
+    with pytest.raises(InputError, match=r"calib\.toml:camera 'a': \"K\" fx"):
+        read_calibration(path)
+
+
+# ---- sequencing.json weights
+
+
+@pytest.mark.parametrize("weight", ["NaN", "-0.5", "Infinity"])
+def test_sequencing_weights_must_be_finite_and_non_negative(tmp_path: Path, weight: str) -> None:
+    path = tmp_path / "sequencing.json"
+    path.write_text(
+        '{"frames": [{"video": "a", "frame": 0, "neighbours": [{"video": "b", "frame": 0, "weight": '
+        + weight
+        + '}]}, {"video": "b", "frame": 0, "neighbours": []}]}'
+    )
+    with pytest.raises(InputError, match=r"sequencing\.json:video 'a' frame 0: weight .* is not a finite number"):
+        read_sequencing(path)
+
+
+# ---- video names become folder names
+
+
+@pytest.mark.parametrize("name", ["...mp4", "..avi", "a\x07b.mp4"], ids=["stem ..", "stem .", "control character"])
+def test_video_name_is_checked_before_it_becomes_a_path(tmp_path: Path, name: str) -> None:
+    video = _video(tmp_path / name, frames=2)
+    with pytest.raises(InputError, match=r"video name .* \(rename the video file") as caught:
+        probe_video(video)
+    assert "\n" not in str(caught.value).replace("\\n", "")
+
+
+def test_register_refuses_a_video_named_dot_dot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    videos = [_video(tmp_path / "...avi", frames=2), _video(tmp_path / "cam1.avi", frames=2)]
+    status = main(["-q", "register", *map(str, videos), "--out", str(tmp_path / "ws")])
+    _one_line_error(capsys, status, "video name '..' is only dots", "rename")
+    assert not list((tmp_path / "ws").glob("*.jpg"))
