@@ -20,13 +20,15 @@ import numpy as np
 
 from dynrecon.atomic import atomic_write_text, require_writable
 from reconstruct.clocks.registered import check_registered_clocks
-from reconstruct.inputs import build_problem
+from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem
-from reconstruct.temporal import Temporal, TemporalOptions, recover_and_refine
+from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
+from reconstruct.tracks_path import applies as tracks_path_applies
+from reconstruct.tracks_path import solve_on_tracks
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
@@ -124,7 +126,7 @@ def solve(
     started = time.perf_counter()
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
-    problem = build_problem(camera_set, track_set)
+    problem, rejected = build_problem_checked(camera_set, track_set)
     read_inputs = time.perf_counter() - started
     log.info(
         "solving %d frames of %d videos, %d points, %d observations",
@@ -133,22 +135,22 @@ def solve(
         problem.num_points,
         int(problem.observed.sum()),
     )
-    result = solve_problem(problem, options.solver)
+    result, temporal = _solve_and_refine(problem, options)
     result.timings["read_inputs"] = read_inputs
-    t0 = time.perf_counter()
-    temporal = recover_and_refine(problem, result, options.temporal)
-    result.timings["clocks_and_refinement"] = time.perf_counter() - t0
     # the split of clocks and refinement, where reconstruct/temporal.py reports one
     result.timings.update(temporal.report.get("timings", {}))
     t0 = time.perf_counter()
-    trust = measure_trust(problem, result, options.trust)
+    # without a seed solve (the tracks path) the trust measures describe the refined points against the clocks' W
+    judged = result if result.stages else dataclasses.replace(result, points=temporal.points)
+    trust = measure_trust(problem, judged, options.trust)
     result.timings["trust"] = time.perf_counter() - t0
     inputs = {"cameras": _input_name(cameras, None), "tracks": _input_name(tracks, track_set.path)}
-    report = build_report(problem, result, options, inputs)
+    report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
     report["clocks"]["registration_check"] = check_registered_clocks(camera_set, temporal.clocks)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
+    report["rejected_observations"] = rejected.to_json()
     return Reconstruction(
         points=frame_points(problem, result, temporal, trust),
         sequencing=sequencing(problem, result, temporal),
@@ -162,6 +164,31 @@ def solve(
         options=options,
         started=started,
     )
+
+
+def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveResult, Temporal]:
+    """The tracks path for few points when it passes its checks (reconstruct/tracks_path.py), else the seed solve
+    and the clocks and refinement after it; the report says which and why."""
+    temporal_options = options.temporal
+    tried: dict[str, Any] | None = None
+    if temporal_options.refinement is Refinement.CLOCKS and tracks_path_applies(
+        problem, temporal_options.tracks_path_max_points
+    ):
+        t0 = time.perf_counter()
+        attempt = solve_on_tracks(problem, temporal_options)
+        if attempt.temporal is not None and attempt.seed is not None:
+            attempt.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
+            return attempt.seed, attempt.temporal
+        tried = attempt.report
+    result = solve_problem(problem, options.solver)
+    t0 = time.perf_counter()
+    temporal = recover_and_refine(problem, result, temporal_options)
+    result.timings["clocks_and_refinement"] = time.perf_counter() - t0
+    if tried is not None:
+        # few points, but the tracks' clocks failed a check: the seed solve's answer, with the tracks' attempt
+        temporal.report["tracks_path"] = {"checks": tried["checks"], "failed": tried["failed"]}
+        temporal.report["reason"] = f"tracks path failed its check {tried['failed']!r}: the seed solve was run"
+    return result, temporal
 
 
 def run(
@@ -215,8 +242,14 @@ def sequencing(problem: Problem, result: SolveResult, temporal: Temporal | None 
 
 
 def build_report(
-    problem: Problem, result: SolveResult, options: SolveOptions, inputs: dict[str, str | None]
+    problem: Problem,
+    result: SolveResult,
+    options: SolveOptions,
+    inputs: dict[str, str | None],
+    *,
+    seed_solved: bool = True,
 ) -> dict[str, Any]:
+    """report.json; without a seed solve (the tracks path) its initialization is None."""
     unreconstructable = [n for n, ok in zip(problem.point_names, result.reconstructable, strict=True) if not ok]
     return {
         "inputs": inputs,
@@ -230,7 +263,7 @@ def build_report(
         },
         "normalization": {"offset": result.normalization.offset.tolist(), "scale": result.normalization.scale},
         "unreconstructable_points": unreconstructable,
-        "initialization": {"frames_without_partner": int(np.sum(result.init.partner < 0))},
+        "initialization": {"frames_without_partner": int(np.sum(result.init.partner < 0))} if seed_solved else None,
         "stages": [dataclasses.asdict(stage) for stage in result.stages],
         "timings": dict(result.timings),
         "residual": {
@@ -240,7 +273,9 @@ def build_report(
                 {"video": v, "frame": int(f), "residual": float(r)}
                 for v, f, r in zip(problem.frame_videos, problem.frames, result.residual, strict=True)
             ],
-        },
+        }
+        if np.isfinite(result.residual).any()
+        else None,
     }
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -48,6 +49,9 @@ class TemporalOptions:
     clock_model: ClockModel | None = None
     refinement: Refinement = Refinement.CLOCKS
     refine: RefineOptions = field(default_factory=RefineOptions)
+    # At most this many reconstructable points: clocks from the tracks and trajectories without the self-expressive
+    # solve (reconstruct/tracks_path.py), whose W-step stalls on so few points; 0 never takes that path.
+    tracks_path_max_points: int = 3
 
     def clock_options(self, problem: Problem) -> ClockOptions:
         """The clock options of this solve: `clocks` with the model `clock_model` resolves to."""
@@ -71,16 +75,29 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
     "Never worse"): the clock model's times, else a time per frame without a clock model, else the seed solve."""
     options = options or TemporalOptions()
     clock_options = options.clock_options(problem)
+    started = time.perf_counter()
     clocks = estimate_clocks(problem, result, clock_options)
+    timings = {"clocks": time.perf_counter() - started}
+    report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
+    started = time.perf_counter()
+    try:
+        return _recover_and_refine(problem, result, options, clocks, report)
+    finally:
+        timings["refinement"] = time.perf_counter() - started
+
+
+def _recover_and_refine(
+    problem: Problem, result: SolveResult, options: TemporalOptions, clocks: Clocks, report: dict[str, Any]
+) -> Temporal:
+    clock_options = options.clock_options(problem)
     times = clocks.global_time.copy()
-    report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False}
     if options.refinement is Refinement.NONE:
         report["path"] = TimePath.SEED.value
         return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
     judge = RefinementJudge(problem, result, options.refine)
     checks = clock_checks(problem, clocks)
     if all(c.passed for c in checks):
-        on_clocks = _refine_on_clocks(problem, result, clocks, clock_options.model, options.refine)
+        on_clocks = refine_on_clocks(problem, result.points, clocks, clock_options.model, options.refine)
         checks.extend(judge.clock_fit(on_clocks.result))
         if all(c.passed for c in checks):
             report.update(on_clocks.report)
@@ -105,16 +122,17 @@ def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalO
 
 
 @dataclass(kw_only=True)
-class _OnClocks:
+class OnClocks:
     clocks: Clocks
     result: RefineResult
     report: dict[str, Any]
 
 
-def _refine_on_clocks(
-    problem: Problem, result: SolveResult, clocks: Clocks, model: ClockModel, options: RefineOptions
-) -> _OnClocks:
-    """The trajectories on the clocks' times, with the clock polish when it is plausible."""
+def refine_on_clocks(
+    problem: Problem, points: np.ndarray, clocks: Clocks, model: ClockModel, options: RefineOptions
+) -> OnClocks:
+    """The trajectories on the clocks' times, started from `points (F, P, 3)`, with the clock polish when it is
+    plausible."""
     times = clocks.global_time.copy()
     report: dict[str, Any] = {}
     # The polish's cost does not see a global affine change of time: hold the clocks' reference video fixed so
@@ -122,7 +140,7 @@ def _refine_on_clocks(
     # decoder's rate: a polish fitting rates anyway made short clips unstable.
     polished = refine_with_clocks(
         problem,
-        result.points,
+        points,
         times,
         options,
         reference=problem.video_names.index(clocks.reference),
@@ -146,10 +164,10 @@ def _refine_on_clocks(
             100 * MAX_RATE_CORRECTION,
         )
         report["clock_polish_rejected"] = True
-        refined = refine(problem, result.points, times, options)
+        refined = refine(problem, points, times, options)
         cost.extend(float(c) for c in refined.cost)
     report["cost"] = cost
-    return _OnClocks(clocks=clocks, result=refined, report=report)
+    return OnClocks(clocks=clocks, result=refined, report=report)
 
 
 def _finish(

@@ -510,6 +510,59 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
     )
 
 
+def estimate_clocks_from_tracks(problem: Problem, options: ClockOptions | None = None) -> Clocks:
+    """Every video's clock from the tracks and poses alone (no self-expressive solve, no W): the track search
+    started from its own chained pair searches. The path for few points (reconstruct/tracks_path.py), where W's
+    links would only repeat what the tracks say."""
+    options = options or ClockOptions()
+    own, sources = own_times(problem, options.fps)
+    N = len(problem.video_names)
+    ref = choose_reference(problem, sources, options.reference)
+    model = _usable_model(options.model, sources, problem.video_names)
+    periods = frame_periods(own, problem.video_index, N)
+    centers = video_centers(own, problem.video_index, N)
+    search = search_clocks(problem, own, ref, model, sources, options.track_search)
+    no_links = LinkFit(
+        params=ClockSet.reference_only(centers, ref),
+        scale=math.nan,
+        inlier_share=0.0,
+        links_per_video=np.zeros(N, dtype=np.int64),
+        residuals=np.zeros(0),
+        frame_scatter=np.full(N, np.nan),
+        warnings=[],
+    )
+    distinct = [p.distinctness for p in search.pairs if np.isfinite(p.distinctness)]
+    diagnostics: dict[str, Any] = {
+        "link_scale_s": math.nan,
+        "link_inlier_share": 0.0,
+        "links": 0,
+        "search": True,
+        "track_residual_px": search.residual_px,
+        "track_distinctness": float(np.median(distinct)) if distinct else None,
+        "links_precise": False,
+    }
+    params, methods, _ = _combine(no_links.params, search.params, periods, ref, problem.video_names)
+    scatter = np.full(N, np.nan)
+    _take_track_scatter(scatter, search, methods)
+    for w in search.warnings:
+        log.warning("clocks: %s", w)
+    return _report(
+        problem,
+        own,
+        sources,
+        ref,
+        model,
+        params,
+        methods,
+        periods,
+        scatter,
+        no_links,
+        search.video_residual_px,
+        list(search.warnings),
+        diagnostics,
+    )
+
+
 def _usable_model(model: ClockModel, sources: list[TimeSource], names: list[str]) -> ClockModel:
     """The requested model, or AFFINE where an offset-only clock cannot hold (a video without decoder times)."""
     for name, source in zip(names, sources, strict=True):

@@ -1,0 +1,220 @@
+"""The path for few points (issue 22): clocks from the tracks and poses alone, then spline trajectories through the
+rays on those clocks, without the self-expressive solve (docs/refinement.md, "Few points: the tracks path").
+
+With one to a few points, a W column's Gram matrix has rank at most 3P while its working set holds many more
+entries: the seed solve's W-step is singular and stalls (docs/measurements.md). The clocks do not need W there: the
+track search finds them from the tracks and poses, and with the clocks a smoothing spline through the rays is the
+trajectory. Steps:
+
+1. `estimate_clocks_from_tracks`, checked by `time_checks.clock_checks` (every video clocked, a distinct offset);
+2. start points: every observation triangulated at its frame's global time with the nearest observations of the
+   other videos (`start_points`);
+3. `trajectory.refine_with_clocks` on those clocks (the polish checked as on the clocks path), then the fit check
+   `tracks_fit`: the trajectories meet their rays about as closely as the track search's rays met each other.
+
+Where a check fails, `solve_on_tracks` says which, and `reconstruct.stage.solve` falls back to the seed solve.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from reconstruct.clocks.estimate import estimate_clocks_from_tracks
+from reconstruct.clocks.model import frame_periods
+from reconstruct.free_times import reprojection_px
+from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.initialize import PairInit
+from reconstruct.solver.problem import Problem, reconstructable_points
+from reconstruct.solver.rays import camera_normalization, viewing_rays
+from reconstruct.solver.wstep import SparseW
+from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
+from reconstruct.time_checks import Check, clock_checks
+
+log = logging.getLogger(__name__)
+
+# A partner observation of another video is used for the start when it lies within this many of its frame periods.
+PARTNER_PERIODS = 1.0
+# The trajectories' median reprojection residual may exceed the track search's robust gap by this factor plus
+# TRACKS_FIT_PX: right clocks let a spline meet every ray about as closely as interpolated rays meet each other.
+TRACKS_FIT_FACTOR = 1.5
+TRACKS_FIT_PX = 1.0
+PATH = "tracks"  # report.json temporal.path of this path
+
+
+@dataclass(kw_only=True)
+class TracksAttempt:
+    """The tracks path's result: `temporal` and `seed` when every check passed, else None and the report says why."""
+
+    temporal: Temporal | None
+    seed: SolveResult | None
+    report: dict[str, Any]
+
+
+def applies(problem: Problem, max_points: int) -> bool:
+    """The tracks path is tried when the problem has at most `max_points` reconstructable points (0: never)."""
+    count = int(reconstructable_points(problem).sum())
+    return 0 < count <= max_points
+
+
+def start_points(problem: Problem, times: np.ndarray) -> np.ndarray:
+    """(F, P, 3) every observation triangulated (least squares over rays) with the observation of each other video
+    nearest in global time, when within PARTNER_PERIODS of that video's frame periods; NaN elsewhere."""
+    F, P = problem.num_frames, problem.num_points
+    N = len(problem.video_names)
+    rays = viewing_rays(problem)
+    centers = problem.centers
+    periods = frame_periods(times, problem.video_index, N)
+    out = np.full((F, P, 3), np.nan)
+    eye = np.eye(3)
+    for p in range(P):
+        seen = problem.observed[:, p] & np.isfinite(times)
+        frames = np.flatnonzero(seen)
+        if frames.size == 0:
+            continue
+        projector = eye - rays[frames, p, :, None] * rays[frames, p, None, :]  # (m, 3, 3)
+        A = projector.copy()
+        b = np.einsum("mij,mj->mi", projector, centers[frames])
+        videos = np.ones(frames.size, dtype=np.int64)
+        for u in range(N):
+            mine = frames[problem.video_index[frames] == u]
+            if mine.size == 0:
+                continue
+            mine = mine[np.argsort(times[mine], kind="stable")]
+            t_u = times[mine]
+            k = np.clip(np.searchsorted(t_u, times[frames]), 1, max(len(t_u) - 1, 1))
+            before, after = mine[k - 1], mine[np.minimum(k, len(mine) - 1)]
+            nearest = np.where(
+                np.abs(times[after] - times[frames]) < np.abs(times[before] - times[frames]), after, before
+            )
+            near = np.abs(times[nearest] - times[frames]) <= PARTNER_PERIODS * periods[u]
+            use = near & (problem.video_index[frames] != u)
+            partner = nearest[use]
+            proj_u = eye - rays[partner, p, :, None] * rays[partner, p, None, :]
+            A[use] += proj_u
+            b[use] += np.einsum("mij,mj->mi", proj_u, centers[partner])
+            videos[use] += 1
+        solvable = (videos >= 2) & (np.linalg.cond(A) < 1e8)
+        out[frames[solvable], p] = np.linalg.solve(A[solvable], b[solvable, :, None])[..., 0]
+    return out
+
+
+def solve_on_tracks(problem: Problem, options: TemporalOptions) -> TracksAttempt:
+    """Clocks from the tracks, start points, trajectories on the clocks, each checked (module docstring)."""
+    t0 = time.perf_counter()
+    clock_options = options.clock_options(problem)
+    clocks = estimate_clocks_from_tracks(problem, clock_options)
+    timings = {"clocks": time.perf_counter() - t0}
+    report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
+    checks = clock_checks(problem, clocks)
+    if not all(c.passed for c in checks):
+        return _failed(checks, report)
+    t0 = time.perf_counter()
+    times = clocks.global_time.copy()
+    start = start_points(problem, times)
+    placed = np.isfinite(start).all(axis=-1).any(axis=0)
+    timings["start_points"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    on_clocks = refine_on_clocks(problem, start, clocks, clock_options.model, options.refine)
+    timings["refinement"] = time.perf_counter() - t0
+    refined = on_clocks.result
+    residual = reprojection_px(problem, refined.points)
+    finite = residual[np.isfinite(residual)]
+    median = float(np.median(finite)) if finite.size else math.nan
+    gap = clocks.diagnostics.get("track_residual_px")
+    gap = float(gap) if isinstance(gap, float) and math.isfinite(gap) else 0.0
+    limit = TRACKS_FIT_FACTOR * gap + TRACKS_FIT_PX
+    checks.append(
+        Check(
+            name="tracks_fit",
+            value=median,
+            limit=limit,
+            passed=bool(median <= limit),
+            meaning=f"median reprojection residual (px) on the tracks' clocks, against their {gap:.3g} px ray gap",
+        )
+    )
+    if not all(c.passed for c in checks):
+        return _failed(checks, report)
+    points = np.where(np.isfinite(refined.points), refined.points, start)
+    report.update(on_clocks.report)
+    report.update(
+        {
+            "refined": True,
+            "path": PATH,
+            "checks": [c.to_json() for c in checks],
+            "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
+            "outlier_observations": int(refined.outliers.sum()),
+            "reason": f"{int(placed.sum())} reconstructable point(s): clocks from the tracks, no self-expressive solve",
+        }
+    )
+    temporal = Temporal(
+        clocks=on_clocks.clocks, points=points, times=on_clocks.clocks.global_time.copy(), refined=True, report=report
+    )
+    return TracksAttempt(
+        temporal=temporal, seed=_seed(problem, start, points, on_clocks.clocks.global_time, timings), report=report
+    )
+
+
+def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:
+    failed = next(c for c in checks if not c.passed)
+    log.warning("the tracks path for few points was not used: %s; solving with the seed solve", failed.sentence())
+    report.update({"checks": [c.to_json() for c in checks], "failed": failed.name})
+    return TracksAttempt(temporal=None, seed=None, report=report)
+
+
+def _seed(
+    problem: Problem, start: np.ndarray, points: np.ndarray, times: np.ndarray, timings: dict[str, float]
+) -> SolveResult:
+    """What `Reconstruction.seed` holds on this path: the start points, W from the clocks (`time_w`) and the
+    refined points' residual against it, no initialization pairs and no solver stages."""
+    F, P = problem.num_frames, problem.num_points
+    W = time_w(problem, times)
+    shapes = np.nan_to_num(points).reshape(F, -1)
+    residual = np.sqrt(np.mean((shapes - W.to_csc().T @ shapes).reshape(F, P, 3).__pow__(2).sum(axis=-1), axis=1))
+    return SolveResult(
+        points=start,
+        W=W,
+        reconstructable=reconstructable_points(problem),
+        init=PairInit(partner=np.full(F, -1), cost=np.full(F, np.nan), depth=np.full((F, P), np.nan)),
+        normalization=camera_normalization(problem.centers, problem.video_index),
+        stages=[],
+        timings=dict(timings),
+        residual=np.where(W.valid.any(axis=1), residual, np.nan),
+        init_points=start,
+    )
+
+
+def time_w(problem: Problem, times: np.ndarray) -> SparseW:
+    """W from the clocks: each frame as the linear interpolation, at its global time, between the two bracketing
+    frames of every other video that spans it (equal shares per video): the sequencing a time axis implies."""
+    F = problem.num_frames
+    N = len(problem.video_names)
+    periods = frame_periods(times, problem.video_index, N)
+    cand = np.zeros((F, 2 * N), dtype=np.int64)
+    value = np.zeros((F, 2 * N))
+    valid = np.zeros((F, 2 * N), dtype=bool)
+    for u in range(N):
+        mine = np.flatnonzero((problem.video_index == u) & np.isfinite(times))
+        if mine.size < 2:
+            continue
+        mine = mine[np.argsort(times[mine], kind="stable")]
+        k = np.clip(np.searchsorted(times[mine], times, side="right"), 1, len(mine) - 1)
+        before, after = mine[k - 1], mine[k]
+        span = times[after] - times[before]
+        share = (times - times[before]) / np.where(span > 0, span, 1.0)
+        spans = (share >= 0) & (share <= 1) & (span > 0) & (span <= 2.5 * periods[u]) & (problem.video_index != u)
+        cand[:, 2 * u], cand[:, 2 * u + 1] = before, after
+        value[:, 2 * u], value[:, 2 * u + 1] = 1 - share, share
+        valid[:, 2 * u] = valid[:, 2 * u + 1] = spans
+    count = valid.sum(axis=1) / 2
+    value = np.where(valid, value / np.maximum(count, 1)[:, None], 0.0)
+    return SparseW(cand=cand, valid=valid, value=value)
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
