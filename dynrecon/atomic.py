@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import tempfile
 from collections.abc import Iterator
@@ -25,14 +26,41 @@ def atomic_open(path: str | Path, mode: str = "w", *, newline: str | None = None
     tmp = Path(tmp_name)
     try:
         binary = "b" in mode
-        with os.fdopen(fd, mode, newline=newline, encoding=None if binary else "utf-8") as handle:
+        try:
+            handle = os.fdopen(fd, mode, newline=newline, encoding=None if binary else "utf-8")
+        except BaseException:
+            os.close(fd)  # fdopen did not take the descriptor over
+            raise
+        with handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
         publish(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        # Every failure (a full disk at write, flush, fsync or close; a refused rename; an interrupt) leaves no
+        # temporary file; a failing unlink must not hide the original error.
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise
+
+
+def temp_files(path: str | Path) -> list[Path]:
+    """The temporary files `atomic_open(path)` makes beside `path` (left behind only by a killed process)."""
+    path = Path(path)
+    try:
+        return sorted(path.parent.glob(f".{glob.escape(path.name)}.*.tmp"))
+    except OSError:
+        return []
+
+
+def remove_temp_files(path: str | Path) -> int:
+    """Remove what `temp_files(path)` lists; call it only where no other process writes `path`. Returns the count."""
+    removed = 0
+    for tmp in temp_files(path):
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+            removed += 1
+    return removed
 
 
 def publish(tmp: Path, path: Path) -> None:

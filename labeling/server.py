@@ -1,6 +1,6 @@
 """The labeling web server: static page, frames as JPEG, labels/tracks as JSON (see labeling/static/app.js).
 
-Routes (everything else is 404; bad input is 400, never a crash):
+Routes (everything else is 404; bad input is 4xx, never a crash or a 500):
     GET  /                          the page
     GET  /static/NAME               page files (only files shipped in labeling/static)
     GET  /ws/NAME                   files inside the workspace (e.g. labels.csv), nothing outside it
@@ -13,16 +13,23 @@ Routes (everything else is 404; bad input is 400, never a crash):
                                     with source label (x, y given), hidden, or none (remove the label)
     POST /api/points                {"op": "add", "name"} or {"op": "rename", "old", "new"}
     POST /api/track                 {"videos": [names] or null for all}
+
+Errors are one-line JSON {"error": "..."}: 400 malformed, 403 another site, 404, 405 other methods, 408 a body
+that stalls (READ_TIMEOUT), 409 busy, 413 a body over MAX_BODY; 503 labels.csv unreadable or not writable, 507
+a full disk (the page shows the line and retries).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
+import re
 import socket
 import threading
+import time
 from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -32,7 +39,7 @@ from urllib.parse import parse_qs, unquote, urlsplit
 
 from dynrecon.errors import DynreconError, InputError
 from labeling.frames import FrameCache, VideoInfo
-from labeling.labels import Change, LabelStore
+from labeling.labels import Change, LabelStore, SaveError, StoreClosedError
 from labeling.lock import LOCK_NAME
 from labeling.skeleton import Skeleton, valid_point_name
 from labeling.tracker import TrackFunction, TrackJob
@@ -43,6 +50,10 @@ log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 MAX_BODY = 1 << 20
+# A client that promised a body (or headers) and stalls gives its thread back after this long.
+READ_TIMEOUT = 10.0
+ASCII_NUMBER = re.compile(r"[0-9]{1,12}")  # str.isdigit() also takes "²" and "٣" (Arabic-Indic 3)
+FRAME_FILE = re.compile(r"([0-9]{1,12})\.jpg")
 CONTENT_TYPES = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript; charset=utf-8",
@@ -65,6 +76,14 @@ class ForbiddenError(Exception):
 
 class ConflictError(Exception):
     """Valid request that cannot run now (e.g. tracking already running): 409."""
+
+
+class RequestError(Exception):
+    """A request the server refuses with a given 4xx status (413 body too large, 408 body never came)."""
+
+    def __init__(self, status: HTTPStatus, message: str):
+        super().__init__(message)
+        self.status = status
 
 
 @dataclass(kw_only=True)
@@ -244,7 +263,7 @@ class LabelingApp:
             name = _point_name(body, "name")
             with self._config_lock:
                 self.skeleton.add_point(name)
-                save_config(self.workspace, self.config)
+                self._save_config()
         elif op == "rename":
             old, new = _point_name(body, "old"), _point_name(body, "new")
             if self.track_job.running():
@@ -260,11 +279,17 @@ class LabelingApp:
                     raise BadRequestError(str(error)) from None
                 self._rename_in_tracks(old, new)
                 self.skeleton.rename(old, new)
-                save_config(self.workspace, self.config)
+                self._save_config()
         else:
             raise BadRequestError(f"op must be add or rename, not {op!r}")
         state = self.state()
         return {"points": state["points"], "connections": state["connections"]}
+
+    def _save_config(self) -> None:
+        try:
+            save_config(self.workspace, self.config)
+        except OSError as error:
+            raise SaveError(self.workspace / "labeling.json", error) from None
 
     def _rename_in_tracks(self, old: str, new: str) -> None:
         from tracking.tracks import read_tracks, write_tracks
@@ -276,7 +301,10 @@ class LabelingApp:
             tracks = read_tracks(path)
             if old in tracks.point:
                 tracks.point = [new if p == old else p for p in tracks.point]
-                write_tracks(path, tracks)
+                try:
+                    write_tracks(path, tracks)
+                except OSError as error:
+                    raise SaveError(path, error) from None
 
     def start_tracking(self, body: Any) -> dict[str, Any]:
         names = body.get("videos") if isinstance(body, dict) else None
@@ -292,6 +320,7 @@ class LabelingApp:
         return self.track_status()
 
     def close(self) -> None:
+        self.labels.close()
         self.frames.close()
 
 
@@ -324,6 +353,7 @@ def _point_name(body: Any, name: str) -> str:
 class Handler(BaseHTTPRequestHandler):
     server_version = "dynrecon-label"
     app: LabelingApp  # set on the subclass made by `make_server`
+    timeout = READ_TIMEOUT  # socket timeout (StreamRequestHandler.setup): a stalled client frees its thread
 
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("%s %s", self.address_string(), format % args)
@@ -338,6 +368,15 @@ class Handler(BaseHTTPRequestHandler):
     def do_POST(self) -> None:
         self._dispatch(self._post)
 
+    def __getattr__(self, name: str) -> Any:
+        # Any other method (PUT, DELETE, FOO) is the client's mistake, 405, not the 501 of http.server.
+        if name.startswith("do_"):
+            return self._method_not_allowed
+        raise AttributeError(name)
+
+    def _method_not_allowed(self) -> None:
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, f"method {self.command} is not allowed (GET, HEAD, POST)")
+
     def _dispatch(self, route: Any) -> None:
         try:
             allowed = self.app.allowed_hosts
@@ -345,23 +384,45 @@ class Handler(BaseHTTPRequestHandler):
                 # A page on another site that rebinds its DNS name to 127.0.0.1 must not reach the labels.
                 self._json({"error": "unexpected Host header"}, HTTPStatus.FORBIDDEN)
                 return
-            url = urlsplit(self.path)
+            try:
+                url = urlsplit(self.path)
+                query = parse_qs(url.query, max_num_fields=100)
+            except ValueError as error:  # "//[x" (a bad IPv6 host), too many query fields
+                raise BadRequestError(f"malformed URL: {error}") from None
             # Decode each segment once; an encoded "/" or ".." inside a segment never becomes a path step.
             segments = [unquote(s) for s in url.path.split("/")[1:]]
-            route(segments, parse_qs(url.query))
+            route(segments, query)
         except BadRequestError as error:
-            self._json({"error": str(error)}, HTTPStatus.BAD_REQUEST)
+            self._error(HTTPStatus.BAD_REQUEST, str(error))
+        except RequestError as error:
+            self._error(error.status, str(error))
         except ConflictError as error:
-            self._json({"error": str(error)}, HTTPStatus.CONFLICT)
+            self._error(HTTPStatus.CONFLICT, str(error))
         except ForbiddenError as error:
-            self._json({"error": str(error)}, HTTPStatus.FORBIDDEN)
-        except DynreconError as error:  # a broken file in the workspace: tell the page which and why
-            self._json({"error": str(error)}, HTTPStatus.INTERNAL_SERVER_ERROR)
+            self._error(HTTPStatus.FORBIDDEN, str(error))
+        except SaveError as error:  # a full disk, a read-only folder: the page shows this line and retries
+            log.error("%s", error)
+            status = HTTPStatus.INSUFFICIENT_STORAGE if error.disk_full else HTTPStatus.SERVICE_UNAVAILABLE
+            self._error(status, str(error))
+        except StoreClosedError as error:
+            self._error(HTTPStatus.SERVICE_UNAVAILABLE, str(error))
+        except DynreconError as error:  # a broken file in the workspace: tell the page which and why, it retries
+            self._error(HTTPStatus.SERVICE_UNAVAILABLE, str(error))
         except (BrokenPipeError, ConnectionResetError):
-            pass
+            self.close_connection = True
+        except TimeoutError:  # the client stopped sending: answer if it still listens, then hang up
+            self._error(HTTPStatus.REQUEST_TIMEOUT, f"the request body did not arrive within {self.timeout:g} s")
         except Exception:
             log.exception("internal error on %s %s", self.command, self.path)
-            self._json({"error": "internal error (see the server log)"}, HTTPStatus.INTERNAL_SERVER_ERROR)
+            self._error(HTTPStatus.INTERNAL_SERVER_ERROR, "internal error (see the server log)")
+
+    def _error(self, status: HTTPStatus, message: str) -> None:
+        """A one-line JSON error; the connection is closed after it, as a body may be left unread."""
+        self.close_connection = True
+        extra = {"Allow": "GET, HEAD, POST"} if status == HTTPStatus.METHOD_NOT_ALLOWED else {}
+        # The client may be gone (or stall on reading): then there is nobody left to tell.
+        with contextlib.suppress(OSError):
+            self._json({"error": message}, status, headers=extra)
 
     def _get(self, seg: list[str], query: dict[str, list[str]]) -> None:
         app = self.app
@@ -371,8 +432,9 @@ class Handler(BaseHTTPRequestHandler):
             return self._file(STATIC_DIR / seg[1])
         if len(seg) >= 2 and seg[0] == "ws":
             return self._workspace_file(seg[1:])
-        if len(seg) == 3 and seg[0] == "frame" and seg[2].endswith(".jpg") and seg[2][:-4].isdigit():
-            data = app.frames.jpeg(seg[1], int(seg[2][:-4]))
+        frame_file = FRAME_FILE.fullmatch(seg[2]) if len(seg) == 3 and seg[0] == "frame" else None
+        if frame_file is not None:
+            data = app.frames.jpeg(seg[1], int(frame_file.group(1)))
             if data is None:
                 return self._not_found()
             return self._bytes(data, "image/jpeg", cache=True)
@@ -416,25 +478,48 @@ class Handler(BaseHTTPRequestHandler):
         if origin is not None and allowed is not None and origin not in {f"http://{h}" for h in allowed}:
             raise ForbiddenError(f"requests from {origin} are not allowed")
         length_text = self.headers.get("Content-Length")
-        if length_text is None or not length_text.isdigit():
+        if length_text is None or not ASCII_NUMBER.fullmatch(length_text.strip()):
             raise BadRequestError("Content-Length header missing or invalid")
         length = int(length_text)
         if length > MAX_BODY:
-            raise BadRequestError(f"body larger than {MAX_BODY} bytes")
-        raw = self.rfile.read(length)
+            raise RequestError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"body larger than {MAX_BODY} bytes")
+        raw = self._read_body(length)
+        if len(raw) < length:
+            raise BadRequestError(f"body ended after {len(raw)} of {length} bytes")
         try:
             return json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, ValueError) as error:
             raise BadRequestError(f"body is not JSON: {error}") from None
+        except RecursionError:
+            raise BadRequestError("body is not JSON: nested too deeply") from None
+
+    def _read_body(self, length: int) -> bytes:
+        """Up to `length` bytes; the socket timeout bounds each wait, the deadline a body trickled byte by byte."""
+        deadline = time.monotonic() + (self.timeout or READ_TIMEOUT)
+        chunks: list[bytes] = []
+        got = 0
+        while got < length:
+            if time.monotonic() > deadline:
+                raise TimeoutError
+            chunk = self.rfile.read1(min(1 << 16, length - got))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            got += len(chunk)
+        return b"".join(chunks)
 
     def _workspace_file(self, parts: list[str]) -> None:
         root = self.app.workspace
         bad = any(p in ("", ".", "..") or "/" in p or "\\" in p or "\0" in p for p in parts)
         if bad or parts[-1] == LOCK_NAME:
             return self._not_found()
-        target = root.joinpath(*parts).resolve()
-        # resolve() follows symlinks: a link pointing out of the workspace is refused like "..".
-        if not target.is_relative_to(root) or not target.is_file():
+        try:
+            target = root.joinpath(*parts).resolve()
+            # resolve() follows symlinks: a link pointing out of the workspace is refused like "..".
+            found = target.is_relative_to(root) and target.is_file()
+        except (OSError, RuntimeError):  # a name too long, a symlink loop
+            found = False
+        if not found:
             return self._not_found()
         return self._file(target)
 
@@ -448,13 +533,21 @@ class Handler(BaseHTTPRequestHandler):
     def _not_found(self) -> None:
         self._json({"error": "not found"}, HTTPStatus.NOT_FOUND)
 
-    def _json(self, obj: Any, status: HTTPStatus = HTTPStatus.OK) -> None:
-        self._bytes(json.dumps(obj).encode("utf-8"), "application/json", status=status)
+    def _json(self, obj: Any, status: HTTPStatus = HTTPStatus.OK, *, headers: dict[str, str] | None = None) -> None:
+        self._bytes(json.dumps(obj).encode("utf-8"), "application/json", status=status, headers=headers)
 
     def _bytes(
-        self, data: bytes, content_type: str, *, status: HTTPStatus = HTTPStatus.OK, cache: bool = False
+        self,
+        data: bytes,
+        content_type: str,
+        *,
+        status: HTTPStatus = HTTPStatus.OK,
+        cache: bool = False,
+        headers: dict[str, str] | None = None,
     ) -> None:
         self.send_response(status)
+        for name, value in (headers or {}).items():
+            self.send_header(name, value)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(data)))
         self.send_header("Cache-Control", "private, max-age=3600" if cache else "no-store")

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from http.server import ThreadingHTTPServer
 from pathlib import Path
 
+from dynrecon.atomic import remove_temp_files
 from dynrecon.errors import InputError
 from labeling.frames import probe_video
 from labeling.lock import WorkspaceLock
@@ -17,6 +18,7 @@ from labeling.server import LabelingApp, make_server
 from labeling.skeleton import Skeleton
 from labeling.tracker import TrackFunction, track_with_tracking_stage
 from labeling.workspace import load_config, resolve_videos, save_config
+from tracking.workspace import CONFIG_NAME
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,8 @@ class LabelServer:
         workspace.mkdir(parents=True, exist_ok=True)
         self.lock = WorkspaceLock(workspace)
         self.lock.acquire()
+        # A server killed mid-write leaves its temporary file; the lock now keeps every other server off.
+        remove_temp_files(workspace / CONFIG_NAME)
         app: LabelingApp | None = None
         httpd: ThreadingHTTPServer | None = None
         try:

@@ -65,8 +65,9 @@ function save(changes) {
         S.saveError = null;
         break;
       } catch (error) {
-        if (error.status && error.status < 500) { S.saveError = error.message; break; } // rejected: do not retry
-        S.saveError = `not saved (${error.message}); retrying…`;
+        // Rejected: do not retry. A timeout (408), a full disk (507) or a read-only folder (503) may pass later.
+        if (error.status && error.status < 500 && error.status !== 408) { S.saveError = `not saved: ${error.message}`; break; }
+        S.saveError = `not saved: ${error.message} (retrying…)`;
         showSaveStatus();
         await new Promise((resolve) => setTimeout(resolve, Math.min(5000, 500 * (attempt + 1))));
       }
@@ -86,9 +87,9 @@ const round3 = (v) => Math.round(v * 1000) / 1000;
 
 function showSaveStatus() {
   const el = $("save-status");
-  if (S.saveError) { el.className = "badge bad"; el.textContent = S.saveError; }
+  if (S.saveError) { el.className = "badge bad"; el.textContent = S.saveError; el.title = S.saveError; }
   else if (S.pending > 0) { el.className = "badge busy"; el.textContent = "saving…"; }
-  else { el.className = "badge ok"; el.textContent = "saved"; }
+  else { el.className = "badge ok"; el.textContent = "saved"; el.title = "every change is written to labels.csv at once"; }
   el.dataset.pending = String(S.pending);
 }
 

@@ -8,6 +8,7 @@ copied to docs/images/labeling.png for the README.
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import os
 import shutil
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
+from dynrecon import atomic
 from labeling.skeleton import Skeleton
 from labeling.stage import LabelOptions, LabelServer
 from tracking.labels import Source, read_labels
@@ -355,3 +357,35 @@ def test_points_keys_and_auto_track(browser, tmp_path: Path) -> None:
         page.keyboard.press("n")
         page.wait_for_function("window.dynreconLabel.state.frame === 1")
         assert not errors, errors
+
+
+def test_a_full_disk_is_shown_and_the_click_saved_later(
+    browser, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The page shows the server's one-line reason (507) and keeps retrying until the disk has room again."""
+    video = write_scene(tmp_path / "swing.avi")
+    workspace = tmp_path / "ws"
+    with LabelServer(workspace, LabelOptions(videos=[video], skeleton=Skeleton(points=["head"]))) as server:
+        page = browser.new_page(viewport={"width": 1100, "height": 700})
+        page.goto(server.url)
+        page.wait_for_selector("body[data-ready='1']")
+
+        def disk_full(fd: int) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(atomic.os, "fsync", disk_full)
+        page.click("li[data-point='head']")
+        click_image(page, *truth("head", 0))
+        page.wait_for_function("document.getElementById('save-status').textContent.includes('No space left')")
+        shown = page.inner_text("#save-status")
+        assert shown.startswith("not saved: cannot save labels.csv: No space left on device"), shown
+        assert not (workspace / "labels.csv").exists()
+        assert not [p.name for p in workspace.iterdir() if p.name.endswith(".tmp")]
+        monkeypatch.undo()
+        wait_saved_within(page, 15_000)
+        assert set(read_labels(workspace / "labels.csv")) == {("swing", 0, "head")}
+
+
+def wait_saved_within(page, timeout_ms: int) -> None:
+    page.wait_for_function("document.getElementById('save-status').dataset.pending === '0'", timeout=timeout_ms)
+    assert page.inner_text("#save-status") == "saved"

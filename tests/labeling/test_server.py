@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
 import http.client
 import json
 import os
+import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -15,7 +20,9 @@ import numpy as np
 import pytest
 from labeling_videos import FRAMES, HEIGHT, WIDTH
 
+from dynrecon import atomic
 from labeling.lock import LOCK_NAME, WorkspaceLockedError
+from labeling.server import READ_TIMEOUT, Handler
 from labeling.skeleton import Skeleton
 from labeling.stage import LabelOptions, LabelServer
 from tracking.labels import read_labels
@@ -314,7 +321,7 @@ def test_malformed_queries_and_headers_are_400(server: LabelServer) -> None:
     conn.endheaders()
     assert conn.getresponse().status == 400
     conn.close()
-    assert request(server, "POST", "/api/labels", "x" * 10, {"Content-Length": str(10 << 20)})[0] == 400
+    assert request(server, "POST", "/api/labels", "x" * 10, {"Content-Length": str(10 << 20)})[0] == 413
 
 
 def test_foreign_host_header_is_refused(server: LabelServer) -> None:
@@ -342,8 +349,6 @@ def test_stale_lock_of_a_dead_process_is_taken_over(workspace: Path, video: Path
     dead = subprocess.run(
         [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
     )
-    import socket
-
     (workspace / LOCK_NAME).write_text(
         json.dumps({"pid": int(dead.stdout), "host": socket.gethostname(), "url": "http://127.0.0.1:1/"})
     )
@@ -351,3 +356,225 @@ def test_stale_lock_of_a_dead_process_is_taken_over(workspace: Path, video: Path
         assert json.loads((workspace / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert request(running, "GET", "/api/state")[0] == 200
     assert not (workspace / LOCK_NAME).exists()  # released on stop
+
+
+def raw_request(server: LabelServer, data: bytes, *, wait: float = 10.0) -> bytes:
+    """Send bytes as they are (headers no HTTP client would write) and return the whole answer."""
+    host, port = server.httpd.server_address[:2]
+    with socket.create_connection((str(host), int(port)), timeout=wait) as sock:
+        sock.sendall(data)
+        chunks = []
+        while chunk := sock.recv(65536):
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def status_of(answer: bytes) -> int:
+    return int(answer.split(b" ", 2)[1])
+
+
+def test_deeply_nested_json_is_400(server: LabelServer, workspace: Path) -> None:
+    status, data = request(server, "POST", "/api/labels", "[" * 100_000)
+    assert status == 400 and "nested too deeply" in json.loads(data)["error"]
+    status, data = request(server, "POST", "/api/labels", '{"changes": [{"frame": ' + "9" * 5000 + "}]}")
+    assert status == 400
+    assert not (workspace / "labels.csv").exists()
+
+
+@pytest.mark.parametrize("length", ["²", "٣", "-1", "1e3", "0x10", ""])
+def test_non_ascii_or_signed_content_length_is_400(server: LabelServer, length: str) -> None:
+    host = f"127.0.0.1:{server.httpd.server_address[1]}"
+    head = f"POST /api/labels HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n"
+    head += f"Content-Length: {length}\r\n\r\n"
+    answer = raw_request(server, head.encode("utf-8") + b"{}")
+    assert status_of(answer) == 400, answer
+
+
+def test_frame_numbers_are_ascii_digits_only(server: LabelServer) -> None:
+    assert request(server, "GET", "/frame/cam1/3.jpg")[0] == 200
+    # "٣" (Arabic-Indic three) and "²" pass str.isdigit(); neither is frame 3 nor a crash.
+    for name in ("%D9%A3", "%C2%B2", "%EF%BC%93", "9223372036854775808", "1" * 5000, "-1", "+3", "%203", "3%00"):
+        status, data = request(server, "GET", f"/frame/cam1/{name}.jpg")
+        assert status == 404, (name, data)
+    assert request(server, "GET", "/frame/cam0/%C2%B2.jpg")[0] == 404
+
+
+def test_unusable_workspace_names_are_404(server: LabelServer, workspace: Path) -> None:
+    (workspace / "loop").symlink_to(workspace / "loop")
+    for path in ("/ws/" + "x" * 5000, "/ws/loop", "/ws/loop/x", "/ws/%FF" * 300):
+        assert request(server, "GET", path)[0] == 404, path[:20]
+
+
+def test_malformed_urls_are_4xx(server: LabelServer) -> None:
+    for path in (
+        "//[x/api/state",
+        "/api/labels?" + "&".join(f"v{i}=1" for i in range(200)),
+        "/%ZZ",
+        "/%7F",
+        "/frame/cam1/%FF.jpg",
+    ):
+        status, _ = request(server, "GET", path)
+        assert 400 <= status < 500, path
+
+
+def test_oversized_body_is_413_and_read_no_further(server: LabelServer, workspace: Path) -> None:
+    status, data = request(server, "POST", "/api/labels", "x" * 10, {"Content-Length": str(10 << 20)})
+    assert status == 413 and "larger than" in json.loads(data)["error"]
+    status, _ = request(server, "POST", "/api/labels", "[" + "0," * (1 << 20) + "0]")
+    assert status == 413
+    assert not (workspace / "labels.csv").exists()
+    assert request(server, "GET", "/api/state")[0] == 200
+
+
+def test_short_body_is_400(server: LabelServer) -> None:
+    host = f"127.0.0.1:{server.httpd.server_address[1]}"
+    head = f"POST /api/labels HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: 50\r\n\r\n"
+    host_, port = server.httpd.server_address[:2]
+    with socket.create_connection((str(host_), int(port)), timeout=10) as sock:
+        sock.sendall(head.encode() + b'{"changes": []}')
+        sock.shutdown(socket.SHUT_WR)  # the client hangs up its side: the body ends early
+        answer = sock.recv(65536)
+    assert status_of(answer) == 400
+
+
+def test_a_body_that_never_arrives_frees_the_thread(server: LabelServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert Handler.timeout == READ_TIMEOUT == 10.0
+    monkeypatch.setattr(server.httpd.RequestHandlerClass, "timeout", 0.5)
+    host = f"127.0.0.1:{server.httpd.server_address[1]}"
+    head = f"POST /api/labels HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n"
+    start = time.monotonic()
+    answer = raw_request(server, head.encode() + b'{"changes"')
+    assert time.monotonic() - start < 5
+    assert status_of(answer) == 408 and b"did not arrive" in answer
+
+
+def test_a_body_trickled_byte_by_byte_is_cut_off(server: LabelServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(server.httpd.RequestHandlerClass, "timeout", 0.5)
+    host_, port = server.httpd.server_address[:2]
+    head = f"POST /api/labels HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+    start = time.monotonic()
+    with socket.create_connection((str(host_), int(port)), timeout=10) as sock:
+        sock.sendall(head.encode() + b"Content-Length: 1000\r\n\r\n")
+        answer = b""
+        with contextlib.suppress(OSError):
+            for _ in range(40):  # one byte every 0.1 s: each wait is short, the whole is too long
+                sock.sendall(b" ")
+                time.sleep(0.1)
+            answer = sock.recv(65536)
+        if not answer:
+            answer = sock.recv(65536)
+    assert time.monotonic() - start < 8
+    assert answer == b"" or status_of(answer) == 408
+
+
+def test_an_idle_connection_is_closed(server: LabelServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(server.httpd.RequestHandlerClass, "timeout", 0.5)
+    host_, port = server.httpd.server_address[:2]
+    with socket.create_connection((str(host_), int(port)), timeout=5) as sock:
+        sock.sendall(b"GET /api/state HTTP/1.1\r\n")  # headers that never end
+        start = time.monotonic()
+        assert sock.recv(65536) == b""
+    assert time.monotonic() - start < 4
+
+
+LABEL_CLICK = {"changes": [{"video": "cam1", "frame": 1, "point": "head", "source": "label", "x": 3, "y": 4}]}
+
+
+@pytest.mark.parametrize(
+    ("code", "reason", "status"),
+    [
+        (errno.ENOSPC, "No space left on device", 507),
+        (errno.EDQUOT, "Disk quota exceeded", 507),
+        (errno.EROFS, "Read-only file system", 503),
+        (errno.EACCES, "Permission denied", 503),
+    ],
+)
+def test_a_failed_save_tells_the_page_why(
+    server: LabelServer, workspace: Path, monkeypatch: pytest.MonkeyPatch, code: int, reason: str, status: int
+) -> None:
+    assert post(server, "/api/labels", LABEL_CLICK)[0] == 200
+    before = (workspace / "labels.csv").read_bytes()
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise OSError(code, reason)
+
+    monkeypatch.setattr(atomic.os, "fsync", fail)
+    click = {"changes": [{"video": "cam1", "frame": 2, "point": "head", "source": "label", "x": 3, "y": 4}]}
+    got, data = post(server, "/api/labels", click)
+    assert got == status
+    assert data["error"].startswith(f"cannot save labels.csv: {reason} (") and "\n" not in data["error"]
+    got, data = post(server, "/api/points", {"op": "add", "name": "knee"})
+    assert got == status and data["error"].startswith(f"cannot save labeling.json: {reason}")
+    assert (workspace / "labels.csv").read_bytes() == before
+    assert sorted(p.name for p in workspace.iterdir() if p.name.endswith(".tmp")) == []
+    monkeypatch.undo()
+    assert post(server, "/api/labels", click)[0] == 200  # the page's retry succeeds once there is room
+
+
+def test_a_broken_labels_file_is_a_503_with_its_line(server: LabelServer, workspace: Path) -> None:
+    (workspace / "labels.csv").write_text("video,frame,point,x,y,source\ncam1,zero,head,1,2,label\n")
+    status, data = post(server, "/api/labels", LABEL_CLICK)
+    assert status == 503 and "line 2" in data["error"]
+    assert request(server, "GET", "/api/labels?video=cam1")[0] == 503
+
+
+def test_a_burst_of_clicks_during_outside_edits_loses_no_click(server: LabelServer, workspace: Path) -> None:
+    path = workspace / "labels.csv"
+    stop = threading.Event()
+
+    i_last = [-1]
+
+    def outside_editor() -> None:
+        i = 0
+        while not stop.is_set():  # a text editor saving an old copy plus a row of its own
+            stale = path.read_text() if path.exists() else "video,frame,point,x,y,source\n"
+            time.sleep(0.02)
+            path.write_text(stale + f"other,{i},knee,5.000,6.000,label\n")
+            i_last[0] = i
+            i += 1
+
+    def clicker(point: str) -> None:
+        for frame in range(FRAMES):
+            change = {"video": "cam1", "frame": frame, "point": point, "source": "label", "x": frame, "y": 1}
+            assert post(server, "/api/labels", {"changes": [change]})[0] == 200
+
+    editor = threading.Thread(target=outside_editor)
+    editor.start()
+    clickers = [threading.Thread(target=clicker, args=(p,)) for p in ("head", "tail")]
+    for thread in clickers:
+        thread.start()
+    for thread in clickers:
+        thread.join()
+    stop.set()
+    editor.join()
+    last_outside_row = ("other", i_last[0], "knee")
+    data = request(server, "GET", "/api/labels?video=cam1")[1]
+    served = {(r["frame"], r["point"]) for r in json.loads(data)["labels"]}
+    clicks = {(f, p) for f in range(FRAMES) for p in ("head", "tail")}
+    assert clicks <= served
+    assert post(server, "/api/labels", LABEL_CLICK)[0] == 200
+    on_disk = set(read_labels(path))
+    assert {("cam1", f, p) for f, p in clicks} <= on_disk and last_outside_row in on_disk
+
+
+def test_interrupted_writes_leave_no_temporary_file(workspace: Path, video: Path) -> None:
+    (workspace / ".labels.csv.k1ll3d.tmp").write_text("video,frame,po")  # a server killed mid-write
+    (workspace / ".labeling.json.k1ll3d.tmp").write_text('{"points": [')
+    options = LabelOptions(videos=[video], skeleton=Skeleton(points=["head"]))
+    with LabelServer(workspace, options, track=fake_tracker) as running:
+        assert not list(workspace.glob(".label*.tmp"))
+        assert post(running, "/api/labels", LABEL_CLICK)[0] == 200
+    assert not list(workspace.glob("*.tmp")) and not list(workspace.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("method", ["PUT", "DELETE", "PATCH", "OPTIONS", "FOO"])
+def test_other_methods_are_405(server: LabelServer, method: str) -> None:
+    host, port = server.httpd.server_address[:2]
+    conn = http.client.HTTPConnection(str(host), int(port), timeout=10)
+    try:
+        conn.request(method, "/api/labels", body="{}", headers={"Content-Type": "application/json"})
+        response = conn.getresponse()
+        assert response.status == 405 and response.getheader("Allow") == "GET, HEAD, POST"
+        assert "not allowed" in json.loads(response.read())["error"]
+    finally:
+        conn.close()
