@@ -84,6 +84,29 @@ def build_problem_checked(
         if pi is None:
             continue
         uv[fi, pi] = tracks.xy[row]
+    _warn_unposed(tracks, unposed)
+    rejection = _rejection(cameras, tracks, rejected)
+    if not np.any(~np.isnan(uv[..., 0])):
+        raise NotEnoughDataError(
+            f"{tracks.path or 'tracks'}: no observation falls on a posed frame "
+            "(check video names and frame numbers against the cameras file)"
+        )
+    problem = Problem(
+        video_names=video_names,
+        video_index=np.array([vi for vi, frames in enumerate(frame_lists) for _ in frames], dtype=np.int64),
+        frames=np.array([f.frame for f in all_frames], dtype=np.int64),
+        times=np.array([np.nan if f.time is None else f.time for f in all_frames]),
+        point_names=list(names),
+        K=np.stack([f.K for f in all_frames]),
+        R=np.stack([f.R for f in all_frames]),
+        t=np.stack([f.t for f in all_frames]),
+        dist=[f.dist for f in all_frames],
+        uv=uv,
+    )
+    return problem, rejection
+
+
+def _warn_unposed(tracks: Tracks, unposed: list[int]) -> None:
     if unposed:
         log.warning(
             "%s: %d observation(s) on frames without a pose were ignored (first: %s, video %r frame %d)",
@@ -93,6 +116,10 @@ def build_problem_checked(
             tracks.video[unposed[0]],
             int(tracks.frame[unposed[0]]),
         )
+
+
+def _rejection(cameras: CameraSet, tracks: Tracks, rejected: list[int]) -> RejectedObservations:
+    """The count of rejected rows, with one warning naming the first."""
     rejection = RejectedObservations(count=len(rejected))
     if rejected:
         row = rejected[0]
@@ -112,24 +139,7 @@ def build_problem_checked(
             video.width,
             video.height,
         )
-    if not np.any(~np.isnan(uv[..., 0])):
-        raise NotEnoughDataError(
-            f"{tracks.path or 'tracks'}: no observation falls on a posed frame "
-            "(check video names and frame numbers against the cameras file)"
-        )
-    problem = Problem(
-        video_names=video_names,
-        video_index=np.array([vi for vi, frames in enumerate(frame_lists) for _ in frames], dtype=np.int64),
-        frames=np.array([f.frame for f in all_frames], dtype=np.int64),
-        times=np.array([np.nan if f.time is None else f.time for f in all_frames]),
-        point_names=list(names),
-        K=np.stack([f.K for f in all_frames]),
-        R=np.stack([f.R for f in all_frames]),
-        t=np.stack([f.t for f in all_frames]),
-        dist=[f.dist for f in all_frames],
-        uv=uv,
-    )
-    return problem, rejection
+    return rejection
 
 
 def _inside_images(cameras: CameraSet, tracks: Tracks) -> np.ndarray:
