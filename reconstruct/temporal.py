@@ -25,7 +25,7 @@ from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
 from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
-from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks
+from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, spacing_assumed
 from reconstruct.trajectory import RefineOptions, RefineResult, refine, refine_with_clocks
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,7 @@ def _recover_and_refine(
     checks = clock_checks(problem, clocks)
     if all(c.passed for c in checks):
         on_clocks = refine_on_clocks(problem, result.points, clocks, clock_options.model, options.refine)
-        checks.extend(judge.clock_fit(on_clocks.result))
+        checks.extend(judge.clock_fit(on_clocks.result, spacing_assumed(clocks)))
         if all(c.passed for c in checks):
             report.update(on_clocks.report)
             return _finish(problem, result, on_clocks.clocks, on_clocks.result, TimePath.CLOCKS, checks, report)

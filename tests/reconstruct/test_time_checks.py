@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from synthetic_motion import synthetic_problem, truth_array
 
-from reconstruct.clocks.model import Clocks
+from reconstruct.clocks.estimate import ClockOptions
+from reconstruct.clocks.model import Clocks, TimeSource
 from reconstruct.free_times import gap_spread, spectral_times
 from reconstruct.solver.alternation import solve
-from reconstruct.temporal import recover_and_refine
+from reconstruct.temporal import TemporalOptions, recover_and_refine
 from reconstruct.time_checks import MIN_DISTINCTNESS, RefinementJudge, clock_checks
 from reconstruct.trajectory import RefineOptions, RefineResult
 
@@ -51,15 +52,15 @@ def test_no_fps_and_no_times_refines_without_a_clock_model_and_beats_the_seed(no
 
 
 def test_irregular_frames_with_a_false_nominal_fps_are_refused(no_times, caplog):
-    """Decoder-less frames that claim an even 30 fps while the captures were random: the clock model fails its
-    checks and the solve is not worse than the seed."""
+    """Frames without decoder times that claim an even 30 fps while the captures were random: the clock model
+    fails its checks and the solve is not worse than the seed."""
     problem, truth, seed, _ = no_times
-    claimed = problem.frames / 30.0  # what a wrong nominal rate implies
-    irregular = dataclasses.replace(problem, times=claimed)
+    claimed = ClockOptions(fps=dict.fromkeys(problem.video_names, 30.0))  # what a wrong nominal rate implies
     with caplog.at_level(logging.WARNING):
-        temporal = recover_and_refine(irregular, seed)
+        temporal = recover_and_refine(problem, seed, TemporalOptions(clocks=claimed))
+    assert {c.time_source for c in temporal.clocks.videos} == {TimeSource.FPS}
     assert temporal.report["path"] in ("free_times", "seed")
-    assert any(not c["passed"] for c in temporal.report["checks"])
+    assert any(not c["passed"] for c in temporal.report["checks"]) and "clock model not used" in caplog.text
     assert _share(temporal.points, truth) >= _share(seed.points, truth)
 
 
