@@ -57,8 +57,9 @@ def _remember(namespace: argparse.Namespace, dest: str) -> None:
     given.add(dest)
 
 
-class _Store(argparse._StoreAction):
-    """Store, and note that the user gave the option (a mode's own defaults apply otherwise)."""
+class _Given(argparse.Action):
+    """Mixed into an argparse action: also note that the user gave the option (a mode's own defaults apply
+    otherwise)."""
 
     def __call__(
         self,
@@ -71,40 +72,20 @@ class _Store(argparse._StoreAction):
         _remember(namespace, self.dest)
 
 
-class _StoreTrue(argparse._StoreTrueAction):
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        super().__call__(parser, namespace, values, option_string)
-        _remember(namespace, self.dest)
+class _Store(_Given, argparse._StoreAction):
+    pass
 
 
-class _StoreFalse(argparse._StoreFalseAction):
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        super().__call__(parser, namespace, values, option_string)
-        _remember(namespace, self.dest)
+class _StoreTrue(_Given, argparse._StoreTrueAction):
+    pass
 
 
-class _Boolean(argparse.BooleanOptionalAction):
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        super().__call__(parser, namespace, values, option_string)
-        _remember(namespace, self.dest)
+class _StoreFalse(_Given, argparse._StoreFalseAction):
+    pass
+
+
+class _Boolean(_Given, argparse.BooleanOptionalAction):
+    pass
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
