@@ -99,13 +99,18 @@ def _monotone(times: np.ndarray, video_index: np.ndarray, frames: np.ndarray) ->
 
 
 def refine_free_times(
-    problem: Problem, points: np.ndarray, W: sp.spmatrix, options: RefineOptions | None = None
+    problem: Problem,
+    points: np.ndarray,
+    W: sp.spmatrix,
+    options: RefineOptions | None = None,
+    rays: np.ndarray | None = None,
 ) -> FreeTimes:
-    """Trajectories and per-frame times without any clock model, started from the seed `points (F, P, 3)`."""
+    """Trajectories and per-frame times without any clock model, started from the seed `points (F, P, 3)`;
+    `rays (F, P, 3)`: `viewing_rays(problem)` when the caller has them."""
     options = options or RefineOptions()
     times = spectral_times(W, problem.video_index, problem.frames)
-    rays = viewing_rays(problem)
-    centers = -np.einsum("fji,fj->fi", problem.R, problem.t)  # (F, 3) camera centres
+    rays = viewing_rays(problem) if rays is None else rays
+    centers = problem.centers  # (F, 3)
     history: list[float] = []
     result = refine(problem, points, times, options)
     history.append(_median_residual(result))
@@ -208,7 +213,7 @@ def reprojection_px(problem: Problem, points: np.ndarray, rays: np.ndarray | Non
     """(F, P) distance of every point from its frame's ray in pixels at its depth (ray distance x focal / depth);
     NaN where unobserved."""
     rays = viewing_rays(problem) if rays is None else rays
-    centers = -np.einsum("fji,fj->fi", problem.R, problem.t)
+    centers = problem.centers
     offset = points - centers[:, None, :]
     along = np.einsum("fpk,fpk->fp", offset, rays)
     distance = np.linalg.norm(offset - along[..., None] * rays, axis=-1)

@@ -122,7 +122,9 @@ class RefinementJudge:
 
     def free(self) -> FreeTimes:
         if self._free is None:
-            self._free = refine_free_times(self.problem, self.result.points, self.result.W.to_csc(), self.options)
+            self._free = refine_free_times(
+                self.problem, self.result.points, self.result.W.to_csc(), self.options, self.rays
+            )
         return self._free
 
     def clock_fit(self, refined: RefineResult, assumed: bool = True) -> list[Check]:
@@ -191,7 +193,7 @@ class RefinementJudge:
     def shifts_px(self, points: np.ndarray) -> np.ndarray:
         """(F, P) distance of `points` from the seed's, in pixels at the seed point's distance from the camera."""
         problem, seed = self.problem, self.result.points
-        centers = -np.einsum("fji,fj->fi", problem.R, problem.t)
+        centers = problem.centers
         depth = np.linalg.norm(seed - centers[:, None, :], axis=-1)
         return np.linalg.norm(points - seed, axis=-1) * problem.K[:, 0, 0][:, None] / np.maximum(depth, 1e-9)
 

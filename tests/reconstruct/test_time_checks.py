@@ -88,7 +88,7 @@ def test_a_refinement_that_raises_the_residual_is_rejected(no_times):
     assert not fit.passed and fit.value > fit.limit
     assert judge.seed_agreement(good, "free_times")[0].passed
     # On the rays but at other depths: fits perfectly, disagrees with the seed far beyond its residual.
-    centers = -np.einsum("fji,fj->fi", problem.R, problem.t)[:, None, :]
+    centers = problem.centers[:, None, :]
     shifted = dataclasses.replace(worse, points=centers + 1.02 * (seed.points - centers))
     assert not judge.seed_agreement(shifted, "free_times")[0].passed
 
