@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -32,17 +33,11 @@ class VideoInfo:
 
 
 def probe_video(name: str, path: Path) -> VideoInfo:
-    """Open a video once to learn its size; raises InputError when OpenCV cannot decode it."""
-    cap = cv2.VideoCapture(str(path))
+    """Open a video once to learn its (upright) size; raises InputError when OpenCV cannot decode it."""
+    cap = video_io.open_video(path)
     try:
-        if not cap.isOpened():
-            raise InputError(
-                path,
-                "OpenCV cannot open this video",
-                fix="use a format OpenCV decodes here (mp4 with H.264/HEVC/mp4v, avi MJPG, ...)",
-            )
-        ok, frame = cap.read()
-        if not ok or frame is None:
+        frame = video_io.read(cap)
+        if frame is None:
             raise InputError(path, "no frame could be decoded", fix="check the codec (AV1 is not supported)")
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -96,7 +91,11 @@ class _Reader:
 
     def _read(self, index: int) -> np.ndarray | None:
         if self.cap is None:
-            self.cap = cv2.VideoCapture(str(self.info.path))
+            try:
+                self.cap = video_io.open_video(self.info.path)
+            except InputError as error:
+                log.warning("%s", error)  # the file went away after startup: no frame, not a server error
+                return None
             self.next_index = 0
         # A short forward gap is cheaper to decode through than a seek to the previous keyframe.
         if not (self.next_index <= index <= self.next_index + 8):
@@ -107,12 +106,12 @@ class _Reader:
                 self._close()
                 return self._read(index)
         while self.next_index < index:
-            if not self.cap.grab():
+            if not video_io.grab(self.cap):
                 self._close()
                 return None
             self.next_index += 1
-        ok, frame = self.cap.read()
-        if not ok:
+        frame = video_io.read(self.cap)
+        if frame is None:
             self._close()
             return None
         self.next_index += 1
@@ -124,24 +123,22 @@ class _Reader:
             self.cap = None
 
     def scan(self, stop: threading.Event) -> None:
-        cap = cv2.VideoCapture(str(self.info.path))
         try:
-            while not stop.is_set():
-                ok, frame = cap.read()
-                if not ok:
-                    break
+            cap = video_io.open_video(self.info.path)
+        except InputError as error:
+            # The file went away or changed after startup: keep the container's count, the page still runs.
+            log.warning("%s", error)
+            return
+        try:
+            while not stop.is_set() and (frame := video_io.read(cap)) is not None:
                 self.fingerprints.append(fingerprint(frame))
         finally:
             cap.release()
         if not stop.is_set():
             self.scanned = True
-            if len(self.fingerprints) != self.info.frames:
-                log.info(
-                    "%s: %d frames decoded (the container says %d)",
-                    self.info.path,
-                    len(self.fingerprints),
-                    self.info.frames,
-                )
+            missing = video_io.count_message(self.info.path, len(self.fingerprints), self.info.frames)
+            if missing:
+                log.warning("%s", missing)
 
     def close(self) -> None:
         with self.lock:

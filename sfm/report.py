@@ -77,16 +77,31 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
         "motion_test": video.motion.to_json() if video.motion is not None else "set by --camera-motion",
         "posed_by": _posed_by(sources),
         "frames_in_video": video.info.num_frames,
+        "frames_expected": video.info.expected_frames,
+        "frames_missing": video.info.missing,
+        "rotation_deg": video.info.rotation,
         "frames_given": len(video.wanted),
         "sfm_frames": len(video.sfm_frames),
         "registered": len(posed),
         "registered_by_sfm": sum(1 for r in posed if r.source == "sfm"),
-        "registered_by_pnp": sum(1 for r in posed if r.source is not None and r.source.startswith("pnp")),
+        "registered_by_pnp": sum(1 for r in posed if r.source is not None and r.source.startswith(("pnp", "tracked"))),
+        "registered_by_tracking": sum(1 for r in posed if r.source == "tracked"),
         "registered_by_static": sum(1 for r in posed if r.source == "static"),
         "registered_by_subject": sum(1 for r in posed if r.source == "subject"),
         "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
         "failed": failed,
+        "posed": [
+            {"frame": int(f), "path": _path(r.source), "inliers": r.inliers}
+            for f, r in sorted(per_frame.items())
+            if r.pose is not None
+        ],
     }
+
+
+def _path(source: str | None) -> str:
+    """How a frame was posed, in the report's words: sfm, tracked, sift (PnP of its SIFT features), static or
+    subject."""
+    return "sift" if source is not None and source.startswith("pnp") else source or "unknown"
 
 
 def _posed_by(sources: list[str]) -> str:
@@ -97,4 +112,4 @@ def _posed_by(sources: list[str]) -> str:
         return "subject"
     if "static" in sources:
         return "static (background SfM)"
-    return "background SfM + PnP" if any(s.startswith("pnp") for s in sources) else "background SfM"
+    return "background SfM + PnP" if any(s.startswith(("pnp", "tracked")) for s in sources) else "background SfM"

@@ -2,6 +2,7 @@
 
 Timestamps come from the decoder (`CAP_PROP_POS_MSEC` after each grab), not from the container's frame rate,
 because phone videos often have a variable frame rate and the container's FPS/frame count are only nominal.
+Opening, orientation (upright) and skipping damaged packets are `dynrecon.video_io`'s, shared by every reader.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.errors import InputError
 from dynrecon.readers import check_video_name
 
@@ -25,7 +27,8 @@ VFR_TOLERANCE = 0.05
 
 @dataclass(kw_only=True)
 class ProbedVideo:
-    """What the decoder says about one video. `times`: (F,) seconds of each decoded frame from the first."""
+    """What the decoder says about one video. `times`: (F,) seconds of each decoded frame from the first;
+    `width`, `height`: of the upright frames, after the container's rotation flag (`rotation` degrees)."""
 
     path: Path
     name: str
@@ -33,6 +36,9 @@ class ProbedVideo:
     height: int
     times: np.ndarray
     nominal_fps: float | None
+    rotation: int = 0
+    expected_frames: int | None = None  # the container's frame count; more than num_frames when frames are lost
+    missing: str | None = None  # the one-line warning saying how many frames are missing and where
 
     @property
     def num_frames(self) -> int:
@@ -58,84 +64,83 @@ def video_name(path: Path) -> str:
     return check_video_name(path.stem, path)
 
 
-def _open(path: Path) -> cv2.VideoCapture:
-    if path.is_dir():
-        raise InputError(path, "is a directory, not a video file", fix="give the video files themselves")
-    if not path.exists():
-        raise InputError(path, "file not found")
-    if path.stat().st_size == 0:
-        raise InputError(path, "file is empty (0 bytes)", fix="copy the video again")
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise InputError(
-            path,
-            "OpenCV cannot open this video",
-            fix="convert it to H.264 MP4 (e.g. ffmpeg -i in -c:v libx264 out.mp4)",
-        )
-    return capture
-
-
 def probe_video(path: str | Path) -> ProbedVideo:
-    """Decode every frame header once to count frames and read their timestamps."""
+    """Decode every frame once to count frames and read their timestamps; warns when frames are missing."""
     path = Path(path)
-    video_name(path)  # before decoding the whole video, not after
-    capture = _open(path)
+    name = video_name(path)  # before decoding the whole video, not after
+    capture = video_io.open_video(path)
     try:
         nominal = capture.get(cv2.CAP_PROP_FPS)
-        times: list[float] = []
-        width = height = 0
-        while capture.grab():
-            times.append(capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
-            if not width:
-                ok, image = capture.retrieve()
-                if ok:
-                    height, width = image.shape[:2]
+        expected = video_io.expected_frames(capture)
+        times, (height, width) = _decode_times(capture, path)
+        rotation = video_io.rotation(capture)
     finally:
         capture.release()
-    if not times or not width:
+    missing = video_io.missing_message(path, times, expected)
+    if missing:
+        log.warning("%s", missing)
+    info = ProbedVideo(
+        path=path,
+        name=name,
+        width=width,
+        height=height,
+        times=_increasing(times, nominal, path),
+        nominal_fps=float(nominal) if nominal and nominal > 0 else None,
+        rotation=rotation,
+        expected_frames=expected,
+        missing=missing,
+    )
+    if info.variable_frame_rate and not missing:  # missing frames make the steps uneven; that warning says so
+        steps = np.diff(info.times)
+        log.warning(
+            "%s: variable frame rate (intervals %.1f-%.1f ms); per-frame decoder timestamps are used",
+            path,
+            1000 * steps.min(),
+            1000 * steps.max(),
+        )
+    return info
+
+
+def _decode_times(capture: cv2.VideoCapture, path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+    """(F,) decoder timestamps in seconds, and the (height, width) of the first frame."""
+    times: list[float] = []
+    shape = (0, 0)
+    while video_io.grab(capture):
+        times.append(capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+        if not shape[0]:
+            ok, image = capture.retrieve()
+            shape = image.shape[:2] if ok else shape
+    if not times or not shape[0]:
         raise InputError(
             path, "no decodable frames", fix="check the file plays; AV1 is not supported, convert to H.264"
         )
-    stamps = np.asarray(times, dtype=float)
+    return np.asarray(times, dtype=float), (int(shape[0]), int(shape[1]))
+
+
+def _increasing(stamps: np.ndarray, nominal: float, path: Path) -> np.ndarray:
+    """The timestamps from the first frame, or the nominal rate's when the decoder's do not increase."""
     if np.any(np.diff(stamps) <= 0):
         # Some containers report no timestamps (all 0): use the nominal rate rather than invent an order.
-        if nominal and nominal > 0:
-            log.warning("%s: decoder timestamps not increasing; using the nominal %.3f fps", path, nominal)
-            stamps = np.arange(len(times)) / nominal
-        else:
+        if not (nominal and nominal > 0):
             raise InputError(
                 path,
                 "decoder timestamps are not increasing and the frame rate is unknown",
                 fix="re-encode the video with a constant frame rate",
             )
-    stamps = stamps - stamps[0]
-    info = ProbedVideo(
-        path=path,
-        name=video_name(path),
-        width=width,
-        height=height,
-        times=stamps,
-        nominal_fps=float(nominal) if nominal and nominal > 0 else None,
-    )
-    if info.variable_frame_rate:
-        log.warning(
-            "%s: variable frame rate (intervals %.1f-%.1f ms); per-frame decoder timestamps are used",
-            path,
-            1000 * np.diff(stamps).min(),
-            1000 * np.diff(stamps).max(),
-        )
-    return info
+        log.warning("%s: decoder timestamps not increasing; using the nominal %.3f fps", path, nominal)
+        return np.arange(len(stamps)) / nominal
+    return stamps - stamps[0]
 
 
 def read_frames(path: Path, frames: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
     """Yield (frame number, BGR image) for the decoded frame numbers `frames`, in increasing order."""
     wanted = sorted(int(f) for f in frames)
-    capture = _open(path)
+    capture = video_io.open_video(path)
     try:
         index = -1
         for target in wanted:
             while index < target:
-                if not capture.grab():
+                if not video_io.grab(capture):
                     raise InputError(path, f"frame {target} cannot be decoded", fix="the video may be truncated")
                 index += 1
             ok, image = capture.retrieve()

@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.errors import InputError
 from tracking.tracks import Tracks
 
@@ -145,23 +146,14 @@ def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np
     """(frame (N,), corner id (N,), xy (N, 2), decoded frame count) for one video."""
     if not path.is_file():
         raise InputError(path, "video file not found" if not path.exists() else "not a video file")
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise InputError(
-            path,
-            "OpenCV cannot open this video",
-            fix="convert it to H.264 MP4 (e.g. ffmpeg -i in -c:v libx264 out.mp4)",
-        )
+    capture = video_io.open_video(path)
     detector = cv2.aruco.CharucoDetector(board.opencv())
     frames: list[np.ndarray] = []
     ids: list[np.ndarray] = []
     xy: list[np.ndarray] = []
     index = 0
     try:
-        while True:
-            ok, image = capture.read()
-            if not ok:
-                break
+        while (image := video_io.read(capture)) is not None:
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
             corner_ids, corner_xy = detect_corners(gray, detector, inverted=board.inverted)
             if len(corner_ids) >= min_corners:

@@ -17,6 +17,7 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -87,7 +88,8 @@ def _fingerprint(gray: np.ndarray) -> int:
 
 
 class VideoFrames:
-    """Grayscale frames decoded from a video file with `cv2.VideoCapture`, with an LRU cache of `cache_bytes`.
+    """Grayscale frames decoded from a video file (upright, through `dynrecon.video_io` like every reader), with
+    an LRU cache of `cache_bytes`.
 
     Sequential reading is exact for every codec; seeking (`CAP_PROP_POS_FRAMES`) is not for all of them. So
     the file is read once from start to end at open (which also gives the exact frame count and a fingerprint
@@ -143,20 +145,12 @@ class VideoFrames:
 
     # -- internals --
     def _open(self) -> cv2.VideoCapture:
-        cap = cv2.VideoCapture(str(self.path))
-        if not cap.isOpened():
-            raise InputError(
-                self.path, "cannot open the video (unknown container or codec)", fix="convert it to H.264/HEVC/VP9 mp4"
-            )
-        return cap
+        return video_io.open_video(self.path)
 
     def _scan(self) -> None:
         self._cap = self._open()
         self._next = 0
-        while True:
-            ok, frame = self._cap.read()
-            if not ok:
-                break
+        while (frame := video_io.read(self._cap)) is not None:
             gray = to_gray(frame)
             self._fingerprints.append(_fingerprint(gray))
             self._shape = gray.shape[:2]
@@ -176,8 +170,8 @@ class VideoFrames:
 
     def _read_next(self) -> None:
         assert self._cap is not None  # _seek or _scan opened it
-        ok, frame = self._cap.read()
-        if not ok:
+        frame = video_io.read(self._cap)
+        if frame is None:
             raise InputError(
                 self.path,
                 f"frame {self._next} could not be decoded on a second read",
@@ -218,6 +212,6 @@ class VideoFrames:
             self._cap = self._open()
             self._next = 0
         while self._next < index:
-            if not self._cap.grab():
+            if not video_io.grab(self._cap):
                 raise InputError(self.path, f"frame {self._next} could not be decoded on a second read")
             self._next += 1
