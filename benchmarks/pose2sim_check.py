@@ -2,9 +2,13 @@
 subsets against triangulation from the lab calibration on synchronized frames.
 
     python benchmarks/pose2sim_check.py [--work /tmp/pose2sim_check] [--labels tests/data/pose2sim/labels.csv]
+        [--cameras lab|subject-intrinsics|subject]
 
 Steps (all in mm, world frame of the QCA calibration):
 1. cameras: `import-calibration` of the lab's QCA file (`--scale 1000`: mm), every frame of every video posed;
+   with `--cameras subject[-intrinsics]` the solve gets instead the cameras that `register --subject always` finds
+   from the committed OpenPose detections (tests/data/pose2sim/openpose_tracks.csv), moved onto the lab's frame
+   and mm by one similarity (their own units are arbitrary), while the reference below keeps the lab's;
 2. tracks: `dynrecon track` of the committed labels through every frame of each video (LK);
 3. desynchronization as in the seed paper: camera k keeps frames k, k+4, k+8, ... (no two cameras share an
    instant); the solver gets only those posed frames and the tracks on them (original frame numbers and times);
@@ -51,10 +55,12 @@ from scipy.optimize import least_squares
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from dynrecon.cli import main as dynrecon_main
 from reconstruct import stage as solve_stage
 from reconstruct.outputs.points import read_points
 from sfm import calibration as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras, write_cameras
+from sfm.evaluate import compare
 from tracking import stage as track_stage
 from tracking.tracks import Tracks, read_tracks, write_tracks
 
@@ -63,6 +69,7 @@ log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
 DEMO = Path("data") / "videos" / "pose2sim_demo"
 LABELS = REPO / "tests" / "data" / "pose2sim" / "labels.csv"
+OPENPOSE = LABELS.parent / "openpose_tracks.csv"
 STRIDE = 4  # camera k keeps frames k, k+STRIDE, ...: 4 cameras, no shared instant
 # Decoder times of the demo share one origin (the videos are synchronized); a sync-free solve must not profit from
 # that: `--shift-clocks` adds these per-video offsets (s) to the times the solver sees, as unsynchronized phones
@@ -223,8 +230,41 @@ def shift_clocks(cameras: CameraSet, shifts: tuple[float, ...] = CLOCK_SHIFTS) -
     return out
 
 
+def subject_cameras(demo: Path, videos: list[Path], work: Path, lab: CameraSet, *, intrinsics: bool) -> CameraSet:
+    """`dynrecon register --subject always` from the committed OpenPose detections (no calibration object, no
+    sync), then one similarity onto the lab's cameras: the subject path's units and frame are arbitrary, and the
+    reference below is in the lab's mm frame. The similarity fixes only that gauge; every relative pose, focal and
+    distortion stays as the subject path found it."""
+    ws = work / "subject"
+    ws.mkdir(parents=True, exist_ok=True)
+    (ws / "tracks.csv").write_bytes(OPENPOSE.read_bytes())
+    extra = ["--intrinsics", str(demo / "calibration" / "Calib.qca.txt")] if intrinsics else []
+    code = dynrecon_main(["register", *(str(v) for v in videos), "--out", str(ws), "--subject", "always", *extra])
+    if code != 0:
+        raise SystemExit(f"register failed (exit {code}); see {ws / 'register_report.json'}")
+    found = read_cameras(ws / "cameras.json")
+    first = CameraSet(videos=[dataclasses.replace(v, frames=v.frames[:1]) for v in found.videos if v.frames])
+    alignment = compare(first, CameraSet(videos=[dataclasses.replace(v, frames=v.frames[:1]) for v in lab.videos]))
+    s, R, t = alignment.scale, alignment.rotation, alignment.translation
+    out = CameraSet()
+    for video in found.videos:
+        frames = []
+        for f in video.frames:
+            R_new = f.R @ R.T  # world_lab = s R world + t  ->  cam_from_lab = R_cam R^T, centre s R c + t
+            centre = s * R @ f.center + t
+            frames.append(dataclasses.replace(f, R=R_new, t=-R_new @ centre))
+        out.videos.append(dataclasses.replace(video, frames=frames))
+    return out
+
+
 def run_check(
-    shared: Path, work: Path, labels: Path = LABELS, *, search: bool = True, clock_shifts: bool = False
+    shared: Path,
+    work: Path,
+    labels: Path = LABELS,
+    *,
+    search: bool = True,
+    clock_shifts: bool = False,
+    cameras_from: str = "lab",
 ) -> CheckResult:
     demo = shared / DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
@@ -238,15 +278,22 @@ def run_check(
         import_calibration.ImportCalibrationOptions(scale=1000.0),
     )
     seconds["import"] = time.perf_counter() - started
+    if cameras_from != "lab":
+        lab = read_cameras(work / "cameras.json")
+        started = time.perf_counter()
+        found = subject_cameras(demo, list(videos), work, lab, intrinsics=cameras_from == "subject-intrinsics")
+        seconds["register"] = time.perf_counter() - started
+        write_cameras(work / "solve_cameras.json", found)
 
     started = time.perf_counter()
     (work / "labels.csv").write_bytes(labels.read_bytes())
     track_stage.run(work, work / "tracks.csv", videos={v.stem: v for v in videos})
     seconds["track"] = time.perf_counter() - started
 
-    cameras = read_cameras(work / "cameras.json")
+    cameras = read_cameras(work / "cameras.json")  # the lab's: the reference triangulates with them
     tracks = read_tracks(work / "tracks.csv")
-    desync_cameras, desync_tracks = desynchronize(cameras, tracks)
+    solve_cameras = cameras if cameras_from == "lab" else read_cameras(work / "solve_cameras.json")
+    desync_cameras, desync_tracks = desynchronize(solve_cameras, tracks)
     if clock_shifts:
         desync_cameras = shift_clocks(desync_cameras)
     write_cameras(work / "desync" / "cameras.json", desync_cameras)
@@ -354,13 +401,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--shift-clocks", action="store_true", help=f"add {CLOCK_SHIFTS} s to the videos' frame times the solver sees"
     )
+    parser.add_argument(
+        "--cameras",
+        choices=("lab", "subject-intrinsics", "subject"),
+        default="lab",
+        help="the solve's cameras: the lab calibration, or `register --subject always` from the committed OpenPose "
+        "detections with / without the lab's intrinsics",
+    )
     parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
     if not (args.shared / DEMO).is_dir():
         print(f"needs {args.shared / DEMO} (the shared data folder)")
         return 1
-    result = run_check(args.shared, args.work, args.labels, clock_shifts=args.shift_clocks)
+    result = run_check(args.shared, args.work, args.labels, clock_shifts=args.shift_clocks, cameras_from=args.cameras)
     print(table(result))
     return 0
 

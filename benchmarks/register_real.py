@@ -11,7 +11,13 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-auto: the desynchronized videos with the corner tracks, default options (background, then subject);
 - pose2sim-background: the 4 lab cameras, background only;
 - pose2sim-subject: the committed labels (tests/data/pose2sim) tracked through the videos, `--subject always`,
-  with and without the lab intrinsics (`pose2sim-subject-intrinsics`).
+  with and without the lab intrinsics (`pose2sim-subject-intrinsics`);
+- pose2sim-openpose: the committed OpenPose detections (tests/data/pose2sim/openpose_tracks.csv), the videos and
+  the detections desynchronized by dropping different leading frames per camera, `--subject always`, with and
+  without the lab intrinsics (`pose2sim-openpose-intrinsics`);
+- caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
+  mapping), the simpler method a user would try first; its models are scored pair by pair (relative rotation,
+  and the direction of the baseline seen from the first camera), since it splits the videos over models.
 
 Per case: videos posed and by which path, seconds per stage, and after a similarity to the rig's calibration
 (rotation from the orientations, scale and shift from the centres: `sfm.evaluate.compare`) the worst centre error
@@ -23,7 +29,9 @@ about a frame). Needs ../shared (exits with a message otherwise).
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -45,7 +53,9 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "videos"
 CALISCOPE = SHARED / "caliscope_office"
 POSE2SIM = SHARED / "pose2sim_demo"
 LABELS = Path(__file__).resolve().parents[1] / "tests" / "data" / "pose2sim" / "labels.csv"
+OPENPOSE = LABELS.parent / "openpose_tracks.csv"
 DROPPED = {"cam_0": 0, "cam_1": 4, "cam_2": 9, "cam_3": 2}  # leading frames dropped per camera (desync)
+DROPPED_POSE2SIM = {"cam01": 0, "cam02": 3, "cam03": 7, "cam04": 1}
 CASES = (
     "caliscope-background",
     "caliscope-background-intrinsics",
@@ -55,6 +65,9 @@ CASES = (
     "pose2sim-background",
     "pose2sim-subject",
     "pose2sim-subject-intrinsics",
+    "pose2sim-openpose",
+    "pose2sim-openpose-intrinsics",
+    "caliscope-plain",
 )
 
 
@@ -99,17 +112,16 @@ def score(cameras: CameraSet, truth: CameraSet) -> dict[str, Any]:
     }
 
 
-def desynchronized_caliscope(work: Path) -> list[Path]:
-    """The office videos without their first DROPPED[name] frames (mp4v, same nominal rate)."""
-    out = work / "caliscope_desync"
+def desynchronized(sources: dict[str, Path], dropped: dict[str, int], out: Path) -> list[Path]:
+    """The videos without their first dropped[name] frames (mp4v, same nominal rate), in out/."""
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, drop in DROPPED.items():
+    for name, source in sources.items():
         target = out / f"{name}.mp4"
         paths.append(target)
         if target.exists():
             continue
-        capture = cv2.VideoCapture(str(CALISCOPE / "calibration" / "extrinsic" / f"{name}.mp4"))
+        capture = cv2.VideoCapture(str(source))
         fps = capture.get(cv2.CAP_PROP_FPS)
         writer = None
         index = 0
@@ -117,7 +129,7 @@ def desynchronized_caliscope(work: Path) -> list[Path]:
             ok, image = capture.read()
             if not ok:
                 break
-            if index >= drop:
+            if index >= dropped[name]:
                 if writer is None:
                     h, w = image.shape[:2]
                     writer = cv2.VideoWriter(str(target), cv2.VideoWriter.fourcc(*"mp4v"), fps, (w, h))
@@ -127,6 +139,29 @@ def desynchronized_caliscope(work: Path) -> list[Path]:
         if writer is not None:
             writer.release()
     return paths
+
+
+def desynchronized_caliscope(work: Path) -> list[Path]:
+    """The office videos without their first DROPPED[name] frames."""
+    sources = {name: CALISCOPE / "calibration" / "extrinsic" / f"{name}.mp4" for name in DROPPED}
+    return desynchronized(sources, DROPPED, work / "caliscope_desync")
+
+
+def desynchronized_pose2sim(work: Path) -> tuple[list[Path], Path]:
+    """The lab videos without their first DROPPED_POSE2SIM[name] frames, and the OpenPose tracks renumbered to
+    match (rows of dropped frames left out)."""
+    sources = {name: POSE2SIM / "videos" / f"{name}.mp4" for name in DROPPED_POSE2SIM}
+    videos = desynchronized(sources, DROPPED_POSE2SIM, work / "pose2sim_desync")
+    tracks = work / "pose2sim_desync" / "openpose_tracks.csv"
+    with OPENPOSE.open(newline="", encoding="utf-8") as source, tracks.open("w", newline="", encoding="utf-8") as out:
+        reader = csv.DictReader(source)
+        writer = csv.DictWriter(out, fieldnames=list(reader.fieldnames or []), lineterminator="\n")
+        writer.writeheader()
+        for row in reader:
+            frame = int(row["frame"]) - DROPPED_POSE2SIM[row["video"]]
+            if frame >= 0:
+                writer.writerow({**row, "frame": str(frame)})
+    return videos, tracks
 
 
 def caliscope_true_offsets() -> dict[str, float]:
@@ -143,6 +178,8 @@ def caliscope_true_offsets() -> dict[str, float]:
 
 
 def run_case(case: str, work: Path) -> dict[str, Any]:
+    if case == "caliscope-plain":
+        return plain_pycolmap(work / case)
     ws = work / case
     ws.mkdir(parents=True, exist_ok=True)
     for stale in ("cameras.json", "register_report.json", "tracks.csv"):
@@ -176,11 +213,16 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             track_stage.run(ws, ws / "tracks.csv", videos={v.stem: v for v in videos})
             tracking_s = time.perf_counter() - started
             true_offsets = {v.stem: 0.0 for v in videos}  # synchronized to about a frame
+        elif "openpose" in case:
+            videos, tracks = desynchronized_pose2sim(work)
+            (ws / "tracks.csv").write_bytes(tracks.read_bytes())
+            # global = own + offset; the originals are synchronized to about a frame
+            true_offsets = {name: drop / 60.0 for name, drop in DROPPED_POSE2SIM.items()}
         if "intrinsics" in case:
             args += ["--intrinsics", str(POSE2SIM / "calibration" / "Calib.qca.txt")]
     if "background" in case:
         args += ["--subject", "never"]
-    elif "subject" in case:
+    elif "subject" in case or "openpose" in case:
         args += ["--subject", "always"]
     started = time.perf_counter()
     code = dynrecon(["register", *(str(v) for v in videos), "--out", str(ws), *args])
@@ -209,6 +251,72 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             }
         row["pairs"] = [(p["videos"], p["runner_up_ratio"], p["degenerate"]) for p in subject.get("pairs", [])]
     return row
+
+
+def plain_pycolmap(ws: Path, per_video: int = 5) -> dict[str, Any]:
+    """pycolmap's defaults on `per_video` evenly spaced frames of each office video (one camera per image, as a
+    user's first try), scored pair by pair within each model against camera_array.toml."""
+    import pycolmap
+
+    shutil.rmtree(ws, ignore_errors=True)
+    images = ws / "images"
+    images.mkdir(parents=True)
+    names = [f"cam_{i}" for i in range(4)]
+    started = time.perf_counter()
+    for name in names:
+        capture = cv2.VideoCapture(str(CALISCOPE / "calibration" / "extrinsic" / f"{name}.mp4"))
+        frames = []
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                break
+            frames.append(image)
+        capture.release()
+        for index in np.linspace(0, len(frames) - 1, per_video).round().astype(int):
+            cv2.imwrite(str(images / f"{name}_{index:04d}.jpg"), frames[index])
+    database = ws / "database.db"
+    pycolmap.extract_features(database, images, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    models = pycolmap.incremental_mapping(database, images, ws / "sparse")
+    wall = time.perf_counter() - started
+    truth = {c.name: c for c in read_calibration(CALISCOPE / "camera_array.toml")}
+    posed: dict[str, str] = {name: "none" for name in names}
+    pairs = []
+    for index, model in models.items():
+        by_video: dict[str, Any] = {}
+        for image in model.images.values():
+            by_video.setdefault(image.name[:5], image)  # static cameras: one image stands for its video
+        for name in by_video:
+            posed[name] = f"model {index}" if posed[name] == "none" else posed[name]
+        videos = sorted(by_video)
+        for n, a in enumerate(videos):
+            for b in videos[n + 1 :]:
+                pairs.append(_pair_errors(a, b, by_video[a].cam_from_world(), by_video[b].cam_from_world(), truth))
+    return {
+        "case": "caliscope-plain",
+        "exit": 0,
+        "wall_s": round(wall, 1),
+        "posed": posed,
+        "pairs_vs_truth": pairs,
+        "rotation_deg": max((p["rotation_deg"] for p in pairs), default=None),
+        "baseline_direction_deg": max((p["baseline_direction_deg"] for p in pairs), default=None),
+    }
+
+
+def _pair_errors(a: str, b: str, pose_a: Any, pose_b: Any, truth: dict[str, Any]) -> dict[str, Any]:
+    """Relative rotation error and the error of the baseline's direction seen from camera a (degrees)."""
+    Ra, Rb = pose_a.rotation.matrix(), pose_b.rotation.matrix()
+    ca, cb = -Ra.T @ pose_a.translation, -Rb.T @ pose_b.translation
+    true_a, true_b = truth[a], truth[b]
+    delta = (Rb @ Ra.T) @ (true_b.R @ true_a.R.T).T
+    seen = Ra @ (cb - ca)
+    true_seen = true_a.R @ (true_b.center - true_a.center)
+    cosine = seen @ true_seen / (np.linalg.norm(seen) * np.linalg.norm(true_seen))
+    return {
+        "videos": [a, b],
+        "rotation_deg": round(float(np.degrees(np.arccos(np.clip((np.trace(delta) - 1) / 2, -1, 1)))), 2),
+        "baseline_direction_deg": round(float(np.degrees(np.arccos(np.clip(cosine, -1, 1)))), 2),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

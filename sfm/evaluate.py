@@ -33,6 +33,9 @@ class PoseComparison:
     center_errors: np.ndarray  # (N,)
     rotation_errors_deg: np.ndarray  # (N,)
     scale: float  # reference units per estimated unit
+    # The alignment: x_reference = scale * rotation @ x_estimated + translation.
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
 
     def summary(self) -> dict[str, float]:
         return {
@@ -79,5 +82,10 @@ def compare(estimated: CameraSet, reference: CameraSet) -> PoseComparison:
         delta = e.R @ R.T @ r.R.T
         rotation_errors.append(np.degrees(np.arccos(np.clip((np.trace(delta) - 1) / 2, -1, 1))))
     return PoseComparison(
-        keys=keys, center_errors=center_errors, rotation_errors_deg=np.array(rotation_errors), scale=s
+        keys=keys,
+        center_errors=center_errors,
+        rotation_errors_deg=np.array(rotation_errors),
+        scale=s,
+        rotation=R,
+        translation=t,
     )

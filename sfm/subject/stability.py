@@ -115,6 +115,13 @@ def check_stability(
             f" ({failures[0]})" if failures else ""
         )
         log.warning("subject path: poses unverified: %s", out.why_unchecked)
+        for name in unverified:
+            # A pose that two thirds of the same tracks cannot reproduce is not determined by them.
+            out.unstable[name] = (
+                "not verified: no fold of the tracks (two thirds of them) poses it"
+                + (f" ({failures[0]})" if failures else "")
+                + "; track more points or a longer, more varied motion, or give --intrinsics"
+            )
     for name, value in out.centre.items():
         if value > MAX_CENTRE and name not in out.unstable:
             out.unstable[name] = (
