@@ -5,7 +5,8 @@
   overlaps (cam_1 faces the others across the room), so the board's corners, detected by OpenCV's aruco module and
   desynchronized by dropping different leading frames per video, are the subject that poses the cameras;
 - pose2sim lab (4 static cameras): the committed labels tracked by LK give only 3-5 slowly moving markers, which do
-  not determine the cameras; the result must say so instead of reporting wrong poses.
+  not determine the cameras; the result must say so instead of reporting wrong poses. Pose2Sim's own OpenPose
+  detections of the same person (tests/data/pose2sim/openpose_tracks.csv) do, with the lab's intrinsics.
 """
 
 from __future__ import annotations
@@ -116,3 +117,17 @@ def test_pose2sim_markers_too_few_to_pose_are_refused(
     assert not (ws / "cameras.json").exists()
     report = json.loads((ws / "register_report.json").read_text())
     assert [v["posed_by"] for v in report["videos"]] == ["none"] * 4
+
+
+def test_pose2sim_openpose_detections_pose_the_lab(shared_dir: Path, tmp_path: Path) -> None:
+    """Detector output as a user imports it (Pose2Sim's own OpenPose files: 25 joints, left/right swaps and all)
+    poses the four lab cameras from the moving person, with the lab's intrinsics; no calibration object."""
+    videos = [real.POSE2SIM / "videos" / f"cam0{i}.mp4" for i in range(1, 5)]
+    calibration = real.POSE2SIM / "calibration" / "Calib.qca.txt"
+    report = _register(videos, tmp_path / "ws", real.OPENPOSE, "--subject", "always", "--intrinsics", str(calibration))
+    assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
+    truth = real.truth_cameras(calibration, [v.stem for v in videos])
+    errors = real.score(read_cameras(tmp_path / "ws" / "cameras.json"), truth)
+    assert errors["centre_pct"] < 5.0 and errors["rotation_deg"] < 2.0, errors
+    # The videos are synchronized to about a frame (60 fps).
+    assert all(abs(c["offset_s"]) < 1.5 / 60 for c in report["subject"]["cameras"]), report["subject"]["cameras"]
