@@ -1,10 +1,9 @@
-"""Poses for frames outside the SfM model: 2D-3D matches against nearby registered frames, then PnP.
+"""Poses for frames outside the SfM model by SIFT: 2D-3D matches against nearby registered frames, then PnP.
 
-A query frame's SIFT descriptors are matched (ratio test) to the descriptors of the nearest registered frames
-of
-the same video that observe 3D points; `pycolmap.estimate_and_refine_absolute_pose` (LO-RANSAC + refinement,
-the
-video's camera fixed) gives the pose. A frame with too few inliers gets no pose and a reason in the report.
+A query frame's SIFT descriptors are matched (ratio test) to the descriptors of the nearest registered frames of
+the same video that observe 3D points; `absolute_pose` (`pycolmap.estimate_and_refine_absolute_pose`: LO-RANSAC +
+refinement, the video's camera fixed) gives the pose, as it does for the tracking path (`sfm.track_pose`). A frame
+with too few inliers gets no pose and a reason in the report.
 """
 
 from __future__ import annotations
@@ -90,7 +89,23 @@ def localize(
     for point_id, (distance, keypoint) in best.items():
         if keypoint not in by_keypoint or distance < by_keypoint[keypoint][0]:
             by_keypoint[keypoint] = (distance, point_id)
-    matches = len(by_keypoint)
+    keypoints = np.array(list(by_keypoint), dtype=np.int64)
+    points2D = query.xy[keypoints].reshape(-1, 2)
+    points3D = np.array([xyz_of[by_keypoint[k][1]] for k in keypoints]).reshape(-1, 3)
+    return absolute_pose(points2D, points3D, camera, min_inliers=min_inliers, max_error=max_error)
+
+
+def absolute_pose(
+    points2D: np.ndarray,
+    points3D: np.ndarray,
+    camera: pycolmap.Camera,
+    *,
+    min_inliers: int = 30,
+    max_error: float = 4.0,
+) -> Localized:
+    """LO-RANSAC PnP + refinement of 2D-3D matches (points2D (N, 2) in the camera's COLMAP pixels, points3D
+    (N, 3)); a None pose with a reason when it fails. Shared by the SIFT and the tracking paths."""
+    matches = len(points2D)
     if matches < min_inliers:
         return Localized(
             cam_from_world=None,
@@ -99,9 +114,6 @@ def localize(
             mean_error=None,
             reason=f"only {matches} 2D-3D matches (< {min_inliers})",
         )
-    keypoints = np.array(list(by_keypoint))
-    points2D = query.xy[keypoints]
-    points3D = np.array([xyz_of[by_keypoint[k][1]] for k in keypoints])
     estimation = pycolmap.AbsolutePoseEstimationOptions()
     estimation.ransac.max_error = max_error
     estimation.ransac.random_seed = 0

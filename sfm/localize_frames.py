@@ -1,9 +1,12 @@
-"""Poses for every wanted frame of every video: from the SfM model, or by PnP against it (`sfm.localize`)."""
+"""Poses for every wanted frame of every video: from the SfM model, by tracking the keyframes' features
+(`sfm.track_pose`), or by SIFT matching against the model (`sfm.localize`) where tracking fails or is off."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -13,7 +16,11 @@ from sfm.export import image_reprojection_errors, opencv_intrinsics
 from sfm.frames import image_name, write_frames
 from sfm.isolated import run_isolated
 from sfm.localize import Reference, localize, read_features, reference
+from sfm.options import InBetween
 from sfm.plan import FramePose, VideoPlan
+from sfm.track_pose import Masks, Seed, seed_from_image, track_video
+
+log = logging.getLogger(__name__)
 
 NEAREST_REFERENCES = 2  # registered frames of the same video whose 3D points a query frame is matched to
 
@@ -31,17 +38,147 @@ def localize_all(
     max_ratio: float,
     min_inliers: int,
     num_threads: int,
+    inbetween: InBetween = InBetween.TRACK,
 ) -> dict[str, dict[int, FramePose]]:
     """video name -> frame -> FramePose for every wanted frame."""
+    results: dict[str, dict[int, FramePose]] = {}
+    sift_todo: dict[str, dict[int, str]] = {}  # video -> frame -> why tracking did not pose it ("" when off)
+    for video in videos:
+        name = video.info.name
+        if video.static:
+            results[name] = _static_video(video, rec)
+            continue
+        registered = _registered(video, rec)
+        if not registered:
+            results[name] = {int(f): FramePose(pose=None, reason="video not in the kept model") for f in video.wanted}
+            continue
+        results[name] = _model_poses(video, rec, registered)
+        todo = {int(f): "" for f in video.wanted if int(f) not in registered}
+        if inbetween is InBetween.TRACK and todo:
+            posed, todo = _track(video, rec, registered, sorted(todo), mask_dir, min_inliers)
+            results[name].update(posed)
+        sift_todo[name] = todo
+    if any(sift_todo.values()):
+        _sift(
+            videos,
+            sift_todo,
+            rec,
+            results,
+            database,
+            frames_dir,
+            sfm_dir,
+            mask_dir,
+            colmap_log,
+            max_features=max_features,
+            max_ratio=max_ratio,
+            min_inliers=min_inliers,
+            num_threads=num_threads,
+        )
+    return results
+
+
+def _registered(video: VideoPlan, rec: pycolmap.Reconstruction) -> dict[int, pycolmap.Image]:
+    """The video's SfM frames that the kept model posed: frame -> image."""
+    registered = {}
+    for frame in video.sfm_frames:
+        image = rec.find_image_with_name(image_name(video.info.name, int(frame)))
+        if image is not None and image.has_pose:
+            registered[int(frame)] = image
+    return registered
+
+
+def _model_poses(
+    video: VideoPlan, rec: pycolmap.Reconstruction, registered: dict[int, pycolmap.Image]
+) -> dict[int, FramePose]:
+    camera = rec.cameras[next(iter(registered.values())).camera_id]
+    intrinsics = opencv_intrinsics(camera, video.resize)
+    results = {}
+    for frame, image in registered.items():
+        errors = image_reprojection_errors(rec, image)
+        results[frame] = FramePose(
+            pose=image.cam_from_world(),
+            source="sfm",
+            intrinsics=intrinsics,
+            error=float(errors.mean()) / video.resize.scale if len(errors) else None,
+            inliers=len(errors),
+        )
+    return results
+
+
+def _mask_reader(mask_dir: Path | None, video: str) -> Masks:
+    """frame -> the frame's feature mask (SfM pixels, 0 = subject) when `register` wrote one."""
+
+    def read(frame: int) -> np.ndarray | None:
+        if mask_dir is None:
+            return None
+        path = mask_dir / f"{image_name(video, frame)}.png"
+        return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.exists() else None
+
+    return read
+
+
+def _track(
+    video: VideoPlan,
+    rec: pycolmap.Reconstruction,
+    registered: dict[int, pycolmap.Image],
+    todo: list[int],
+    mask_dir: Path | None,
+    min_inliers: int,
+) -> tuple[dict[int, FramePose], dict[int, str]]:
+    """Poses of the `todo` frames by tracking; returns them and the frames left for SIFT with the reason."""
+    name = video.info.name
+    camera = rec.cameras[next(iter(registered.values())).camera_id]
+    intrinsics = opencv_intrinsics(camera, video.resize)
+    seeds: dict[int, Seed] = {f: seed_from_image(rec, image, video.resize) for f, image in registered.items()}
+    tracking = track_video(
+        video.info.path,
+        seeds,
+        todo,
+        camera,
+        video.resize,
+        _mask_reader(mask_dir, name),
+        min_inliers=min_inliers,
+        desc=f"tracking {name}",
+    )
+    posed = {
+        frame: FramePose(
+            pose=tracked.located.cam_from_world,
+            source="tracked",
+            error=None if tracked.located.mean_error is None else tracked.located.mean_error / video.resize.scale,
+            intrinsics=intrinsics,
+            inliers=tracked.located.inliers,
+        )
+        for frame, tracked in tracking.posed.items()
+    }
+    if tracking.failed:
+        log.info("%s: %d of %d frames not posed by tracking, trying SIFT", name, len(tracking.failed), len(todo))
+    return posed, tracking.failed
+
+
+def _sift(
+    videos: list[VideoPlan],
+    todo: dict[str, dict[int, str]],
+    rec: pycolmap.Reconstruction,
+    results: dict[str, dict[int, FramePose]],
+    database: Path,
+    frames_dir: Path,
+    sfm_dir: Path,
+    mask_dir: Path | None,
+    colmap_log: Path,
+    *,
+    max_features: int,
+    max_ratio: float,
+    min_inliers: int,
+    num_threads: int,
+) -> None:
+    """SIFT-PnP of the `todo` frames (video -> frame -> why tracking did not pose it) into `results`."""
     # Frames not sent to SfM need features: decode them and extract into a second database.
     extra_names = {}
     for video in videos:
-        if video.static:
-            continue  # every frame takes the background image's pose
-        extra = np.setdiff1d(video.wanted, video.sfm_frames)
-        if len(extra):
+        frames = np.setdiff1d(np.array(sorted(todo.get(video.info.name, {})), dtype=np.int64), video.sfm_frames)
+        if len(frames):
             extra_names[video.info.name] = write_frames(
-                video.info, extra, frames_dir, video.resize, desc="decoding frames to localize"
+                video.info, frames, frames_dir, video.resize, desc="decoding frames to localize"
             )
     query_db = sfm_dir / "localize.db"
     if extra_names:
@@ -62,19 +199,17 @@ def localize_all(
             },
             colmap_log,
         )
-    results: dict[str, dict[int, FramePose]] = {}
     with pycolmap.Database.open(str(database)) as db:
         query = pycolmap.Database.open(str(query_db)) if extra_names else None
         try:
-            for video in tqdm(videos, desc="localizing", unit="video", leave=False):
-                if video.static:
-                    results[video.info.name] = _static_video(video, rec)
-                else:
-                    results[video.info.name] = _localize_video(video, rec, db, query, max_ratio, min_inliers)
+            for video in tqdm(videos, desc="localizing by SIFT", unit="video", leave=False):
+                if todo.get(video.info.name):
+                    results[video.info.name].update(
+                        _localize_video(video, todo[video.info.name], rec, db, query, max_ratio, min_inliers)
+                    )
         finally:
             if query is not None:
                 query.close()
-    return results
 
 
 def _static_video(video: VideoPlan, rec: pycolmap.Reconstruction) -> dict[int, FramePose]:
@@ -95,44 +230,33 @@ def _static_video(video: VideoPlan, rec: pycolmap.Reconstruction) -> dict[int, F
 
 def _localize_video(
     video: VideoPlan,
+    todo: dict[int, str],
     rec: pycolmap.Reconstruction,
     db: pycolmap.Database,
     query: pycolmap.Database | None,
     max_ratio: float,
     min_inliers: int,
 ) -> dict[int, FramePose]:
+    """SIFT-PnP of the `todo` frames (frame -> why tracking did not pose them, "" when it was off)."""
     name = video.info.name
-    registered: dict[int, pycolmap.Image] = {}
-    for frame in video.sfm_frames:
-        image = rec.find_image_with_name(image_name(name, int(frame)))
-        if image is not None and image.has_pose:
-            registered[int(frame)] = image
-    if not registered:
-        return {int(f): FramePose(pose=None, reason="video not in the kept model") for f in video.wanted}
+    registered = _registered(video, rec)
     db_ids = {image.name: image.image_id for image in db.read_all_images()}
     query_ids = {image.name: image.image_id for image in query.read_all_images()} if query is not None else {}
     camera = rec.cameras[next(iter(registered.values())).camera_id]
     intrinsics = opencv_intrinsics(camera, video.resize)
     results: dict[int, FramePose] = {}
-    for frame, image in registered.items():
-        errors = image_reprojection_errors(rec, image)
-        results[frame] = FramePose(
-            pose=image.cam_from_world(),
-            source="sfm",
-            intrinsics=intrinsics,
-            error=float(errors.mean()) / video.resize.scale if len(errors) else None,
-        )
     registered_frames = np.array(sorted(registered))
     references: dict[int, Reference] = {}
-    todo = [int(f) for f in video.wanted if int(f) not in registered]
-    for frame in tqdm(todo, desc=f"localizing {name}", unit="frame", leave=False):
+    sfm_frames = set(int(f) for f in video.sfm_frames)
+    for frame, tracking in tqdm(sorted(todo.items()), desc=f"localizing {name} by SIFT", unit="frame", leave=False):
         image_key = image_name(name, frame)
+        before = f"{tracking}; SIFT: " if tracking else ""
         if query is not None and image_key in query_ids:
             features = read_features(query, query_ids[image_key])
         elif image_key in db_ids:  # an SfM frame the mapper dropped
             features = read_features(db, db_ids[image_key])
         else:
-            results[frame] = FramePose(pose=None, reason="no features")
+            results[frame] = FramePose(pose=None, reason=f"{before}no features")
             continue
         order = np.argsort(np.abs(registered_frames - frame), kind="stable")[:NEAREST_REFERENCES]
         refs = []
@@ -142,11 +266,10 @@ def _localize_video(
                 references[ref_frame] = reference(rec, registered[ref_frame], ref_features)
             refs.append(references[ref_frame])
         located = localize(features, refs, camera, max_ratio=max_ratio, min_inliers=min_inliers)
-        dropped = frame in set(int(f) for f in video.sfm_frames)
         results[frame] = FramePose(
             pose=located.cam_from_world,
-            reason=located.reason,
-            source="pnp (dropped by SfM)" if dropped else "pnp",
+            reason=None if located.reason is None else f"{before}{located.reason}",
+            source="pnp (dropped by SfM)" if frame in sfm_frames else "pnp",
             error=None if located.mean_error is None else located.mean_error / video.resize.scale,
             intrinsics=intrinsics,
             inliers=located.inliers,

@@ -26,6 +26,13 @@ class Localize(enum.Enum):
     NONE = "none"
 
 
+class InBetween(enum.Enum):
+    """How the frames between the SfM keyframes of a moving video are posed (both by PnP against the model)."""
+
+    TRACK = "track"  # the keyframes' features carried by optical flow; SIFT where tracking fails
+    SIFT = "sift"  # SIFT features of every frame matched to the model
+
+
 class CameraMotion(enum.Enum):
     """Whether a video's camera moves: measured per video (AUTO) or set by the user for all videos."""
 
@@ -70,6 +77,7 @@ class RegisterOptions:
     mask_radius: float = 40.0  # original pixels around tracked points
     use_masks: bool = True
     localize: Localize = Localize.AUTO
+    inbetween: InBetween = InBetween.TRACK  # how the localized frames are posed (see docs/registration.md)
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
     init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
     num_threads: int = ALL_CORES
@@ -103,6 +111,7 @@ __all__ = [
     "CalibrationFormat",
     "CameraMotion",
     "ImportCalibrationOptions",
+    "InBetween",
     "Localize",
     "Mapper",
     "RegisterOptions",

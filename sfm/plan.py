@@ -31,12 +31,12 @@ class VideoPlan:
 
 @dataclass(kw_only=True)
 class FramePose:
-    """The outcome for one wanted frame. `source`: "sfm", "pnp", "pnp (dropped by SfM)", "static" or
-    "subject"; None without pose."""
+    """The outcome for one wanted frame. `source`: "sfm", "tracked" (PnP of the keyframes' tracked features),
+    "pnp" (PnP of its SIFT features), "pnp (dropped by SfM)", "static" or "subject"; None without pose."""
 
     pose: pycolmap.Rigid3d | None
     reason: str | None = None  # why there is no pose
     source: str | None = None
     error: float | None = None  # mean reprojection error, original pixels
     intrinsics: tuple[np.ndarray, np.ndarray | None] | None = None  # (K, dist), OpenCV, original pixels
-    inliers: int | None = None  # PnP inliers
+    inliers: int | None = None  # PnP inliers (the model's observations for an SfM frame)

@@ -113,7 +113,7 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
 
 
 def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
-    from sfm.options import Localize
+    from sfm.options import InBetween, Localize
 
     masks.add_argument("--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)")
     masks.add_argument(
@@ -131,6 +131,12 @@ def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOption
         choices=[m.value for m in Localize],
         default=defaults.localize.value,
         help="frames posed by PnP besides the SfM frames (auto: tracked frames, else all)",
+    )
+    masks.add_argument(
+        "--inbetween",
+        choices=[m.value for m in InBetween],
+        default=defaults.inbetween.value,
+        help="pose the localized frames by tracking the keyframes' features (SIFT where it fails), or by SIFT",
     )
     masks.add_argument("--min-inliers", type=int, default=defaults.min_inliers, help="PnP inliers needed")
 
@@ -154,7 +160,7 @@ def parse_scale(text: str | None) -> tuple[str, str, float] | None:
 
 
 def _run_register(args: argparse.Namespace) -> int:
-    from sfm.options import CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
+    from sfm.options import CameraMotion, InBetween, Localize, Mapper, RegisterOptions, SubjectPath
     from sfm.stage import run
 
     options = RegisterOptions(
@@ -178,6 +184,7 @@ def _run_register(args: argparse.Namespace) -> int:
         mask_radius=args.mask_radius,
         use_masks=not args.no_masks,
         localize=Localize(args.localize),
+        inbetween=InBetween(args.inbetween),
         min_inliers=args.min_inliers,
         init_min_inliers=args.init_min_inliers,
         num_threads=args.threads,

@@ -448,6 +448,7 @@ def _localize(
         max_ratio=ws.options.max_ratio,
         min_inliers=ws.options.min_inliers,
         num_threads=ws.options.num_threads,
+        inbetween=ws.options.inbetween,
     )
 
 
