@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "reconstruct.cli",
     "simulation.cli",
     "dynrecon.pipeline_cli",
+    "batch.cli",
 )
 
 log = logging.getLogger("dynrecon")
