@@ -1,18 +1,24 @@
 """The whole `dynrecon solve` process by stage: wall time of the command (a subprocess, so imports and file reading
 count), and the stage table of its report.json `timings` (reading inputs, rays, initialization, W-steps, X-steps,
-clocks and refinement, trust, writing, recording).
+clocks, refinement, trust, outputs, writing, recording).
 
-    python benchmarks/whole_solve.py [--runs 3] [--sizes 700,2000] [--long] [--json OUT]
+    python benchmarks/whole_solve.py [--runs 3] [--sizes 700,2000] [--long] [--cases DIR] [--roots A,B] [--json OUT]
 
 Data: `dynrecon simulate --mode phones` (4 videos on their own clocks, decoder times in cameras.json) on CMU 01_01
 (P = 41) and complexknee 2022_01_0401 (P = 20), cut to about F frames. Each case runs `--runs` times, the cases
 alternated so that a change of load on a shared machine spreads over all of them; the table gives medians.
+`--cases DIR` keeps the simulated captures there and reuses them on the next run; `--profile` writes a cProfile
+of one solve of each case into DIR (or a temporary folder) and prints its top functions. `--roots` names source
+trees to compare (e.g. an unchanged copy made with `git archive HEAD | tar -x -C DIR`, and this one): every run of a
+case runs each tree in turn.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import pstats
 import statistics
 import subprocess
 import sys
@@ -31,27 +37,68 @@ STAGES = [
     "initialize",
     "w_step",
     "x_step",
+    "total",
     "clocks",
     "refinement",
     "clocks_and_refinement",
     "trust",
+    "outputs",
     "writing",
     "recording",
     "stage_total",
 ]
 
 
-def dynrecon(args: list[str], timeout: float) -> float:
+def dynrecon(args: list[str], timeout: float, profile: Path | None = None, root: Path = ROOT) -> float:
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "dynrecon", "-q", *args], check=True, timeout=timeout, cwd=ROOT)
+    prefix = ["-m", "cProfile", "-o", str(profile)] if profile else []
+    subprocess.run([sys.executable, *prefix, "-m", "dynrecon", "-q", *args], check=True, timeout=timeout, cwd=root)
     return time.perf_counter() - start
 
 
-def simulate(folder: Path, file: str, rate: float, frames: int) -> int:
+def simulate(folder: Path, file: str, rate: float, frames: int) -> None:
+    """Simulate the case into `folder` unless an earlier run left it there."""
+    if (folder / "tracks.csv").exists():
+        return
     length = round((frames / CAPTURES_PER_S + 0.25) * rate)
     sim = ["simulate", str(MOCAP / file), "--mode", "phones", "--cameras", "4", "--length", str(length)]
     dynrecon([*sim, "--out", str(folder)], 600)
-    return length
+
+
+def solve_command(folder: Path) -> list[str]:
+    cameras, tracks, out = folder / "cameras.json", folder / "tracks.csv", folder / "out"
+    return ["solve", "--cameras", str(cameras), "--tracks", str(tracks), "--out", str(out)]
+
+
+def run_case(folder: Path, timeout: float, into: dict[str, list[float]], root: Path = ROOT) -> None:
+    """One solve of the case by the source tree `root`; appends the process time and report.json's timings."""
+    try:
+        wall = dynrecon(solve_command(folder), timeout, root=root)
+    except subprocess.TimeoutExpired:
+        into.setdefault("process", []).append(float("inf"))
+        return
+    report = json.loads((folder / "out" / "report.json").read_text())
+    into.setdefault("process", []).append(wall)
+    into.setdefault("F", []).append(report["size"]["frames"])
+    for key, value in report["timings"].items():
+        into.setdefault(key, []).append(value)
+
+
+def profile_case(folder: Path, timeout: float, top: int) -> None:
+    """One solve under cProfile; prints the functions with the most cumulative time."""
+    path = folder / "solve.prof"
+    dynrecon(solve_command(folder), timeout, profile=path)
+    print(f"\n## cProfile of {folder.name}")
+    pstats.Stats(str(path)).sort_stats("cumulative").print_stats(top)
+
+
+def print_table(medians: dict[str, dict[str, float]]) -> None:
+    shown = [s for s in STAGES if any(s in m for m in medians.values())]
+    print(f"| case | F | process | {' | '.join(shown)} |")
+    print(f"|---|---|---|{'---|' * len(shown)}")
+    for case, m in medians.items():
+        cells = " | ".join(f"{m[s]:.2f}" if s in m else "" for s in shown)
+        print(f"| {case} | {int(m.get('F', 0))} | {m.get('process', float('nan')):.1f} | {cells} |")
 
 
 def main() -> None:
@@ -62,38 +109,33 @@ def main() -> None:
     )
     parser.add_argument("--runs", type=int, default=3, help="runs per case (median)")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per solve")
+    parser.add_argument("--cases", type=Path, help="keep the simulated captures here and reuse them")
+    parser.add_argument("--only", default="", help="run only the cases whose name contains this")
+    parser.add_argument("--profile", type=int, default=0, help="also profile one solve per case: top N functions")
+    parser.add_argument("--roots", default="", help="source trees to compare, comma-separated (default: this one)")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
+    roots = [Path(r).resolve() for r in args.roots.split(",") if r] or [ROOT]
     sizes = [int(s) for s in args.sizes.split(",")] + ([20_000] if args.long else [])
-    with tempfile.TemporaryDirectory() as tmp:
+    with contextlib.ExitStack() as stack:
+        base = args.cases or Path(stack.enter_context(tempfile.TemporaryDirectory()))
         cases: dict[str, Path] = {}
         for name, (file, rate) in FILES.items():
             for frames in sizes:
-                folder = Path(tmp) / f"{name.split()[0]}-{frames}"
-                simulate(folder, file, rate, frames)
-                cases[f"{name}, F~{frames}"] = folder
-        results: dict[str, dict[str, list[float]]] = {case: {} for case in cases}
+                case = f"{name}, F~{frames}"
+                if args.only in case:
+                    cases[case] = base / f"{name.split()[0]}-{frames}"
+                    simulate(cases[case], file, rate, frames)
+        results: dict[str, dict[str, list[float]]] = {}
         for _ in range(args.runs):
             for case, folder in cases.items():
-                out = folder / "out"
-                cmd = ["solve", "--cameras", str(folder / "cameras.json"), "--tracks", str(folder / "tracks.csv")]
-                try:
-                    wall = dynrecon([*cmd, "--out", str(out)], args.timeout)
-                except subprocess.TimeoutExpired:
-                    results[case].setdefault("process", []).append(float("inf"))
-                    continue
-                report = json.loads((out / "report.json").read_text())
-                results[case].setdefault("process", []).append(wall)
-                results[case].setdefault("F", []).append(report["size"]["frames"])
-                for key, value in report["timings"].items():
-                    results[case].setdefault(key, []).append(value)
+                for root in roots:
+                    label = case if len(roots) == 1 else f"{case} [{root.name}]"
+                    run_case(folder, args.timeout, results.setdefault(label, {}), root)
+        for folder in cases.values() if args.profile else []:
+            profile_case(folder, args.timeout, args.profile)
     medians = {case: {k: statistics.median(v) for k, v in r.items()} for case, r in results.items()}
-    shown = [s for s in STAGES if any(s in m for m in medians.values())]
-    print(f"| case | F | process | {' | '.join(shown)} |")
-    print(f"|---|---|---|{'---|' * len(shown)}")
-    for case, m in medians.items():
-        cells = " | ".join(f"{m[s]:.2f}" if s in m else "" for s in shown)
-        print(f"| {case} | {int(m.get('F', 0))} | {m['process']:.1f} | {cells} |")
+    print_table(medians)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

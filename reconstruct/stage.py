@@ -144,6 +144,7 @@ def solve(
     judged = result if result.stages else dataclasses.replace(result, points=temporal.points)
     trust = measure_trust(problem, judged, options.trust)
     result.timings["trust"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     inputs = {"cameras": _input_name(cameras, None), "tracks": _input_name(tracks, track_set.path)}
     report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
@@ -151,9 +152,11 @@ def solve(
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
     report["rejected_observations"] = rejected.to_json()
+    points, frames_sequencing = frame_points(problem, result, temporal, trust), sequencing(problem, result, temporal)
+    report["timings"]["outputs"] = time.perf_counter() - t0
     return Reconstruction(
-        points=frame_points(problem, result, temporal, trust),
-        sequencing=sequencing(problem, result, temporal),
+        points=points,
+        sequencing=frames_sequencing,
         temporal=temporal,
         trust=trust,
         report=report,

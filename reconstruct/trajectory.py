@@ -26,6 +26,7 @@ found by coordinate descent with the smoothness and robust weights of a first re
 from __future__ import annotations
 
 import enum
+import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -134,7 +135,7 @@ def prior_bands(nodes: TimeNodes) -> np.ndarray:
             value = area * coef[:, a] * coef[:, b]  # M[i-1+a, i-1+b], a >= b
             rows = np.arange(n - 2) + b  # the column node (lower form: column index)
             for k in range(3):
-                np.add.at(bands[3 * (a - b)], 3 * rows + k, value)
+                bands[3 * (a - b), 3 * rows + k] += value  # distinct columns: add.at's sums
     return bands
 
 
@@ -145,11 +146,16 @@ def _data_blocks(
     projector = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # (m, 3, 3)
     blocks = weight[:, None, None] * projector
     rhs = np.einsum("mij,mj->mi", blocks, centers)
-    block_sum = np.zeros((n, 3, 3))
-    rhs_sum = np.zeros((n, 3))
-    np.add.at(block_sum, node, blocks)
-    np.add.at(rhs_sum, node, rhs)
-    return block_sum, rhs_sum
+    return _sum_at(node, blocks, n), _sum_at(node, rhs, n)
+
+
+def _sum_at(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """(size, ...) sums of `values (m, ...)` by `index (m,)`: np.add.at's sums in its order, by np.bincount, which
+    is many times faster."""
+    flat = values.reshape(len(values), -1)
+    width = flat.shape[1]
+    slots = (index[:, None] * width + np.arange(width)).ravel()
+    return np.bincount(slots, weights=flat.ravel(), minlength=size * width).reshape(size, *values.shape[1:])
 
 
 def _add_blocks(bands: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -166,25 +172,26 @@ def selected_inverse(factors: np.ndarray) -> np.ndarray:
     """Band of M^-1 (lower form, same shape) from M's banded Cholesky factors, batched (B, BANDS, N).
 
     Takahashi's recursion: Z = M^-1 restricted to the band of L needs only that band, from the last column
-    backwards, O(N BANDS^2) instead of the O(N^2 BANDS) of solving with the identity.
+    backwards, O(N BANDS^2) instead of the O(N^2 BANDS) of solving with the identity. The systems lie on the last
+    axis, so that each step of the (Python) loop over columns is a few whole-array operations on contiguous data.
     """
     B, bands, N = factors.shape
     b = bands - 1
-    L = np.zeros((B, bands, N + b))
-    L[:, :, :N] = factors
-    rows = np.arange(N)[None, :] + np.arange(bands)[:, None]
-    L[:, :, :N][:, rows >= N] = 0.0  # LAPACK leaves the unused corner of the band undefined
-    Z = np.zeros((B, bands, N + b))
+    L = np.zeros((N + b, bands, B))
+    L[:N] = factors.transpose(2, 1, 0)
+    rows = np.arange(N)[:, None] + np.arange(bands)[None, :]
+    L[:N][rows >= N] = 0.0  # LAPACK leaves the unused corner of the band undefined
+    Z = np.zeros((N + b, bands, B))
     x, y = np.meshgrid(np.arange(b), np.arange(b), indexing="ij")
-    gap, low = np.abs(x - y), np.minimum(x, y)
+    window_index = (np.minimum(x, y) * bands + np.abs(x - y)).ravel()  # Z[j+1+x, j+1+y] in the window
     for j in range(N - 1, -1, -1):
-        diagonal = L[:, 0, j]  # (B,)
-        below = L[:, 1:, j]  # (B, b): L[j+1..j+b, j]
-        block = Z[:, gap, j + 1 + low]  # (B, b, b): Z[j+1.., j+1..]
-        column = -np.einsum("gxy,gy->gx", block, below) / diagonal[:, None]
-        Z[:, 1:, j] = column
-        Z[:, 0, j] = 1.0 / diagonal**2 - np.einsum("gx,gx->g", below, column) / diagonal
-    return Z[:, :, :N]
+        diagonal = L[j, 0]  # (B,)
+        below = L[j, 1:]  # (b, B): L[j+1..j+b, j]
+        block = Z[j + 1 : j + 1 + b].reshape(b * bands, B).take(window_index, axis=0).reshape(b, b, B)
+        column = -(block * below).sum(axis=1) / diagonal
+        Z[j, 1:] = column
+        Z[j, 0] = 1.0 / diagonal**2 - (below * column).sum(axis=0) / diagonal
+    return Z[:N].transpose(2, 1, 0)
 
 
 def _diagonal_blocks(band: np.ndarray) -> np.ndarray:
@@ -204,7 +211,7 @@ def _fit(
     """Solve (lambda s^2 P + D + eps I) Y = d + eps Y0 for one point (blocks already carry w s^2); returns the
     positions (n, 3) and the banded Cholesky factor (for the GCV trace)."""
     n = len(blocks)
-    eps = 1e-9 * max(float(np.mean(np.trace(blocks, axis1=1, axis2=2))), 1e-300)
+    eps = _anchor_weight(blocks)
     system = _add_blocks(smoothness * scale2 * prior, blocks + eps * np.eye(3)[None])
     b = (rhs + eps * anchor).reshape(-1)
     try:
@@ -309,9 +316,8 @@ def refine(
             _choose_smoothness(tracks, prior, grid, n, options)
         for _ in range(max(IRLS_ITERATIONS, 1)):
             total = 0.0
-            for track in tracks:
-                blocks, rhs = track.data(n)
-                track.positions, _ = _fit(prior, track.mean_s2, track.smoothness, blocks, rhs, track.anchor)
+            for track, fitted in zip(tracks, _fit_tracks(tracks, prior, n), strict=True):
+                track.positions = fitted
                 track.residual = track.residuals(track.positions)
                 total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
                 total += track.smoothness * track.mean_s2 * float(_prior_value(prior, track.positions.reshape(-1)))
@@ -397,41 +403,155 @@ def _choose_smoothness(
     round it also shrinks as observations are down-weighted, until the poorly constrained ends of a track are
     rejected. So the scale is set here, once per GCV pass, and held during IRLS.
     """
-    rss = np.zeros((len(tracks), len(grid)))
-    trace = np.zeros((len(tracks), len(grid)))
     m = np.array([2.0 * track.seen.size for track in tracks])[:, None]  # each ray constrains two coordinates
-    factors: list[np.ndarray] = []
-    all_blocks: list[np.ndarray] = []
-    for k, track in enumerate(tracks):
-        blocks, rhs = track.data(n)
-        all_blocks.append(blocks)
-        for g, value in enumerate(grid):
-            positions, factor = _fit(prior, track.mean_s2, value, blocks, rhs, track.anchor)
-            rss[k, g] = float(np.sum(track.weights * track.residuals(positions) ** 2))
-            factors.append(factor)
-    # Trace of the influence matrix: sum over instants of tr((M^-1)_ii D_i); the recursion runs on batches of
-    # systems (its loop over unknowns is Python, its work per step numpy).
-    batch = max(1, 2**22 // (BANDS * 3 * n * 8))  # ~32 MB of factors per batch
-    inverse_blocks = np.concatenate(
-        [_diagonal_blocks(selected_inverse(np.stack(factors[i : i + batch]))) for i in range(0, len(factors), batch)]
-    )
-    trace[:] = np.einsum(
-        "kgnij,knji->kg", inverse_blocks.reshape(len(tracks), len(grid), n, 3, 3), np.stack(all_blocks)
-    )
+    fits = _GridFits(tracks, prior, grid, n)
     if options.rule is SmoothnessRule.GCV_GLOBAL:
+        fits.compute(np.ones(fits.known.shape, dtype=bool))
         total = float(m.sum())
-        chosen = np.full(
-            len(tracks), int(_least_gcv(rss.sum(axis=0)[None], trace.sum(axis=0)[None], np.array([[total]]))[0])
-        )
+        scores = _least_gcv(fits.rss.sum(axis=0)[None], fits.trace.sum(axis=0)[None], np.array([[total]]))
+        chosen = np.full(len(tracks), int(scores[0]))
     else:
-        chosen = _least_gcv(rss, trace, m)
+        fits.least_gcv(m)
+        chosen = _least_gcv(fits.rss, np.where(fits.known, fits.trace, m), m)
     for k, track in enumerate(tracks):
         g = int(chosen[k])
         track.smoothness = grid[g]
         # Weighted RSS over the weights' effective count of residual components.
         effective = float(np.sum(track.weights)) * 2.0
-        sigma = np.sqrt(rss[k, g] / max(effective - trace[k, g], 1.0))
+        sigma = np.sqrt(fits.rss[k, g] / max(effective - fits.trace[k, g], 1.0))
         track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
+
+
+def _fit_tracks(tracks: list[_Track], prior: np.ndarray, n: int) -> list[np.ndarray]:
+    """`_fit` of every track at its smoothness and weights, (n, 3) each: the systems side by side in one LAPACK
+    call per batch (the same numbers, fewer calls)."""
+    out: list[np.ndarray] = []
+    batch = max(1, _GridFits.BATCH_BYTES // (BANDS * 3 * n * 8))
+    for start in range(0, len(tracks), batch):
+        chunk = tracks[start : start + batch]
+        data = [track.data(n) for track in chunk]
+        systems = [
+            _grid_systems(prior, t, np.array([t.smoothness]), blocks)[0]
+            for t, (blocks, _) in zip(chunk, data, strict=True)
+        ]
+        factor = _stacked_factor(np.stack(systems))
+        if factor is None:  # one needs `_fit`'s stronger anchor: each on its own
+            out.extend(
+                _fit(prior, t.mean_s2, t.smoothness, b, r, t.anchor)[0] for t, (b, r) in zip(chunk, data, strict=True)
+            )
+            continue
+        b = np.concatenate(
+            [(r + _anchor_weight(blocks) * t.anchor).reshape(-1) for t, (blocks, r) in zip(chunk, data, strict=True)]
+        )
+        stacked = factor.transpose(1, 0, 2).reshape(BANDS, -1)
+        out.extend(cho_solve_banded((stacked, True), b).reshape(len(chunk), n, 3))
+    return out
+
+
+def _grid_systems(prior: np.ndarray, track: _Track, values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """(G, BANDS, 3n) the systems of `_fit` for each smoothness value, same arithmetic."""
+    n = len(blocks)
+    diagonal = blocks + _anchor_weight(blocks) * np.eye(3)[None]
+    systems = (np.asarray(values, dtype=float) * track.mean_s2)[:, None, None] * prior[None]
+    for row in range(3):
+        for col in range(row + 1):
+            systems[:, row - col, np.arange(n) * 3 + col] += diagonal[:, row, col]
+    return systems
+
+
+def _anchor_weight(blocks: np.ndarray) -> float:
+    """`_fit`'s tiny pull towards the start positions."""
+    return 1e-9 * max(float(np.mean(np.trace(blocks, axis1=1, axis2=2))), 1e-300)
+
+
+def _stacked_factor(systems: np.ndarray) -> np.ndarray | None:
+    """(G, BANDS, N) banded Cholesky factors of G systems side by side in one LAPACK call (no band crosses a
+    seam, so each factor is the one of its own system); None when one is numerically singular."""
+    G, bands, N = systems.shape
+    try:
+        factor = cholesky_banded(systems.transpose(1, 0, 2).reshape(bands, G * N), lower=True)
+    except LinAlgError:
+        return None
+    return factor.reshape(bands, G, N).transpose(1, 0, 2)
+
+
+class _GridFits:
+    """The tracks' fits at the grid's smoothness values, RSS and tr(H), computed on demand: the fits and the
+    selected inverse are most of the refinement's cost, and the GCV choice needs them only near each track's
+    least score."""
+
+    COARSE_STEP = 4  # first evaluated grid values: every COARSE_STEP-th and the last
+    BATCH_BYTES = 2**26  # factors per batch of the selected inverse (its two work arrays are as large)
+    # Relative margin of the lower bounds on the score: the tiny anchor pull of `_fit` and round-off make RSS and
+    # tr(H) monotone in the smoothness only to about this.
+    BOUND_MARGIN = 1e-3
+
+    def __init__(self, tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int):
+        self.tracks, self.prior, self.grid = tracks, prior, np.asarray(grid, dtype=float)
+        self.data = [track.data(n) for track in tracks]
+        shape = (len(tracks), len(grid))
+        self.rss, self.trace = np.zeros(shape), np.full(shape, np.nan)
+        self.known = np.zeros(shape, dtype=bool)
+        self.batch = max(1, self.BATCH_BYTES // (BANDS * 3 * n * 8))
+
+    def compute(self, wanted: np.ndarray) -> None:
+        """Fit, RSS and trace where `wanted (K, G)` and not yet known, in batches of systems."""
+        pairs = np.argwhere(wanted & ~self.known)
+        for start in range(0, len(pairs), self.batch):
+            chunk = pairs[start : start + self.batch]
+            factors = [self._fit_track(int(k), chunk[chunk[:, 0] == k, 1]) for k in np.unique(chunk[:, 0])]
+            inverse_blocks = _diagonal_blocks(selected_inverse(np.concatenate(factors)))
+            data = np.stack([self.data[int(k)][0] for k in chunk[:, 0]])
+            self.trace[chunk[:, 0], chunk[:, 1]] = np.einsum("bnij,bnji->b", inverse_blocks, data)
+        self.known |= wanted
+
+    def _fit_track(self, k: int, columns: np.ndarray) -> np.ndarray:
+        """Fits of track k at grid values `columns`: sets their RSS, returns their factors (len, BANDS, 3n)."""
+        track = self.tracks[k]
+        blocks, rhs = self.data[k]
+        n = len(blocks)
+        factor = _stacked_factor(_grid_systems(self.prior, track, self.grid[columns], blocks))
+        if factor is None:  # one value needs `_fit`'s stronger anchor: each on its own
+            fits = [_fit(self.prior, track.mean_s2, self.grid[g], blocks, rhs, track.anchor) for g in columns]
+            positions = np.stack([f[0] for f in fits])
+            factor = np.stack([f[1] for f in fits])
+        else:
+            b = np.tile((rhs + _anchor_weight(blocks) * track.anchor).reshape(-1), len(columns))
+            stacked = factor.transpose(1, 0, 2).reshape(BANDS, -1)
+            positions = cho_solve_banded((stacked, True), b).reshape(len(columns), n, 3)
+        for g, fitted in zip(columns, positions, strict=True):
+            self.rss[k, g] = float(np.sum(track.weights * track.residuals(fitted) ** 2))
+        return factor
+
+    def least_gcv(self, m: np.ndarray) -> None:
+        """Known at least where `_least_gcv` over the whole grid could choose: every value whose GCV score may be
+        below the best known one. RSS rises and tr(H) falls as the smoothness grows, so a value between two known
+        ones scores at least the smaller smoothness's RSS over the larger one's denominator."""
+        K, G = self.known.shape
+        wanted = np.zeros((K, G), dtype=bool)
+        wanted[:, :: self.COARSE_STEP] = wanted[:, -1] = True
+        if self.batch >= K * G:  # one pass over the columns holds them all: rounds would cost more than they save
+            wanted[:] = True
+        while wanted.any():
+            self.compute(wanted)
+            wanted = self._bisections(m)
+
+    def _bisections(self, m: np.ndarray) -> np.ndarray:
+        """(K, G) the middle of every gap between known values that holds a value whose lower bound on the score
+        is not above the best known score."""
+        K, G = self.known.shape
+        score = np.where(self.known, _gcv_scores(self.rss, np.where(self.known, self.trace, 0.0), m), np.inf)
+        best = score.min(axis=1)
+        wanted = np.zeros((K, G), dtype=bool)
+        for k in range(K):
+            known = np.flatnonzero(self.known[k])
+            for a, b in itertools.pairwise(known):
+                if b - a < 2:
+                    continue
+                bound = self.rss[k, a] / m[k, 0] / max(1 - self.trace[k, b] / m[k, 0], 1e-9) ** 2
+                if bound * (1 - self.BOUND_MARGIN) <= best[k] or not np.isfinite(best[k]):
+                    wanted[k, (a + b) // 2] = True
+        return wanted
 
 
 MIN_RESIDUAL_DOF = 1.0  # GCV candidates must leave at least this many residual degrees of freedom (m - tr(H))
@@ -445,10 +565,16 @@ def _least_gcv(rss: np.ndarray, trace: np.ndarray, m: np.ndarray) -> np.ndarray:
     fits exactly, so these values can be most of the grid, and the choice among them would flip with round-off
     from run to run. Such values are not candidates. When every value interpolates, the data cannot choose, and the
     least smoothing keeps the trajectory on its rays."""
-    score = rss / m / np.maximum(1 - trace / m, 1e-9) ** 2
-    score[m - trace < MIN_RESIDUAL_DOF] = np.inf
+    score = _gcv_scores(rss, trace, m)
     score[np.isinf(score).all(axis=1)] = 0.0
     return np.argmin(score, axis=1)
+
+
+def _gcv_scores(rss: np.ndarray, trace: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """GCV scores (T, G); inf where a value interpolates its rays (fewer than MIN_RESIDUAL_DOF residual dof)."""
+    score = rss / m / np.maximum(1 - trace / m, 1e-9) ** 2
+    score[m - trace < MIN_RESIDUAL_DOF] = np.inf
+    return score
 
 
 def _start_per_node(start: np.ndarray, nodes: TimeNodes) -> np.ndarray:
@@ -595,36 +721,37 @@ class _PolishCost:
         projector = np.eye(3)[None] - self.rays[frame, point][:, :, None] * self.rays[frame, point][:, None, :]
         self.blocks_obs = self.weight[:, None, None] * projector
         self.rhs_obs = np.einsum("mij,mj->mi", self.blocks_obs, self.centers[frame])
+        self.obs_rays, self.obs_centers = self.rays[frame, point], self.centers[frame]
+        self.known_positions = np.nan_to_num(self.positions[:, self.keep])
 
     def __call__(self, candidate: np.ndarray) -> float:
-        frame, point, column, keep, rays = self.frame, self.point, self.column, self.keep, self.rays
+        frame, column, keep = self.frame, self.column, self.keep
         # Time unit proportional to the span: the cost is then invariant to a global affine change of time (the
         # gauge), so every video, the reference included, can move alone.
         nodes = time_nodes(candidate, MERGE_FRACTION, self.tau * float(np.ptp(candidate)) / self.span)
         n = len(nodes.times)
         node = nodes.node_of_frame[frame]
-        blocks = np.zeros((len(keep), n, 3, 3))
-        rhs = np.zeros((len(keep), n, 3))
-        np.add.at(blocks, (column, node), self.blocks_obs)
-        np.add.at(rhs, (column, node), self.rhs_obs)
+        slot = column * n + node
+        blocks = _sum_at(slot, self.blocks_obs, len(keep) * n).reshape(len(keep), n, 3, 3)
+        rhs = _sum_at(slot, self.rhs_obs, len(keep) * n).reshape(len(keep), n, 3)
         eps = 1e-9 * np.maximum(np.mean(np.trace(blocks, axis1=2, axis2=3), axis=1), 1e-300)
         blocks += eps[:, None, None, None] * np.eye(3)
-        anchor = np.zeros((n, len(keep), 3))  # mean position per instant (the tiny eps pull's target)
-        np.add.at(anchor, nodes.node_of_frame, np.nan_to_num(self.positions[:, keep]))
+        # mean position per instant (the tiny eps pull's target)
+        anchor = _sum_at(nodes.node_of_frame, self.known_positions, n)
         anchor /= np.maximum(np.bincount(nodes.node_of_frame, minlength=n), 1)[:, None, None]
         rhs += eps[:, None, None] * anchor.transpose(1, 0, 2)
         prior = prior_bands(nodes)
-        system = self.strength[:, None, None] * prior[None]  # (P', BANDS, 3n)
+        # Points are independent: their systems side by side form one banded matrix (no band crosses a seam).
+        system = self.strength[None, :, None] * prior[:, None, :]  # (BANDS, P', 3n)
         for row in range(3):
             for col in range(row + 1):
-                system[:, row - col, np.arange(n) * 3 + col] += blocks[:, :, row, col]
-        # Points are independent: their systems side by side form one banded matrix (no band crosses a seam).
-        stacked = system.transpose(1, 0, 2).reshape(BANDS, -1)
+                system[row - col, :, np.arange(n) * 3 + col] += blocks[:, :, row, col].T
+        stacked = system.reshape(BANDS, -1)
         y = cho_solve_banded((cholesky_banded(stacked, lower=True), True), rhs.reshape(-1))
         solved = y.reshape(len(keep), n, 3)
-        offset = solved[column, node] - self.centers[frame]
-        along = np.einsum("mi,mi->m", offset, rays[frame, point])
-        perpendicular = offset - along[:, None] * rays[frame, point]
+        offset = solved[column, node] - self.obs_centers
+        along = np.einsum("mi,mi->m", offset, self.obs_rays)
+        perpendicular = offset - along[:, None] * self.obs_rays
         total = float(np.sum(self.weight * np.einsum("mi,mi->m", perpendicular, perpendicular)))
         return total + float(np.sum(self.strength * _prior_value(prior, solved.reshape(len(keep), -1))))
 

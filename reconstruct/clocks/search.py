@@ -351,13 +351,30 @@ class _Joint:
         return Clock(center=self.centers[v], coef=coef[v])
 
     def gaps(self, theta: np.ndarray, smooth: bool = False) -> dict[tuple[int, int], np.ndarray]:
+        """(rows, P) gaps of every ordered pair (v, u): v's sample rows against u's track at their times; one
+        interpolation and one gap computation per video u for all v (the same numbers, fewer array calls)."""
         coef = self.coefficients(theta)
         out = {}
-        for v, u in self.pairs:
-            rows = self.rows[v]
-            g = self.clock(coef, v).global_time(self.tracks[v].own[rows])
-            out[(v, u)] = _query(self.tracks, v, u, self.clock(coef, u).own_time(g), rows, smooth=smooth)
-        return out
+        for u in {u: None for _, u in self.pairs}:
+            sources = [v for v, w in self.pairs if w == u]
+            own_u = [
+                self.clock(coef, u).own_time(self.clock(coef, v).global_time(self.tracks[v].own[self.rows[v]]))
+                for v in sources
+            ]
+            cu, ru, fu = self.tracks[u].interpolate(np.concatenate(own_u), clamp=smooth)
+            mine = [(self.tracks[v], self.rows[v]) for v in sources]
+            gaps = gap_px(
+                np.concatenate([t.centers[rows] for t, rows in mine]),
+                np.concatenate([t.rays[rows] for t, rows in mine]),
+                np.concatenate([t.focal[rows] for t, rows in mine]),
+                cu,
+                ru,
+                fu,
+                signed_depth=not smooth,
+            )
+            ends = np.cumsum([len(rows) for _, rows in mine])[:-1]
+            out.update({(v, u): part for v, part in zip(sources, np.split(gaps, ends), strict=True)})
+        return {pair: out[pair] for pair in self.pairs}
 
     def clean(self, theta: np.ndarray, threshold: float) -> int:
         """Drop observations whose median gap to the other videos exceeds `threshold` px (false detections): they

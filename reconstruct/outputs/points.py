@@ -49,25 +49,26 @@ def _format(value: float) -> str:
 def write_points(path: str | Path, points: FramePoints) -> Path:
     path = Path(path)
     extra_names = list(points.extra)
+    F, P = points.num_frames, len(points.point_names)
+    # Whole columns formatted at once (frame-major, then point, as the rows run): the same text, at list speed.
+    columns = [
+        [video for video in points.videos for _ in range(P)],
+        np.repeat(np.asarray(points.frames, dtype=np.int64), P).tolist(),
+        list(points.point_names) * F,
+        *(_column(points.xyz[..., axis]) for axis in range(3)),
+        points.observed.astype(bool).astype(int).ravel().tolist(),
+        *(_column(points.extra[e]) for e in extra_names),
+    ]
     with atomic_open(path, "w", newline="") as handle:
         writer = csv.writer(handle, lineterminator="\n")
         writer.writerow([*POINT_COLUMNS, *extra_names])
-        for i in range(points.num_frames):
-            for p, name in enumerate(points.point_names):
-                x, y, z = points.xyz[i, p]
-                writer.writerow(
-                    [
-                        points.videos[i],
-                        int(points.frames[i]),
-                        name,
-                        _format(x),
-                        _format(y),
-                        _format(z),
-                        int(bool(points.observed[i, p])),
-                        *(_format(points.extra[e][i, p]) for e in extra_names),
-                    ]
-                )
+        writer.writerows(zip(*columns, strict=True))
     return path
+
+
+def _column(values: np.ndarray) -> list[str]:
+    """`_format` of every value of an (F, P) array, frame-major."""
+    return ["" if not math.isfinite(v) else repr(v) for v in np.asarray(values, dtype=float).ravel().tolist()]
 
 
 def read_points(path: str | Path) -> FramePoints:

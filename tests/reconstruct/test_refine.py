@@ -134,6 +134,33 @@ def test_gcv_skips_smoothness_values_whose_fit_interpolates_its_rays() -> None:
     assert chosen.tolist() == [3, 0]
 
 
+def test_gcv_on_demand_chooses_as_the_whole_grid() -> None:
+    # The fits and traces are computed only where a score may beat the best known one (issue 22): the choice, the
+    # RSS and the trace at the choice must be those of the whole grid, for many points.
+    from reconstruct.trajectory import _GridFits, _least_gcv, _make_tracks, camera_normalization, viewing_rays
+
+    times, camera_of = round_robin(300, 120.0)
+    problem, truth = capture(times, camera_of, noise_px=1.5)
+    normalization = camera_normalization(problem.centers, problem.video_index)
+    nodes = time_nodes(times)
+    focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
+    start = normalization.apply(start_points(problem, truth))
+    tracks = _make_tracks(problem, start, viewing_rays(problem), normalization.apply(problem.centers), focal, nodes)
+    prior, n, grid = prior_bands(nodes), len(nodes.times), list(SMOOTHNESS_GRID)
+    m = np.array([2.0 * t.seen.size for t in tracks])[:, None]
+    whole = _GridFits(tracks, prior, grid, n)
+    whole.compute(np.ones(whole.known.shape, dtype=bool))
+    lazy = _GridFits(tracks, prior, grid, n)
+    lazy.batch = 8  # several batches and rounds, as on long captures
+    lazy.least_gcv(m)
+    assert not lazy.known.all()
+    chosen = _least_gcv(whole.rss, whole.trace, m)
+    assert chosen.tolist() == _least_gcv(lazy.rss, np.where(lazy.known, lazy.trace, m), m).tolist()
+    rows = np.arange(len(tracks))
+    assert np.array_equal(lazy.rss[rows, chosen], whole.rss[rows, chosen])
+    assert np.array_equal(lazy.trace[rows, chosen], whole.trace[rows, chosen])
+
+
 def test_a_false_observation_is_down_weighted() -> None:
     times, camera_of = round_robin(120, 60.0)
     problem, truth = capture(times, camera_of, noise_px=0.5)
