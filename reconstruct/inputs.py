@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError, NotEnoughDataError
+from reconstruct.screen import remove_spikes
 from reconstruct.solver.problem import Problem
 from sfm.cameras import CameraSet
 from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
@@ -22,13 +23,20 @@ log = logging.getLogger(__name__)
 @dataclass(kw_only=True)
 class RejectedObservations:
     """Rows of tracks.csv that `build_problem` set aside: outside their video's image (beyond IMAGE_MARGIN of its
-    size) or not finite. `first` names the first such row (file and line)."""
+    size) or not finite (`count`; `first` names the first such row, file and line), and observations far off
+    their own track (`spikes`, reconstruct/screen.py)."""
 
     count: int = 0
     first: str | None = None
+    spikes: int = 0
 
     def to_json(self) -> dict[str, Any]:
-        return {"outside_image": self.count, "first": self.first, "margin": IMAGE_MARGIN}
+        return {
+            "outside_image": self.count,
+            "first": self.first,
+            "margin": IMAGE_MARGIN,
+            "isolated_spikes": self.spikes,
+        }
 
 
 def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | None = None) -> Problem:
@@ -41,7 +49,8 @@ def build_problem_checked(
 ) -> tuple[Problem, RejectedObservations]:
     """Join poses and observations. Unknown videos are errors; observations of unposed frames are dropped with a
     warning (registration may fail on some frames, and a pose is never invented); observations outside their
-    video's image (with IMAGE_MARGIN) or not finite are rejected, counted and warned about once."""
+    video's image (with IMAGE_MARGIN) or not finite are rejected, counted and warned about once, and so are
+    isolated spikes off their own track (reconstruct/screen.py)."""
     videos = [v for v in cameras.videos if v.frames]
     if len(videos) < 2:
         raise NotEnoughDataError(
@@ -103,6 +112,7 @@ def build_problem_checked(
         dist=[f.dist for f in all_frames],
         uv=uv,
     )
+    problem, rejection.spikes = remove_spikes(problem)
     return problem, rejection
 
 
