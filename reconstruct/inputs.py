@@ -29,6 +29,7 @@ class RejectedObservations:
     count: int = 0
     first: str | None = None
     spikes: int = 0
+    unposed: int = 0  # rows on frames that registration did not pose: ignored, a pose is never invented
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -36,6 +37,7 @@ class RejectedObservations:
             "first": self.first,
             "margin": IMAGE_MARGIN,
             "isolated_spikes": self.spikes,
+            "on_unposed_frames": self.unposed,
         }
 
 
@@ -95,6 +97,7 @@ def build_problem_checked(
         uv[fi, pi] = tracks.xy[row]
     _warn_unposed(tracks, unposed)
     rejection = _rejection(cameras, tracks, rejected)
+    rejection.unposed = len(unposed)
     if not np.any(~np.isnan(uv[..., 0])):
         raise NotEnoughDataError(
             f"{tracks.path or 'tracks'}: no observation falls on a posed frame "

@@ -362,7 +362,13 @@ def test_observations_outside_the_image_are_counted(
     with caplog.at_level("WARNING"):
         problem, rejected = build_problem_checked(_two_videos(), read_tracks(path))
     assert rejected.count == 1 and rejected.first == f"{path}:line 4"
-    assert rejected.to_json() == {"outside_image": 1, "first": f"{path}:line 4", "margin": 0.1, "isolated_spikes": 0}
+    assert rejected.to_json() == {
+        "outside_image": 1,
+        "first": f"{path}:line 4",
+        "margin": 0.1,
+        "isolated_spikes": 0,
+        "on_unposed_frames": 0,
+    }
     assert int(problem.observed.sum()) == 3  # the row at the edge's margin (-99, 879) stays
     warning = [r.getMessage() for r in caplog.records if "outside the image" in r.getMessage()]
     assert len(warning) == 1 and "line 4" in warning[0] and "1 observation(s)" in warning[0]
