@@ -193,11 +193,12 @@ def _finished(client: Client, futures: list[Future], wait_s: float) -> Iterator[
 def _outcome(future: Future, graph: CaptureGraph) -> TaskOutcome:
     """The task's outcome; an exception after Dask's retries (or a worker lost too often) as a failed one."""
     stage = str(future.key).split("-")[1]
-    if future.status == "finished":
+    try:
+        # result(), not status: a finished task whose result sat on a worker lost since is computed again
         outcome: TaskOutcome = future.result()
         return outcome
-    error = future.exception()
-    return TaskOutcome(capture=graph.job.name, stage=stage, status="failed", error=one_line(error))
+    except Exception as error:
+        return TaskOutcome(capture=graph.job.name, stage=stage, status="failed", error=one_line(error))
 
 
 def _summary(state: BatchState, graphs: list[CaptureGraph]) -> str:
