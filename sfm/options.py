@@ -33,6 +33,13 @@ class InBetween(enum.Enum):
     SIFT = "sift"  # SIFT features of every frame matched to the model
 
 
+class KeyframeSelection(enum.Enum):
+    """How a moving video's SfM frames (keyframes) are chosen."""
+
+    CONTENT = "content"  # a new keyframe where the view has moved enough (sfm/keyframes.py); capped at max_frames
+    EVEN = "even"  # every step-th frame or one per time_step, thinned evenly to max_frames
+
+
 class CameraMotion(enum.Enum):
     """Whether a video's camera moves: measured per video (AUTO) or set by the user for all videos."""
 
@@ -53,9 +60,14 @@ class SubjectPath(enum.Enum):
 class RegisterOptions:
     """Options of `sfm.register`; every field is a `dynrecon register` flag (see `sfm/register_cli.py`)."""
 
-    step: int = 0  # SfM frames: every Nth decoded frame (0: all, then thinned to max_frames)
-    time_step: float | None = None  # or one frame per this many seconds (decoder timestamps)
-    max_frames: int = 40  # SfM frames per video at most
+    keyframes_by: KeyframeSelection = KeyframeSelection.CONTENT
+    # A new keyframe when the tracked corners moved by this share of the long side (median) since the last one,
+    # or when fewer than keyframe_survival of its corners are still tracked (content selection).
+    keyframe_motion: float = 0.05
+    keyframe_survival: float = 0.6
+    step: int = 0  # even selection (implied when set): every Nth decoded frame (0: all, then thinned)
+    time_step: float | None = None  # even selection (implied when set): or one frame per this many seconds
+    max_frames: int = 150  # SfM frames per video at most (content: a cap; even: the count)
     long_side: int = 1280  # SfM frames are resized to this long side (pixels)
     max_features: int = 4096  # SIFT features per frame
     # A static video's background image is matched across wide baselines: more features, DSP-SIFT with affine
@@ -66,7 +78,10 @@ class RegisterOptions:
     scale: tuple[str, str, float] | None = None  # (point A, point B, metres) for the subject path's scale
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
-    keyframes: int = 10  # per video; every keyframe is matched with every keyframe of the other videos
+    keyframes: int = 10  # per video, evenly spaced; each is matched with every one of the other videos
+    # Optionally also every SfM frame with its cross_partners most similar SfM frames (visual words) of each
+    # other video; off by default: on the video sample the extra pairs made the model worse (docs/registration.md).
+    cross_partners: int = 0
     # Incremental by measurement: global put a camera at a wrong pose from false wide-baseline matches
     # (docs/measurements.md).
     mapper: Mapper = Mapper.INCREMENTAL
@@ -112,6 +127,7 @@ __all__ = [
     "CameraMotion",
     "ImportCalibrationOptions",
     "InBetween",
+    "KeyframeSelection",
     "Localize",
     "Mapper",
     "RegisterOptions",

@@ -8,6 +8,7 @@ import numpy as np
 import pycolmap
 
 from sfm.frames import Resize
+from sfm.keyframes import KeyframeChoice
 from sfm.static import MotionTest
 from sfm.video import ProbedVideo
 
@@ -22,6 +23,7 @@ class VideoPlan:
     wanted: np.ndarray  # (W,) every frame that should get a pose (includes sfm_frames)
     motion: MotionTest | None = None  # the measured static/moving decision (None when the user chose)
     static: bool = False  # one camera pose for every frame, from one background image
+    keyframes: KeyframeChoice | None = None  # how sfm_frames were chosen (None for a static video)
 
     @property
     def background_name(self) -> str:

@@ -40,9 +40,33 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_frame_arguments(frames: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
-    frames.add_argument("--step", type=int, default=defaults.step, help="every Nth decoded frame (0: all)")
-    frames.add_argument("--time-step", type=float, default=None, help="or one frame per this many seconds")
-    frames.add_argument("--max-frames", type=int, default=defaults.max_frames, help="per video, at most")
+    from sfm.options import KeyframeSelection
+
+    frames.add_argument(
+        "--keyframes-by",
+        choices=[m.value for m in KeyframeSelection],
+        default=defaults.keyframes_by.value,
+        help="content: a new SfM frame where the view has moved enough; even: --step / --time-step, thinned",
+    )
+    frames.add_argument(
+        "--keyframe-motion",
+        type=float,
+        default=defaults.keyframe_motion,
+        help="content: median corner motion since the last keyframe, as a share of the long side",
+    )
+    frames.add_argument(
+        "--keyframe-survival",
+        type=float,
+        default=defaults.keyframe_survival,
+        help="content: a new keyframe when fewer than this share of the last one's corners are still tracked",
+    )
+    frames.add_argument(
+        "--step", type=int, default=defaults.step, help="every Nth decoded frame (0: all); implies even"
+    )
+    frames.add_argument(
+        "--time-step", type=float, default=None, help="or one frame per this many seconds; implies even"
+    )
+    frames.add_argument("--max-frames", type=int, default=defaults.max_frames, help="SfM frames per video, at most")
     frames.add_argument("--long-side", type=int, default=defaults.long_side, help="resize frames to this (px)")
 
 
@@ -61,7 +85,13 @@ def _add_sfm_arguments(sfm: argparse._ArgumentGroup, defaults: RegisterOptions) 
         "--keyframes",
         type=int,
         default=defaults.keyframes,
-        help="keyframes per video matched with all keyframes of the other videos",
+        help="evenly spaced SfM frames per video matched with those of every other video",
+    )
+    sfm.add_argument(
+        "--cross-partners",
+        type=int,
+        default=defaults.cross_partners,
+        help="every SfM frame is also matched with its N most similar frames of each other video (0: off)",
     )
     sfm.add_argument(
         "--init-min-inliers",
@@ -160,10 +190,13 @@ def parse_scale(text: str | None) -> tuple[str, str, float] | None:
 
 
 def _run_register(args: argparse.Namespace) -> int:
-    from sfm.options import CameraMotion, InBetween, Localize, Mapper, RegisterOptions, SubjectPath
+    from sfm.options import CameraMotion, InBetween, KeyframeSelection, Localize, Mapper, RegisterOptions, SubjectPath
     from sfm.stage import run
 
     options = RegisterOptions(
+        keyframes_by=KeyframeSelection(args.keyframes_by),
+        keyframe_motion=args.keyframe_motion,
+        keyframe_survival=args.keyframe_survival,
         step=args.step,
         time_step=args.time_step,
         max_frames=args.max_frames,
@@ -176,6 +209,7 @@ def _run_register(args: argparse.Namespace) -> int:
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,
         keyframes=args.keyframes,
+        cross_partners=args.cross_partners,
         mapper=Mapper(args.mapper),
         camera_model=args.camera_model,
         intrinsics=args.intrinsics,

@@ -33,13 +33,15 @@ from sfm.export import colmap_params, write_ply
 from sfm.frames import JPEG_QUALITY, Resize, image_name, select_frames, write_frames
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
+from sfm.keyframes import KeyframeChoice, KeyframeReason, choose_keyframes, even_choice
 from sfm.localize_frames import localize_all
 from sfm.masks import mask_from_points, track_points, user_mask, write_mask
-from sfm.options import ALL_CORES, CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
-from sfm.pairs import build_pairs
+from sfm.options import ALL_CORES, CameraMotion, KeyframeSelection, Localize, Mapper, RegisterOptions, SubjectPath
+from sfm.pairs import build_pairs, word_vectors
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
+from sfm.resume import StepLog, files_key, input_key
 from sfm.static import SAMPLES, background_image, measure_motion, sample_frames
 from sfm.video import ProbedVideo, probe_video
 from tracking.tracks import Tracks, read_tracks
@@ -63,6 +65,13 @@ class _Workspace:
     options: RegisterOptions
     timings: dict[str, float] = field(default_factory=dict)  # step -> seconds
     warnings: list[str] = field(default_factory=list)
+    steps: StepLog | None = None  # the finished steps of earlier runs (resuming)
+
+    @property
+    def log(self) -> StepLog:
+        if self.steps is None:
+            self.steps = StepLog(self.sfm_dir)
+        return self.steps
 
     @property
     def frames_dir(self) -> Path:
@@ -90,9 +99,10 @@ class _Workspace:
 
     @contextmanager
     def timed(self, step: str) -> Iterator[None]:
+        """Adds the block's seconds to `step` (a step may be timed in parts)."""
         started = time.perf_counter()
         yield
-        self.timings[step] = time.perf_counter() - started
+        self.timings[step] = self.timings.get(step, 0.0) + time.perf_counter() - started
 
 
 @dataclass(kw_only=True)
@@ -126,13 +136,20 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
         ws.out.mkdir(parents=True, exist_ok=True)
         for stale in ("cameras.json", "background.ply", "register_report.json"):
             (ws.out / stale).unlink(missing_ok=True)  # never leave a previous run's result beside this report
-        if ws.sfm_dir.exists():
-            shutil.rmtree(ws.sfm_dir)
-        ws.sfm_dir.mkdir(parents=True)
+        _clear_per_run(ws)
         return _register(infos, ws)
     finally:
         for name in ("sfm.video", "sfm.masks", __name__):
             logging.getLogger(name).removeHandler(collector)
+
+
+def _clear_per_run(ws: _Workspace) -> None:
+    """Remove what every run writes anew (masks, the localization database); keep what a later run may reuse
+    (the feature database and the models, checked against steps.json)."""
+    ws.sfm_dir.mkdir(parents=True, exist_ok=True)
+    if ws.mask_dir.exists():
+        shutil.rmtree(ws.mask_dir)  # a stale mask would silently hide features of this run's frames
+    (ws.sfm_dir / "localize.db").unlink(missing_ok=True)
 
 
 def _register(infos: list[ProbedVideo], ws: _Workspace) -> Path:
@@ -141,7 +158,7 @@ def _register(infos: list[ProbedVideo], ws: _Workspace) -> Path:
     with ws.timed("motion_test"):
         tracks = _tracks(options, ws.out)
         intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
-        videos = _plan_videos(infos, tracks, options)
+    videos = _plan_videos(infos, tracks, ws)
     with ws.timed("decode"):
         names_of, masked = _write_images(videos, tracks, ws)
     mask_dir = ws.mask_dir if masked else None
@@ -200,23 +217,23 @@ def _tracks(options: RegisterOptions, out: Path) -> Tracks | None:
     return read_tracks(path) if path is not None else None
 
 
-def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, options: RegisterOptions) -> list[VideoPlan]:
+def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, ws: _Workspace) -> list[VideoPlan]:
     """Which frames each video sends to SfM and which need a pose; static or moving camera, measured."""
+    options = ws.options
     videos = []
     for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
         motion = None
-        if options.camera_motion is CameraMotion.AUTO:
-            motion = measure_motion(info)
-            static = motion.static
-            log.info("%s: %s", info.name, motion.reason)
-        else:
-            static = options.camera_motion is CameraMotion.STATIC
+        with ws.timed("motion_test"):
+            if options.camera_motion is CameraMotion.AUTO:
+                motion = measure_motion(info)
+                static = motion.static
+                log.info("%s: %s", info.name, motion.reason)
+            else:
+                static = options.camera_motion is CameraMotion.STATIC
         resize = Resize.for_video(info, options.long_side)
-        sfm_frames = (
-            np.zeros(0, np.int64)
-            if static
-            else select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
-        )
+        with ws.timed("keyframes"):
+            choice = None if static else _keyframes(info, ws)
+        sfm_frames = np.zeros(0, np.int64) if choice is None else choice.frames
         wanted = _wanted_frames(info, sfm_frames, tracks, options.localize)  # also checks the tracks' frames
         if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
             wanted = np.arange(info.num_frames, dtype=np.int64)
@@ -228,9 +245,44 @@ def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, options: Regis
                 wanted=wanted,
                 motion=motion,
                 static=static,
+                keyframes=choice,
             )
         )
     return videos
+
+
+def _keyframes(info: ProbedVideo, ws: _Workspace) -> KeyframeChoice:
+    """A moving video's SfM frames: by content (reused from an earlier run of the same video and settings) or
+    evenly."""
+    options = ws.options
+    if options.keyframes_by is KeyframeSelection.EVEN or options.step or options.time_step:  # a step asks for even
+        frames = select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
+        return even_choice(frames)
+    stat = info.path.stat()
+    settings = (options.keyframe_motion, options.keyframe_survival, options.max_frames)
+    key = input_key(str(info.path.resolve()), stat.st_size, stat.st_mtime_ns, info.num_frames, settings)
+    step = f"keyframes {info.name}"
+    done = ws.log.result(step, key)
+    if done is not None:
+        return ws.log.reuse(step, _choice_from_json(done))
+    choice = choose_keyframes(
+        info, motion=options.keyframe_motion, survival=options.keyframe_survival, max_frames=options.max_frames
+    )
+    ws.log.record(step, key, {**choice.to_json(), "reasons": [r.value for r in choice.reasons]})
+    log.info("%s: %d keyframes by content (%s)", info.name, len(choice.frames), choice.to_json()["by_reason"])
+    return choice
+
+
+def _choice_from_json(done: dict[str, Any]) -> KeyframeChoice:
+    """A recorded keyframe choice (`_keyframes`' record) back as a KeyframeChoice."""
+    return KeyframeChoice(
+        method=done["method"],
+        frames=np.asarray(done["frames"], dtype=np.int64),
+        reasons=[KeyframeReason(r) for r in done["reasons"]],
+        candidates=int(done["chosen_by_content"]),
+        thinned=bool(done["thinned_to_max_frames"]),
+        settings={"motion": done["motion"], "survival": done["survival"]},
+    )
 
 
 def _wanted_frames(info: ProbedVideo, sfm_frames: np.ndarray, tracks: Tracks | None, mode: Localize) -> np.ndarray:
@@ -327,20 +379,32 @@ def _extract(
     mask_dir: Path | None,
     ws: _Workspace,
 ) -> dict[str, int]:
-    """SIFT features of every SfM image into the database; returns image name -> keypoint count."""
-    return run_isolated(
+    """SIFT features of every SfM image into the database (kept from an earlier run when its images, masks and
+    settings are the same); returns image name -> keypoint count."""
+    args = _extract_args(videos, names_of, intrinsics, ws.options)
+    images = [ws.frames_dir / name for names in names_of.values() for name in names]
+    masks = sorted(mask_dir.rglob("*.png")) if mask_dir is not None else []
+    key = input_key(args, ws.options.max_features, files_key(images), files_key(masks))
+    done = ws.log.result("extract", key)
+    if done is not None and ws.database.exists():
+        return ws.log.reuse("extract", {str(k): int(v) for k, v in done.items()})
+    ws.log.forget("extract", "match", "map")
+    ws.database.unlink(missing_ok=True)
+    keypoints: dict[str, int] = run_isolated(
         "feature extraction",
         colmap_steps.extract,
         {
             "database": str(ws.database),
             "image_dir": str(ws.frames_dir),
-            "videos": _extract_args(videos, names_of, intrinsics, ws.options),
+            "videos": args,
             "mask_dir": str(mask_dir) if mask_dir is not None else None,
             "max_features": ws.options.max_features,
             "num_threads": ws.options.num_threads,
         },
         ws.colmap_log,
     )
+    ws.log.record("extract", key, keypoints)
+    return keypoints
 
 
 def _extract_args(
@@ -368,10 +432,26 @@ def _extract_args(
 
 
 def _match(names_of: dict[str, list[str]], ws: _Workspace) -> tuple[list[tuple[str, str]], dict[str, int]]:
-    """Sequential pairs within a video and keyframe pairs across videos, matched; returns the pairs and the
-    matching summary."""
-    pairs = build_pairs(names_of, overlap=ws.options.sequential_overlap, keyframes=ws.options.keyframes)
-    matching = run_isolated(
+    """Sequential pairs within a video, keyframe and retrieved pairs across videos, matched (kept from an earlier
+    run with the same features and pairs); returns the pairs and the matching summary."""
+    options = ws.options
+    words = word_vectors(_descriptors(ws.database)) if options.cross_partners > 0 and len(names_of) > 1 else {}
+    pairs = build_pairs(
+        names_of,
+        overlap=options.sequential_overlap,
+        keyframes=options.keyframes,
+        partners=options.cross_partners,
+        words=words,
+    )
+    key = input_key(ws.log.steps.get("extract", {}).get("key"), pairs, options.max_ratio)
+    done = ws.log.result("match", key)
+    if done is not None:
+        return pairs, ws.log.reuse("match", {str(k): int(v) for k, v in done.items()})
+    ws.log.forget("match", "map")
+    with pycolmap.Database.open(str(ws.database)) as db:
+        db.clear_matches()  # an interrupted run's partial matches
+        db.clear_two_view_geometries()
+    matching: dict[str, int] = run_isolated(
         "matching",
         colmap_steps.match,
         {
@@ -382,19 +462,34 @@ def _match(names_of: dict[str, list[str]], ws: _Workspace) -> tuple[list[tuple[s
         },
         ws.colmap_log,
     )
+    ws.log.record("match", key, matching)
     return pairs, matching
+
+
+def _descriptors(database: Path) -> dict[str, np.ndarray]:
+    """image name -> its SIFT descriptors (N, 128) uint8, from the feature database."""
+    with pycolmap.Database.open(str(database)) as db:
+        return {image.name: np.asarray(db.read_descriptors(image.image_id).data) for image in db.read_all_images()}
 
 
 def _map(
     videos: list[VideoPlan], names_of: dict[str, list[str]], intrinsics: Intrinsics, ws: _Workspace
 ) -> dict[str, int]:
-    """The mapper's models in sfm/models/<name>; returns model name -> registered images."""
+    """The mapper's models in sfm/models/<name> (kept from an earlier run with the same matches and settings);
+    returns model name -> registered images."""
     options = ws.options
-    ws.model_dir.mkdir()
     step = colmap_steps.map_global if options.mapper is Mapper.GLOBAL else colmap_steps.map_incremental
     fix_intrinsics = bool(intrinsics) and len(intrinsics) == len(videos)
     if intrinsics and not fix_intrinsics:
         ws.warnings.append("known intrinsics for only some videos: all intrinsics are refined")
+    key = input_key(ws.log.steps.get("match", {}).get("key"), options.mapper, fix_intrinsics, options.init_min_inliers)
+    done = ws.log.result("map", key)
+    if done is not None and all((ws.model_dir / name).is_dir() for name in done):
+        return ws.log.reuse("map", {str(k): int(v) for k, v in done.items()})
+    ws.log.forget("map")
+    if ws.model_dir.exists():
+        shutil.rmtree(ws.model_dir)
+    ws.model_dir.mkdir()
     models: dict[str, int] = run_isolated(
         f"mapping ({options.mapper.value})",
         step,
@@ -409,6 +504,7 @@ def _map(
         },
         ws.colmap_log,
     )
+    ws.log.record("map", key, models)
     return models
 
 
@@ -516,6 +612,7 @@ def _write_report(
         timings=ws.timings,
         warnings=ws.warnings,
         options=ws.options,
+        reused=ws.log.reused,
         pairs=len(sfm.pairs),
         matching=sfm.matching,
         rec=sfm.rec,
