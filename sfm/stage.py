@@ -66,6 +66,7 @@ class _Workspace:
     timings: dict[str, float] = field(default_factory=dict)  # step -> seconds
     warnings: list[str] = field(default_factory=list)
     steps: StepLog | None = None  # the finished steps of earlier runs (resuming)
+    unreadable: dict[str, str] = field(default_factory=dict)  # video file -> why it was left out
 
     @property
     def log(self) -> StepLog:
@@ -132,7 +133,7 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
         logging.getLogger(name).addHandler(collector)
     try:
         with ws.timed("probe"):
-            infos = [probe_video(p) for p in tqdm(paths, desc="probing videos", unit="video", leave=False)]
+            infos = _probe_all(paths, ws)
         ws.out.mkdir(parents=True, exist_ok=True)
         for stale in ("cameras.json", "background.ply", "register_report.json"):
             (ws.out / stale).unlink(missing_ok=True)  # never leave a previous run's result beside this report
@@ -141,6 +142,22 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     finally:
         for name in ("sfm.video", "sfm.masks", __name__):
             logging.getLogger(name).removeHandler(collector)
+
+
+def _probe_all(paths: list[Path], ws: _Workspace) -> list[ProbedVideo]:
+    """Probe every video. One that cannot be read is left out with its one-line reason (a warning and the report),
+    and the others go on; with fewer than two readable videos, the first reason is the error."""
+    infos, errors = [], []
+    for path in tqdm(paths, desc="probing videos", unit="video", leave=False):
+        try:
+            infos.append(probe_video(path))
+        except InputError as error:
+            errors.append(error)
+            ws.unreadable[str(path)] = str(error)
+            log.warning("left out: %s", error)
+    if len(infos) < 2 and errors:
+        raise errors[0]
+    return infos
 
 
 def _clear_per_run(ws: _Workspace) -> None:
@@ -613,6 +630,7 @@ def _write_report(
         warnings=ws.warnings,
         options=ws.options,
         reused=ws.log.reused,
+        unreadable=ws.unreadable,
         pairs=len(sfm.pairs),
         matching=sfm.matching,
         rec=sfm.rec,

@@ -107,3 +107,23 @@ def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "'a' is used twice" in capsys.readouterr().err
     assert main(["register", str(video), str(tmp_path / "b"), "--out", str(tmp_path / "ws")]) == 2
     assert "is a directory" in capsys.readouterr().err
+
+
+def test_an_unreadable_video_is_left_out_and_the_others_go_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    videos = [str(_flat_video(tmp_path / f"flat{i}.mp4")) for i in range(2)]
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"\x00not a video" * 100)
+    # the two readable (flat) videos are still registered (and fail for their own reason: no texture)
+    assert main(["register", *videos, str(broken), "--out", str(tmp_path / "ws"), "--max-frames", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "try more overlap" in err
+    report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
+    assert any(w.startswith("left out: ") and "broken.mp4" in w for w in report["warnings"])
+    assert [v["name"] for v in report["videos"]] == ["flat0", "flat1"]
+    assert [u["path"] for u in report["unreadable_videos"]] == [str(broken)]
+    assert "cannot open" in report["unreadable_videos"][0]["reason"]
+    # with one readable video left there is nothing to register: the unreadable one's reason is the error
+    assert main(["register", videos[0], str(broken), "--out", str(tmp_path / "ws2")]) == 2
+    assert "broken.mp4" in capsys.readouterr().err
