@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
 from pathlib import Path
 
 import cv2
@@ -127,3 +129,45 @@ def test_an_unreadable_video_is_left_out_and_the_others_go_on(
     # with one readable video left there is nothing to register: the unreadable one's reason is the error
     assert main(["register", videos[0], str(broken), "--out", str(tmp_path / "ws2")]) == 2
     assert "broken.mp4" in capsys.readouterr().err
+
+
+LOSSLESS = ["-c:v", "libx264", "-qp", "0", "-pix_fmt", "yuv420p", "-threads", "1"]
+
+
+def _ffmpeg(*args: str | Path) -> None:
+    ffmpeg = shutil.which("ffmpeg")
+    assert ffmpeg is not None
+    subprocess.run([ffmpeg, "-hide_banner", "-loglevel", "error", "-y", *map(str, args)], check=True)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("ffmpeg") is None, reason="needs ffmpeg (Debian package) to write the rotated video")
+def test_a_rotated_video_registers_as_the_same_video_stored_upright(tmp_path: Path) -> None:
+    """A phone's portrait video is stored landscape with a 90-degree display rotation: registration must give the
+    same cameras (poses, intrinsics, image size) as for the same video stored upright."""
+    videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(8, 6, 6)))
+    sets = {"upright": tmp_path / "upright", "rotated": tmp_path / "rotated"}
+    for folder in sets.values():
+        folder.mkdir()
+        for video in videos[1:]:
+            shutil.copy(video.path, folder / video.path.name)
+    source = videos[0].path
+    # The same decoded pixels both ways: lossless, and turned clockwise + flagged to be shown turned back.
+    _ffmpeg("-i", source, *LOSSLESS, sets["upright"] / "cam0.mp4")
+    turned = tmp_path / "turned.mp4"
+    _ffmpeg("-i", source, "-vf", "transpose=1", *LOSSLESS, turned)
+    _ffmpeg("-i", turned, "-c", "copy", "-metadata:s:v:0", "rotate=90", sets["rotated"] / "cam0.mp4")
+    found = {}
+    for name, folder in sets.items():
+        ws = tmp_path / f"ws_{name}"
+        paths = [str(folder / f"cam{i}.mp4") for i in range(3)]
+        options = ["--long-side", "480", "--max-frames", "6", "--max-features", "1500", "--threads", "1"]
+        assert main(["register", *paths, "--out", str(ws), *options]) == 0
+        found[name] = read_cameras(ws / "cameras.json")
+    for upright, rotated in zip(found["upright"].videos, found["rotated"].videos, strict=True):
+        assert (rotated.name, rotated.width, rotated.height) == (upright.name, upright.width, upright.height)
+        assert rotated.frame_numbers().tolist() == upright.frame_numbers().tolist()
+        for a, b in zip(upright.frames, rotated.frames, strict=True):
+            np.testing.assert_allclose(b.K, a.K, atol=1e-6)
+            np.testing.assert_allclose(b.R, a.R, atol=1e-6)
+            np.testing.assert_allclose(b.t, a.t, atol=1e-6)
