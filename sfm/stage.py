@@ -43,7 +43,7 @@ from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, files_key, input_key
 from sfm.static import SAMPLES, background_image, measure_motion, sample_frames
-from sfm.video import ProbedVideo, probe_video
+from sfm.video import ProbedVideo, probe_video, video_name
 from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
@@ -219,7 +219,7 @@ def _check_videos(videos: list[Path]) -> None:
             "register needs at least two videos",
             fix="give every video of the scene",
         )
-    names = [v.stem for v in videos]
+    names = [video_name(v) for v in videos]  # a name that cannot be a folder is the user's to fix, not left out
     for video, name in zip(videos, names, strict=True):
         if names.count(name) > 1:
             raise InputError(
