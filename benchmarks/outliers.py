@@ -26,8 +26,9 @@ from common import WINDOWS, require_mocap_dir
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dynrecon.cli import main as dynrecon
-from reconstruct.outputs.points import read_points
+from reconstruct.outputs.points import FramePoints, read_points
 from sfm.cameras import read_cameras
+from simulation.evaluate import ReconstructionAccuracy, evaluate
 
 SETTINGS = {"clean": [], "1px": ["--noise", "1"]}
 RATE = 120.0  # the paper protocol's windows are 120 Hz files
@@ -57,23 +58,16 @@ def inject(
     return len(chosen), hit
 
 
-def errors(ws: Path, truth_path: Path) -> dict[tuple[str, int, str], float]:
-    """Distance (mm) to the truth per (video, frame, point)."""
-    points, truth = read_points(ws / "points3d.csv"), read_points(truth_path)
-    where = {(v, int(f)): i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True))}
-    column = {name: p for p, name in enumerate(truth.point_names)}
-    out = {}
-    for i, (video, frame) in enumerate(zip(points.videos, points.frames, strict=True)):
-        for p, name in enumerate(points.point_names):
-            row, col = where.get((video, int(frame))), column.get(name)
-            if row is not None and col is not None and np.all(np.isfinite(truth.xyz[row, col])):
-                out[(video, int(frame), name)] = float(np.linalg.norm(points.xyz[i, p] - truth.xyz[row, col]))
-    return out
+def accuracy(ws: Path, truth: FramePoints) -> ReconstructionAccuracy:
+    """`dynrecon evaluate`'s numbers for ws/points3d.csv; its `errors` follow the truth's rows, so two solves of
+    the same capture compare element by element."""
+    return evaluate(read_points(ws / "points3d.csv"), truth)
 
 
-def share(err: dict) -> float:
-    values = np.array(list(err.values()))
-    return float(np.mean(np.nan_to_num(values, nan=np.inf) < 10.0))
+def scored_frames(truth: FramePoints) -> list[tuple[str, int]]:
+    """(video, frame) of each element of `ReconstructionAccuracy.errors`, in its order."""
+    rows, _ = np.nonzero(np.isfinite(truth.xyz).all(axis=2))
+    return [(truth.videos[r], int(truth.frames[r])) for r in rows]
 
 
 def run(window_name: str, setting: str, fraction: float, work: Path) -> dict:
@@ -93,19 +87,21 @@ def run(window_name: str, setting: str, fraction: float, work: Path) -> dict:
         solve = ["-q", "solve", "--cameras", str(ws / "cameras.json"), "--tracks", str(ws / "tracks.csv")]
         assert dynrecon([*solve, "--out", str(ws), "--no-recording"]) == 0
         seconds[ws.name] = time.perf_counter() - started
-    before, after = errors(clean, clean / "truth.csv"), errors(dirty, clean / "truth.csv")
-    moved = [k for k in before if before[k] < 10.0 and not after.get(k, np.inf) < 10.0]
+    truth = read_points(clean / "truth.csv")
+    before, after = accuracy(clean, truth), accuracy(dirty, truth)
+    lost = np.flatnonzero((before.errors < 10.0) & ~(after.errors < 10.0))
+    frames = scored_frames(truth)
     report = json.loads((dirty / "report.json").read_text(encoding="utf-8"))
     return {
         "window": window_name,
         "setting": setting,
         "false_rows": count,
         "hit_frames": len(hit),
-        "clean": share(before),
-        "outliers": share(after),
-        "points": len(before),
-        "lost": len(moved),
-        "lost_in_hit_frames": sum((k[0], k[1]) in hit for k in moved),
+        "clean": float(before.share_under[0]),
+        "outliers": float(after.share_under[0]),
+        "points": before.count,
+        "lost": len(lost),
+        "lost_in_hit_frames": sum(frames[i] in hit for i in lost),
         "path": (report.get("temporal") or {}).get("path", report.get("path")),
         "seconds": seconds,
     }
