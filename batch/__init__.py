@@ -11,6 +11,9 @@
 
     batch.run_capture(batch.read_capture("captures/monday"), "alone")  # one capture here, without Dask
 
+The tasks run the stages of `dynrecon run` through its public stage API, `dynrecon.pipeline.Stages`, which is also
+there for a graph of one's own (docs/scaling.md, "From Python", has a tested example).
+
 A capture folder's layout is in docs/formats.md ("Capture folder"); docs/scaling.md says how to run on a cluster.
 Names are loaded on first use: `import batch` does not load Dask or the stages.
 """

@@ -4,10 +4,11 @@
     probe (per video) -> register (one task: calibration import or SfM)  -> solve (one task: merge the per-video
                       -> track (per video, with labels; beside register)  ->  tracks, subject, solve, record, export)
 
-The stage bodies are `dynrecon.pipeline`'s: `_BatchStages` is the pipeline's stage runner (its hashes, skipping and
-`pipeline.json`) with two bodies swapped, the calibration import for a calibrated capture's `register` and the merge
-of the per-video tracks files for `track`. User errors (`DynreconError`) become a failed outcome with a one-line
-reason; anything else raises, so that Dask retries it.
+The stages are `dynrecon.pipeline.Stages`, the public stage API of `dynrecon run` (its hashes, skipping and
+`pipeline.json`; a calibrated capture's `register` imports the calibration there too): the register task runs
+`Stages.register`, the solve task `Stages.finish` with the merge of the per-video tracks files as its tracker. User
+errors (`DynreconError`) become a failed outcome with a one-line reason; anything else raises, so that Dask retries
+it.
 """
 
 from __future__ import annotations
@@ -21,26 +22,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from batch.capture import Capture
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import DynreconError
-from dynrecon.pipeline import (
-    REGISTER_DIR,
-    PipelineOptions,
-    _bones,
-    _stage_export,
-    _stage_record,
-    _stage_register,
-    _stage_solve,
-    _stage_subject,
-    _stage_track,
-    _Stages,
-    inputs_key,
-)
-from sfm.calibration import run as import_calibration
-from sfm.export import write_ply
+from dynrecon.pipeline import PipelineOptions, Stages, inputs_key
 from sfm.stage import RegistrationError
 from sfm.video import probe_video
 from tracking.labels import read_labels
@@ -68,6 +53,10 @@ class CaptureJob:
     def name(self) -> str:
         return self.capture.name
 
+    def stages(self) -> Stages:
+        """The pipeline's stages on this capture's workspace."""
+        return Stages(self.capture.videos, self.workspace, self.options)
+
 
 @dataclass(kw_only=True)
 class TaskOutcome:
@@ -90,7 +79,11 @@ class TaskOutcome:
 def job_for(capture: Capture, out: Path, base: PipelineOptions) -> CaptureJob:
     """The capture's job: workspace `out/<name>`, the pipeline's options with the capture's own inputs."""
     options = dataclasses.replace(
-        base, labels=capture.labels, tracks=capture.tracks, skeleton=capture.skeleton or base.skeleton
+        base,
+        labels=capture.labels,
+        tracks=capture.tracks,
+        skeleton=capture.skeleton or base.skeleton,
+        calibration=capture.calibration or base.calibration,  # one rig calibration may serve every capture
     )
     return CaptureJob(capture=capture, workspace=(out / capture.name).resolve(), options=options)
 
@@ -156,8 +149,8 @@ def register_task(job: CaptureJob, probes: list[TaskOutcome]) -> TaskOutcome:
         return failed
 
     def body(outcome: TaskOutcome) -> None:
-        stages = _BatchStages(job)
-        background_failed = _stage_register(stages, job.options.labels)
+        stages = job.stages()
+        background_failed = stages.register()
         outcome.registration_error = str(background_failed) if background_failed is not None else None
         _note_stages(outcome, stages)
 
@@ -200,28 +193,16 @@ def solve_task(job: CaptureJob, register: TaskOutcome, tracked: list[TaskOutcome
         parts = {video.stem: track_folder(job.workspace, video.stem) / "tracks.csv" for video in job.capture.videos}
         labels = job.options.labels
         assert labels is not None  # per-video tracks exist only with labels
-        merge = lambda: merge_tracks(parts, labels, job.workspace / "tracks.csv")  # noqa: E731
+        merge = lambda out: merge_tracks(parts, labels, out)  # noqa: E731
 
     def body(outcome: TaskOutcome) -> None:
         failed_background = RegistrationError(register.registration_error) if register.registration_error else None
-        stages = _BatchStages(job, merge=merge)
-        finish_pipeline(stages, job.options, failed_background)
+        stages = job.stages()
+        if stages.finish(failed_background, tracker=merge) is None:
+            log.info("%s: no labels and no tracks: registration only", stages.ws)
         _note_stages(outcome, stages)
 
     return _guarded(job, "solve", None, body)
-
-
-def finish_pipeline(stages: _Stages, options: PipelineOptions, background_failed: RegistrationError | None) -> None:
-    """`dynrecon.pipeline.run_stages` after its `register` stage, on `stages` (the same stage functions, in order)."""
-    tracks = _stage_track(stages, options.labels)
-    if tracks is None:
-        log.info("%s: no labels and no tracks: registration only", stages.ws)
-        return
-    registration = _stage_subject(stages, tracks, background_failed)
-    bones = _bones(options.skeleton)
-    _stage_solve(stages, registration, tracks, bones)
-    _stage_record(stages, registration, tracks, bones)
-    _stage_export(stages, registration)
 
 
 def run_capture(capture: Capture, out: str | Path, options: PipelineOptions | None = None) -> list[TaskOutcome]:
@@ -236,37 +217,7 @@ def run_capture(capture: Capture, out: str | Path, options: PipelineOptions | No
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The pipeline's stage runner, two bodies swapped
-
-
-class _BatchStages(_Stages):
-    """`dynrecon.pipeline`'s stage runner for one capture. A calibrated capture's `register` imports the
-    calibration (its hash joins the stage's inputs) instead of running SfM; `track` runs `merge` when given."""
-
-    def __init__(self, job: CaptureJob, merge: Callable[[], object] | None = None) -> None:
-        super().__init__(job.workspace, job.capture.videos, job.options)
-        self.calibration = job.capture.calibration
-        self.merge = merge
-
-    def run(
-        self, name: str, files: dict[str, Path], settings: Any, outputs: list[Path], work: Callable[[], object]
-    ) -> None:
-        calibration = self.calibration
-        if name == "register" and calibration is not None:
-            files = {**files, "calibration": calibration}
-            settings = {"calibration": calibration.name, "videos": [p.stem for p in self.videos]}
-            folder = self.ws / REGISTER_DIR
-            work = lambda: import_registration(calibration, self.videos, folder)  # noqa: E731
-        elif name == "track" and self.merge is not None:
-            work = self.merge
-        super().run(name, files, settings, outputs, work)
-
-
-def import_registration(calibration: Path, videos: list[Path], folder: Path) -> None:
-    """A calibrated (static) rig's `register/`: cameras.json from the calibration file, an empty background
-    cloud (there is no SfM model to take one from)."""
-    import_calibration(calibration, list(videos), folder)
-    write_ply(folder / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+# The per-video tracks, merged
 
 
 def merge_tracks(parts: dict[str, Path], labels: Path, out: Path) -> Path:
@@ -325,7 +276,7 @@ def _cached(path: Path, stamp: dict[str, Any]) -> bool:
     return isinstance(document, dict) and all(document.get(k) == v for k, v in stamp.items())
 
 
-def _note_stages(outcome: TaskOutcome, stages: _Stages) -> None:
+def _note_stages(outcome: TaskOutcome, stages: Stages) -> None:
     outcome.pipeline = {s.name: None if s.skipped else round(s.seconds, 3) for s in stages.result.stages}
     if outcome.pipeline and all(v is None for v in outcome.pipeline.values()):
         outcome.status = "skipped"
@@ -335,7 +286,6 @@ __all__ = [
     "STAGES",
     "CaptureJob",
     "TaskOutcome",
-    "finish_pipeline",
     "job_for",
     "merge_tracks",
     "probe_task",

@@ -17,6 +17,14 @@ Registration does not use the tracks for masks, so that new labels never force a
 sample registers every frame without masks). When the background leaves a static video out (or poses
 fewer than two videos) and there are labels or tracks, the `subject` stage registers again after tracking, with
 the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json.
+
+With `PipelineOptions.calibration` (a lab calibration, any file `dynrecon import-calibration` reads), the `register`
+stage imports it instead of running SfM: register/cameras.json gives every frame its camera's fixed pose, and the
+stage's hash covers the calibration's contents.
+
+The public API (`__all__`): `run` / `run_stages` run everything; `Stages` is the same pipeline one stage at a time
+(`register`, `track`, `subject`, `solve`, `record`, `export`, or `finish` for all after `register`), for a task
+graph of one's own (the `batch` package builds its Dask graph from it; docs/scaling.md has an example).
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,8 +59,10 @@ from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
 from reconstruct.stage import SolveOptions
 from reconstruct.stage import run as solve_run
+from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
-from sfm.export import read_ply
+from sfm.export import read_ply, write_ply
+from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.stage import Localize, RegisterOptions, RegistrationError
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
@@ -71,6 +81,33 @@ _HASH_CHUNK = 1 << 20
 Bones = tuple[tuple[str, str], ...]  # pairs of point names drawn as lines in the recording
 
 
+__all__ = [
+    "REGISTER_DIR",
+    "STAGES",
+    "STATE_NAME",
+    "SUBJECT_DIR",
+    "Bones",
+    "PipelineOptions",
+    "PipelineResult",
+    "Registration",
+    "Similarity",
+    "StageRun",
+    "Stages",
+    "State",
+    "Tracker",
+    "align_to_truth",
+    "default_register",
+    "export_rate",
+    "file_hash",
+    "import_registration",
+    "inputs_key",
+    "run",
+    "run_stages",
+    "score_against_truth",
+    "similarity_to_truth",
+]
+
+
 def default_register() -> RegisterOptions:
     # No tracks exist when registering (see the module docstring): localize every frame.
     return RegisterOptions(localize=Localize.ALL)
@@ -84,6 +121,8 @@ class PipelineOptions:
     labels: Path | None = None  # clicks to track (default: WS/labels.csv when it exists)
     tracks: Path | None = None  # or ready 2D tracks (detector output, ...): no track stage
     skeleton: Path | None = None  # skeleton JSON for the recording (points and connections)
+    calibration: Path | None = None  # a lab calibration (`dynrecon import-calibration`'s files): replaces SfM
+    calibration_options: ImportCalibrationOptions = field(default_factory=ImportCalibrationOptions)  # format, units
     units: str = "mm"  # unit label written into TRC/C3D (SfM worlds have an arbitrary scale)
     force: bool = False  # redo every stage
 
@@ -226,6 +265,40 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     for given in (options.labels, options.tracks, options.skeleton):
         if given is not None and not given.is_file():
             raise InputError(given, "file not found")
+    if options.calibration is not None:
+        _check_calibration(options.calibration, options.calibration_options, options.register)
+
+
+def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, register: RegisterOptions) -> None:
+    """A calibration that exists, can be read and has a known format, without the registration options it
+    replaces: checked before any stage runs."""
+    fix = "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml)"
+    if not calibration.exists():
+        raise InputError(calibration, "calibration file not found", fix=fix)
+    if not calibration.is_file():
+        raise InputError(calibration, "is not a file: a calibration file was expected", fix=fix)
+    try:
+        with calibration.open("rb"):
+            pass
+    except OSError as error:
+        raise InputError(
+            calibration, f"cannot read the calibration file ({error.strerror or error})", fix=fix
+        ) from None
+    if register.intrinsics is not None or register.scale is not None:
+        raise InputError(
+            calibration,
+            "a calibration gives the cameras: --intrinsics and --scale (registration options) do not apply",
+            fix="leave out --intrinsics and --scale, or the calibration",
+        )
+    lower = calibration.name.lower()
+    # sfm.calibration's own rule for the format; its message would name import-calibration's --format.
+    known = lower.endswith((".toml", ".xml")) or ".qca" in lower
+    if imported.format is CalibrationFormat.AUTO and not known:
+        raise InputError(
+            calibration,
+            "cannot tell the calibration format from the name",
+            fix="pass --calibration-format qca or toml, or name the file .toml / .qca.txt / .qca / .xml",
+        )
 
 
 def _copy_into(source: Path, target: Path) -> None:
@@ -234,45 +307,74 @@ def _copy_into(source: Path, target: Path) -> None:
         shutil.copyfile(source, target)
 
 
-def run(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> Path:
+def run(videos: Sequence[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> Path:
     """Run every stage that is not up to date; returns WS (see `run_stages` for the per-stage details)."""
     return run_stages(videos, out_dir, options).workspace
 
 
-def run_stages(videos: list[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> PipelineResult:
+def run_stages(
+    videos: Sequence[str | Path], out_dir: str | Path, options: PipelineOptions | None = None
+) -> PipelineResult:
     """Run every stage that is not up to date, in order (the module docstring says which run when)."""
-    options = options or PipelineOptions()
-    paths = [Path(v) for v in videos]
-    _check(paths, options)
-    ws = Path(out_dir)
-    ws.mkdir(parents=True, exist_ok=True)
-    stages = _Stages(ws, paths, options)
-    labels = options.labels or (ws / "labels.csv" if (ws / "labels.csv").is_file() else None)
-    background_failed = _stage_register(stages, labels)
-    tracks = _stage_track(stages, labels)
-    if tracks is None:
+    stages = Stages(videos, out_dir, options)
+    background_failed = stages.register()
+    registration = stages.finish(background_failed)
+    if registration is None:
         return stages.result
-    registration = _stage_subject(stages, tracks, background_failed)
-    bones = _bones(options.skeleton)
-    _stage_solve(stages, registration, tracks, bones)
-    _stage_record(stages, registration, tracks, bones)
-    _stage_export(stages, registration)
+    ws = stages.ws
     stages.result.order_source = _order(ws, registration.cameras)[1]
     ran = ", ".join(f"{s.name} {s.seconds:.1f} s" for s in stages.result.stages if not s.skipped) or "nothing to redo"
     log.info("pipeline done (%s); open the recording with: rerun %s", ran, ws / "recording.rrd")
     return stages.result
 
 
-class _Stages:
-    """One run of the pipeline in WS: runs each stage, or skips it when `pipeline.json` says it is up to date."""
+@dataclass(kw_only=True)
+class Registration:
+    """The cameras the later stages use: the background registration's (or calibration's), or the subject path's."""
 
-    def __init__(self, ws: Path, videos: list[Path], options: PipelineOptions) -> None:
-        self.ws = ws
-        self.options = options
-        self.videos = videos
-        self.video_files = {f"video:{p.stem}": p for p in videos}
-        self.state = State(ws)
-        self.result = PipelineResult(workspace=ws, stages=[])
+    cameras: Path
+    background: Path
+
+    @classmethod
+    def in_folder(cls, folder: Path) -> Registration:
+        return cls(cameras=folder / "cameras.json", background=folder / "background.ply")
+
+
+Tracker = Callable[[Path], object]  # writes the 2D tracks of the labels into the given tracks.csv
+
+
+class Stages:
+    """The pipeline's stages on one workspace, one method each, in the order `run_stages` calls them. Each runs, or
+    is skipped when `WS/pipeline.json` says its inputs (file contents, options) and outputs are those of its last run.
+
+    Any process may run any stage on the same workspace (a shared filesystem): the state is in WS's files, and each
+    method takes and returns paths. `result` lists what this object ran or skipped.
+
+        stages = Stages(videos, ws, options)  # the arguments of run_stages
+        failed = stages.register()  # cameras (SfM, or options.calibration imported)
+        stages.finish(failed)  # track, subject, solve, record, export (or stages.track() ... stages.export(...))
+    """
+
+    def __init__(
+        self, videos: Sequence[str | Path], workspace: str | Path, options: PipelineOptions | None = None
+    ) -> None:
+        """Checks the inputs (a one-line InputError, before anything is written), then makes WS."""
+        self.options = options or PipelineOptions()
+        self.videos = [Path(v) for v in videos]
+        _check(self.videos, self.options)
+        self.ws = Path(workspace)
+        self.ws.mkdir(parents=True, exist_ok=True)
+        self.video_files = {f"video:{p.stem}": p for p in self.videos}
+        self.state = State(self.ws)
+        self.result = PipelineResult(workspace=self.ws, stages=[])
+        # The clicks to track: the given labels, else those the labeling page saved in WS.
+        given = self.options.labels
+        self.labels = given or (self.ws / "labels.csv" if (self.ws / "labels.csv").is_file() else None)
+
+    @property
+    def bones(self) -> Bones:
+        """The skeleton's connections, drawn in the recording."""
+        return _bones(self.options.skeleton)
 
     def run(
         self, name: str, files: dict[str, Path], settings: Any, outputs: list[Path], work: Callable[[], object]
@@ -296,87 +398,147 @@ class _Stages:
         log.info("[%d/%d] %s: done in %.1f s", number, len(STAGES), name, seconds)
         self.result.stages.append(StageRun(name=name, skipped=False, seconds=seconds))
 
-
-@dataclass(kw_only=True)
-class _Registration:
-    """The cameras the later stages use: the background registration's, or the subject path's."""
-
-    cameras: Path
-    background: Path
-
-    @classmethod
-    def in_folder(cls, folder: Path) -> _Registration:
-        return cls(cameras=folder / "cameras.json", background=folder / "background.ply")
-
-
-def _stage_register(stages: _Stages, labels: Path | None) -> RegistrationError | None:
-    """The `register` stage. Its failure is returned, not raised, when tracks will come to pose the static videos
-    from the subject (`_stage_subject`)."""
-    options = stages.options
-    folder = stages.ws / REGISTER_DIR
-    registration = _Registration.in_folder(folder)
-    register_options = options.background_register()
-    try:
-        stages.run(
-            "register",
-            stages.video_files,
-            {"register": register_options, "videos": [p.stem for p in stages.videos]},
-            [registration.cameras, registration.background],
-            lambda: _register(stages.videos, folder, register_options),
-        )
-    except RegistrationError as error:
-        if options.tracks is None and labels is None and not (stages.ws / "tracks.csv").is_file():
-            raise
-        log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
-        return error
-    return None
-
-
-def _stage_track(stages: _Stages, labels: Path | None) -> Path | None:
-    """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither."""
-    ws, options = stages.ws, stages.options
-    tracks_path = ws / "tracks.csv"
-    if options.tracks is not None:
-        _copy_into(options.tracks, tracks_path)
-        stages.state.forget("track")
-    elif labels is not None:
-        _copy_into(labels, ws / "labels.csv")
-        stages.run(
-            "track",
-            {**stages.video_files, "labels": ws / "labels.csv"},
-            {"track": options.track},
-            [tracks_path],
-            lambda: _track(ws, tracks_path, stages.videos, options.track),
-        )
-    elif not tracks_path.is_file():
-        log.info(
-            "no labels and no tracks: registration only. Label the points with `dynrecon label %s "
-            "--videos ...`, then run this command again",
-            ws,
-        )
+    def register(self) -> RegistrationError | None:
+        """The `register` stage into WS/register/: SfM, or the import of `options.calibration`. An SfM failure is
+        returned, not raised, when tracks will come to pose the static videos from the subject (`subject`)."""
+        options = self.options
+        folder = self.ws / REGISTER_DIR
+        registration = Registration.in_folder(folder)
+        outputs = [registration.cameras, registration.background]
+        names = [p.stem for p in self.videos]
+        calibration = options.calibration
+        if calibration is not None:
+            imported = options.calibration_options
+            settings = {"calibration": calibration.name, "import": imported, "videos": names}
+            self.run(
+                "register",
+                {**self.video_files, "calibration": calibration},
+                settings,
+                outputs,
+                lambda: import_registration(calibration, self.videos, folder, imported),
+            )
+            return None
+        register_options = options.background_register()
+        try:
+            self.run(
+                "register",
+                self.video_files,
+                {"register": register_options, "videos": names},
+                outputs,
+                lambda: _register(self.videos, folder, register_options),
+            )
+        except RegistrationError as error:
+            if options.tracks is None and self.labels is None and not (self.ws / "tracks.csv").is_file():
+                raise
+            log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
+            return error
         return None
-    if not tracks_path.is_file():
-        raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
-    return tracks_path
 
+    def track(self, tracker: Tracker | None = None) -> Path | None:
+        """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither.
+        `tracker` replaces the tracker (the batch merges per-video files); the stage's hash is the same."""
+        ws, options, labels = self.ws, self.options, self.labels
+        tracks_path = ws / "tracks.csv"
+        if options.tracks is not None:
+            _copy_into(options.tracks, tracks_path)
+            self.state.forget("track")
+        elif labels is not None:
+            _copy_into(labels, ws / "labels.csv")
+            write = tracker or (lambda out: _track(ws, out, self.videos, options.track))
+            self.run(
+                "track",
+                {**self.video_files, "labels": ws / "labels.csv"},
+                {"track": options.track},
+                [tracks_path],
+                lambda: write(tracks_path),
+            )
+        elif not tracks_path.is_file():
+            log.info(
+                "no labels and no tracks: registration only. Label the points with `dynrecon label %s "
+                "--videos ...`, then run this command again",
+                ws,
+            )
+            return None
+        if not tracks_path.is_file():
+            raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
+        return tracks_path
 
-def _stage_subject(stages: _Stages, tracks: Path, background_failed: RegistrationError | None) -> _Registration:
-    """The background's cameras, or, where it left static videos out, the `subject` stage's (registered again
-    with the subject's tracks)."""
-    background = stages.ws / REGISTER_DIR
-    if background_failed is None and not _static_left_out(background / "register_report.json"):
-        return _Registration.in_folder(background)
-    folder = stages.ws / SUBJECT_DIR
-    registration = _Registration.in_folder(folder)
-    subject_options = stages.options.subject_register(tracks)
-    stages.run(
-        "subject",
-        {**stages.video_files, "tracks": tracks},
-        {"register": subject_options, "videos": [p.stem for p in stages.videos]},
-        [registration.cameras, registration.background],
-        lambda: _register(stages.videos, folder, subject_options),
-    )
-    return registration
+    def subject(self, tracks: Path, background_failed: RegistrationError | None = None) -> Registration:
+        """The background's cameras, or, where it failed or left static videos out, the `subject` stage's
+        (registered again with the subject's tracks, into WS/register_subject/)."""
+        background = self.ws / REGISTER_DIR
+        if background_failed is None and not _static_left_out(background / "register_report.json"):
+            return Registration.in_folder(background)
+        folder = self.ws / SUBJECT_DIR
+        registration = Registration.in_folder(folder)
+        subject_options = self.options.subject_register(tracks)
+        self.run(
+            "subject",
+            {**self.video_files, "tracks": tracks},
+            {"register": subject_options, "videos": [p.stem for p in self.videos]},
+            [registration.cameras, registration.background],
+            lambda: _register(self.videos, folder, subject_options),
+        )
+        return registration
+
+    def solve(self, registration: Registration, tracks: Path) -> None:
+        """The `solve` stage: WS/points3d.csv, sequencing.json, report.json."""
+        ws = self.ws
+        solve_options = self.options.solve_options(self.bones)
+        solved = [ws / "points3d.csv", ws / "sequencing.json", ws / "report.json"]
+        self.run(
+            "solve",
+            {"cameras": registration.cameras, "tracks": tracks},
+            {"solve": solve_options},
+            solved,
+            lambda: solve_run(registration.cameras, tracks, ws, solve_options),
+        )
+
+    def record(self, registration: Registration, tracks: Path) -> None:
+        """The `record` stage: WS/recording.rrd."""
+        ws, bones = self.ws, self.bones
+        files = {
+            **self.video_files,
+            "cameras": registration.cameras,
+            "background": registration.background,
+            "tracks": tracks,
+            "points": ws / "points3d.csv",
+            "report": ws / "report.json",
+            "sequencing": ws / "sequencing.json",
+        }
+        self.run(
+            "record",
+            files,
+            {"skeleton": bones},
+            [ws / "recording.rrd"],
+            lambda: _record(ws, registration.cameras, registration.background, tracks, self.videos, bones),
+        )
+
+    def export(self, registration: Registration) -> None:
+        """The `export` stage: WS/points.trc, points.c3d."""
+        ws, units = self.ws, self.options.units
+        files = {"cameras": registration.cameras, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"}
+        self.run(
+            "export",
+            files,
+            {"units": units},
+            [ws / "points.trc", ws / "points.c3d"],
+            lambda: _export(ws, registration.cameras, units),
+        )
+
+    def finish(
+        self, background_failed: RegistrationError | None = None, *, tracker: Tracker | None = None
+    ) -> Registration | None:
+        """Every stage after `register`, in order: track, subject, solve, record, export. Returns the cameras the
+        results were solved with, or None when there are no labels or tracks (registration only)."""
+        tracks = self.track(tracker)
+        if tracks is None:
+            return None
+        registration = self.subject(tracks, background_failed)
+        self.solve(registration, tracks)
+        self.record(registration, tracks)
+        self.export(registration)
+        return registration
 
 
 def _bones(skeleton_path: Path | None) -> Bones:
@@ -386,51 +548,6 @@ def _bones(skeleton_path: Path | None) -> Bones:
     return tuple((a, b) for a, b in read_skeleton(skeleton_path).connections)
 
 
-def _stage_solve(stages: _Stages, registration: _Registration, tracks: Path, bones: Bones) -> None:
-    ws = stages.ws
-    solve_options = stages.options.solve_options(bones)
-    solved = [ws / "points3d.csv", ws / "sequencing.json", ws / "report.json"]
-    stages.run(
-        "solve",
-        {"cameras": registration.cameras, "tracks": tracks},
-        {"solve": solve_options},
-        solved,
-        lambda: solve_run(registration.cameras, tracks, ws, solve_options),
-    )
-
-
-def _stage_record(stages: _Stages, registration: _Registration, tracks: Path, bones: Bones) -> None:
-    ws = stages.ws
-    files = {
-        **stages.video_files,
-        "cameras": registration.cameras,
-        "background": registration.background,
-        "tracks": tracks,
-        "points": ws / "points3d.csv",
-        "report": ws / "report.json",
-        "sequencing": ws / "sequencing.json",
-    }
-    stages.run(
-        "record",
-        files,
-        {"skeleton": bones},
-        [ws / "recording.rrd"],
-        lambda: _record(ws, registration.cameras, registration.background, tracks, stages.videos, bones),
-    )
-
-
-def _stage_export(stages: _Stages, registration: _Registration) -> None:
-    ws, units = stages.ws, stages.options.units
-    files = {"cameras": registration.cameras, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"}
-    stages.run(
-        "export",
-        files,
-        {"units": units},
-        [ws / "points.trc", ws / "points.c3d"],
-        lambda: _export(ws, registration.cameras, units),
-    )
-
-
 # ----------------------------------------------------------------------------------------------------------
 # Stage bodies
 
@@ -438,6 +555,19 @@ def _stage_export(stages: _Stages, registration: _Registration) -> None:
 def _register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
     given: list[str | Path] = list(videos)
     register_run(given, register_dir, options)
+
+
+def import_registration(
+    calibration: Path, videos: Sequence[Path], folder: Path, options: ImportCalibrationOptions | None = None
+) -> Path:
+    """A calibrated (static) rig's registration folder, as `dynrecon import-calibration` writes it: cameras.json
+    (every decoded frame, its camera's fixed pose) and an empty background.ply (there is no SfM model); returns
+    cameras.json."""
+    cameras = import_calibration(calibration, list(videos), folder, options)
+    write_ply(folder / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    # An earlier SfM run's report would describe other cameras (and could send the subject stage off).
+    (folder / "register_report.json").unlink(missing_ok=True)
+    return cameras
 
 
 def _static_left_out(report_path: Path) -> bool:

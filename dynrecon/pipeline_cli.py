@@ -1,4 +1,5 @@
-"""`dynrecon run VIDEO... --out WS [--labels labels.csv | --tracks tracks.csv] [--force]` and `dynrecon demo`.
+"""`dynrecon run VIDEO... --out WS [--labels labels.csv | --tracks tracks.csv] [--calibration FILE] [--force]` and
+`dynrecon demo`.
 
 Both parsers take their defaults from the pipeline, which loads every stage: `dynrecon` builds them only when one of
 `COMMANDS` is chosen.
@@ -24,14 +25,16 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
+    from sfm.options import CalibrationFormat, Units
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
         "run",
         help=COMMANDS["run"],
         description="Run every stage whose inputs changed since the last run in WS (WS/pipeline.json keeps "
-        "their hashes): register -> track (labels) -> subject (static videos the background left out, "
-        "posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, points.c3d.",
+        "their hashes): register (SfM, or --calibration imported) -> track (labels) -> subject (static videos "
+        "the background left out, posed from the tracks) -> solve -> recording.rrd -> points3d.csv, points.trc, "
+        "points.c3d.",
     )
     parser.add_argument("videos", nargs="+", type=Path, metavar="VIDEO")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
@@ -69,6 +72,25 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         metavar="A,B,METRES",
         help="distance between two tracked points: the scale of static videos posed from the subject",
     )
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="FILE",
+        help="a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, "
+        ".qca, .xml): imported instead of the SfM registration",
+    )
+    parser.add_argument(
+        "--calibration-format",
+        choices=[f.value for f in CalibrationFormat],
+        default="auto",
+        help="format of --calibration (default: from the file name), as import-calibration's --format",
+    )
+    parser.add_argument(
+        "--calibration-units",
+        choices=[u.value for u in Units],
+        default="auto",
+        help="unit of --calibration's TOML translations, as import-calibration's --units (default auto)",
+    )
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.set_defaults(func=_run)
@@ -77,6 +99,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register, run_stages
+    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
     from sfm.register_cli import parse_scale
     from tracking.options import TrackOptions
 
@@ -93,6 +116,10 @@ def _run(args: argparse.Namespace) -> int:
         labels=args.labels,
         tracks=args.tracks,
         skeleton=args.skeleton,
+        calibration=args.calibration,
+        calibration_options=ImportCalibrationOptions(
+            format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
+        ),
         units=args.units,
         force=args.force,
     )

@@ -247,7 +247,8 @@ def _cameras(bundle: Bundle, obs: list[VideoObs]) -> list[SubjectCamera]:
                 t=bundle.t[j].copy(),
                 offset=float(bundle.offsets[c]),
                 inliers=len(res[j]),
-                residual_px=float(np.median(res[j])) if len(res[j]) else float("nan"),
+                # observations of knots left unsupported (NaN) have no residual
+                residual_px=float(np.nanmedian(res[j])) if np.isfinite(res[j]).any() else float("nan"),
             )
         )
     return cameras

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from dynrecon.pipeline import (
 )
 from reconstruct.outputs.mocap import read_mocap
 from reconstruct.outputs.points import FramePoints, read_points, read_sequencing, write_points
+from sfm.calibration import read_calibration, write_toml
 from sfm.cameras import read_cameras, write_cameras
 from tracking.options import TrackOptions
 
@@ -292,3 +294,111 @@ def test_similarity_to_truth_recovers_a_known_similarity():
     # A point seen by the moved cameras lands on the true point.
     xyz = np.array([[4000.0, 3800.0, 900.0]])
     assert np.allclose(found.apply(inverse.apply(xyz)), xyz, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# `dynrecon run --calibration`: a lab calibration instead of the SfM registration
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory) -> Path:
+    """A small simulated capture of static phones: three videos, labels, and calibration.toml from the truth."""
+    from batch.synthetic import Inputs, SimulatedCaptureOptions, simulated_capture
+
+    folder = tmp_path_factory.mktemp("calibrated") / "capture"
+    return simulated_capture(folder, SimulatedCaptureOptions(seed=2, inputs=Inputs.LABELS, points=3, seconds=1.0))
+
+
+def _run_calibrated(capture: Path, ws: Path, *extra: str) -> list[str]:
+    videos = [str(p) for p in sorted(capture.glob("*.avi"))]
+    labels = ["--labels", str(capture / "labels.csv")]
+    return ["run", *videos, "--out", str(ws), *labels, "--calibration", str(capture / "calibration.toml"), *extra]
+
+
+def test_run_with_a_calibration_equals_import_track_solve_by_hand(calibrated: Path, tmp_path: Path, capsys) -> None:
+    from batch import read_capture, run_capture
+
+    ws = tmp_path / "ws"
+    assert cli.main(_run_calibrated(calibrated, ws)) == 0
+    ran = capsys.readouterr().out
+    assert "register " in ran and "skipped" not in ran
+    # By hand: import-calibration, track, solve (the pipeline's solve draws no recording: its record stage does).
+    hand = tmp_path / "hand"
+    videos = [str(p) for p in sorted(calibrated.glob("*.avi"))]
+    assert cli.main(["import-calibration", str(calibrated / "calibration.toml"), *videos, "--out", str(hand)]) == 0
+    (hand / "labels.csv").write_bytes((calibrated / "labels.csv").read_bytes())
+    assert cli.main(["track", str(hand), "--videos", *videos]) == 0
+    solve = ["solve", "--cameras", str(hand / "cameras.json"), "--tracks", str(hand / "tracks.csv")]
+    assert cli.main([*solve, "--out", str(hand), "--no-recording"]) == 0
+    same = {"register/cameras.json": "cameras.json", "tracks.csv": "tracks.csv", "points3d.csv": "points3d.csv"}
+    for ours, theirs in {**same, "sequencing.json": "sequencing.json"}.items():
+        assert (ws / ours).read_bytes() == (hand / theirs).read_bytes(), ours
+    for name in ("register/background.ply", "recording.rrd", "points.trc", "points.c3d"):
+        assert (ws / name).is_file(), name
+    # The batch uses a capture folder's calibration the same way: the same bytes.
+    assert all(not o.failed for o in run_capture(read_capture(calibrated), tmp_path / "batch"))
+    for name in ("register/cameras.json", "tracks.csv", "points3d.csv", "sequencing.json", "points.trc", "points.c3d"):
+        assert (tmp_path / "batch" / "capture" / name).read_bytes() == (ws / name).read_bytes(), name
+
+
+def test_the_register_hash_covers_the_calibration_contents(calibrated: Path, tmp_path: Path) -> None:
+    capture = shutil.copytree(calibrated, tmp_path / "capture")
+    ws = tmp_path / "ws"
+    options = PipelineOptions(labels=capture / "labels.csv", calibration=capture / "calibration.toml")
+    videos = sorted(capture.glob("*.avi"))
+    first = run_stages(videos, ws, options)
+    assert [s.name for s in first.stages if not s.skipped] == ["register", "track", "solve", "record", "export"]
+    assert all(s.skipped for s in run_stages(videos, ws, options).stages)
+    # New bytes, same cameras: register runs again, and what it wrote is unchanged, so nothing after it does.
+    with (capture / "calibration.toml").open("a") as handle:
+        handle.write("# checked again on Tuesday\n")
+    again = run_stages(videos, ws, options)
+    assert {s.name: s.skipped for s in again.stages} == {
+        "register": False,
+        "track": True,
+        "solve": True,
+        "record": True,
+        "export": True,
+    }
+    # A camera moved by 1 mm: everything that uses the cameras runs again.
+    cameras = read_calibration(capture / "calibration.toml")
+    assert cameras[0].t is not None
+    cameras[0].t = cameras[0].t + 0.001
+    write_toml(capture / "calibration.toml", cameras)
+    moved = run_stages(videos, ws, options)
+    assert [s.name for s in moved.stages if not s.skipped] == ["register", "solve", "record", "export"]
+
+
+@pytest.mark.parametrize(
+    ("case", "reason"),
+    [
+        ("missing", "calibration file not found"),
+        ("folder", "is not a file: a calibration file was expected"),
+        ("garbage", "lab.toml"),
+        ("unknown format", "pass --calibration-format qca or toml"),
+        ("other cameras", "cannot be matched to 3 videos"),
+        ("with intrinsics", "--intrinsics and --scale (registration options) do not apply"),
+    ],
+)
+def test_run_calibration_errors_are_one_line(calibrated: Path, tmp_path: Path, capsys, case: str, reason: str) -> None:
+    calibration = tmp_path / "lab.toml"
+    extra: list[str] = []
+    if case == "folder":
+        calibration.mkdir()
+    elif case == "garbage":
+        calibration.write_bytes(bytes(range(256)) * 4)
+    elif case == "unknown format":
+        calibration = tmp_path / "lab.cal"
+        calibration.write_bytes((calibrated / "calibration.toml").read_bytes())
+    elif case == "other cameras":
+        write_toml(calibration, read_calibration(calibrated / "calibration.toml")[:2])
+    elif case == "with intrinsics":
+        calibration.write_bytes((calibrated / "calibration.toml").read_bytes())
+        extra = ["--intrinsics", str(calibration)]
+    argv = _run_calibrated(calibrated, tmp_path / "ws", *extra)
+    argv[argv.index("--calibration") + 1] = str(calibration)
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"dynrecon run: error: {calibration}") and reason in last, err
