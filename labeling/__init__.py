@@ -7,8 +7,9 @@ light module such as `labeling.skeleton` does not load the server and OpenCV.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from dynrecon.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from labeling.skeleton import Skeleton, read_skeleton
@@ -27,8 +28,4 @@ _PUBLIC = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _PUBLIC:
-        raise AttributeError(f"module 'labeling' has no attribute {name!r}")
-    module, attribute = _PUBLIC[name]
-    return getattr(importlib.import_module(module), attribute)
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

@@ -13,8 +13,9 @@ recording=RecordingOptions(...) or None)`. Owns `points3d.csv` and `sequencing.j
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from dynrecon.lazy import lazy_exports
 
 # name -> the module that defines it
 _HOMES = {
@@ -62,17 +63,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'reconstruct' has no attribute {name!r}")
-    value = getattr(importlib.import_module(home), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = lazy_exports(__name__, {name: (home, name) for name, home in _HOMES.items()})
 
 
 if TYPE_CHECKING:

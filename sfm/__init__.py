@@ -14,8 +14,9 @@ pycolmap or OpenCV load only when a stage runs. Everything else in the package i
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from dynrecon.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from sfm.calibration import run as import_calibration
@@ -73,14 +74,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _FRONT:
-        raise AttributeError(f"module 'sfm' has no attribute {name!r}")
-    module, attribute = _FRONT[name]
-    value = getattr(importlib.import_module(module), attribute)
-    globals()[name] = value  # later look-ups skip this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_FRONT))
+__getattr__, __dir__ = lazy_exports(__name__, _FRONT)

@@ -8,8 +8,9 @@ Everything here loads on first use, so that importing `tracking.tracks` stays ch
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from dynrecon.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from tracking.options import Blend, Method, TrackOptions
@@ -32,8 +33,4 @@ _PUBLIC = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _PUBLIC:
-        raise AttributeError(f"module 'tracking' has no attribute {name!r}")
-    module, attribute = _PUBLIC[name]
-    return getattr(importlib.import_module(module), attribute)
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)
