@@ -31,29 +31,34 @@ def extract(
 
     Returns keypoints per image name.
     """
-    for video in tqdm(videos, desc="extracting features", unit="video", file=sys.stderr):
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = video["camera_model"]
-        if video["camera_params"]:
-            reader.camera_params = video["camera_params"]
-        if mask_dir:
-            reader.mask_path = mask_dir
-        options = pycolmap.FeatureExtractionOptions()
-        options.sift.max_num_features = video.get("max_features", max_features)
-        if video.get("wide_baseline", False):
-            options.sift.estimate_affine_shape = True
-            options.sift.domain_size_pooling = True
-        options.num_threads = num_threads
-        options.max_image_size = 100000  # frames are already resized by dynrecon
-        pycolmap.extract_features(
-            database,
-            image_dir,
-            image_names=video["images"],
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=options,
-            device=pycolmap.Device.cpu,
-        )
+    # counted in images, not videos, so that the rate reads in images per second
+    with tqdm(
+        total=sum(len(v["images"]) for v in videos), desc="extracting features", unit="image", file=sys.stderr
+    ) as bar:
+        for video in videos:
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = video["camera_model"]
+            if video["camera_params"]:
+                reader.camera_params = video["camera_params"]
+            if mask_dir:
+                reader.mask_path = mask_dir
+            options = pycolmap.FeatureExtractionOptions()
+            options.sift.max_num_features = video.get("max_features", max_features)
+            if video.get("wide_baseline", False):
+                options.sift.estimate_affine_shape = True
+                options.sift.domain_size_pooling = True
+            options.num_threads = num_threads
+            options.max_image_size = 100000  # frames are already resized by dynrecon
+            pycolmap.extract_features(
+                database,
+                image_dir,
+                image_names=video["images"],
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader,
+                extraction_options=options,
+                device=pycolmap.Device.cpu,
+            )
+            bar.update(len(video["images"]))
     with pycolmap.Database.open(database) as db:
         return {image.name: db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()}
 
