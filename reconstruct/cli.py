@@ -63,7 +63,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "--trust",
         choices=[t.value for t in TrustPreset],
         default=TrustPreset.SENSITIVE.value,
-        help="operating point of the trust flag in points3d.csv (sensitive flags more, misses less)",
+        help=(
+            "operating point of the trust flag in points3d.csv (limits in multiples of the capture's own "
+            "medians; sensitive flags more, misses less)"
+        ),
     )
     parser.add_argument(
         "--skeleton",

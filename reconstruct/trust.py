@@ -23,15 +23,18 @@ Measures (arrays (F, P), NaN where the point was not reconstructed):
   `components`).
 * `smoothness`, `smoothness_px`: distance from the interpolation of the point's previous and next frame in its own
   video (the paper's Psi2 as a check; see `video_smoothness`).
+* `step_px`: the larger of the point's moves to its previous and next frame in its own video, pixels (see
+  `video_step`); at a video's first and last frame (`video_end`) a fast point is extrapolated by W, not interpolated.
 
-The flag (`flag`, bool) is a rule on these measures; its thresholds live in TrustOptions and were tuned on
-simulations (benchmarks/trust.py documents the windows used for tuning and those reported).
+The flag (`flag`, bool) is a rule on these measures (`flag_points`); its thresholds live in TrustOptions, tuned on
+simulations (benchmarks/trust.py) and on real tracking (benchmarks/trust_real.py); see docs/trust.md.
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -54,7 +57,8 @@ MAX_NEIGHBOURS = 4
 
 @dataclass(kw_only=True)
 class TrustOptions:
-    """The flag rule (`flag_rule`); thresholds tuned on simulations (benchmarks/trust.py documents the windows).
+    """The flag rule (`flag_rule`, `flag_points`); thresholds tuned on simulations (benchmarks/trust.py) and real
+    tracking (benchmarks/trust_real.py).
 
     residual_px, bound_px, relative: a point is flagged when its residual in pixels, or that residual amplified by
     the condition (the paper's bound |l| <= |b| / sigma_min with the point's residual for |b|), exceeds the floor
@@ -69,6 +73,13 @@ class TrustOptions:
     frame by more than max(smoothness_px, smoothness_relative x median) pixels (smoothness_px 0: not used; see
     `video_smoothness`). Off in the balanced preset: on the tuning windows it raised recall but lowered precision
     more.
+    bound_relative: the multiple of the median for the bound (0: `relative`, as for the residual).
+    sequence_relative: the sequence_jump limit is max(sequence_jump, sequence_relative x median sequence_jump) (0:
+    the fixed limit alone); periodic motion legitimately links frames a cycle apart, which raises the median.
+    min_support: ... or the point is unobserved and its support is below this (0: not used): a missing point built
+    mostly from neighbours that miss it too, i.e. extrapolated (an observed point is held by its ray).
+    end_step_relative: ... or, at a video's first or last frame, the point moves to its neighbouring frame by more
+    than this x the median step_px (0: not used): W extrapolates a fast point at the capture's ends.
     """
 
     residual_px: float = 5.0
@@ -78,24 +89,32 @@ class TrustOptions:
     min_component: int = 0
     smoothness_px: float = 0.0
     smoothness_relative: float = 5.0
+    bound_relative: float = 0.0
+    sequence_relative: float = 0.0
+    min_support: float = 0.0
+    end_step_relative: float = 0.0
 
 
 class TrustPreset(enum.Enum):
-    """Operating points of the flag, both chosen on the tuning windows of benchmarks/trust.py."""
+    """Operating points of the flag (docs/trust.md has the tables)."""
 
-    BALANCED = "balanced"  # TrustOptions() defaults: best recall-weighted F2 on the tuning windows
-    SENSITIVE = "sensitive"  # flags several times more points and catches most large errors
+    BALANCED = "balanced"  # TrustOptions() defaults: best recall-weighted F2 on the simulated tuning windows
+    SENSITIVE = "sensitive"  # limits in units of the capture's own medians: tuned on real tracking and simulations
 
 
 def preset_options(preset: TrustPreset) -> TrustOptions:
     if preset is TrustPreset.SENSITIVE:
         return TrustOptions(
-            residual_px=3.0,
-            bound_px=15.0,
-            relative=2.0,
+            residual_px=1.5,
+            bound_px=5.0,
+            relative=2.5,
+            bound_relative=4.0,
             sequence_jump=12.0,
+            sequence_relative=3.0,
             smoothness_px=30.0,
             smoothness_relative=5.0,
+            min_support=0.1,
+            end_step_relative=2.0,
         )
     return TrustOptions()
 
@@ -113,6 +132,8 @@ class Trust:
     component: np.ndarray  # (F, P) frames in the frame's connected component of the W graph (see `components`)
     smoothness: np.ndarray  # (F, P) input units, off the own video's interpolation (see `video_smoothness`)
     smoothness_px: np.ndarray  # (F, P) pixels, the same seen from frame f's camera
+    step_px: np.ndarray  # (F, P) pixels, the larger move to the previous / next frame of its video (`video_step`)
+    video_end: np.ndarray  # (F, P) bool, per frame: the first or last frame of its video (`video_ends`)
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
     limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
@@ -135,6 +156,7 @@ class Trust:
             "sequence_jump": _blank(self.sequence_jump, empty),
             "component": _blank(self.component, empty),
             "smoothness_px": _blank(self.smoothness_px, empty),
+            "step_px": _blank(self.step_px, empty),
             "flag": np.where(empty, np.nan, self.flag.astype(float)),
         }
 
@@ -154,6 +176,7 @@ class Trust:
             ("component", self.component),
             ("smoothness", self.smoothness),
             ("smoothness_px", self.smoothness_px),
+            ("step_px", self.step_px),
         ):
             v = values[done & np.isfinite(values)]
             measures[name] = {
@@ -183,6 +206,7 @@ class Trust:
                 "component": "frames",
                 "smoothness": "input units",
                 "smoothness_px": "pixels",
+                "step_px": "pixels",
             },
             "measures": measures,
             "flagged": flagged,
@@ -197,10 +221,22 @@ class Trust:
 
 def flag_rule(options: TrustOptions) -> str:
     k = f"{options.relative:g}"
+    kb = f"{options.bound_relative or options.relative:g}"
+    jump = (
+        f"max({options.sequence_jump:g}, {options.sequence_relative:g} x median sequence_jump)"
+        if options.sequence_relative > 0
+        else f"{options.sequence_jump:g}"
+    )
     return (
         f"residual_px > max({options.residual_px:g}, {k} x median residual_px) or "
-        f"bound_px = condition x residual_px > max({options.bound_px:g}, {k} x median bound_px) or "
-        f"sequence_jump > {options.sequence_jump:g}"
+        f"bound_px = condition x residual_px > max({options.bound_px:g}, {kb} x median bound_px) or "
+        f"sequence_jump > {jump}"
+        + (f" or (unobserved and support < {options.min_support:g})" if options.min_support > 0 else "")
+        + (
+            f" or (first or last frame of its video and step_px > {options.end_step_relative:g} x median step_px)"
+            if options.end_step_relative > 0
+            else ""
+        )
         + (f" or component < {options.min_component}" if options.min_component > 0 else "")
         + (
             f" or smoothness_px > max({options.smoothness_px:g}, {options.smoothness_relative:g} x median "
@@ -343,6 +379,34 @@ def video_smoothness(points: np.ndarray, video_index: np.ndarray, frames: np.nda
     return out
 
 
+def video_step(points: np.ndarray, video_index: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(F, P) the larger of the point's moves to the same point in the previous and the next frame of its own video
+    (input units); NaN for a video of one frame."""
+    out = np.full(points.shape[:2], np.nan)
+    for v in np.unique(video_index):
+        members = np.flatnonzero(video_index == v)
+        members = members[np.argsort(frames[members], kind="stable")]
+        if len(members) < 2:
+            continue
+        move = np.linalg.norm(np.diff(points[members], axis=0), axis=-1)  # (n - 1, P)
+        step = np.full((len(members), points.shape[1]), np.nan)
+        step[1:] = move
+        step[:-1] = np.fmax(step[:-1], move)
+        out[members] = step
+    return out
+
+
+def video_ends(video_names: list[str] | np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(F,) bool: the frame is the first or the last (by frame number) of its video."""
+    names = np.asarray(video_names)
+    out = np.zeros(len(names), dtype=bool)
+    for v in np.unique(names):
+        members = np.flatnonzero(names == v)
+        out[members[np.argmin(frames[members])]] = True
+        out[members[np.argmax(frames[members])]] = True
+    return out
+
+
 def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
     """All measures for every (frame, point) of a solve, and the flag."""
     options = options or TrustOptions()
@@ -368,7 +432,23 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
     component = np.broadcast_to(components(W, MIN_WEIGHT)[:, None], (F, P))
     smoothness = video_smoothness(points, problem.video_index, problem.frames, problem.times)
     smoothness_px = focal[:, None] * smoothness / np.maximum(depth, 1e-300)
-    flag, limits = _flag(options, reconstructed, residual_px, bound_px, jump, component, smoothness_px)
+    step_px = focal[:, None] * video_step(points, problem.video_index, problem.frames) / np.maximum(depth, 1e-300)
+    end = np.broadcast_to(video_ends(problem.video_index, problem.frames)[:, None], (F, P))
+    flag, limits = flag_points(
+        options,
+        reconstructed,
+        {
+            "residual_px": residual_px,
+            "bound_px": bound_px,
+            "sequence_jump": jump,
+            "component": component,
+            "smoothness_px": smoothness_px,
+            "support": support,
+            "observed": problem.observed,
+            "step_px": step_px,
+            "video_end": end,
+        },
+    )
     log.info(
         "trust: %d of %d reconstructed points flagged (%s)",
         int(flag.sum()),
@@ -388,6 +468,8 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         component=np.where(nan, np.nan, component),
         smoothness=np.where(nan, np.nan, smoothness),
         smoothness_px=np.where(nan, np.nan, smoothness_px),
+        step_px=np.where(nan, np.nan, step_px),
+        video_end=end & reconstructed,
         videos=np.broadcast_to(videos[:, None], (F, P)).astype(float),
         flag=flag,
         limits=limits,
@@ -441,31 +523,42 @@ def _conditions(W: sp.csc_matrix, rays: np.ndarray, reconstructed: np.ndarray, h
     return condition
 
 
-def _flag(
-    options: TrustOptions,
-    reconstructed: np.ndarray,
-    residual_px: np.ndarray,
-    bound_px: np.ndarray,
-    jump: np.ndarray,
-    component: np.ndarray,
-    smoothness_px: np.ndarray,
+def flag_points(
+    options: TrustOptions, reconstructed: np.ndarray, measures: Mapping[str, np.ndarray]
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """(F, P) the flag rule's verdict, and its effective limits in this solve."""
-    limits = {"residual_px": options.residual_px, "bound_px": options.bound_px}
-    if reconstructed.any():
-        limits = {
-            "residual_px": max(options.residual_px, options.relative * float(np.median(residual_px[reconstructed]))),
-            "bound_px": max(options.bound_px, options.relative * float(np.nanmedian(bound_px[reconstructed]))),
-        }
+    """The flag rule's verdict (shape of `reconstructed`) and its effective limits in this solve.
+
+    measures: the rule's inputs by their points3d.csv column names (residual_px, bound_px, sequence_jump, component,
+    smoothness_px, support, step_px), `observed` and `video_end` (bool, `video_ends`), each of the shape of
+    `reconstructed`; so
+    the rule can be re-run on a written points3d.csv (benchmarks/trust_real.py). Every limit is the larger of a
+    floor and a multiple of the measure's median over the solve: the median is the capture's own noise level."""
+    residual_px, bound_px = measures["residual_px"], measures["bound_px"]
+    jump, component, smoothness_px = measures["sequence_jump"], measures["component"], measures["smoothness_px"]
+
+    def median(values: np.ndarray) -> float:
+        known = reconstructed & np.isfinite(values)
+        return float(np.median(values[known])) if known.any() else 0.0
+
+    limits = {
+        "residual_px": max(options.residual_px, options.relative * median(residual_px)),
+        "bound_px": max(options.bound_px, (options.bound_relative or options.relative) * median(bound_px)),
+        "sequence_jump": max(options.sequence_jump, options.sequence_relative * median(jump)),
+    }
     flag = reconstructed & (
         (residual_px > limits["residual_px"])
         | (bound_px > limits["bound_px"])
-        | (np.nan_to_num(jump) > options.sequence_jump)
+        | (np.nan_to_num(jump) > limits["sequence_jump"])
         | (component < options.min_component)
     )
     if options.smoothness_px > 0:
-        known = reconstructed & np.isfinite(smoothness_px)
-        median = float(np.median(smoothness_px[known])) if known.any() else 0.0
-        limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median)
-        flag |= known & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
+        limits["smoothness_px"] = max(options.smoothness_px, options.smoothness_relative * median(smoothness_px))
+        flag |= reconstructed & (np.nan_to_num(smoothness_px) > limits["smoothness_px"])
+    if options.min_support > 0:
+        missing = reconstructed & ~measures["observed"].astype(bool)
+        flag |= missing & (np.nan_to_num(measures["support"], nan=1.0) < options.min_support)
+    if options.end_step_relative > 0:
+        step_px = measures["step_px"]
+        limits["step_px"] = options.end_step_relative * median(step_px)
+        flag |= reconstructed & measures["video_end"] & (np.nan_to_num(step_px) > limits["step_px"])
     return flag, limits

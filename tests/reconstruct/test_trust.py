@@ -12,6 +12,7 @@ from reconstruct.trust import (
     TrustOptions,
     TrustPreset,
     components,
+    flag_points,
     neighbourhood_condition,
     neighbourhoods,
     preset_options,
@@ -199,6 +200,7 @@ def test_summary_and_columns_are_json_ready(solved):
         "sequence_jump",
         "component",
         "smoothness_px",
+        "step_px",
         "flag",
     }
     assert set(np.unique(columns["flag"])) == {1.0}
@@ -306,3 +308,74 @@ def test_video_smoothness_is_zero_on_linear_motion_and_measures_a_jump():
     assert smooth[3, 0] == pytest.approx(40.0)
     # Its neighbours see part of the jump through their interpolation: frame 2 (0.15 s) is 1/4 of 0.1 -> 0.3 s.
     assert smooth[2, 0] == pytest.approx(40.0 / 4.0)
+
+
+@pytest.fixture(scope="module")
+def noisy_solves():
+    """The fixture's capture with Gaussian pixel noise of 1 and 2 px (tracked 2D is noisy), solved."""
+    out = {}
+    for noise in (1.0, 2.0):
+        problem, truth = synthetic_problem(frames=120, points=5, seed=3, noise_px=noise)
+        out[noise] = (problem, solve(problem), truth_array(problem, truth))
+    return out
+
+
+def test_the_default_rule_follows_the_noise_level_and_catches_gross_errors(noisy_solves):
+    options = preset_options(TrustPreset.SENSITIVE)  # the default of `dynrecon solve`
+    limits = {}
+    for noise, (problem, result, truth) in noisy_solves.items():
+        trust = trust_measures(problem, result, options)
+        error = np.linalg.norm(result.points - truth, axis=-1)
+        assert error.max() < 30.0  # nothing large to find: the flag should stay quiet
+        assert trust.flag.mean() < 0.08  # measured: 5.5 % (1 px), 5.0 % (2 px)
+        limits[noise] = trust.limits["residual_px"]
+        # A few gross errors: 150 mm along the rays (a depth the rays cannot see), away from the clip's ends.
+        rng = np.random.default_rng(7)
+        F, P = problem.num_frames, problem.num_points
+        rays = viewing_rays(problem)
+        chosen = rng.choice(np.arange(F * P).reshape(F, P)[10:-10].ravel(), size=12, replace=False)
+        frames, points_ = np.unravel_index(chosen, (F, P))
+        moved = result.points.copy()
+        moved[frames, points_] += 150.0 * rays[frames, points_]
+        flagged = trust_measures(problem, replace(result, points=moved), options).flag
+        assert flagged[frames, points_].all()
+        assert np.delete(flagged.ravel(), chosen).mean() < 0.18  # measured: 13.1 % (1 px), 10.9 % (2 px)
+    # The residual limit is a multiple of the capture's own median residual, not a fixed pixel count: twice the
+    # noise, about twice the limit (measured 2.1 and 3.9 px).
+    assert limits[2.0] > 1.6 * limits[1.0] > 1.6 * 1.5
+
+
+def test_flag_points_is_scale_free_above_its_floors():
+    rng = np.random.default_rng(0)
+    shape = (200, 6)
+    reconstructed = np.ones(shape, dtype=bool)
+    base = {
+        "residual_px": np.abs(rng.normal(size=shape)) + 0.5,
+        "bound_px": 20.0 * rng.lognormal(size=shape),
+        "sequence_jump": np.abs(rng.normal(scale=5.0, size=shape)) + 5.0,
+        "component": np.full(shape, 200.0),
+        "smoothness_px": np.abs(rng.normal(size=shape)),
+        "support": np.ones(shape),
+        "observed": np.ones(shape, dtype=bool),
+        "step_px": np.abs(rng.normal(size=shape)) + 1.0,
+        "video_end": np.zeros(shape, dtype=bool),
+    }
+    options = preset_options(TrustPreset.SENSITIVE)
+    flag, limits = flag_points(options, reconstructed, base)
+    assert 0.0 < flag.mean() < 0.2
+    # A noisier capture (every measure in pixels x 4; jumps x 4, as a periodic motion's): the same points flagged.
+    scaled = {
+        k: v * 4.0 if k in ("residual_px", "bound_px", "sequence_jump", "step_px") else v for k, v in base.items()
+    }
+    flag4, limits4 = flag_points(options, reconstructed, scaled)
+    np.testing.assert_array_equal(flag4, flag)
+    assert limits4["residual_px"] == pytest.approx(4.0 * limits["residual_px"])
+    # Support below the limit flags an unobserved point (built from neighbours that miss it too), not an observed
+    # one (its ray holds it); a fast point at a video's first or last frame is flagged, and only there.
+    base["support"][[3, 5], 2] = 0.05
+    base["observed"][3, 2] = False
+    base["step_px"][[0, 100], 4] = 50.0
+    base["video_end"][0] = True
+    flag, _ = flag_points(options, reconstructed, base)
+    assert flag[3, 2] and not flag[5, 2] and flag[0, 4] and not flag[100, 4]
+    assert not flag_points(preset_options(TrustPreset.BALANCED), reconstructed, base)[0][[3, 0], [2, 4]].any()
