@@ -49,6 +49,7 @@ from tracking.tracks import Tracks, read_tracks
 log = logging.getLogger(__name__)
 
 MIN_KEYPOINTS = 50  # fewer SIFT features in an image: warn that it is untextured or blurred
+MIN_SETTLED = 5  # settled samples a static background image needs; fewer: the median of all samples
 Intrinsics = dict[str, tuple[np.ndarray, np.ndarray | None]]  # video name -> (K, dist), OpenCV, original pixels
 Results = dict[str, dict[int, FramePose]]  # video name -> frame -> its outcome
 
@@ -245,6 +246,8 @@ def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, ws: _Workspace
                 motion = measure_motion(info)
                 static = motion.static
                 log.info("%s: %s", info.name, motion.reason)
+                if motion.moved:
+                    log.warning(motion.moved)
             else:
                 static = options.camera_motion is CameraMotion.STATIC
         resize = Resize.for_video(info, options.long_side)
@@ -361,6 +364,8 @@ def _write_background(
     """A static video's background image (and its mask where the subject stays); returns whether a mask was
     written."""
     frames = sample_frames(video.info, SAMPLES)
+    if video.motion is not None and len(video.motion.settled) >= MIN_SETTLED:
+        frames = np.array(video.motion.settled, dtype=np.int64)
     image = background_image(video.info, frames, video.resize)
     path = frames_dir / video.background_name
     path.parent.mkdir(parents=True, exist_ok=True)

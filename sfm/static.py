@@ -29,6 +29,9 @@ MIN_CORNERS = 20  # fewer trackable background corners: the test cannot decide, 
 SAMPLES = 24  # frames sampled evenly along the video for the test and the median image
 MAX_SHIFT = 0.006  # static when no sampled frame moves the background by more (fraction of long side)
 MIN_TRACKED = 0.2  # share of background corners that must survive the forward-backward check
+SETTLED = 0.0012  # samples within this shift (fraction of long side) sit at the camera's main position
+MOVED = 0.002  # a static camera whose samples sit this far from it for MOVED_RUN samples in a row was bumped
+MOVED_RUN = 3  # (one sample off is a passing occlusion, not a move)
 
 
 @dataclass(kw_only=True)
@@ -42,6 +45,8 @@ class MotionTest:
     shifts: list[float] = field(default_factory=list)
     tracked: list[float] = field(default_factory=list)  # share of corners tracked per sampled frame
     corners: int = 0
+    settled: list[int] = field(default_factory=list)  # sampled frames at the camera's main position
+    moved: str | None = None  # a static camera that was bumped or refocused: where and by how much
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -52,6 +57,7 @@ class MotionTest:
             "median_shift_px": round(float(np.median(self.shifts)), 3) if self.shifts else None,
             "min_tracked": round(min(self.tracked), 3) if self.tracked else None,
             "frames_sampled": len(self.frames),
+            "moved": self.moved,
         }
 
 
@@ -140,13 +146,37 @@ def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) ->
     else:
         static = True
         reason = f"static: background shifts at most {shifts[worst]:.2f} px over {len(frames)} sampled frames"
+    long_side = max(info.width, info.height)
+    settled = [int(f) for f, shift in zip(frames, shifts, strict=True) if shift <= SETTLED * long_side]
     return MotionTest(
-        static=static, reason=reason, frames=frames.tolist(), shifts=shifts, tracked=tracked, corners=count
+        static=static,
+        reason=reason,
+        frames=frames.tolist(),
+        shifts=shifts,
+        tracked=tracked,
+        corners=count,
+        settled=settled,
+        moved=_moved(info.name, frames, shifts, MOVED * long_side) if static else None,
     )
 
 
+def _moved(name: str, frames: np.ndarray, shifts: list[float], limit: float) -> str | None:
+    """One line when a static camera sat away from its main position for MOVED_RUN or more samples in a row."""
+    away = np.array(shifts) > limit
+    runs = np.flatnonzero(np.diff(np.concatenate([[0], away.astype(np.int8), [0]])))  # starts and ends of runs
+    for start, end in zip(runs[::2], runs[1::2], strict=True):
+        if end - start >= MOVED_RUN:
+            return (
+                f"{name}: the camera moved: frames {int(frames[start])}-{int(frames[end - 1])} sit "
+                f"{float(np.median(shifts[start:end])):.1f} px from its main position (bumped or refocused); "
+                "they take the main position's pose"
+            )
+    return None
+
+
 def background_image(info: ProbedVideo, frames: np.ndarray, resize: Resize) -> np.ndarray:
-    """The temporal median (BGR, SfM pixels) of `frames`: a subject that moves through the view disappears."""
+    """The temporal median (BGR, SfM pixels) of `frames` (a static camera's settled ones: a median over two
+    positions blurs): a subject that moves through the view disappears."""
     images = [
         cv2.resize(image, (resize.width, resize.height), interpolation=cv2.INTER_AREA) if resize.scale != 1.0 else image
         for _, image in read_frames(info.path, frames)

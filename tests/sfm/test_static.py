@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -97,3 +98,24 @@ def test_register_mixed_static_and_handheld(mixed: list, tmp_path: Path) -> None
     spread = np.ptp(np.array([f.center for v in truth.videos for f in v.frames]), axis=0).max()
     assert errors.center_errors.max() < 0.02 * spread
     assert errors.rotation_errors_deg.max() < 1.0
+
+
+def test_a_bumped_static_camera_is_reported_and_its_background_uses_the_main_position(
+    mixed: list, tmp_path: Path
+) -> None:
+    # the tripod of cam0 knocked 2 px sideways for the first 5 of 12 frames: still static, but said
+    info = probe_video(mixed[0].path)
+    path = tmp_path / "bumped.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (info.width, info.height))
+    shift = np.float32([[1, 0, 2.0], [0, 1, 0]])
+    for frame, image in read_frames(info.path, np.arange(info.num_frames)):
+        writer.write(cv2.warpAffine(image, shift, (info.width, info.height)) if frame < 5 else image)
+    writer.release()
+    test = measure_motion(probe_video(path))
+    assert test.static
+    assert test.settled == list(range(5, 12))
+    assert test.moved is not None and "frames 0-4" in test.moved and "bumped" in test.moved
+    assert 1.5 < float(test.moved.split(" sit ")[1].split(" px")[0]) < 2.5
+    assert test.to_json()["moved"] == test.moved
+    undisturbed = measure_motion(info)
+    assert undisturbed.moved is None and undisturbed.settled == undisturbed.frames
