@@ -68,6 +68,8 @@ def match(database: str, pairs: list[tuple[str, str]], max_ratio: float, num_thr
     options = pycolmap.FeatureMatchingOptions()
     options.sift.max_ratio = max_ratio
     options.num_threads = num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = 0  # else each run verifies pairs differently: registration must be repeatable
     with (
         tempfile.TemporaryDirectory() as tmp,
         tqdm(total=len(pairs), desc="matching", unit="pair", file=sys.stderr) as bar,
@@ -79,7 +81,11 @@ def match(database: str, pairs: list[tuple[str, str]], max_ratio: float, num_thr
             pairing = pycolmap.ImportedPairingOptions()
             pairing.match_list_path = str(pair_file)
             pycolmap.match_image_pairs(
-                database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu
+                database,
+                matching_options=options,
+                pairing_options=pairing,
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
             )
             bar.update(len(chunk))
     with pycolmap.Database.open(database) as db:
