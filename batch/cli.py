@@ -1,4 +1,5 @@
-"""`dynrecon batch CAPTURE_DIR... --out DIR [--scheduler ADDRESS] [--workers N]`: many captures on Dask.
+"""`dynrecon batch CAPTURE_DIR... --out DIR [--scheduler ADDRESS] [--workers N] [--calibration FILE]`: many
+captures on Dask.
 
 The parser's defaults come from the pipeline, which loads every stage, and Dask loads in the handler: `dynrecon`
 builds this parser only when `batch` is chosen (see `COMMANDS`).
@@ -16,6 +17,7 @@ COMMANDS = {"batch": "many capture folders on Dask (this machine, or a cluster's
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
+    from sfm.options import CalibrationFormat, Units
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
@@ -50,6 +52,25 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--track-window", type=int, default=TrackOptions().win_size, help="LK window side, px")
     parser.add_argument("--track-patch", type=int, default=TrackOptions().patch, help="appearance patch side, px")
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="FILE",
+        help="one lab calibration for every capture that has none of its own (what `dynrecon import-calibration` "
+        "reads): imported instead of the SfM registration",
+    )
+    parser.add_argument(
+        "--calibration-format",
+        choices=[f.value for f in CalibrationFormat],
+        default="auto",
+        help="format of the calibrations (default: from each file's name), as import-calibration's --format",
+    )
+    parser.add_argument(
+        "--calibration-units",
+        choices=[u.value for u in Units],
+        default="auto",
+        help="unit of the calibrations' TOML translations, as import-calibration's --units (default auto)",
+    )
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage of every capture")
     parser.set_defaults(func=_batch)
@@ -59,17 +80,24 @@ def _batch(args: argparse.Namespace) -> int:
     from batch.graph import BatchOptions, run_batch
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register
+    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
     from tracking.options import TrackOptions
 
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
         raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
     if (args.workers is not None and args.workers < 1) or args.retries < 0:
         raise InputError(None, "--workers must be >= 1 and --retries >= 0")
+    if args.calibration is not None and not args.calibration.is_file():  # else every capture fails alike
+        raise InputError(args.calibration, "is not a file: give the rig's calibration file with --calibration")
     if args.verbose < 2:  # the scheduler's and workers' start-up chatter, unless the user asks for debug output
         logging.getLogger("distributed").setLevel(logging.WARNING)
     pipeline = PipelineOptions(
         register=dataclasses.replace(default_register(), max_frames=args.max_frames, num_threads=args.sfm_threads),
         track=TrackOptions(win_size=args.track_window, patch=args.track_patch),
+        calibration=args.calibration,
+        calibration_options=ImportCalibrationOptions(
+            format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
+        ),
         units=args.units,
         force=args.force,
     )

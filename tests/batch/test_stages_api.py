@@ -96,3 +96,34 @@ def test_the_stages_one_by_one_are_run_stages(ran: tuple[Path, dict], tmp_path: 
     again.register()
     assert again.finish() == registration
     assert all(s.skipped for s in again.result.stages)
+
+
+def test_batch_cli_passes_one_rig_calibration_to_every_capture(tmp_path: Path, monkeypatch, capsys) -> None:
+    import batch.graph
+    from batch.capture import read_capture
+    from batch.tasks import job_for
+    from dynrecon import cli
+    from sfm.options import CalibrationFormat, Units
+
+    capture = simulated_capture(tmp_path / "captures" / "wednesday", SimulatedCaptureOptions(points=2, seconds=0.5))
+    rig = tmp_path / "rig.toml"
+    (capture / "calibration.toml").rename(rig)  # the rig's one file now serves the capture
+    seen = {}
+
+    def fake_run_batch(captures, out, options):  # only the command line's wiring is under test here
+        seen["options"] = options.pipeline
+        raise SystemExit(0)
+
+    monkeypatch.setattr(batch.graph, "run_batch", fake_run_batch)
+    argv = ["batch", str(capture), "--out", str(tmp_path / "season"), "--calibration", str(rig)]
+    with pytest.raises(SystemExit):
+        cli.main([*argv, "--calibration-format", "toml", "--calibration-units", "m"])
+    pipeline = seen["options"]
+    assert pipeline.calibration == rig
+    assert pipeline.calibration_options.format is CalibrationFormat("toml")
+    assert pipeline.calibration_options.units is Units("m")
+    assert job_for(read_capture(capture), tmp_path / "season", pipeline).options.calibration == rig
+
+    assert cli.main(["batch", str(capture), "--out", str(tmp_path / "season"), "--calibration", "nope.toml"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope.toml" in err[0] and "--calibration" in err[0]
