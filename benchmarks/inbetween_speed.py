@@ -1,20 +1,27 @@
 """In-between frames: posed by tracking (`--inbetween track`) against SIFT per frame (`--inbetween sift`).
 
-    python benchmarks/inbetween_speed.py [--cases sample,room720,room1080] [--sift-every 3] [--out /tmp/inbetween]
+    python benchmarks/inbetween_speed.py [--cases sample,room720,room1080,walk720] [--sift-every 3]
+        [--out /tmp/inbetween]
 
 Per case, `register` runs once with `--localize none` (the SfM keyframes only); then `localize_all` poses every other
-frame by tracking (timed: decoding, tracking, PnP and any SIFT fallback), and by SIFT every `--sift-every`-th of
-them (timed). Both are compared with the ground truth on the frames both posed, after the similarity that maps the
-SfM keyframes onto their true poses (the same for both paths). Cases:
+frame by tracking (timed: decoding, tracking, PnP and any SIFT fallback), once as before added keyframes (a chain
+never promotes a frame) and once with them, and by SIFT every `--sift-every`-th of them (timed). Both are compared
+with the ground truth on the frames both posed, after the similarity that maps the SfM keyframes onto their true
+poses (the same for both paths). Cases:
 - sample: the demo's videos (data_samples/video_sample, 480x360, 3 handheld cameras, no masks), 12 SfM frames each;
 - room720 / room1080: the synthetic room (sfm/synthetic) seen by 2 handheld cameras at 1280x720 / 1920x1080,
-  30 fps, the orbiting spheres masked from their true tracks, 6 SfM frames per video.
-Prints markdown tables (speed, accuracy). CPU heavy: renders (cached in --out), registers, localizes.
+  30 fps, the orbiting spheres masked from their true tracks, 6 SfM frames per video;
+- walk720: a camera walking 4 m along the room at 1280x720 while its view sweeps 6 m across the far wall, and a
+  wide camera near the middle; after SfM only the walker's first keyframe is kept (as when the mapper drops the
+  rest, or a keyframe budget forced low), so the walk leaves all its keyframes.
+Prints markdown tables (speed, accuracy, and before / after added keyframes). CPU heavy: renders (cached in --out),
+registers, localizes.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import resource
@@ -31,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pycolmap
 
-from sfm import Localize, RegisterOptions
+from sfm import Localize, RegisterOptions, track_pose
 from sfm import register as run_register
 from sfm.cameras import CameraSet, VideoCameras, read_cameras
 from sfm.frames import Resize, image_name, select_frames
@@ -40,6 +47,7 @@ from sfm.masks import mask_from_points, track_points, write_mask
 from sfm.options import InBetween
 from sfm.plan import FramePose, VideoPlan
 from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
+from sfm.synthetic.scene import CameraPath
 from sfm.video import probe_video
 from tracking.tracks import Tracks, write_tracks
 
@@ -57,11 +65,42 @@ class Case:
     max_frames: int
     long_side: int
     mm: float  # millimetres per unit of the truth
+    only_first_keyframe: str | None = None  # this video keeps only its first registered keyframe after SfM
 
 
-def _room_case(name: str, out: Path, width: int, height: int, frames: int) -> Case:
+def walk_cameras(width: int, height: int, frames: int) -> list[CameraPath]:
+    """A camera walking 4 m along the near side while its view sweeps 6 m across the far wall, and a wide one."""
+    paths = []
+    setups = [  # (focal / width, start, end, target at start, target at end)
+        (0.78, [1.5, 0.8, 1.5], [5.5, 1.0, 1.6], [1.0, 6.0, 1.3], [7.0, 6.0, 1.5]),
+        (0.55, [4.0, 0.4, 1.7], [4.4, 0.5, 1.7], [3.0, 6.0, 1.2], [5.0, 6.0, 1.2]),
+    ]
+    for index, (focal, start, end, target, target_end) in enumerate(setups):
+        f = focal * width
+        K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+        paths.append(
+            CameraPath(
+                name=f"cam{index}",
+                K=K,
+                width=width,
+                height=height,
+                fps=30.0,
+                num_frames=frames,
+                start=np.array(start),
+                end=np.array(end),
+                target_start=np.array(target),
+                target_end=np.array(target_end),
+            )
+        )
+    return paths
+
+
+def _room_case(name: str, out: Path, width: int, height: int, frames: int, walk: bool = False) -> Case:
     folder = out / f"videos_{name}"
-    cameras = three_cameras(width, height, frames=(frames, frames, frames), fps=(30.0, 30.0, 30.0))[:2]
+    if walk:
+        cameras = walk_cameras(width, height, frames)
+    else:
+        cameras = three_cameras(width, height, frames=(frames, frames, frames), fps=(30.0, 30.0, 30.0))[:2]
     truth_path = folder / "truth_cameras.json"
     if not truth_path.exists():
         rendered = render_demo(folder, cameras)
@@ -79,6 +118,7 @@ def _room_case(name: str, out: Path, width: int, height: int, frames: int) -> Ca
         max_frames=6,
         long_side=1280,
         mm=1000.0,
+        only_first_keyframe="cam0" if walk else None,
     )
 
 
@@ -94,11 +134,18 @@ def _sample_case() -> Case:
     )
 
 
-def _plans(case: Case) -> list[VideoPlan]:
+def _plans(case: Case, ws: Path) -> list[VideoPlan]:
+    """Every frame wanted; the SfM frames are those register chose (by content, or evenly when content chose too
+    few)."""
+    report = json.loads((ws / "register_report.json").read_text())
+    chosen = {v["name"]: v["keyframes"]["frames"] for v in report["videos"] if v["keyframes"]}
     plans = []
     for path in case.videos:
         info = probe_video(path)
-        sfm_frames = select_frames(info, max_frames=case.max_frames)
+        if info.name in chosen:
+            sfm_frames = np.asarray(chosen[info.name], dtype=np.int64)
+        else:
+            sfm_frames = select_frames(info, max_frames=case.max_frames)
         plans.append(
             VideoPlan(
                 info=info,
@@ -126,10 +173,38 @@ def _largest_model(ws: Path) -> pycolmap.Reconstruction:
     return max(models, key=lambda r: r.num_reg_images())
 
 
+def _model_results(rec: pycolmap.Reconstruction) -> dict[str, dict[int, FramePose]]:
+    """The model's registered images as SfM poses: video -> frame -> FramePose."""
+    results: dict[str, dict[int, FramePose]] = {}
+    for image in rec.images.values():
+        if image.has_pose:
+            video, name = image.name.split("/")
+            results.setdefault(video, {})[int(Path(name).stem)] = FramePose(pose=image.cam_from_world(), source="sfm")
+    return results
+
+
+def _only_first_keyframe(rec: pycolmap.Reconstruction, video: str) -> None:
+    """Deregister every keyframe of `video` but its first, as if the mapper had kept only that one."""
+    images = sorted(
+        (image for image in rec.images.values() if image.name.startswith(f"{video}/") and image.has_pose),
+        key=lambda image: image.name,
+    )
+    for image in images[1:]:
+        rec.deregister_frame(image.frame_id)
+
+
 def _localize(
-    plans: list[VideoPlan], rec: pycolmap.Reconstruction, ws: Path, masked: bool, mode: InBetween
+    plans: list[VideoPlan],
+    rec: pycolmap.Reconstruction,
+    ws: Path,
+    masked: bool,
+    mode: InBetween,
+    added_keyframes: bool = True,
 ) -> tuple[dict[str, dict[int, FramePose]], float]:
     (ws / "sfm" / "localize.db").unlink(missing_ok=True)
+    saved = track_pose.FRESH_SURVIVAL
+    if not added_keyframes:  # before added keyframes: a chain never starts fresh corners, so never promotes
+        track_pose.FRESH_SURVIVAL = -1.0
     started = _cpu_seconds()
     results = localize_all(
         plans,
@@ -145,6 +220,7 @@ def _localize(
         num_threads=-1,
         inbetween=mode,
     )
+    track_pose.FRESH_SURVIVAL = saved
     return results, _cpu_seconds() - started
 
 
@@ -207,8 +283,12 @@ def run_case(case: Case, out: Path, sift_every: int, threads: int) -> dict[str, 
     run_register([str(v) for v in case.videos], ws, options)
     sfm_seconds = time.perf_counter() - started
     rec = _largest_model(ws)
-    plans = _plans(case)
+    align = _alignment(_model_results(rec), case.truth)  # every registered keyframe, before any is dropped
+    if case.only_first_keyframe is not None:
+        _only_first_keyframe(rec, case.only_first_keyframe)
+    plans = _plans(case, ws)
     _write_all_masks(case, plans, ws / "sfm" / "masks")
+    before, before_seconds = _localize(plans, rec, ws, case.tracks is not None, InBetween.TRACK, False)
     wall = time.perf_counter()
     tracked, track_seconds = _localize(plans, rec, ws, case.tracks is not None, InBetween.TRACK)
     track_wall = time.perf_counter() - wall
@@ -216,7 +296,6 @@ def run_case(case: Case, out: Path, sift_every: int, threads: int) -> dict[str, 
         inbetween = np.setdiff1d(plan.wanted, plan.sfm_frames)
         plan.wanted = np.union1d(plan.sfm_frames, inbetween[::sift_every])
     sift, sift_seconds = _localize(plans, rec, ws, case.tracks is not None, InBetween.SIFT)
-    align = _alignment(tracked, case.truth)
     rows: dict[str, list[tuple[float, float]]] = {"tracked": [], "sift": []}
     paths = {"tracked": 0, "sift": 0, "none": 0}
     inbetween_total = 0
@@ -226,13 +305,18 @@ def run_case(case: Case, out: Path, sift_every: int, threads: int) -> dict[str, 
             if pose.source == "sfm":
                 continue
             inbetween_total += 1
-            paths["tracked" if pose.source == "tracked" else "sift" if pose.pose is not None else "none"] += 1
+            paths[_path(pose)] += 1
             other = sift[name].get(frame)
-            if pose.source != "tracked" or other is None or other.pose is None:
+            if _path(pose) != "tracked" or other is None or other.pose is None:
                 continue
             rows["tracked"].append(_errors(pose, case.truth.video(name), frame, align))
             rows["sift"].append(_errors(other, case.truth.video(name), frame, align))
     sift_frames = sum(1 for name in sift for p in sift[name].values() if p.source != "sfm")
+    modes = {
+        "before": _mode_summary(before, before_seconds, case.truth, align),
+        "after": _mode_summary(tracked, track_seconds, case.truth, align),
+        "sift": _mode_summary(sift, sift_seconds, case.truth, align),
+    }
     width, height = plans[0].info.width, plans[0].info.height
     return {
         "case": case.name,
@@ -245,7 +329,40 @@ def run_case(case: Case, out: Path, sift_every: int, threads: int) -> dict[str, 
         "sift_fps": sift_frames / sift_seconds if sift_seconds > 0 else float("nan"),
         "errors": {k: np.array(v).reshape(-1, 2) for k, v in rows.items()},
         "mm": case.mm,
+        "modes": modes,
     }
+
+
+def _path(pose: FramePose) -> str:
+    """tracked (from a model keyframe or an added one), sift or none."""
+    if pose.pose is None:
+        return "none"
+    return "tracked" if pose.source is not None and pose.source.startswith("tracked") else "sift"
+
+
+def _mode_summary(
+    results: dict[str, dict[int, FramePose]],
+    seconds: float,
+    truth: CameraSet,
+    align: tuple[float, np.ndarray, np.ndarray],
+) -> dict[str, Any]:
+    """In-between frames per path, keyframes added, CPU seconds, (frame key -> (centre m, rotation deg)), and the
+    frame keys posed by tracking."""
+    paths = {"tracked": 0, "sift": 0, "none": 0}
+    errors = {}
+    tracked = set()
+    added = 0
+    for name, per_frame in results.items():
+        for frame, pose in per_frame.items():
+            if pose.source == "sfm":
+                continue
+            paths[_path(pose)] += 1
+            added += pose.source == "tracked (added keyframe)"
+            if pose.pose is not None:
+                errors[(name, frame)] = _errors(pose, truth.video(name), frame, align)
+            if _path(pose) == "tracked":
+                tracked.add((name, frame))
+    return {"paths": paths, "added": added, "seconds": seconds, "errors": errors, "tracked": tracked}
 
 
 def _print(results: list[dict[str, Any]], threads: int) -> None:
@@ -285,6 +402,36 @@ def _print(results: list[dict[str, Any]], threads: int) -> None:
         )
 
 
+def _print_modes(results: list[dict[str, Any]]) -> None:
+    print("\nBefore / after added keyframes (tracking, SIFT where it fails): in-between frames per path, errors of")
+    print("all posed in-between frames and of those that only `after` posed by tracking (the far frames)\n")
+    print(
+        "| case | mode | tracked / SIFT / none | keyframes added | CPU s | centre err median / max (mm) "
+        "| rotation err median / max (deg) | far frames: centre median / max (mm), rotation max (deg) "
+        "| / SIFT's on the frames both posed by tracking and SIFT: centre, rotation mean (frames) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in results:
+        before, after, sift = r["modes"]["before"], r["modes"]["after"], r["modes"]["sift"]["errors"]
+        far = [k for k in after["errors"] if k not in before["errors"]]
+        for mode, summary in (("before", before), ("after", after)):
+            paths = summary["paths"]
+            e = np.array(list(summary["errors"].values())).reshape(-1, 2)
+            f = np.array([summary["errors"][k] for k in far if k in summary["errors"]]).reshape(-1, 2)
+            c, fc = r["mm"] * e[:, 0], r["mm"] * f[:, 0]
+            far_text = f"{np.median(fc):.1f} / {fc.max():.1f}, {f[:, 1].max():.3f} ({len(f)})" if len(f) else "-"
+            both = [k for k in summary["errors"] if k in sift and k in summary["tracked"]]
+            mine = np.array([summary["errors"][k] for k in both]).reshape(-1, 2)
+            theirs = np.array([sift[k] for k in both]).reshape(-1, 2)
+            ratio = mine.mean(axis=0) / theirs.mean(axis=0) if both else np.full(2, np.nan)
+            print(
+                f"| {r['case']} | {mode} | {paths['tracked']} / {paths['sift']} / {paths['none']} | {summary['added']} "
+                f"| {summary['seconds']:.1f} | {np.median(c):.2f} / {c.max():.2f} "
+                f"| {np.median(e[:, 1]):.4f} / {e[:, 1].max():.4f} | {far_text} "
+                f"| {ratio[0]:.2f}, {ratio[1]:.2f} ({len(both)}) |"
+            )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", default="sample,room720,room1080")
@@ -299,6 +446,7 @@ def main() -> None:
         "room720": lambda: _room_case("room720", args.out, 1280, 720, args.frames),
         "room1080": lambda: _room_case("room1080", args.out, 1920, 1080, args.frames),
         "room480": lambda: _room_case("room480", args.out, 640, 480, args.frames),
+        "walk720": lambda: _room_case("walk720", args.out, 1280, 720, args.frames, walk=True),
     }
     results = []
     for name in args.cases.split(","):
@@ -308,7 +456,9 @@ def main() -> None:
         results.append(run_case(case, args.out, args.sift_every, args.threads))
         print(f"{name}: done in {time.perf_counter() - started:.0f} s", flush=True)
         _print(results[-1:], args.threads)
+        _print_modes(results[-1:])
     _print(results, args.threads)
+    _print_modes(results)
 
 
 if __name__ == "__main__":

@@ -1,13 +1,18 @@
 """Acceptance (issue 19): a long handheld capture, every frame registered, and what each stage costs.
 
     python benchmarks/long_handheld.py [--seconds 30] [--fps 30] [--size 1920x1080] [--out /tmp/long_handheld]
-        [--threads -1] [--check]
+        [--threads -1] [--check] [--max-frames N] [--no-added-keyframes]
 
 Three handheld cameras walk along the near side of the synthetic room (sfm/synthetic: the same walls, textures and
 camera model as the tests), swinging about 1 m along it and back, panning across the far wall, with a walking bob
 and a hand's small shake. Videos are rendered once (cached in --out, mp4v) at --fps for --seconds; then
 `sfm.register` runs with its defaults (content keyframes, in-between frames by tracking) and every frame is
-compared with the truth after a similarity. Prints a table (stage, seconds, frames, frames/s) and the accuracy.
+compared with the truth after a similarity. Prints a table (stage, seconds, frames, frames/s) and the accuracy,
+overall and per path (sfm, tracked, sift; frames without a pose).
+
+A low `--max-frames` (a keyframe budget forced low) leaves long stretches between keyframes where the camera moves
+away from all of them: there the in-between frames are posed by tracking from keyframes added on the way
+(`sfm.track_pose`), or, with `--no-added-keyframes` (today's behaviour before them), fall to SIFT or stay unposed.
 
 The walls are drawn by one homography per wall (a plane's texture seen by a pinhole camera), which is what
 `sfm.synthetic.room.render` computes per pixel; `--check` compares the two on one small frame. No spheres: the
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import resource
 import shutil
 import sys
 import time
@@ -31,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sfm import RegisterOptions
+from sfm import RegisterOptions, track_pose
 from sfm import register as run_register
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from sfm.evaluate import compare
@@ -212,6 +218,10 @@ def main() -> int:
     parser.add_argument("--check", action="store_true", help="compare the wall renderer with room.render first")
     parser.add_argument("--render-only", action="store_true", help="render the videos and stop")
     parser.add_argument("--keep", action="store_true", help="resume in the previous workspace instead of a new one")
+    parser.add_argument("--max-frames", type=int, default=RegisterOptions().max_frames, help="keyframes per video")
+    parser.add_argument(
+        "--no-added-keyframes", action="store_true", help="tracking never promotes a frame to a keyframe"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.check:
@@ -223,12 +233,14 @@ def main() -> int:
     print(f"videos ready in {time.perf_counter() - started:.0f} s: {folder}")
     if args.render_only:
         return 0
-    ws = args.out / f"ws_{args.seconds:g}s_{width}x{height}"
+    if args.no_added_keyframes:  # chains never start fresh corners, so never promote a frame
+        track_pose.FRESH_SURVIVAL = track_pose.PROMOTE_SURVIVAL = -1.0
+    ws = args.out / f"ws_{args.seconds:g}s_{width}x{height}_{args.max_frames}"
     if not args.keep:
         shutil.rmtree(ws, ignore_errors=True)
-    started = time.perf_counter()
-    path = run_register(videos, ws, RegisterOptions(num_threads=args.threads))
-    wall = time.perf_counter() - started
+    started, cpu = time.perf_counter(), _cpu_seconds()
+    path = run_register(videos, ws, RegisterOptions(num_threads=args.threads, max_frames=args.max_frames))
+    wall, cpu = time.perf_counter() - started, _cpu_seconds() - cpu
     report = json.loads((ws / "register_report.json").read_text())
     truth = read_cameras(folder / "truth_cameras.json")
     total = truth.num_frames
@@ -240,11 +252,13 @@ def main() -> int:
         rate = f"{frames / seconds:.1f}" if frames and seconds > 0 else "-"
         print(f"| {stage} | {seconds:.1f} | {frames} | {rate} | {what} |")
     print(f"| **total** | **{wall:.1f}** | {total} | {total / wall:.1f} | registered {registered}/{total} |")
+    print(f"CPU s (with COLMAP children): {cpu:.1f}; localize wall {report['timings_s']['localize']}")
     for video in report["videos"]:
         keys = video["keyframes"] or {}
         print(
             f"{video['name']}: {video['registered']}/{video['frames_given']} registered, {video['sfm_frames']} "
-            f"keyframes {keys.get('by_reason')}, tracked {video['registered_by_tracking']}"
+            f"keyframes {keys.get('by_reason')}, tracked {video['registered_by_tracking']}, keyframes added "
+            f"{video['keyframes_added']}, failed {len(video['failed'])}"
         )
     errors = compare(read_cameras(path), truth)
     print(
@@ -252,7 +266,36 @@ def main() -> int:
         f", rotation error mean / max {errors.rotation_errors_deg.mean():.3f} / {errors.rotation_errors_deg.max():.3f}"
         f" deg ({len(errors.keys)} frames); reused steps: {report['reused_steps']}"
     )
+    _path_table(report, errors.keys, errors.center_errors, errors.rotation_errors_deg, total)
     return 0
+
+
+def _path_table(report: dict, keys: list, centre: np.ndarray, rotation: np.ndarray, total: int) -> None:
+    """Frames and their errors (after the similarity over all posed frames) per path that posed them."""
+    path_of = {(v["name"], p["frame"]): p["path"] for v in report["videos"] for p in v["posed"]}
+    added = sum(v["keyframes_added"] for v in report["videos"])
+    print(
+        f"\n| path | frames | centre err median / mean / max (mm) | rotation err median / max (deg) |  (added {added})"
+    )
+    print("|---|---|---|---|")
+    paths = np.array([path_of.get(tuple(k), "none") for k in keys])
+    for path in ("sfm", "tracked", "sift"):
+        chosen = paths == path
+        if not chosen.any():
+            print(f"| {path} | 0 | | |")
+            continue
+        c, r = 1000 * centre[chosen], rotation[chosen]
+        print(
+            f"| {path} | {chosen.sum()} | {np.median(c):.1f} / {c.mean():.1f} / {c.max():.1f} "
+            f"| {np.median(r):.3f} / {r.max():.3f} |"
+        )
+    print(f"| none | {total - len(keys)} | | |")
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and its finished children (COLMAP runs in child processes)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ class Localized:
     matches: int
     mean_error: float | None  # mean inlier reprojection error, SfM pixels
     reason: str | None  # why there is no pose
+    inlier_mask: np.ndarray | None = None  # (matches,) bool: the PnP inliers among the matches, with a pose
 
 
 def read_features(db: pycolmap.Database, image_id: int) -> Features:
@@ -140,5 +141,10 @@ def absolute_pose(
     in_cam = points3D[mask] @ pose.rotation.matrix().T + pose.translation
     errors = np.linalg.norm(camera.img_from_cam(in_cam) - points2D[mask], axis=1)
     return Localized(
-        cam_from_world=pose, inliers=inliers, matches=matches, mean_error=float(errors.mean()), reason=None
+        cam_from_world=pose,
+        inliers=inliers,
+        matches=matches,
+        mean_error=float(errors.mean()),
+        reason=None,
+        inlier_mask=mask,
     )

@@ -23,6 +23,7 @@ from sfm.track_pose import Masks, Seed, seed_from_image, track_video
 log = logging.getLogger(__name__)
 
 NEAREST_REFERENCES = 2  # registered frames of the same video whose 3D points a query frame is matched to
+ADDED_KEYFRAME = "tracked (added keyframe)"  # a tracked frame that later frames were tracked from (sfm.track_pose)
 
 
 def localize_all(
@@ -143,13 +144,15 @@ def _track(
     posed = {
         frame: FramePose(
             pose=tracked.located.cam_from_world,
-            source="tracked",
+            source=ADDED_KEYFRAME if frame in tracking.added else "tracked",
             error=None if tracked.located.mean_error is None else tracked.located.mean_error / video.resize.scale,
             intrinsics=intrinsics,
             inliers=tracked.located.inliers,
         )
         for frame, tracked in tracking.posed.items()
     }
+    if tracking.added:
+        log.info("%s: %d frames promoted to keyframes of the tracking", name, len(tracking.added))
     if tracking.failed:
         log.info("%s: %d of %d frames not posed by tracking, trying SIFT", name, len(tracking.failed), len(todo))
     return posed, tracking.failed

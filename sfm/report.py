@@ -12,6 +12,7 @@ import numpy as np
 import pycolmap
 
 from dynrecon.atomic import atomic_write_text
+from sfm.localize_frames import ADDED_KEYFRAME
 from sfm.plan import FramePose, VideoPlan
 
 
@@ -90,13 +91,15 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
         "registered": len(posed),
         "registered_by_sfm": sum(1 for r in posed if r.source == "sfm"),
         "registered_by_pnp": sum(1 for r in posed if r.source is not None and r.source.startswith(("pnp", "tracked"))),
-        "registered_by_tracking": sum(1 for r in posed if r.source == "tracked"),
+        "registered_by_tracking": sum(1 for r in posed if r.source is not None and r.source.startswith("tracked")),
+        "keyframes_added": sum(1 for r in posed if r.source == ADDED_KEYFRAME),
         "registered_by_static": sum(1 for r in posed if r.source == "static"),
         "registered_by_subject": sum(1 for r in posed if r.source == "subject"),
         "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
         "failed": failed,
         "posed": [
             {"frame": int(f), "path": _path(r.source), "inliers": r.inliers}
+            | ({"added_keyframe": True} if r.source == ADDED_KEYFRAME else {})
             for f, r in sorted(per_frame.items())
             if r.pose is not None
         ],
@@ -106,6 +109,8 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
 def _path(source: str | None) -> str:
     """How a frame was posed, in the report's words: sfm, tracked, sift (PnP of its SIFT features), static or
     subject."""
+    if source == ADDED_KEYFRAME:
+        return "tracked"
     return "sift" if source is not None and source.startswith("pnp") else source or "unknown"
 
 

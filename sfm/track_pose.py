@@ -5,10 +5,18 @@ the model, started at the 3D point's projection). Pyramidal LK with a forward-ba
 frame at a working resolution (long side `WORK_LONG_SIDE`), the moving subject masked, one chain from each keyframe.
 PnP (LO-RANSAC + refinement, the video's camera fixed) against their 3D points poses each wanted frame from both
 chains' features, or from one chain where the other lost them. Frames that no chain poses come back with a reason,
-for the SIFT path (`sfm.localize`). No pose is ever interpolated."""
+for the SIFT path (`sfm.localize`). No pose is ever interpolated.
+
+Where the camera walks away from its keyframe, a chain's features leave the view. When fewer than `FRESH_SURVIVAL`
+of them survive, the chain poses that frame by itself and starts carrying fresh corners from it (2D only); when
+fewer than `PROMOTE_SURVIVAL` survive and the frame is posed by PnP with many inliers, that frame is promoted to a
+new keyframe of the tracking: the fresh corners are triangulated between the two posed frames (reprojection and
+angle checks, `sfm.triangulate`), and the chain goes on from it with the surviving model points plus the new ones.
+The SfM model itself is not changed."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from itertools import pairwise
@@ -21,7 +29,10 @@ from tqdm import tqdm
 
 from sfm.frames import Resize
 from sfm.localize import Localized, absolute_pose
+from sfm.triangulate import triangulate
 from sfm.video import read_frames
+
+log = logging.getLogger(__name__)
 
 WORK_LONG_SIDE = 960  # tracking resolution (pixels of the long side); poses stay in full-resolution pixels
 MAX_POINTS = 300  # features carried per keyframe, spread over the image: LK's cost grows with their number
@@ -32,6 +43,12 @@ LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
 MAX_FB_ERROR = 0.7  # working pixels between a point and its forward-backward round trip
 MIN_INLIER_RATIO = 0.5  # PnP inliers / tracked points below this: the tracks are not trusted
 MAX_ERROR = 4.0  # RANSAC threshold, SfM pixels (as the SIFT path)
+FRESH_SURVIVAL = 0.8  # share of a chain's features still tracked under which it starts carrying fresh corners
+PROMOTE_SURVIVAL = 0.5  # ... under which a well-posed frame becomes a new keyframe of the chain
+PROMOTE_INLIER_RATIO = 0.8  # a frame is promoted only when this share of its tracked features are PnP inliers
+PROMOTE_MIN_INLIERS = 2  # ... and at least this many times --min-inliers of them
+MIN_TRIANGULATION_ANGLE = 2.0  # degrees between the two rays of a new point (COLMAP's mapper uses 1.5)
+MAX_TRIANGULATION_ERROR = 2.0  # SfM pixels, in both views, for a new point
 
 Masks = Callable[[int], np.ndarray | None]  # frame -> (H, W) uint8 mask in SfM pixels (0 = subject), or None
 
@@ -58,10 +75,12 @@ class TrackedPose:
 
 @dataclass(kw_only=True)
 class VideoTracking:
-    """What tracking gave one video: posed frames, and the frames left for SIFT with the reason."""
+    """What tracking gave one video: posed frames, the frames left for SIFT with the reason, and the frames
+    promoted to keyframes of the tracking (frame -> new 3D points triangulated for it)."""
 
     posed: dict[int, TrackedPose] = field(default_factory=dict)
     failed: dict[int, str] = field(default_factory=dict)
+    added: dict[int, int] = field(default_factory=dict)
 
 
 def seed_from_image(rec: pycolmap.Reconstruction, image: pycolmap.Image, sfm_resize: Resize) -> Seed:
@@ -151,6 +170,17 @@ def outside_mask(uv: np.ndarray, mask: np.ndarray | None, sfm_resize: Resize) ->
 
 
 @dataclass(kw_only=True)
+class _Fresh:
+    """Corners carried from a posed frame of a chain, without 3D points yet. start: (N, 2) original pixels at
+    `frame`; now: (N, 2) working pixels where they are in the current frame."""
+
+    frame: int
+    pose: pycolmap.Rigid3d  # cam_from_world of `frame`
+    start: np.ndarray
+    now: np.ndarray
+
+
+@dataclass(kw_only=True)
 class _Chain:
     """Features of one keyframe being carried through a segment, frame by frame (lazily, so that a chain costs
     only the frames it is asked for)."""
@@ -162,9 +192,11 @@ class _Chain:
     sfm_resize: Resize
     masks: Masks
     min_points: int
+    camera: pycolmap.Camera
     steps: Iterator[tuple[int, np.ndarray, np.ndarray]] | None = None
     done: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # frame -> (uv, xyz)
     lost_at: int | None = None
+    added: dict[int, int] = field(default_factory=dict)  # frames promoted to keyframes -> new 3D points
 
     def reach(self, frame: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(uv (M, 2) original pixels, xyz (M, 3)) of the features that reached `frame`, or None when the chain
@@ -178,24 +210,96 @@ class _Chain:
                 break
         return self.done.get(frame)
 
+    def _to_original(self, points: np.ndarray) -> np.ndarray:
+        return (points + 0.5) / self.work.scale - 0.5
+
     def _carry(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         size = (self.work.width / self.work.scale, self.work.height / self.work.scale)
         chosen = spread(self.seed.uv, self.seed.weight, *size, count=MAX_POINTS)
         points = self.work.to_small(self.seed.uv[chosen])
         xyz = self.seed.xyz[chosen]
+        started = len(points)
+        fresh: _Fresh | None = None
         previous = self.images[self.seed.frame]
         for frame in self.frames:
             current = self.images[frame]
-            points, kept = lk_step(previous, current, points)
-            uv = (points + 0.5) / self.work.scale - 0.5
-            kept &= outside_mask(uv, self.masks(frame), self.sfm_resize)
-            points, xyz, uv = points[kept], xyz[kept], uv[kept]
+            carried = len(points)
+            both = points if fresh is None else np.concatenate([points, fresh.now])
+            moved, kept = lk_step(previous, current, both)
+            kept &= outside_mask(self._to_original(moved), self.masks(frame), self.sfm_resize)
+            points, xyz = moved[:carried][kept[:carried]], xyz[kept[:carried]]
+            if fresh is not None:
+                fresh.start, fresh.now = fresh.start[kept[carried:]], moved[carried:][kept[carried:]]
+            uv = self._to_original(points)
+            survival = len(points) / max(started, 1)
+            if fresh is None and survival < FRESH_SURVIVAL and len(points) >= self.min_points:
+                fresh = self._fresh(frame, current, uv, xyz)
+            elif fresh is not None and survival < PROMOTE_SURVIVAL:
+                promoted = self._promote(frame, fresh, uv, xyz)
+                if promoted is not None:
+                    points, xyz = promoted
+                    uv, started, fresh = self._to_original(points), len(points), None
             if len(points) < self.min_points:
                 self.lost_at = frame
                 return
             self.done[frame] = (uv, xyz)
             yield frame, uv, xyz
             previous = current
+
+    def _own_pose(self, uv: np.ndarray, xyz: np.ndarray, min_inliers: int) -> Localized:
+        """PnP of the current frame from this chain's features alone (uv (M, 2) original pixels, xyz (M, 3))."""
+        return absolute_pose(
+            original_to_colmap(uv, self.sfm_resize), xyz, self.camera, min_inliers=min_inliers, max_error=MAX_ERROR
+        )
+
+    def _fresh(self, frame: int, image: np.ndarray, uv: np.ndarray, xyz: np.ndarray) -> _Fresh | None:
+        """Corners of `frame` (off the subject) to carry from here, when the chain poses `frame` by itself."""
+        located = self._own_pose(uv, xyz, self.min_points)
+        if located.cam_from_world is None or located.inliers < PROMOTE_INLIER_RATIO * len(uv):
+            return None
+        corners = cv2.goodFeaturesToTrack(
+            image, maxCorners=MAX_POINTS, qualityLevel=0.01, minDistance=max(image.shape) / 60
+        )
+        if corners is None:
+            return None
+        now = np.asarray(corners, float).reshape(-1, 2)
+        start = self._to_original(now)
+        keep = outside_mask(start, self.masks(frame), self.sfm_resize)
+        return _Fresh(frame=frame, pose=located.cam_from_world, start=start[keep], now=now[keep])
+
+    def _promote(
+        self, frame: int, fresh: _Fresh, uv: np.ndarray, xyz: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """`frame` as a new keyframe of the chain: (points (M, 2) working pixels, xyz (M, 3)), its surviving
+        model points (PnP inliers) and the fresh corners triangulated against `fresh.frame`; None when the frame
+        is not posed well enough or too few new points pass the checks."""
+        located = self._own_pose(uv, xyz, PROMOTE_MIN_INLIERS * self.min_points)
+        if located.cam_from_world is None or located.inlier_mask is None:
+            return None
+        if located.inliers < PROMOTE_INLIER_RATIO * len(uv):
+            return None
+        new_xyz, ok = triangulate(
+            self.camera,
+            fresh.pose,
+            located.cam_from_world,
+            original_to_colmap(fresh.start, self.sfm_resize),
+            original_to_colmap(self._to_original(fresh.now), self.sfm_resize),
+            max_error=MAX_TRIANGULATION_ERROR,
+            min_angle_deg=MIN_TRIANGULATION_ANGLE,
+        )
+        if ok.sum() < self.min_points:
+            return None
+        kept = located.inlier_mask
+        points = np.concatenate([self.work.to_small(uv[kept]), fresh.now[ok]])
+        world = np.concatenate([xyz[kept], new_xyz[ok]])
+        # The model's points first in each cell: the new ones carry the two poses' errors.
+        weight = np.concatenate([np.full(int(kept.sum()), 2.0), np.ones(int(ok.sum()))])
+        chosen = spread(points, weight, float(self.work.width), float(self.work.height), count=MAX_POINTS)
+        self.added[frame] = int(ok.sum())
+        log.debug(
+            "frame %d promoted to a keyframe of the chain from %d: %d new points", frame, self.seed.frame, ok.sum()
+        )
+        return points[chosen], world[chosen]
 
 
 def _pose(
@@ -278,6 +382,8 @@ def _solve_segment(
             reasons.append(why)
         else:
             result.failed[frame] = "; ".join(reasons)
+    for side in chains:
+        result.added.update(side.added)
     return result
 
 
@@ -323,6 +429,7 @@ def track_video(
             sfm_resize=sfm_resize,
             masks=cached_mask,
             min_points=min_inliers,
+            camera=camera,
         )
 
     progress = tqdm(total=len(needed), desc=desc, unit="frame", leave=False)
@@ -334,6 +441,7 @@ def track_video(
         solved = _solve_segment(segment, seeds, images, make_chain, camera, min_inliers)
         result.posed.update(solved.posed)
         result.failed.update(solved.failed)
+        result.added.update(solved.added)
         progress.update(len(segment.needed))
         for old in [f for f in images if f < frame]:
             del images[old]  # a segment's frames are not needed after it: memory stays one segment

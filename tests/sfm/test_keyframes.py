@@ -62,6 +62,32 @@ def test_keyframes_follow_the_motion(tmp_path: Path) -> None:
     assert len(capped.frames) == MIN_KEYFRAMES and capped.thinned and set(capped.frames) <= set(frames)
 
 
+def test_the_masked_subject_does_not_start_keyframes(tmp_path: Path) -> None:
+    """A still camera on a wall, a large textured subject sweeping across it: its motion and what it covers start
+    keyframes by content, unless its masks are given."""
+    rng = np.random.default_rng(7)
+    wall, subject = noise_texture((HEIGHT, WIDTH), rng), noise_texture((HEIGHT - 16, 60), rng)
+    count, step = 40, 2
+    path = tmp_path / "subject.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (WIDTH, HEIGHT))
+    masks = {}
+    for frame in range(count):
+        image, x = wall.copy(), step * frame - 20
+        left, right = max(x, 0), min(x + 60, WIDTH)
+        mask = np.full((HEIGHT, WIDTH), 255, np.uint8)
+        if right > left:
+            image[8 : HEIGHT - 8, left:right] = subject[:, left - x : right - x]
+            mask[4 : HEIGHT - 4, max(left - 4, 0) : right + 4] = 0
+        masks[frame] = mask
+        writer.write(image)
+    writer.release()
+    info = probe_video(path)
+    unmasked = choose_keyframes(info, motion=0.05, survival=0.6, max_frames=0)
+    masked = choose_keyframes(info, motion=0.05, survival=0.6, max_frames=0, masks=masks.get)
+    assert unmasked.candidates > 2  # the subject's motion or its occlusions
+    assert masked.candidates == 2  # first and last: the background never moved
+
+
 def test_lost_tracks_start_a_keyframe() -> None:
     corners = np.random.default_rng(0).uniform(0, 100, (40, 2))
     reference = _Reference(frame=0, start=corners, now=corners + 1.0, alive=np.ones(40, bool))
