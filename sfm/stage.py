@@ -252,7 +252,7 @@ def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, ws: _Workspace
                 static = options.camera_motion is CameraMotion.STATIC
         resize = Resize.for_video(info, options.long_side)
         with ws.timed("keyframes"):
-            choice = None if static else _keyframes(info, ws)
+            choice = None if static else _keyframes(info, ws, tracks)
         sfm_frames = np.zeros(0, np.int64) if choice is None else choice.frames
         wanted = _wanted_frames(info, sfm_frames, tracks, options.localize)  # also checks the tracks' frames
         if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
@@ -271,22 +271,34 @@ def _plan_videos(infos: list[ProbedVideo], tracks: Tracks | None, ws: _Workspace
     return videos
 
 
-def _keyframes(info: ProbedVideo, ws: _Workspace) -> KeyframeChoice:
-    """A moving video's SfM frames: by content (reused from an earlier run of the same video and settings) or
-    evenly."""
+def _keyframes(info: ProbedVideo, ws: _Workspace, tracks: Tracks | None) -> KeyframeChoice:
+    """A moving video's SfM frames: by content (reused from an earlier run of the same video, settings and subject
+    tracks) or evenly; the tracked subject is masked out of the measured motion."""
     options = ws.options
     if options.keyframes_by is KeyframeSelection.EVEN or options.step or options.time_step:  # a step asks for even
         frames = select_frames(info, step=options.step, time_step=options.time_step, max_frames=options.max_frames)
         return even_choice(frames)
     stat = info.path.stat()
-    settings = (options.keyframe_motion, options.keyframe_survival, options.max_frames)
-    key = input_key(str(info.path.resolve()), stat.st_size, stat.st_mtime_ns, info.num_frames, settings)
+    settings = (options.keyframe_motion, options.keyframe_survival, options.max_frames, options.mask_radius)
+    points = track_points(tracks, info.name) if tracks is not None else {}
+    subject = input_key(*((frame, xy.round(2).tolist()) for frame, xy in sorted(points.items())))
+    key = input_key(str(info.path.resolve()), stat.st_size, stat.st_mtime_ns, info.num_frames, settings, subject)
     step = f"keyframes {info.name}"
     done = ws.log.result(step, key)
     if done is not None:
         return ws.log.reuse(step, _choice_from_json(done))
+    resize = Resize.for_video(info, options.long_side)
+
+    def masks(frame: int) -> np.ndarray | None:
+        where = points.get(frame)
+        return mask_from_points(where, resize, options.mask_radius) if where is not None else None
+
     choice = choose_keyframes(
-        info, motion=options.keyframe_motion, survival=options.keyframe_survival, max_frames=options.max_frames
+        info,
+        motion=options.keyframe_motion,
+        survival=options.keyframe_survival,
+        max_frames=options.max_frames,
+        masks=masks if points and options.use_masks else None,
     )
     ws.log.record(step, key, {**choice.to_json(), "reasons": [r.value for r in choice.reasons]})
     log.info("%s: %d keyframes by content (%s)", info.name, len(choice.frames), choice.to_json()["by_reason"])
