@@ -164,7 +164,8 @@ def refine_on_clocks(
             100 * MAX_RATE_CORRECTION,
         )
         report["clock_polish_rejected"] = True
-        refined = refine(problem, points, times, options)
+        # the polish's own first refinement had these inputs
+        refined = polished.at_input if polished.at_input is not None else refine(problem, points, times, options)
         cost.extend(float(c) for c in refined.cost)
     report["cost"] = cost
     return OnClocks(clocks=clocks, result=refined, report=report)

@@ -161,10 +161,10 @@ def _sum_at(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
 def _add_blocks(bands: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """Banded matrix + block diagonal (n, 3, 3) (lower form)."""
     out = bands.copy()
-    n = len(blocks)
+    columns = out.reshape(BANDS, len(blocks), 3)  # a view: column 3i + col is [:, i, col]
     for row in range(3):
         for col in range(row + 1):
-            out[row - col, np.arange(n) * 3 + col] += blocks[:, row, col]
+            columns[row - col, :, col] += blocks[:, row, col]
     return out
 
 
@@ -453,9 +453,10 @@ def _grid_systems(prior: np.ndarray, track: _Track, values: np.ndarray, blocks: 
     n = len(blocks)
     diagonal = blocks + _anchor_weight(blocks) * np.eye(3)[None]
     systems = (np.asarray(values, dtype=float) * track.mean_s2)[:, None, None] * prior[None]
+    columns = systems.reshape(len(systems), BANDS, n, 3)  # a view: column 3i + col is [..., i, col]
     for row in range(3):
         for col in range(row + 1):
-            systems[:, row - col, np.arange(n) * 3 + col] += diagonal[:, row, col]
+            columns[:, row - col, :, col] += diagonal[:, row, col]
     return systems
 
 
@@ -634,6 +635,7 @@ class ClockRefineResult:
     correction: ClockCorrection  # from the input times to `times` (the reference's is 0)
     cost: list[float]  # trajectory cost after each sweep (px^2)
     result: RefineResult  # the refinement at the adjusted times
+    at_input: RefineResult | None = None  # the refinement at the input times (what a rejected polish falls back to)
 
 
 def refine_with_clocks(
@@ -653,26 +655,36 @@ def refine_with_clocks(
     times = np.asarray(times, dtype=float)
     original = times
     result = _clock_round(problem, points, times, options, reference, rates)
+    at_input = result.at_input
     history = list(result.cost)
     for _ in range(POLISH_ROUNDS - 1):
-        result = _clock_round(problem, points, result.times, options, reference, rates)
+        # the round's own first refinement would repeat the last one (same inputs): start from it
+        result = _clock_round(problem, points, result.times, options, reference, rates, result.result)
         history.extend(result.cost)
     # Corrections relative to the input times (the rounds compose affine maps per video).
     correction = ClockCorrection.fit(original, result.times, problem.video_index, len(problem.video_names))
-    return ClockRefineResult(times=result.times, correction=correction, cost=history, result=result.result)
+    return ClockRefineResult(
+        times=result.times, correction=correction, cost=history, result=result.result, at_input=at_input
+    )
 
 
 def _clock_round(
-    problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions, reference: int | None, rates: bool
+    problem: Problem,
+    points: np.ndarray,
+    times: np.ndarray,
+    options: RefineOptions,
+    reference: int | None,
+    rates: bool,
+    first: RefineResult | None = None,
 ) -> ClockRefineResult:
-    """One round of refine_with_clocks.
+    """One round of refine_with_clocks; `first`: the refinement at `times`, when an earlier round computed it.
 
     Estimated clocks can be off by a fraction of a frame, which folds the trajectory into a zig-zag the prior pays
     for. With the smoothness and robust weights of a first refinement held fixed, the cost (weighted ray distances
     + smoothness) is a function of the clocks alone; each video's offset (then rate) is found by golden-section
     search in turn (coordinate descent).
     """
-    first = refine(problem, points, times, options)
+    first = first if first is not None else refine(problem, points, times, options)
     N = len(problem.video_names)
     counts = np.bincount(problem.video_index, minlength=N)
     if reference is None:
@@ -689,9 +701,9 @@ def _clock_round(
         history[0],
         history[-1],
     )
-    return ClockRefineResult(
-        times=adjusted, correction=correction, cost=history, result=refine(problem, points, adjusted, options)
-    )
+    # a polish that moved no clock leaves the times bitwise as they were: the first refinement is the final one
+    final = first if np.array_equal(adjusted, times) else refine(problem, points, adjusted, options)
+    return ClockRefineResult(times=adjusted, correction=correction, cost=history, result=final, at_input=first)
 
 
 class _PolishCost:
@@ -743,11 +755,14 @@ class _PolishCost:
         prior = prior_bands(nodes)
         # Points are independent: their systems side by side form one banded matrix (no band crosses a seam).
         system = self.strength[None, :, None] * prior[:, None, :]  # (BANDS, P', 3n)
+        columns = system.reshape(BANDS, len(keep), n, 3)  # a view: column 3i + col of point k is [:, k, i, col]
         for row in range(3):
             for col in range(row + 1):
-                system[row - col, :, np.arange(n) * 3 + col] += blocks[:, :, row, col].T
+                columns[row - col, :, :, col] += blocks[:, :, row, col]
         stacked = system.reshape(BANDS, -1)
-        y = cho_solve_banded((cholesky_banded(stacked, lower=True), True), rhs.reshape(-1))
+        # finite by construction: LAPACK's own checks suffice
+        factor = cholesky_banded(stacked, lower=True, check_finite=False)
+        y = cho_solve_banded((factor, True), rhs.reshape(-1), check_finite=False)
         solved = y.reshape(len(keep), n, 3)
         offset = solved[column, node] - self.obs_centers
         along = np.einsum("mi,mi->m", offset, self.obs_rays)
@@ -762,6 +777,9 @@ def _coordinate_descent(
     """Sweeps over the videos, each video's offset (then rate) by golden-section search with the others held;
     `correction` is updated in place. Returns the cost before and after each sweep."""
     history = [cost(times)]
+    current = history[0]  # the cost at the current correction: every search's value at 0, known without a solve
+    # (video, kind) -> the correction its last search could not improve: the same search there finds nothing again
+    fruitless: dict[tuple[int, str], bytes] = {}
     for _ in range(max(POLISH_SWEEPS, 0)):
         for v in range(len(correction.offset)):
             own = video_index == v
@@ -772,6 +790,9 @@ def _coordinate_descent(
             if not (period > 0 and video_span > 0):
                 continue
             for kind in ("offset", "rate") if rates else ("offset",):
+                state = correction.offset.tobytes() + correction.rate.tobytes()
+                if fruitless.get((v, kind)) == state:
+                    continue
                 values = correction.offset if kind == "offset" else correction.rate
                 # The rate's bracket moves the video's ends by as much as the offset's moves its middle.
                 reach = POLISH_REACH_PERIODS * period * (1.0 if kind == "offset" else 2.0 / video_span)
@@ -786,9 +807,12 @@ def _coordinate_descent(
                     return cost(moved.apply(times, video_index))
 
                 best, best_cost = _golden_search(shifted, -reach, reach, POLISH_TOLERANCE * reach)
-                if best_cost < shifted(0.0):
-                    values[v] += best
-        history.append(cost(correction.apply(times, video_index)))
+                if best_cost < current:
+                    values[v] += best  # the same sum as the search's trial: `current` is its cost exactly
+                    current = best_cost
+                else:
+                    fruitless[v, kind] = state
+        history.append(current)
         if history[-2] - history[-1] <= POLISH_STOP * abs(history[-2]):
             break
     return history

@@ -312,3 +312,20 @@ def test_clock_refinement_recovers_offset_and_rate_errors() -> None:
     before = np.median(error_mm(plain.points, truth))
     after = np.median(error_mm(fixed.result.points, truth))
     assert after < 0.5 * before
+
+
+def test_clock_refinement_result_is_the_refinement_at_its_times() -> None:
+    # The rounds reuse refinements they already computed (same inputs): the result is still bitwise the one of a
+    # fresh refinement at the polished times.
+    times, camera_of = round_robin(120, 60.0, seed=3)
+    problem, truth = capture(times, camera_of, noise_px=0.5)
+    wrong = times.copy()
+    wrong[camera_of == 1] += 0.004
+    start = start_points(problem, truth, error_mm=5.0)
+    fixed = refine_with_clocks(problem, start, wrong, reference=0)
+    again = refine(problem, start, fixed.times)
+    np.testing.assert_array_equal(fixed.result.points, again.points)
+    np.testing.assert_array_equal(fixed.result.smoothness, again.smoothness)
+    # and the refinement at the input times, which a rejected polish falls back to
+    assert fixed.at_input is not None
+    np.testing.assert_array_equal(fixed.at_input.points, refine(problem, start, wrong).points)
