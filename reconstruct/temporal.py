@@ -50,8 +50,9 @@ class TemporalOptions:
     refinement: Refinement = Refinement.CLOCKS
     refine: RefineOptions = field(default_factory=RefineOptions)
     # At most this many reconstructable points: clocks from the tracks and trajectories without the self-expressive
-    # solve (reconstruct/tracks_path.py), whose W-step stalls on so few points; 0 never takes that path.
-    tracks_path_max_points: int = 3
+    # solve (reconstruct/tracks_path.py), whose W-step slows down sharply as the points get fewer; 0 never takes
+    # that path. Its checks fall back to the seed solve.
+    tracks_path_max_points: int = 20
 
     def clock_options(self, problem: Problem) -> ClockOptions:
         """The clock options of this solve: `clocks` with the model `clock_model` resolves to."""

@@ -34,7 +34,7 @@ from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
-from reconstruct.time_checks import Check, clock_checks
+from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,10 @@ PARTNER_PERIODS = 1.0
 # TRACKS_FIT_PX: right clocks let a spline meet every ray about as closely as interpolated rays meet each other.
 TRACKS_FIT_FACTOR = 1.5
 TRACKS_FIT_PX = 1.0
+# Beyond a few points the seed solve is affordable and W's links tell the cycles of a periodic motion apart, which
+# the track search alone may not: there the tracks' clocks must win their search clearly.
+FEW_POINTS = 3
+MANY_POINTS_DISTINCTNESS = 3.0
 PATH = "tracks"  # report.json temporal.path of this path
 
 
@@ -111,7 +115,8 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions) -> TracksAttempt
     clocks = estimate_clocks_from_tracks(problem, clock_options)
     timings = {"clocks": time.perf_counter() - t0}
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
-    checks = clock_checks(problem, clocks)
+    many = int(reconstructable_points(problem).sum()) > FEW_POINTS
+    checks = clock_checks(problem, clocks, MANY_POINTS_DISTINCTNESS if many else MIN_DISTINCTNESS)
     if not all(c.passed for c in checks):
         return _failed(checks, report)
     t0 = time.perf_counter()

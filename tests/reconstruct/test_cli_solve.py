@@ -19,6 +19,7 @@ def _capture(tmp_path, frames=80, points=4):
 
 
 def test_solve_writes_every_output(tmp_path, capsys):
+    # the self-expressive solve's own outputs: with 4 points and times the default takes the tracks path (below)
     capture = _capture(tmp_path)
     out = tmp_path / "out"
     code = main(
@@ -30,6 +31,8 @@ def test_solve_writes_every_output(tmp_path, capsys):
             str(tmp_path / "tracks.csv"),
             "--out",
             str(out),
+            "--refinement",
+            "none",
         ]
     )
     assert code == 0
@@ -47,6 +50,25 @@ def test_solve_writes_every_output(tmp_path, capsys):
     assert len(report["residual"]["per_frame"]) == points.num_frames
     assert "/world/points" in entities(out / "recording.rrd")
     verify(out / "recording.rrd")
+
+
+def test_few_points_with_times_take_the_tracks_path(tmp_path, capsys):
+    capture = _capture(tmp_path)
+    out = tmp_path / "out"
+    args = ["solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "tracks.csv")]
+    assert main([*args, "--out", str(out), "--no-recording"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["temporal"]["path"] == "tracks" and report["initialization"] is None
+    checks = {c["name"]: c for c in report["temporal"]["checks"]}
+    assert all(c["passed"] for c in checks.values())
+    assert checks["track_distinctness"]["limit"] == 3.0  # more than 3 points: the search must win clearly
+    points = read_points(out / "points3d.csv")
+    index = capture.truth.index()
+    truth = np.stack([capture.truth.xyz[index[(v, int(f))]] for v, f in zip(points.videos, points.frames, strict=True)])
+    assert np.median(np.linalg.norm(points.xyz - truth, axis=-1)) < 1.0
+    # W from the clocks: each frame between the bracketing frames of the other videos; none at the capture's ends
+    sums = np.array([w.sum() for w in read_sequencing(out / "sequencing.json").weights])
+    assert np.all((np.abs(sums - 1) < 1e-3) | (sums == 0)) and np.mean(sums > 0) > 0.9
 
 
 def test_simulate_solve_evaluate_chain(tmp_path, capsys, shared_dir):
