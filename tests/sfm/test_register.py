@@ -171,3 +171,33 @@ def test_a_rotated_video_registers_as_the_same_video_stored_upright(tmp_path: Pa
             np.testing.assert_allclose(b.K, a.K, atol=1e-6)
             np.testing.assert_allclose(b.R, a.R, atol=1e-6)
             np.testing.assert_allclose(b.t, a.t, atol=1e-6)
+
+
+def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_register(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # the room's three cameras, and a fourth filming another (textured) wall that shares nothing with the room
+    videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))
+    elsewhere = tmp_path / "videos" / "elsewhere.mp4"
+    rng = np.random.default_rng(5)
+    wall = cv2.GaussianBlur(rng.integers(0, 255, (400, 560, 3), dtype=np.uint8), (5, 5), 0)
+    writer = cv2.VideoWriter(str(elsewhere), cv2.VideoWriter.fourcc(*"mp4v"), 10.0, (480, 360))
+    for i in range(8):
+        writer.write(np.ascontiguousarray(wall[i * 4 : i * 4 + 360, i * 8 : i * 8 + 480]))
+    writer.release()
+    ws = tmp_path / "ws"
+    write_tracks(ws / "tracks.csv", sphere_tracks(videos))
+    paths = [*(str(v.path) for v in videos), str(elsewhere)]
+    args = ["register", *paths, "--out", str(ws), "--long-side", "480", "--max-frames", "6", "--threads", "1"]
+    assert main([*args, "--max-features", "1500", "--mask-radius", "70"]) == 0
+    cameras = read_cameras(ws / "cameras.json")
+    assert sorted(v.name for v in cameras.videos) == ["cam0", "cam1", "cam2"]
+    report = json.loads((ws / "register_report.json").read_text())
+    alone = next(v for v in report["videos"] if v["name"] == "elsewhere")
+    assert alone["posed_by"] == "none" and alone["registered"] == 0
+    assert alone["failed"] and all(f["reason"] for f in alone["failed"])
+    assert all(v["registered"] == v["frames_in_video"] for v in report["videos"] if v["name"] != "elsewhere")
+    captured = capsys.readouterr()
+    said = [line for line in (captured.out + captured.err).splitlines() if "elsewhere" in line and "%" not in line]
+    assert said == ["elsewhere: 0/6 frames registered (moving camera; posed by none)"]
+    assert alone["failed"][0]["reason"] == "video not in the kept model"
