@@ -17,6 +17,7 @@ from sfm.evaluate import compare
 from sfm.export import read_ply
 from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
 from sfm.synthetic.room import Room
+from sfm.video import probe_video, read_frames
 from tracking.tracks import write_tracks
 
 ROOM_DIAGONAL = float(np.linalg.norm(Room(textures=[np.zeros((1, 1, 3), np.uint8)] * 6).size))
@@ -201,3 +202,27 @@ def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_regi
     said = [line for line in (captured.out + captured.err).splitlines() if "elsewhere" in line and "%" not in line]
     assert said == ["elsewhere: 0/6 frames registered (moving camera; posed by none)"]
     assert alone["failed"][0]["reason"] == "video not in the kept model"
+
+
+def test_frames_without_texture_are_reported_and_the_rest_register(tmp_path: Path) -> None:
+    # cam0's last 3 of 10 frames are a flat grey (a hand over the lens): those fail with a reason, the rest register
+    videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))
+    covered = tmp_path / "videos" / "covered.mp4"
+    info = probe_video(videos[0].path)
+    writer = cv2.VideoWriter(str(covered), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (info.width, info.height))
+    for frame, image in read_frames(info.path, np.arange(info.num_frames)):
+        writer.write(np.full_like(image, 90) if frame >= 7 else image)
+    writer.release()
+    ws = tmp_path / "ws"
+    paths = [str(covered), *(str(v.path) for v in videos[1:])]
+    args = ["register", *paths, "--out", str(ws), "--long-side", "480", "--max-frames", "6", "--threads", "1"]
+    assert main([*args, "--max-features", "1500"]) == 0
+    report = json.loads((ws / "register_report.json").read_text())
+    video = next(v for v in report["videos"] if v["name"] == "covered")
+    failed = {f["frame"]: f["reason"] for f in video["failed"]}
+    posed = {p["frame"] for p in video["posed"]}
+    assert {7, 8, 9} <= set(failed) and all("SIFT: no features" in failed[f] for f in (7, 8, 9))
+    assert any(w.startswith("covered/") and "untextured or blurred" in w for w in report["warnings"])
+    assert set(range(7)) <= posed
+    cameras = read_cameras(ws / "cameras.json")
+    assert set(cameras.video("covered").frame_numbers().tolist()) == posed
