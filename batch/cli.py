@@ -17,7 +17,7 @@ COMMANDS = {"batch": "many capture folders on Dask (this machine, or a cluster's
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
-    from sfm.options import CalibrationFormat, Units
+    from dynrecon.pipeline_cli import add_calibration_arguments
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
@@ -52,24 +52,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--track-window", type=int, default=TrackOptions().win_size, help="LK window side, px")
     parser.add_argument("--track-patch", type=int, default=TrackOptions().patch, help="appearance patch side, px")
-    parser.add_argument(
-        "--calibration",
-        type=Path,
-        metavar="FILE",
-        help="one lab calibration for every capture that has none of its own (what `dynrecon import-calibration` "
+    add_calibration_arguments(
+        parser,
+        "one lab calibration for every capture that has none of its own (what `dynrecon import-calibration` "
         "reads): imported instead of the SfM registration",
-    )
-    parser.add_argument(
-        "--calibration-format",
-        choices=[f.value for f in CalibrationFormat],
-        default="auto",
-        help="format of the calibrations (default: from each file's name), as import-calibration's --format",
-    )
-    parser.add_argument(
-        "--calibration-units",
-        choices=[u.value for u in Units],
-        default="auto",
-        help="unit of the calibrations' TOML translations, as import-calibration's --units (default auto)",
     )
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage of every capture")
@@ -80,7 +66,7 @@ def _batch(args: argparse.Namespace) -> int:
     from batch.graph import BatchOptions, run_batch
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register
-    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+    from dynrecon.pipeline_cli import calibration_options
     from tracking.options import TrackOptions
 
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
@@ -95,9 +81,7 @@ def _batch(args: argparse.Namespace) -> int:
         register=dataclasses.replace(default_register(), max_frames=args.max_frames, num_threads=args.sfm_threads),
         track=TrackOptions(win_size=args.track_window, patch=args.track_patch),
         calibration=args.calibration,
-        calibration_options=ImportCalibrationOptions(
-            format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
-        ),
+        calibration_options=calibration_options(args),
         units=args.units,
         force=args.force,
     )

@@ -11,6 +11,10 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sfm.options import ImportCalibrationOptions
 
 COMMANDS = {
     "demo": "run the whole job on the embedded video sample and score it",
@@ -25,7 +29,6 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
-    from sfm.options import CalibrationFormat, Units
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
@@ -72,34 +75,48 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         metavar="A,B,METRES",
         help="distance between two tracked points: the scale of static videos posed from the subject",
     )
-    parser.add_argument(
-        "--calibration",
-        type=Path,
-        metavar="FILE",
-        help="a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, "
-        ".qca, .xml): imported instead of the SfM registration",
-    )
-    parser.add_argument(
-        "--calibration-format",
-        choices=[f.value for f in CalibrationFormat],
-        default="auto",
-        help="format of --calibration (default: from the file name), as import-calibration's --format",
-    )
-    parser.add_argument(
-        "--calibration-units",
-        choices=[u.value for u in Units],
-        default="auto",
-        help="unit of --calibration's TOML translations, as import-calibration's --units (default auto)",
+    add_calibration_arguments(
+        parser,
+        "a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, .qca, "
+        ".xml): imported instead of the SfM registration",
     )
     parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
     parser.add_argument("--force", action="store_true", help="redo every stage")
     parser.set_defaults(func=_run)
 
 
+def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration: str) -> None:
+    """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
+    `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
+    from sfm.options import CalibrationFormat, Units
+
+    parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
+    parser.add_argument(
+        "--calibration-format",
+        choices=[f.value for f in CalibrationFormat],
+        default="auto",
+        help="format of the calibration (default: from the file name), as import-calibration's --format",
+    )
+    parser.add_argument(
+        "--calibration-units",
+        choices=[u.value for u in Units],
+        default="auto",
+        help="unit of the calibration's TOML translations, as import-calibration's --units (default auto)",
+    )
+
+
+def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
+    """The import options `add_calibration_arguments` parsed."""
+    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+
+    return ImportCalibrationOptions(
+        format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
+    )
+
+
 def _run(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register, run_stages
-    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
     from sfm.register_cli import parse_scale
     from tracking.options import TrackOptions
 
@@ -117,9 +134,7 @@ def _run(args: argparse.Namespace) -> int:
         tracks=args.tracks,
         skeleton=args.skeleton,
         calibration=args.calibration,
-        calibration_options=ImportCalibrationOptions(
-            format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
-        ),
+        calibration_options=calibration_options(args),
         units=args.units,
         force=args.force,
     )
