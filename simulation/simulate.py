@@ -4,7 +4,9 @@ Each capture time (one mocap sample) is seen by exactly one camera, chosen at ra
 takes two consecutive captures. Cameras are 1000 x 1000 px, f = 1000, principal point at the image centre
 (OpenCV: 499.5), placed evenly in azimuth at the height of the motion's centroid, looking at it, at
 `distance_factor` times the motion's scale (the largest distance of any sample from the centroid), then moved
-back until every sample of every frame projects inside every image. Outputs are in mm, like the mocap.
+back until every sample of every frame projects inside every image. With a fixed distance (`camera_distance_mm`)
+the cameras stay there and, where the motion projects outside 1000 px, the virtual images grow to hold it (the
+paper's cameras have no frame edge; cameras.json then declares the larger size). Outputs are in mm, like the mocap.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ class Rig:
     R: np.ndarray  # (C, 3, 3) cam_from_world
     t: np.ndarray  # (C, 3)
     K: np.ndarray  # (3, 3)
+    image_size: int  # px, width = height: the option's size, or larger where a fixed distance needs it
 
 
 def _check_options(options: SimulationOptions) -> None:
@@ -130,8 +133,7 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
     if scale <= 0:
         raise DynreconError("the motion has no extent: every marker sample is at the same place")
     size = options.image_size
-    centre_px = (size - 1) / 2.0  # OpenCV: the top-left pixel's centre is (0, 0)
-    K = np.array([[options.focal_px, 0, centre_px], [0, options.focal_px, centre_px], [0, 0, 1.0]])
+    K = _intrinsics(options.focal_px, size)
     # Two horizontal directions orthogonal to `up`.
     h1 = np.roll(up, 1)
     h2 = np.cross(up, h1)
@@ -141,52 +143,74 @@ def place_cameras(xyz: np.ndarray, options: SimulationOptions, rng: np.random.Ge
     if options.camera_distance_mm is not None:
         distance = options.camera_distance_mm
         poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
-        for k, (R, t) in enumerate(poses):
-            _, depth = project(samples, K, R, t)
-            if depth.min() < MIN_DEPTH_FRACTION * distance:
-                raise DynreconError(
-                    f"--distance {distance:.0f} mm puts the motion within {max(depth.min(), 0):.0f} mm of camera "
-                    f"{k} (or behind it): the motion spans {2 * scale:.0f} mm; use a larger distance or a shorter "
-                    "window"
-                )
-        return Rig(
-            centroid=centroid,
-            up=up,
-            scale=scale,
-            distance=distance,
-            K=K,
-            R=np.stack([p[0] for p in poses]),
-            t=np.stack([p[1] for p in poses]),
-        )
-    distance = options.distance_factor * scale
-    for _ in range(200):
-        poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
-        inside = True
-        for R, t in poses:
-            uv, depth = project(samples, K, R, t)
-            if (depth <= 0).any() or (uv < IMAGE_MARGIN_PX).any() or (uv > size - 1 - IMAGE_MARGIN_PX).any():
-                inside = False
+        size = _fixed_distance_size(samples, K, poses, distance, scale, size)
+        K = _intrinsics(options.focal_px, size)
+    else:
+        distance = options.distance_factor * scale
+        for _ in range(200):
+            poses = [look_at(centroid + distance * d, centroid, up) for d in directions]
+            if all(_inside(samples, K, R, t, size) for R, t in poses):
                 break
-        if inside:
-            break
-        distance *= PUSH_BACK
-    else:  # pragma: no cover - 1.05^200 is far beyond any finite motion
-        raise DynreconError("could not place the cameras so that every point is inside the images")
-    if distance > options.distance_factor * scale * 1.001:
-        log.info(
-            "cameras moved back to %.0f mm (%.2f x the motion scale) to keep every point in the images",
-            distance,
-            distance / scale,
-        )
+            distance *= PUSH_BACK
+        else:  # pragma: no cover - 1.05^200 is far beyond any finite motion
+            raise DynreconError("could not place the cameras so that every point is inside the images")
+        if distance > options.distance_factor * scale * 1.001:
+            log.info(
+                "cameras moved back to %.0f mm (%.2f x the motion scale) to keep every point in the images",
+                distance,
+                distance / scale,
+            )
     return Rig(
         centroid=centroid,
         up=up,
         scale=scale,
         distance=distance,
         K=K,
+        image_size=size,
         R=np.stack([p[0] for p in poses]),
         t=np.stack([p[1] for p in poses]),
     )
+
+
+def _intrinsics(focal_px: float, size: int) -> np.ndarray:
+    """(3, 3) K of a size x size image with its principal point at the centre (OpenCV: top-left pixel at 0)."""
+    centre_px = (size - 1) / 2.0
+    return np.array([[focal_px, 0, centre_px], [0, focal_px, centre_px], [0, 0, 1.0]])
+
+
+def _inside(samples: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, size: int) -> bool:
+    uv, depth = project(samples, K, R, t)
+    return bool((depth > 0).all() and (uv >= IMAGE_MARGIN_PX).all() and (uv <= size - 1 - IMAGE_MARGIN_PX).all())
+
+
+def _fixed_distance_size(
+    samples: np.ndarray,
+    K: np.ndarray,
+    poses: list[tuple[np.ndarray, np.ndarray]],
+    distance: float,
+    scale: float,
+    size: int,
+) -> int:
+    """The image size at a fixed camera distance: `size`, or larger where the motion projects outside it. The
+    paper's virtual cameras have no frame edge, so every projection is kept and cameras.json declares an image that
+    holds it (else they would be observations outside the image)."""
+    centre_px = float(K[0, 2])
+    reach = 0.0  # px, the farthest projection from the principal point along either image axis
+    for k, (R, t) in enumerate(poses):
+        uv, depth = project(samples, K, R, t)
+        if depth.min() < MIN_DEPTH_FRACTION * distance:
+            raise DynreconError(
+                f"--distance {distance:.0f} mm puts the motion within {max(depth.min(), 0):.0f} mm of camera "
+                f"{k} (or behind it): the motion spans {2 * scale:.0f} mm; use a larger distance or a shorter window"
+            )
+        reach = max(reach, float(np.abs(uv - centre_px).max()))
+    if reach <= centre_px + 0.5:  # inside the image (perhaps within its margin): nothing to grow
+        return size
+    grown = math.ceil(2 * (reach + IMAGE_MARGIN_PX)) + 1
+    log.info(
+        "at %.0f mm the motion reaches %.0f px from the image centre: virtual images of %d px", distance, reach, grown
+    )
+    return grown
 
 
 def assign_cameras(count: int, cameras: int, unconstrained: bool, rng: np.random.Generator) -> np.ndarray:
@@ -240,8 +264,8 @@ def _video_cameras(
         videos.append(
             VideoCameras(
                 name=f"cam{c}",
-                width=options.image_size,
-                height=options.image_size,
+                width=rig.image_size,
+                height=rig.image_size,
                 # Captures are assigned at random, so frame / fps is not a capture time: leave fps unknown and
                 # give each frame its `time`.
                 fps=None,
@@ -338,6 +362,7 @@ def run(mocap_path: str | Path, out_dir: str | Path, options: SimulationOptions 
         "up": rig.up.tolist(),
         "scale_mm": rig.scale,
         "camera_distance_mm": rig.distance,
+        "image_size_px": rig.image_size,
     }
     atomic_write_text(out / "simulation.json", json.dumps(record, indent=1) + "\n")
     return out

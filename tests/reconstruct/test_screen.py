@@ -49,3 +49,22 @@ def test_a_real_bounce_is_not_a_spike() -> None:
     uv = problem.uv.copy()
     uv[rows[10], 0] = uv[rows[10], 0] + np.array([0.0, 60.0])
     assert not find_spikes(dataclasses.replace(problem, uv=uv))[rows[10], 0]
+
+
+def test_points_leaving_their_tracks_together_are_real_motion_but_a_whole_frame_jump_is_not() -> None:
+    """A kick at a low frame rate: several points of one frame off their lines at once are kept; a frame where
+    every point jumps (the detector took another person) is still set aside."""
+    problem, _ = synthetic_problem()
+    rows = np.flatnonzero(problem.video_index == 0)
+    rows = rows[np.argsort(problem.frames[rows])]
+    kick, swap = rows[10], rows[20]
+    seen_kick = np.flatnonzero(problem.observed[kick])
+    seen_swap = np.flatnonzero(problem.observed[swap])
+    assert len(seen_kick) >= 6
+    uv = problem.uv.copy()
+    legs = seen_kick[: max(4, len(seen_kick) // 2)]
+    uv[kick, legs] += np.array([300.0, 0.0])
+    uv[swap, seen_swap] += np.array([0.0, 300.0])
+    spikes = find_spikes(dataclasses.replace(problem, uv=uv))
+    assert not spikes[kick].any()
+    assert spikes[swap, seen_swap].sum() >= 0.75 * len(seen_swap)

@@ -133,6 +133,22 @@ def test_fixed_camera_distance_follows_the_papers_protocol() -> None:
         simulate_capture(xyz, 120.0, SimulationOptions(camera_distance_mm=300.0))
 
 
+def test_fixed_distance_grows_the_virtual_images_to_hold_every_projection() -> None:
+    # The walk spans 4 m: at 2.7 m it projects beyond 1000 px, which the paper's edge-free cameras still see.
+    xyz = walking_body(frames=600)
+    capture = simulate_capture(xyz, 120.0, SimulationOptions(seed=5, noise_px=0.0, camera_distance_mm=2700.0))
+    for video in capture.cameras.videos:
+        f = video.frames[0]
+        assert video.width == video.height > 1000
+        assert f.K[0, 2] == f.K[1, 2] == pytest.approx((video.width - 1) / 2)
+        uv, depth = project(xyz.reshape(-1, 3), f.K, f.R, f.t)
+        assert depth.min() > 0 and uv.min() >= 0 and uv.max() <= video.width - 1
+    # A motion that fits keeps the option's 1000 px.
+    small = walking_body(frames=60)
+    compact = simulate_capture(small, 120.0, SimulationOptions(seed=5, camera_distance_mm=9000.0))
+    assert {v.width for v in compact.cameras.videos} == {1000}
+
+
 def test_unconstrained_allows_repeats() -> None:
     rng = np.random.default_rng(0)
     constrained = assign_cameras(5000, 4, False, rng)
