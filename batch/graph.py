@@ -1,11 +1,12 @@
 """The batch's task graph on Dask, and running it: a LocalCluster by default, or a remote scheduler.
 
-`build_graph` makes, per capture, `dask.delayed` tasks (see `batch.tasks`): one probe per video, one register, one
-track per video (with labels), one solve. Their arguments are paths and options and their results `TaskOutcome`s,
-so nothing large passes through the scheduler; the workspace lives on a filesystem every worker sees. `run_batch`
-computes the graph, folds each finished task into `DIR/batch.json` and the progress bar, and reports a failing
-capture without stopping the others. Dask retries a task that raised (`retries`) and reschedules the tasks of a
-lost worker (`distributed.scheduler.allowed-failures`).
+`build_graph` makes, per capture, `dask.delayed` tasks (see `batch.tasks`): one probe per video, the registration
+(one task importing a calibration, or SfM as per-video plan, extract and localize tasks around one map task and one
+register task: `batch.register_tasks`), one track per video (with labels), one solve. Their arguments are paths
+and options and their results `TaskOutcome`s, so nothing large passes through the scheduler; the workspace lives on
+a filesystem every worker sees. `run_batch` computes the graph, folds each finished task into `DIR/batch.json` and
+the progress bar, and reports a failing capture without stopping the others. Dask retries a task that raised
+(`retries`) and reschedules the tasks of a lost worker (`distributed.scheduler.allowed-failures`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from distributed import Client, Future, LocalCluster, wait
 from tqdm import tqdm
 
 from batch.capture import Capture, read_capture
+from batch.register_tasks import extract_task, finish_register_task, localize_task, map_task, plan_task
 from batch.state import BatchState, CaptureStatus
 from batch.tasks import (
     CaptureJob,
@@ -98,7 +100,14 @@ def _capture_graph(job: CaptureJob, token: str) -> CaptureGraph:
 
     videos = job.capture.videos
     probes = {video.stem: task(probe_task, "probe", video.stem, job, video) for video in videos}
-    register = task(register_task, "register", None, job, list(probes.values()))
+    if job.options.calibration is None:  # SfM: per-video plan, extract and localize tasks around one mapping
+        plans = [task(plan_task, "plan", v.stem, job, v, probes[v.stem]) for v in videos]
+        extracts = [task(extract_task, "extract", v.stem, job, v, plans) for v in videos]
+        mapped = task(map_task, "map", None, job, extracts)
+        localized = [task(localize_task, "localize", v.stem, job, v, mapped) for v in videos]
+        register = task(finish_register_task, "register", None, job, [*probes.values(), *localized])
+    else:
+        register = task(register_task, "register", None, job, list(probes.values()))
     tracked = []
     if job.options.labels is not None and job.options.tracks is None:
         tracked = [task(track_video_task, "track", video.stem, job, video, probes[video.stem]) for video in videos]
@@ -241,8 +250,14 @@ def connect(options: BatchOptions) -> Iterator[Client]:
 def local_cluster(workers: int) -> LocalCluster:
     """Worker processes on this machine, one thread each, with the environment the stages run fast in."""
     # Dask's nanny sets MALLOC_TRIM_THRESHOLD_, which turns off glibc's adaptive mmap threshold: every frame buffer
-    # is then mapped and unmapped again, and the tracker slows down several times (docs/scaling.md).
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+    # is then mapped and unmapped again, and the tracker slows down several times (docs/scaling.md). The worker's
+    # statistical profiler walks the running task's stack many times a second in the worker's event loop: CPU taken
+    # beside every one-thread worker's task (docs/scaling.md), for a dashboard page the batch does not show.
+    settings = {
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+        "distributed.worker.profile.enabled": False,
+    }
+    with dask.config.set(settings):
         return LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0", env=WORKER_ENV
         )

@@ -1,7 +1,9 @@
 """The tasks of one capture, as plain functions of small arguments: paths and options in, files written, a small
 `TaskOutcome` returned. Any machine that sees the shared filesystem can run any of them.
 
-    probe (per video) -> register (one task: calibration import or SfM)  -> solve (one task: merge the per-video
+    probe (per video) -> register (one task: calibration import; for SfM, `batch.register_tasks`: per-video plan,
+                      |   extract and localize tasks around one map task, then register)
+                      |                                                   -> solve (one task: merge the per-video
                       -> track (per video, with labels; beside register)  ->  tracks, subject, solve, record, export)
 
 The stages are `dynrecon.pipeline.Stages`, the public stage API of `dynrecon run` (its hashes, skipping and
@@ -38,7 +40,7 @@ BATCH_DIR = "batch"  # WS/batch/: the per-video tasks' files
 PROBE_DIR = "probe"  # WS/batch/probe/<video>.json
 TRACK_DIR = "track"  # WS/batch/track/<video>/labels.csv, tracks.csv, task.json
 TASK_NAME = "task.json"
-STAGES = ("probe", "register", "track", "solve")  # the batch's stages, in order; "solve" runs the pipeline's rest
+STAGES = ("probe", "plan", "extract", "map", "localize", "register", "track", "solve")  # in order; see docs/scaling.md
 
 
 @dataclass(kw_only=True)
@@ -94,7 +96,7 @@ def one_line(error: BaseException) -> str:
     return text if isinstance(error, DynreconError) else f"{type(error).__name__}: {text}"
 
 
-def _guarded(job: CaptureJob, stage: str, video: str | None, body: Callable[[TaskOutcome], None]) -> TaskOutcome:
+def guarded(job: CaptureJob, stage: str, video: str | None, body: Callable[[TaskOutcome], None]) -> TaskOutcome:
     """Run `body` on a fresh outcome; a user error becomes a failed outcome (other errors raise: Dask retries)."""
     outcome = TaskOutcome(capture=job.name, stage=stage, video=video)
     started = time.perf_counter()
@@ -107,7 +109,7 @@ def _guarded(job: CaptureJob, stage: str, video: str | None, body: Callable[[Tas
     return outcome
 
 
-def _first_failure(outcomes: list[TaskOutcome]) -> TaskOutcome | None:
+def first_failure(outcomes: list[TaskOutcome]) -> TaskOutcome | None:
     return next((o for o in outcomes if o.failed), None)
 
 
@@ -139,12 +141,12 @@ def probe_task(job: CaptureJob, video: Path) -> TaskOutcome:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(document, indent=1) + "\n")
 
-    return _guarded(job, "probe", video.stem, body)
+    return guarded(job, "probe", video.stem, body)
 
 
 def register_task(job: CaptureJob, probes: list[TaskOutcome]) -> TaskOutcome:
     """The pipeline's `register` stage (SfM, or the calibration import): one task per capture."""
-    failed = _first_failure(probes)
+    failed = first_failure(probes)
     if failed is not None:
         return failed
 
@@ -152,9 +154,9 @@ def register_task(job: CaptureJob, probes: list[TaskOutcome]) -> TaskOutcome:
         stages = job.stages()
         background_failed = stages.register()
         outcome.registration_error = str(background_failed) if background_failed is not None else None
-        _note_stages(outcome, stages)
+        note_stages(outcome, stages)
 
-    return _guarded(job, "register", None, body)
+    return guarded(job, "register", None, body)
 
 
 def track_video_task(job: CaptureJob, video: Path, probe: TaskOutcome) -> TaskOutcome:
@@ -179,13 +181,13 @@ def track_video_task(job: CaptureJob, video: Path, probe: TaskOutcome) -> TaskOu
         track_run(folder, out, job.options.track, videos={video.stem: video})
         atomic_write_text(folder / TASK_NAME, json.dumps({"inputs": key}, indent=1) + "\n")
 
-    return _guarded(job, "track", video.stem, body)
+    return guarded(job, "track", video.stem, body)
 
 
 def solve_task(job: CaptureJob, register: TaskOutcome, tracked: list[TaskOutcome]) -> TaskOutcome:
     """The rest of the pipeline in one task: `track` (the merge of the per-video files, when there are any),
     `subject`, `solve`, `record`, `export`, each skipped when `pipeline.json` says it is up to date."""
-    failed = _first_failure([register, *tracked])
+    failed = first_failure([register, *tracked])
     if failed is not None:
         return failed
     merge = None
@@ -200,9 +202,9 @@ def solve_task(job: CaptureJob, register: TaskOutcome, tracked: list[TaskOutcome
         stages = job.stages()
         if stages.finish(failed_background, tracker=merge) is None:
             log.info("%s: no labels and no tracks: registration only", stages.ws)
-        _note_stages(outcome, stages)
+        note_stages(outcome, stages)
 
-    return _guarded(job, "solve", None, body)
+    return guarded(job, "solve", None, body)
 
 
 def run_capture(capture: Capture, out: str | Path, options: PipelineOptions | None = None) -> list[TaskOutcome]:
@@ -276,9 +278,9 @@ def _cached(path: Path, stamp: dict[str, Any]) -> bool:
     return isinstance(document, dict) and all(document.get(k) == v for k, v in stamp.items())
 
 
-def _note_stages(outcome: TaskOutcome, stages: Stages) -> None:
+def note_stages(outcome: TaskOutcome, stages: Stages) -> None:
     outcome.pipeline = {s.name: None if s.skipped else round(s.seconds, 3) for s in stages.result.stages}
-    if outcome.pipeline and all(v is None for v in outcome.pipeline.values()):
+    if all(v is None for v in outcome.pipeline.values()):  # none ran (or none applies: registration only)
         outcome.status = "skipped"
 
 
@@ -286,8 +288,11 @@ __all__ = [
     "STAGES",
     "CaptureJob",
     "TaskOutcome",
+    "first_failure",
+    "guarded",
     "job_for",
     "merge_tracks",
+    "note_stages",
     "probe_task",
     "register_task",
     "run_capture",

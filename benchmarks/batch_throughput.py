@@ -1,6 +1,7 @@
-"""`dynrecon batch` throughput: captures per minute with 1 and 2 Dask workers, and the per-video speed-up of tracking.
+"""`dynrecon batch` throughput: captures per minute with 1 and 2 Dask workers, and the per-video speed-up of tracking
+and of SfM registration.
 
-Three tables:
+Four tables:
 
 1. Throughput: a batch of small simulated captures (calibrated static phones, labels tracked per video, the full
    solve) on a LocalCluster of 1 worker and of 2 workers, one thread each. The workers are started and warmed up
@@ -11,7 +12,11 @@ Three tables:
 3. Per-stage seconds of one real capture (the embedded video sample: SfM registration, tracking, solve) through the
    batch, for the season estimate in docs/scaling.md (`--real`; skipped when the sample is absent).
 
-    python benchmarks/batch_throughput.py [--captures 6] [--repeats 3] [--real]
+4. Per-video SfM registration inside one capture (`--register`): the synthetic room's 3 moving cameras registered
+   as the pipeline's serial `register` stage (one process) and as the batch's per-video tasks (plan, extract,
+   localize per video; map and the finish per capture) on 1 and 2 workers; COLMAP on one thread everywhere.
+
+    python benchmarks/batch_throughput.py [--captures 6] [--repeats 3] [--real] [--register] [--skip-throughput]
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import statistics
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -38,7 +43,10 @@ from distributed import Client, LocalCluster  # noqa: E402
 
 from batch.capture import read_capture  # noqa: E402
 from batch.graph import BatchOptions, build_graph, local_cluster, run_batch  # noqa: E402
+from batch.state import CaptureStatus  # noqa: E402
 from batch.synthetic import Inputs, SimulatedCaptureOptions, simulated_capture  # noqa: E402
+from dynrecon.pipeline import PipelineOptions, Stages, default_register  # noqa: E402
+from sfm.synthetic.demo import render_demo, three_cameras  # noqa: E402
 from tracking.options import TrackOptions  # noqa: E402
 from tracking.stage import run as track_run  # noqa: E402
 
@@ -138,6 +146,50 @@ def per_video(folder: Path, work: Path, repeats: int) -> dict[str, list[Run]]:
     return runs
 
 
+def _own_cpu_seconds() -> float:
+    times = psutil.Process().cpu_times()
+    return float(times.user + times.system + times.children_user + times.children_system)
+
+
+def per_video_register(folder: Path, work: Path, repeats: int, frames: tuple[int, ...]) -> dict[str, list[Run]]:
+    """One capture's SfM registration: the serial stage in this process, and the per-video tasks on 1 and 2
+    workers (the probes first: the timed part is registration alone)."""
+    capture = read_capture(folder)
+    register = replace(default_register(), long_side=480, max_frames=max(frames) // 2, max_features=1500)
+    options = PipelineOptions(register=replace(register, num_threads=1))
+    runs: dict[str, list[Run]] = {"serial": [], "1": [], "2": []}
+    clusters = {n: _cluster(n) for n in (1, 2)}
+    try:
+        for repeat in range(repeats):
+            cpu, started = _own_cpu_seconds(), time.perf_counter()
+            Stages(capture.videos, work / f"reg-serial-{repeat}", options).register()
+            runs["serial"].append(Run(wall=time.perf_counter() - started, cpu=_own_cpu_seconds() - cpu, busy=1.0))
+            for workers in (1, 2):
+                client = clusters[workers][1]
+                graph = build_graph([capture], work / f"reg-tasks-{workers}-{repeat}", BatchOptions(pipeline=options))[
+                    0
+                ]
+                probes = [d for k, d in graph.tasks.items() if k.startswith("dynrecon-probe-")]
+                client.compute(probes, sync=True)
+                final = next(d for k, d in graph.tasks.items() if k.startswith("dynrecon-register-"))
+                cpu, started = _workers_cpu(client), time.perf_counter()
+                outcome = client.compute(final, sync=True)
+                wall = time.perf_counter() - started
+                assert outcome.status == "done", outcome
+                runs[str(workers)].append(Run(wall=wall, cpu=_workers_cpu(client) - cpu, busy=1.0))
+            print(
+                f"  run {repeat + 1}: "
+                + ", ".join(f"{k} {v[-1].wall:.1f} s ({v[-1].cpu:.1f} CPU s)" for k, v in runs.items())
+                + f", load {os.getloadavg()[0]:.1f}",
+                flush=True,
+            )
+    finally:
+        for cluster, client in clusters.values():
+            client.close()
+            cluster.close()
+    return runs
+
+
 def real_capture(work: Path) -> dict[str, object] | None:
     """The video sample through the batch on one worker: its per-stage seconds from batch.json."""
     if not (SAMPLE / "cam0.mp4").is_file():
@@ -161,71 +213,104 @@ def main() -> None:
     parser.add_argument("--captures", type=int, default=6)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--real", action="store_true", help="also the per-stage seconds of the video sample")
+    parser.add_argument("--register", action="store_true", help="also the per-video speed-up of SfM registration")
+    parser.add_argument("--skip-throughput", action="store_true", help="leave out tables 1 and 2")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     logging.getLogger("distributed").setLevel(logging.ERROR)
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the start")
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        folders = [
-            simulated_capture(
-                work / f"capture{i}", SimulatedCaptureOptions(seed=i, inputs=Inputs.LABELS, points=6, seconds=1.5)
-            )
-            for i in range(args.captures)
-        ]
-        print(f"\n1. throughput: {args.captures} captures (3 phones, 6 points, 1.5 s, labels tracked per video)")
-        runs = throughput(folders, work, args.repeats)
-        one = statistics.median(r.wall for r in runs[1])
-        print(
-            "\n| workers | batch wall, s (median) | captures / min | speed-up | CPU s per capture | cores obtained "
-            "| workers busy |"
-        )
-        print("|---|---|---|---|---|---|---|")
-        for workers in (1, 2):
-            wall = statistics.median(r.wall for r in runs[workers])
-            cpu = statistics.median(r.cpu for r in runs[workers]) / args.captures
-            cores = statistics.median(r.cpu / r.wall for r in runs[workers])
-            busy = statistics.median(r.busy for r in runs[workers])
-            print(
-                f"| {workers} | {wall:.1f} | {60 * args.captures / wall:.1f} | {one / wall:.2f}x | {cpu:.1f} | "
-                f"{cores:.2f} | {100 * busy:.0f} % |"
-            )
-
-        long_capture = simulated_capture(
-            work / "long",
-            SimulatedCaptureOptions(
-                seed=7, inputs=Inputs.LABELS, points=12, seconds=8.0, fps=(30.0, 30.0, 30.0, 30.0), image_size=640
-            ),
-        )
-        print("\n2. per-video tracking: one capture, 4 phones x 240 frames at 640 px, 12 points, labels every 4th")
-        video_runs = per_video(long_capture, work, args.repeats)
-        serial = statistics.median(r.wall for r in video_runs["serial"])
-        print("\n| tracking | wall, s (median) | speed-up vs serial | CPU s | cores obtained |")
-        print("|---|---|---|---|---|")
-        for name, label in (
-            ("serial", "pipeline's serial stage (one process)"),
-            ("1", "per-video tasks, 1 worker"),
-            ("2", "per-video tasks, 2 workers"),
-        ):
-            wall = statistics.median(r.wall for r in video_runs[name])
-            cpu = statistics.median(r.cpu for r in video_runs[name])
-            cores = statistics.median(r.cpu / r.wall for r in video_runs[name])
-            print(f"| {label} | {wall:.2f} | {serial / wall:.2f}x | {cpu:.1f} | {cores:.2f} |")
-
+        if not args.skip_throughput:
+            throughput_tables(work, args.captures, args.repeats)
+        if args.register:
+            register_table(work, args.repeats)
         if args.real:
-            real = real_capture(work)
-            if real is None:
-                print("\n3. real capture: data_samples/video_sample is not generated; skipped")
-            else:
-                status = real["status"]
-                print(f"\n3. the video sample through the batch, 1 worker: {real['wall']:.1f} s wall, {status.status}")
-                print("\n| stage | seconds |")
-                print("|---|---|")
-                for stage, value in status.seconds.items():  # type: ignore[attr-defined]
-                    print(f"| batch {stage} | {value:.1f} |")
-                for stage, value in status.pipeline.items():  # type: ignore[attr-defined]
-                    print(f"| pipeline {stage} | {'skipped' if value is None else f'{value:.1f}'} |")
+            real_table(work)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")
+
+
+def register_table(work: Path, repeats: int) -> None:
+    frames = (24, 20, 16)
+    folder = work / "room"
+    render_demo(folder, three_cameras(480, 360, frames=frames))
+    print(f"\n4. per-video SfM registration: the synthetic room, 3 moving cameras x {frames} frames at 480 x 360")
+    runs = per_video_register(folder, work, repeats, frames)
+    serial = statistics.median(r.wall for r in runs["serial"])
+    print("\n| registration | wall, s (median) | speed-up vs serial | CPU s | cores obtained |")
+    print("|---|---|---|---|---|")
+    for name, label in (
+        ("serial", "pipeline's serial stage (one process)"),
+        ("1", "per-video tasks, 1 worker"),
+        ("2", "per-video tasks, 2 workers"),
+    ):
+        wall = statistics.median(r.wall for r in runs[name])
+        cpu = statistics.median(r.cpu for r in runs[name])
+        cores = statistics.median(r.cpu / r.wall for r in runs[name])
+        print(f"| {label} | {wall:.2f} | {serial / wall:.2f}x | {cpu:.1f} | {cores:.2f} |")
+
+
+def throughput_tables(work: Path, captures: int, repeats: int) -> None:
+    folders = [
+        simulated_capture(
+            work / f"capture{i}", SimulatedCaptureOptions(seed=i, inputs=Inputs.LABELS, points=6, seconds=1.5)
+        )
+        for i in range(captures)
+    ]
+    print(f"\n1. throughput: {captures} captures (3 phones, 6 points, 1.5 s, labels tracked per video)")
+    runs = throughput(folders, work, repeats)
+    one = statistics.median(r.wall for r in runs[1])
+    print(
+        "\n| workers | batch wall, s (median) | captures / min | speed-up | CPU s per capture | cores obtained "
+        "| workers busy |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for workers in (1, 2):
+        wall = statistics.median(r.wall for r in runs[workers])
+        cpu = statistics.median(r.cpu for r in runs[workers]) / captures
+        cores = statistics.median(r.cpu / r.wall for r in runs[workers])
+        busy = statistics.median(r.busy for r in runs[workers])
+        print(
+            f"| {workers} | {wall:.1f} | {60 * captures / wall:.1f} | {one / wall:.2f}x | {cpu:.1f} | "
+            f"{cores:.2f} | {100 * busy:.0f} % |"
+        )
+
+    long_capture = simulated_capture(
+        work / "long",
+        SimulatedCaptureOptions(
+            seed=7, inputs=Inputs.LABELS, points=12, seconds=8.0, fps=(30.0, 30.0, 30.0, 30.0), image_size=640
+        ),
+    )
+    print("\n2. per-video tracking: one capture, 4 phones x 240 frames at 640 px, 12 points, labels every 4th")
+    video_runs = per_video(long_capture, work, repeats)
+    serial = statistics.median(r.wall for r in video_runs["serial"])
+    print("\n| tracking | wall, s (median) | speed-up vs serial | CPU s | cores obtained |")
+    print("|---|---|---|---|---|")
+    for name, label in (
+        ("serial", "pipeline's serial stage (one process)"),
+        ("1", "per-video tasks, 1 worker"),
+        ("2", "per-video tasks, 2 workers"),
+    ):
+        wall = statistics.median(r.wall for r in video_runs[name])
+        cpu = statistics.median(r.cpu for r in video_runs[name])
+        cores = statistics.median(r.cpu / r.wall for r in video_runs[name])
+        print(f"| {label} | {wall:.2f} | {serial / wall:.2f}x | {cpu:.1f} | {cores:.2f} |")
+
+
+def real_table(work: Path) -> None:
+    real = real_capture(work)
+    if real is None:
+        print("\n3. real capture: data_samples/video_sample is not generated; skipped")
+    else:
+        status = real["status"]
+        assert isinstance(status, CaptureStatus)
+        print(f"\n3. the video sample through the batch, 1 worker: {real['wall']:.1f} s wall, {status.status}")
+        print("\n| stage | seconds |")
+        print("|---|---|")
+        for stage, value in status.seconds.items():
+            print(f"| batch {stage} | {value:.1f} |")
+        for stage, seconds in status.pipeline.items():
+            print(f"| pipeline {stage} | {'skipped' if seconds is None else f'{seconds:.1f}'} |")
 
 
 if __name__ == "__main__":

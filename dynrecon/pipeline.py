@@ -341,6 +341,7 @@ class Registration:
 
 
 Tracker = Callable[[Path], object]  # writes the 2D tracks of the labels into the given tracks.csv
+Registrar = Callable[[list[Path], Path, RegisterOptions], object]  # registers the videos into the given folder
 
 
 class Stages:
@@ -398,41 +399,51 @@ class Stages:
         log.info("[%d/%d] %s: done in %.1f s", number, len(STAGES), name, seconds)
         self.result.stages.append(StageRun(name=name, skipped=False, seconds=seconds))
 
-    def register(self) -> RegistrationError | None:
+    def register(self, registrar: Registrar | None = None) -> RegistrationError | None:
         """The `register` stage into WS/register/: SfM, or the import of `options.calibration`. An SfM failure is
-        returned, not raised, when tracks will come to pose the static videos from the subject (`subject`)."""
+        returned, not raised, when tracks will come to pose the static videos from the subject (`subject`).
+        `registrar(videos, folder, options)` replaces SfM (the batch finishes its per-video tasks' registration);
+        the stage's hash is the same."""
         options = self.options
         folder = self.ws / REGISTER_DIR
-        registration = Registration.in_folder(folder)
-        outputs = [registration.cameras, registration.background]
-        names = [p.stem for p in self.videos]
+        files, settings, outputs = self._register_inputs()
         calibration = options.calibration
         if calibration is not None:
             imported = options.calibration_options
-            settings = {"calibration": calibration.name, "import": imported, "videos": names}
             self.run(
                 "register",
-                {**self.video_files, "calibration": calibration},
+                files,
                 settings,
                 outputs,
                 lambda: import_registration(calibration, self.videos, folder, imported),
             )
             return None
         register_options = options.background_register()
+        sfm = registrar or _register
         try:
-            self.run(
-                "register",
-                self.video_files,
-                {"register": register_options, "videos": names},
-                outputs,
-                lambda: _register(self.videos, folder, register_options),
-            )
+            self.run("register", files, settings, outputs, lambda: sfm(self.videos, folder, register_options))
         except RegistrationError as error:
             if options.tracks is None and self.labels is None and not (self.ws / "tracks.csv").is_file():
                 raise
             log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
             return error
         return None
+
+    def register_up_to_date(self) -> bool:
+        """Whether `register()` would skip its stage (the batch's per-video registration tasks skip then too)."""
+        files, settings, _ = self._register_inputs()
+        return not self.options.force and self.state.up_to_date("register", inputs_key(files, settings), self.ws)
+
+    def _register_inputs(self) -> tuple[dict[str, Path], dict[str, Any], list[Path]]:
+        """The `register` stage's input files, settings and outputs (its hash in pipeline.json)."""
+        options = self.options
+        registration = Registration.in_folder(self.ws / REGISTER_DIR)
+        outputs = [registration.cameras, registration.background]
+        names = [p.stem for p in self.videos]
+        if options.calibration is not None:
+            settings = {"calibration": options.calibration.name, "import": options.calibration_options, "videos": names}
+            return {**self.video_files, "calibration": options.calibration}, settings, outputs
+        return self.video_files, {"register": options.background_register(), "videos": names}, outputs
 
     def track(self, tracker: Tracker | None = None) -> Path | None:
         """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither.

@@ -63,6 +63,11 @@ def extract(
         return {image.name: db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()}
 
 
+def extract_each(calls: list[dict[str, Any]]) -> list[dict[str, int]]:
+    """`extract(**call)` for each call (one database per video) in one process; their keypoint counts."""
+    return [extract(**call) for call in calls]
+
+
 def match(database: str, pairs: list[tuple[str, str]], max_ratio: float, num_threads: int) -> dict[str, int]:
     """Match and verify the given image pairs; returns counts of verified pairs and inlier matches."""
     options = pycolmap.FeatureMatchingOptions()

@@ -41,39 +41,71 @@ def localize_all(
     num_threads: int,
     inbetween: InBetween = InBetween.TRACK,
 ) -> dict[str, dict[int, FramePose]]:
-    """video name -> frame -> FramePose for every wanted frame."""
-    results: dict[str, dict[int, FramePose]] = {}
-    sift_todo: dict[str, dict[int, str]] = {}  # video -> frame -> why tracking did not pose it ("" when off)
-    for video in videos:
-        name = video.info.name
-        if video.static:
-            results[name] = _static_video(video, rec)
-            continue
-        registered = _registered(video, rec)
-        if not registered:
-            results[name] = {int(f): FramePose(pose=None, reason="video not in the kept model") for f in video.wanted}
-            continue
-        results[name] = _model_poses(video, rec, registered)
-        todo = {int(f): "" for f in video.wanted if int(f) not in registered}
-        if inbetween is InBetween.TRACK and todo:
-            posed, todo = _track(video, rec, registered, sorted(todo), mask_dir, min_inliers)
-            results[name].update(posed)
-        sift_todo[name] = todo
-    if any(sift_todo.values()):
-        _sift(
-            videos,
-            sift_todo,
+    """video name -> frame -> FramePose for every wanted frame: `localize_video` for each video, its frames to
+    localize by SIFT in `sfm_dir/localize_<video>.db`."""
+    return {
+        video.info.name: localize_video(
+            video,
             rec,
-            results,
             database,
             frames_dir,
-            sfm_dir,
+            sfm_dir / f"localize_{video.info.name}.db",
             mask_dir,
             colmap_log,
             max_features=max_features,
             max_ratio=max_ratio,
             min_inliers=min_inliers,
             num_threads=num_threads,
+            inbetween=inbetween,
+        )
+        for video in videos
+    }
+
+
+def localize_video(
+    video: VideoPlan,
+    rec: pycolmap.Reconstruction,
+    database: Path,
+    frames_dir: Path,
+    query_db: Path,
+    mask_dir: Path | None,
+    colmap_log: Path,
+    *,
+    max_features: int,
+    max_ratio: float,
+    min_inliers: int,
+    num_threads: int,
+    inbetween: InBetween = InBetween.TRACK,
+) -> dict[int, FramePose]:
+    """frame -> FramePose for every wanted frame of one video: the model's pose, tracking from the keyframes, or
+    SIFT-PnP against the model (features of the frames SfM did not see go into `query_db`, made anew)."""
+    if video.static:
+        return _static_video(video, rec)
+    registered = _registered(video, rec)
+    if not registered:
+        return {int(f): FramePose(pose=None, reason="video not in the kept model") for f in video.wanted}
+    results = _model_poses(video, rec, registered)
+    todo = {int(f): "" for f in video.wanted if int(f) not in registered}
+    if inbetween is InBetween.TRACK and todo:
+        posed, todo = _track(video, rec, registered, sorted(todo), mask_dir, min_inliers)
+        results.update(posed)
+    query_db.unlink(missing_ok=True)  # an earlier run's features of other frames
+    if todo:
+        results.update(
+            _sift(
+                video,
+                todo,
+                rec,
+                database,
+                frames_dir,
+                query_db,
+                mask_dir,
+                colmap_log,
+                max_features=max_features,
+                max_ratio=max_ratio,
+                min_inliers=min_inliers,
+                num_threads=num_threads,
+            )
         )
     return results
 
@@ -159,13 +191,12 @@ def _track(
 
 
 def _sift(
-    videos: list[VideoPlan],
-    todo: dict[str, dict[int, str]],
+    video: VideoPlan,
+    todo: dict[int, str],
     rec: pycolmap.Reconstruction,
-    results: dict[str, dict[int, FramePose]],
     database: Path,
     frames_dir: Path,
-    sfm_dir: Path,
+    query_db: Path,
     mask_dir: Path | None,
     colmap_log: Path,
     *,
@@ -173,29 +204,22 @@ def _sift(
     max_ratio: float,
     min_inliers: int,
     num_threads: int,
-) -> None:
-    """SIFT-PnP of the `todo` frames (video -> frame -> why tracking did not pose it) into `results`."""
-    # Frames not sent to SfM need features: decode them and extract into a second database.
-    extra_names = {}
-    for video in videos:
-        frames = np.setdiff1d(np.array(sorted(todo.get(video.info.name, {})), dtype=np.int64), video.sfm_frames)
-        if len(frames):
-            extra_names[video.info.name] = write_frames(
-                video.info, frames, frames_dir, video.resize, desc="decoding frames to localize"
-            )
-    query_db = sfm_dir / "localize.db"
-    if extra_names:
-        videos_args = [
-            {"name": k, "images": v, "camera_model": "SIMPLE_PINHOLE", "camera_params": ""}
-            for k, v in extra_names.items()
-        ]
+) -> dict[int, FramePose]:
+    """SIFT-PnP of the `todo` frames (frame -> why tracking did not pose it) of one video."""
+    # Frames not sent to SfM need features: decode them and extract into a database of their own.
+    frames = np.setdiff1d(np.array(sorted(todo), dtype=np.int64), video.sfm_frames)
+    extra: list[str] = []
+    if len(frames):
+        extra = write_frames(video.info, frames, frames_dir, video.resize, desc="decoding frames to localize")
         run_isolated(
             "feature extraction (frames to localize)",
             colmap_steps.extract,
             {
                 "database": str(query_db),
                 "image_dir": str(frames_dir),
-                "videos": videos_args,
+                "videos": [
+                    {"name": video.info.name, "images": extra, "camera_model": "SIMPLE_PINHOLE", "camera_params": ""}
+                ],
                 "mask_dir": str(mask_dir) if mask_dir else None,
                 "max_features": max_features,
                 "num_threads": num_threads,
@@ -203,13 +227,9 @@ def _sift(
             colmap_log,
         )
     with pycolmap.Database.open(str(database)) as db:
-        query = pycolmap.Database.open(str(query_db)) if extra_names else None
+        query = pycolmap.Database.open(str(query_db)) if extra else None
         try:
-            for video in tqdm(videos, desc="localizing by SIFT", unit="video", leave=False):
-                if todo.get(video.info.name):
-                    results[video.info.name].update(
-                        _localize_video(video, todo[video.info.name], rec, db, query, max_ratio, min_inliers)
-                    )
+            return _localize_video(video, todo, rec, db, query, max_ratio, min_inliers)
         finally:
             if query is not None:
                 query.close()

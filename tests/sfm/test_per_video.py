@@ -1,0 +1,143 @@
+"""`register`'s per-video steps (`sfm.per_video`) as separate processes that share only files: the same cameras as
+the serial stage, and the file forms that carry a video's plan and poses from one process to the next."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sfm.frames import Resize
+from sfm.keyframes import KeyframeChoice, KeyframeReason, even_choice
+from sfm.layout import Layout
+from sfm.options import RegisterOptions
+from sfm.per_video import capture_facts, extract_videos, localize_video, prepare_video
+from sfm.plan import FramePose, VideoPlan
+from sfm.plan_io import PreparedVideo, StepNotes, read_poses, read_prepared, write_poses, write_prepared
+from sfm.stage import capture_tracks, finish_capture, map_capture, run
+from sfm.static import MotionTest
+from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
+from sfm.video import ProbedVideo, probe_video
+from tracking.tracks import write_tracks
+
+
+def _plan(tmp_path: Path) -> VideoPlan:
+    info = ProbedVideo(
+        path=tmp_path / "cam0.mp4",
+        name="cam0",
+        width=640,
+        height=480,
+        times=np.arange(7) / 29.97 + 1e-9,
+        nominal_fps=29.97,
+        rotation=90,
+        expected_frames=8,
+        missing="1 frame missing",
+    )
+    motion = MotionTest(static=False, reason="moved", frames=[0, 3], shifts=[0.1, 7.25], tracked=[1.0, 0.5], corners=9)
+    choice = KeyframeChoice(
+        method="content",
+        frames=np.array([0, 4, 6]),
+        reasons=[KeyframeReason.FIRST, KeyframeReason.MOTION, KeyframeReason.LAST],
+        candidates=3,
+        settings={"motion": 0.05, "survival": 0.5},
+    )
+    return VideoPlan(
+        info=info,
+        resize=Resize.for_video(info, 333),
+        sfm_frames=choice.frames,
+        wanted=np.arange(7),
+        motion=motion,
+        keyframes=choice,
+    )
+
+
+def test_a_plan_file_reads_back_as_the_plan(tmp_path: Path) -> None:
+    plan = _plan(tmp_path)
+    notes = StepNotes(warnings=["a warning"], timings={"decode": 0.25}, reused=["keyframes cam0"])
+    path = write_prepared(tmp_path / "plan.json", PreparedVideo(plan=plan, images=["cam0/a.jpg"], masks=2, notes=notes))
+    back = read_prepared(path)
+    assert back.images == ["cam0/a.jpg"] and back.masks == 2 and back.notes == notes
+    assert back.plan.info.times.tolist() == plan.info.times.tolist()  # bit for bit: the times go into cameras.json
+    assert {k: v for k, v in vars(back.plan.info).items() if k != "times"} == {
+        k: v for k, v in vars(plan.info).items() if k != "times"
+    }
+    assert back.plan.resize == plan.resize and back.plan.motion == plan.motion
+    assert back.plan.sfm_frames.tolist() == [0, 4, 6] and back.plan.wanted.tolist() == list(range(7))
+    assert back.plan.keyframes is not None and plan.keyframes is not None
+    assert back.plan.keyframes.to_json() == plan.keyframes.to_json()
+    assert back.plan.keyframes.reasons == plan.keyframes.reasons
+
+    even = VideoPlan(info=plan.info, resize=plan.resize, sfm_frames=np.array([0, 3]), wanted=np.arange(7))
+    even.keyframes = even_choice(even.sfm_frames)
+    back = read_prepared(write_prepared(tmp_path / "even.json", PreparedVideo(plan=even, images=[], masks=0)))
+    assert back.plan.keyframes is not None and back.plan.keyframes.to_json() == even.keyframes.to_json()
+    assert back.plan.motion is None and not back.plan.static
+
+
+def test_a_poses_file_reads_back_bit_for_bit(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    poses = {}
+    for frame in range(50):
+        quat = rng.normal(size=4)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(quat / np.linalg.norm(quat)), rng.normal(size=3))
+        K = np.array([[rng.uniform(300, 900), 0, 320.5], [0, rng.uniform(300, 900), 240.25], [0, 0, 1]])
+        poses[frame] = FramePose(
+            pose=pose, source="tracked", error=float(rng.uniform()), intrinsics=(K, rng.normal(size=4)), inliers=31
+        )
+    poses[50] = FramePose(pose=None, reason="tracking lost the features; SIFT: no features")
+    back, notes = read_poses(write_poses(tmp_path / "poses.json", "cam0", poses, StepNotes(warnings=["w"])))
+    assert notes.warnings == ["w"] and sorted(back) == sorted(poses)
+    for frame, pose in poses.items():
+        got = back[frame]
+        assert (got.reason, got.source, got.error, got.inliers) == (pose.reason, pose.source, pose.error, pose.inliers)
+        if pose.pose is None:
+            assert got.pose is None and got.intrinsics is None
+            continue
+        assert got.pose is not None and got.intrinsics is not None and pose.intrinsics is not None
+        assert np.array_equal(got.pose.rotation.matrix(), pose.pose.rotation.matrix())
+        assert np.array_equal(got.pose.translation, pose.pose.translation)
+        assert np.array_equal(got.intrinsics[0], pose.intrinsics[0])
+        assert np.array_equal(got.intrinsics[1], pose.intrinsics[1])
+
+
+def _prepare(video: Path, out: Path, options: RegisterOptions) -> str:
+    prepare_video(probe_video(video), out, options, capture_tracks(options, out))
+    return video.stem
+
+
+def _extract(video: str, names: list[str], out: Path, options: RegisterOptions) -> None:
+    extract_videos(out, [video], options, capture_facts(out, names))
+
+
+@pytest.mark.slow
+def test_per_video_steps_in_separate_processes_give_the_serial_cameras(tmp_path: Path) -> None:
+    """The synthetic room (3 moving cameras, the subject masked by its tracks), COLMAP on one thread: the serial
+    stage and the per-video steps in worker processes (videos in reverse order, two at a time) write the same
+    cameras.json, byte for byte."""
+    videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))
+    paths = [v.path for v in videos]
+    options = RegisterOptions(long_side=480, max_frames=6, max_features=1500, mask_radius=70, num_threads=1)
+    serial, split = tmp_path / "serial", tmp_path / "split"
+    for ws in (serial, split):
+        write_tracks(ws / "tracks.csv", sphere_tracks(videos))
+    run(paths, serial, options)
+
+    names = [p.stem for p in paths]
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        list(pool.map(_prepare, reversed(paths), [split] * 3, [options] * 3))
+        list(pool.map(_extract, reversed(names), [names] * 3, [split] * 3, [options] * 3))
+        map_capture(split, names, options)
+        list(pool.map(localize_video, [split] * 3, reversed(names), [options] * 3))
+    finish_capture(split, names, options, capture_tracks(options, split))
+
+    assert (split / "cameras.json").read_bytes() == (serial / "cameras.json").read_bytes()
+    assert (split / "background.ply").read_bytes() == (serial / "background.ply").read_bytes()
+    layout = Layout(split)
+    assert all(layout.features(name).exists() and layout.poses(name).exists() for name in names)
+    report = json.loads((split / "register_report.json").read_text())
+    assert report["ok"] and set(report["timings_s"]) >= {"decode", "extract", "match", "map", "localize"}
