@@ -2,13 +2,14 @@
 subsets against triangulation from the lab calibration on synchronized frames.
 
     python benchmarks/pose2sim_check.py [--work /tmp/pose2sim_check] [--labels tests/data/pose2sim/labels.csv]
-        [--cameras lab|subject-intrinsics|subject]
+        [--cameras lab|subject-intrinsics|subject] [--markers]
 
 Steps (all in mm, world frame of the QCA calibration):
 1. cameras: `import-calibration` of the lab's QCA file (`--scale 1000`: mm), every frame of every video posed;
    with `--cameras subject[-intrinsics]` the solve gets instead the cameras that `register --subject always` finds
    from the committed OpenPose detections (tests/data/pose2sim/openpose_tracks.csv), moved onto the lab's frame
    and mm by one similarity (their own units are arbitrary), while the reference below keeps the lab's;
+   `--markers` gives `register` the labels' tracks (step 2) next to the OpenPose detections;
 2. tracks: `dynrecon track` of the committed labels through every frame of each video (LK);
 3. desynchronization as in the seed paper: camera k keeps frames k, k+4, k+8, ... (no two cameras share an
    instant); the solver gets only those posed frames and the tracks on them (original frame numbers and times);
@@ -16,6 +17,12 @@ Steps (all in mm, world frame of the QCA calibration):
    that sees the point at frame f (>= 2 cameras), with the lab calibration (synchronized frames); its
    reprojection error says how good it is;
 5. distance between the sync-free point of (camera k, frame f) and the reference at frame f.
+
+With cameras from the subject path two more numbers say where the error comes from: the same distances after one
+similarity fitted on the compared points instead of on the cameras (the subject path's frame and scale are
+arbitrary; centre errors of a few cm move every point through the camera similarity), and the cameras alone: the
+synchronized triangulation of the same tracks with the solve's cameras against the reference, the floor any
+solve on those cameras reaches.
 
 The videos are only roughly synchronized: the script also searches integer frame offsets per camera that minimize
 the reference's reprojection error, and reports the comparison against that offset-corrected reference.
@@ -93,6 +100,12 @@ class CheckResult:
     ref_error_px: dict[str, np.ndarray] = field(default_factory=dict)  # point -> per-observation reproj. error
     ref_error_offset_px: dict[str, np.ndarray] = field(default_factory=dict)
     offsets: dict[str, int] = field(default_factory=dict)  # video -> frame offset (frame f of cam01 = f + o)
+    # After one similarity fitted on the compared points (the subject path's gauge is arbitrary).
+    distance_similarity: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # Cameras alone: synchronized triangulation with the solve's cameras vs the reference, raw and after a
+    # similarity fitted on the points (empty with the lab's cameras: identical to the reference).
+    floor: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    floor_similarity: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -130,6 +143,25 @@ def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray,
 
     X = least_squares(residual, X, method="lm").x
     return X, np.linalg.norm(residual(X).reshape(-1, 2), axis=1)
+
+
+def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (Umeyama) taking source (N, 3) onto target (N, 3): target ~ s R source + t."""
+    ms, mt = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - ms, target - mt
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max(float((a**2).sum()), 1e-12))
+    return s, R, mt - s * R @ ms
+
+
+def similarity_distances(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(N,) distances between target and source after the similarity fitted on them (N >= 3)."""
+    if len(source) < 3:
+        return np.full(len(source), np.nan)
+    s, R, t = similarity(source, target)
+    return np.linalg.norm(source @ (s * R).T + t - target, axis=1)
 
 
 def _observations(tracks: Tracks) -> dict[tuple[str, int, str], np.ndarray]:
@@ -203,9 +235,7 @@ def desynchronize(
     for k, video in enumerate(cameras.videos):
         frames = [f for f in video.frames if f.frame % stride == k % stride and window[0] <= f.frame <= window[1]]
         keep[video.name] = {f.frame for f in frames}
-        out.videos.append(
-            type(video)(name=video.name, width=video.width, height=video.height, fps=video.fps, frames=frames)
-        )
+        out.videos.append(dataclasses.replace(video, frames=frames))  # keeps the registered clock_offset
     rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep[v]]
     kept = Tracks(
         video=[tracks.video[i] for i in rows],
@@ -221,23 +251,30 @@ def desynchronize(
 
 
 def shift_clocks(cameras: CameraSet, shifts: tuple[float, ...] = CLOCK_SHIFTS) -> CameraSet:
-    """A copy with video k's frame times + shifts[k] (frames without a time keep none)."""
+    """A copy with video k's frame times + shifts[k] (frames without a time keep none); a registered clock offset
+    (global = own + offset) moves by -shifts[k] so that it still names the same instants."""
     out = CameraSet()
     for k, video in enumerate(cameras.videos):
         shift = shifts[k % len(shifts)]
         frames = [dataclasses.replace(f, time=None if f.time is None else f.time + shift) for f in video.frames]
-        out.videos.append(dataclasses.replace(video, frames=frames))
+        offset = None if video.clock_offset is None else video.clock_offset - shift
+        out.videos.append(dataclasses.replace(video, frames=frames, clock_offset=offset))
     return out
 
 
-def subject_cameras(demo: Path, videos: list[Path], work: Path, lab: CameraSet, *, intrinsics: bool) -> CameraSet:
+def subject_cameras(
+    demo: Path, videos: list[Path], work: Path, lab: CameraSet, *, intrinsics: bool, markers: Path | None = None
+) -> CameraSet:
     """`dynrecon register --subject always` from the committed OpenPose detections (no calibration object, no
     sync), then one similarity onto the lab's cameras: the subject path's units and frame are arbitrary, and the
     reference below is in the lab's mm frame. The similarity fixes only that gauge; every relative pose, focal and
-    distortion stays as the subject path found it."""
+    distortion stays as the subject path found it. `markers`: a tracks.csv whose rows join the detections."""
     ws = work / "subject"
     ws.mkdir(parents=True, exist_ok=True)
-    (ws / "tracks.csv").write_bytes(OPENPOSE.read_bytes())
+    if markers is None:
+        (ws / "tracks.csv").write_bytes(OPENPOSE.read_bytes())
+    else:
+        write_tracks(ws / "tracks.csv", union_tracks(read_tracks(OPENPOSE), read_tracks(markers)))
     extra = ["--intrinsics", str(demo / "calibration" / "Calib.qca.txt")] if intrinsics else []
     code = dynrecon_main(["register", *(str(v) for v in videos), "--out", str(ws), "--subject", "always", *extra])
     if code != 0:
@@ -257,6 +294,18 @@ def subject_cameras(demo: Path, videos: list[Path], work: Path, lab: CameraSet, 
     return out
 
 
+def union_tracks(a: Tracks, b: Tracks) -> Tracks:
+    """The rows of both (distinct point names), extra columns kept where present (empty elsewhere)."""
+    names = list(dict.fromkeys([*a.extra, *b.extra]))
+    return Tracks(
+        video=[*a.video, *b.video],
+        frame=np.concatenate([a.frame, b.frame]),
+        point=[*a.point, *b.point],
+        xy=np.concatenate([a.xy, b.xy]),
+        extra={k: [*a.extra.get(k, [""] * len(a)), *b.extra.get(k, [""] * len(b))] for k in names},
+    )
+
+
 def run_check(
     shared: Path,
     work: Path,
@@ -265,6 +314,7 @@ def run_check(
     search: bool = True,
     clock_shifts: bool = False,
     cameras_from: str = "lab",
+    markers: bool = False,
 ) -> CheckResult:
     demo = shared / DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
@@ -278,17 +328,24 @@ def run_check(
         import_calibration.ImportCalibrationOptions(scale=1000.0),
     )
     seconds["import"] = time.perf_counter() - started
-    if cameras_from != "lab":
-        lab = read_cameras(work / "cameras.json")
-        started = time.perf_counter()
-        found = subject_cameras(demo, list(videos), work, lab, intrinsics=cameras_from == "subject-intrinsics")
-        seconds["register"] = time.perf_counter() - started
-        write_cameras(work / "solve_cameras.json", found)
 
     started = time.perf_counter()
     (work / "labels.csv").write_bytes(labels.read_bytes())
     track_stage.run(work, work / "tracks.csv", videos={v.stem: v for v in videos})
     seconds["track"] = time.perf_counter() - started
+    if cameras_from != "lab":
+        lab = read_cameras(work / "cameras.json")
+        started = time.perf_counter()
+        found = subject_cameras(
+            demo,
+            list(videos),
+            work,
+            lab,
+            intrinsics=cameras_from == "subject-intrinsics",
+            markers=work / "tracks.csv" if markers else None,
+        )
+        seconds["register"] = time.perf_counter() - started
+        write_cameras(work / "solve_cameras.json", found)
 
     cameras = read_cameras(work / "cameras.json")  # the lab's: the reference triangulates with them
     tracks = read_tracks(work / "tracks.csv")
@@ -314,6 +371,13 @@ def run_check(
     ref, ref_err = reference(cameras, obs, points, {})
     offsets = search_offsets(cameras, obs, points) if search else {v.name: 0 for v in cameras.videos}
     ref_off, ref_err_off = reference(cameras, obs, points, offsets)
+    floor, floor_similarity = np.zeros(0), np.zeros(0)
+    if cameras_from != "lab":
+        own, _ = reference(solve_cameras, obs, points, {})
+        common = [k for k in own if k in ref]
+        mine, theirs = np.array([own[k] for k in common]), np.array([ref[k] for k in common])
+        floor = np.linalg.norm(mine - theirs, axis=1)
+        floor_similarity = similarity_distances(mine, theirs)
     seconds["reference"] = time.perf_counter() - started
 
     result = CheckResult(
@@ -322,8 +386,11 @@ def run_check(
         seconds=seconds,
         ref_error_px={p: np.asarray(e) for p, e in ref_err.items()},
         ref_error_offset_px={p: np.asarray(e) for p, e in ref_err_off.items()},
+        floor=floor,
+        floor_similarity=floor_similarity,
     )
     dist, dist_off, observed = [], [], []
+    pairs: list[tuple[np.ndarray, np.ndarray]] = []
     for i, (video, frame) in enumerate(zip(solved.videos, solved.frames, strict=True)):
         for p, name in enumerate(solved.point_names):
             X = solved.xyz[i, p]
@@ -337,10 +404,14 @@ def run_check(
             result.point.append(name)
             observed.append(bool(solved.observed[i, p]))
             dist.append(float(np.linalg.norm(X - ref[key])))
+            pairs.append((X, ref[key]))
             dist_off.append(float(np.linalg.norm(X - ref_off[key_off])) if key_off in ref_off else np.nan)
     result.distance = np.array(dist)
     result.distance_offset = np.array(dist_off)
     result.observed = np.array(observed, dtype=bool)
+    result.distance_similarity = (
+        similarity_distances(np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])) if pairs else np.zeros(0)
+    )
     _write_comparison(work / "comparison.csv", result)
     return result
 
@@ -390,6 +461,16 @@ def table(result: CheckResult) -> str:
             f"{_stats(result.distance_offset[mask])} | {med} {med_off}"
         )
     lines.append("")
+    lines.append(f"{'':10} | {'med':>6} {'p90':>8} {'n':>5}")
+    lines.append(
+        f"{'point sim.':10} | {_stats(result.distance_similarity)} | sync-free after a similarity on the points"
+    )
+    if len(result.floor):
+        lines.append(f"{'cameras':10} | {_stats(result.floor)} | synchronized triangulation, solve's cameras")
+        lines.append(
+            f"{'cam. sim.':10} | {_stats(result.floor_similarity)} | the same after a similarity on the points"
+        )
+    lines.append("")
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.seconds.items()))
     return "\n".join(lines)
 
@@ -408,13 +489,25 @@ def main(argv: list[str] | None = None) -> int:
         help="the solve's cameras: the lab calibration, or `register --subject always` from the committed OpenPose "
         "detections with / without the lab's intrinsics",
     )
+    parser.add_argument(
+        "--markers",
+        action="store_true",
+        help="with --cameras subject*: register from the OpenPose detections plus the labels' tracks",
+    )
     parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
     if not (args.shared / DEMO).is_dir():
         print(f"needs {args.shared / DEMO} (the shared data folder)")
         return 1
-    result = run_check(args.shared, args.work, args.labels, clock_shifts=args.shift_clocks, cameras_from=args.cameras)
+    result = run_check(
+        args.shared,
+        args.work,
+        args.labels,
+        clock_shifts=args.shift_clocks,
+        cameras_from=args.cameras,
+        markers=args.markers,
+    )
     print(table(result))
     return 0
 

@@ -15,6 +15,9 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - pose2sim-openpose: the committed OpenPose detections (tests/data/pose2sim/openpose_tracks.csv), the videos and
   the detections desynchronized by dropping different leading frames per camera, `--subject always`, with and
   without the lab intrinsics (`pose2sim-openpose-intrinsics`);
+- pose2sim-openpose-markers-intrinsics: the same desynchronized videos and detections, plus the committed labels
+  (renumbered like the frames; labels on dropped frames left out) tracked through the desynchronized videos, with
+  the lab intrinsics: the user's few precise markers next to the detections;
 - caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
   mapping), the simpler method a user would try first; its models are scored pair by pair (relative rotation,
   and the direction of the baseline seen from the first camera), since it splits the videos over models.
@@ -67,6 +70,7 @@ CASES = (
     "pose2sim-subject-intrinsics",
     "pose2sim-openpose",
     "pose2sim-openpose-intrinsics",
+    "pose2sim-openpose-markers-intrinsics",
     "caliscope-plain",
 )
 
@@ -164,6 +168,19 @@ def desynchronized_pose2sim(work: Path) -> tuple[list[Path], Path]:
     return videos, tracks
 
 
+def desynchronized_labels(out: Path) -> Path:
+    """The committed labels renumbered like desynchronized_pose2sim's frames (labels on dropped frames left out)."""
+    with LABELS.open(newline="", encoding="utf-8") as source, out.open("w", newline="", encoding="utf-8") as target:
+        reader = csv.DictReader(source)
+        writer = csv.DictWriter(target, fieldnames=list(reader.fieldnames or []), lineterminator="\n")
+        writer.writeheader()
+        for row in reader:
+            frame = int(row["frame"]) - DROPPED_POSE2SIM[row["video"]]
+            if frame >= 0:
+                writer.writerow({**row, "frame": str(frame)})
+    return out
+
+
 def caliscope_true_offsets() -> dict[str, float]:
     """Seconds: own time of a desynchronized video + offset = cam_0's clock, from the real capture times."""
     data = np.genfromtxt(CALISCOPE / "calibration" / "extrinsic" / "timestamps.csv", delimiter=",", names=True)
@@ -216,6 +233,16 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
         elif "openpose" in case:
             videos, tracks = desynchronized_pose2sim(work)
             (ws / "tracks.csv").write_bytes(tracks.read_bytes())
+            if "markers" in case:
+                from benchmarks.pose2sim_check import union_tracks
+                from tracking import stage as track_stage
+                from tracking.tracks import read_tracks
+
+                desynchronized_labels(ws / "labels.csv")
+                started = time.perf_counter()
+                track_stage.run(ws, ws / "markers.csv", videos={v.stem: v for v in videos})
+                tracking_s = time.perf_counter() - started
+                write_tracks(ws / "tracks.csv", union_tracks(read_tracks(tracks), read_tracks(ws / "markers.csv")))
             # global = own + offset; the originals are synchronized to about a frame
             true_offsets = {name: drop / 60.0 for name, drop in DROPPED_POSE2SIM.items()}
         if "intrinsics" in case:
