@@ -19,6 +19,7 @@ import argparse
 import contextlib
 import json
 import pstats
+import resource
 import statistics
 import subprocess
 import sys
@@ -49,11 +50,17 @@ STAGES = [
 ]
 
 
-def dynrecon(args: list[str], timeout: float, profile: Path | None = None, root: Path = ROOT) -> float:
-    start = time.perf_counter()
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def dynrecon(args: list[str], timeout: float, profile: Path | None = None, root: Path = ROOT) -> tuple[float, float]:
+    """Runs `dynrecon ARGS` in a subprocess: (wall s, CPU s of the process, all its threads)."""
+    start, cpu = time.perf_counter(), _children_cpu()
     prefix = ["-m", "cProfile", "-o", str(profile)] if profile else []
     subprocess.run([sys.executable, *prefix, "-m", "dynrecon", "-q", *args], check=True, timeout=timeout, cwd=root)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, _children_cpu() - cpu
 
 
 def simulate(folder: Path, file: str, rate: float, frames: int) -> None:
@@ -73,12 +80,13 @@ def solve_command(folder: Path) -> list[str]:
 def run_case(folder: Path, timeout: float, into: dict[str, list[float]], root: Path = ROOT) -> None:
     """One solve of the case by the source tree `root`; appends the process time and report.json's timings."""
     try:
-        wall = dynrecon(solve_command(folder), timeout, root=root)
+        wall, cpu = dynrecon(solve_command(folder), timeout, root=root)
     except subprocess.TimeoutExpired:
         into.setdefault("process", []).append(float("inf"))
         return
     report = json.loads((folder / "out" / "report.json").read_text())
     into.setdefault("process", []).append(wall)
+    into.setdefault("cpu", []).append(cpu)
     into.setdefault("F", []).append(report["size"]["frames"])
     for key, value in report["timings"].items():
         into.setdefault(key, []).append(value)
@@ -94,11 +102,12 @@ def profile_case(folder: Path, timeout: float, top: int) -> None:
 
 def print_table(medians: dict[str, dict[str, float]]) -> None:
     shown = [s for s in STAGES if any(s in m for m in medians.values())]
-    print(f"| case | F | process | {' | '.join(shown)} |")
-    print(f"|---|---|---|{'---|' * len(shown)}")
+    print(f"| case | F | process | process CPU | {' | '.join(shown)} |")
+    print(f"|---|---|---|---|{'---|' * len(shown)}")
     for case, m in medians.items():
         cells = " | ".join(f"{m[s]:.2f}" if s in m else "" for s in shown)
-        print(f"| {case} | {int(m.get('F', 0))} | {m.get('process', float('nan')):.1f} | {cells} |")
+        process, cpu = m.get("process", float("nan")), m.get("cpu", float("nan"))
+        print(f"| {case} | {int(m.get('F', 0))} | {process:.1f} | {cpu:.1f} | {cells} |")
 
 
 def main() -> None:

@@ -29,6 +29,7 @@ import enum
 import itertools
 import logging
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,7 @@ from reconstruct.solver.rays import camera_normalization, viewing_rays
 log = logging.getLogger(__name__)
 
 BANDS = 9  # unknowns 3i + k; the prior links nodes i-2..i+2, so |row - column| <= 3 * 2 + 2 = 8
+PRIOR_DIAGONALS = (0, 3, 6)  # the prior's nonzero bands: it links the same coordinate of nodes i-2..i+2
 # Smoothness candidates for GCV, half-decade steps: a wide range, since noise-free frequent captures want little
 # smoothing and noisy sparse ones much more.
 SMOOTHNESS_GRID = tuple(float(10.0 ** (k / 2)) for k in range(-12, 9))
@@ -58,6 +60,9 @@ OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an out
 # Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
 # concurrent frames cannot make the system ill-conditioned.
 MERGE_FRACTION = 0.01
+# Threads for independent points (their banded solves and selected inverses): LAPACK and numpy's array
+# operations release the GIL. Each refinement and polish round has its own, so parallel solves do not queue.
+WORKERS = 2
 
 
 class RobustLoss(enum.Enum):
@@ -156,6 +161,32 @@ def _sum_at(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
     width = flat.shape[1]
     slots = (index[:, None] * width + np.arange(width)).ravel()
     return np.bincount(slots, weights=flat.ravel(), minlength=size * width).reshape(size, *values.shape[1:])
+
+
+def _sum_at_slots(index: np.ndarray, padded: np.ndarray, size: int, alone: np.ndarray) -> np.ndarray:
+    """`_sum_at(index, padded[:-1], size)`, bitwise, for values `padded (m + 1, ...)` whose last row is zeros;
+    `alone (m,)` marks the values that are the only one of their slot: those are gathered (then + 0.0, bincount's
+    first sum), only the others summed by bincount. With unsynchronized cameras nearly every instant holds one
+    frame, so nearly every sum has one term, and a gather is several times faster than a scatter or bincount."""
+    m = len(padded) - 1
+    source = np.full(size, m)  # empty slots take the zero row
+    source[index[alone]] = np.flatnonzero(alone)
+    out = padded.take(source, axis=0)
+    out += 0.0  # 0.0 + x: a gathered -0.0 becomes +0.0 as in bincount
+    if not alone.all():
+        rest = index[~alone]
+        out[rest] = _sum_at(rest, padded[:m][~alone], size)[rest]  # the others' slots hold no gathered value
+    return out
+
+
+def _zero_row(values: np.ndarray) -> np.ndarray:
+    """`values (m, ...)` with a row of zeros appended, (m + 1, ...)."""
+    return np.concatenate([values, np.zeros((1, *values.shape[1:]))])
+
+
+# The lower triangle of a symmetric 3x3 block, (row, column) pairs, and the positions of its diagonal among them.
+LOWER = ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2))
+LOWER_DIAGONAL = (0, 2, 5)
 
 
 def _add_blocks(bands: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -311,22 +342,12 @@ def refine(
         track.weights = robust_weights(residual, options.loss, track.scale)
 
     cost: list[float] = []
-    for _ in range(max(GCV_PASSES, 1)):
-        if tracks:
-            _choose_smoothness(tracks, prior, grid, n, options)
-        for _ in range(max(IRLS_ITERATIONS, 1)):
-            total = 0.0
-            for track, fitted in zip(tracks, _fit_tracks(tracks, prior, n), strict=True):
-                track.positions = fitted
-                track.residual = track.residuals(track.positions)
-                total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
-                total += track.smoothness * track.mean_s2 * float(_prior_value(prior, track.positions.reshape(-1)))
-                track.weights = robust_weights(track.residual, options.loss, track.scale)
-            cost.append(total)
-            if options.loss is RobustLoss.NONE:
+    with ThreadPoolExecutor(WORKERS) as pool:
+        for _ in range(max(GCV_PASSES, 1)):
+            if tracks:
+                _choose_smoothness(tracks, prior, grid, n, options, pool)
+            if _irls(tracks, prior, n, options, cost, pool):
                 break
-        if options.loss is RobustLoss.NONE:
-            break
 
     out = np.full((F, P, 3), np.nan)
     weights = np.full((F, P), np.nan)
@@ -359,6 +380,30 @@ def refine(
         scale_px=scale_px,
         cost=cost,
     )
+
+
+def _irls(
+    tracks: list[_Track],
+    prior: np.ndarray,
+    n: int,
+    options: RefineOptions,
+    cost: list[float],
+    pool: ThreadPoolExecutor | None = None,
+) -> bool:
+    """IRLS rounds at the tracks' smoothness and scale, appending the total cost of each to `cost`; True when the
+    loss is plain least squares (one fit is final)."""
+    for _ in range(max(IRLS_ITERATIONS, 1)):
+        total = 0.0
+        for track, fitted in zip(tracks, _fit_tracks(tracks, prior, n, pool), strict=True):
+            track.positions = fitted
+            track.residual = track.residuals(track.positions)
+            total += float(np.sum(_rho(track.residual, options.loss, track.scale)))
+            total += track.smoothness * track.mean_s2 * float(_prior_value(prior, track.positions.reshape(-1)))
+            track.weights = robust_weights(track.residual, options.loss, track.scale)
+        cost.append(total)
+        if options.loss is RobustLoss.NONE:
+            return True
+    return False
 
 
 def _make_tracks(
@@ -394,7 +439,12 @@ def _make_tracks(
 
 
 def _choose_smoothness(
-    tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int, options: RefineOptions
+    tracks: list[_Track],
+    prior: np.ndarray,
+    grid: list[float],
+    n: int,
+    options: RefineOptions,
+    pool: ThreadPoolExecutor | None = None,
 ) -> None:
     """Smoothness by GCV over `grid` with the tracks' current weights, score = (RSS / m) / (1 - tr(H) / m)^2
     (m = 2 per ray), and the robust scale from the noise level the fit implies, sigma^2 = RSS / (m - tr(H)).
@@ -404,7 +454,7 @@ def _choose_smoothness(
     rejected. So the scale is set here, once per GCV pass, and held during IRLS.
     """
     m = np.array([2.0 * track.seen.size for track in tracks])[:, None]  # each ray constrains two coordinates
-    fits = _GridFits(tracks, prior, grid, n)
+    fits = _GridFits(tracks, prior, grid, n, pool)
     if options.rule is SmoothnessRule.GCV_GLOBAL:
         fits.compute(np.ones(fits.known.shape, dtype=bool))
         total = float(m.sum())
@@ -422,30 +472,37 @@ def _choose_smoothness(
         track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
 
 
-def _fit_tracks(tracks: list[_Track], prior: np.ndarray, n: int) -> list[np.ndarray]:
+def _fit_tracks(
+    tracks: list[_Track], prior: np.ndarray, n: int, pool: ThreadPoolExecutor | None = None
+) -> list[np.ndarray]:
     """`_fit` of every track at its smoothness and weights, (n, 3) each: the systems side by side in one LAPACK
-    call per batch (the same numbers, fewer calls)."""
-    out: list[np.ndarray] = []
+    call per batch and worker (the same numbers, fewer calls)."""
     batch = max(1, _GridFits.BATCH_BYTES // (BANDS * 3 * n * 8))
-    for start in range(0, len(tracks), batch):
-        chunk = tracks[start : start + batch]
-        data = [track.data(n) for track in chunk]
-        systems = [
-            _grid_systems(prior, t, np.array([t.smoothness]), blocks)[0]
-            for t, (blocks, _) in zip(chunk, data, strict=True)
-        ]
-        factor = _stacked_factor(np.stack(systems))
-        if factor is None:  # one needs `_fit`'s stronger anchor: each on its own
-            out.extend(
-                _fit(prior, t.mean_s2, t.smoothness, b, r, t.anchor)[0] for t, (b, r) in zip(chunk, data, strict=True)
-            )
-            continue
-        b = np.concatenate(
-            [(r + _anchor_weight(blocks) * t.anchor).reshape(-1) for t, (blocks, r) in zip(chunk, data, strict=True)]
-        )
-        stacked = factor.transpose(1, 0, 2).reshape(BANDS, -1)
-        out.extend(cho_solve_banded((stacked, True), b).reshape(len(chunk), n, 3))
-    return out
+    if pool is not None:  # a batch per worker at least: a track's fit does not depend on its neighbours
+        batch = max(1, min(batch, -(-len(tracks) // WORKERS)))
+    chunks = [tracks[start : start + batch] for start in range(0, len(tracks), batch)]
+    fitted = (
+        pool.map(_fit_chunk, chunks, [prior] * len(chunks), [n] * len(chunks))
+        if pool is not None
+        else (_fit_chunk(chunk, prior, n) for chunk in chunks)
+    )
+    return [positions for part in fitted for positions in part]
+
+
+def _fit_chunk(chunk: list[_Track], prior: np.ndarray, n: int) -> list[np.ndarray]:
+    """`_fit` of the tracks of `chunk`, (n, 3) each, in one LAPACK call."""
+    data = [track.data(n) for track in chunk]
+    systems = [
+        _grid_systems(prior, t, np.array([t.smoothness]), blocks)[0] for t, (blocks, _) in zip(chunk, data, strict=True)
+    ]
+    factor = _stacked_factor(np.stack(systems))
+    if factor is None:  # one needs `_fit`'s stronger anchor: each on its own (the same numbers for the others)
+        return [_fit(prior, t.mean_s2, t.smoothness, b, r, t.anchor)[0] for t, (b, r) in zip(chunk, data, strict=True)]
+    b = np.concatenate(
+        [(r + _anchor_weight(blocks) * t.anchor).reshape(-1) for t, (blocks, r) in zip(chunk, data, strict=True)]
+    )
+    stacked = factor.transpose(1, 0, 2).reshape(BANDS, -1)
+    return list(cho_solve_banded((stacked, True), b).reshape(len(chunk), n, 3))
 
 
 def _grid_systems(prior: np.ndarray, track: _Track, values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -487,7 +544,10 @@ class _GridFits:
     # tr(H) monotone in the smoothness only to about this.
     BOUND_MARGIN = 1e-3
 
-    def __init__(self, tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int):
+    def __init__(
+        self, tracks: list[_Track], prior: np.ndarray, grid: list[float], n: int, pool: ThreadPoolExecutor | None = None
+    ):
+        self.pool = pool
         self.tracks, self.prior, self.grid = tracks, prior, np.asarray(grid, dtype=float)
         self.data = [track.data(n) for track in tracks]
         shape = (len(tracks), len(grid))
@@ -500,11 +560,21 @@ class _GridFits:
         pairs = np.argwhere(wanted & ~self.known)
         for start in range(0, len(pairs), self.batch):
             chunk = pairs[start : start + self.batch]
-            factors = [self._fit_track(int(k), chunk[chunk[:, 0] == k, 1]) for k in np.unique(chunk[:, 0])]
-            inverse_blocks = _diagonal_blocks(selected_inverse(np.concatenate(factors)))
+            tracks = np.unique(chunk[:, 0]).tolist()
+            columns = [chunk[chunk[:, 0] == k, 1] for k in tracks]
+            factors = np.concatenate(self._map(self._fit_track, tracks, columns))
+            # each system's inverse is its own (the batch is elementwise on the last axis): halves side by side
+            halves = np.array_split(factors, WORKERS if self.pool is not None and len(factors) > 1 else 1)
+            inverse_blocks = _diagonal_blocks(np.concatenate(self._map(selected_inverse, halves)))
             data = np.stack([self.data[int(k)][0] for k in chunk[:, 0]])
             self.trace[chunk[:, 0], chunk[:, 1]] = np.einsum("bnij,bnji->b", inverse_blocks, data)
         self.known |= wanted
+
+    def _map(self, function: Callable[..., np.ndarray], *arguments: list) -> list[np.ndarray]:
+        """[function(*a) for a in zip(*arguments)], on the pool's threads when there is one."""
+        if self.pool is None:
+            return list(map(function, *arguments))
+        return list(self.pool.map(function, *arguments))
 
     def _fit_track(self, k: int, columns: np.ndarray) -> np.ndarray:
         """Fits of track k at grid values `columns`: sets their RSS, returns their factors (len, BANDS, 3n)."""
@@ -612,9 +682,10 @@ def _rho(residual: np.ndarray, loss: RobustLoss, scale: float) -> np.ndarray:
 
 
 def _prior_value(bands: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """y^T M y for a lower-banded M (BANDS, N) and y (..., N)."""
+    """y^T M y for the lower-banded prior M (BANDS, N) of `prior_bands` and y (..., N); its other bands are zero,
+    and their terms would add exact zeros."""
     value = np.sum(bands[0] * y * y, axis=-1)
-    for d in range(1, BANDS):
+    for d in PRIOR_DIAGONALS[1:]:
         value = value + 2.0 * np.sum(bands[d, :-d] * y[..., :-d] * y[..., d:], axis=-1)
     return value
 
@@ -689,10 +760,11 @@ def _clock_round(
     counts = np.bincount(problem.video_index, minlength=N)
     if reference is None:
         reference = int(np.argmax(counts))
-    cost = _PolishCost(problem, first, times)
     middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
     correction = ClockCorrection.none(middle)
-    history = _coordinate_descent(cost, times, problem.video_index, correction, rates)
+    with ThreadPoolExecutor(WORKERS) as pool:
+        cost = _PolishCost(problem, first, times, pool)
+        history = _coordinate_descent(cost, times, problem.video_index, correction, rates)
     adjusted, correction = correction.in_gauge_of(reference, times, problem.video_index)
     log.info(
         "clock offsets (ms): %s; rates (ms/s): %s; trajectory cost %.4g -> %.4g",
@@ -709,66 +781,131 @@ def _clock_round(
 class _PolishCost:
     """The refinement's cost (px^2) at candidate frame times, one banded solve for all refined points; held fixed:
     the smoothness and robust weights of a first refinement, and each observation's px scale from its positions
-    (time shifts of a fraction of a frame barely move the depths)."""
+    (time shifts of a fraction of a frame barely move the depths). The points are independent: with a `pool`,
+    each worker solves a run of them (`_PolishPart`), and only the final sums are taken over all."""
 
-    def __init__(self, problem: Problem, first: RefineResult, times: np.ndarray):
+    def __init__(
+        self, problem: Problem, first: RefineResult, times: np.ndarray, pool: ThreadPoolExecutor | None = None
+    ):
+        self.pool = pool
         normalization = camera_normalization(problem.centers, problem.video_index)
-        self.centers = normalization.apply(problem.centers)
-        self.rays = viewing_rays(problem)
+        centers = normalization.apply(problem.centers)
+        rays = viewing_rays(problem)
         focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
         self.tau = time_nodes(times).tau
         self.span = float(np.ptp(times))
         refined = np.isfinite(first.smoothness)
         observed = problem.observed & refined[None, :]
         frame, point = np.nonzero(observed)  # every observation of a refined point
-        self.frame, self.point = frame, point
-        self.keep = np.flatnonzero(refined)
-        self.column = np.searchsorted(self.keep, point)  # the observation's point among the refined ones
-        self.positions = normalization.apply(first.points)
-        depth = np.einsum("mi,mi->m", self.positions[frame, point] - self.centers[frame], self.rays[frame, point])
+        keep = np.flatnonzero(refined)
+        column = np.searchsorted(keep, point)  # the observation's point among the refined ones
+        positions = normalization.apply(first.points)
+        depth = np.einsum("mi,mi->m", positions[frame, point] - centers[frame], rays[frame, point])
         s2 = (focal[frame] / np.maximum(depth, 1e-9)) ** 2
         self.weight = np.nan_to_num(first.weights[frame, point]) * s2
-        mean_s2 = np.array([np.mean(np.sqrt(s2[self.column == k])) ** 2 for k in range(len(self.keep))])
-        self.strength = first.smoothness[self.keep] * mean_s2  # (P',)
-        projector = np.eye(3)[None] - self.rays[frame, point][:, :, None] * self.rays[frame, point][:, None, :]
-        self.blocks_obs = self.weight[:, None, None] * projector
-        self.rhs_obs = np.einsum("mij,mj->mi", self.blocks_obs, self.centers[frame])
-        self.obs_rays, self.obs_centers = self.rays[frame, point], self.centers[frame]
-        self.known_positions = np.nan_to_num(self.positions[:, self.keep])
+        mean_s2 = np.array([np.mean(np.sqrt(s2[column == k])) ** 2 for k in range(len(keep))])
+        self.strength = first.smoothness[keep] * mean_s2  # (P',)
+        self.num_observations = len(frame)
+        bounds = [len(keep) * w // WORKERS for w in range(WORKERS + 1)] if pool is not None else [0, len(keep)]
+        self.parts = [
+            _PolishPart(
+                observations=np.flatnonzero((column >= low) & (column < high)),
+                first=low,
+                frame=frame,
+                column=column,
+                rays=rays[frame, point],
+                centers=centers[frame],
+                weight=self.weight,
+                strength=self.strength[low:high],
+                known_positions=np.nan_to_num(positions[:, keep[low:high]]),
+            )
+            for low, high in itertools.pairwise(bounds)
+            if high > low
+        ]
 
     def __call__(self, candidate: np.ndarray) -> float:
-        frame, column, keep = self.frame, self.column, self.keep
         # Time unit proportional to the span: the cost is then invariant to a global affine change of time (the
         # gauge), so every video, the reference included, can move alone.
         nodes = time_nodes(candidate, MERGE_FRACTION, self.tau * float(np.ptp(candidate)) / self.span)
-        n = len(nodes.times)
-        node = nodes.node_of_frame[frame]
-        slot = column * n + node
-        blocks = _sum_at(slot, self.blocks_obs, len(keep) * n).reshape(len(keep), n, 3, 3)
-        rhs = _sum_at(slot, self.rhs_obs, len(keep) * n).reshape(len(keep), n, 3)
-        eps = 1e-9 * np.maximum(np.mean(np.trace(blocks, axis1=2, axis2=3), axis=1), 1e-300)
-        blocks += eps[:, None, None, None] * np.eye(3)
-        # mean position per instant (the tiny eps pull's target)
-        anchor = _sum_at(nodes.node_of_frame, self.known_positions, n)
-        anchor /= np.maximum(np.bincount(nodes.node_of_frame, minlength=n), 1)[:, None, None]
-        rhs += eps[:, None, None] * anchor.transpose(1, 0, 2)
         prior = prior_bands(nodes)
-        # Points are independent: their systems side by side form one banded matrix (no band crosses a seam).
-        system = self.strength[None, :, None] * prior[:, None, :]  # (BANDS, P', 3n)
-        columns = system.reshape(BANDS, len(keep), n, 3)  # a view: column 3i + col of point k is [:, k, i, col]
-        for row in range(3):
-            for col in range(row + 1):
-                columns[row - col, :, :, col] += blocks[:, :, row, col]
-        stacked = system.reshape(BANDS, -1)
+        frames_at = np.bincount(nodes.node_of_frame, minlength=len(nodes.times))
+
+        def run(part: _PolishPart) -> tuple[np.ndarray, np.ndarray]:
+            return part.evaluate(nodes.node_of_frame, frames_at, prior)
+
+        solved = self.pool.map(run, self.parts) if self.pool is not None else map(run, self.parts)
+        squared = np.empty(self.num_observations)
+        prior_values = []
+        for part, (distance2, value) in zip(self.parts, solved, strict=True):
+            squared[part.observations] = distance2
+            prior_values.append(value)
+        total = float(np.sum(self.weight * squared))
+        return total + float(np.sum(self.strength * np.concatenate(prior_values)))
+
+
+class _PolishPart:
+    """A run of the polish cost's points, `first` on: their observations (indices among all, in their order) and
+    what their systems need, each observation with a zero row for `_sum_at_slots`."""
+
+    def __init__(
+        self,
+        *,
+        observations: np.ndarray,
+        first: int,
+        frame: np.ndarray,
+        column: np.ndarray,
+        rays: np.ndarray,
+        centers: np.ndarray,
+        weight: np.ndarray,
+        strength: np.ndarray,
+        known_positions: np.ndarray,
+    ):
+        self.observations = observations
+        self.frame = frame[observations]
+        self.column = column[observations] - first  # the observation's point within the part
+        self.strength = strength  # (K,)
+        self.rays, self.centers = rays[observations], centers[observations]
+        projector = np.eye(3)[None] - self.rays[:, :, None] * self.rays[:, None, :]
+        blocks = weight[observations, None, None] * projector
+        # each block's lower triangle (m + 1, 6), all the systems need, and right-hand side (m + 1, 3)
+        self.lower = _zero_row(np.stack([blocks[:, row, col] for row, col in LOWER], axis=1))
+        self.rhs = _zero_row(np.einsum("mij,mj->mi", blocks, self.centers))
+        self.known_positions = _zero_row(known_positions)  # (F + 1, K, 3)
+
+    def evaluate(
+        self, node_of_frame: np.ndarray, frames_at: np.ndarray, prior: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The part's squared ray distances (m,), unweighted, and prior values (K,) at the solved positions, for the
+        instants `node_of_frame (F,)` holding `frames_at (n,)` frames each."""
+        K, n = len(self.strength), len(frames_at)
+        node = node_of_frame[self.frame]
+        slot = self.column * n + node
+        alone = frames_at[node] == 1  # an instant of one frame holds one observation of each point
+        lower = _sum_at_slots(slot, self.lower, K * n, alone).reshape(K, n, 6)
+        rhs = _sum_at_slots(slot, self.rhs, K * n, alone).reshape(K, n, 3)
+        d0, d1, d2 = LOWER_DIAGONAL
+        eps = 1e-9 * np.maximum(np.mean(lower[..., d0] + lower[..., d1] + lower[..., d2], axis=1), 1e-300)
+        lower[..., LOWER_DIAGONAL] += eps[:, None, None]  # + eps I (the off-diagonal entries' + 0 changes nothing)
+        # mean position per instant (the tiny eps pull's target)
+        anchor = _sum_at_slots(node_of_frame, self.known_positions, n, frames_at[node_of_frame] == 1)
+        anchor /= np.maximum(frames_at, 1)[:, None, None]
+        rhs += eps[:, None, None] * anchor.transpose(1, 0, 2)
+        # Points are independent: their systems side by side form one banded matrix (no band crosses a seam, and
+        # LAPACK's banded Cholesky, unblocked for so few bands, and solves work column by column: each point's
+        # numbers are its own, whichever points share the call).
+        system = np.zeros((BANDS, K, 3 * n))  # (BANDS, K, 3n); the prior's other bands are zero
+        for d in PRIOR_DIAGONALS:
+            np.multiply(self.strength[:, None], prior[d], out=system[d])
+        columns = system.reshape(BANDS, K, n, 3)  # a view: column 3i + col of point k is [:, k, i, col]
+        for entry, (row, col) in enumerate(LOWER):
+            columns[row - col, :, :, col] += lower[:, :, entry]
         # finite by construction: LAPACK's own checks suffice
-        factor = cholesky_banded(stacked, lower=True, check_finite=False)
-        y = cho_solve_banded((factor, True), rhs.reshape(-1), check_finite=False)
-        solved = y.reshape(len(keep), n, 3)
-        offset = solved[column, node] - self.obs_centers
-        along = np.einsum("mi,mi->m", offset, self.obs_rays)
-        perpendicular = offset - along[:, None] * self.obs_rays
-        total = float(np.sum(self.weight * np.einsum("mi,mi->m", perpendicular, perpendicular)))
-        return total + float(np.sum(self.strength * _prior_value(prior, solved.reshape(len(keep), -1))))
+        factor = cholesky_banded(system.reshape(BANDS, -1), lower=True, check_finite=False)
+        solved = cho_solve_banded((factor, True), rhs.reshape(-1), check_finite=False).reshape(K, n, 3)
+        offset = solved.reshape(-1, 3).take(slot, axis=0) - self.centers
+        along = np.einsum("mi,mi->m", offset, self.rays)
+        perpendicular = offset - along[:, None] * self.rays
+        return np.einsum("mi,mi->m", perpendicular, perpendicular), _prior_value(prior, solved.reshape(K, -1))
 
 
 def _coordinate_descent(

@@ -23,7 +23,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from reconstruct.clocks.chain import chain_clocks
 from reconstruct.clocks.model import (
@@ -493,6 +492,8 @@ class _Refined:
 
 def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.ndarray) -> _Refined:
     """Rounds of: robust scale of the gaps, samples below a shrinking multiple of it, soft-L1 least squares."""
+    from scipy.optimize import least_squares  # scipy.optimize is slow to import: `dynrecon solve` prefetches it
+
     scale = math.nan
     for round_ in range(REFINE_ROUNDS):
         values = np.concatenate([g[np.isfinite(g)] for g in joint.gaps(theta).values()])

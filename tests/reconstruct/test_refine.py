@@ -7,6 +7,7 @@ import pytest
 from scipy.linalg import cholesky_banded
 
 from dynrecon.errors import InputError
+from reconstruct import trajectory
 from reconstruct.solver.problem import Problem
 from reconstruct.trajectory import (
     BANDS,
@@ -329,3 +330,36 @@ def test_clock_refinement_result_is_the_refinement_at_its_times() -> None:
     # and the refinement at the input times, which a rejected polish falls back to
     assert fixed.at_input is not None
     np.testing.assert_array_equal(fixed.at_input.points, refine(problem, start, wrong).points)
+
+
+def test_worker_threads_change_no_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The points are independent: split among threads (their banded systems side by side in fewer or more LAPACK
+    # calls), the refinement, the polish cost and so the polished clocks are bitwise those of one thread. Merged
+    # instants (two frames at one time) take `_sum_at_slots`'s bincount path.
+    times, camera_of = round_robin(150, 60.0, seed=5)
+    times[[40, 90]] = times[[39, 89]]
+    problem, truth = capture(times, camera_of, noise_px=0.5)
+    wrong = times.copy()
+    wrong[camera_of == 1] += 0.003
+    start = start_points(problem, truth, error_mm=5.0)
+    results = {}
+    for workers in (1, 3):
+        monkeypatch.setattr(trajectory, "WORKERS", workers)
+        results[workers] = refine_with_clocks(problem, start, wrong, reference=0)
+    one, many = results[1], results[3]
+    np.testing.assert_array_equal(one.times, many.times)
+    np.testing.assert_array_equal(one.result.points, many.result.points)
+    np.testing.assert_array_equal(one.result.weights, many.result.weights)
+    np.testing.assert_array_equal(one.result.smoothness, many.result.smoothness)
+    assert one.cost == many.cost
+
+
+def test_sums_at_slots_are_bincount_sums() -> None:
+    rng = np.random.default_rng(0)
+    index = rng.integers(0, 50, 200)
+    values = rng.normal(size=(200, 3))
+    values[:5] = -0.0
+    alone = np.bincount(index, minlength=50)[index] == 1
+    padded = np.concatenate([values, np.zeros((1, 3))])
+    fast = trajectory._sum_at_slots(index, padded, 50, alone)
+    assert fast.tobytes() == trajectory._sum_at(index, values, 50).tobytes()
