@@ -23,6 +23,7 @@ from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
+from reconstruct.registered_offsets import prefer_registered_offsets
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem
@@ -139,6 +140,13 @@ def solve(
     result.timings["read_inputs"] = read_inputs
     # the split of clocks and refinement, where reconstruct/temporal.py reports one
     result.timings.update(temporal.report.get("timings", {}))
+    registration_check = check_registered_clocks(camera_set, temporal.clocks)
+    if options.temporal.refinement is Refinement.CLOCKS:
+        t0 = time.perf_counter()
+        temporal = prefer_registered_offsets(
+            problem, camera_set, result, temporal, registration_check, options.temporal.refine
+        )
+        result.timings["registered_offsets"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # without a seed solve (the tracks path) the trust measures describe the refined points against the clocks' W
     judged = result if result.stages else dataclasses.replace(result, points=temporal.points)
@@ -148,7 +156,7 @@ def solve(
     inputs = {"cameras": _input_name(cameras, None), "tracks": _input_name(tracks, track_set.path)}
     report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
-    report["clocks"]["registration_check"] = check_registered_clocks(camera_set, temporal.clocks)
+    report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
     report["rejected_observations"] = rejected.to_json()

@@ -1,0 +1,126 @@
+"""Registration's clock offsets as a second clock hypothesis (issue 16: "the recovered offsets become a prior for
+the solver's clocks").
+
+Register's subject path fits each static video's clock offset from the subject's 2D tracks and the epipolar
+geometry, and writes it to cameras.json (`clock_offset`). The solve recovers clocks from its own evidence (W's
+links, the track search). Where the two disagree (`clocks.registered.check_registered_clocks`), one is wrong: the
+trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
+closely are kept. The solve's own clocks stay unless registration's fit clearly better; report.json
+`temporal.registered_offsets` gives both residuals and the choice.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from reconstruct.clocks.model import Clocks
+from reconstruct.free_times import reprojection_px
+from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.problem import Problem
+from reconstruct.temporal import Temporal, refine_on_clocks
+from reconstruct.tracks_path import start_points
+from reconstruct.trajectory import RefineOptions
+from sfm.cameras import CameraSet
+
+log = logging.getLogger(__name__)
+
+BETTER = 0.8  # registration's clocks are kept when their median reprojection residual is below this x the solve's
+PATH = "registered_offsets"  # report.json temporal.path when they are kept
+
+
+def registered_clocks(problem: Problem, cameras: CameraSet, clocks: Clocks) -> Clocks | None:
+    """`clocks` with every video's offset taken from cameras.json (`clock_offset`, rate 1 on its own times), in the
+    clocks' gauge (their reference video keeps its times); None unless every video has a registered offset."""
+    registered = {v.name: v.clock_offset for v in cameras.videos}
+    offsets = [registered.get(name) for name in problem.video_names]
+    if any(o is None or not math.isfinite(o) for o in offsets):
+        return None
+    reference = float(registered[clocks.reference])  # type: ignore[arg-type]
+    out = copy.deepcopy(clocks)
+    for v, offset in enumerate(offsets):
+        own = problem.video_index == v
+        shift = float(offset) - reference  # type: ignore[arg-type]
+        out.global_time[own] = clocks.own_time[own] + shift
+        out.global_std[own] = 0.0
+        report = out.videos[v]
+        report.offset, report.rate, report.drift = shift, 1.0, 0.0
+        report.method, report.identified = "registered", True
+    return out
+
+
+def prefer_registered_offsets(
+    problem: Problem,
+    cameras: CameraSet,
+    seed: SolveResult,
+    temporal: Temporal,
+    check: dict[str, Any] | None,
+    options: RefineOptions,
+) -> Temporal:
+    """`temporal`, or the trajectories refined on registration's offsets where the solve's clocks disagree with them
+    (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better."""
+    if check is None or check.get("agree", True):
+        return temporal
+    clocks = registered_clocks(problem, cameras, temporal.clocks)
+    if clocks is None:
+        temporal.report[PATH] = {"tried": False, "reason": "some videos have no registered clock offset"}
+        return temporal
+    start = seed.points if seed.stages else start_points(problem, clocks.global_time)
+    on_clocks = refine_on_clocks(problem, start, clocks, clocks.model, options)
+    points = np.where(np.isfinite(on_clocks.result.points), on_clocks.result.points, start)
+    mine, theirs = _median_px(problem, temporal.points), _median_px(problem, points)
+    kept = bool(theirs < BETTER * mine)
+    entry = {
+        "tried": True,
+        "residual_px": {"solve": _finite(mine), "registered": _finite(theirs)},
+        "limit": BETTER,
+        "kept": "registered" if kept else "solve",
+    }
+    if not kept:
+        log.warning(
+            "the clocks disagree with registration's offsets, whose trajectories fit no better (median residual "
+            "%.3g px against the solve's %.3g px): the solve's clocks are kept",
+            theirs,
+            mine,
+        )
+        temporal.report[PATH] = entry
+        return temporal
+    log.warning(
+        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (median "
+        "residual %.3g px against %.3g px): refined on registration's offsets",
+        theirs,
+        mine,
+    )
+    report = dict(temporal.report)
+    report.update(on_clocks.report)
+    report.update(
+        {
+            PATH: entry,
+            "path": PATH,
+            "refined": True,
+            "reason": f"the solve's clocks ({temporal.report.get('path')}) disagreed with registration's offsets",
+        }
+    )
+    return replace(
+        temporal,
+        clocks=on_clocks.clocks,
+        points=points,
+        times=on_clocks.clocks.global_time.copy(),
+        refined=True,
+        report=report,
+    )
+
+
+def _median_px(problem: Problem, points: np.ndarray) -> float:
+    residual = reprojection_px(problem, points)
+    finite = residual[np.isfinite(residual)]
+    return float(np.median(finite)) if finite.size else math.nan
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None

@@ -1,0 +1,84 @@
+"""Registration's clock offsets as a second hypothesis (reconstruct/registered_offsets.py): kept only where the
+solve's clocks disagree with them and their trajectories fit the rays clearly better."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_motion import simulated_phones, truth_array
+
+from reconstruct.clocks.registered import check_registered_clocks
+from reconstruct.outputs.points import read_points
+from reconstruct.registered_offsets import PATH, prefer_registered_offsets
+from reconstruct.stage import SolveOptions, solve
+from reconstruct.temporal import Temporal
+from reconstruct.trajectory import refine
+from sfm.cameras import CameraSet, read_cameras
+
+
+@pytest.fixture(scope="module")
+def phones(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return simulated_phones(tmp_path_factory.mktemp("phones"))
+
+
+def _cameras(sim: Path, shift: dict[str, float]) -> CameraSet:
+    clocks = json.loads((sim / "clocks_truth.json").read_text())
+    cameras = read_cameras(sim / "cameras.json")
+    for video in cameras.videos:
+        truth = next(v for v in clocks["videos"] if v["name"] == video.name)
+        video.clock_offset = truth["offset_s"] + shift.get(video.name, 0.0) + 5.0  # any common origin
+    return cameras
+
+
+def _error_mm(points: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.nanmedian(np.linalg.norm(points - truth, axis=-1)))
+
+
+def test_right_offsets_replace_clocks_that_went_wrong(phones: Path) -> None:
+    cameras = _cameras(phones, {})
+    options = SolveOptions(recording=None)
+    good = solve(cameras, phones / "tracks.csv", options)
+    problem = good.problem
+    truth = truth_array(problem, read_points(phones / "truth.csv"))
+    # The solve's clocks with one video half a second off (a periodic motion, a wrong track search), not polished.
+    wrong_clocks = copy.deepcopy(good.temporal.clocks)
+    moved = problem.video_index == problem.video_names.index("cam2")
+    wrong_clocks.global_time[moved] += 0.5
+    wrong_clocks.video("cam2").offset += 0.5
+    fitted = refine(problem, good.seed.points, wrong_clocks.global_time, options.temporal.refine)  # no polish
+    wrong = Temporal(
+        clocks=wrong_clocks, points=fitted.points, times=wrong_clocks.global_time.copy(), refined=True, report={}
+    )
+    check = check_registered_clocks(cameras, wrong.clocks)
+    assert check is not None and not check["agree"]
+
+    chosen = prefer_registered_offsets(problem, cameras, good.seed, wrong, check, options.temporal.refine)
+
+    assert chosen.report["path"] == PATH and chosen.report[PATH]["kept"] == "registered"
+    residual = chosen.report[PATH]["residual_px"]
+    assert residual["registered"] < 0.8 * residual["solve"]
+    assert _error_mm(chosen.points, truth) < 0.5 * _error_mm(wrong.points, truth)
+    assert _error_mm(chosen.points, truth) < 2 * _error_mm(good.temporal.points, truth) + 1.0
+
+
+def test_a_wrong_registered_offset_leaves_the_solve_as_it_was(phones: Path) -> None:
+    options = SolveOptions(recording=None)
+    plain = solve(read_cameras(phones / "cameras.json"), phones / "tracks.csv", options)
+    checked = solve(_cameras(phones, {"cam2": 0.5}), phones / "tracks.csv", options)
+
+    assert not checked.report["clocks"]["registration_check"]["agree"]
+    entry = checked.temporal.report[PATH]
+    assert entry["tried"] and entry["kept"] == "solve"
+    assert entry["residual_px"]["registered"] > entry["residual_px"]["solve"]
+    assert checked.temporal.report["path"] == plain.temporal.report["path"]
+    np.testing.assert_array_equal(checked.temporal.points, plain.temporal.points)
+
+
+def test_offsets_that_agree_are_not_tried(phones: Path) -> None:
+    checked = solve(_cameras(phones, {}), phones / "tracks.csv", SolveOptions(recording=None))
+    assert checked.report["clocks"]["registration_check"]["agree"]
+    assert PATH not in checked.temporal.report
