@@ -1,6 +1,7 @@
 """The paper's protocol with no time information at all (issue 17): captures assigned to random cameras, no camera
 twice in a row, and cameras.json without fps or frame times. Per mocap window the seed solve (`--refinement none`)
-beside the default `dynrecon solve` (clocks checked, else per-frame times, else the seed), which path it took and
+beside the default `dynrecon solve` (clocks checked, else per-frame times, else the seed), which path it took, which
+times the free-time path used (`order`: the polished frame order's fixed times; `retimed`: free per-frame times) and
 the first failing check.
 
     nice python benchmarks/no_times.py                       # first 6 windows, noise-free and 1 px + 20 % missing
@@ -15,6 +16,7 @@ import logging
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from common import WINDOWS, CaptureSetting, load_window, simulate
@@ -41,8 +43,11 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     rows = []
-    print("| window | setting | seed < 10 mm | default < 10 mm | path | first failing check | seconds (seed + after) |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| window | setting | seed < 10 mm | default < 10 mm | path | times | first failing check |"
+        " seconds (seed + after) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for name in args.windows.split(","):
         window = next(w for w in WINDOWS if w.name == name)
         mocap = load_window(window)
@@ -64,13 +69,16 @@ def main() -> None:
             middle = time.perf_counter()
             temporal = recover_and_refine(problem, seed)
             end = time.perf_counter()
-            failed = next((c for c in temporal.report.get("checks", []) if not c["passed"]), None)
+            checks = temporal.report.get("checks", [])
+            failed = next((c for c in checks if not c["passed"]), None)
+            times = _free_times_source(temporal.report, checks)
             row = {
                 "window": name,
                 "setting": key,
                 "seed": share(seed.points, truth),
                 "default": share(temporal.points, truth),
                 "path": temporal.report.get("path"),
+                "times": times,
                 "failed": failed["name"] if failed else None,
                 "failed_value": failed["value"] if failed else None,
                 "seconds_seed": middle - started,
@@ -80,7 +88,7 @@ def main() -> None:
             check = f"{row['failed']} {row['failed_value']:.3g}" if failed else "-"
             print(
                 f"| {name} | {setting.label} | {100 * row['seed']:.2f} % | {100 * row['default']:.2f} % | "
-                f"{row['path']} | {check} | {row['seconds_seed']:.0f} + {row['seconds_after']:.0f} |",
+                f"{row['path']} | {times} | {check} | {row['seconds_seed']:.0f} + {row['seconds_after']:.0f} |",
                 flush=True,
             )
             if args.json:
@@ -94,6 +102,16 @@ def main() -> None:
                 f"{100 * np.mean([r['default'] for r in subset]):.2f} %, default below the seed on {worse} of "
                 f"{len(subset)} windows"
             )
+
+
+def _free_times_source(report: dict[str, Any], checks: list[dict[str, Any]]) -> str:
+    """`order` or `retimed` on the free-time path, else `-`."""
+    if report.get("path") != "free_times":
+        return "-"
+    source = report.get("free_times_source")
+    if isinstance(source, str):
+        return source
+    return "order" if any(c["name"] == "order_fit" for c in checks) else "retimed"
 
 
 if __name__ == "__main__":

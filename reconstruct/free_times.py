@@ -5,10 +5,17 @@ videos dropped frames, image sequences, the paper's protocol (each capture assig
 from the spectral order of the solver's W (frames W links are near in time), evenly spaced and monotone within each
 video; then trajectories are refined on them and every frame's time is moved, within the bracket of its video's
 neighbouring frames, to where the trajectories meet its rays best. Rounds alternate the two.
+
+Free times fit any rays (noise-free, the trajectories pass through every ray at any time), so a second hypothesis is
+built beside them: the spectral order polished so that consecutive frames' shapes are nearest (`polish_order`, on the
+seed's points, then on the trajectories), frames evenly spaced in that order, the trajectories refined on those fixed
+times. These have no time to tune per frame, so their residual tells a wrong order (time_checks decides between the
+two); the same retime rounds then start from them.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass, field
 
@@ -27,6 +34,8 @@ CANDIDATES = 24  # trial times per frame inside its bracket
 NOMINAL_PERIOD = 1.0 / 30.0  # s per frame of one video: the time unit when nothing about time is known
 HUBER_PX = 3.0  # the retiming cost is robust to a false detection beyond this
 DENSE_ORDER = 3000  # frames up to which the Fiedler vector comes from a dense eigensolver
+ORDER_BAND = 12  # places in the global order a frame may move by in one polish move
+ORDER_SWEEPS = 50  # polish sweeps at most (each stops early when no move shortens the path)
 
 
 @dataclass(kw_only=True)
@@ -34,6 +43,12 @@ class FreeTimes:
     times: np.ndarray  # (F,) s, monotone within each video
     result: RefineResult  # the trajectories refined on `times`
     residual_px: list[float] = field(default_factory=list)  # median reprojection residual after each refinement
+    rank_times: np.ndarray | None = None  # (F,) s: evenly spaced in the polished global order
+    on_ranks: RefineResult | None = None  # the trajectories refined on `rank_times` (their residual judges the order)
+    ordered_times: np.ndarray | None = None  # (F,) s: `rank_times` after ROUNDS retime rounds
+    ordered: RefineResult | None = None  # the trajectories refined on `ordered_times`
+    order_path: list[float] = field(default_factory=list)  # shape path length: spectral, polished, repolished
+    spectral_px: float = float("nan")  # median reprojection residual of the trajectories on the spectral times
 
 
 def spectral_times(W: sp.spmatrix, video_index: np.ndarray, frames: np.ndarray) -> np.ndarray:
@@ -114,11 +129,138 @@ def refine_free_times(
     history: list[float] = []
     result = refine(problem, points, times, options)
     history.append(_median_residual(result))
+    start = times
+    first = reprojection_px(problem, result.points, rays)
+    spectral_px = float(np.median(first[np.isfinite(first)])) if np.isfinite(first).any() else float("nan")
     for _ in range(ROUNDS):
         times = retime(problem, rays, centers, result.points, times)
         result = refine(problem, points, times, options)
         history.append(_median_residual(result))
-    return FreeTimes(times=times, result=result, residual_px=history)
+    free = FreeTimes(times=times, result=result, residual_px=history, spectral_px=spectral_px)
+    _add_ordered(free, problem, points, start, options, rays)
+    return free
+
+
+def _add_ordered(
+    free: FreeTimes,
+    problem: Problem,
+    points: np.ndarray,
+    spectral: np.ndarray,
+    options: RefineOptions,
+    rays: np.ndarray,
+) -> None:
+    """The polished-order hypothesis: the spectral order polished on the seed's `points (F, P, 3)`, trajectories
+    on it, the order polished again on the trajectories (nearer the truth than the seed) and the trajectories
+    refined once more when it moved; then ROUNDS retime rounds from those times (noise moves a frame's best time
+    off its rank)."""
+    video = problem.video_index
+    num_videos = int(video.max()) + 1
+    order = np.argsort(spectral, kind="stable")
+    path = [order_path_length(order, points)]
+    order = polish_order(order, points, video)
+    path.append(order_path_length(order, points))
+    times = rank_times(order, num_videos)
+    result = refine(problem, points, times, options)
+    again = polish_order(order, result.points, video)
+    path.append(order_path_length(again, points))
+    if not np.array_equal(again, order):
+        times = rank_times(again, num_videos)
+        result = refine(problem, points, times, options)
+    free.rank_times, free.on_ranks, free.order_path = times, result, path
+    for _ in range(ROUNDS):
+        times = retime(problem, rays, problem.centers, result.points, times)
+        result = refine(problem, points, times, options)
+    free.ordered_times, free.ordered = times, result
+
+
+def rank_times(order: np.ndarray, num_videos: int) -> np.ndarray:
+    """(F,) times of frames evenly spaced in the global `order (F,)` (frame indices, earliest first), each video's
+    frames NOMINAL_PERIOD apart on average."""
+    times = np.empty(len(order))
+    times[order] = np.arange(len(order)) * NOMINAL_PERIOD / num_videos
+    return times
+
+
+class _ShapeDistance:
+    """Median over points of the distance between two frames' points (a few wrong points do not count)."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points  # (F, P, 3)
+        self.cache: dict[tuple[int, int], float] = {}
+
+    def __call__(self, a: int, b: int) -> float:
+        key = (a, b) if a < b else (b, a)
+        value = self.cache.get(key)
+        if value is None:
+            step = np.linalg.norm(self.points[a] - self.points[b], axis=-1)
+            step = step[np.isfinite(step)]
+            value = float(np.median(step)) if len(step) else 0.0
+            self.cache[key] = value
+        return value
+
+
+def order_path_length(order: np.ndarray, points: np.ndarray) -> float:
+    """Sum of the shape distances between consecutive frames of `order (F,)`, `points (F, P, 3)`."""
+    distance = _ShapeDistance(points)
+    return float(sum(distance(int(a), int(b)) for a, b in itertools.pairwise(order)))
+
+
+def polish_order(order: np.ndarray, points: np.ndarray, video_index: np.ndarray) -> np.ndarray:
+    """The global `order (F,)` with frames moved, one at a time and only between their own video's neighbours
+    (at most ORDER_BAND places), wherever the move shortens the path through the frames' shapes `points (F, P, 3)`:
+    the frames of a motion sampled densely lie on a short path in the order they were captured."""
+    distance = _ShapeDistance(points)
+    current = [int(f) for f in order]
+    F = len(current)
+    for _ in range(ORDER_SWEEPS):
+        moved = False
+        for i in range(F):
+            target = _best_insertion(current, i, distance, video_index)
+            if target is not None:
+                frame = current.pop(i)
+                current.insert(target, frame)
+                moved = True
+        if not moved:
+            break
+    return np.array(current, dtype=np.int64)
+
+
+def _best_insertion(order: list[int], i: int, distance: _ShapeDistance, video_index: np.ndarray) -> int | None:
+    """Where, in `order` without its i-th frame, that frame shortens the path most; None where nowhere does."""
+    F = len(order)
+    frame = order[i]
+    video = video_index[frame]
+    low = i - 1
+    while low >= 0 and video_index[order[low]] != video and i - low <= ORDER_BAND:
+        low -= 1
+    high = i + 1
+    while high < F and video_index[order[high]] != video and high - i <= ORDER_BAND:
+        high += 1
+    saved = 0.0
+    if i > 0:
+        saved += distance(order[i - 1], frame)
+    if i < F - 1:
+        saved += distance(frame, order[i + 1])
+    if 0 < i < F - 1:
+        saved -= distance(order[i - 1], order[i + 1])
+    rest = order[:i] + order[i + 1 :]
+    best, target = 1e-12, None
+    # inserting before rest[j]: positions between the video's neighbours, which sit at low and high - 1 in rest
+    for j in range(low + 1, high):
+        if j == i:
+            continue
+        before = rest[j - 1] if j > 0 else None
+        after = rest[j] if j < F - 1 else None
+        added = 0.0
+        if before is not None:
+            added += distance(before, frame)
+        if after is not None:
+            added += distance(frame, after)
+        if before is not None and after is not None:
+            added -= distance(before, after)
+        if saved - added > best:
+            best, target = saved - added, j
+    return target
 
 
 def _median_residual(result: RefineResult) -> float:

@@ -110,7 +110,7 @@ def _recover_and_refine(
     checks.extend(free_checks)
     if all(c.passed for c in free_checks):
         points, kept = judge.keep_seed_where_far(free.result)
-        report.update({"free_times_residual_px": free.residual_px, "seed_points_kept": kept})
+        report.update({"free_times_residual_px": free.residual_px, "seed_points_kept": kept, **judge.free_report()})
         refitted = clocks.refit(problem.video_index, free.times)
         kept_free = dataclasses.replace(free.result, points=points)
         return _finish(problem, result, refitted, kept_free, TimePath.FREE_TIMES, checks, report)
@@ -118,7 +118,7 @@ def _recover_and_refine(
         "refinement without a clock model not used either: %s; the self-expressive solve is kept",
         free_checks[-1].sentence(),
     )
-    report.update({"path": TimePath.SEED.value, "checks": [c.to_json() for c in checks]})
+    report.update({"path": TimePath.SEED.value, "checks": [c.to_json() for c in checks], **judge.free_report()})
     return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
 
 

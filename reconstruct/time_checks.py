@@ -3,12 +3,14 @@
 Before the clock model is used: every video clocked, W's links agree with it to within a frame period where frames
 have no decoder times (the model then assumes even spacing), and the track search found a distinct best offset.
 After a refinement: it fits its rays about as well as trajectories on free per-frame times do (the clock model
-costs no residual), and it moves the seed solve's points no further than the noise it removes. Every check has a
-name, a number and its limit, in report.json `temporal.checks`.
+costs no residual), and it moves the seed solve's points no further than the noise it removes. Without a clock
+model, the polished frame order is used only when its even times fit about as well as the spectral order's
+(`order_fit`). Every check has a name, a number and its limit, in report.json `temporal.checks`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -114,6 +116,9 @@ class RefinementJudge:
         self.options = options
         self.rays = viewing_rays(problem)
         self._free: FreeTimes | None = None
+        self._free_px = math.nan  # median residual on free per-frame times: clock_fit's yardstick
+        self._order_check: Check | None = None
+        self._on_order = False  # whether free() holds the polished order's result
 
     def residual(self, points: np.ndarray) -> float:
         """Median reprojection residual (px) of `points (F, P, 3)` over the observations."""
@@ -122,11 +127,47 @@ class RefinementJudge:
         return float(np.median(finite)) if len(finite) else math.nan
 
     def free(self) -> FreeTimes:
+        """The refinement without a clock model: from the polished frame order when its even times cost no residual
+        against the spectral order's (`order_fit`), else from the spectral order (retimed free times)."""
         if self._free is None:
-            self._free = refine_free_times(
-                self.problem, self.result.points, self.result.W.to_csc(), self.options, self.rays
-            )
+            free = refine_free_times(self.problem, self.result.points, self.result.W.to_csc(), self.options, self.rays)
+            self._free_px = self.residual(free.result.points)
+            self._order_check = self._order_fit(free)
+            if self._order_check is not None and self._order_check.passed and free.ordered is not None:
+                assert free.ordered_times is not None
+                free = dataclasses.replace(free, times=free.ordered_times, result=free.ordered)
+                self._on_order = True
+            self._free = free
         return self._free
+
+    def _order_fit(self, free: FreeTimes) -> Check | None:
+        if free.on_ranks is None:
+            return None
+        residual = self.residual(free.on_ranks.points)
+        # Against the spectral order's even times, the start it replaces (same freedom): free per-frame times can
+        # pass a spline through noisy rays, which makes their residual no yardstick there.
+        spectral = free.spectral_px
+        limit = max(FIT_PX, CLOCK_COST_FACTOR * spectral + CLOCK_COST_PX)
+        return Check(
+            name="order_fit",
+            value=residual,
+            limit=limit,
+            passed=residual <= limit,
+            meaning=(
+                f"median reprojection residual (px) on the polished frame order's even times, against"
+                f" {spectral:.3g} px on the spectral order's"
+            ),
+        )
+
+    def free_report(self) -> dict[str, Any]:
+        """Which times the refinement without a clock model used, and why (for report.json `temporal`)."""
+        free = self.free()
+        check = self._order_check
+        return {
+            "free_times_source": "order" if self._on_order else "retimed",
+            "free_times_order_fit": check.to_json() if check is not None else None,
+            "free_times_order_path": free.order_path,
+        }
 
     def clock_fit(self, refined: RefineResult, assumed: bool = True) -> list[Check]:
         """The clock model costs no residual: its trajectories fit the rays to FIT_PX, or about as well as
@@ -154,7 +195,8 @@ class RefinementJudge:
                     meaning="median reprojection residual (px) of the trajectories on the clocks",
                 )
             ]
-        free = self.residual(self.free().result.points)
+        self.free()
+        free = self._free_px
         limit = CLOCK_COST_FACTOR * free + CLOCK_COST_PX
         return [
             Check(
@@ -176,20 +218,29 @@ class RefinementJudge:
             f"share of the seed's points moved by more than {SEED_SHIFT_FACTOR:g} x the residual ({residual:.3g} px)"
             f" + {SEED_SHIFT_PX:g} px"
         )
-        return [
-            Check(
-                name=f"{label}_seed_shift",
-                value=share,
-                limit=MAX_FAR_SHARE,
-                passed=share <= MAX_FAR_SHARE,
-                meaning=meaning,
-            )
-        ]
+        # order_fit is a check of the path that used the order (when it failed: in free_report only)
+        used_order = self._on_order and self._order_check is not None and refined is self.free().result
+        order = [self._order_check] if used_order and self._order_check is not None else []
+        shift = Check(
+            name=f"{label}_seed_shift", value=share, limit=MAX_FAR_SHARE, passed=share <= MAX_FAR_SHARE, meaning=meaning
+        )
+        return [*order, shift]  # the seed shift last: temporal's warning names it
 
     def _far(self, refined: RefineResult) -> np.ndarray:
         """(F, P) bool: points the refinement moved from the seed's beyond the seed-agreement limit."""
         limit = SEED_SHIFT_FACTOR * self.residual(refined.points) + SEED_SHIFT_PX
         return ~(self.shifts_px(refined.points) <= limit) & np.isfinite(self.result.points[..., 0])
+
+    def _misfit(self, refined: RefineResult) -> np.ndarray:
+        """(F, P) bool: observations whose residual exceeds the seed-agreement limit; an unobserved point takes its
+        frame's median residual."""
+        values = reprojection_px(self.problem, refined.points, self.rays)
+        limit = SEED_SHIFT_FACTOR * self.residual(refined.points) + SEED_SHIFT_PX
+        frame = np.full(len(values), np.inf)
+        seen = np.isfinite(values).any(axis=1)
+        frame[seen] = np.nanmedian(values[seen], axis=1)
+        filled = np.where(np.isfinite(values), values, frame[:, None])
+        return ~(filled <= limit)
 
     def shifts_px(self, points: np.ndarray) -> np.ndarray:
         """(F, P) distance of `points` from the seed's, in pixels at the seed point's distance from the camera."""
@@ -203,6 +254,9 @@ class RefinementJudge:
         point is kept (a frame whose free time went wrong fits its rays at a wrong depth). Returns the points
         (F, P, 3) and the share of points kept from the seed."""
         far = self._far(refined)
+        if self._on_order and refined is self.free().result:
+            # from a checked order a far point that fits its ray is kept: corrected seed points are the ones that move
+            far &= self._misfit(refined)
         points = np.where(far[..., None], self.result.points, refined.points)
         counted = np.isfinite(self.result.points[..., 0])
         return points, float(far[counted].mean()) if counted.any() else 0.0
