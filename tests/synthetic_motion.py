@@ -37,6 +37,12 @@ def truth_array(problem: Problem, truth: FramePoints) -> np.ndarray:
     return np.stack([truth.xyz[index[(v, int(f))]] for v, f in zip(problem.frame_videos, problem.frames, strict=True)])
 
 
+def share_within_10mm(points: np.ndarray, truth: np.ndarray) -> float:
+    """Share of the finite points `(F, P, 3)` within 10 mm of `truth`."""
+    error = np.linalg.norm(points - truth, axis=-1)
+    return float(np.mean(error[np.isfinite(error)] < 10.0))
+
+
 def simulated_phones(out: Path, rate: float = 120.0) -> Path:
     """`dynrecon simulate --mode phones` of 1.5 s of an 8-point smooth motion: three static phones at 30, 25 and
     20 fps with known clocks (offsets 0-0.3 s). Returns the simulation folder (cameras.json, tracks.csv,

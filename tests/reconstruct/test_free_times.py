@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from synthetic_motion import smooth_motion, synthetic_problem, truth_array
+from synthetic_motion import share_within_10mm, smooth_motion
 
 from reconstruct.free_times import (
     NOMINAL_PERIOD,
@@ -14,24 +14,9 @@ from reconstruct.free_times import (
     rank_times,
     spectral_times,
 )
-from reconstruct.solver.alternation import solve
 from reconstruct.temporal import recover_and_refine
 from reconstruct.time_checks import RefinementJudge
 from reconstruct.trajectory import RefineOptions
-
-
-def _share(points: np.ndarray, truth: np.ndarray) -> float:
-    error = np.linalg.norm(points - truth, axis=-1)
-    return float(np.mean(error[np.isfinite(error)] < 10.0))
-
-
-@pytest.fixture(scope="module")
-def no_times():
-    """The paper's protocol: captures assigned to random cameras, neither times nor fps."""
-    problem, truth = synthetic_problem(frames=200, points=6, seed=3)
-    true_times = problem.times.copy()
-    problem.times = np.full(problem.num_frames, np.nan)
-    return problem, truth_array(problem, truth), solve(problem), true_times
 
 
 def _interleaved(frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,7 +120,7 @@ def test_no_times_default_solve_is_never_below_the_seed(no_times):
     problem, truth, seed, _ = no_times
     temporal = recover_and_refine(problem, seed)
     assert temporal.report["path"] in ("free_times", "seed")
-    assert _share(temporal.points, truth) >= _share(seed.points, truth)
+    assert share_within_10mm(temporal.points, truth) >= share_within_10mm(seed.points, truth)
     for v in range(len(problem.video_names)):  # each video's frames stay in order
         own = np.flatnonzero(problem.video_index == v)
         assert np.all(np.diff(temporal.times[own[np.argsort(problem.frames[own])]]) > 0)

@@ -7,8 +7,7 @@ import dataclasses
 import logging
 
 import numpy as np
-import pytest
-from synthetic_motion import synthetic_problem, truth_array
+from synthetic_motion import share_within_10mm, synthetic_problem, truth_array
 
 from reconstruct.clocks.estimate import ClockOptions
 from reconstruct.clocks.model import Clocks, TimeSource
@@ -17,20 +16,6 @@ from reconstruct.solver.alternation import solve
 from reconstruct.temporal import TemporalOptions, recover_and_refine
 from reconstruct.time_checks import MIN_DISTINCTNESS, RefinementJudge, clock_checks
 from reconstruct.trajectory import RefineOptions, RefineResult
-
-
-def _share(points: np.ndarray, truth: np.ndarray) -> float:
-    error = np.linalg.norm(points - truth, axis=-1)
-    return float(np.mean(error[np.isfinite(error)] < 10.0))
-
-
-@pytest.fixture(scope="module")
-def no_times():
-    """The paper's protocol as published: captures assigned to random cameras, neither times nor fps."""
-    problem, truth = synthetic_problem(frames=200, points=6, seed=3)
-    true_times = problem.times.copy()
-    problem.times = np.full(problem.num_frames, np.nan)
-    return problem, truth_array(problem, truth), solve(problem), true_times
 
 
 def test_no_fps_and_no_times_refines_without_a_clock_model_and_beats_the_seed(no_times, caplog):
@@ -42,7 +27,7 @@ def test_no_fps_and_no_times_refines_without_a_clock_model_and_beats_the_seed(no
     failed = [c for c in report["checks"] if not c["passed"]]
     assert failed and failed[0]["name"] in ("link_residual", "track_distinctness")
     assert "clock model not used" in caplog.text and failed[0]["name"] in caplog.text
-    assert _share(temporal.points, truth) >= _share(seed.points, truth)
+    assert share_within_10mm(temporal.points, truth) >= share_within_10mm(seed.points, truth)
     assert np.median(np.linalg.norm(temporal.points - truth, axis=-1)) < np.median(
         np.linalg.norm(seed.points - truth, axis=-1)
     )
@@ -61,7 +46,7 @@ def test_irregular_frames_with_a_false_nominal_fps_are_refused(no_times, caplog)
     assert {c.time_source for c in temporal.clocks.videos} == {TimeSource.FPS}
     assert temporal.report["path"] in ("free_times", "seed")
     assert any(not c["passed"] for c in temporal.report["checks"]) and "clock model not used" in caplog.text
-    assert _share(temporal.points, truth) >= _share(seed.points, truth)
+    assert share_within_10mm(temporal.points, truth) >= share_within_10mm(seed.points, truth)
 
 
 def test_a_clock_search_without_a_clear_winner_is_not_used(no_times):
@@ -99,7 +84,8 @@ def test_decoder_times_keep_the_clock_path():
     temporal = recover_and_refine(problem, seed)
     assert temporal.report["path"] == "clocks"
     assert all(c["passed"] for c in temporal.report["checks"])
-    assert _share(temporal.points, truth_array(problem, truth)) >= _share(seed.points, truth_array(problem, truth))
+    expected = truth_array(problem, truth)
+    assert share_within_10mm(temporal.points, expected) >= share_within_10mm(seed.points, expected)
 
 
 def test_spectral_times_follow_the_capture_order(no_times):
