@@ -186,5 +186,7 @@ def _report(
             for p in result.pairs
         ],
         "failed": result.failed,
+        "lens": result.lens.value,
+        "lens_check": result.lens_check,
         "stability": stability.to_json(),
     }

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import (
+    Lens,
     PairResult,
     SubjectCalibrationError,
     SubjectCamera,
@@ -17,6 +18,7 @@ from sfm.subject.model import (
 )
 
 __all__ = [
+    "Lens",
     "PairResult",
     "SubjectCalibrationError",
     "SubjectCamera",

@@ -6,6 +6,7 @@ so the offsets get gradients; a small acceleration penalty determines the knots 
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,8 +24,8 @@ from sfm.subject.observations import VideoObs
 log = logging.getLogger(__name__)
 
 SMOOTH = 0.05  # weight of the acceleration residual (pixels per pixel of second difference)
-NK = 3  # intrinsics of an unknown-K camera: focal, k1, k2 (the principal point stays at the image centre)
 FOCAL_SIGMA = 0.1  # relative error of the self-calibrated focal, pulled with the weight of all observations
+DIST_SIGMA = 0.1  # k1, k2 near 0 within this, weighted like one pixel of residual
 
 
 @dataclass(kw_only=True)
@@ -35,7 +36,7 @@ class Bundle:
     focal: np.ndarray  # (C,) pixels (used for the unknown-K cameras; known ones keep K)
     k1: np.ndarray  # (C,)
     k2: np.ndarray  # (C,)
-    pp: np.ndarray  # (C, 2) principal points (pixels) of the unknown-K cameras (held: the tracks cannot fix them)
+    pp: np.ndarray  # (C, 2) principal points (pixels) of the unknown-K cameras
     offsets: np.ndarray  # (V,) seconds
     knots: Knots
     fixed_pose: set[int]  # positions in `cams` whose pose is not adjusted
@@ -44,6 +45,15 @@ class Bundle:
     keep: list[np.ndarray]  # per camera position: (F, P) observations still trusted
     depth: float = 1.0  # typical camera-to-subject distance (turns the acceleration penalty into pixels)
     focal_prior: np.ndarray | None = None  # (C,) self-calibrated focals the adjusted ones are pulled to
+    focal_sigma: float = FOCAL_SIGMA  # relative; the prior weighs like all of the camera's observations
+    # (C, 2) image centres the principal points are pulled to, None = principal points held
+    pp_prior: np.ndarray | None = None
+    pp_sigma: float = 0.0  # pixels; the prior weighs like all of the camera's observations
+
+
+def _nk(b: Bundle) -> int:
+    """Intrinsics adjusted per unknown-K camera: focal, k1, k2 (and cx, cy when the principal point is free)."""
+    return 5 if b.pp_prior is not None else 3
 
 
 def _obs_arrays(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
@@ -73,13 +83,14 @@ def _layout(b: Bundle, obs: list[VideoObs]) -> tuple[list[int], list[int], list[
     free_pose = [j for j in range(len(b.cams)) if j not in b.fixed_pose]
     free_k = [j for j, c in enumerate(b.cams) if not obs[c].known_K]
     free_o = [j for j, c in enumerate(b.cams) if c not in b.fixed_offset]
-    n = 6 * len(free_pose) + NK * len(free_k) + len(free_o)
+    n = 6 * len(free_pose) + _nk(b) * len(free_k) + len(free_o)
     return free_pose, free_k, free_o, n
 
 
 def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, ...]:
     free_pose, free_k, free_o, n = _layout(b, obs)
-    rvec, t, focal, k1, k2, pp = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy(), b.k2.copy(), b.pp
+    rvec, t, focal, k1, k2, pp = b.rvec.copy(), b.t.copy(), b.focal.copy(), b.k1.copy(), b.k2.copy(), b.pp.copy()
+    nk = _nk(b)
     off = np.array([b.offsets[c] for c in b.cams])
     i = 0
     for j in free_pose:
@@ -87,7 +98,9 @@ def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, 
         i += 6
     for j in free_k:
         focal[j], k1[j], k2[j] = x[i], x[i + 1], x[i + 2]
-        i += NK
+        if nk == 5:
+            pp[j] = x[i + 3 : i + 5]
+        i += nk
     for j in free_o:
         off[j] = x[i]
         i += 1
@@ -98,7 +111,7 @@ def _unpack(b: Bundle, obs: list[VideoObs], x: np.ndarray) -> tuple[np.ndarray, 
 def _pack(b: Bundle, obs: list[VideoObs]) -> np.ndarray:
     free_pose, free_k, free_o, _ = _layout(b, obs)
     parts = [np.concatenate([b.rvec[j], b.t[j]]) for j in free_pose]
-    parts += [np.array([b.focal[j], b.k1[j], b.k2[j]]) for j in free_k]
+    parts += [np.array([b.focal[j], b.k1[j], b.k2[j], *(b.pp[j] if _nk(b) == 5 else [])]) for j in free_k]
     parts += [np.array([b.offsets[b.cams[j]]]) for j in free_o]
     return np.concatenate([*parts, b.knots.X.ravel()]) if parts else b.knots.X.ravel().copy()
 
@@ -133,12 +146,15 @@ def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple
         ca, cb = -R[ja].T @ t[ja], -R[jb].T @ t[jb]
         extra.append(np.array([1e3 * (np.linalg.norm(ca - cb) - d) / d]))
     free_k = [j for j, c in enumerate(b.cams) if not obs[c].known_K]
-    # weak prior (like one pixel of residual): distortion near 0 +- 0.1
-    extra.append(np.concatenate([k1[free_k], k2[free_k]]) * 10.0)
+    # weak prior (like one pixel of residual): distortion near 0
+    extra.append(np.concatenate([k1[free_k], k2[free_k]]) / DIST_SIGMA)
+    n_obs = np.sqrt(np.array([len(arrays[j][1]) for j in free_k], dtype=float))
     if b.focal_prior is not None and free_k:
         # weighted like all of the camera's observations: otherwise the focal trades off against distortion
-        n_obs = np.array([len(arrays[j][1]) for j in free_k], dtype=float)
-        extra.append(np.log(focal[free_k] / b.focal_prior[free_k]) / FOCAL_SIGMA * np.sqrt(n_obs))
+        ratio = np.maximum(focal[free_k], 1e-6) / b.focal_prior[free_k]
+        extra.append(np.log(ratio) / b.focal_sigma * n_obs)
+    if b.pp_prior is not None and free_k:
+        extra.append(((pp[free_k] - b.pp_prior[free_k]) / b.pp_sigma * n_obs[:, None]).ravel())
     return out, np.concatenate(extra)
 
 
@@ -146,8 +162,9 @@ def _sparsity(b: Bundle, obs: list[VideoObs], arrays: list, n_res: int) -> coo_m
     free_pose, free_k, free_o, n = _layout(b, obs)
     T, P, _ = b.knots.X.shape
     col_pose = {j: 6 * i for i, j in enumerate(free_pose)}
-    col_k = {j: 6 * len(free_pose) + NK * i for i, j in enumerate(free_k)}
-    col_o = {j: 6 * len(free_pose) + NK * len(free_k) + i for i, j in enumerate(free_o)}
+    nk = _nk(b)
+    col_k = {j: 6 * len(free_pose) + nk * i for i, j in enumerate(free_k)}
+    col_o = {j: 6 * len(free_pose) + nk * len(free_k) + i for i, j in enumerate(free_o)}
     rows, cols = [], []
     r0 = 0
     for j in range(len(b.cams)):
@@ -159,7 +176,7 @@ def _sparsity(b: Bundle, obs: list[VideoObs], arrays: list, n_res: int) -> coo_m
         if j in col_pose:
             block.append(col_pose[j] + np.arange(6))
         if j in col_k:
-            block.append(col_k[j] + np.arange(NK))
+            block.append(col_k[j] + np.arange(nk))
         if j in col_o:
             block.append(np.array([col_o[j]]))
         if block:
@@ -255,6 +272,31 @@ def _residuals_px(b: Bundle, obs: list[VideoObs]) -> list[tuple[np.ndarray, np.n
         _, p, _, f = arrays[j]
         out.append((np.linalg.norm(res[j], axis=1), f, p))
     return out
+
+
+def held_out_px(b: Bundle, obs: list[VideoObs], inlier_px: float, block: float, test: list[np.ndarray]) -> float:
+    """Median reprojection error (pixels) of observations the adjustment did not see.
+
+    `test`: per camera position, (F, P) candidate observations. Camera j's observations in its own-time blocks
+    `block` long with (index + j) even are left out, so that at any time other cameras still fix the subject;
+    a copy of `b` is adjusted without them, and they are predicted by the copy. `b` and `obs` are unchanged."""
+    trial = copy.deepcopy(b)
+    saved = [o.K.copy() for o in obs]
+    held = []
+    for j, c in enumerate(trial.cams):
+        out = test[j] & ((np.floor(obs[c].times / block).astype(np.int64) + j) % 2 == 0)[:, None]
+        trial.keep[j] = trial.keep[j] & ~out
+        held.append(out)
+    try:
+        adjust(trial, obs, inlier_px, rounds=1)
+        trial.keep = held
+        errors = [r for r, _, _ in _residuals_px(trial, obs)]
+    finally:
+        for o, K in zip(obs, saved, strict=True):
+            o.K = K
+    pooled = np.concatenate(errors) if errors else np.zeros(0)
+    pooled = pooled[np.isfinite(pooled)]
+    return float(np.median(pooled)) if len(pooled) else float("inf")
 
 
 def supported(b: Bundle, obs: list[VideoObs]) -> np.ndarray:

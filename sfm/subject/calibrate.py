@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 from typing import NoReturn
 
 import numpy as np
 
-from sfm.subject.bundle import Bundle, adjust, camera_residuals, residuals_px, rotation, supported
+from sfm.subject.bundle import Bundle, adjust, camera_residuals, held_out_px, residuals_px, rotation, supported
 from sfm.subject.chain import Knots, initial_poses, make_knots
-from sfm.subject.focals import self_calibrate
+from sfm.subject.focals import division_to_opencv, estimate_distortion, self_calibrate
 from sfm.subject.model import (
     INLIER_PX,
     MAX_RESIDUAL_PX,
@@ -17,6 +18,7 @@ from sfm.subject.model import (
     MIN_INLIERS,
     MIN_SHARED,
     SEED,
+    Lens,
     PairResult,
     SubjectCalibrationError,
     SubjectCamera,
@@ -24,12 +26,17 @@ from sfm.subject.model import (
     SubjectResult,
     SubjectVideo,
 )
-from sfm.subject.observations import VideoObs, build_observations
+from sfm.subject.observations import VideoObs, build_observations, normalize
 from sfm.subject.offsets import solve_offsets
 from sfm.subject.pairs import DISTINCT, PairFit, fit_at, fit_pair
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
+
+PP_SIGMA = 0.0  # principal point prior around the image centre (fraction of the long side); 0 = held there
+HELD_OUT_GAIN = 0.95  # radial distortion is kept where it predicts held-out observations this much better
+BLOCK_S = 0.5  # seconds of a camera's own time per held-out block
+FOCAL_SIGMA = 0.1  # relative prior on the self-calibrated focal (weighted like all of a camera's observations)
 
 
 def calibrate_from_subject(
@@ -61,12 +68,7 @@ def calibrate_from_subject(
     kept_fits = _refit_to_offsets(obs, usable, kept, offsets)
     if not kept_fits:
         raise SubjectCalibrationError("no pair's epipolar geometry agrees with the chained time offsets")
-    _estimate_focals(obs, kept_fits)
-    knots = make_knots(obs, offsets, len(points))
-    poses = initial_poses(obs, offsets, kept_fits, knots, INLIER_PX, failed)
-    bundle = _initial_bundle(obs, poses, offsets, knots, reference)
-    adjust(bundle, obs, INLIER_PX)
-    _refuse_unsupported(bundle, obs, failed)
+    lens, obs, bundle, lens_check = _choose_lens(obs, kept_fits, offsets, len(points), reference, failed, options)
     metric, fixed_anchor = _fix_frame(bundle, obs, videos)
     bundle.knots.X[~supported(bundle, obs)] = np.nan  # knots no two cameras see are extrapolations
     if options.scale is not None and not metric:
@@ -79,7 +81,81 @@ def calibrate_from_subject(
         metric=metric,
         points={p: bundle.knots.X[:, i].copy() for i, p in enumerate(points)},
         times=bundle.knots.times,
+        lens=lens,
+        lens_check=lens_check,
     )
+
+
+def _adjusted(
+    obs: list[VideoObs],
+    fits: list[PairFit],
+    offsets: np.ndarray,
+    n_points: int,
+    reference: int,
+    failed: dict[str, str],
+    lens: Lens,
+) -> tuple[Bundle, bool]:
+    """Intrinsics of the unknown-K cameras, chained poses and the bundle adjustment with one lens model (`obs`,
+    `fits` and `failed` are updated). Returns the bundle and whether any distortion was estimated."""
+    radial = _estimate_focals(obs, fits, lens is Lens.RADIAL)
+    knots = make_knots(obs, offsets, n_points)
+    poses = initial_poses(obs, offsets, fits, knots, INLIER_PX, failed)
+    bundle = _initial_bundle(obs, poses, offsets, knots, reference)
+    adjust(bundle, obs, INLIER_PX)
+    _refuse_unsupported(bundle, obs, failed)
+    return bundle, radial
+
+
+def _choose_lens(
+    obs: list[VideoObs],
+    fits: list[PairFit],
+    offsets: np.ndarray,
+    n_points: int,
+    reference: int,
+    failed: dict[str, str],
+    options: SubjectOptions,
+) -> tuple[Lens, list[VideoObs], Bundle, dict[str, float]]:
+    """The bundle with the lens model of `options` or, with AUTO and unknown intrinsics, the simpler model
+    (FOCAL) unless radial distortion predicts held-out observations better by HELD_OUT_GAIN. Returns the model,
+    the observations and bundle it was solved with, and the held-out errors compared."""
+    unknown = any(not o.known_K for o in obs)
+    if options.lens is not Lens.AUTO or not unknown:
+        fixed = options.lens if unknown and options.lens is not Lens.AUTO else Lens.FOCAL
+        bundle, _ = _adjusted(obs, fits, offsets, n_points, reference, failed, fixed)
+        return fixed, obs, bundle, {}
+    tried: dict[Lens, tuple[list[VideoObs], Bundle, dict[str, str]]] = {}
+    error: SubjectCalibrationError | None = None
+    for lens in (Lens.FOCAL, Lens.RADIAL):
+        mine, mine_fits, mine_failed = copy.deepcopy(obs), copy.deepcopy(fits), dict(failed)
+        try:
+            bundle, radial = _adjusted(mine, mine_fits, offsets, n_points, reference, mine_failed, lens)
+        except SubjectCalibrationError as e:
+            error = error or e
+            continue
+        if lens is Lens.RADIAL and not radial:
+            break  # no distortion found: the same model as FOCAL
+        tried[lens] = (mine, bundle, mine_failed)
+    if not tried:
+        assert error is not None
+        raise error
+    check: dict[str, float] = {}
+    chosen = Lens.FOCAL if Lens.FOCAL in tried else Lens.RADIAL
+    if len(tried) == 2:  # the same observations left out of both
+        for lens, (mine, bundle, _) in tried.items():
+            test = [_thinned(mine[c]) for c in bundle.cams]
+            check[lens.value] = held_out_px(bundle, mine, INLIER_PX, BLOCK_S, test)
+        simple, rich = tried[Lens.FOCAL][1], tried[Lens.RADIAL][1]
+        if len(rich.cams) >= len(simple.cams) and check["radial"] < HELD_OUT_GAIN * check["focal"]:
+            chosen = Lens.RADIAL
+    log.info(
+        "lens model: %s (held-out median reprojection error: %s)",
+        chosen.value,
+        ", ".join(f"{k} {v:.3f} px" for k, v in check.items()) or "one model tried",
+    )
+    mine, bundle, mine_failed = tried[chosen]
+    failed.clear()
+    failed.update(mine_failed)
+    return chosen, mine, bundle, check
 
 
 def _check_scale_points(points: list[str], options: SubjectOptions) -> None:
@@ -176,8 +252,8 @@ def _initial_bundle(
         rvec=np.array([rotation_vector(poses[c][0]) for c in cams]),
         t=np.array([poses[c][1] for c in cams]),
         focal=np.array([obs[c].focal for c in cams]),
-        k1=np.zeros(len(cams)),
-        k2=np.zeros(len(cams)),
+        k1=np.array([_dist(obs[c])[0] for c in cams]),
+        k2=np.array([_dist(obs[c])[1] for c in cams]),
         pp=np.array([obs[c].K[:2, 2] for c in cams]),
         offsets=offsets.copy(),
         knots=knots,
@@ -191,7 +267,15 @@ def _initial_bundle(
     finite = np.isfinite(knots.X[..., 0])
     bundle.depth = float(np.median(np.linalg.norm(knots.X[finite], axis=-1))) if finite.any() else 1.0
     bundle.focal_prior = bundle.focal.copy()
+    if PP_SIGMA > 0:
+        bundle.pp_prior = np.array([obs[c].video_centre for c in cams])
+        bundle.pp_sigma = PP_SIGMA * max(max(obs[c].video.width, obs[c].video.height) for c in cams)
+    bundle.focal_sigma = FOCAL_SIGMA
     return bundle
+
+
+def _dist(o: VideoObs) -> np.ndarray:
+    return np.zeros(5) if o.known_K or o.dist is None else o.dist
 
 
 def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> None:
@@ -300,6 +384,8 @@ def _drop(b: Bundle, positions: list[int]) -> None:
     b.k1, b.k2, b.pp = b.k1[keep], b.k2[keep], b.pp[keep]
     if b.focal_prior is not None:
         b.focal_prior = b.focal_prior[keep]
+    if b.pp_prior is not None:
+        b.pp_prior = b.pp_prior[keep]
     b.keep = [b.keep[j] for j in keep]
     if len(keep) < 2:
         return
@@ -355,11 +441,14 @@ def _refit_to_offsets(
     return out
 
 
-def _estimate_focals(obs: list[VideoObs], fits: list[PairFit]) -> None:
-    """Unknown K: focals that make every pair's fundamental matrix most essential (self-calibration)."""
+def _estimate_focals(obs: list[VideoObs], fits: list[PairFit], radial: bool) -> bool:
+    """Unknown K: focals that make every pair's fundamental matrix most essential (self-calibration), after the
+    radial distortion (when `radial`) that makes the pairs' epipolar geometry fit best. Returns whether any
+    distortion was found."""
     unknown = [i for i, o in enumerate(obs) if not o.known_K]
     if not unknown:
-        return
+        return False
+    lam = estimate_distortion(obs, fits) if radial else {}
     focals = self_calibrate(obs, fits)
     for i in unknown:
         new = focals.get(i)
@@ -367,13 +456,25 @@ def _estimate_focals(obs: list[VideoObs], fits: list[PairFit]) -> None:
             continue
         o = obs[i]
         old = o.focal
-        log.info("camera %s: focal %.0f px from self-calibration", o.name, new)
-        o.set_focal(new)
-        for f in fits:  # no distortion without K: normalized coordinates just scale with 1 / focal
+        half = 0.5 * max(o.video.width, o.video.height)
+        if lam.get(i, 0.0) != 0.0:
+            o.dist = division_to_opencv(lam[i], new, half, o.video.width, o.video.height)
+        log.info("camera %s: focal %.0f px, distortion %s from self-calibration", o.name, new, o.dist)
+        for f in fits:  # the pixels (centred on the principal point) normalized again with the new focal and lens
             if f.a == i:
-                f.xa = f.xa * (old / new)
+                f.xa = _renormalized(f.xa * old, o, new)
             if f.b == i:
-                f.xb = f.xb * (old / new)
+                f.xb = _renormalized(f.xb * old, o, new)
+        o.set_focal(new)
+    return any(v != 0.0 for v in lam.values())
+
+
+def _renormalized(centred: np.ndarray, o: VideoObs, focal: float) -> np.ndarray:
+    """centred: (N, 2) pixels from the principal point -> (N, 2) normalized with `focal` and `o.dist`."""
+    if o.dist is None:
+        return centred / focal
+    K = np.array([[focal, 0, o.K[0, 2]], [0, focal, o.K[1, 2]], [0, 0, 1.0]])
+    return normalize(centred + o.K[:2, 2], K, o.dist)
 
 
 def _align_to_anchors(b: Bundle, videos: list[SubjectVideo], anchors: list[int]) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -35,6 +36,14 @@ MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above thi
 MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
 
 
+class Lens(Enum):
+    """Lens model of the cameras without known intrinsics."""
+
+    AUTO = "auto"  # radial distortion when it predicts held-out observations better, else focal only
+    FOCAL = "focal"  # focal from self-calibration, no distortion at the start (k1, k2 start at 0)
+    RADIAL = "radial"  # radial distortion estimated from the pairs' epipolar geometry before the focal
+
+
 @dataclass(kw_only=True)
 class SubjectOptions:
     max_offset: float = 10.0  # seconds searched each way for a pair's time offset
@@ -42,6 +51,7 @@ class SubjectOptions:
     # Known clock offsets (s, global = own + offset; e.g. from an earlier solve): pairs are fitted at the offsets
     # they imply instead of searched.
     offsets: dict[str, float] | None = None
+    lens: Lens = Lens.AUTO  # cameras without known intrinsics (the stability folds reuse the chosen one)
 
 
 @dataclass(kw_only=True)
@@ -82,6 +92,9 @@ class SubjectResult:
     metric: bool  # True when the scale came from options.scale or from anchors
     points: dict[str, np.ndarray] = field(default_factory=dict)  # point name -> (T, 3) trajectory samples
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) global times of the `points` samples
+    lens: Lens = Lens.FOCAL  # the lens model used (FOCAL or RADIAL)
+    # held-out median reprojection error (pixels) of each lens model tried, when AUTO compared them
+    lens_check: dict[str, float] = field(default_factory=dict)
 
     def camera(self, name: str) -> SubjectCamera | None:
         return next((c for c in self.cameras if c.name == name), None)

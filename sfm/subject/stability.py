@@ -86,7 +86,10 @@ def check_stability(
     verified: set[str] = set()
     failures = []
     # The folds keep the whole solution's clock offsets: they test the geometry, and skip the offset search.
-    fold_options = dataclasses.replace(options or SubjectOptions(), offsets={c.name: c.offset for c in result.cameras})
+    # ... and its lens model: the folds test the poses, not the model choice.
+    fold_options = dataclasses.replace(
+        options or SubjectOptions(), offsets={c.name: c.offset for c in result.cameras}, lens=result.lens
+    )
     for fold in range(FOLDS):
         try:
             part = calibrate_from_subject(_fold(tracks, videos, fold), videos, fold_options)

@@ -88,9 +88,15 @@ def make_rig(
     false_rate: float = 0.0,
     known_K: bool = True,
     distortion: bool = True,
+    focal: float | None = None,
+    k1: float | None = None,
+    pp_sigma: float = 5.0,
     seed: int = 0,
 ) -> tuple[Tracks, list[SubjectVideo], Truth]:
-    """Cameras around the scene, looking at its middle; video v's own clock starts at global time offsets[v]."""
+    """Cameras around the scene, looking at its middle; video v's own clock starts at global time offsets[v].
+
+    `focal` (in units of the image width) and `k1` (with k2 = 0.01) make every camera the same lens (identical
+    webcams; a wide-angle one with a small focal and a strong k1); `pp_sigma`: pixels of principal point scatter."""
     rng = np.random.default_rng(seed)
     motion: Callable[[np.ndarray], np.ndarray]
     if kind in ("skeleton", "sway"):
@@ -113,8 +119,11 @@ def make_rig(
         R, t = _look_at(centre, target + rng.normal(0, 3.0 if kind in ("flight", "line") else 0.3, 3))
         # the flight fits in every view: wider lenses for the nearer cameras
         f = rng.uniform(0.85, 1.1) * width * (min(1.0, r / 110) if kind in ("flight", "line") else 1.0)
-        K = np.array([[f, 0, width / 2 + rng.normal(0, 5)], [0, f, hgt / 2 + rng.normal(0, 5)], [0, 0, 1.0]])
-        dist = np.array([rng.uniform(-0.12, 0.05), 0.01, 0.0, 0.0, 0.0]) if distortion else None
+        f = f if focal is None else focal * width
+        pp = rng.normal(0, 1, 2) * pp_sigma
+        K = np.array([[f, 0, width / 2 + pp[0]], [0, f, hgt / 2 + pp[1]], [0, 0, 1.0]])
+        lens_k1 = rng.uniform(-0.12, 0.05) if k1 is None else k1
+        dist = np.array([lens_k1, 0.01, 0.0, 0.0, 0.0]) if distortion else None
         period = 1.0 / fps[v % len(fps)]
         offset = offsets[v % len(offsets)] if v else 0.0
         own = np.arange(0.0, duration - max(offset, 0.0), period)  # own clock from 0; global = own + offset
