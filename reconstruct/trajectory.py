@@ -60,9 +60,9 @@ OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an out
 # Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
 # concurrent frames cannot make the system ill-conditioned.
 MERGE_FRACTION = 0.01
-# Threads for independent points (their banded solves and selected inverses): LAPACK and numpy's array
-# operations release the GIL. Each refinement and polish round has its own, so parallel solves do not queue.
-WORKERS = 2
+# Threads for independent points (their banded solves and selected inverses; bit-identical for any count). One:
+# on an idle 2-core machine a second thread gave no wall time back and cost CPU (docs/measurements.md).
+WORKERS = 1
 
 
 class RobustLoss(enum.Enum):
