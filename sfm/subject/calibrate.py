@@ -93,17 +93,15 @@ def _adjusted(
     n_points: int,
     reference: int,
     failed: dict[str, str],
-    lens: Lens,
-) -> tuple[Bundle, bool]:
-    """Intrinsics of the unknown-K cameras, chained poses and the bundle adjustment with one lens model (`obs`,
-    `fits` and `failed` are updated). Returns the bundle and whether any distortion was estimated."""
-    radial = _estimate_focals(obs, fits, lens is Lens.RADIAL)
+) -> Bundle:
+    """Chained poses and the bundle adjustment, once `_estimate_focals` has set the unknown-K cameras' intrinsics
+    (`obs` and `failed` are updated)."""
     knots = make_knots(obs, offsets, n_points)
     poses = initial_poses(obs, offsets, fits, knots, INLIER_PX, failed)
     bundle = _initial_bundle(obs, poses, offsets, knots, reference)
     adjust(bundle, obs, INLIER_PX)
     _refuse_unsupported(bundle, obs, failed)
-    return bundle, radial
+    return bundle
 
 
 def _choose_lens(
@@ -121,19 +119,20 @@ def _choose_lens(
     unknown = any(not o.known_K for o in obs)
     if options.lens is not Lens.AUTO or not unknown:
         fixed = options.lens if unknown and options.lens is not Lens.AUTO else Lens.FOCAL
-        bundle, _ = _adjusted(obs, fits, offsets, n_points, reference, failed, fixed)
-        return fixed, obs, bundle, {}
+        _estimate_focals(obs, fits, fixed is Lens.RADIAL)
+        return fixed, obs, _adjusted(obs, fits, offsets, n_points, reference, failed), {}
     tried: dict[Lens, tuple[list[VideoObs], Bundle, dict[str, str]]] = {}
     error: SubjectCalibrationError | None = None
     for lens in (Lens.FOCAL, Lens.RADIAL):
         mine, mine_fits, mine_failed = copy.deepcopy(obs), copy.deepcopy(fits), dict(failed)
         try:
-            bundle, radial = _adjusted(mine, mine_fits, offsets, n_points, reference, mine_failed, lens)
+            radial = _estimate_focals(mine, mine_fits, lens is Lens.RADIAL)
+            if lens is Lens.RADIAL and not radial:
+                break  # no distortion found: the same model as FOCAL, whose bundle is not solved again
+            bundle = _adjusted(mine, mine_fits, offsets, n_points, reference, mine_failed)
         except SubjectCalibrationError as e:
             error = error or e
             continue
-        if lens is Lens.RADIAL and not radial:
-            break  # no distortion found: the same model as FOCAL
         tried[lens] = (mine, bundle, mine_failed)
     if not tried:
         assert error is not None
