@@ -30,6 +30,7 @@ import itertools
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -313,6 +314,11 @@ class _Track:
         return _data_blocks(self.rays, self.centers, self.weights * self.s2, self.node, n)
 
 
+def _threads() -> AbstractContextManager[ThreadPoolExecutor | None]:
+    """A pool of WORKERS threads for one refinement or polish round; None with one worker (no thread hop)."""
+    return ThreadPoolExecutor(WORKERS) if WORKERS > 1 else nullcontext(None)
+
+
 def refine(
     problem: Problem, points: np.ndarray, times: np.ndarray, options: RefineOptions | None = None
 ) -> RefineResult:
@@ -342,7 +348,7 @@ def refine(
         track.weights = robust_weights(residual, options.loss, track.scale)
 
     cost: list[float] = []
-    with ThreadPoolExecutor(WORKERS) as pool:
+    with _threads() as pool:
         for _ in range(max(GCV_PASSES, 1)):
             if tracks:
                 _choose_smoothness(tracks, prior, grid, n, options, pool)
@@ -762,7 +768,7 @@ def _clock_round(
         reference = int(np.argmax(counts))
     middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
     correction = ClockCorrection.none(middle)
-    with ThreadPoolExecutor(WORKERS) as pool:
+    with _threads() as pool:
         cost = _PolishCost(problem, first, times, pool)
         history = _coordinate_descent(cost, times, problem.video_index, correction, rates)
     adjusted, correction = correction.in_gauge_of(reference, times, problem.video_index)
