@@ -735,6 +735,9 @@ def refine_with_clocks(
     at_input = result.at_input
     history = list(result.cost)
     for _ in range(POLISH_ROUNDS - 1):
+        if np.array_equal(result.times, times):
+            break  # no clock moved: another round would repeat this one exactly
+        times = result.times
         # the round's own first refinement would repeat the last one (same inputs): start from it
         result = _clock_round(problem, points, result.times, options, reference, rates, result.result)
         history.extend(result.cost)
@@ -949,7 +952,7 @@ def _coordinate_descent(
                         moved = ClockCorrection(middle=correction.middle, offset=correction.offset, rate=trial)
                     return cost(moved.apply(times, video_index))
 
-                best, best_cost = _golden_search(shifted, -reach, reach, POLISH_TOLERANCE * reach)
+                best, best_cost = _search_from_zero(shifted, current, reach, POLISH_TOLERANCE * reach)
                 if best_cost < current:
                     values[v] += best  # the same sum as the search's trial: `current` is its cost exactly
                     current = best_cost
@@ -959,6 +962,24 @@ def _coordinate_descent(
         if history[-2] - history[-1] <= POLISH_STOP * abs(history[-2]):
             break
     return history
+
+
+def _search_from_zero(
+    f: Callable[[float], float], at_zero: float, reach: float, tolerance: float
+) -> tuple[float, float]:
+    """Minimum of a unimodal f on [-reach, reach] to `tolerance`, f(0) = `at_zero` known: (argument, value).
+
+    Probes +- tolerance / 2 first. Where neither is lower than f(0) the minimum lies within them, i.e. at 0 to the
+    tolerance (two solves: the usual case once the clocks are right); otherwise it lies on the lower side, which
+    the golden-section search takes."""
+    half = tolerance / 2
+    for side in (1.0, -1.0):
+        probe = f(side * half)
+        if probe < at_zero:
+            low, high = (0.0, reach) if side > 0 else (-reach, 0.0)
+            best, best_value = _golden_search(f, low, high, tolerance)
+            return (best, best_value) if best_value < probe else (side * half, probe)
+    return 0.0, at_zero
 
 
 def _golden_search(f: Callable[[float], float], low: float, high: float, tolerance: float) -> tuple[float, float]:

@@ -363,3 +363,23 @@ def test_sums_at_slots_are_bincount_sums() -> None:
     padded = np.concatenate([values, np.zeros((1, 3))])
     fast = trajectory._sum_at_slots(index, padded, 50, alone)
     assert fast.tobytes() == trajectory._sum_at(index, values, 50).tobytes()
+
+
+@pytest.mark.parametrize("minimum", [0.0, 0.0004, 0.3, -0.7])
+def test_the_clock_search_from_zero_costs_two_solves_where_the_clock_is_right(minimum):
+    calls: list[float] = []
+
+    def cost(x: float) -> float:
+        calls.append(x)
+        return (x - minimum) ** 2
+
+    reach, tolerance = 1.0, 0.005
+    best, value = trajectory._search_from_zero(cost, cost(0.0), reach, tolerance)
+    steps = len(calls) - 1  # f(0) is known to the caller: not a search step
+    assert abs(best - minimum) <= tolerance and value == (best - minimum) ** 2
+    if abs(minimum) <= tolerance / 2:
+        assert steps == 2 and best == 0.0  # the two probes: the minimum lies between them
+    else:  # the golden-section search on the lower side, as many steps as before on half the bracket
+        assert np.sign(best) == np.sign(minimum)
+        _, golden_value = trajectory._golden_search(lambda x: (x - minimum) ** 2, -reach, reach, tolerance)
+        assert value <= golden_value + tolerance**2
