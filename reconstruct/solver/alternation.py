@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from dynrecon.errors import DynreconError, NotEnoughDataError
 from reconstruct.solver.anderson import AndersonMixer
+from reconstruct.solver.blas import one_blas_thread, outer_blas_threads
 from reconstruct.solver.candidates import CandidateOptions, MovingWindows, coarse_to_fine_init
 from reconstruct.solver.initialize import PairInit, fill_missing_points, initialize_depths
 from reconstruct.solver.problem import Problem, reconstructable_points
@@ -184,6 +185,11 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
     lambda2 > 0) and without. Raises NotEnoughDataError when no point is seen in two videos, DynreconError when the
     solve diverges."""
     options = options or SolverOptions()
+    with one_blas_thread():  # reconstruct/solver/blas.py: the solver's threads, not BLAS's
+        return _solve(problem, options)
+
+
+def _solve(problem: Problem, options: SolverOptions) -> SolveResult:
     timings: dict[str, float] = {}
     started = time.perf_counter()
     keep = _reconstructable(problem)
@@ -345,7 +351,11 @@ def _run_stage(
         if converged:
             stage.converged = True
             return new_points, W
-        candidate = mixer.mix(candidate, new_points) if mixer is not None else new_points
+        if mixer is not None:
+            with outer_blas_threads():  # the mix's values depend on the BLAS thread count: keep the caller's
+                candidate = mixer.mix(candidate, new_points)
+        else:
+            candidate = new_points
         points = new_points
     return points, W
 
