@@ -29,6 +29,7 @@ from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
 from reconstruct.tracks_path import applies as tracks_path_applies
+from reconstruct.tracks_path import refereed as tracks_path_refereed
 from reconstruct.tracks_path import solve_on_tracks
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
@@ -178,15 +179,15 @@ def solve(
 
 
 def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveResult, Temporal]:
-    """The tracks path for few points when it passes its checks (reconstruct/tracks_path.py), else the seed solve
-    and the clocks and refinement after it; the report says which and why."""
+    """The tracks path (for few points, or refereed beyond) when it passes its checks (reconstruct/tracks_path.py),
+    else the seed solve and the clocks and refinement after it; the report says which and why."""
     temporal_options = options.temporal
     tried: dict[str, Any] | None = None
-    if temporal_options.refinement is Refinement.CLOCKS and tracks_path_applies(
-        problem, temporal_options.tracks_path_max_points
-    ):
+    few = tracks_path_applies(problem, temporal_options.tracks_path_max_points)
+    refereed = tracks_path_refereed(problem, temporal_options)
+    if temporal_options.refinement is Refinement.CLOCKS and (few or refereed):
         t0 = time.perf_counter()
-        attempt = solve_on_tracks(problem, temporal_options)
+        attempt = solve_on_tracks(problem, temporal_options, referee=options.solver if refereed else None)
         if attempt.temporal is not None and attempt.seed is not None:
             attempt.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
             return attempt.seed, attempt.temporal
@@ -196,8 +197,11 @@ def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveRes
     temporal = recover_and_refine(problem, result, temporal_options)
     result.timings["clocks_and_refinement"] = time.perf_counter() - t0
     if tried is not None:
-        # few points, but the tracks' clocks failed a check: the seed solve's answer, with the tracks' attempt
+        # the tracks' clocks failed a check: the seed solve's answer, with the tracks' attempt
         temporal.report["tracks_path"] = {"checks": tried["checks"], "failed": tried["failed"]}
+        if "referee" in tried:
+            temporal.report["tracks_path"]["referee"] = tried["referee"]
+            result.timings["referee"] = tried["referee"]["seconds"]
         temporal.report["reason"] = f"tracks path failed its check {tried['failed']!r}: the seed solve was run"
     return result, temporal
 

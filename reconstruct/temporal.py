@@ -53,6 +53,10 @@ class TemporalOptions:
     # solve (reconstruct/tracks_path.py), whose W-step slows down sharply as the points get fewer; 0 never takes
     # that path. Its checks fall back to the seed solve.
     tracks_path_max_points: int = 20
+    # Beyond that many points the tracks path is tried too, its clocks refereed by the seed solve on a subsample of
+    # the frames (reconstruct/tracks_referee.py), which costs a fraction of the whole seed solve; False: the seed
+    # solve. Not with tracks_path_max_points 0.
+    tracks_path_refereed: bool = True
 
     def clock_options(self, problem: Problem) -> ClockOptions:
         """The clock options of this solve: `clocks` with the model `clock_model` resolves to."""

@@ -12,7 +12,9 @@ trajectory. Steps:
 3. `trajectory.refine_with_clocks` on those clocks (the polish checked as on the clocks path), then the fit check
    `tracks_fit`: the trajectories meet their rays about as closely as the track search's rays met each other.
 
-Where a check fails, `solve_on_tracks` says which, and `reconstruct.stage.solve` falls back to the seed solve.
+Beyond `TemporalOptions.tracks_path_max_points` the path is refereed: its clocks must also agree with those of W's
+links from the seed solve on a subsample of the frames (reconstruct/tracks_referee.py). Where a check fails,
+`solve_on_tracks` says which, and `reconstruct.stage.solve` falls back to the seed solve.
 """
 
 from __future__ import annotations
@@ -28,13 +30,14 @@ import numpy as np
 from reconstruct.clocks.estimate import estimate_clocks_from_tracks
 from reconstruct.clocks.model import frame_periods
 from reconstruct.free_times import reprojection_px
-from reconstruct.solver.alternation import SolveResult
+from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.initialize import PairInit
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
+from reconstruct.tracks_referee import referee_check
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +67,14 @@ def applies(problem: Problem, max_points: int) -> bool:
     """The tracks path is tried when the problem has at most `max_points` reconstructable points (0: never)."""
     count = int(reconstructable_points(problem).sum())
     return 0 < count <= max_points
+
+
+def refereed(problem: Problem, options: TemporalOptions) -> bool:
+    """The tracks path is tried with the referee when the problem has more than `tracks_path_max_points` (> 0)
+    reconstructable points and `tracks_path_refereed` is on."""
+    max_points = options.tracks_path_max_points
+    count = int(reconstructable_points(problem).sum())
+    return options.tracks_path_refereed and 0 < max_points < count
 
 
 def start_points(problem: Problem, times: np.ndarray) -> np.ndarray:
@@ -108,8 +119,9 @@ def start_points(problem: Problem, times: np.ndarray) -> np.ndarray:
     return out
 
 
-def solve_on_tracks(problem: Problem, options: TemporalOptions) -> TracksAttempt:
-    """Clocks from the tracks, start points, trajectories on the clocks, each checked (module docstring)."""
+def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverOptions | None = None) -> TracksAttempt:
+    """Clocks from the tracks, start points, trajectories on the clocks, each checked (module docstring); with
+    `referee`, the clocks must also agree with the seed solve's on a subsample (reconstruct/tracks_referee.py)."""
     t0 = time.perf_counter()
     clock_options = options.clock_options(problem)
     clocks = estimate_clocks_from_tracks(problem, clock_options)
@@ -119,6 +131,12 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions) -> TracksAttempt
     checks = clock_checks(problem, clocks, MANY_POINTS_DISTINCTNESS if many else MIN_DISTINCTNESS)
     if not all(c.passed for c in checks):
         return _failed(checks, report)
+    if referee is not None:
+        check, report["referee"] = referee_check(problem, clocks, referee, clock_options)
+        timings["referee"] = report["referee"]["seconds"]
+        checks.append(check)
+        if not check.passed:
+            return _failed(checks, report)
     t0 = time.perf_counter()
     times = clocks.global_time.copy()
     start = start_points(problem, times)
@@ -167,7 +185,7 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions) -> TracksAttempt
 
 def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:
     failed = next(c for c in checks if not c.passed)
-    log.warning("the tracks path for few points was not used: %s; solving with the seed solve", failed.sentence())
+    log.warning("the tracks path was not used: %s; solving with the seed solve", failed.sentence())
     report.update({"checks": [c.to_json() for c in checks], "failed": failed.name})
     return TracksAttempt(temporal=None, seed=None, report=report)
 

@@ -1,0 +1,130 @@
+"""The referee of the tracks path beyond a few points (issue 22): the self-expressive solve on a subsample of the
+frames, whose W links give every video's clock without the track search; the tracks' clocks are used only where
+both agree (docs/refinement.md, "The referee").
+
+The track search alone can lock a periodic motion a whole cycle off (the video sample's walk: one stride), while
+W's links, which compare whole shapes of every point, tell the cycles apart. Solving every REFEREE_STEP-th frame
+(and, in long captures, only a window of REFEREE_FRAMES of them around the middle of the tracks' global time) costs
+a fraction of the full seed solve, and a clock a cycle off disagrees by far more than the subsample's frame period.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from dynrecon.errors import DynreconError
+from reconstruct.clocks.estimate import ClockOptions, SearchMode, estimate_clocks
+from reconstruct.clocks.model import Clocks, frame_periods
+from reconstruct.solver.alternation import SolverOptions, solve
+from reconstruct.solver.problem import Problem
+from reconstruct.time_checks import Check
+
+log = logging.getLogger(__name__)
+
+REFEREE_STEP = 3  # every REFEREE_STEP-th frame of each video
+# At most this many subsampled frames: beyond, those nearest the middle of the tracks' global time (a window far
+# longer than one cycle of a human motion, so that a frame's true counterpart in another video is inside it).
+REFEREE_FRAMES = 600
+# The clocks agree where every video's median difference (relative to the reference video) is within this many of
+# its subsampled frame periods: the subsample resolves no finer, and a wrong cycle is many periods off.
+REFEREE_PERIODS = 1.0
+
+
+def referee_check(
+    problem: Problem, clocks: Clocks, solver: SolverOptions, clock_options: ClockOptions
+) -> tuple[Check, dict[str, Any]]:
+    """Whether the seed solve's W clocks on a subsample agree with the tracks' `clocks` (the check, and the
+    report's `referee` entry: frames solved, per-video differences in s and subsampled periods, seconds)."""
+    started = time.perf_counter()
+    index = subsample(problem, clocks.global_time)
+    sub = take_frames(problem, index)
+    try:
+        seed = solve(sub, solver)
+        # W's links alone: the track search is what is being checked
+        referee_time = estimate_clocks(sub, seed, replace(clock_options, search=SearchMode.NEVER)).global_time
+    except DynreconError as error:  # too little in the subsample to solve: nothing confirms the tracks' clocks
+        log.info("tracks path referee: no solve on %d frames (%s)", index.size, error)
+        referee_time = np.full(index.size, np.nan)
+    difference = referee_time - clocks.global_time[index]  # (F',) s, both in the reference's gauge
+    reference = problem.video_names.index(clocks.reference)
+    ref_shift = _median(difference[sub.video_index == reference])
+    periods = frame_periods(clocks.global_time, problem.video_index, len(problem.video_names))
+    per_video: dict[str, Any] = {}
+    worst = 0.0
+    for v, name in enumerate(problem.video_names):
+        shift = _median(difference[sub.video_index == v]) - ref_shift
+        scale = REFEREE_STEP * float(periods[v])
+        off = abs(shift) / scale if math.isfinite(shift) and scale > 0 else math.inf
+        if np.any(sub.video_index == v):
+            worst = max(worst, off)
+            per_video[name] = {"difference_s": shift if math.isfinite(shift) else None, "periods": _finite(off)}
+    check = Check(
+        name="referee",
+        value=worst,
+        limit=REFEREE_PERIODS,
+        passed=bool(worst <= REFEREE_PERIODS),
+        meaning=(
+            f"largest clock difference to the seed solve's W links on every {REFEREE_STEP}th frame "
+            "(subsampled frame periods)"
+        ),
+    )
+    report = {
+        "frames": int(index.size),
+        "step": REFEREE_STEP,
+        "videos": per_video,
+        "seconds": time.perf_counter() - started,
+    }
+    log.info(
+        "tracks path referee: the seed solve on %d frames %s the tracks' clocks (largest difference %.2g periods)",
+        index.size,
+        "agrees with" if check.passed else "disagrees with",
+        worst,
+    )
+    return check, report
+
+
+def subsample(problem: Problem, global_time: np.ndarray) -> np.ndarray:
+    """(F',) sorted frame indices: every REFEREE_STEP-th frame of each video, and of those at most REFEREE_FRAMES,
+    the nearest to the middle of `global_time (F,)`."""
+    rank = np.zeros(problem.num_frames, dtype=np.int64)
+    for v in range(len(problem.video_names)):
+        own = np.flatnonzero(problem.video_index == v)
+        rank[own[np.argsort(problem.frames[own], kind="stable")]] = np.arange(own.size)
+    index = np.flatnonzero(rank % REFEREE_STEP == 0)
+    if index.size > REFEREE_FRAMES:
+        timed = np.isfinite(global_time[index])
+        middle = float(np.median(global_time[index[timed]])) if timed.any() else 0.0
+        distance = np.where(timed, np.abs(global_time[index] - middle), np.inf)
+        index = np.sort(index[np.argsort(distance, kind="stable")[:REFEREE_FRAMES]])
+    return index
+
+
+def take_frames(problem: Problem, index: np.ndarray) -> Problem:
+    """The problem restricted to frames `index (F',)` (same videos and points)."""
+    return Problem(
+        video_names=problem.video_names,
+        video_index=problem.video_index[index],
+        frames=problem.frames[index],
+        times=problem.times[index],
+        point_names=problem.point_names,
+        K=problem.K[index],
+        R=problem.R[index],
+        t=problem.t[index],
+        dist=[problem.dist[i] for i in index],
+        uv=problem.uv[index],
+    )
+
+
+def _median(values: np.ndarray) -> float:
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else math.nan
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
