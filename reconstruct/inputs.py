@@ -14,7 +14,7 @@ import numpy as np
 from dynrecon.errors import InputError, NotEnoughDataError
 from reconstruct.screen import remove_spikes
 from reconstruct.solver.problem import Problem
-from sfm.cameras import CameraSet
+from sfm.cameras import CameraSet, FrameCamera
 from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
 log = logging.getLogger(__name__)
@@ -72,29 +72,20 @@ def build_problem_checked(
     point_index = {name: i for i, name in enumerate(names)}
     uv = np.full((F, len(names), 2), np.nan)
     known_videos = set(video_names) | {v.name for v in cameras.videos}
+    if not known_videos.issuperset(tracks.video):
+        unknown = next(row for row, name in enumerate(tracks.video) if name not in known_videos)
+        raise InputError(
+            tracks.path,
+            f"video {tracks.video[unknown]!r} is not in the cameras file",
+            where=tracks.where(unknown),
+            fix=f"known videos: {', '.join(sorted(known_videos))}; rename or register it",
+        )
     inside = _inside_images(cameras, tracks)
-    unposed: list[int] = []
-    rejected: list[int] = []
-    for row in range(len(tracks)):
-        video_name = tracks.video[row]
-        if video_name not in known_videos:
-            raise InputError(
-                tracks.path,
-                f"video {video_name!r} is not in the cameras file",
-                where=tracks.where(row),
-                fix=f"known videos: {', '.join(sorted(known_videos))}; rename or register it",
-            )
-        fi = index.get((video_name, int(tracks.frame[row])))
-        if fi is None:
-            unposed.append(row)
-            continue
-        if not inside[row]:
-            rejected.append(row)
-            continue
-        pi = point_index.get(tracks.point[row])
-        if pi is None:
-            continue
-        uv[fi, pi] = tracks.xy[row]
+    rows = _frame_rows(video_names, frame_lists, tracks)
+    if rows is None:  # duplicate names or frames in memory, or frames not integers: the plain loop
+        unposed, rejected = _fill_by_row(uv, index, point_index, inside, tracks)
+    else:
+        unposed, rejected = _fill(uv, rows, point_index, inside, tracks)
     _warn_unposed(tracks, unposed)
     rejection = _rejection(cameras, tracks, rejected)
     rejection.unposed = len(unposed)
@@ -117,6 +108,77 @@ def build_problem_checked(
     )
     problem, rejection.spikes = remove_spikes(problem)
     return problem, rejection
+
+
+def _frame_rows(video_names: list[str], frame_lists: list[list[FrameCamera]], tracks: Tracks) -> np.ndarray | None:
+    """(N,) each row's frame index in the problem (frames in video then frame order), -1 where its frame has no
+    pose; None when names or frames repeat, or `tracks.frame` does not hold integers (the row loop then decides)."""
+    frame = np.asarray(tracks.frame)
+    if len(set(video_names)) != len(video_names) or not np.issubdtype(frame.dtype, np.signedinteger):
+        return None
+    numbers = [np.array([f.frame for f in frames]) for frames in frame_lists]
+    if any(not np.issubdtype(n.dtype, np.signedinteger) or np.any(np.diff(n) <= 0) for n in numbers):
+        return None
+    numbers = [n.astype(np.int64) for n in numbers]
+    frame = frame.astype(np.int64)
+    codes, names = _codes(tracks.video)
+    out = np.full(len(tracks), -1, dtype=np.int64)
+    offsets = np.cumsum([0, *(len(n) for n in numbers)])
+    where = {name: i for i, name in enumerate(video_names)}
+    for code, name in enumerate(names):
+        if name not in where:
+            continue
+        v = where[name]
+        rows = np.flatnonzero(codes == code)
+        at = np.minimum(np.searchsorted(numbers[v], frame[rows]), len(numbers[v]) - 1)
+        hit = numbers[v][at] == frame[rows]
+        out[rows[hit]] = offsets[v] + at[hit]
+    return out
+
+
+def _fill(
+    uv: np.ndarray, frame_rows: np.ndarray, point_index: dict[str, int], inside: np.ndarray, tracks: Tracks
+) -> tuple[list[int], list[int]]:
+    """Copy the rows' positions into uv (F, P, 2) at their frame and point; the rows on unposed frames and the rows
+    outside their image, each in row order. A row of an unknown point is skipped."""
+    posed = frame_rows >= 0
+    codes, names = _codes(tracks.point)
+    point_rows = np.array([point_index.get(name, -1) for name in names], dtype=np.int64)[codes]
+    use = posed & inside & (point_rows >= 0)
+    fi, pi = frame_rows[use], point_rows[use]
+    if len(np.unique(fi * uv.shape[1] + pi)) < len(fi):  # a (frame, point) twice in memory: the last row wins
+        for row in np.flatnonzero(use).tolist():
+            uv[frame_rows[row], point_rows[row]] = tracks.xy[row]
+    else:
+        uv[fi, pi] = np.asarray(tracks.xy)[use]
+    return np.flatnonzero(~posed).tolist(), np.flatnonzero(posed & ~inside).tolist()
+
+
+def _fill_by_row(
+    uv: np.ndarray, index: dict[tuple[str, int], int], point_index: dict[str, int], inside: np.ndarray, tracks: Tracks
+) -> tuple[list[int], list[int]]:
+    """`_fill`, one row at a time, with the frame index `index` of (video, frame)."""
+    unposed: list[int] = []
+    rejected: list[int] = []
+    for row in range(len(tracks)):
+        fi = index.get((tracks.video[row], int(tracks.frame[row])))
+        if fi is None:
+            unposed.append(row)
+            continue
+        if not inside[row]:
+            rejected.append(row)
+            continue
+        pi = point_index.get(tracks.point[row])
+        if pi is None:
+            continue
+        uv[fi, pi] = tracks.xy[row]
+    return unposed, rejected
+
+
+def _codes(names: list[str]) -> tuple[np.ndarray, list[str]]:
+    """(N,) int64 index of each name among the distinct names, and those names in order of first appearance."""
+    index = {name: i for i, name in enumerate(dict.fromkeys(names))}
+    return np.fromiter(map(index.__getitem__, names), dtype=np.int64, count=len(names)), list(index)
 
 
 def _warn_unposed(tracks: Tracks, unposed: list[int]) -> None:
@@ -158,5 +220,6 @@ def _rejection(cameras: CameraSet, tracks: Tracks, rejected: list[int]) -> Rejec
 def _inside_images(cameras: CameraSet, tracks: Tracks) -> np.ndarray:
     """(N,) bool: which rows of `tracks` are finite and inside their video's image (unknown videos: True)."""
     sizes = {v.name: (v.width, v.height) for v in cameras.videos}
-    wh = np.array([sizes.get(name, (np.inf, np.inf)) for name in tracks.video], dtype=float).reshape(-1, 2)
+    codes, names = _codes(tracks.video)
+    wh = np.array([sizes.get(name, (np.inf, np.inf)) for name in names], dtype=float).reshape(-1, 2)[codes]
     return inside_image(tracks.xy, wh[:, 0], wh[:, 1])

@@ -290,14 +290,19 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     r = np.nan_to_num(rays)
     projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (B, n, 3, 3)
     projector = np.where(valid[..., None, None], projector, 0.0)
-    blocks = gram[:, :, :, None, None] * np.einsum("bgij,bhjk->bghik", projector, projector)  # (g, h) block
-    big = blocks.transpose(0, 1, 3, 2, 4).reshape(B, 3 * n, 3 * n)
-    c = np.einsum("bii->b", big) + 1.0  # trace >= largest eigenvalue of a PSD matrix
-    complement = np.zeros((B, n, 3, n, 3))
+    # Built with the batch axis last (long inner loops) as big[g, i, h, k, b] = gram_gh [P_g P_h]_ik, the 3n x 3n
+    # matrix; every sum runs in ascending order from zero, as einsum sums it: the same bits, so the same eigenvalues.
+    Q = np.ascontiguousarray(projector.transpose(1, 2, 3, 0))  # (n, 3, 3, B)
+    big = np.zeros((n, 3, n, 3, B))
+    for j in range(3):
+        big += Q[:, :, None, None, j, :] * Q[None, None, :, j, :, :]
+    big *= gram.transpose(1, 2, 0)[:, None, :, None, :]
     idx = np.arange(n)
-    complement[:, idx, :, idx, :] = (np.eye(3) - projector).transpose(1, 0, 2, 3)
-    big = big + c[:, None, None] * complement.reshape(B, 3 * n, 3 * n)
-    smallest = np.linalg.eigvalsh(big)[:, 0]
+    c = np.einsum("gigib->b", big) + 1.0  # trace >= largest eigenvalue of a PSD matrix
+    big += 0.0  # off the diagonal blocks the complement adds c x 0: a -0.0 becomes 0.0
+    big[idx, :, idx, :, :] += c * (np.eye(3)[:, :, None] - Q)
+    matrices = np.ascontiguousarray(big.transpose(4, 0, 1, 2, 3)).reshape(B, 3 * n, 3 * n)
+    smallest = np.linalg.eigvalsh(matrices)[:, 0]
     # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
     return 1.0 / np.maximum(smallest, 1e-13 * c)
 
@@ -508,19 +513,34 @@ def _conditions(W: sp.csc_matrix, rays: np.ndarray, reconstructed: np.ndarray, h
     valid = hood >= 0
     safe = np.where(valid, hood, 0)
     M = (sp.identity(F, format="csc") - W).tocsr()
-    G = (M @ M.T).tocsr()
-    n = hood.shape[1]
-    gram = np.zeros((F, n, n))
-    for f in range(F):
-        members = hood[f][valid[f]]
-        k = len(members)
-        gram[f, :k, :k] = G[members][:, members].toarray()
+    gram = _gram_blocks((M @ M.T).tocsr(), hood)
     condition = np.full((F, P), np.nan)
     for p in range(P):
-        if not reconstructed[:, p].any():
-            continue
-        condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
+        # only reconstructed points: elsewhere the measures are blanked
+        rows = np.flatnonzero(reconstructed[:, p])
+        if rows.size == F:
+            condition[:, p] = neighbourhood_condition(gram, rays[safe, p], valid)
+        elif rows.size:
+            condition[rows, p] = neighbourhood_condition(gram[rows], rays[safe[rows], p], valid[rows])
     return condition
+
+
+def _gram_blocks(G: sp.csr_matrix, hood: np.ndarray) -> np.ndarray:
+    """(F, n, n) G restricted to each frame's neighbourhood `hood` (F, n; valid slots first, -1 after them): entry
+    (f, g, h) is G[hood[f, g], hood[f, h]], 0 on unused slots. Looked up in G's sorted (row, column) keys at once."""
+    F, n = hood.shape
+    G = G.copy()
+    G.sum_duplicates()  # canonical: one sorted entry per (row, column)
+    keys = np.repeat(np.arange(G.shape[0], dtype=np.int64), np.diff(G.indptr)) * G.shape[1] + G.indices
+    valid = hood >= 0
+    safe = np.where(valid, hood, 0)
+    wanted = safe[:, :, None] * G.shape[1] + safe[:, None, :]  # (F, n, n)
+    at = np.minimum(np.searchsorted(keys, wanted), max(len(keys) - 1, 0))
+    found = valid[:, :, None] & valid[:, None, :]
+    if len(keys):
+        found &= keys[at] == wanted
+        return np.where(found, G.data[at], 0.0)
+    return np.zeros((F, n, n))
 
 
 def flag_points(

@@ -7,6 +7,7 @@ solver. A missing row means "not observed". Pixel coordinates follow OpenCV (top
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +16,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
-from dynrecon.readers import csv_records, parse_frame, shown
+from dynrecon.readers import MAX_FRAME, csv_records, parse_frame, shown
 
 REQUIRED_COLUMNS = ("video", "frame", "point", "x", "y")
 # Values of the optional `source` column written by dynrecon (importers write their own, e.g. "charuco").
@@ -77,6 +78,86 @@ class Tracks:
 def read_tracks(path: str | Path) -> Tracks:
     """Read and validate `tracks.csv`. Errors name the line; duplicates name both lines."""
     path = Path(path)
+    fast = _read_regular(path)
+    return fast if fast is not None else _read_checked(path)
+
+
+def _read_regular(path: Path) -> Tracks | None:
+    """`tracks.csv` read column-wise when it is plain: no quote, CR or NUL, one record per line, no blank line, every
+    line with the header's number of cells, and every value valid; then csv's cells are the text split at commas
+    and line ends. None otherwise (or on any error): `_read_checked` then reads it row by row and names the line at
+    fault. Both give the same `Tracks`: cells are converted by the same int() and float()."""
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as handle:
+            text = handle.read()
+    except (OSError, UnicodeDecodeError):
+        return None
+    if not text or '"' in text or "\r" in text or "\0" in text:
+        return None
+    lines = text.split("\n")
+    if lines[-1] == "":
+        lines.pop()
+    if max(map(len, lines)) > csv.field_size_limit():  # csv refuses such a cell: the checked reader says where
+        return None
+    header = [h.strip() for h in lines[0].split(",")]
+    width = len(header)
+    if any(c not in header for c in REQUIRED_COLUMNS) or set(map(str.count, lines, itertools.repeat(","))) != {
+        width - 1
+    }:
+        return None
+    cells = "\n".join(lines).replace("\n", ",").split(",")  # flat: strings, no per-row lists
+    columns = [cells[width + k :: width] for k in range(width)]
+    count = len(lines) - 1
+    index = {name: header.index(name) for name in REQUIRED_COLUMNS}
+    videos = list(map(str.strip, columns[index["video"]]))
+    points = list(map(str.strip, columns[index["point"]]))
+    if not all(videos) or not all(points):
+        return None
+    try:
+        frame_numbers = list(map(int, columns[index["frame"]]))
+        frames = np.array(frame_numbers, dtype=np.int64)
+        xy = np.column_stack(
+            [np.array(list(map(float, columns[index[c]])), dtype=float).reshape(-1) for c in ("x", "y")]
+        ).reshape(-1, 2)
+    except (ValueError, OverflowError):
+        return None
+    if len(frames) and (frames.min() < 0 or frames.max() >= MAX_FRAME):
+        return None
+    if not np.isfinite(xy).all() or _repeats(videos, frames, points):
+        return None
+    extra_names = [h for h in header if h not in REQUIRED_COLUMNS and h]
+    return Tracks(
+        video=videos,
+        frame=frames,
+        point=points,
+        xy=xy,
+        extra={name: list(columns[header.index(name)]) for name in extra_names},
+        line=np.arange(2, count + 2, dtype=np.int64),
+        path=path,
+    )
+
+
+def _repeats(videos: list[str], frames: np.ndarray, points: list[str]) -> bool:
+    """Whether a (video, frame, point) appears twice; on integer codes (a set of N tuples is slow to collect)."""
+    if len(frames) < 2:
+        return False
+    codes = [_codes(videos), frames, _codes(points)]
+    order = np.lexsort(codes)
+    same = np.ones(len(frames) - 1, dtype=bool)
+    for code in codes:
+        ordered = code[order]
+        same &= ordered[1:] == ordered[:-1]
+    return bool(same.any())
+
+
+def _codes(names: list[str]) -> np.ndarray:
+    """(N,) int64: each name's index among the distinct names."""
+    index = {name: i for i, name in enumerate(dict.fromkeys(names))}
+    return np.fromiter(map(index.__getitem__, names), dtype=np.int64, count=len(names))
+
+
+def _read_checked(path: Path) -> Tracks:
+    """`tracks.csv` read and validated row by row: errors name the line."""
     videos: list[str] = []
     frames: list[int] = []
     points: list[str] = []

@@ -8,6 +8,8 @@ trust measures) may follow the required ones.
 from __future__ import annotations
 
 import csv
+import io
+import itertools
 import json
 import math
 from dataclasses import dataclass, field
@@ -49,26 +51,59 @@ def _format(value: float) -> str:
 def write_points(path: str | Path, points: FramePoints) -> Path:
     path = Path(path)
     extra_names = list(points.extra)
-    F, P = points.num_frames, len(points.point_names)
-    # Whole columns formatted at once (frame-major, then point, as the rows run): the same text, at list speed.
+    # Whole columns formatted at once (frame-major, then point, as the rows run) and joined into lines: the text
+    # csv.writer writes (names quoted by it, numbers never need quotes), at list speed.
+    prefixes = [
+        f"{_cell(video)},{frame},"
+        for video, frame in zip(points.videos, np.asarray(points.frames, dtype=np.int64).tolist(), strict=True)
+    ]
+    names = [_cell(name) for name in points.point_names]
     columns = [
-        [video for video in points.videos for _ in range(P)],
-        np.repeat(np.asarray(points.frames, dtype=np.int64), P).tolist(),
-        list(points.point_names) * F,
+        [prefix + name for prefix in prefixes for name in names],
         *(_column(points.xyz[..., axis]) for axis in range(3)),
-        points.observed.astype(bool).astype(int).ravel().tolist(),
+        np.where(points.observed.astype(bool).ravel(), "1", "0").tolist(),
         *(_column(points.extra[e]) for e in extra_names),
     ]
+    lines = map(",".join, zip(*columns, strict=True))
     with atomic_open(path, "w", newline="") as handle:
-        writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow([*POINT_COLUMNS, *extra_names])
-        writer.writerows(zip(*columns, strict=True))
+        csv.writer(handle, lineterminator="\n").writerow([*POINT_COLUMNS, *extra_names])
+        while chunk := list(itertools.islice(lines, _ROWS_PER_WRITE)):
+            handle.write("\n".join(chunk) + "\n")
     return path
+
+
+_ROWS_PER_WRITE = 1 << 16
+# Below this share of distinct values among a column's sampled values, each distinct value is formatted once.
+_REPEATED_SHARE = 0.5
+
+
+def _cell(text: str) -> str:
+    """`text` as csv.writer writes it inside a row of several cells (quoted where it must be)."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerow([text, ""])
+    return buffer.getvalue()[:-2]
 
 
 def _column(values: np.ndarray) -> list[str]:
     """`_format` of every value of an (F, P) array, frame-major."""
-    return ["" if not math.isfinite(v) else repr(v) for v in np.asarray(values, dtype=float).ravel().tolist()]
+    flat = np.ascontiguousarray(values, dtype=float).ravel()
+    bits = flat.view(np.int64)  # distinct bit patterns: -0.0 and 0.0 are written differently
+    if len(bits) > 4096 and any(
+        len(np.unique(sample)) < _REPEATED_SHARE * len(sample)
+        for sample in (bits[:1024], bits[:: len(bits) // 1024])  # a frame's run of points, and across frames
+    ):
+        distinct, inverse = np.unique(bits, return_inverse=True)
+        texts = _texts(distinct.view(float))
+        return list(map(texts.__getitem__, inverse.ravel().tolist()))
+    return _texts(flat)
+
+
+def _texts(values: np.ndarray) -> list[str]:
+    """repr of each (N,) value, "" where not finite."""
+    texts = list(map(float.__repr__, values.tolist()))
+    for i in np.flatnonzero(~np.isfinite(values)).tolist():
+        texts[i] = ""
+    return texts
 
 
 def read_points(path: str | Path) -> FramePoints:
@@ -134,6 +169,47 @@ class Sequencing:
 
 
 def write_sequencing(path: str | Path, sequencing: Sequencing) -> Path:
+    atomic_write_text(path, _sequencing_text(sequencing))
+    return Path(path)
+
+
+def _sequencing_text(sequencing: Sequencing) -> str:
+    """The text of `json.dumps({"frames": [...], **extra}, indent=1) + newline`, built from pieces: json's indented
+    encoder runs in Python, one call per value."""
+    extra = sequencing.extra
+    if "frames" in extra or not all(isinstance(key, str) for key in extra):
+        return json.dumps(_sequencing_document(sequencing), indent=1) + "\n"
+    names = {name: json.dumps(name) for name in dict.fromkeys(sequencing.videos)}
+    frames = [int(f) for f in sequencing.frames]
+    video = [names[name] for name in sequencing.videos]
+    # a neighbour's entry up to its weight, per frame it names
+    reference = [
+        f'    {{\n     "video": {v},\n     "frame": {f},\n     "weight": ' for v, f in zip(video, frames, strict=False)
+    ]
+    entries = []
+    for i in range(len(video)):
+        neighbours = [
+            reference[j] + _json_float(w) + "\n    }"
+            for j, w in zip(
+                np.asarray(sequencing.neighbours[i], dtype=np.int64).tolist(),
+                np.asarray(sequencing.weights[i]).tolist(),
+                strict=True,
+            )
+        ]
+        listed = "[\n" + ",\n".join(neighbours) + "\n   ]" if neighbours else "[]"
+        entries.append(f'  {{\n   "video": {video[i]},\n   "frame": {frames[i]},\n   "neighbours": {listed}\n  }}')
+    parts = ['"frames": ' + ("[\n" + ",\n".join(entries) + "\n ]" if entries else "[]")]
+    parts += [json.dumps(key) + ": " + json.dumps(value, indent=1).replace("\n", "\n ") for key, value in extra.items()]
+    return "{\n " + ",\n ".join(parts) + "\n}\n"
+
+
+def _json_float(value: float) -> str:
+    """A float as json.dumps writes it (int() first where given an integer, as float(w) did)."""
+    value = float(value)
+    return float.__repr__(value) if math.isfinite(value) else json.dumps(value)
+
+
+def _sequencing_document(sequencing: Sequencing) -> dict[str, Any]:
     frames = []
     for i in range(len(sequencing.videos)):
         frames.append(
@@ -146,9 +222,7 @@ def write_sequencing(path: str | Path, sequencing: Sequencing) -> Path:
                 ],
             }
         )
-    document = {"frames": frames, **sequencing.extra}
-    atomic_write_text(path, json.dumps(document, indent=1) + "\n")
-    return Path(path)
+    return {"frames": frames, **sequencing.extra}
 
 
 def _short(error: Exception) -> str:

@@ -1,0 +1,61 @@
+"""The trust measures' batched construction keeps every bit of the plain one (points3d.csv must not change)."""
+
+import numpy as np
+import scipy.sparse as sp
+
+from reconstruct.trust import _gram_blocks, neighbourhood_condition, neighbourhoods
+
+
+def _reference_condition(gram, rays, valid=None):
+    """The earlier construction: einsum products, (g, h) blocks transposed into the 3n x 3n matrix."""
+    B, n = gram.shape[:2]
+    valid = np.ones((B, n), dtype=bool) if valid is None else valid
+    observed = np.isfinite(rays).all(axis=-1)
+    r = np.nan_to_num(rays)
+    projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))
+    projector = np.where(valid[..., None, None], projector, 0.0)
+    blocks = gram[:, :, :, None, None] * np.einsum("bgij,bhjk->bghik", projector, projector)
+    big = blocks.transpose(0, 1, 3, 2, 4).reshape(B, 3 * n, 3 * n)
+    c = np.einsum("bii->b", big) + 1.0
+    complement = np.zeros((B, n, 3, n, 3))
+    idx = np.arange(n)
+    complement[:, idx, :, idx, :] = (np.eye(3) - projector).transpose(1, 0, 2, 3)
+    big = big + c[:, None, None] * complement.reshape(B, 3 * n, 3 * n)
+    smallest = np.linalg.eigvalsh(big)[:, 0]
+    return 1.0 / np.maximum(smallest, 1e-13 * c)
+
+
+def test_condition_is_bit_identical_to_the_einsum_construction():
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        B, n = int(rng.integers(1, 40)), int(rng.integers(1, 6))
+        A = rng.normal(size=(B, n, n))
+        gram = A @ A.transpose(0, 2, 1) * rng.choice([1e-6, 1.0, 1e6])
+        gram[rng.random(gram.shape) < 0.2] = 0.0
+        gram[rng.random(gram.shape) < 0.1] *= -1  # negative zeros and signs
+        rays = rng.normal(size=(B, n, 3))
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        rays[rng.random((B, n)) < 0.3] = np.nan
+        rays[rng.random((B, n, 3)) < 0.1] = 0.0
+        rays[rng.random((B, n, 3)) < 0.05] = -0.0
+        valid = rng.random((B, n)) < 0.8
+        for v in (None, valid):
+            assert neighbourhood_condition(gram, rays, v).tobytes() == _reference_condition(gram, rays, v).tobytes()
+
+
+def test_gram_blocks_are_the_submatrices_of_the_sparse_gram():
+    F = 50
+    W = sp.random(F, F, density=0.08, random_state=3, format="csc")
+    W.setdiag(0.0)
+    W.eliminate_zeros()
+    M = (sp.identity(F, format="csc") - W).tocsr()
+    G = (M @ M.T).tocsr()
+    hood = neighbourhoods(W, 0.02, 4)
+    gram = _gram_blocks(G, hood)
+    for f in range(F):
+        members = hood[f][hood[f] >= 0]
+        k = len(members)
+        expected = np.zeros((hood.shape[1], hood.shape[1]))
+        expected[:k, :k] = G[members][:, members].toarray()
+        assert gram[f].tobytes() == expected.tobytes()
+    assert _gram_blocks(sp.csr_matrix((F, F)), hood).shape == (F, hood.shape[1], hood.shape[1])
