@@ -5,8 +5,14 @@ clocks, refinement, trust, outputs, writing, recording).
     python benchmarks/whole_solve.py [--runs 3] [--sizes 700,2000] [--long] [--cases DIR] [--roots A,B] [--json OUT]
 
 Data: `dynrecon simulate --mode phones` (4 videos on their own clocks, decoder times in cameras.json) on CMU 01_01
-(P = 41) and complexknee 2022_01_0401 (P = 20), cut to about F frames. Each case runs `--runs` times, the cases
-alternated so that a change of load on a shared machine spreads over all of them; the table gives medians.
+(P = 41) and complexknee 2022_01_0401 (P = 39-40 once the simulator drops the markers with gaps; the case name
+keeps its old label), cut to about F frames; the table's P column is the report's. `--long` adds F = 20,000 (about
+144 s of motion), longer than either file (23 and 34 s): the case folder then gets `palindrome.trc`, the file
+played forward, backward, forward... up to the length needed, which the simulator reads instead. A palindrome keeps
+every marker trajectory continuous (each turn reverses the velocity, like a bounce, never a jump); its folder is
+named `<case>-<F>-palindrome` so that a capture cut at the file's end by an older version is never reused for it.
+Each case runs `--runs` times, the cases alternated so that a change of load on a shared machine spreads over all
+of them; the table gives medians.
 `--cases DIR` keeps the simulated captures there and reuses them on the next run; `--profile` writes a cProfile
 of one solve of each case into DIR (or a temporary folder) and prints its top functions. `--roots` names source
 trees to compare (e.g. an unchanged copy made with `git archive HEAD | tar -x -C DIR`, and this one): every run of a
@@ -25,9 +31,16 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from reconstruct.outputs.mocap import read_mocap, write_trc  # noqa: E402
+
 MOCAP = ROOT.parent / "shared" / "data" / "mocap"
 # phones: 30 + 25 + 59.94 + 24 fps = 139 captures per second of motion, after start offsets of up to 0.5 s
 CAPTURES_PER_S = 139.0
@@ -63,12 +76,48 @@ def dynrecon(args: list[str], timeout: float, profile: Path | None = None, root:
     return time.perf_counter() - start, _children_cpu() - cpu
 
 
+def length_of(frames: int, rate: float) -> int:
+    """Mocap samples (at `rate` Hz) that the phones turn into about `frames` captures."""
+    return round((frames / CAPTURES_PER_S + 0.25) * rate)
+
+
+def palindrome_index(samples: int, length: int) -> np.ndarray:
+    """(length,) sample indices 0, 1, ..., samples - 1, samples - 2, ..., 0, 1, ...: forward, backward, forward."""
+    period = 2 * (samples - 1)
+    phase = np.arange(length) % period
+    return np.where(phase < samples, phase, period - phase)
+
+
+def write_palindrome(source: Path, length: int, path: Path) -> Path:
+    """`length` samples of `source` played forward and backward in turn, as a TRC file at the file's own rate.
+
+    Each sample keeps its markers (NaN gaps included), so the simulator cleans the take as it cleans the file; the
+    times are the file's first time plus k / rate, so they only grow.
+    """
+    mocap = read_mocap(source)
+    if mocap.num_frames < 2:
+        raise ValueError(f"{source}: a palindrome needs at least 2 samples")
+    index = palindrome_index(mocap.num_frames, length)
+    times = mocap.times[0] + np.arange(length) / mocap.rate
+    return write_trc(path, replace(mocap, xyz=mocap.xyz[index], times=times, path=path))
+
+
+def case_folder(base: Path, name: str, file: str, rate: float, frames: int) -> Path:
+    """Where the case lives: `<name>-<F>`, or `<name>-<F>-palindrome` when the file is shorter than the case."""
+    short = length_of(frames, rate) > read_mocap(MOCAP / file).num_frames
+    return base / f"{name.split()[0]}-{frames}{'-palindrome' if short else ''}"
+
+
 def simulate(folder: Path, file: str, rate: float, frames: int) -> None:
-    """Simulate the case into `folder` unless an earlier run left it there."""
+    """Simulate the case into `folder` unless an earlier run left it there (a palindrome of the file if it is short)."""
     if (folder / "tracks.csv").exists():
         return
-    length = round((frames / CAPTURES_PER_S + 0.25) * rate)
-    sim = ["simulate", str(MOCAP / file), "--mode", "phones", "--cameras", "4", "--length", str(length)]
+    length = length_of(frames, rate)
+    mocap = MOCAP / file
+    if folder.name.endswith("-palindrome"):
+        folder.mkdir(parents=True, exist_ok=True)
+        mocap = write_palindrome(mocap, length, folder / "palindrome.trc")
+    sim = ["simulate", str(mocap), "--mode", "phones", "--cameras", "4", "--length", str(length)]
     dynrecon([*sim, "--out", str(folder)], 600)
 
 
@@ -88,6 +137,7 @@ def run_case(folder: Path, timeout: float, into: dict[str, list[float]], root: P
     into.setdefault("process", []).append(wall)
     into.setdefault("cpu", []).append(cpu)
     into.setdefault("F", []).append(report["size"]["frames"])
+    into.setdefault("P", []).append(report["size"]["points"])
     for key, value in report["timings"].items():
         into.setdefault(key, []).append(value)
 
@@ -102,20 +152,18 @@ def profile_case(folder: Path, timeout: float, top: int) -> None:
 
 def print_table(medians: dict[str, dict[str, float]]) -> None:
     shown = [s for s in STAGES if any(s in m for m in medians.values())]
-    print(f"| case | F | process | process CPU | {' | '.join(shown)} |")
-    print(f"|---|---|---|---|{'---|' * len(shown)}")
+    print(f"| case | F | P | process | process CPU | {' | '.join(shown)} |")
+    print(f"|---|---|---|---|---|{'---|' * len(shown)}")
     for case, m in medians.items():
         cells = " | ".join(f"{m[s]:.2f}" if s in m else "" for s in shown)
         process, cpu = m.get("process", float("nan")), m.get("cpu", float("nan"))
-        print(f"| {case} | {int(m.get('F', 0))} | {process:.1f} | {cpu:.1f} | {cells} |")
+        print(f"| {case} | {int(m.get('F', 0))} | {int(m.get('P', 0))} | {process:.1f} | {cpu:.1f} | {cells} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="700,2000", help="frames F, comma-separated")
-    parser.add_argument(
-        "--long", action="store_true", help="also F = 20,000 (longer than the shared files: each is cut at its end)"
-    )
+    parser.add_argument("--long", action="store_true", help="also F = 20,000 (a palindrome of each file, see above)")
     parser.add_argument("--runs", type=int, default=3, help="runs per case (median)")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per solve")
     parser.add_argument("--cases", type=Path, help="keep the simulated captures here and reuse them")
@@ -133,7 +181,7 @@ def main() -> None:
             for frames in sizes:
                 case = f"{name}, F~{frames}"
                 if args.only in case:
-                    cases[case] = base / f"{name.split()[0]}-{frames}"
+                    cases[case] = case_folder(base, name, file, rate, frames)
                     simulate(cases[case], file, rate, frames)
         results: dict[str, dict[str, list[float]]] = {}
         for _ in range(args.runs):
