@@ -352,7 +352,7 @@ def _run_stage(
             stage.converged = True
             return new_points, W
         if mixer is not None:
-            with outer_blas_threads():  # the mix's values depend on the BLAS thread count: keep the caller's
+            with outer_blas_threads():  # its dot products' values depend on the BLAS thread count: the caller's
                 candidate = mixer.mix(candidate, new_points)
         else:
             candidate = new_points

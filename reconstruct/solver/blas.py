@@ -4,8 +4,9 @@ The solver's BLAS products are small or already split over the solver's own `wor
 W-step components and Gram batches, chunked products). A second OpenBLAS thread per product then gains nothing
 and its idle spinning takes the core that those threads or the next step need, several times the CPU time of the
 products themselves on a busy machine. The products give the same values to the bit with one thread, except the
-Anderson mix's, whose least-squares Gram matrix depends on the count: the mix keeps the caller's threads
-(`outer_blas_threads`), so that a solve gives the same result as before the limit.
+Anderson mix's: with a one-iterate history its products are BLAS dot products, whose sums OpenBLAS splits over its
+threads. The mix keeps the caller's threads (`outer_blas_threads`), so that a solve gives the same result as it did
+without the limit.
 """
 
 from __future__ import annotations
