@@ -57,6 +57,12 @@ IRLS_ITERATIONS = 5  # IRLS rounds per GCV pass (weights from the previous round
 # Smoothness and scale are chosen by GCV, then IRLS runs with them; a second pass chooses again with the robust
 # weights (the first pass's weights come from the start points' residuals).
 GCV_PASSES = 2
+# Beyond this many instants each point's smoothness and scale are chosen on the middle GCV_WINDOW instants only: the
+# GCV trace's selected inverse costs a Python step per unknown, and the noise level and the motion's smoothness that
+# GCV weighs are properties of the point, not of the capture's length. The fits themselves use every instant.
+GCV_WINDOW = 3000
+# A point with fewer observations in that window is chosen on all of its own (exactly as below the window).
+GCV_WINDOW_MIN_OBSERVATIONS = 50
 OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an outlier in the result
 # Capture times closer than this fraction of tau are one instant (one position), so that a pair of nearly
 # concurrent frames cannot make the system ill-conditioned.
@@ -351,7 +357,7 @@ def refine(
     with _threads() as pool:
         for _ in range(max(GCV_PASSES, 1)):
             if tracks:
-                _choose_smoothness(tracks, prior, grid, n, options, pool)
+                _choose_smoothness_in_window(tracks, prior, grid, nodes, options, pool)
             if _irls(tracks, prior, n, options, cost, pool):
                 break
 
@@ -476,6 +482,59 @@ def _choose_smoothness(
         effective = float(np.sum(track.weights)) * 2.0
         sigma = np.sqrt(fits.rss[k, g] / max(effective - fits.trace[k, g], 1.0))
         track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
+
+
+def _choose_smoothness_in_window(
+    tracks: list[_Track],
+    prior: np.ndarray,
+    grid: list[float],
+    nodes: TimeNodes,
+    options: RefineOptions,
+    pool: ThreadPoolExecutor | None = None,
+) -> None:
+    """`_choose_smoothness`, on the middle GCV_WINDOW instants where there are more (the module's constants)."""
+    n = len(nodes.times)
+    if n <= GCV_WINDOW:
+        _choose_smoothness(tracks, prior, grid, n, options, pool)
+        return
+    low = (n - GCV_WINDOW) // 2
+    high = low + GCV_WINDOW
+    window = TimeNodes(node_of_frame=np.zeros(0, dtype=np.int64), times=nodes.times[low:high], tau=nodes.tau)
+    views = [_window_view(track, low, high) for track in tracks]
+    inside = [k for k, view in enumerate(views) if view.seen.size >= GCV_WINDOW_MIN_OBSERVATIONS]
+    outside = [track for track, view in zip(tracks, views, strict=True) if view.seen.size < GCV_WINDOW_MIN_OBSERVATIONS]
+    log.info(
+        "smoothness of %d point(s) chosen on the middle %d of %d instants (GCV_WINDOW), %d on all of theirs",
+        len(inside),
+        GCV_WINDOW,
+        n,
+        len(tracks) - len(inside),
+    )
+    if inside:
+        _choose_smoothness([views[k] for k in inside], prior_bands(window), grid, GCV_WINDOW, options, pool)
+        for k in inside:
+            tracks[k].smoothness, tracks[k].scale = views[k].smoothness, views[k].scale
+    if outside:
+        _choose_smoothness(outside, prior, grid, n, options, pool)
+
+
+def _window_view(track: _Track, low: int, high: int) -> _Track:
+    """The track's observations at instants low..high-1, renumbered from 0 (its start, positions and weights too)."""
+    keep = (track.node >= low) & (track.node < high)
+    return _Track(
+        point=track.point,
+        seen=track.seen[keep],
+        node=track.node[keep] - low,
+        rays=track.rays[keep],
+        centers=track.centers[keep],
+        s2=track.s2[keep],
+        mean_s2=track.mean_s2,
+        anchor=track.anchor[low:high],
+        positions=track.positions[low:high],
+        weights=track.weights[keep],
+        scale=track.scale,
+        smoothness=track.smoothness,
+    )
 
 
 def _fit_tracks(

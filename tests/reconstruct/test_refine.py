@@ -383,3 +383,45 @@ def test_the_clock_search_from_zero_costs_two_solves_where_the_clock_is_right(mi
         assert np.sign(best) == np.sign(minimum)
         _, golden_value = trajectory._golden_search(lambda x: (x - minimum) ** 2, -reach, reach, tolerance)
         assert value <= golden_value + tolerance**2
+
+
+def test_a_long_capture_chooses_its_smoothness_on_the_middle_window(monkeypatch: pytest.MonkeyPatch) -> None:
+    times, camera_of = round_robin(600, 120.0)
+    problem, truth = capture(times, camera_of, noise_px=1.0)
+    start = start_points(problem, truth)
+    whole = refine(problem, start, times)
+    chosen: list[int] = []
+    real = trajectory._choose_smoothness
+
+    def spy(tracks, prior, grid, n, *rest):
+        chosen.append(n)
+        return real(tracks, prior, grid, n, *rest)
+
+    monkeypatch.setattr(trajectory, "GCV_WINDOW", 240)
+    monkeypatch.setattr(trajectory, "_choose_smoothness", spy)
+    windowed = refine(problem, start, times)
+    assert chosen == [240] * trajectory.GCV_PASSES  # every point has 50+ observations in the window
+    steps = np.abs(np.round(2 * np.log10(windowed.smoothness / whole.smoothness)))
+    assert np.all(steps <= 1)  # the same grid value, or its neighbour
+    before, after = np.median(error_mm(whole.points, truth)), np.median(error_mm(windowed.points, truth))
+    assert after < 1.1 * before
+
+
+def test_a_point_seen_too_little_in_the_window_is_chosen_on_all_of_its_instants(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    times, camera_of = round_robin(600, 120.0)
+    problem, truth = capture(times, camera_of, noise_px=1.0)
+    problem.uv[150:450, 0] = np.nan  # point 0 is unobserved in the middle 300 frames
+    start = start_points(problem, truth)
+    calls: list[tuple[int, int]] = []
+    real = trajectory._choose_smoothness
+
+    def spy(tracks, prior, grid, n, *rest):
+        calls.append((len(tracks), n))
+        return real(tracks, prior, grid, n, *rest)
+
+    monkeypatch.setattr(trajectory, "GCV_WINDOW", 240)
+    monkeypatch.setattr(trajectory, "_choose_smoothness", spy)
+    refine(problem, start, times)
+    assert calls[:2] == [(3, 240), (1, 600)]
