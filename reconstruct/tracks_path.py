@@ -22,22 +22,24 @@ from __future__ import annotations
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from reconstruct.clocks.estimate import estimate_clocks_from_tracks
-from reconstruct.clocks.model import frame_periods
+from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
+from reconstruct.clocks.model import Clocks, frame_periods
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult, SolverOptions
+from reconstruct.solver.blas import one_blas_thread
 from reconstruct.solver.initialize import PairInit
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
-from reconstruct.tracks_referee import referee_check
+from reconstruct.tracks_referee import compare, referee_check, referee_times, subsample_without_clocks
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +126,11 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     `referee`, the clocks must also agree with the seed solve's on a subsample (reconstruct/tracks_referee.py)."""
     t0 = time.perf_counter()
     clock_options = options.clock_options(problem)
-    clocks = estimate_clocks_from_tracks(problem, clock_options)
+    early = subsample_without_clocks(problem) if referee is not None else None
+    if referee is not None and early is not None:
+        clocks, referee_time, referee_seconds = _clocks_beside_referee(problem, clock_options, referee, early)
+    else:
+        clocks, referee_time, referee_seconds = estimate_clocks_from_tracks(problem, clock_options), None, 0.0
     timings = {"clocks": time.perf_counter() - t0}
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
     many = int(reconstructable_points(problem).sum()) > FEW_POINTS
@@ -132,7 +138,11 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     if not all(c.passed for c in checks):
         return _failed(checks, report)
     if referee is not None:
-        check, report["referee"] = referee_check(problem, clocks, referee, clock_options)
+        if early is not None and referee_time is not None:
+            check, report["referee"] = compare(problem, clocks, early, referee_time, referee_seconds)
+            report["referee"]["beside_clocks"] = True  # its seconds overlap timings.clocks
+        else:
+            check, report["referee"] = referee_check(problem, clocks, referee, clock_options)
         timings["referee"] = report["referee"]["seconds"]
         checks.append(check)
         if not check.passed:
@@ -181,6 +191,24 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     return TracksAttempt(
         temporal=temporal, seed=_seed(problem, start, points, on_clocks.clocks.global_time, timings), report=report
     )
+
+
+def _clocks_beside_referee(
+    problem: Problem, clock_options: ClockOptions, referee: SolverOptions, index: np.ndarray
+) -> tuple[Clocks, np.ndarray, float]:
+    """The track search, and the referee's solve on frames `index` in a second thread (its subsample does not need
+    the clocks): the tracks' clocks, the referee's times of those frames and its seconds. Both run with one BLAS
+    thread, set here for the whole block, so that neither result depends on when the other's BLAS calls happen."""
+
+    def timed() -> tuple[np.ndarray, float]:
+        started = time.perf_counter()
+        return referee_times(problem, index, referee, clock_options), time.perf_counter() - started
+
+    with one_blas_thread(), ThreadPoolExecutor(1) as pool:
+        future = pool.submit(timed)
+        clocks = estimate_clocks_from_tracks(problem, clock_options)
+        referee_time, seconds = future.result()
+    return clocks, referee_time, seconds
 
 
 def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:

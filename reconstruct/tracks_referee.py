@@ -43,25 +43,42 @@ def referee_check(
     report's `referee` entry: frames solved, per-video differences in s and subsampled periods, seconds)."""
     started = time.perf_counter()
     index = subsample(problem, clocks.global_time)
+    referee_time = referee_times(problem, index, solver, clock_options)
+    return compare(problem, clocks, index, referee_time, time.perf_counter() - started)
+
+
+def referee_times(
+    problem: Problem, index: np.ndarray, solver: SolverOptions, clock_options: ClockOptions
+) -> np.ndarray:
+    """(F',) global times of frames `index` from the seed solve's W links on those frames alone (NaN where a video
+    is not identified, or everywhere when the subsample cannot be solved)."""
     sub = take_frames(problem, index)
     try:
         seed = solve(sub, solver)
         # W's links alone: the track search is what is being checked
-        referee_time = estimate_clocks(sub, seed, replace(clock_options, search=SearchMode.NEVER)).global_time
+        return estimate_clocks(sub, seed, replace(clock_options, search=SearchMode.NEVER)).global_time
     except DynreconError as error:  # too little in the subsample to solve: nothing confirms the tracks' clocks
         log.info("tracks path referee: no solve on %d frames (%s)", index.size, error)
-        referee_time = np.full(index.size, np.nan)
+        return np.full(index.size, np.nan)
+
+
+def compare(
+    problem: Problem, clocks: Clocks, index: np.ndarray, referee_time: np.ndarray, seconds: float
+) -> tuple[Check, dict[str, Any]]:
+    """The check of the tracks' `clocks` against the referee's times of frames `index` (`referee_times`, which took
+    `seconds`), and the report's entry."""
+    sub_videos = problem.video_index[index]
     difference = referee_time - clocks.global_time[index]  # (F',) s, both in the reference's gauge
     reference = problem.video_names.index(clocks.reference)
-    ref_shift = _median(difference[sub.video_index == reference])
+    ref_shift = _median(difference[sub_videos == reference])
     periods = frame_periods(clocks.global_time, problem.video_index, len(problem.video_names))
     per_video: dict[str, Any] = {}
     worst = 0.0
     for v, name in enumerate(problem.video_names):
-        shift = _median(difference[sub.video_index == v]) - ref_shift
+        shift = _median(difference[sub_videos == v]) - ref_shift
         scale = REFEREE_STEP * float(periods[v])
         off = abs(shift) / scale if math.isfinite(shift) and scale > 0 else math.inf
-        if np.any(sub.video_index == v):
+        if np.any(sub_videos == v):
             worst = max(worst, off)
             per_video[name] = {"difference_s": shift if math.isfinite(shift) else None, "periods": _finite(off)}
     check = Check(
@@ -78,7 +95,7 @@ def referee_check(
         "frames": int(index.size),
         "step": REFEREE_STEP,
         "videos": per_video,
-        "seconds": time.perf_counter() - started,
+        "seconds": seconds,
     }
     log.info(
         "tracks path referee: the seed solve on %d frames %s the tracks' clocks (largest difference %.2g periods)",
@@ -92,17 +109,28 @@ def referee_check(
 def subsample(problem: Problem, global_time: np.ndarray) -> np.ndarray:
     """(F',) sorted frame indices: every REFEREE_STEP-th frame of each video, and of those at most REFEREE_FRAMES,
     the nearest to the middle of `global_time (F,)`."""
-    rank = np.zeros(problem.num_frames, dtype=np.int64)
-    for v in range(len(problem.video_names)):
-        own = np.flatnonzero(problem.video_index == v)
-        rank[own[np.argsort(problem.frames[own], kind="stable")]] = np.arange(own.size)
-    index = np.flatnonzero(rank % REFEREE_STEP == 0)
+    index = _every_step(problem)
     if index.size > REFEREE_FRAMES:
         timed = np.isfinite(global_time[index])
         middle = float(np.median(global_time[index[timed]])) if timed.any() else 0.0
         distance = np.where(timed, np.abs(global_time[index] - middle), np.inf)
         index = np.sort(index[np.argsort(distance, kind="stable")[:REFEREE_FRAMES]])
     return index
+
+
+def subsample_without_clocks(problem: Problem) -> np.ndarray | None:
+    """`subsample`'s frames where they do not depend on the clocks (no window needed), else None."""
+    index = _every_step(problem)
+    return index if index.size <= REFEREE_FRAMES else None
+
+
+def _every_step(problem: Problem) -> np.ndarray:
+    """(F',) every REFEREE_STEP-th frame of each video (by frame number), sorted."""
+    rank = np.zeros(problem.num_frames, dtype=np.int64)
+    for v in range(len(problem.video_names)):
+        own = np.flatnonzero(problem.video_index == v)
+        rank[own[np.argsort(problem.frames[own], kind="stable")]] = np.arange(own.size)
+    return np.flatnonzero(rank % REFEREE_STEP == 0)
 
 
 def take_frames(problem: Problem, index: np.ndarray) -> Problem:
