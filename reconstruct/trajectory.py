@@ -60,7 +60,7 @@ GCV_PASSES = 2
 # Beyond this many instants each point's smoothness and scale are chosen on the middle GCV_WINDOW instants only: the
 # GCV trace's selected inverse costs a Python step per unknown, and the noise level and the motion's smoothness that
 # GCV weighs are properties of the point, not of the capture's length. The fits themselves use every instant.
-GCV_WINDOW = 3000
+GCV_WINDOW = 1000
 # A point with fewer observations in that window is chosen on all of its own (exactly as below the window).
 GCV_WINDOW_MIN_OBSERVATIONS = 50
 OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an outlier in the result
