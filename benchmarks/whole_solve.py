@@ -9,8 +9,12 @@ Data: `dynrecon simulate --mode phones` (4 videos on their own clocks, decoder t
 keeps its old label), cut to about F frames; the table's P column is the report's. `--long` adds F = 20,000 (about
 144 s of motion), longer than either file (23 and 34 s): the case folder then gets `palindrome.trc`, the file
 played forward, backward, forward... up to the length needed, which the simulator reads instead. A palindrome keeps
-every marker trajectory continuous (each turn reverses the velocity, like a bounce, never a jump); its folder is
-named `<case>-<F>-palindrome` so that a capture cut at the file's end by an older version is never reused for it.
+every marker trajectory continuous (each turn reverses the velocity, like a bounce, never a jump). It also repeats
+every pose exactly, once per pass, which no real take does and which gives the self-expressive solve near-duplicate
+shapes far apart in time: so the whole take also turns slowly about the vertical axis through its centroid
+(`--long-turns`, default one full turn over the take, a few degrees per second; 0 = the plain palindrome), and a
+pose comes back rotated by tens of degrees. Its folder is named `<case>-<F>-palindrome[-turns<N>]`, so that a
+capture cut at the file's end by an older version, or another take, is never reused for it.
 Each case runs `--runs` times, the cases alternated so that a change of load on a shared machine spreads over all
 of them; the table gives medians.
 `--cases DIR` keeps the simulated captures there and reuses them on the next run; `--profile` writes a cProfile
@@ -40,6 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from reconstruct.outputs.mocap import read_mocap, write_trc  # noqa: E402
+from simulation.simulate import vertical_axis  # noqa: E402
 
 MOCAP = ROOT.parent / "shared" / "data" / "mocap"
 # phones: 30 + 25 + 59.94 + 24 fps = 139 captures per second of motion, after start offsets of up to 0.5 s
@@ -88,8 +93,24 @@ def palindrome_index(samples: int, length: int) -> np.ndarray:
     return np.where(phase < samples, phase, period - phase)
 
 
-def write_palindrome(source: Path, length: int, path: Path) -> Path:
-    """`length` samples of `source` played forward and backward in turn, as a TRC file at the file's own rate.
+def turned(xyz: np.ndarray, turns: float) -> np.ndarray:
+    """xyz (T, M, 3) turned about the vertical axis through its centroid by `turns` full turns over the T samples,
+    at a constant rate (a rotation of the whole scene, so every trajectory stays continuous and smooth)."""
+    up = int(np.argmax(vertical_axis(xyz)))
+    a, b = [axis for axis in range(3) if axis != up]
+    centre = np.nanmean(xyz.reshape(-1, 3), axis=0)
+    angle = 2.0 * np.pi * turns * np.arange(len(xyz)) / len(xyz)
+    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    out = xyz.copy()
+    da, db = xyz[..., a] - centre[a], xyz[..., b] - centre[b]
+    out[..., a] = centre[a] + cos * da - sin * db
+    out[..., b] = centre[b] + sin * da + cos * db
+    return out
+
+
+def write_palindrome(source: Path, length: int, path: Path, turns: float = 0.0) -> Path:
+    """`length` samples of `source` played forward and backward in turn, turned by `turns` (`turned`), as a TRC
+    file at the file's own rate.
 
     Each sample keeps its markers (NaN gaps included), so the simulator cleans the take as it cleans the file; the
     times are the file's first time plus k / rate, so they only grow.
@@ -97,26 +118,28 @@ def write_palindrome(source: Path, length: int, path: Path) -> Path:
     mocap = read_mocap(source)
     if mocap.num_frames < 2:
         raise ValueError(f"{source}: a palindrome needs at least 2 samples")
-    index = palindrome_index(mocap.num_frames, length)
+    xyz = mocap.xyz[palindrome_index(mocap.num_frames, length)]
     times = mocap.times[0] + np.arange(length) / mocap.rate
-    return write_trc(path, replace(mocap, xyz=mocap.xyz[index], times=times, path=path))
+    return write_trc(path, replace(mocap, xyz=turned(xyz, turns) if turns else xyz, times=times, path=path))
 
 
-def case_folder(base: Path, name: str, file: str, rate: float, frames: int) -> Path:
-    """Where the case lives: `<name>-<F>`, or `<name>-<F>-palindrome` when the file is shorter than the case."""
-    short = length_of(frames, rate) > read_mocap(MOCAP / file).num_frames
-    return base / f"{name.split()[0]}-{frames}{'-palindrome' if short else ''}"
+def case_folder(base: Path, name: str, file: str, rate: float, frames: int, turns: float) -> Path:
+    """Where the case lives: `<name>-<F>`, or `<name>-<F>-palindrome[-turns<N>]` when the file is shorter."""
+    folder = base / f"{name.split()[0]}-{frames}"
+    if length_of(frames, rate) <= read_mocap(MOCAP / file).num_frames:
+        return folder
+    return folder.with_name(f"{folder.name}-palindrome" + (f"-turns{turns:g}" if turns else ""))
 
 
-def simulate(folder: Path, file: str, rate: float, frames: int) -> None:
+def simulate(folder: Path, file: str, rate: float, frames: int, turns: float) -> None:
     """Simulate the case into `folder` unless an earlier run left it there (a palindrome of the file if it is short)."""
     if (folder / "tracks.csv").exists():
         return
     length = length_of(frames, rate)
     mocap = MOCAP / file
-    if folder.name.endswith("-palindrome"):
+    if "-palindrome" in folder.name:
         folder.mkdir(parents=True, exist_ok=True)
-        mocap = write_palindrome(mocap, length, folder / "palindrome.trc")
+        mocap = write_palindrome(mocap, length, folder / "palindrome.trc", turns)
     sim = ["simulate", str(mocap), "--mode", "phones", "--cameras", "4", "--length", str(length)]
     dynrecon([*sim, "--out", str(folder)], 600)
 
@@ -164,6 +187,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="700,2000", help="frames F, comma-separated")
     parser.add_argument("--long", action="store_true", help="also F = 20,000 (a palindrome of each file, see above)")
+    parser.add_argument(
+        "--long-turns", type=float, default=1.0, help="full turns of a palindrome take about the vertical (0: none)"
+    )
     parser.add_argument("--runs", type=int, default=3, help="runs per case (median)")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per solve")
     parser.add_argument("--cases", type=Path, help="keep the simulated captures here and reuse them")
@@ -181,8 +207,8 @@ def main() -> None:
             for frames in sizes:
                 case = f"{name}, F~{frames}"
                 if args.only in case:
-                    cases[case] = case_folder(base, name, file, rate, frames)
-                    simulate(cases[case], file, rate, frames)
+                    cases[case] = case_folder(base, name, file, rate, frames, args.long_turns)
+                    simulate(cases[case], file, rate, frames, args.long_turns)
         results: dict[str, dict[str, list[float]]] = {}
         for _ in range(args.runs):
             for case, folder in cases.items():
