@@ -763,6 +763,11 @@ POLISH_SWEEPS = 4  # coordinate-descent sweeps over the videos per round
 POLISH_REACH_PERIODS = 1.0  # each sweep searches a video's offset within +- this many of its frame periods
 POLISH_TOLERANCE = 0.005  # the golden-section search stops at this share of its reach
 POLISH_STOP = 1e-6  # sweeps stop when one lowers the cost by less than this share
+# Beyond this many point-frames the polish's cost uses the most observed points up to it (at least
+# POLISH_MIN_POINTS): every point sees the same clocks, and each cost evaluation solves every point over every
+# instant, dozens of times per polish.
+POLISH_SIZE = 200_000
+POLISH_MIN_POINTS = 4
 
 
 @dataclass(kw_only=True)
@@ -862,7 +867,7 @@ class _PolishCost:
         focal = np.sqrt(problem.K[:, 0, 0] * problem.K[:, 1, 1])
         self.tau = time_nodes(times).tau
         self.span = float(np.ptp(times))
-        refined = np.isfinite(first.smoothness)
+        refined = _polish_points(problem.observed, np.isfinite(first.smoothness))
         observed = problem.observed & refined[None, :]
         frame, point = np.nonzero(observed)  # every observation of a refined point
         keep = np.flatnonzero(refined)
@@ -974,6 +979,20 @@ class _PolishPart:
         along = np.einsum("mi,mi->m", offset, self.rays)
         perpendicular = offset - along[:, None] * self.rays
         return np.einsum("mi,mi->m", perpendicular, perpendicular), _prior_value(prior, solved.reshape(K, -1))
+
+
+def _polish_points(observed: np.ndarray, refined: np.ndarray) -> np.ndarray:
+    """(P,) the refined points whose observations `observed (F, P)` the polish's cost uses: all of them, or the
+    most observed ones where they span more than POLISH_SIZE point-frames."""
+    count = int(refined.sum())
+    allowed = max(POLISH_MIN_POINTS, POLISH_SIZE // max(len(observed), 1))
+    if count <= allowed:
+        return refined
+    seen = np.where(refined, observed.sum(axis=0), -1)
+    chosen = np.zeros_like(refined)
+    chosen[np.argsort(-seen, kind="stable")[:allowed]] = True
+    log.info("clock polish on the %d most observed of %d points (%d frames)", allowed, count, len(observed))
+    return chosen
 
 
 def _coordinate_descent(

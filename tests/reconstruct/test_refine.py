@@ -425,3 +425,25 @@ def test_a_point_seen_too_little_in_the_window_is_chosen_on_all_of_its_instants(
     monkeypatch.setattr(trajectory, "_choose_smoothness", spy)
     refine(problem, start, times)
     assert calls[:2] == [(3, 240), (1, 600)]
+
+
+def test_a_large_capture_polishes_its_clocks_on_its_most_observed_points(monkeypatch: pytest.MonkeyPatch) -> None:
+    observed = np.ones((10, 5), dtype=bool)
+    observed[:4, 1] = observed[:7, 3] = False
+    refined = np.array([True, True, True, True, False])
+    monkeypatch.setattr(trajectory, "POLISH_SIZE", 20)  # two points of 10 frames
+    monkeypatch.setattr(trajectory, "POLISH_MIN_POINTS", 2)
+    assert trajectory._polish_points(observed, refined).tolist() == [True, False, True, False, False]
+    monkeypatch.setattr(trajectory, "POLISH_SIZE", 10_000)
+    assert np.array_equal(trajectory._polish_points(observed, refined), refined)
+
+    # the clocks come back from two of the four points as from all of them
+    times, camera_of = round_robin(160, 60.0)
+    problem, truth = capture(times, camera_of)
+    wrong = times.copy()
+    wrong[camera_of == 2] += 0.006
+    start = start_points(problem, truth, error_mm=5.0)
+    monkeypatch.setattr(trajectory, "POLISH_SIZE", 2 * 160)
+    fixed = refine_with_clocks(problem, start, wrong, reference=0)
+    assert np.max(np.abs(fixed.times - times)) < 1e-3
+    assert np.all(np.isfinite(fixed.result.points[:, :, 0]))  # every point refined on the polished clocks
