@@ -57,7 +57,9 @@ def referee_times(
         seed = solve(sub, solver)
         # W's links alone: the track search is what is being checked
         return estimate_clocks(sub, seed, replace(clock_options, search=SearchMode.NEVER)).global_time
-    except DynreconError as error:  # too little in the subsample to solve: nothing confirms the tracks' clocks
+    except (DynreconError, np.linalg.LinAlgError, ValueError) as error:
+        # too little in the subsample to solve, or a degenerate one: nothing confirms the tracks' clocks, and the
+        # full seed solve that follows says what is wrong with the data, if anything
         log.info("tracks path referee: no solve on %d frames (%s)", index.size, error)
         return np.full(index.size, np.nan)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from synthetic_motion import smooth_motion, synthetic_problem, truth_array
 
-from reconstruct import tracks_path
+from reconstruct import tracks_path, tracks_referee
 from reconstruct.clocks.estimate import estimate_clocks_from_tracks
 from reconstruct.inputs import build_problem
 from reconstruct.solver.alternation import SolverOptions
@@ -86,3 +86,15 @@ def test_subsample_takes_every_step_th_frame_and_a_middle_window_of_long_capture
     chosen = subsample(long, times)
     assert chosen.size == REFEREE_FRAMES and np.all(chosen % REFEREE_STEP == 0)
     assert abs(np.median(times[chosen]) - 50.0) < 1.0
+
+
+def test_a_subsample_that_cannot_be_solved_confirms_nothing(capture, monkeypatch):
+    _, problem, options, clocks = capture
+
+    def singular(*_):
+        raise np.linalg.LinAlgError("singular")
+
+    monkeypatch.setattr(tracks_referee, "solve", singular)
+    check, report = referee_check(problem, clocks, SolverOptions(), options)
+    assert not check.passed and check.value == np.inf
+    assert all(v["periods"] is None for name, v in report["videos"].items() if name != clocks.reference)
