@@ -7,13 +7,8 @@ Its defaults come from the solver's options, which load numpy and scipy: `dynrec
 from __future__ import annotations
 
 import argparse
-import importlib
-import logging
 import math
-import threading
 from pathlib import Path
-
-log = logging.getLogger(__name__)
 
 COMMANDS = {"solve": "reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)"}
 
@@ -95,8 +90,6 @@ def _solve(args: argparse.Namespace) -> int:
 
     if args.max_iterations < 1:
         raise InputError(None, f"--max-iterations {args.max_iterations} must be at least 1")
-    # imported while the inputs are read and the seed solve runs, which release the GIL in numpy and LAPACK
-    _prefetch("scipy.optimize", *([] if args.no_recording else ["reconstruct.outputs.recording"]))
     for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
         if not (math.isfinite(value) and value >= 0):  # argparse's float() accepts nan, inf and negatives
             raise InputError(None, f"{flag} {value} must be a finite number >= 0")
@@ -129,17 +122,3 @@ def _solve(args: argparse.Namespace) -> int:
         + ")"
     )
     return 0
-
-
-def _prefetch(*modules: str) -> None:
-    """Import `modules` in a background thread, in turn: the clock search's scipy.optimize and the recording's
-    rerun are slow to import, and are needed only after the seed solve; imported beside it, on a second core."""
-
-    def load() -> None:
-        for module in modules:
-            try:
-                importlib.import_module(module)
-            except Exception:  # its user imports it again and reports the error where it is needed
-                log.debug("prefetching %s failed", module, exc_info=True)
-
-    threading.Thread(target=load, name="prefetch", daemon=True).start()

@@ -492,7 +492,7 @@ class _Refined:
 
 def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.ndarray) -> _Refined:
     """Rounds of: robust scale of the gaps, samples below a shrinking multiple of it, soft-L1 least squares."""
-    from scipy.optimize import least_squares  # scipy.optimize is slow to import: `dynrecon solve` prefetches it
+    from scipy.optimize import least_squares  # slow to import: only where the search refines
 
     scale = math.nan
     for round_ in range(REFINE_ROUNDS):
