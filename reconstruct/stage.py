@@ -13,12 +13,14 @@ import enum
 import json
 import logging
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from dynrecon.atomic import atomic_write_text, require_writable
+from dynrecon.beside import beside
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
@@ -85,18 +87,24 @@ class Reconstruction:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         timings = self.report["timings"]
-        t0 = time.perf_counter()
-        points_path = write_points(out_dir / "points3d.csv", self.points)
-        write_sequencing(out_dir / "sequencing.json", self.sequencing)
-        timings["writing"] = time.perf_counter() - t0
-        if self.options.recording:
+        # the recording (mostly importing rerun) is written beside the CSV: dynrecon/beside.py
+        recording = beside(self._timed_recording, out_dir / "recording.rrd") if self.options.recording else None
+        with recording or nullcontext():
             t0 = time.perf_counter()
-            self.write_recording(out_dir / "recording.rrd", self.options.recording)
-            timings["recording"] = time.perf_counter() - t0
+            points_path = write_points(out_dir / "points3d.csv", self.points)
+            write_sequencing(out_dir / "sequencing.json", self.sequencing)
+            timings["writing"] = time.perf_counter() - t0
+            if recording is not None:
+                timings["recording"] = recording.result()
         timings["stage_total"] = time.perf_counter() - self.started
         atomic_write_text(out_dir / "report.json", json.dumps(self.report, indent=1, default=_json_default) + "\n")
         log.info("wrote %s", out_dir)
         return points_path
+
+    def _timed_recording(self, path: Path) -> float:
+        t0 = time.perf_counter()
+        self.write_recording(path, self.options.recording)
+        return time.perf_counter() - t0
 
     def write_recording(self, path: str | Path, options: RecordingOptions | None = None) -> Path:
         """The rerun recording (3D points, cameras, tracks, residual, skeleton) at `path`."""

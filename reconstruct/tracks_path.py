@@ -22,12 +22,12 @@ from __future__ import annotations
 import logging
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from dynrecon.beside import beside
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
 from reconstruct.clocks.model import Clocks, frame_periods
 from reconstruct.free_times import reprojection_px
@@ -128,9 +128,9 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     clock_options = options.clock_options(problem)
     early = subsample_without_clocks(problem) if referee is not None else None
     if referee is not None and early is not None:
-        clocks, referee_time, referee_seconds = _clocks_beside_referee(problem, clock_options, referee, early)
+        clocks, referee_time, referee_seconds, how = _clocks_beside_referee(problem, clock_options, referee, early)
     else:
-        clocks, referee_time, referee_seconds = estimate_clocks_from_tracks(problem, clock_options), None, 0.0
+        clocks, referee_time, referee_seconds, how = estimate_clocks_from_tracks(problem, clock_options), None, 0.0, ""
     timings = {"clocks": time.perf_counter() - t0}
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
     many = int(reconstructable_points(problem).sum()) > FEW_POINTS
@@ -141,6 +141,7 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
         if early is not None and referee_time is not None:
             check, report["referee"] = compare(problem, clocks, early, referee_time, referee_seconds)
             report["referee"]["beside_clocks"] = True  # its seconds overlap timings.clocks
+            report["referee"]["ran_in"] = how
         else:
             check, report["referee"] = referee_check(problem, clocks, referee, clock_options)
         timings["referee"] = report["referee"]["seconds"]
@@ -195,20 +196,22 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
 
 def _clocks_beside_referee(
     problem: Problem, clock_options: ClockOptions, referee: SolverOptions, index: np.ndarray
-) -> tuple[Clocks, np.ndarray, float]:
-    """The track search, and the referee's solve on frames `index` in a second thread (its subsample does not need
-    the clocks): the tracks' clocks, the referee's times of those frames and its seconds. Both run with one BLAS
-    thread, set here for the whole block, so that neither result depends on when the other's BLAS calls happen."""
-
-    def timed() -> tuple[np.ndarray, float]:
-        started = time.perf_counter()
-        return referee_times(problem, index, referee, clock_options), time.perf_counter() - started
-
-    with one_blas_thread(), ThreadPoolExecutor(1) as pool:
-        future = pool.submit(timed)
+) -> tuple[Clocks, np.ndarray, float, str]:
+    """The track search, and the referee's solve on frames `index` beside it (its subsample does not need the
+    clocks; a forked process where safe, else a thread: dynrecon/beside.py): the tracks' clocks, the referee's
+    times of those frames, its seconds and where it ran ("process" or "thread"). Both run with one BLAS thread,
+    set here for the whole block, so that neither result depends on when the other's BLAS calls happen."""
+    with one_blas_thread(), beside(_timed_referee, problem, index, referee, clock_options) as running:
         clocks = estimate_clocks_from_tracks(problem, clock_options)
-        referee_time, seconds = future.result()
-    return clocks, referee_time, seconds
+        referee_time, seconds = running.result()
+    return clocks, referee_time, seconds, "process" if running.forked else "thread"
+
+
+def _timed_referee(
+    problem: Problem, index: np.ndarray, referee: SolverOptions, clock_options: ClockOptions
+) -> tuple[np.ndarray, float]:
+    started = time.perf_counter()
+    return referee_times(problem, index, referee, clock_options), time.perf_counter() - started
 
 
 def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:

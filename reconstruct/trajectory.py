@@ -37,13 +37,13 @@ import numpy as np
 from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 
 from dynrecon.errors import InputError
+from reconstruct.block_inverse import BANDS, trace_of_inverse_times
 from reconstruct.clocks.model import ClockCorrection
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 
 log = logging.getLogger(__name__)
 
-BANDS = 9  # unknowns 3i + k; the prior links nodes i-2..i+2, so |row - column| <= 3 * 2 + 2 = 8
 PRIOR_DIAGONALS = (0, 3, 6)  # the prior's nonzero bands: it links the same coordinate of nodes i-2..i+2
 # Smoothness candidates for GCV, half-decade steps: a wide range, since noise-free frequent captures want little
 # smoothing and noisy sparse ones much more.
@@ -203,43 +203,6 @@ def _add_blocks(bands: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     for row in range(3):
         for col in range(row + 1):
             columns[row - col, :, col] += blocks[:, row, col]
-    return out
-
-
-def selected_inverse(factors: np.ndarray) -> np.ndarray:
-    """Band of M^-1 (lower form, same shape) from M's banded Cholesky factors, batched (B, BANDS, N).
-
-    Takahashi's recursion: Z = M^-1 restricted to the band of L needs only that band, from the last column
-    backwards, O(N BANDS^2) instead of the O(N^2 BANDS) of solving with the identity. The systems lie on the last
-    axis, so that each step of the (Python) loop over columns is a few whole-array operations on contiguous data.
-    """
-    B, bands, N = factors.shape
-    b = bands - 1
-    L = np.zeros((N + b, bands, B))
-    L[:N] = factors.transpose(2, 1, 0)
-    rows = np.arange(N)[:, None] + np.arange(bands)[None, :]
-    L[:N][rows >= N] = 0.0  # LAPACK leaves the unused corner of the band undefined
-    Z = np.zeros((N + b, bands, B))
-    x, y = np.meshgrid(np.arange(b), np.arange(b), indexing="ij")
-    window_index = (np.minimum(x, y) * bands + np.abs(x - y)).ravel()  # Z[j+1+x, j+1+y] in the window
-    for j in range(N - 1, -1, -1):
-        diagonal = L[j, 0]  # (B,)
-        below = L[j, 1:]  # (b, B): L[j+1..j+b, j]
-        block = Z[j + 1 : j + 1 + b].reshape(b * bands, B).take(window_index, axis=0).reshape(b, b, B)
-        column = -(block * below).sum(axis=1) / diagonal
-        Z[j, 1:] = column
-        Z[j, 0] = 1.0 / diagonal**2 - (below * column).sum(axis=0) / diagonal
-    return Z[:N].transpose(2, 1, 0)
-
-
-def _diagonal_blocks(band: np.ndarray) -> np.ndarray:
-    """(B, n, 3, 3) diagonal 3x3 blocks of a symmetric matrix given by its lower band (B, BANDS, 3n)."""
-    B, _, N = band.shape
-    n = N // 3
-    out = np.empty((B, n, 3, 3))
-    for row in range(3):
-        for col in range(row + 1):
-            out[:, :, row, col] = out[:, :, col, row] = band[:, row - col, np.arange(n) * 3 + col]
     return out
 
 
@@ -628,11 +591,11 @@ class _GridFits:
             tracks = np.unique(chunk[:, 0]).tolist()
             columns = [chunk[chunk[:, 0] == k, 1] for k in tracks]
             factors = np.concatenate(self._map(self._fit_track, tracks, columns))
-            # each system's inverse is its own (the batch is elementwise on the last axis): halves side by side
-            halves = np.array_split(factors, WORKERS if self.pool is not None and len(factors) > 1 else 1)
-            inverse_blocks = _diagonal_blocks(np.concatenate(self._map(selected_inverse, halves)))
             data = np.stack([self.data[int(k)][0] for k in chunk[:, 0]])
-            self.trace[chunk[:, 0], chunk[:, 1]] = np.einsum("bnij,bnji->b", inverse_blocks, data)
+            # each system's trace is its own (the batch is elementwise on the last axis): halves side by side
+            parts = WORKERS if self.pool is not None and len(factors) > 1 else 1
+            traces = self._map(trace_of_inverse_times, np.array_split(factors, parts), np.array_split(data, parts))
+            self.trace[chunk[:, 0], chunk[:, 1]] = np.concatenate(traces)
         self.known |= wanted
 
     def _map(self, function: Callable[..., np.ndarray], *arguments: list) -> list[np.ndarray]:

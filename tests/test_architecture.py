@@ -24,7 +24,14 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dynrecon", "sfm", "tracking", "labeling", "reconstruct", "simulation", "batch")
 # The shared ground: user errors, atomic writes, bounded readers, video opening. Every package may import it; it
 # imports no package.
-GROUND = ("dynrecon.errors", "dynrecon.atomic", "dynrecon.readers", "dynrecon.video_io", "dynrecon.lazy")
+GROUND = (
+    "dynrecon.errors",
+    "dynrecon.atomic",
+    "dynrecon.readers",
+    "dynrecon.video_io",
+    "dynrecon.lazy",
+    "dynrecon.beside",
+)
 GROUND_NODE = "ground"
 # Nodes of the package graph: a module belongs to the longest of these that prefixes it.
 PACKAGE_NODES = (*PACKAGES, "reconstruct.solver", "reconstruct.clocks", "reconstruct.outputs")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.linalg import cholesky_banded
 
 from dynrecon.errors import InputError
 from reconstruct import trajectory
@@ -20,7 +19,6 @@ from reconstruct.trajectory import (
     prior_bands,
     refine,
     refine_with_clocks,
-    selected_inverse,
     time_nodes,
 )
 from simulation.simulate import look_at, project
@@ -254,20 +252,6 @@ def test_prior_is_the_second_difference_on_uniform_times() -> None:
         dense[idx + d, idx] = bands[d, : 3 * n - d]
         dense[idx, idx + d] = bands[d, : 3 * n - d]
     np.testing.assert_allclose(dense, expected, atol=1e-12)
-
-
-def test_selected_inverse_matches_the_dense_inverse() -> None:
-    rng = np.random.default_rng(0)
-    N = 40
-    A = rng.normal(size=(N, N))
-    M = np.where(np.abs(np.subtract.outer(np.arange(N), np.arange(N))) < BANDS, (A + A.T) / 2, 0.0) + N * np.eye(N)
-    bands = np.zeros((BANDS, N))
-    for d in range(BANDS):
-        bands[d, : N - d] = np.diag(M, -d)
-    band = selected_inverse(cholesky_banded(bands, lower=True)[None])[0]
-    inverse = np.linalg.inv(M)
-    for d in range(BANDS):
-        np.testing.assert_allclose(band[d, : N - d], np.diag(inverse, -d), atol=1e-12)
 
 
 def test_bad_inputs_raise_input_errors() -> None:

@@ -2,11 +2,13 @@
 clocks, or the seed solve runs (reconstruct/tracks_referee.py)."""
 
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
 from synthetic_motion import smooth_motion, synthetic_problem, truth_array
 
+from dynrecon.beside import NO_FORK, fork_is_safe
 from reconstruct import tracks_path, tracks_referee
 from reconstruct.clocks.estimate import estimate_clocks_from_tracks
 from reconstruct.inputs import build_problem
@@ -43,6 +45,20 @@ def test_right_clocks_are_confirmed_and_the_solve_takes_the_tracks_path(capture)
     assert set(temporal["referee"]["videos"]) == set(report["videos"])
     error = np.linalg.norm(result.temporal.points - truth_array(result.problem, simulated.truth), axis=-1)
     assert np.nanmedian(error) < 1.0
+
+
+def test_the_referee_in_a_process_gives_what_it_gives_in_a_thread(capture, monkeypatch):
+    simulated = capture[0]
+    if not fork_is_safe():
+        pytest.skip(f"fork is not used here: threads {threading.enumerate()} alive, or not Linux")
+    forked = solve(simulated.cameras, simulated.tracks)
+    monkeypatch.setenv(NO_FORK, "1")
+    threaded = solve(simulated.cameras, simulated.tracks)
+    assert forked.report["temporal"]["referee"]["ran_in"] == "process"
+    assert threaded.report["temporal"]["referee"]["ran_in"] == "thread"
+    for key in ("videos", "frames"):
+        assert forked.report["temporal"]["referee"][key] == threaded.report["temporal"]["referee"][key]
+    np.testing.assert_array_equal(forked.temporal.points, threaded.temporal.points)
 
 
 def test_a_clock_a_cycle_off_is_refused_and_the_seed_solve_runs(capture, monkeypatch):

@@ -1,0 +1,90 @@
+"""dynrecon.beside: a function run beside the caller, in a forked child where safe, gives the function's result,
+raises its exception, survives the child's death and never leaves a child behind."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dynrecon import beside as beside_module
+from dynrecon.beside import beside, fork_is_safe
+
+PARENT = os.getpid()
+
+
+def where_and_sum(values: np.ndarray) -> tuple[int, float]:
+    return os.getpid(), float(values.sum())
+
+
+def fails() -> None:
+    raise ValueError("the function's own error")
+
+
+def dies_in_a_child(values: np.ndarray) -> float:
+    if os.getpid() != PARENT:
+        os._exit(3)  # killed, out of memory: no result
+    return float(values.sum())
+
+
+class UnpicklableError(Exception):
+    def __reduce__(self) -> str:  # type: ignore[override]
+        raise TypeError("not picklable")
+
+
+def raises_unpicklable() -> None:
+    raise UnpicklableError("kept")
+
+
+@pytest.fixture
+def single_threaded() -> None:
+    if not fork_is_safe():
+        pytest.skip(f"fork is not used here: threads {threading.enumerate()} alive, or not Linux")
+
+
+def test_a_forked_child_returns_the_result(single_threaded: None) -> None:
+    values = np.arange(1000.0)
+    with beside(where_and_sum, values) as running:
+        assert running.forked
+        pid, total = running.result()
+    assert pid != os.getpid()
+    assert total == values.sum()
+
+
+def test_the_child_s_exception_is_raised_in_the_caller(single_threaded: None) -> None:
+    with beside(fails) as running, pytest.raises(ValueError, match="the function's own error"):
+        running.result()
+
+
+def test_a_child_that_dies_without_a_result_is_redone_here(single_threaded: None) -> None:
+    values = np.arange(10.0)
+    with beside(dies_in_a_child, values) as running:
+        assert running.result() == values.sum()
+
+
+def test_an_unpicklable_exception_is_raised_by_the_rerun(single_threaded: None) -> None:
+    with beside(raises_unpicklable) as running, pytest.raises(UnpicklableError, match="kept"):
+        running.result()
+
+
+def test_closing_early_stops_and_reaps_the_child(single_threaded: None) -> None:
+    started = time.perf_counter()
+    with beside(time.sleep, 60) as running:
+        pid = running._pid
+    assert time.perf_counter() - started < 10
+    assert pid is not None
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)  # reaped already: no zombie left
+
+
+def test_without_fork_it_runs_in_a_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(beside_module.NO_FORK, "1")
+    values = np.arange(5.0)
+    with beside(where_and_sum, values) as running:
+        assert not running.forked
+        assert running.result() == (os.getpid(), values.sum())
+    with beside(fails) as running, pytest.raises(ValueError):
+        running.result()
