@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from dynrecon.beside import beside
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
-from reconstruct.clocks.model import Clocks, frame_periods
+from reconstruct.clocks.model import frame_periods
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.blas import one_blas_thread
@@ -39,7 +40,7 @@ from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
-from reconstruct.tracks_referee import compare, referee_check, referee_times, subsample_without_clocks
+from reconstruct.tracks_referee import compare, referee_times, subsample, subsample_without_clocks
 
 log = logging.getLogger(__name__)
 
@@ -123,31 +124,39 @@ def start_points(problem: Problem, times: np.ndarray) -> np.ndarray:
 
 def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverOptions | None = None) -> TracksAttempt:
     """Clocks from the tracks, start points, trajectories on the clocks, each checked (module docstring); with
-    `referee`, the clocks must also agree with the seed solve's on a subsample (reconstruct/tracks_referee.py)."""
+    `referee`, the clocks must also agree with the seed solve's on a subsample (reconstruct/tracks_referee.py).
+
+    The referee's solve runs beside the rest (`dynrecon/beside.py`: a forked process where safe, else a thread):
+    from the start where its subsample does not need the clocks, else from the track search's end; only its
+    verdict waits for it. Everything runs with one BLAS thread then, so that neither result depends on when the
+    other's BLAS calls happen."""
+    with ExitStack() as stack:
+        if referee is not None:
+            stack.enter_context(one_blas_thread())
+        return _attempt(problem, options, referee, stack)
+
+
+def _attempt(
+    problem: Problem, options: TemporalOptions, referee: SolverOptions | None, stack: ExitStack
+) -> TracksAttempt:
     t0 = time.perf_counter()
     clock_options = options.clock_options(problem)
-    early = subsample_without_clocks(problem) if referee is not None else None
-    if referee is not None and early is not None:
-        clocks, referee_time, referee_seconds, how = _clocks_beside_referee(problem, clock_options, referee, early)
-    else:
-        clocks, referee_time, referee_seconds, how = estimate_clocks_from_tracks(problem, clock_options), None, 0.0, ""
+    index = subsample_without_clocks(problem) if referee is not None else None
+    running, beside_what = None, ""
+    if referee is not None and index is not None:
+        running = stack.enter_context(beside(_timed_referee, problem, index, referee, clock_options))
+        beside_what = "track search and refinement"
+    clocks = estimate_clocks_from_tracks(problem, clock_options)
     timings = {"clocks": time.perf_counter() - t0}
     report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": timings}
     many = int(reconstructable_points(problem).sum()) > FEW_POINTS
     checks = clock_checks(problem, clocks, MANY_POINTS_DISTINCTNESS if many else MIN_DISTINCTNESS)
     if not all(c.passed for c in checks):
-        return _failed(checks, report)
-    if referee is not None:
-        if early is not None and referee_time is not None:
-            check, report["referee"] = compare(problem, clocks, early, referee_time, referee_seconds)
-            report["referee"]["beside_clocks"] = True  # its seconds overlap timings.clocks
-            report["referee"]["ran_in"] = how
-        else:
-            check, report["referee"] = referee_check(problem, clocks, referee, clock_options)
-        timings["referee"] = report["referee"]["seconds"]
-        checks.append(check)
-        if not check.passed:
-            return _failed(checks, report)
+        return _failed(checks, report)  # leaving the stack stops a referee still running
+    if referee is not None and running is None:
+        index = subsample(problem, clocks.global_time)
+        running = stack.enter_context(beside(_timed_referee, problem, index, referee, clock_options))
+        beside_what = "refinement"
     t0 = time.perf_counter()
     times = clocks.global_time.copy()
     start = start_points(problem, times)
@@ -156,6 +165,17 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     t0 = time.perf_counter()
     on_clocks = refine_on_clocks(problem, start, clocks, clock_options.model, options.refine)
     timings["refinement"] = time.perf_counter() - t0
+    if running is not None and index is not None:
+        t0 = time.perf_counter()
+        referee_time, seconds = running.result()
+        check, report["referee"] = compare(problem, clocks, index, referee_time, seconds)
+        # its seconds overlap those of the steps it ran beside; timings.referee_wait is what the solve waited
+        report["referee"].update({"beside": beside_what, "ran_in": "process" if running.forked else "thread"})
+        timings["referee"] = seconds
+        timings["referee_wait"] = time.perf_counter() - t0
+        checks.append(check)
+        if not check.passed:
+            return _failed(checks, report)
     refined = on_clocks.result
     residual = reprojection_px(problem, refined.points)
     finite = residual[np.isfinite(residual)]
@@ -192,19 +212,6 @@ def solve_on_tracks(problem: Problem, options: TemporalOptions, referee: SolverO
     return TracksAttempt(
         temporal=temporal, seed=_seed(problem, start, points, on_clocks.clocks.global_time, timings), report=report
     )
-
-
-def _clocks_beside_referee(
-    problem: Problem, clock_options: ClockOptions, referee: SolverOptions, index: np.ndarray
-) -> tuple[Clocks, np.ndarray, float, str]:
-    """The track search, and the referee's solve on frames `index` beside it (its subsample does not need the
-    clocks; a forked process where safe, else a thread: dynrecon/beside.py): the tracks' clocks, the referee's
-    times of those frames, its seconds and where it ran ("process" or "thread"). Both run with one BLAS thread,
-    set here for the whole block, so that neither result depends on when the other's BLAS calls happen."""
-    with one_blas_thread(), beside(_timed_referee, problem, index, referee, clock_options) as running:
-        clocks = estimate_clocks_from_tracks(problem, clock_options)
-        referee_time, seconds = running.result()
-    return clocks, referee_time, seconds, "process" if running.forked else "thread"
 
 
 def _timed_referee(

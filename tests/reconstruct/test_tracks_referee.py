@@ -41,7 +41,8 @@ def test_right_clocks_are_confirmed_and_the_solve_takes_the_tracks_path(capture)
     assert temporal["path"] == "tracks", temporal.get("reason")
     assert {c["name"] for c in temporal["checks"]} >= {"referee", "track_distinctness"}
     assert temporal["referee"]["frames"] == report["frames"]
-    assert temporal["referee"]["beside_clocks"]  # a short capture: the referee solved beside the track search
+    # a short capture: the referee's subsample needs no clocks, and it solved beside the track search
+    assert temporal["referee"]["beside"] == "track search and refinement"
     assert set(temporal["referee"]["videos"]) == set(report["videos"])
     error = np.linalg.norm(result.temporal.points - truth_array(result.problem, simulated.truth), axis=-1)
     assert np.nanmedian(error) < 1.0
