@@ -5,8 +5,8 @@ clocks, refinement, trust, outputs, writing, recording).
     python benchmarks/whole_solve.py [--runs 3] [--sizes 700,2000] [--long] [--cases DIR] [--roots A,B] [--json OUT]
 
 Data: `dynrecon simulate --mode phones` (4 videos on their own clocks, decoder times in cameras.json) on CMU 01_01
-(P = 41) and complexknee 2022_01_0401 (P = 39-40 once the simulator drops the markers with gaps; the case name
-keeps its old label), cut to about F frames; the table's P column is the report's. `--long` adds F = 20,000 (about
+(P = 41) and complexknee 2022_01_0401 (P = 39-40 once the simulator drops the markers with gaps), cut to about F
+frames; the table's P column is the report's. `--long` adds F = 20,000 (about
 144 s of motion), longer than either file (23 and 34 s): the case folder then gets `palindrome.trc`, the file
 played forward, backward, forward... up to the length needed, which the simulator reads instead. A palindrome keeps
 every marker trajectory continuous (each turn reverses the velocity, like a bounce, never a jump). It also repeats
@@ -49,7 +49,7 @@ from simulation.simulate import vertical_axis  # noqa: E402
 MOCAP = ROOT.parent / "shared" / "data" / "mocap"
 # phones: 30 + 25 + 59.94 + 24 fps = 139 captures per second of motion, after start offsets of up to 0.5 s
 CAPTURES_PER_S = 139.0
-FILES = {"cmu P=41": ("cmu/cmu_01_01.c3d", 120.0), "complexknee P=20": ("lab/complexknee/2022_01_0401.c3d", 100.0)}
+FILES = {"cmu P=41": ("cmu/cmu_01_01.c3d", 120.0), "complexknee P=40": ("lab/complexknee/2022_01_0401.c3d", 100.0)}
 STAGES = [
     "read_inputs",
     "rays",
