@@ -15,7 +15,7 @@ Per (window, row) of benchmarks/paper_tables.py (same simulation, same seeds), f
 - refined, estimated times: the same with times that the pipeline could know (`estimated_times`: every video's
   decoder times shifted by an unknown offset, clocks recovered by `clocks.estimate.estimate_clocks` with its
   default, affine, model);
-- refined, estimated times + clock refinement: `trajectory.refine_with_clocks` from those times (offsets and rates
+- refined, estimated times + clock refinement: `clock_polish.refine_with_clocks` from those times (offsets and rates
   polished), the default of `dynrecon solve` when this script was written;
 - dynrecon solve (default): what `dynrecon solve` does now, `temporal.recover_and_refine` with default
   TemporalOptions on the same shifted decoder times (offset-only clocks when every frame has a decoder time, an
@@ -56,6 +56,7 @@ from common import (
 )
 from paper_tables import ROWS, Row
 
+from reconstruct.clock_polish import refine_with_clocks
 from reconstruct.clocks.estimate import estimate_clocks
 from reconstruct.outputs.export import sequencing_order
 from reconstruct.outputs.points import FramePoints
@@ -64,7 +65,7 @@ from reconstruct.solver.initialize import fill_missing_points
 from reconstruct.solver.problem import Problem
 from reconstruct.stage import frame_points, sequencing
 from reconstruct.temporal import TemporalOptions, recover_and_refine
-from reconstruct.trajectory import RefineOptions, RobustLoss, SmoothnessRule, refine, refine_with_clocks
+from reconstruct.trajectory import RefineOptions, RobustLoss, SmoothnessRule, refine
 from simulation.evaluate import evaluate
 from simulation.simulate import SimulatedCapture
 

@@ -2,7 +2,7 @@
 
 The seed paper stops at local sequencing (W). dynrecon goes on (docs/clocks.md, docs/refinement.md):
 1. `clocks.estimate.estimate_clocks`: a clock per video from W's links, and from the tracks where W is ambiguous;
-2. `trajectory.refine_with_clocks`: a smoothing-spline trajectory per point through its rays on the recovered global
+2. `clock_polish.refine_with_clocks`: a smoothing-spline trajectory per point through its rays on the recovered global
    times (GCV smoothness, Huber IRLS against false detections), which also polishes each video's offset and rate;
    a polish whose cost rose or that moved a rate far is rejected (`_plausible`), and the trajectories are then
    refined on the estimated clocks;
@@ -21,12 +21,13 @@ from typing import Any
 
 import numpy as np
 
+from reconstruct.clock_polish import refine_with_clocks
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
 from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, spacing_assumed
-from reconstruct.trajectory import RefineOptions, RefineResult, refine, refine_with_clocks
+from reconstruct.trajectory import RefineOptions, RefineResult, refine
 
 log = logging.getLogger(__name__)
 

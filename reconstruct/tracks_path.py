@@ -9,7 +9,7 @@ trajectory. Steps:
 1. `estimate_clocks_from_tracks`, checked by `time_checks.clock_checks` (every video clocked, a distinct offset);
 2. start points: every observation triangulated at its frame's global time with the nearest observations of the
    other videos (`start_points`);
-3. `trajectory.refine_with_clocks` on those clocks (the polish checked as on the clocks path), then the fit check
+3. `clock_polish.refine_with_clocks` on those clocks (the polish checked as on the clocks path), then the fit check
    `tracks_fit`: the trajectories meet their rays about as closely as the track search's rays met each other.
 
 Beyond `TemporalOptions.tracks_path_max_points` the path is refereed: its clocks must also agree with those of W's
