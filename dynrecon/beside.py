@@ -3,21 +3,28 @@
 Two pieces of pure-Python-heavy numpy work in threads of one process take turns on the GIL and run about one after
 the other. A forked child runs on the other core; it shares the caller's memory copy-on-write, so nothing but the
 result crosses (pickled, through a pipe). Fork is used only on Linux, from the main thread, and only while no other
-thread runs but harmless ones (`HARMLESS_THREADS`): forking a process whose other threads may hold a lock (a Dask
-worker's event loop, a library's pool) can deadlock the child. Everywhere else, and with DYNRECON_NO_FORK set, the
-function runs in a thread.
+Python thread runs: a lock held by another thread at the fork (tqdm's monitor takes tqdm's lock every few seconds,
+a Dask worker's event loop holds its own) stays held in the child forever. The command line switches tqdm's
+monitor off (`quiet_tqdm_monitor`) so that it never starts. Everywhere else, when fork fails, and with
+DYNRECON_NO_FORK set, the function runs in a thread.
 
-The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory) is not
-trusted for anything, and the function is run again in the caller.
+The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory), or
+whose result cannot be brought back, is not trusted for anything, and the function is run again in the caller
+(`redone`). A child stopped early (the caller failed first) gets SIGTERM, which its function sees as SystemExit,
+so that its own cleanup (temporary files) runs; SIGKILL follows if it does not end.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import logging
 import os
 import pickle
+import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
@@ -26,28 +33,34 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 NO_FORK = "DYNRECON_NO_FORK"  # set to anything: always a thread
-
-
-# Threads that hold no lock a child could need: tqdm's monitor only sleeps on its own event between checks of its bars
-HARMLESS_THREADS = frozenset({"tqdm_monitor"})
+STOP_GRACE_S = 2.0  # a child stopped early has this long to clean up after SIGTERM
+_PR_SET_PDEATHSIG = 1
 
 
 def fork_is_safe() -> bool:
-    """Whether `beside` may fork here: Linux, fork available, no other thread alive but harmless ones, not switched
-    off."""
-    others = [t for t in threading.enumerate() if t is not threading.current_thread()]
+    """Whether `beside` may fork here: Linux, fork available, the main thread, no other Python thread alive, not
+    switched off. (Native threads, e.g. BLAS pools, are not seen: their libraries handle fork.)"""
     return (
         sys.platform == "linux"
         and hasattr(os, "fork")
         and not os.environ.get(NO_FORK)
         and threading.current_thread() is threading.main_thread()
-        and all(t.name in HARMLESS_THREADS and t.daemon for t in others)
+        and threading.active_count() == 1
     )
+
+
+def quiet_tqdm_monitor() -> None:
+    """Keep tqdm from starting its monitor thread (it only adjusts refresh intervals), so that `beside` can fork."""
+    with contextlib.suppress(ImportError):
+        from tqdm import tqdm
+
+        tqdm.monitor_interval = 0
 
 
 class Beside(Generic[T]):
     """The handle of a call started by `beside`: `result()` waits for it and returns its value or raises its
-    exception. Use it as a context manager, so that a child is never left behind when the caller fails."""
+    exception. Use it as a context manager, so that a child is never left behind when the caller fails.
+    `forked`: it ran in a child process; `redone`: the child gave no result and the caller ran it again."""
 
     def __init__(self, function: Callable[..., T], args: tuple[Any, ...]) -> None:
         self._function, self._args = function, args
@@ -55,21 +68,31 @@ class Beside(Generic[T]):
         self._read: int | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._future: Future[T] | None = None
-        self.forked = fork_is_safe()
-        if self.forked:
-            self._start_child()
-        else:
+        self.redone = False
+        self.forked = fork_is_safe() and self._start_child()
+        if not self.forked:
             self._pool = ThreadPoolExecutor(1)
             self._future = self._pool.submit(function, *args)
 
-    def _start_child(self) -> None:
+    def _start_child(self) -> bool:
+        for stream in (sys.stdout, sys.stderr):  # else the child would write the caller's pending output again
+            with contextlib.suppress(Exception):
+                stream.flush()
         read, write = os.pipe()
-        pid = os.fork()
+        try:
+            pid = os.fork()
+        except OSError as error:  # no process to be had (a process limit, memory): a thread does the same work
+            os.close(read)
+            os.close(write)
+            log.info("no worker process (%s): a thread runs the work instead", error)
+            return False
         if pid == 0:  # the child: never returns into the caller's code
             os.close(read)
             _child(write, self._function, self._args)
+        self._pid = pid
         os.close(write)
-        self._pid, self._read = pid, read
+        self._read = read
+        return True
 
     def result(self) -> T:
         """The function's return value (waits); its exception is raised here."""
@@ -77,7 +100,8 @@ class Beside(Generic[T]):
             return self._future.result()
         payload = self._collect()
         if payload is None:
-            log.warning("a worker process ended without a result; running its work here instead")
+            log.warning("a worker process ended without a usable result; running its work here instead")
+            self.redone = True
             return self._function(*self._args)
         failed, value = payload
         if failed:
@@ -85,16 +109,15 @@ class Beside(Generic[T]):
         return value
 
     def _collect(self) -> tuple[bool, Any] | None:
-        """The child's (failed, value), or None when it died without one. Reaps it."""
-        assert self._read is not None and self._pid is not None
+        """The child's (failed, value), or None when it gave none. Reaps it."""
+        assert self._read is not None
         chunks = []
         with os.fdopen(self._read, "rb") as pipe:
             self._read = None
             while chunk := pipe.read(1 << 20):
                 chunks.append(chunk)
-        _, status = os.waitpid(self._pid, 0)
-        self._pid = None
-        if not chunks or os.waitstatus_to_exitcode(status) != 0:
+        exit_code = self._reap()
+        if not chunks or exit_code not in (0, None):
             return None
         try:
             payload = pickle.loads(b"".join(chunks))
@@ -102,15 +125,35 @@ class Beside(Generic[T]):
             return None
         return payload
 
+    def _reap(self, timeout: float | None = None) -> int | None:
+        """Wait for the child (at most `timeout` s, polling); its exit code, None when someone else reaped it or
+        it is still running after the timeout."""
+        pid, self._pid = self._pid, None
+        if pid is None:
+            return None
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while True:
+                done, status = os.waitpid(pid, 0 if deadline is None else os.WNOHANG)
+                if done:
+                    return os.waitstatus_to_exitcode(status)
+                if deadline is not None and time.monotonic() > deadline:
+                    self._pid = pid
+                    return None
+                time.sleep(0.01)
+        except ChildProcessError:  # reaped elsewhere (an embedding application ignoring SIGCHLD)
+            return None
+
     def close(self) -> None:
-        """Stop and reap a child still running (the caller failed first); shut the thread down."""
+        """Stop and reap a child still running (the caller failed first): SIGTERM, then SIGKILL after
+        STOP_GRACE_S; shut a thread down (it runs to its end: a thread cannot be stopped)."""
         if self._pid is not None:
-            try:
-                os.kill(self._pid, 9)
-                os.waitpid(self._pid, 0)
-            except OSError:
-                pass
-            self._pid = None
+            for sig, grace in ((signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, None)):
+                with contextlib.suppress(OSError):
+                    os.kill(self._pid, sig)
+                self._reap(grace)
+                if self._pid is None:
+                    break
         if self._read is not None:
             os.close(self._read)
             self._read = None
@@ -132,17 +175,28 @@ def beside(function: Callable[..., T], *args: Any) -> Beside[T]:
 
 def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> None:
     """Run the function, send (failed, value) through `write`, and leave without running the caller's exit code."""
-    code = 0
+    code = 1
     try:
+        # SIGTERM (the caller stopping it) becomes SystemExit, so that the function's cleanup runs; and the child
+        # ends with the caller, whatever ended that
+        signal.signal(signal.SIGTERM, _exit_on_signal)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        with contextlib.suppress(Exception):
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
         try:
             payload: tuple[bool, Any] = (False, function(*args))
         except BaseException as error:  # the caller re-raises it
             payload = (True, error)
-        # an unpicklable value or exception raises here: no result, and the caller runs the function itself
         data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.loads(data)  # what cannot be brought back is sent as nothing: the caller runs the function itself
         with os.fdopen(write, "wb") as pipe:
             pipe.write(data)
+        code = 0
     except BaseException:  # nothing may escape into a copy of the caller
         code = 1
     finally:
         os._exit(code)
+
+
+def _exit_on_signal(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)

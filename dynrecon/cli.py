@@ -18,6 +18,7 @@ import sys
 from collections.abc import Sequence
 
 from dynrecon import __version__
+from dynrecon.beside import quiet_tqdm_monitor
 from dynrecon.errors import DynreconError
 
 # Modules whose `add_commands` registers subcommands, in the order they appear in `--help`.
@@ -68,6 +69,7 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     if verbose < 2:
         for noisy in ("PIL", "matplotlib", "urllib3"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
+    quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,6 +12,18 @@ from pathlib import Path
 class DynreconError(Exception):
     """Base class of all errors caused by user input or environment, shown as one line."""
 
+    def __reduce__(self) -> tuple[object, ...]:
+        # Subclasses take their own constructor arguments: a copy (pickled from a worker process) is rebuilt from
+        # the message and the attributes, not by calling __init__ with the message alone.
+        return (_rebuild, (type(self), self.args, self.__dict__))
+
+
+def _rebuild(cls: type[DynreconError], args: tuple[object, ...], state: dict[str, object]) -> DynreconError:
+    error = cls.__new__(cls)
+    Exception.__init__(error, *args)
+    error.__dict__.update(state)
+    return error
+
 
 class InputError(DynreconError):
     """A problem in an input file: `file:where: what (fix)`."""

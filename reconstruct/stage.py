@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import json
 import logging
+import os
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -87,15 +88,21 @@ class Reconstruction:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         timings = self.report["timings"]
-        # the recording (mostly importing rerun) is written beside the CSV: dynrecon/beside.py
-        recording = beside(self._timed_recording, out_dir / "recording.rrd") if self.options.recording else None
-        with recording or nullcontext():
-            t0 = time.perf_counter()
-            points_path = write_points(out_dir / "points3d.csv", self.points)
-            write_sequencing(out_dir / "sequencing.json", self.sequencing)
-            timings["writing"] = time.perf_counter() - t0
-            if recording is not None:
-                timings["recording"] = recording.result()
+        # The recording (mostly importing rerun) is written beside the CSV (dynrecon/beside.py), under a temporary
+        # name that is published only when both succeeded: a failed write leaves no recording of this solve.
+        pending = out_dir / f".recording.rrd.{os.getpid()}.pending"
+        recording = beside(self._timed_recording, pending) if self.options.recording else None
+        try:
+            with recording or nullcontext():
+                t0 = time.perf_counter()
+                points_path = write_points(out_dir / "points3d.csv", self.points)
+                write_sequencing(out_dir / "sequencing.json", self.sequencing)
+                timings["writing"] = time.perf_counter() - t0
+                if recording is not None:
+                    timings["recording"] = recording.result()
+                    os.replace(pending, out_dir / "recording.rrd")
+        finally:
+            pending.unlink(missing_ok=True)
         timings["stage_total"] = time.perf_counter() - self.started
         atomic_write_text(out_dir / "report.json", json.dumps(self.report, indent=1, default=_json_default) + "\n")
         log.info("wrote %s", out_dir)
@@ -191,6 +198,7 @@ def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveRes
     else the seed solve and the clocks and refinement after it; the report says which and why."""
     temporal_options = options.temporal
     tried: dict[str, Any] | None = None
+    attempt_seconds = 0.0
     few = tracks_path_applies(problem, temporal_options.tracks_path_max_points)
     refereed = tracks_path_refereed(problem, temporal_options)
     if temporal_options.refinement is Refinement.CLOCKS and (few or refereed):
@@ -199,7 +207,7 @@ def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveRes
         if attempt.temporal is not None and attempt.seed is not None:
             attempt.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
             return attempt.seed, attempt.temporal
-        tried = attempt.report
+        tried, attempt_seconds = attempt.report, time.perf_counter() - t0
     result = solve_problem(problem, options.solver)
     t0 = time.perf_counter()
     temporal = recover_and_refine(problem, result, temporal_options)
@@ -210,6 +218,7 @@ def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveRes
         if "referee" in tried:
             temporal.report["tracks_path"]["referee"] = tried["referee"]
             result.timings["referee"] = tried["referee"]["seconds"]
+        result.timings["tracks_path_attempt"] = attempt_seconds  # what the failed attempt cost, referee included
         temporal.report["reason"] = f"tracks path failed its check {tried['failed']!r}: the seed solve was run"
     return result, temporal
 

@@ -170,7 +170,8 @@ def _attempt(
         referee_time, seconds = running.result()
         check, report["referee"] = compare(problem, clocks, index, referee_time, seconds)
         # its seconds overlap those of the steps it ran beside; timings.referee_wait is what the solve waited
-        report["referee"].update({"beside": beside_what, "ran_in": "process" if running.forked else "thread"})
+        ran_in = "caller" if running.redone else "process" if running.forked else "thread"
+        report["referee"].update({"beside": beside_what, "ran_in": ran_in})
         timings["referee"] = seconds
         timings["referee_wait"] = time.perf_counter() - t0
         checks.append(check)

@@ -57,13 +57,13 @@ IRLS_ITERATIONS = 5  # IRLS rounds per GCV pass (weights from the previous round
 # weights (the first pass's weights come from the start points' residuals).
 GCV_PASSES = 2
 # Beyond this many instants each point's smoothness and scale are chosen on the middle GCV_WINDOW instants only: the
-# GCV trace's selected inverse costs a Python step per unknown, and the noise level and the motion's smoothness that
+# GCV trace's recursion costs a Python step per instant, and the noise level and the motion's smoothness that
 # GCV weighs are properties of the point, not of the capture's length. The fits themselves use every instant.
 GCV_WINDOW = 1000
 # A point with fewer observations in that window is chosen on all of its own (exactly as below the window).
 GCV_WINDOW_MIN_OBSERVATIONS = 50
 OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an outlier in the result
-# Threads for independent points (their banded solves and selected inverses; bit-identical for any count). One:
+# Threads for independent points (their banded solves and GCV traces; bit-identical for any count). One:
 # on an idle 2-core machine a second thread gave no wall time back and cost CPU (docs/measurements.md).
 WORKERS = 1
 
@@ -455,11 +455,11 @@ def _stacked_factor(systems: np.ndarray) -> np.ndarray | None:
 
 class _GridFits:
     """The tracks' fits at the grid's smoothness values, RSS and tr(H), computed on demand: the fits and the
-    selected inverse are most of the refinement's cost, and the GCV choice needs them only near each track's
+    GCV traces are most of the refinement's cost, and the GCV choice needs them only near each track's
     least score."""
 
     COARSE_STEP = 4  # first evaluated grid values: every COARSE_STEP-th and the last
-    BATCH_BYTES = 2**26  # factors per batch of the selected inverse (its two work arrays are as large)
+    BATCH_BYTES = 2**26  # banded factors per batch of fits and traces
     # Relative margin of the lower bounds on the score: the tiny anchor pull of `_fit` and round-off make RSS and
     # tr(H) monotone in the smoothness only to about this.
     BOUND_MARGIN = 1e-3

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from dynrecon.beside import quiet_tqdm_monitor
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared"))
 
@@ -14,6 +16,7 @@ SHARED = Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared"))
 # beside other work on 2 cores.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+quiet_tqdm_monitor()  # as the command line does: no monitor thread, so that solves fork where they would
 
 
 @pytest.fixture(scope="session")

@@ -12,6 +12,7 @@ import pytest
 
 from dynrecon import beside as beside_module
 from dynrecon.beside import beside, fork_is_safe
+from dynrecon.errors import InputError
 
 PARENT = os.getpid()
 
@@ -39,6 +40,19 @@ def raises_unpicklable() -> None:
     raise UnpicklableError("kept")
 
 
+def raises_input_error() -> None:
+    raise InputError("tracks.csv", "no rows", where="line 2", fix="track something first")
+
+
+def cleans_up_when_stopped(marker: str) -> None:
+    with open(marker, "w") as file:
+        file.write("working")
+    try:
+        time.sleep(60)
+    finally:
+        os.remove(marker)  # a temporary file of the function's own
+
+
 @pytest.fixture
 def single_threaded() -> None:
     if not fork_is_safe():
@@ -63,11 +77,42 @@ def test_a_child_that_dies_without_a_result_is_redone_here(single_threaded: None
     values = np.arange(10.0)
     with beside(dies_in_a_child, values) as running:
         assert running.result() == values.sum()
+        assert running.redone
 
 
 def test_an_unpicklable_exception_is_raised_by_the_rerun(single_threaded: None) -> None:
     with beside(raises_unpicklable) as running, pytest.raises(UnpicklableError, match="kept"):
         running.result()
+
+
+def test_a_user_error_comes_back_whole(single_threaded: None) -> None:
+    with beside(raises_input_error) as running, pytest.raises(InputError) as raised:
+        running.result()
+    assert str(raised.value) == "tracks.csv:line 2: no rows (track something first)"
+    assert raised.value.fix == "track something first" and not running.redone  # not run a second time
+
+
+def test_a_child_stopped_early_runs_its_cleanup(single_threaded: None, tmp_path) -> None:
+    marker = tmp_path / "working.txt"
+    with beside(cleans_up_when_stopped, str(marker)) as running:
+        assert running.forked
+        for _ in range(500):  # until the child has started its work
+            if marker.exists():
+                break
+            time.sleep(0.01)
+        assert marker.exists()
+    assert not marker.exists()  # SIGTERM became SystemExit in the child: its finally ran
+
+
+def test_when_fork_fails_a_thread_does_the_work(single_threaded: None, monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_fork() -> int:
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(os, "fork", no_fork)
+    values = np.arange(7.0)
+    with beside(where_and_sum, values) as running:
+        assert not running.forked
+        assert running.result() == (os.getpid(), values.sum())
 
 
 def test_closing_early_stops_and_reaps_the_child(single_threaded: None) -> None:

@@ -62,6 +62,22 @@ def test_the_referee_in_a_process_gives_what_it_gives_in_a_thread(capture, monke
     np.testing.assert_array_equal(forked.temporal.points, threaded.temporal.points)
 
 
+def test_a_windowed_referee_starts_after_the_track_search(capture, monkeypatch):
+    # beyond REFEREE_FRAMES subsampled frames the window needs the tracks' clocks: the referee runs beside the
+    # refinement only, and gives what it gives in a thread
+    simulated = capture[0]
+    monkeypatch.setattr(tracks_referee, "REFEREE_FRAMES", 28)
+    forked = solve(simulated.cameras, simulated.tracks)
+    referee = forked.report["temporal"]["referee"]
+    assert forked.report["temporal"]["path"] == "tracks" and referee["frames"] == 28
+    assert referee["beside"] == "refinement"
+    monkeypatch.setenv(NO_FORK, "1")
+    threaded = solve(simulated.cameras, simulated.tracks)
+    assert threaded.report["temporal"]["referee"]["ran_in"] == "thread"
+    assert threaded.report["temporal"]["referee"]["videos"] == referee["videos"]
+    np.testing.assert_array_equal(forked.temporal.points, threaded.temporal.points)
+
+
 def test_a_clock_a_cycle_off_is_refused_and_the_seed_solve_runs(capture, monkeypatch):
     simulated, problem, options, clocks = capture
     wrong = dataclasses.replace(clocks, global_time=clocks.global_time.copy())
