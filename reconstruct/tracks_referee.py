@@ -29,8 +29,10 @@ log = logging.getLogger(__name__)
 
 REFEREE_STEP = 3  # every REFEREE_STEP-th frame of each video
 # At most this many subsampled frames: beyond, those nearest the middle of the tracks' global time (a window far
-# longer than one cycle of a human motion, so that a frame's true counterpart in another video is inside it).
-REFEREE_FRAMES = 700
+# longer than one cycle of a human motion, so that a frame's true counterpart in another video is inside it: with
+# 4 videos, ~225 frames of each). Its solve then costs about what the track search and the refinement it runs
+# beside cost, so that the verdict seldom waits.
+REFEREE_FRAMES = 300
 # The clocks agree where every video's median difference (relative to the reference video) is within this many of
 # its subsampled frame periods: the subsample resolves no finer, and a wrong cycle is many periods off.
 REFEREE_PERIODS = 1.0
