@@ -279,13 +279,40 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     gram: (B, n, n) [(I - W)(I - W)^T] restricted to each neighbourhood; rays: (B, n, 3) unit rays, NaN where the
     point is unobserved (3 free coordinates); valid: (B, n) slots in use (default all). Returns (B,).
 
-    A_gh = gram_gh B_g^T B_h with B_g = r_g (observed) or I (unobserved). Computed as the 3n x 3n matrix
-    gram_gh P_g P_h (P_g = B_g B_g^T) plus c (I - P) on the complement (and on unused slots), which has the
-    eigenvalues of A and c: with c above A's largest eigenvalue the smallest eigenvalue is A's. A singular A
-    (e.g. all rays parallel in a closed group) gives ~1e13 / c.
+    A_gh = gram_gh B_g^T B_h with B_g = r_g (observed) or I (unobserved). Where every slot in use is observed, A is
+    n x n, gram_gh (r_g . r_h) (`_observed_condition`); elsewhere the 3n x 3n construction (`_general_condition`).
+    Both fill what is not A with c, above A's largest eigenvalue, so that the smallest eigenvalue is A's. A
+    singular A (e.g. all rays parallel in a closed group) gives ~1e13 / c.
     """
     B, n = gram.shape[:2]
     valid = np.ones((B, n), dtype=bool) if valid is None else valid
+    observed = np.isfinite(rays).all(axis=-1)  # (B, n)
+    simple = np.all(observed | ~valid, axis=1)
+    out = np.empty(B)
+    if simple.any():
+        out[simple] = _observed_condition(gram[simple], np.nan_to_num(rays[simple]), valid[simple])
+    if not simple.all():
+        out[~simple] = _general_condition(gram[~simple], rays[~simple], valid[~simple])
+    return out
+
+
+def _observed_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`neighbourhood_condition` where every slot in use is observed: A = gram o (r r^T), n x n, with c on the
+    diagonal of unused slots (a 15 x 15 eigenproblem becomes 5 x 5)."""
+    n = gram.shape[1]
+    dots = np.einsum("bgk,bhk->bgh", rays, rays)
+    used = valid[:, :, None] & valid[:, None, :]
+    A = np.where(used, gram * dots, 0.0)
+    c = np.einsum("bgg->b", A) + 1.0  # trace >= largest eigenvalue of a PSD matrix, as in `_general_condition`
+    A[:, np.arange(n), np.arange(n)] += np.where(valid, 0.0, c[:, None])
+    smallest = np.linalg.eigvalsh(A)[:, 0]
+    return 1.0 / np.maximum(smallest, 1e-13 * c)
+
+
+def _general_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`neighbourhood_condition` for any observation pattern: the 3n x 3n matrix gram_gh P_g P_h (P_g = B_g B_g^T)
+    plus c (I - P) on the complement (and on unused slots), which has the eigenvalues of A and c."""
+    B, n = gram.shape[:2]
     observed = np.isfinite(rays).all(axis=-1)  # (B, n)
     r = np.nan_to_num(rays)
     projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (B, n, 3, 3)
