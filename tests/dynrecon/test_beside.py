@@ -4,8 +4,11 @@ raises its exception, survives the child's death and never leaves a child behind
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +18,15 @@ from dynrecon.beside import beside, fork_is_safe
 from dynrecon.errors import InputError
 
 PARENT = os.getpid()
+ROOT = Path(__file__).resolve().parents[2]
+INNER = "DYNRECON_FORK_TESTS_INNER"  # set in the fresh interpreter of `test_the_fork_tests_run_somewhere`
+# The tests that need a fork: in a long test session other tests (Dask's) leave threads alive, so these skip there
+# and run again in a fresh interpreter
+FORK_TESTS = [
+    "tests/dynrecon/test_beside.py",
+    "tests/reconstruct/test_tracks_referee.py::test_the_referee_in_a_process_gives_what_it_gives_in_a_thread",
+    "tests/reconstruct/test_tracks_referee.py::test_a_windowed_referee_starts_after_the_track_search",
+]
 
 
 def where_and_sum(values: np.ndarray) -> tuple[int, float]:
@@ -133,3 +145,18 @@ def test_without_fork_it_runs_in_a_thread(monkeypatch: pytest.MonkeyPatch) -> No
         assert running.result() == (os.getpid(), values.sum())
     with beside(fails) as running, pytest.raises(ValueError):
         running.result()
+
+
+def test_the_fork_tests_run_somewhere() -> None:
+    if fork_is_safe() or os.environ.get(INNER):
+        pytest.skip("fork is used in this process: the fork tests ran here")
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", *FORK_TESTS],
+        cwd=ROOT,
+        env={**os.environ, INNER: "1"},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+    assert "fork is not used here" not in result.stdout, result.stdout[-4000:]
