@@ -18,6 +18,7 @@ import numpy as np
 BLOCK = 3  # unknowns 3i + k
 BLOCK_BANDS = 2  # instants coupled on each side
 BANDS = BLOCK * BLOCK_BANDS + BLOCK  # lower band rows of the banded factor: |row - column| <= 8
+CHUNK = 128  # instants per chunk of `trace_of_inverse_times`: its work arrays stay small
 
 
 def trace_of_inverse_times(factors: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -37,9 +38,6 @@ def trace_of_inverse_times(factors: np.ndarray, blocks: np.ndarray) -> np.ndarra
         D = np.ascontiguousarray(blocks[:, begin:stop].transpose(1, 3, 2, 0))  # (c, 3, 3, B), D_j^T
         after = _recursion(U, first, D, after, trace)
     return trace
-
-
-CHUNK = 128  # instants per chunk of `trace_of_inverse_times`
 
 
 def _chunk_terms(factors: np.ndarray, begin: int, stop: int) -> tuple[np.ndarray, np.ndarray]:

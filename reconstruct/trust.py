@@ -280,7 +280,7 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     point is unobserved (3 free coordinates); valid: (B, n) slots in use (default all). Returns (B,).
 
     A_gh = gram_gh B_g^T B_h with B_g = r_g (observed) or I (unobserved). Where every slot in use is observed, A is
-    n x n, gram_gh (r_g . r_h) (`_observed_condition`); elsewhere the 3n x 3n construction (`_general_condition`).
+    n x n, gram_gh (r_g . r_h) (`_observed_smallest`); elsewhere the 3n x 3n construction (`_general_smallest`).
     Both fill what is not A with c, above A's largest eigenvalue, so that the smallest eigenvalue is A's. A
     singular A (e.g. all rays parallel in a closed group) gives ~1e13 / c.
     """
@@ -288,32 +288,36 @@ def neighbourhood_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarra
     valid = np.ones((B, n), dtype=bool) if valid is None else valid
     observed = np.isfinite(rays).all(axis=-1)  # (B, n)
     simple = np.all(observed | ~valid, axis=1)
-    out = np.empty(B)
+    smallest, c = np.empty(B), np.empty(B)
     if simple.any():
-        out[simple] = _observed_condition(gram[simple], np.nan_to_num(rays[simple]), valid[simple])
+        smallest[simple], c[simple] = _observed_smallest(gram[simple], np.nan_to_num(rays[simple]), valid[simple])
     if not simple.all():
-        out[~simple] = _general_condition(gram[~simple], rays[~simple], valid[~simple])
-    return out
+        general = ~simple
+        smallest[general], c[general] = _general_smallest(
+            gram[general], rays[general], observed[general], valid[general]
+        )
+    # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
+    return 1.0 / np.maximum(smallest, 1e-13 * c)
 
 
-def _observed_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """`neighbourhood_condition` where every slot in use is observed: A = gram o (r r^T), n x n, with c on the
-    diagonal of unused slots (a 15 x 15 eigenproblem becomes 5 x 5)."""
+def _observed_smallest(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A's smallest eigenvalue and c, (B,) each, where every slot in use is observed: A = gram o (r r^T), n x n,
+    with c on the diagonal of unused slots (a 3n x 3n eigenproblem becomes n x n)."""
     n = gram.shape[1]
     dots = np.einsum("bgk,bhk->bgh", rays, rays)
     used = valid[:, :, None] & valid[:, None, :]
     A = np.where(used, gram * dots, 0.0)
-    c = np.einsum("bgg->b", A) + 1.0  # trace >= largest eigenvalue of a PSD matrix, as in `_general_condition`
+    c = np.einsum("bgg->b", A) + 1.0  # trace >= largest eigenvalue of a PSD matrix, as in `_general_smallest`
     A[:, np.arange(n), np.arange(n)] += np.where(valid, 0.0, c[:, None])
-    smallest = np.linalg.eigvalsh(A)[:, 0]
-    return 1.0 / np.maximum(smallest, 1e-13 * c)
+    return np.linalg.eigvalsh(A)[:, 0], c
 
 
-def _general_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """`neighbourhood_condition` for any observation pattern: the 3n x 3n matrix gram_gh P_g P_h (P_g = B_g B_g^T)
-    plus c (I - P) on the complement (and on unused slots), which has the eigenvalues of A and c."""
+def _general_smallest(
+    gram: np.ndarray, rays: np.ndarray, observed: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A's smallest eigenvalue and c, (B,) each, for any observation pattern: the 3n x 3n matrix gram_gh P_g P_h
+    (P_g = B_g B_g^T) plus c (I - P) on the complement (and on unused slots), which has the eigenvalues of A and c."""
     B, n = gram.shape[:2]
-    observed = np.isfinite(rays).all(axis=-1)  # (B, n)
     r = np.nan_to_num(rays)
     projector = np.where(observed[..., None, None], r[..., :, None] * r[..., None, :], np.eye(3))  # (B, n, 3, 3)
     projector = np.where(valid[..., None, None], projector, 0.0)
@@ -329,9 +333,7 @@ def _general_condition(gram: np.ndarray, rays: np.ndarray, valid: np.ndarray) ->
     big += 0.0  # off the diagonal blocks the complement adds c x 0: a -0.0 becomes 0.0
     big[idx, :, idx, :, :] += c * (np.eye(3)[:, :, None] - Q)
     matrices = np.ascontiguousarray(big.transpose(4, 0, 1, 2, 3)).reshape(B, 3 * n, 3 * n)
-    smallest = np.linalg.eigvalsh(matrices)[:, 0]
-    # Below 1e-13 c the eigenvalue is rounding noise: a singular system reads as a huge but finite condition.
-    return 1.0 / np.maximum(smallest, 1e-13 * c)
+    return np.linalg.eigvalsh(matrices)[:, 0], c
 
 
 def components(W: sp.csc_matrix, min_weight: float) -> np.ndarray:
