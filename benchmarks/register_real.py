@@ -8,6 +8,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-subject: the ChArUco board's corners (OpenCV's aruco module) as the subject's tracks, the videos
   desynchronized by dropping different leading frames per camera, `--subject always`, no calibration given;
 - caliscope-subject-intrinsics: the same with `--intrinsics camera_array.toml`;
+- caliscope-subject-board: the same without intrinsics but with `--board charuco.toml`: each camera's intrinsics
+  from its own board views, and the metric scale from the board's corner spacing;
 - caliscope-auto: the desynchronized videos with the corner tracks, default options (background, then subject);
 - pose2sim-background: the 4 lab cameras, background only;
 - pose2sim-subject: the committed labels (tests/data/pose2sim) tracked through the videos, `--subject always`,
@@ -24,7 +26,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 
 Per case: videos posed and by which path, seconds per stage, and after a similarity to the rig's calibration
 (rotation from the orientations, scale and shift from the centres: `sfm.evaluate.compare`) the worst centre error
-in % of the camera spread and the worst rotation error in degrees; for the subject path, the recovered offsets
+in % of the camera spread and the worst rotation error in degrees, and the rig's size over the true one's before
+the similarity (1 when the units are metres); for the subject path, the recovered offsets
 against the truth in frames (caliscope: its per-frame capture times; pose2sim: the videos are synchronized to
 about a frame). Needs ../shared (exits with a message otherwise).
 """
@@ -64,6 +67,7 @@ CASES = (
     "caliscope-background-intrinsics",
     "caliscope-subject",
     "caliscope-subject-intrinsics",
+    "caliscope-subject-board",
     "caliscope-auto",
     "pose2sim-background",
     "pose2sim-subject",
@@ -110,10 +114,18 @@ def score(cameras: CameraSet, truth: CameraSet) -> dict[str, Any]:
     errors = compare(first, truth)
     centres = np.array([v.frames[0].center for v in truth.videos])
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2)
+    found = np.array([v.frames[0].center for v in first.videos])
+    true = np.array([truth.video(v.name).frames[0].center for v in first.videos])
     return {
         "centre_pct": round(100 * float(errors.center_errors.max()) / spread, 2),
         "rotation_deg": round(float(errors.rotation_errors_deg.max()), 3),
+        # the found rig's size over the true one's, before any similarity: 1 when the units are metres
+        "size_ratio": round(_size(found) / _size(true), 4),
     }
+
+
+def _size(centres: np.ndarray) -> float:
+    return float(np.linalg.norm(centres[:, None] - centres[None], axis=2).mean())
 
 
 def desynchronized(sources: dict[str, Path], dropped: dict[str, int], out: Path) -> list[Path]:
@@ -217,6 +229,8 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             tracking_s = 0.0
         if "intrinsics" in case:
             args += ["--intrinsics", str(CALISCOPE / "camera_array.toml")]
+        if "board" in case:
+            args += ["--board", str(CALISCOPE / "charuco.toml")]
     else:
         truth = truth_cameras(POSE2SIM / "calibration" / "Calib.qca.txt", [f"cam0{i}" for i in range(1, 5)])
         videos = [POSE2SIM / "videos" / f"cam0{i}.mp4" for i in range(1, 5)]

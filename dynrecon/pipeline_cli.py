@@ -75,6 +75,13 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         metavar="A,B,METRES",
         help="distance between two tracked points: the scale of static videos posed from the subject",
     )
+    parser.add_argument(
+        "--board",
+        type=Path,
+        default=None,
+        help="ChArUco board file (charuco.toml) whose corners are in the tracks: intrinsics and scale of the "
+        "static videos posed from the subject",
+    )
     add_calibration_arguments(
         parser,
         "a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, .qca, "
@@ -124,7 +131,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
         raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
     register = dataclasses.replace(
-        default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale
+        default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale, board=args.board
     )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
     options = PipelineOptions(

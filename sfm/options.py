@@ -87,6 +87,9 @@ class RegisterOptions:
     mapper: Mapper = Mapper.INCREMENTAL
     camera_model: str = "SIMPLE_RADIAL"
     intrinsics: Path | None = None  # cameras.json / calib .toml / .qca with known intrinsics per video (fixed)
+    # A ChArUco board (caliscope's charuco.toml / config.toml) whose corners are in the tracks: the subject path's
+    # intrinsics (videos without --intrinsics) and scale (without --scale) come from it (sfm/board.py).
+    board: Path | None = None
     tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
     masks: Path | None = None  # user masks folder (see sfm.masks)
     mask_radius: float = 40.0  # original pixels around tracked points

@@ -140,6 +140,14 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         metavar="A,B,METRES",
         help="the distance between two tracked points, for the subject path's scale without background anchors",
     )
+    static.add_argument(
+        "--board",
+        type=Path,
+        default=None,
+        metavar="CHARUCO_TOML",
+        help="a ChArUco board (caliscope charuco.toml / config.toml) whose corner_<id> points are in the tracks "
+        "(import-tracks --board): the subject path's intrinsics (videos without --intrinsics) and scale",
+    )
 
 
 def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
@@ -206,6 +214,7 @@ def _run_register(args: argparse.Namespace) -> int:
         camera_motion=CameraMotion(args.camera_motion),
         subject=SubjectPath(args.subject),
         scale=parse_scale(args.scale),
+        board=args.board,
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,
         keyframes=args.keyframes,

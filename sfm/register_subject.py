@@ -13,11 +13,13 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from sfm.board import board_scale, calibrate_from_board
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
 from sfm.subject.observations import select_rows
 from sfm.subject.stability import Stability, check_stability
+from tracking.charuco import read_charuco_board
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -55,14 +57,22 @@ def pose_from_subject(
             "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
             "import-tracks) and register again",
         }
+    board: dict[str, Any] | None = None
+    scale = options.scale
+    if options.board is not None:
+        intrinsics, scale, board = _with_board(tracks, static, intrinsics, options, warnings)
     moving_posed = any(not v.static and _posed(results[v.info.name]) is not None for v in videos)
     anchors_allowed = options.subject is SubjectPath.AUTO or moving_posed
     inputs, anchors = _subject_videos(static, set(tracks.video_names()), results, intrinsics, anchors_allowed)
     if len(inputs) < 2:
-        return {"used": False, "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"}
+        return {
+            "used": False,
+            "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2",
+            "board": board,
+        }
     names = {v.name for v in inputs}
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
-    subject_options = SubjectOptions(scale=options.scale)
+    subject_options = SubjectOptions(scale=scale)
     try:
         result = calibrate_from_subject(subject_tracks, inputs, subject_options)
         stability = check_stability(subject_tracks, inputs, result, subject_options)
@@ -71,7 +81,7 @@ def pose_from_subject(
         for video in unposed:
             for frame in results[video.info.name]:
                 results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
-        return {"used": False, "why": str(error), "anchors": anchors}
+        return {"used": False, "why": str(error), "anchors": anchors, "board": board}
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
@@ -82,7 +92,51 @@ def pose_from_subject(
             "(give --scale POINT_A,POINT_B,METRES)"
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
-    return _report(result, stability, posed, anchors, metric)
+    return {**_report(result, stability, posed, anchors, metric), "board": board}
+
+
+def _with_board(
+    tracks: Tracks,
+    static: list[VideoPlan],
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    options: RegisterOptions,
+    warnings: list[str],
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[str, str, float] | None, dict[str, Any]]:
+    """`--board`: intrinsics from the board's views for the static videos without given ones, and the scale from
+    its corner spacing unless --scale was given. Returns (intrinsics, scale, the report's `board` section)."""
+    assert options.board is not None
+    board = read_charuco_board(options.board)
+    tracked = set(tracks.video_names())
+    names = [v.info.name for v in static if v.info.name in tracked]
+    if not any(str(p).startswith("corner_") for p in tracks.point_names()):
+        warnings.append(
+            f"--board {options.board}: the tracks have no board corners (corner_<id> points): import them with "
+            "`dynrecon import-tracks VIDEO... --board FILE`; the board was not used"
+        )
+        return intrinsics, options.scale, {"file": str(options.board), "used": False, "why": "no corner_<id> tracks"}
+    merged = dict(intrinsics)
+    cameras = []
+    for video in static:
+        name = video.info.name
+        if name not in tracked or name in intrinsics:
+            continue
+        found = calibrate_from_board(tracks, name, (video.info.width, video.info.height), board)
+        cameras.append(found.to_json())
+        if found.used and found.K is not None:
+            merged[name] = (found.K, found.dist)
+            log.info("%s: intrinsics from %d board views (rms %.2f px)", name, found.views, found.rms_px or 0.0)
+        else:
+            warnings.append(f"{name}: intrinsics not taken from the board: {found.why}")
+    scale = options.scale if options.scale is not None else board_scale(tracks, names, board)
+    if options.scale is None and scale is None:
+        warnings.append("--board: no two board corners are seen together in two videos: no scale from the board")
+    section = {
+        "file": str(options.board),
+        "used": True,
+        "cameras": cameras,
+        "scale": None if options.scale is not None or scale is None else [scale[0], scale[1], round(scale[2], 6)],
+    }
+    return merged, scale, section
 
 
 def _subject_videos(

@@ -50,6 +50,7 @@ from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, input_key
 from sfm.video import ProbedVideo, probe_video, video_name
+from tracking.charuco import read_charuco_board
 from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,8 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     options = options or RegisterOptions()
     paths = [Path(v) for v in videos]
     _check_videos(paths)
+    if options.board is not None:
+        read_charuco_board(options.board)  # a bad board file fails before any work
     out = Path(out_dir)
     notes = StepNotes()
     unreadable: dict[str, str] = {}

@@ -1,0 +1,118 @@
+"""A known board's views: each camera's intrinsics (Zhang) and the scale, against a projection we control."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from sfm.board import MIN_VIEWS, board_scale, calibrate_from_board
+from tracking.charuco import CharucoBoard, board_corner_positions
+from tracking.tracks import Tracks
+
+BOARD = CharucoBoard(columns=4, rows=5, square_size=0.054, marker_size=0.0405, dictionary="DICT_4X4_1000")
+SIZE = (1280, 720)
+K_TRUE = np.array([[900.0, 0.0, 655.0], [0.0, 900.0, 350.0], [0.0, 0.0, 1.0]])
+DIST_TRUE = np.array([-0.30, 0.10, 0.0, 0.0, 0.0])
+
+
+def _board_poses(rng: np.random.Generator, count: int, tilt_deg: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """cam_from_board (rvec, tvec) of a board waved 0.6-1.4 m in front of the camera, tilted up to tilt_deg."""
+    poses = []
+    centre = np.array([0.108, 0.135, 0.0])  # the inner corners' middle
+    for _ in range(count):
+        angles = np.radians(rng.uniform(-tilt_deg, tilt_deg, 3) * np.array([1, 1, 0.5]))
+        R = cv2.Rodrigues(angles)[0]
+        depth = rng.uniform(0.6, 1.4)
+        t = np.array([rng.uniform(-0.25, 0.25) * depth, rng.uniform(-0.12, 0.12) * depth, depth]) - R @ centre
+        poses.append((cv2.Rodrigues(R)[0], t))
+    return poses
+
+
+def _tracks(video: str, poses: list[tuple[np.ndarray, np.ndarray]], noise_px: float, seed: int = 0) -> Tracks:
+    rng = np.random.default_rng(seed)
+    positions = board_corner_positions(BOARD)
+    names = list(positions)
+    corners = np.array([positions[n] for n in names])
+    rows_video, rows_frame, rows_point, rows_xy = [], [], [], []
+    for frame, (rvec, tvec) in enumerate(poses):
+        xy = np.asarray(cv2.projectPoints(corners, rvec, tvec, K_TRUE, DIST_TRUE)[0], float).reshape(-1, 2)
+        xy += rng.normal(0.0, noise_px, xy.shape)
+        seen = (xy[:, 0] >= 0) & (xy[:, 0] < SIZE[0]) & (xy[:, 1] >= 0) & (xy[:, 1] < SIZE[1])
+        for i in np.flatnonzero(seen):
+            rows_video.append(video)
+            rows_frame.append(frame)
+            rows_point.append(names[i])
+            rows_xy.append(xy[i])
+    return Tracks(video=rows_video, frame=np.array(rows_frame), point=rows_point, xy=np.array(rows_xy))
+
+
+def test_intrinsics_from_the_board_views() -> None:
+    tracks = _tracks("cam", _board_poses(np.random.default_rng(1), 40, tilt_deg=35), noise_px=0.3)
+    found = calibrate_from_board(tracks, "cam", SIZE, BOARD)
+    assert found.used, found.why
+    assert found.K is not None and found.dist is not None
+    assert abs(found.K[0, 0] / K_TRUE[0, 0] - 1) < 0.01
+    np.testing.assert_allclose(found.K[:2, 2], K_TRUE[:2, 2], atol=10.0)
+    assert abs(found.dist[0] - DIST_TRUE[0]) < 0.03
+    assert found.rms_px is not None and found.rms_px < 0.5
+    report = found.to_json()
+    assert report["used"] and report["views"] == 40 and 0 < report["focal_std_pct"] < 1
+
+
+def test_a_misread_view_is_left_out() -> None:
+    tracks = _tracks("cam", _board_poses(np.random.default_rng(2), 30, tilt_deg=35), noise_px=0.3)
+    swapped = np.flatnonzero(tracks.frame == 3)
+    # the corners of one frame read with the wrong ids (a reversed order is the board turned 180 deg: no error)
+    tracks.xy[swapped] = tracks.xy[np.random.default_rng(0).permutation(swapped)]
+    found = calibrate_from_board(tracks, "cam", SIZE, BOARD)
+    # that view pulls the first fit, so a few good views can leave with it
+    assert found.used and 25 <= found.views <= 29, found.to_json()
+    assert found.K is not None and abs(found.K[0, 0] / K_TRUE[0, 0] - 1) < 0.02
+    assert found.rms_px is not None and found.rms_px < 0.5
+
+
+def test_views_that_do_not_determine_the_focal_are_refused() -> None:
+    # The board always square to the camera, at one distance: focal length and distance trade off.
+    poses = [
+        (np.zeros(3), np.array([x, y, 1.0]) - np.array([0.108, 0.135, 0.0]))
+        for x, y in np.random.default_rng(3).uniform(-0.2, 0.2, (30, 2))
+    ]
+    found = calibrate_from_board(_tracks("cam", poses, noise_px=0.3), "cam", SIZE, BOARD)
+    assert not found.used and "one orientation" in (found.why or ""), found.to_json()
+
+
+def test_too_few_views_say_how_many() -> None:
+    tracks = _tracks("cam", _board_poses(np.random.default_rng(4), MIN_VIEWS - 1, tilt_deg=35), noise_px=0.3)
+    found = calibrate_from_board(tracks, "cam", SIZE, BOARD)
+    assert not found.used and found.why is not None and f"{MIN_VIEWS} needed" in found.why
+
+
+def test_scale_pair_is_the_farthest_pair_seen_together() -> None:
+    poses = _board_poses(np.random.default_rng(5), 30, tilt_deg=20)
+    a, b = _tracks("a", poses, 0.3), _tracks("b", poses, 0.3)
+    both = Tracks(
+        video=a.video + b.video,
+        frame=np.concatenate([a.frame, b.frame]),
+        point=a.point + b.point,
+        xy=np.concatenate([a.xy, b.xy]),
+    )
+    pair = board_scale(both, ["a", "b"], BOARD)
+    assert pair is not None and pair[:2] == ("corner_0", "corner_11")
+    assert pair[2] == pytest.approx(0.054 * np.hypot(2, 3))
+    assert board_scale(both, ["a"], BOARD) is None  # one video cannot triangulate
+
+
+def test_a_bad_board_file_is_a_one_line_error_before_any_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    board = tmp_path / "charuco.toml"
+    board.write_text("columns = 4\n")
+    videos = [str(tmp_path / "a.mp4"), str(tmp_path / "b.mp4")]
+    assert main(["register", *videos, "--out", str(tmp_path / "ws"), "--board", str(board)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "charuco.toml" in err and "columns, rows" in err
+    assert not (tmp_path / "ws").exists()
