@@ -163,7 +163,20 @@ def _attempt(
     placed = np.isfinite(start).all(axis=-1).any(axis=0)
     timings["start_points"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    on_clocks = refine_on_clocks(problem, start, clocks, clock_options.model, options.refine)
+    try:
+        on_clocks = refine_on_clocks(problem, start, clocks, clock_options.model, options.refine)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as error:
+        # clocks that passed the track checks but break the refinement: the seed solve decides, as on a failed check
+        checks.append(
+            Check(
+                name="refinement",
+                value=1.0,
+                limit=0.0,
+                passed=False,
+                meaning=f"the refinement on the tracks' clocks failed ({type(error).__name__}: {error}); failures",
+            )
+        )
+        return _failed(checks, report)
     timings["refinement"] = time.perf_counter() - t0
     if running is not None and index is not None:
         t0 = time.perf_counter()

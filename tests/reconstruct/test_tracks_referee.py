@@ -131,3 +131,19 @@ def test_a_subsample_that_cannot_be_solved_confirms_nothing(capture, monkeypatch
     check, report = referee_check(problem, clocks, SolverOptions(), options)
     assert not check.passed and check.value == np.inf
     assert all(v["periods"] is None for name, v in report["videos"].items() if name != clocks.reference)
+
+
+def test_a_refinement_that_fails_on_the_tracks_clocks_falls_back_to_the_seed_solve(capture, monkeypatch):
+    simulated = capture[0]
+
+    def broken(*_):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(tracks_path, "refine_on_clocks", broken)
+    result = solve(simulated.cameras, simulated.tracks)
+    temporal = result.report["temporal"]
+    assert temporal["path"] != "tracks" and temporal["tracks_path"]["failed"] == "refinement"
+    assert "refinement" in temporal["reason"]
+    assert "Singular matrix" in next(c for c in temporal["tracks_path"]["checks"] if not c["passed"])["meaning"]
+    error = np.linalg.norm(result.temporal.points - truth_array(result.problem, simulated.truth), axis=-1)
+    assert np.nanmedian(error) < 1.0
