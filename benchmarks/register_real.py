@@ -29,7 +29,9 @@ Per case: videos posed and by which path, seconds per stage, and after a similar
 in % of the camera spread and the worst rotation error in degrees, and the rig's size over the true one's before
 the similarity (1 when the units are metres); for the subject path, the recovered offsets
 against the truth in frames (caliscope: its per-frame capture times; pose2sim: the videos are synchronized to
-about a frame). Needs ../shared (exits with a message otherwise).
+about a frame). For the caliscope cases whose cameras are in metres (`--board`), also the sync-free solve of the
+corners on those cameras, scored by the board's geometry (`board_mm`: errors of the distances between corners seen
+together). Needs ../shared (exits with a message otherwise).
 """
 
 from __future__ import annotations
@@ -49,10 +51,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dynrecon.cli import main as dynrecon
+from reconstruct.outputs.points import read_points
 from sfm.calibration import read_calibration
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras
 from sfm.evaluate import compare
-from tracking.charuco import charuco_tracks
+from tracking.charuco import board_corner_positions, charuco_tracks
 from tracking.tracks import write_tracks
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "videos"
@@ -291,7 +294,33 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
                 for n in names
             }
         row["pairs"] = [(p["videos"], p["runner_up_ratio"], p["degenerate"]) for p in subject.get("pairs", [])]
+    if code == 0 and case.startswith("caliscope") and subject.get("metric"):
+        row["board_mm"] = board_distance_errors(ws)
     return row
+
+
+def board_distance_errors(ws: Path) -> dict[str, float]:
+    """The sync-free solve (`dynrecon solve`, defaults) of the corner tracks on the registered cameras, scored by
+    the board's known geometry: |distance between two corners a video observed in one frame - their distance on
+    the board|, mm, over every such pair (the solve's metres come from registration's scale)."""
+    out = ws / "solve"
+    inputs = ["--cameras", str(ws / "cameras.json"), "--tracks", str(ws / "tracks.csv")]
+    code = dynrecon(["solve", *inputs, "--out", str(out), "--no-recording"])
+    if code != 0:
+        return {}
+    points = read_points(out / "points3d.csv")
+    positions = board_corner_positions(CALISCOPE / "charuco.toml")
+    true = np.array([positions[name] for name in points.point_names])
+    errors = []
+    for xyz, observed in zip(points.xyz, points.observed.astype(bool), strict=True):
+        seen = np.flatnonzero(observed & np.isfinite(xyz).all(axis=1))
+        if seen.size < 2:
+            continue
+        a, b = np.triu_indices(seen.size, 1)
+        found = np.linalg.norm(xyz[seen[a]] - xyz[seen[b]], axis=1)
+        errors.append(np.abs(found - np.linalg.norm(true[seen[a]] - true[seen[b]], axis=1)))
+    every = 1000.0 * np.concatenate(errors)
+    return {"median": round(float(np.median(every)), 2), "p90": round(float(np.percentile(every, 90)), 2)}
 
 
 def plain_pycolmap(ws: Path, per_video: int = 5) -> dict[str, Any]:

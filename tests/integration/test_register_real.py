@@ -80,6 +80,9 @@ def test_caliscope_board_gives_intrinsics_and_metres(caliscope: tuple[list[Path]
     # Without the board the same run is 2.9 deg off (the principal points held at the centre).
     assert errors["centre_pct"] < 5.0 and errors["rotation_deg"] < 2.6, errors
     assert abs(errors["size_ratio"] - 1) < 0.03, errors  # metres
+    # The sync-free solve on these cameras: the corners' distances to each other, against the board's.
+    board_mm = real.board_distance_errors(tmp_path / "ws")
+    assert board_mm["median"] < 1.0 and board_mm["p90"] < 3.0, board_mm
 
 
 def test_caliscope_background_alone_says_what_is_missing(
