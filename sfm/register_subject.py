@@ -59,10 +59,12 @@ def pose_from_subject(
         }
     board: dict[str, Any] | None = None
     scale = options.scale
-    if options.board is not None:
-        intrinsics, scale, board = _with_board(tracks, static, intrinsics, options, warnings)
     moving_posed = any(not v.static and _posed(results[v.info.name]) is not None for v in videos)
     anchors_allowed = options.subject is SubjectPath.AUTO or moving_posed
+    if options.board is not None:
+        # an anchor keeps the intrinsics its background pose was found with
+        anchored = {v.info.name for v in static if anchors_allowed and _posed(results[v.info.name]) is not None}
+        intrinsics, scale, board = _with_board(tracks, static, intrinsics, anchored, options, warnings)
     inputs, anchors = _subject_videos(static, set(tracks.video_names()), results, intrinsics, anchors_allowed)
     if len(inputs) < 2:
         return {
@@ -99,11 +101,13 @@ def _with_board(
     tracks: Tracks,
     static: list[VideoPlan],
     intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    anchored: set[str],
     options: RegisterOptions,
     warnings: list[str],
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[str, str, float] | None, dict[str, Any]]:
-    """`--board`: intrinsics from the board's views for the static videos without given ones, and the scale from
-    its corner spacing unless --scale was given. Returns (intrinsics, scale, the report's `board` section)."""
+    """`--board`: intrinsics from the board's views for the static videos without given ones (and not `anchored`
+    by the background), and the scale from its corner spacing unless --scale was given. Returns (intrinsics,
+    scale, the report's `board` section)."""
     assert options.board is not None
     board = read_charuco_board(options.board)
     tracked = set(tracks.video_names())
@@ -118,7 +122,7 @@ def _with_board(
     cameras = []
     for video in static:
         name = video.info.name
-        if name not in tracked or name in intrinsics:
+        if name not in tracked or name in intrinsics or name in anchored:
             continue
         found = calibrate_from_board(tracks, name, (video.info.width, video.info.height), board)
         cameras.append(found.to_json())

@@ -10,6 +10,11 @@ import pytest
 
 from dynrecon.cli import main
 from sfm.board import MIN_VIEWS, board_scale, calibrate_from_board
+from sfm.frames import Resize
+from sfm.options import RegisterOptions
+from sfm.plan import VideoPlan
+from sfm.register_subject import _with_board
+from sfm.video import ProbedVideo
 from tracking.charuco import CharucoBoard, board_corner_positions
 from tracking.tracks import Tracks
 
@@ -116,3 +121,46 @@ def test_a_bad_board_file_is_a_one_line_error_before_any_work(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "charuco.toml" in err and "columns, rows" in err
     assert not (tmp_path / "ws").exists()
+
+
+def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_anchor(tmp_path: Path) -> None:
+    board_file = tmp_path / "charuco.toml"
+    board_file.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    poses = _board_poses(np.random.default_rng(6), 30, tilt_deg=35)
+    parts = [_tracks(name, poses, 0.3, seed=i) for i, name in enumerate(["given", "anchor", "free"])]
+    tracks = Tracks(
+        video=[v for t in parts for v in t.video],
+        frame=np.concatenate([t.frame for t in parts]),
+        point=[p for t in parts for p in t.point],
+        xy=np.concatenate([t.xy for t in parts]),
+    )
+    plans = [
+        VideoPlan(
+            info=ProbedVideo(
+                path=tmp_path / f"{name}.mp4",
+                name=name,
+                width=SIZE[0],
+                height=SIZE[1],
+                times=np.arange(30) / 30.0,
+                nominal_fps=30.0,
+            ),
+            resize=Resize(scale=1.0, width=SIZE[0], height=SIZE[1]),
+            sfm_frames=np.zeros(0, dtype=np.int64),
+            wanted=np.arange(30),
+            static=True,
+        )
+        for name in ["given", "anchor", "free"]
+    ]
+    given: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"given": (K_TRUE * 1.1, None)}
+    warnings: list[str] = []
+    options = RegisterOptions(board=board_file)
+    merged, scale, section = _with_board(tracks, plans, given, {"anchor"}, options, warnings)
+    # --intrinsics wins, an anchor keeps its background model's, the third video gets the board's
+    assert [c["name"] for c in section["cameras"]] == ["free"] and section["cameras"][0]["used"]
+    assert merged["given"][0][0, 0] == pytest.approx(990.0) and "anchor" not in merged
+    assert abs(merged["free"][0][0, 0] / K_TRUE[0, 0] - 1) < 0.02
+    assert scale is not None and scale[:2] == ("corner_0", "corner_11") and section["scale"][:2] == list(scale[:2])
+    # without corner tracks: a warning, nothing changed
+    other = Tracks(video=["free"], frame=np.array([0]), point=["head"], xy=np.array([[1.0, 2.0]]))
+    merged, scale, section = _with_board(other, plans, given, set(), options, warnings)
+    assert merged == given and scale is None and not section["used"] and "no board corners" in warnings[-1]
