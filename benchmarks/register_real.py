@@ -310,15 +310,17 @@ def board_distance_errors(ws: Path) -> dict[str, float]:
         return {}
     points = read_points(out / "points3d.csv")
     positions = board_corner_positions(CALISCOPE / "charuco.toml")
-    true = np.array([positions[name] for name in points.point_names])
+    true = np.array([positions.get(name, np.full(3, np.nan)) for name in points.point_names])
     errors = []
     for xyz, observed in zip(points.xyz, points.observed.astype(bool), strict=True):
-        seen = np.flatnonzero(observed & np.isfinite(xyz).all(axis=1))
+        seen = np.flatnonzero(observed & np.isfinite(xyz).all(axis=1) & np.isfinite(true).all(axis=1))
         if seen.size < 2:
             continue
         a, b = np.triu_indices(seen.size, 1)
         found = np.linalg.norm(xyz[seen[a]] - xyz[seen[b]], axis=1)
         errors.append(np.abs(found - np.linalg.norm(true[seen[a]] - true[seen[b]], axis=1)))
+    if not errors:
+        return {}
     every = 1000.0 * np.concatenate(errors)
     return {"median": round(float(np.median(every)), 2), "p90": round(float(np.percentile(every, 90)), 2)}
 

@@ -66,6 +66,7 @@ from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.stage import Localize, RegisterOptions, RegistrationError
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
+from tracking.charuco import read_charuco_board
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
 from tracking.tracks import read_tracks
@@ -128,7 +129,7 @@ class PipelineOptions:
 
     def background_register(self) -> RegisterOptions:
         """The `register` stage's options: without tracks, so that new labels never force a new registration."""
-        return dataclasses.replace(self.register, tracks=None)
+        return dataclasses.replace(self.register, tracks=None, board=None)  # the board needs tracks
 
     def subject_register(self, tracks: Path) -> RegisterOptions:
         """The `subject` stage's options: the registration again, with the subject's tracks."""
@@ -267,6 +268,14 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
             raise InputError(given, "file not found")
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
+    if options.register.board is not None:
+        read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
+
+
+def _option_files(register: RegisterOptions) -> dict[str, Path]:
+    """The files a registration option names, so that editing one reruns the stage that reads it."""
+    named = {"intrinsics": register.intrinsics, "board": register.board}
+    return {key: path for key, path in named.items() if path is not None}
 
 
 def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, register: RegisterOptions) -> None:
@@ -284,11 +293,11 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
         raise InputError(
             calibration, f"cannot read the calibration file ({error.strerror or error})", fix=fix
         ) from None
-    if register.intrinsics is not None or register.scale is not None:
+    if register.intrinsics is not None or register.scale is not None or register.board is not None:
         raise InputError(
             calibration,
-            "a calibration gives the cameras: --intrinsics and --scale (registration options) do not apply",
-            fix="leave out --intrinsics and --scale, or the calibration",
+            "a calibration gives the cameras: --intrinsics, --scale and --board (registration options) do not apply",
+            fix="leave out --intrinsics, --scale and --board, or the calibration",
         )
     lower = calibration.name.lower()
     # sfm.calibration's own rule for the format; its message would name import-calibration's --format.
@@ -485,7 +494,7 @@ class Stages:
         subject_options = self.options.subject_register(tracks)
         self.run(
             "subject",
-            {**self.video_files, "tracks": tracks},
+            {**self.video_files, "tracks": tracks, **_option_files(subject_options)},
             {"register": subject_options, "videos": [p.stem for p in self.videos]},
             [registration.cameras, registration.background],
             lambda: _register(self.videos, folder, subject_options),

@@ -32,8 +32,8 @@ MIN_CORNERS = 6  # corners a frame needs to be a view
 MIN_VIEWS = 10  # views a camera needs
 MAX_VIEWS = 80  # evenly spaced views kept at most (the fit's cost grows with them)
 MAX_RMS_PX = 1.5  # reprojection rms of the board fit
-MAX_FOCAL_STD = 0.05  # standard deviation of the focal length / focal length
-MAX_PP_STD = 0.05  # standard deviation of the principal point / long side
+MAX_FOCAL_STD = 0.03  # standard deviation of the focal length / focal length
+MAX_PP_STD = 0.03  # standard deviation of the principal point / long side
 # A view whose rms exceeds this x the median and MAX_RMS_PX (a misread corner id, not an oblique view) is left out
 # and the fit redone once.
 OUTLIER_VIEW = 3.0
@@ -41,6 +41,7 @@ OUTLIER_VIEW = 3.0
 # one orientation leave the focal length and the distance to the board interchangeable (Zhang's degeneracy), and
 # the fit's standard deviations do not show it.
 MIN_TILT_SPREAD_DEG = 20.0
+SCALE_FRAMES = 20  # frames in which a video must see both corners of the scale pair
 # Zhang's model here: one focal (square pixels), free principal point, k1 and k2 (phones' and webcams' lenses);
 # tangential terms and k3 are left out: a moving board in one capture does not determine them.
 FLAGS = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
@@ -60,6 +61,11 @@ class BoardIntrinsics:
     focal_std_pct: float | None = None
     pp_std_px: float | None = None
     tilt_spread_deg: float | None = None
+
+    @property
+    def fits(self) -> bool:
+        """Whether the board's geometry explains this video's corners (whatever the intrinsics' precision)."""
+        return self.rms_px is not None and self.rms_px <= MAX_RMS_PX
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name, "views": self.views, "used": self.used, "why": self.why}
@@ -98,6 +104,9 @@ def board_views(tracks: Tracks, video: str, board: CharucoBoard) -> tuple[list[n
         spread = np.linalg.svd(on_board[:, :2] - on_board[:, :2].mean(axis=0), compute_uv=False)
         if spread[1] < 0.5 * board.square_size:  # one row or column of corners: no homography
             continue
+        seen = np.linalg.svd(xy[finite] - xy[finite].mean(axis=0), compute_uv=False)
+        if seen[1] < 1.0:  # pixels on one line or one spot (an exporter's 0, 0): no view, and OpenCV would raise
+            continue
         objects.append(on_board.astype(np.float32))
         pixels.append(xy[finite].astype(np.float32))
     return objects, pixels
@@ -116,13 +125,17 @@ def calibrate_from_board(tracks: Tracks, video: str, size: tuple[int, int], boar
     if len(objects) > MAX_VIEWS:
         keep = np.linspace(0, len(objects) - 1, MAX_VIEWS).round().astype(int)
         objects, pixels = [objects[i] for i in keep], [pixels[i] for i in keep]
-    fit = _fit(objects, pixels, size)
-    per_view = fit[3]
-    outliers = per_view > max(OUTLIER_VIEW * float(np.median(per_view)), MAX_RMS_PX)
-    if outliers.any() and (~outliers).sum() >= MIN_VIEWS:
-        objects = [o for o, bad in zip(objects, outliers, strict=True) if not bad]
-        pixels = [p for p, bad in zip(pixels, outliers, strict=True) if not bad]
+    try:
         fit = _fit(objects, pixels, size)
+        per_view = fit[3]
+        outliers = per_view > max(OUTLIER_VIEW * float(np.median(per_view)), MAX_RMS_PX)
+        if outliers.any() and (~outliers).sum() >= MIN_VIEWS:
+            objects = [o for o, bad in zip(objects, outliers, strict=True) if not bad]
+            pixels = [p for p, bad in zip(pixels, outliers, strict=True) if not bad]
+            fit = _fit(objects, pixels, size)
+    except cv2.error as error:
+        why = f"OpenCV's board calibration failed ({str(error).strip().splitlines()[-1]})"
+        return BoardIntrinsics(name=video, views=len(objects), used=False, why=why)
     rms, K, dist, _, std, spread = fit
     focal_std = float(max(std[0], std[1])) / float(K[0, 0]) if K[0, 0] > 0 else math.inf
     pp_std = float(max(std[2], std[3]))
@@ -178,16 +191,17 @@ def _fit(
 
 def board_scale(tracks: Tracks, videos: list[str], board: CharucoBoard) -> tuple[str, str, float] | None:
     """(corner A, corner B, metres) for the subject path's scale: of the corner pairs that at least two of
-    `videos` see together in 20 or more frames, the farthest apart on the board; None when no pair qualifies."""
+    `videos` see together in SCALE_FRAMES or more frames, the farthest apart on the board; None when no pair
+    qualifies."""
     positions = board_corner_positions(board)
     seen: dict[str, dict[str, set[int]]] = {}
-    for video, frame, point in zip(tracks.video, tracks.frame, tracks.point, strict=True):
-        if video in videos and point in positions:
+    for video, frame, point, xy in zip(tracks.video, tracks.frame, tracks.point, tracks.xy, strict=True):
+        if video in videos and point in positions and np.isfinite(xy).all():
             seen.setdefault(str(point), {}).setdefault(str(video), set()).add(int(frame))
     best: tuple[float, str, str] | None = None
     for a, b in itertools.combinations(sorted(seen), 2):
         together = [len(seen[a][v] & seen[b].get(v, set())) for v in seen[a]]
-        if sum(n >= 20 for n in together) < 2:
+        if sum(n >= SCALE_FRAMES for n in together) < 2:
             continue
         distance = float(np.linalg.norm(positions[a] - positions[b]))
         if best is None or distance > best[0]:

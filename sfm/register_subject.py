@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from sfm.board import board_scale, calibrate_from_board
+from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, calibrate_from_board
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
@@ -76,7 +76,16 @@ def pose_from_subject(
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=scale)
     try:
-        result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+        try:
+            result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+        except SubjectCalibrationError as error:
+            if board is None or board.get("scale") is None:
+                raise
+            # the board's scale pair (not the user's) may never be triangulated together: arbitrary units instead
+            warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
+            board.update(scale=None, scale_why=str(error))
+            subject_options = SubjectOptions(scale=None)
+            result = calibrate_from_subject(subject_tracks, inputs, subject_options)
         stability = check_stability(subject_tracks, inputs, result, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
@@ -91,7 +100,7 @@ def pose_from_subject(
     if not metric:
         warnings.append(
             "subject path without background anchors or --scale: the units are arbitrary "
-            "(give --scale POINT_A,POINT_B,METRES)"
+            "(give --scale POINT_A,POINT_B,METRES, or --board with the board's corners)"
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
     return {**_report(result, stability, posed, anchors, metric), "board": board}
@@ -106,8 +115,9 @@ def _with_board(
     warnings: list[str],
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[str, str, float] | None, dict[str, Any]]:
     """`--board`: intrinsics from the board's views for the static videos without given ones (and not `anchored`
-    by the background), and the scale from its corner spacing unless --scale was given. Returns (intrinsics,
-    scale, the report's `board` section)."""
+    by the background), and the scale from its corner spacing unless --scale was given or anchors set it. Every
+    tracked video's views are fitted, so that a board file that does not match the corners gives no scale.
+    Returns (intrinsics, scale, the report's `board` section)."""
     assert options.board is not None
     board = read_charuco_board(options.board)
     tracked = set(tracks.video_names())
@@ -117,28 +127,50 @@ def _with_board(
             f"--board {options.board}: the tracks have no board corners (corner_<id> points): import them with "
             "`dynrecon import-tracks VIDEO... --board FILE`; the board was not used"
         )
-        return intrinsics, options.scale, {"file": str(options.board), "used": False, "why": "no corner_<id> tracks"}
+        section = {"file": str(options.board), "used": False, "why": "no corner_<id> tracks", "scale": None}
+        return intrinsics, options.scale, section
     merged = dict(intrinsics)
-    cameras = []
+    found: list[BoardIntrinsics] = []
     for video in static:
         name = video.info.name
-        if name not in tracked or name in intrinsics or name in anchored:
+        if name not in tracked:
             continue
-        found = calibrate_from_board(tracks, name, (video.info.width, video.info.height), board)
-        cameras.append(found.to_json())
-        if found.used and found.K is not None:
-            merged[name] = (found.K, found.dist)
-            log.info("%s: intrinsics from %d board views (rms %.2f px)", name, found.views, found.rms_px or 0.0)
+        fitted = calibrate_from_board(tracks, name, (video.info.width, video.info.height), board)
+        found.append(fitted)
+        if name in intrinsics or name in anchored:
+            fitted.used = False
+            fitted.why = "intrinsics given (--intrinsics)" if name in intrinsics else "posed by the background"
+        elif fitted.used and fitted.K is not None:
+            merged[name] = (fitted.K, fitted.dist)
+            log.info("%s: intrinsics from %d board views (rms %.2f px)", name, fitted.views, fitted.rms_px or 0.0)
         else:
-            warnings.append(f"{name}: intrinsics not taken from the board: {found.why}")
-    scale = options.scale if options.scale is not None else board_scale(tracks, names, board)
-    if options.scale is None and scale is None:
-        warnings.append("--board: no two board corners are seen together in two videos: no scale from the board")
+            warnings.append(f"{name}: intrinsics not taken from the board: {fitted.why}")
+    checked = [f for f in found if f.rms_px is not None]
+    misfit = [f for f in checked if not f.fits]
+    scale, why = options.scale, None
+    if options.scale is not None:
+        why = "--scale given"
+    elif anchored:
+        why = "the background's anchors set the frame and scale"
+    elif not checked or misfit:
+        worst = max(misfit, key=lambda f: f.rms_px or 0.0) if misfit else None
+        why = (
+            f"the board does not fit {worst.name}'s corners ({worst.rms_px:.1f} px): wrong board file?"
+            if worst is not None
+            else f"no video has {MIN_VIEWS} board views to check the board file against"
+        )
+        warnings.append(f"--board {options.board}: no scale from the board: {why}")
+    else:
+        scale = board_scale(tracks, names, board)
+        if scale is None:
+            why = f"no two board corners are seen together in {SCALE_FRAMES} frames of two videos"
+            warnings.append(f"--board: no scale from the board: {why}")
     section = {
         "file": str(options.board),
         "used": True,
-        "cameras": cameras,
-        "scale": None if options.scale is not None or scale is None else [scale[0], scale[1], round(scale[2], 6)],
+        "cameras": [f.to_json() for f in found],
+        "scale": None if why is not None or scale is None else [scale[0], scale[1], round(scale[2], 6)],
+        "scale_why": why,
     }
     return merged, scale, section
 

@@ -75,6 +75,10 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
+    except OSError as error:
+        raise InputError(
+            path, f"not a readable file ({error.strerror or error})", fix="give the board's .toml"
+        ) from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(path, f"not valid TOML: {error}") from None
     table = data.get("charuco", data)

@@ -377,7 +377,8 @@ def test_the_register_hash_covers_the_calibration_contents(calibrated: Path, tmp
         ("garbage", "lab.toml"),
         ("unknown format", "pass --calibration-format qca or toml"),
         ("other cameras", "cannot be matched to 3 videos"),
-        ("with intrinsics", "--intrinsics and --scale (registration options) do not apply"),
+        ("with intrinsics", "--intrinsics, --scale and --board (registration options) do not apply"),
+        ("with a board", "--intrinsics, --scale and --board (registration options) do not apply"),
     ],
 )
 def test_run_calibration_errors_are_one_line(calibrated: Path, tmp_path: Path, capsys, case: str, reason: str) -> None:
@@ -395,6 +396,11 @@ def test_run_calibration_errors_are_one_line(calibrated: Path, tmp_path: Path, c
     elif case == "with intrinsics":
         calibration.write_bytes((calibrated / "calibration.toml").read_bytes())
         extra = ["--intrinsics", str(calibration)]
+    elif case == "with a board":
+        calibration.write_bytes((calibrated / "calibration.toml").read_bytes())
+        board = tmp_path / "charuco.toml"
+        board.write_text("columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\n")
+        extra = ["--board", str(board)]
     argv = _run_calibrated(calibrated, tmp_path / "ws", *extra)
     argv[argv.index("--calibration") + 1] = str(calibration)
     assert cli.main(argv) == 2

@@ -155,12 +155,36 @@ def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_ancho
     warnings: list[str] = []
     options = RegisterOptions(board=board_file)
     merged, scale, section = _with_board(tracks, plans, given, {"anchor"}, options, warnings)
-    # --intrinsics wins, an anchor keeps its background model's, the third video gets the board's
-    assert [c["name"] for c in section["cameras"]] == ["free"] and section["cameras"][0]["used"]
+    # --intrinsics wins, an anchor keeps its background model's, the third video gets the board's; all are checked
+    cameras = {c["name"]: c for c in section["cameras"]}
+    assert [cameras[n]["used"] for n in ("given", "anchor", "free")] == [False, False, True]
+    assert all(c["rms_px"] < 0.5 for c in cameras.values())
     assert merged["given"][0][0, 0] == pytest.approx(990.0) and "anchor" not in merged
     assert abs(merged["free"][0][0, 0] / K_TRUE[0, 0] - 1) < 0.02
+    # the background's anchors set the scale; without them, the board does
+    assert scale is None and section["scale"] is None and "anchors" in section["scale_why"]
+    merged, scale, section = _with_board(tracks, plans, given, set(), options, warnings)
     assert scale is not None and scale[:2] == ("corner_0", "corner_11") and section["scale"][:2] == list(scale[:2])
+    # a board file that is not the filmed board: no intrinsics, no scale, and a warning says why
+    board_file.write_text('columns = 6\nrows = 4\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    merged, scale, section = _with_board(tracks, plans, given, set(), options, warnings)
+    assert scale is None and "does not fit" in section["scale_why"] and "free" not in merged
+    assert "wrong board file" in warnings[-1]
     # without corner tracks: a warning, nothing changed
     other = Tracks(video=["free"], frame=np.array([0]), point=["head"], xy=np.array([[1.0, 2.0]]))
     merged, scale, section = _with_board(other, plans, given, set(), options, warnings)
     assert merged == given and scale is None and not section["used"] and "no board corners" in warnings[-1]
+
+
+def test_a_view_of_one_spot_is_left_out_not_a_crash() -> None:
+    tracks = _tracks("cam", _board_poses(np.random.default_rng(7), 20, tilt_deg=35), noise_px=0.3)
+    tracks.xy[tracks.frame == 2] = 0.0  # an exporter's 0, 0 for every corner of one frame
+    found = calibrate_from_board(tracks, "cam", SIZE, BOARD)
+    assert found.used and found.views == 19, found.to_json()
+
+
+def test_a_board_folder_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    videos = [str(tmp_path / "a.mp4"), str(tmp_path / "b.mp4")]
+    assert main(["register", *videos, "--out", str(tmp_path / "ws"), "--board", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not a readable file" in err
