@@ -17,6 +17,7 @@ from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, cal
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
+from sfm.subject.model import ScalePointsError
 from sfm.subject.observations import select_rows
 from sfm.subject.stability import Stability, check_stability
 from tracking.charuco import read_charuco_board
@@ -78,7 +79,7 @@ def pose_from_subject(
     try:
         try:
             result = calibrate_from_subject(subject_tracks, inputs, subject_options)
-        except SubjectCalibrationError as error:
+        except ScalePointsError as error:
             if board is None or board.get("scale") is None:
                 raise
             # the board's scale pair (not the user's) may never be triangulated together: arbitrary units instead

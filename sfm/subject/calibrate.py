@@ -20,6 +20,7 @@ from sfm.subject.model import (
     SEED,
     Lens,
     PairResult,
+    ScalePointsError,
     SubjectCalibrationError,
     SubjectCamera,
     SubjectOptions,
@@ -507,7 +508,7 @@ def _apply_scale(b: Bundle, points: list[str], scale: tuple[str, str, float], an
     d = np.linalg.norm(A - B, axis=1)
     d = d[np.isfinite(d)]
     if not len(d):
-        raise SubjectCalibrationError(
+        raise ScalePointsError(
             f"points {scale[0]} and {scale[1]} are never triangulated together; "
             "choose scale points seen at the same time"
         )

@@ -14,6 +14,10 @@ class SubjectCalibrationError(DynreconError):
     """The tracks cannot pose the cameras; the message says what to change."""
 
 
+class ScalePointsError(SubjectCalibrationError):
+    """The scale's two points are never triangulated at one time: the cameras are posed, the scale is not."""
+
+
 @dataclass(kw_only=True)
 class SubjectVideo:
     """One static camera and the decode times of its frames."""

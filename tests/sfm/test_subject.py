@@ -7,6 +7,8 @@ import pytest
 
 from sfm.subject import SubjectCalibrationError, SubjectOptions, calibrate_from_subject
 from sfm.subject.geometry import bougnoux
+from sfm.subject.model import ScalePointsError
+from sfm.subject.observations import select_rows
 from sfm.subject.synthetic import compare, make_rig
 from tracking.tracks import Tracks
 
@@ -96,6 +98,20 @@ def test_scale_from_two_points_gives_metres() -> None:
     d_est = np.linalg.norm(c[:, None] - c[None], axis=-1)
     d_true = np.linalg.norm(true_c[:, None] - true_c[None], axis=-1)
     assert d_est == pytest.approx(d_true, rel=0.03, abs=0.05)
+
+
+def test_scale_points_never_seen_at_one_time_are_their_own_error() -> None:
+    # p11 is seen by cam0 only in the first half and by cam1 only in the second: never triangulated together with
+    # p0, so the scale (not the poses) fails, with an error `register --board` can fall back from.
+    tracks, videos, _ = make_rig(kind="skeleton", n_cameras=3, duration=8.0, seed=2)
+    point, video, frame = np.asarray(tracks.point), np.asarray(tracks.video), np.asarray(tracks.frame)
+    half = np.array([len(next(v for v in videos if v.name == name).times) // 2 for name in video])
+    drop = (point == "p11") & (
+        (video == "cam2") | ((video == "cam0") & (frame >= half)) | ((video == "cam1") & (frame < half))
+    )
+    kept = select_rows(tracks, ~drop)
+    with pytest.raises(ScalePointsError, match="never triangulated together"):
+        calibrate_from_subject(kept, videos, SubjectOptions(scale=("p0", "p11", 1.0)))
 
 
 def test_video_without_time_overlap_fails_alone() -> None:
