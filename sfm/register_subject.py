@@ -42,9 +42,15 @@ def pose_from_subject(
     `subject` section (None when the path was not tried)."""
     static = [v for v in videos if v.static]
     unposed = [v for v in static if _posed(results[v.info.name]) is None]
-    if options.subject is SubjectPath.NEVER or not static:
-        return None
-    if options.subject is SubjectPath.AUTO and not unposed:
+    if options.subject is SubjectPath.NEVER or not static or (options.subject is SubjectPath.AUTO and not unposed):
+        if options.board is not None:
+            if not static:
+                why = "no static video"
+            elif options.subject is SubjectPath.NEVER:
+                why = "--subject never"
+            else:
+                why = "the background posed every static video (--subject always poses them from the board)"
+            warnings.append(f"--board {options.board}: not used: {why}")
         return None
     if tracks is None:
         if unposed:

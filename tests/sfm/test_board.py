@@ -11,9 +11,9 @@ import pytest
 from dynrecon.cli import main
 from sfm.board import MIN_VIEWS, board_scale, calibrate_from_board
 from sfm.frames import Resize
-from sfm.options import RegisterOptions
-from sfm.plan import VideoPlan
-from sfm.register_subject import _with_board
+from sfm.options import RegisterOptions, SubjectPath
+from sfm.plan import FramePose, VideoPlan
+from sfm.register_subject import _with_board, pose_from_subject
 from sfm.video import ProbedVideo
 from tracking.charuco import CharucoBoard, board_corner_positions
 from tracking.tracks import Tracks
@@ -123,21 +123,12 @@ def test_a_bad_board_file_is_a_one_line_error_before_any_work(
     assert not (tmp_path / "ws").exists()
 
 
-def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_anchor(tmp_path: Path) -> None:
-    board_file = tmp_path / "charuco.toml"
-    board_file.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
-    poses = _board_poses(np.random.default_rng(6), 30, tilt_deg=35)
-    parts = [_tracks(name, poses, 0.3, seed=i) for i, name in enumerate(["given", "anchor", "free"])]
-    tracks = Tracks(
-        video=[v for t in parts for v in t.video],
-        frame=np.concatenate([t.frame for t in parts]),
-        point=[p for t in parts for p in t.point],
-        xy=np.concatenate([t.xy for t in parts]),
-    )
-    plans = [
+def _plans(folder: Path, names: list[str]) -> list[VideoPlan]:
+    """Static videos of SIZE, 30 frames each, as register's plan has them."""
+    return [
         VideoPlan(
             info=ProbedVideo(
-                path=tmp_path / f"{name}.mp4",
+                path=folder / f"{name}.mp4",
                 name=name,
                 width=SIZE[0],
                 height=SIZE[1],
@@ -149,8 +140,32 @@ def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_ancho
             wanted=np.arange(30),
             static=True,
         )
-        for name in ["given", "anchor", "free"]
+        for name in names
     ]
+
+
+def test_register_says_when_the_board_is_not_used(tmp_path: Path) -> None:
+    plans = _plans(tmp_path, ["a", "b"])
+    results = {p.info.name: {0: FramePose(pose=None, reason="not posed")} for p in plans}
+    tracks = _tracks("a", _board_poses(np.random.default_rng(8), 12, tilt_deg=35), 0.3)
+    warnings: list[str] = []
+    options = RegisterOptions(board=tmp_path / "charuco.toml", subject=SubjectPath.NEVER)
+    assert pose_from_subject(plans, results, tracks, {}, options, warnings) is None
+    assert warnings == [f"--board {tmp_path / 'charuco.toml'}: not used: --subject never"]
+
+
+def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_anchor(tmp_path: Path) -> None:
+    board_file = tmp_path / "charuco.toml"
+    board_file.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    poses = _board_poses(np.random.default_rng(6), 30, tilt_deg=35)
+    parts = [_tracks(name, poses, 0.3, seed=i) for i, name in enumerate(["given", "anchor", "free"])]
+    tracks = Tracks(
+        video=[v for t in parts for v in t.video],
+        frame=np.concatenate([t.frame for t in parts]),
+        point=[p for t in parts for p in t.point],
+        xy=np.concatenate([t.xy for t in parts]),
+    )
+    plans = _plans(tmp_path, ["given", "anchor", "free"])
     given: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"given": (K_TRUE * 1.1, None)}
     warnings: list[str] = []
     options = RegisterOptions(board=board_file)
