@@ -10,6 +10,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-subject-intrinsics: the same with `--intrinsics camera_array.toml`;
 - caliscope-subject-board: the same without intrinsics but with `--board charuco.toml`: each camera's intrinsics
   from its own board views, and the metric scale from the board's corner spacing;
+- caliscope-subject-intrinsics-scale: `--intrinsics camera_array.toml` and `--scale` on the board's two farthest
+  corners: the rig's own intrinsics, scored like the board case (`board_mm`);
 - caliscope-auto: the desynchronized videos with the corner tracks, default options (background, then subject);
 - pose2sim-background: the 4 lab cameras, background only;
 - pose2sim-subject: the committed labels (tests/data/pose2sim) tracked through the videos, `--subject always`,
@@ -71,6 +73,7 @@ CASES = (
     "caliscope-subject",
     "caliscope-subject-intrinsics",
     "caliscope-subject-board",
+    "caliscope-subject-intrinsics-scale",
     "caliscope-auto",
     "pose2sim-background",
     "pose2sim-subject",
@@ -234,6 +237,8 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             args += ["--intrinsics", str(CALISCOPE / "camera_array.toml")]
         if "board" in case:
             args += ["--board", str(CALISCOPE / "charuco.toml")]
+        if case.endswith("-scale"):  # the board's two farthest corners, as --board would take them
+            args += ["--scale", "corner_0,corner_11,0.1947"]
     else:
         truth = truth_cameras(POSE2SIM / "calibration" / "Calib.qca.txt", [f"cam0{i}" for i in range(1, 5)])
         videos = [POSE2SIM / "videos" / f"cam0{i}.mp4" for i in range(1, 5)]
