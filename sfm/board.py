@@ -91,11 +91,11 @@ def board_views(tracks: Tracks, video: str, board: CharucoBoard) -> tuple[list[n
     float32 and pixels (N, 2) float32 per view, in frame order."""
     positions = board_corner_positions(board)
     rows = np.flatnonzero((np.asarray(tracks.video) == video) & np.isin(np.asarray(tracks.point), list(positions)))
-    frames = np.asarray(tracks.frame)[rows]
+    rows = rows[np.argsort(np.asarray(tracks.frame)[rows], kind="stable")]  # by frame, file order within one
+    _, starts = np.unique(np.asarray(tracks.frame)[rows], return_index=True)
     objects: list[np.ndarray] = []
     pixels: list[np.ndarray] = []
-    for frame in np.unique(frames):
-        here = rows[frames == frame]
+    for here in np.split(rows, starts[1:]):
         xy = tracks.xy[here]
         finite = np.isfinite(xy).all(axis=1)
         if finite.sum() < MIN_CORNERS:

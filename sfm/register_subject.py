@@ -20,7 +20,7 @@ from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, 
 from sfm.subject.model import ScalePointsError
 from sfm.subject.observations import select_rows
 from sfm.subject.stability import Stability, check_stability
-from tracking.charuco import read_charuco_board
+from tracking.charuco import board_corner_positions, read_charuco_board
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ def _with_board(
     board = read_charuco_board(options.board)
     tracked = set(tracks.video_names())
     names = [v.info.name for v in static if v.info.name in tracked]
-    if not any(str(p).startswith("corner_") for p in tracks.point_names()):
+    if not set(tracks.point_names()) & set(board_corner_positions(board)):
         warnings.append(
             f"--board {options.board}: the tracks have no board corners (corner_<id> points): import them with "
             "`dynrecon import-tracks VIDEO... --board FILE`; the board was not used"
