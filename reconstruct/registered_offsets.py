@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.model import Clocks
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult
@@ -77,7 +78,7 @@ def prefer_registered_offsets(
     kept = bool(theirs < BETTER * mine)
     entry = {
         "tried": True,
-        "residual_px": {"solve": _finite(mine), "registered": _finite(theirs)},
+        "residual_px": {"solve": finite_or_none(mine), "registered": finite_or_none(theirs)},
         "limit": BETTER,
         "kept": "registered" if kept else "solve",
     }
@@ -120,7 +121,3 @@ def _median_px(problem: Problem, points: np.ndarray) -> float:
     residual = reprojection_px(problem, points)
     finite = residual[np.isfinite(residual)]
     return float(np.median(finite)) if finite.size else math.nan
-
-
-def _finite(value: float) -> float | None:
-    return value if math.isfinite(value) else None

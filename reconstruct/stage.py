@@ -26,14 +26,15 @@ from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
+from reconstruct.registered_offsets import PATH as REGISTERED_PATH
 from reconstruct.registered_offsets import prefer_registered_offsets
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
 from reconstruct.tracks_path import applies as tracks_path_applies
+from reconstruct.tracks_path import clocks_seed, solve_on_tracks
 from reconstruct.tracks_path import refereed as tracks_path_refereed
-from reconstruct.tracks_path import solve_on_tracks
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
@@ -162,6 +163,9 @@ def solve(
         temporal = prefer_registered_offsets(
             problem, camera_set, result, temporal, registration_check, options.temporal.refine
         )
+        if not result.stages and temporal.report.get("path") == REGISTERED_PATH:
+            # the tracks path's W came from the clocks just replaced: the trust measures need the kept ones'
+            result = clocks_seed(problem, result.points, temporal.points, temporal.times, result.timings)
         result.timings["registered_offsets"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # without a seed solve (the tracks path) the trust measures describe the refined points against the clocks' W

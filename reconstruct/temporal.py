@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clock_polish import refine_with_clocks
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
 from reconstruct.clocks.model import ClockModel, Clocks
@@ -192,7 +193,7 @@ def _finish(
             "refined": True,
             "path": path.value,
             "checks": [c.to_json() for c in checks],
-            "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
+            "smoothness_median": finite_or_none(np.nanmedian(refined.smoothness)),
             "outlier_observations": int(refined.outliers.sum()),
         }
     )
@@ -205,7 +206,3 @@ def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float)
     return bool(
         np.all(finite) and max(cost) <= POLISH_COST_SLACK * cost[0] and np.all(np.abs(rates) <= max_rate_correction)
     )
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.beside import beside
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
 from reconstruct.clocks.model import frame_periods
 from reconstruct.free_times import reprojection_px
@@ -215,7 +216,7 @@ def _attempt(
             "refined": True,
             "path": PATH,
             "checks": [c.to_json() for c in checks],
-            "smoothness_median": _finite(np.nanmedian(refined.smoothness)),
+            "smoothness_median": finite_or_none(np.nanmedian(refined.smoothness)),
             "outlier_observations": int(refined.outliers.sum()),
             "reason": f"{int(placed.sum())} reconstructable point(s): clocks from the tracks, no self-expressive solve",
         }
@@ -224,7 +225,9 @@ def _attempt(
         clocks=on_clocks.clocks, points=points, times=on_clocks.clocks.global_time.copy(), refined=True, report=report
     )
     return TracksAttempt(
-        temporal=temporal, seed=_seed(problem, start, points, on_clocks.clocks.global_time, timings), report=report
+        temporal=temporal,
+        seed=clocks_seed(problem, start, points, on_clocks.clocks.global_time, timings),
+        report=report,
     )
 
 
@@ -242,7 +245,7 @@ def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:
     return TracksAttempt(temporal=None, seed=None, report=report)
 
 
-def _seed(
+def clocks_seed(
     problem: Problem, start: np.ndarray, points: np.ndarray, times: np.ndarray, timings: dict[str, float]
 ) -> SolveResult:
     """What `Reconstruction.seed` holds on this path: the start points, W from the clocks (`time_w`) and the
@@ -289,7 +292,3 @@ def time_w(problem: Problem, times: np.ndarray) -> SparseW:
     count = valid.sum(axis=1) / 2
     value = np.where(valid, value / np.maximum(count, 1)[:, None], 0.0)
     return SparseW(cand=cand, valid=valid, value=value)
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import DynreconError
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.estimate import ClockOptions, SearchMode, estimate_clocks
 from reconstruct.clocks.model import Clocks, frame_periods
 from reconstruct.solver.alternation import SolverOptions, solve
@@ -84,7 +85,7 @@ def compare(
         off = abs(shift) / scale if math.isfinite(shift) and scale > 0 else math.inf
         if np.any(sub_videos == v):
             worst = max(worst, off)
-            per_video[name] = {"difference_s": shift if math.isfinite(shift) else None, "periods": _finite(off)}
+            per_video[name] = {"difference_s": shift if math.isfinite(shift) else None, "periods": finite_or_none(off)}
     check = Check(
         name="referee",
         value=worst,
@@ -156,7 +157,3 @@ def take_frames(problem: Problem, index: np.ndarray) -> Problem:
 def _median(values: np.ndarray) -> float:
     values = values[np.isfinite(values)]
     return float(np.median(values)) if values.size else math.nan
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None

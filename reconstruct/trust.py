@@ -42,6 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import viewing_rays
@@ -180,9 +181,9 @@ class Trust:
         ):
             v = values[done & np.isfinite(values)]
             measures[name] = {
-                "median": _number(np.median(v)) if v.size else None,
-                "p90": _number(np.percentile(v, 90)) if v.size else None,
-                "max": _number(np.max(v)) if v.size else None,
+                "median": finite_or_none(np.median(v)) if v.size else None,
+                "p90": finite_or_none(np.percentile(v, 90)) if v.size else None,
+                "max": finite_or_none(np.max(v)) if v.size else None,
             }
         flagged = int(np.sum(self.flag & done))
         total = int(done.sum())
@@ -214,7 +215,7 @@ class Trust:
             "flagged_share": flagged / total if total else None,
             "per_video": per_video,
             "rule": flag_rule(self.options),
-            "limits": {k: _number(v) for k, v in self.limits.items()},
+            "limits": {k: finite_or_none(v) for k, v in self.limits.items()},
             "options": asdict(self.options),
         }
 
@@ -250,10 +251,6 @@ def flag_rule(options: TrustOptions) -> str:
 
 def _blank(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
     return np.where(empty, np.nan, values)
-
-
-def _number(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None
 
 
 def neighbourhoods(W: sp.csc_matrix, min_weight: float, max_neighbours: int) -> np.ndarray:

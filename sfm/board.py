@@ -23,6 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dynrecon.jsonvalues import finite_or_none
 from tracking.charuco import CharucoBoard, board_corner_positions
 from tracking.tracks import Tracks
 
@@ -74,16 +75,12 @@ class BoardIntrinsics:
                 focal_px=round(float(self.K[0, 0]), 2),
                 principal_point_px=[round(float(self.K[0, 2]), 2), round(float(self.K[1, 2]), 2)],
                 k1_k2=[round(float(self.dist[0]), 5), round(float(self.dist[1]), 5)],
-                rms_px=_rounded(self.rms_px, 3),
-                focal_std_pct=_rounded(self.focal_std_pct, 3),
-                pp_std_px=_rounded(self.pp_std_px, 2),
-                tilt_spread_deg=_rounded(self.tilt_spread_deg, 1),
+                rms_px=finite_or_none(self.rms_px, 3),
+                focal_std_pct=finite_or_none(self.focal_std_pct, 3),
+                pp_std_px=finite_or_none(self.pp_std_px, 2),
+                tilt_spread_deg=finite_or_none(self.tilt_spread_deg, 1),
             )
         return out
-
-
-def _rounded(value: float | None, digits: int) -> float | None:
-    return None if value is None or not math.isfinite(value) else round(value, digits)
 
 
 def board_views(tracks: Tracks, video: str, board: CharucoBoard) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -22,8 +22,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dynrecon", "sfm", "tracking", "labeling", "reconstruct", "simulation", "batch")
-# The shared ground: user errors, atomic writes, bounded readers, video opening. Every package may import it; it
-# imports no package.
+# The shared ground: user errors, atomic writes, bounded readers, video opening, JSON numbers. Every package may
+# import it; it imports no package.
 GROUND = (
     "dynrecon.errors",
     "dynrecon.atomic",
@@ -31,6 +31,7 @@ GROUND = (
     "dynrecon.video_io",
     "dynrecon.lazy",
     "dynrecon.beside",
+    "dynrecon.jsonvalues",
 )
 GROUND_NODE = "ground"
 # Nodes of the package graph: a module belongs to the longest of these that prefixes it.

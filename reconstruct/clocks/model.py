@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.solver.problem import Problem
 
 DEFAULT_FPS = 30.0  # own time of a video without decoder times or a known frame rate (its rate absorbs the error)
@@ -286,15 +287,15 @@ class VideoClockReport:
             "time_source": self.time_source.value,
             "method": self.method,
             "identified": self.identified,
-            "offset": _num(self.offset),
-            "offset_std": _num(self.offset_std),
-            "rate": _num(self.rate),
-            "rate_std": _num(self.rate_std),
-            "drift": _num(self.drift),
-            "drift_std": _num(self.drift_std),
+            "offset": finite_or_none(self.offset),
+            "offset_std": finite_or_none(self.offset_std),
+            "rate": finite_or_none(self.rate),
+            "rate_std": finite_or_none(self.rate_std),
+            "drift": finite_or_none(self.drift),
+            "drift_std": finite_or_none(self.drift_std),
             "links": int(self.links),
-            "track_residual_px": _num(self.track_residual_px),
-            "frame_scatter": _num(self.frame_scatter),
+            "track_residual_px": finite_or_none(self.track_residual_px),
+            "frame_scatter": finite_or_none(self.frame_scatter),
         }
 
     @classmethod
@@ -359,7 +360,13 @@ class Clocks:
             "reference": self.reference,
             "videos": [c.to_json() for c in self.videos],
             "frames": [
-                {"video": v, "frame": int(f), "own_time": _num(o), "time": _num(g), "time_std": _num(s)}
+                {
+                    "video": v,
+                    "frame": int(f),
+                    "own_time": finite_or_none(o),
+                    "time": finite_or_none(g),
+                    "time_std": finite_or_none(s),
+                }
                 for v, f, o, g, s in zip(
                     self.frame_videos, self.frames, self.own_time, self.global_time, self.global_std, strict=True
                 )
@@ -392,10 +399,6 @@ class Clocks:
                 f"invalid 'clocks' entry: {repr(error)[:200]}",
                 fix="rewrite it with `dynrecon solve`, or remove the key",
             ) from None
-
-
-def _num(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 def _float(value: Any) -> float:

@@ -15,7 +15,8 @@ from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.outputs.points import read_points
 from reconstruct.registered_offsets import PATH, prefer_registered_offsets
 from reconstruct.stage import SolveOptions, solve
-from reconstruct.temporal import Temporal
+from reconstruct.temporal import Temporal, TemporalOptions
+from reconstruct.tracks_path import time_w
 from reconstruct.trajectory import refine
 from sfm.cameras import CameraSet, read_cameras
 
@@ -82,3 +83,22 @@ def test_offsets_that_agree_are_not_tried(phones: Path) -> None:
     checked = solve(_cameras(phones, {}), phones / "tracks.csv", SolveOptions(recording=None))
     assert checked.report["clocks"]["registration_check"]["agree"]
     assert PATH not in checked.temporal.report
+
+
+def test_kept_offsets_rebuild_the_tracks_paths_w(phones: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the tracks path W comes from the clocks, so the trust measures need W from the clocks that were kept."""
+    import reconstruct.stage as stage
+
+    def shifted(problem, cameras, seed, temporal, check, options):  # type: ignore[no-untyped-def]
+        times = temporal.times.copy()
+        times[problem.video_index == 1] += 0.05
+        report = {**temporal.report, "path": PATH}
+        return Temporal(clocks=temporal.clocks, points=temporal.points, times=times, refined=True, report=report)
+
+    monkeypatch.setattr(stage, "prefer_registered_offsets", shifted)
+    options = SolveOptions(recording=None, temporal=TemporalOptions(tracks_path_max_points=1000))
+    solved = solve(_cameras(phones, {}), phones / "tracks.csv", options)
+
+    assert not solved.seed.stages and solved.temporal.report["path"] == PATH
+    expected = time_w(solved.problem, solved.temporal.times).to_csc()
+    assert abs(solved.seed.W.to_csc() - expected).max() == 0.0
