@@ -368,6 +368,47 @@ def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: 
     )
 
 
+SAME_ASPECT = 0.002  # width and height scale alike within this fraction: the video is the calibrated image resized
+
+
+def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: ProbedVideo, name: str) -> np.ndarray:
+    """K (3, 3) of camera `name`, calibrated at `size` (width, height), in `video`'s pixels: unchanged at the
+    calibrated size; scaled where the video is the calibrated image resized (one scale for both axes: a phone
+    calibrated at 4K filming at 1080p); otherwise unchanged, with a warning, since a crop or a padding cannot be
+    told from the sizes alone."""
+    width, height = size
+    if (video.width, video.height) == (width, height):
+        return K
+    sx, sy = video.width / width, video.height / height
+    if abs(sx - sy) <= SAME_ASPECT * max(sx, sy):
+        K = K.astype(float).copy()
+        # pixel centres sit at integer coordinates in OpenCV: x' = (x + 0.5) s - 0.5
+        K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
+        log.info(
+            "%s is %dx%d, camera %r was calibrated at %dx%d: its intrinsics are scaled by %.4g",
+            video.path,
+            video.width,
+            video.height,
+            name,
+            width,
+            height,
+            sx,
+        )
+        return K
+    log.warning(
+        "%s is %dx%d but camera %r was calibrated at %dx%d (another aspect ratio: a crop, a padding or a rotation); "
+        "its intrinsics are used unchanged, so check that the video is the calibrated camera's full image",
+        video.path,
+        video.width,
+        video.height,
+        name,
+        width,
+        height,
+    )
+    return K
+
+
 def run(
     calibration: str | Path,
     videos: Sequence[str | Path],
@@ -392,21 +433,12 @@ def run(
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     result = CameraSet()
     for info, camera, (R, t) in zip(infos, cameras, poses, strict=True):
-        if (info.width, info.height) != (camera.width, camera.height):
-            log.warning(
-                "%s is %dx%d but camera %r was calibrated at %dx%d; intrinsics are used unchanged",
-                info.path,
-                info.width,
-                info.height,
-                camera.name,
-                camera.width,
-                camera.height,
-            )
+        K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name)
         frames = [
             FrameCamera(
                 frame=i,
                 time=float(time),
-                K=camera.K.copy(),
+                K=K.copy(),
                 R=R.copy(),
                 t=t * options.scale,
                 dist=camera.dist.copy(),
@@ -428,6 +460,7 @@ __all__ = [
     "ImportCalibrationOptions",
     "StaticCamera",
     "Units",
+    "intrinsics_at_video_size",
     "match_cameras",
     "read_calibration",
     "read_qca",

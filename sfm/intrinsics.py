@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dynrecon.errors import InputError
-from sfm.calibration import match_cameras, read_calibration
+from sfm.calibration import intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
 
@@ -25,7 +25,9 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
                 continue
             if not video.frames:
                 raise InputError(path, f"video {info.name!r} has no frames to take intrinsics from")
-            result[info.name] = (video.frames[0].K, video.frames[0].dist)
+            first = video.frames[0]
+            K = intrinsics_at_video_size(first.K, (video.width, video.height), info, info.name)
+            result[info.name] = (K, first.dist)
         if not result:
             raise InputError(
                 path,
@@ -34,4 +36,7 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
             )
         return result
     matched = match_cameras(read_calibration(path), infos, path)
-    return {info.name: (camera.K, camera.dist) for info, camera in zip(infos, matched, strict=True)}
+    return {
+        info.name: (intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name), camera.dist)
+        for info, camera in zip(infos, matched, strict=True)
+    }

@@ -350,3 +350,30 @@ def test_import_caliscope_videos(shared_dir: Path, tmp_path: Path) -> None:
         assert (video.width, video.height) == (1280, 720) and len(video.frames) == 111
         centers = np.array([f.center for f in video.frames])
         np.testing.assert_allclose(centers, np.broadcast_to(CALISCOPE_CENTERS[i], centers.shape), atol=1e-9)
+
+
+def test_a_video_resized_from_the_calibrated_size_gets_scaled_intrinsics(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    K = np.array([[200.0, 0.0, 61.0], [0.0, 202.0, 45.5], [0.0, 0.0, 1.0]])
+    camera = StaticCamera(name="cam_1", width=128, height=96, K=K, dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))
+    toml = write_toml(tmp_path / "calib.toml", [camera])
+    half, other = tmp_path / "half" / "cam1.mp4", tmp_path / "other" / "cam1.mp4"
+    for path, size in ((half, (64, 48)), (other, (64, 40))):
+        path.parent.mkdir()
+        _write_video(path, 3, size)
+
+    # Ground truth: a point's pixel in the calibrated image, carried into the half-size image by the resize
+    # (OpenCV's pixel centres: x' = (x + 0.5) / 2 - 0.5).
+    X = np.array([0.3, -0.2, 2.0])
+    full = (K @ X)[:2] / X[2]
+    scaled, _ = known_intrinsics(toml, [probe_video(half)])["cam1"]
+    np.testing.assert_allclose((scaled @ X)[:2] / X[2], (full + 0.5) / 2 - 0.5, atol=1e-9)
+    assert main(["import-calibration", str(toml), str(half), "--out", str(tmp_path / "ws")]) == 0
+    np.testing.assert_allclose(read_cameras(tmp_path / "ws" / "cameras.json").videos[0].frames[0].K, scaled)
+
+    # another aspect ratio (a crop or a padding): unchanged, and said
+    with caplog.at_level("WARNING"):
+        kept, _ = known_intrinsics(toml, [probe_video(other)])["cam1"]
+    np.testing.assert_array_equal(kept, K)
+    assert "another aspect ratio" in caplog.text and "cam1.mp4 is 64x40" in caplog.text
