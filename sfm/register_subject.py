@@ -80,6 +80,23 @@ def pose_from_subject(
             "board": board,
         }
     names = {v.name for v in inputs}
+    if len(anchors) == 1:
+        # one anchor fixes the subject path's frame, not its scale: its cameras would not match the background's others
+        others = sorted(n for n, frames in results.items() if n not in names and _posed(frames) is not None)
+        if others:
+            why = (
+                f"one static video the background posed ({anchors[0]}) fixes the subject path's frame but not its "
+                f"scale against the background's other cameras ({', '.join(others)})"
+            )
+            warnings.append(
+                f"subject path: {why}; track the subject in a second static video the background posed, or register "
+                "the static videos without the others"
+            )
+            for video in unposed:
+                results[video.info.name] = {
+                    f: FramePose(pose=None, reason=f"subject path: {why}") for f in results[video.info.name]
+                }
+            return {"used": False, "why": why, "anchors": anchors, "board": board}
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=scale)
     try:
@@ -103,7 +120,7 @@ def pose_from_subject(
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
-    metric = result.metric or bool(anchors)
+    metric = result.metric or len(anchors) >= 2  # one anchor fixes the frame, not the scale
     if not metric:
         warnings.append(
             "subject path without background anchors or --scale: the units are arbitrary "

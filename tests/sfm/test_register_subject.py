@@ -1,0 +1,59 @@
+"""`pose_from_subject` (sfm/register_subject.py): how the subject path joins the background's cameras."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from sfm.frames import Resize
+from sfm.options import RegisterOptions
+from sfm.plan import FramePose, VideoPlan
+from sfm.register_subject import pose_from_subject
+from sfm.video import ProbedVideo
+from tracking.tracks import Tracks
+
+
+def _plan(folder: Path, name: str, static: bool) -> VideoPlan:
+    return VideoPlan(
+        info=ProbedVideo(
+            path=folder / f"{name}.mp4", name=name, width=640, height=480, times=np.arange(30) / 30.0, nominal_fps=30.0
+        ),
+        resize=Resize(scale=1.0, width=640, height=480),
+        sfm_frames=np.zeros(0, dtype=np.int64),
+        wanted=np.arange(30),
+        static=static,
+    )
+
+
+def _tracks(videos: list[str]) -> Tracks:
+    rng = np.random.default_rng(0)
+    rows = [(v, f, p) for v in videos for f in range(30) for p in ("a", "b", "c")]
+    return Tracks(
+        video=[r[0] for r in rows],
+        frame=np.array([r[1] for r in rows]),
+        point=[r[2] for r in rows],
+        xy=rng.uniform(100, 400, (len(rows), 2)),
+    )
+
+
+def test_one_anchor_among_other_background_cameras_is_refused(tmp_path: Path) -> None:
+    """One background-posed static video fixes the subject path's frame but not its scale: its cameras would sit at
+    another scale than the background's handheld ones, so the static videos it would pose stay unposed, and say why."""
+    plans = [_plan(tmp_path, "anchor", True), _plan(tmp_path, "free", True), _plan(tmp_path, "hand", False)]
+    pose = FramePose(pose=pycolmap.Rigid3d(), source="sfm")
+    results = {
+        "anchor": dict.fromkeys(range(30), pose),
+        "free": {f: FramePose(pose=None, reason="not in the background model") for f in range(30)},
+        "hand": dict.fromkeys(range(30), pose),
+    }
+    warnings: list[str] = []
+
+    section = pose_from_subject(plans, results, _tracks(["anchor", "free"]), {}, RegisterOptions(), warnings)
+
+    assert section is not None and not section["used"] and section["anchors"] == ["anchor"]
+    assert "not its scale" in section["why"] and "(hand)" in section["why"]
+    assert all(r.pose is None and "not its scale" in r.reason for r in results["free"].values())
+    assert results["anchor"][0].pose is not None and results["hand"][0].pose is not None
+    assert len(warnings) == 1 and "second static video" in warnings[0]
