@@ -151,7 +151,7 @@ def test_the_fork_tests_run_somewhere() -> None:
     if fork_is_safe() or os.environ.get(INNER):
         pytest.skip("fork is used in this process: the fork tests ran here")
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", *FORK_TESTS],
+        [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", "-rs", *FORK_TESTS],
         cwd=ROOT,
         env={**os.environ, INNER: "1"},
         capture_output=True,

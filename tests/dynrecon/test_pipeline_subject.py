@@ -90,3 +90,40 @@ def test_a_static_video_the_background_left_out_triggers_the_subject_stage(
     result = pipeline.run_stages(videos, tmp_path / "ws", pipeline.PipelineOptions(tracks=capture / "tracks.csv"))
     assert [s.name for s in result.stages] == ["register", "subject", "solve", "record", "export"]
     assert [c.tracks is None for c in calls] == [True, False]
+
+
+def test_the_board_goes_to_the_subject_stage_and_an_edited_board_reruns_it(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[RegisterOptions] = []
+
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        calls.append(options)
+        if options.tracks is None:
+            raise RegistrationError("only 0 of 3 videos registered (none); cameras.json not written")
+        register_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(capture / "cameras.json", register_dir / "cameras.json")
+        write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    videos = [tmp_path / f"cam{i}.mp4" for i in range(3)]
+    for video in videos:
+        video.write_bytes(b"x")
+    board = tmp_path / "charuco.toml"
+    board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    options = pipeline.PipelineOptions(tracks=capture / "tracks.csv", register=RegisterOptions(board=board))
+    ws = tmp_path / "ws"
+
+    first = pipeline.run_stages(videos, ws, options)
+    assert [s.name for s in first.stages] == ["subject", "solve", "record", "export"]
+    assert [c.board for c in calls] == [None, board]  # the background stage never reads the board
+
+    calls.clear()
+    again = pipeline.run_stages(videos, ws, options)
+    assert [s.name for s in again.stages if not s.skipped] == [] and [c.board for c in calls] == [None]
+
+    calls.clear()
+    board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.0\ndictionary = "DICT_4X4_1000"\n')
+    edited = pipeline.run_stages(videos, ws, options)
+    assert [c.board for c in calls] == [None, board]
+    assert "subject" in [s.name for s in edited.stages if not s.skipped]
