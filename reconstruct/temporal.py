@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 # by about a per cent, a runaway polish by tens of per cent.
 MAX_RATE_CORRECTION = 0.05
 POLISH_COST_SLACK = 1.01  # a polish is kept when its trajectory cost never rose above this x its start
+LINKS_BETTER = 0.8  # W's links' clocks replace the tracks' where their median residual is below this x the tracks'
 
 
 class Refinement(enum.Enum):
@@ -105,6 +106,7 @@ def _recover_and_refine(
     checks = clock_checks(problem, clocks)
     if all(c.passed for c in checks):
         on_clocks = refine_on_clocks(problem, result.points, clocks, clock_options.model, options.refine)
+        clocks, on_clocks = _tracks_or_links(problem, judge, clocks, on_clocks, clock_options.model, options, report)
         checks.extend(judge.clock_fit(on_clocks.result, spacing_assumed(clocks)))
         if all(c.passed for c in checks):
             report.update(on_clocks.report)
@@ -126,6 +128,41 @@ def _recover_and_refine(
     )
     report.update({"path": TimePath.SEED.value, "checks": [c.to_json() for c in checks], **judge.free_report()})
     return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+
+
+def _tracks_or_links(
+    problem: Problem,
+    judge: RefinementJudge,
+    clocks: Clocks,
+    on_clocks: OnClocks,
+    model: ClockModel,
+    options: TemporalOptions,
+    report: dict[str, Any],
+) -> tuple[Clocks, OnClocks]:
+    """Where the tracks' clock of some video was kept against W's links (a periodic motion can mislead either), the
+    trajectories on the links' clocks too: the hypothesis whose trajectories meet their rays clearly more closely
+    (LINKS_BETTER) is kept, the tracks' otherwise (report.json `temporal.links_clocks`)."""
+    alternative = clocks.links_alternative
+    if alternative is None:
+        return clocks, on_clocks
+    on_links = refine_on_clocks(problem, judge.result.points, alternative, model, options.refine)
+    mine, theirs = judge.residual(on_clocks.result.points), judge.residual(on_links.result.points)
+    kept = bool(theirs < LINKS_BETTER * mine)
+    videos = [c.name for c, a in zip(clocks.videos, alternative.videos, strict=True) if a.method != c.method]
+    report["links_clocks"] = {
+        "videos": videos,
+        "residual_px": {"tracks": finite_or_none(mine), "links": finite_or_none(theirs)},
+        "limit": LINKS_BETTER,
+        "kept": "links" if kept else "tracks",
+    }
+    log.warning(
+        "clocks of %s: W's links' (median residual %.3g px) against the tracks' (%.3g px): the %s' kept",
+        ", ".join(videos),
+        theirs,
+        mine,
+        "links" if kept else "tracks",
+    )
+    return (alternative, on_links) if kept else (clocks, on_clocks)
 
 
 @dataclass(kw_only=True)

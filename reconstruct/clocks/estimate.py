@@ -21,6 +21,7 @@ sequencing.json under the key `clocks` (`Clocks.to_json`, docs/formats.md).
 
 from __future__ import annotations
 
+import copy
 import enum
 import logging
 import math
@@ -485,6 +486,7 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         "search": run_search,
     }
     params = link_fit.params
+    alternative: Clocks | None = None
     methods = ["links" if params.identified[v] else "unidentified" for v in range(N)]
     methods[ref] = "reference"
     track_rms = np.full(N, np.nan)
@@ -497,17 +499,40 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         diagnostics["track_distinctness"] = float(np.median(distinct)) if distinct else None
         track_rms = search.video_residual_px
         precise = bool(link_fit.scale <= PRECISE_LINK_PERIODS * float(np.nanmin(periods)))
-        params, methods, fuse_notes = _combine(
+        params, methods, fuse_notes, disagree = _combine(
             link_fit.params, search.params, periods, ref, problem.video_names, precise
         )
         diagnostics["links_precise"] = precise
         warnings.extend(fuse_notes)
         _take_track_scatter(scatter, search, methods)
+        if disagree:  # the tracks' clock was kept against W's links: the refinement measures both
+            alt_params = copy.deepcopy(params)
+            alt_methods = list(methods)
+            for v in disagree:
+                alt_params.coef[v], alt_params.cov[v] = link_fit.params.coef[v], link_fit.params.cov[v]
+                alt_methods[v] = "links"
+            alternative = _report(
+                problem,
+                own,
+                sources,
+                ref,
+                model,
+                alt_params,
+                alt_methods,
+                periods,
+                scatter,
+                link_fit,
+                track_rms,
+                [],
+                dict(diagnostics),
+            )
     for w in warnings:
         log.warning("clocks: %s", w)
-    return _report(
+    clocks = _report(
         problem, own, sources, ref, model, params, methods, periods, scatter, link_fit, track_rms, warnings, diagnostics
     )
+    clocks.links_alternative = alternative
+    return clocks
 
 
 def estimate_clocks_from_tracks(problem: Problem, options: ClockOptions | None = None) -> Clocks:
@@ -541,7 +566,7 @@ def estimate_clocks_from_tracks(problem: Problem, options: ClockOptions | None =
         "track_distinctness": float(np.median(distinct)) if distinct else None,
         "links_precise": False,
     }
-    params, methods, _ = _combine(no_links.params, search.params, periods, ref, problem.video_names)
+    params, methods, _, _ = _combine(no_links.params, search.params, periods, ref, problem.video_names)
     scatter = np.full(N, np.nan)
     _take_track_scatter(scatter, search, methods)
     for w in search.warnings:
@@ -661,13 +686,15 @@ def _report(
 
 def _combine(
     links: ClockSet, tracks: ClockSet, periods: np.ndarray, ref: int, names: list[str], links_precise: bool = True
-) -> tuple[ClockSet, list[str], list[str]]:
-    """Per video: the tracks' clock, the links' clock, or both fused (see estimate_clocks); methods and notes."""
+) -> tuple[ClockSet, list[str], list[str], list[int]]:
+    """Per video: the tracks' clock, the links' clock, or both fused (see estimate_clocks); methods, notes and the
+    videos whose tracks' clock was kept against the links'."""
     N = len(links.center)
     out = ClockSet.reference_only(links.center.copy(), ref)
     methods = ["unidentified"] * N
     methods[ref] = "reference"
     notes: list[str] = []
+    disagree: list[int] = []
     for v in range(N):
         has_l, has_t = bool(links.identified[v]), bool(tracks.identified[v])
         if v == ref or not (has_l or has_t):
@@ -682,8 +709,9 @@ def _combine(
             methods[v], note = _choose(links.clock(v), tracks.clock(v), out, v, periods[v], names[v], links_precise)
             if note:
                 notes.append(note)
+                disagree.append(v)
         out.identified[v] = True
-    return out, methods, notes
+    return out, methods, notes, disagree
 
 
 def _choose(

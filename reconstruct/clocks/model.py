@@ -332,6 +332,9 @@ class Clocks:
     global_std: np.ndarray  # (F,) s
     warnings: list[str] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    # The same clocks with W's links' clock for the videos whose tracks' clock was kept against them (None: they
+    # agreed): the second hypothesis the refinement measures (reconstruct/temporal.py); not written anywhere.
+    links_alternative: Clocks | None = None
 
     def video(self, name: str) -> VideoClockReport:
         for clock in self.videos:

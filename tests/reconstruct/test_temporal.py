@@ -53,3 +53,34 @@ def test_a_clock_polish_whose_cost_rises_or_rate_runs_away_is_rejected():
     assert not _plausible([10.0, 9.0, 1e6], np.array([0.0, 1e-4]), 0.01)  # the cost exploded
     assert not _plausible([10.0, 9.0], np.array([0.0, 0.24]), 0.01)  # a clock stretched by 24 %
     assert not _plausible([10.0, float("nan")], np.array([0.0, 0.0]), 0.01)
+
+
+def test_a_track_clock_a_cycle_off_loses_to_the_links_clock(monkeypatch):
+    """The track search locked on another cycle for one video (its clock 30 frame periods off) and was kept against
+    W's links: the refinement measures both and keeps the links', whose trajectories meet their rays."""
+    import copy
+
+    import reconstruct.clocks.estimate as estimate_module
+
+    problem, truth = synthetic_problem(frames=240, points=8, noise_px=1.0)
+    _restart_clocks(problem)
+    result = solve(problem)
+    search = estimate_module.search_clocks
+
+    def one_cycle_off(problem, own, ref, *args, **kwargs):
+        found = copy.deepcopy(search(problem, own, ref, *args, **kwargs))
+        v = (ref + 1) % len(problem.video_names)
+        found.params.coef[v][0] += 30 * np.median(np.diff(np.sort(own[problem.video_index == v])))
+        return found
+
+    right = recover_and_refine(problem, result)
+    assert "links_clocks" not in right.report
+    monkeypatch.setattr(estimate_module, "search_clocks", one_cycle_off)
+    chosen = recover_and_refine(problem, result)
+
+    entry = chosen.report["links_clocks"]
+    assert entry["kept"] == "links" and entry["residual_px"]["links"] < 0.5 * entry["residual_px"]["tracks"]
+    assert chosen.report["path"] == "clocks"
+    expected = truth_array(problem, truth)
+    error = np.nanmedian(np.linalg.norm(chosen.points - expected, axis=-1))
+    assert error < 1.2 * np.nanmedian(np.linalg.norm(right.points - expected, axis=-1))
