@@ -69,7 +69,7 @@ def extract_task(job: CaptureJob, video: Path, plans: list[TaskOutcome]) -> Task
             outcome.status = "skipped"
             return
         folder, names = _folder(job), _names(job)
-        extract_videos(folder, [video.stem], _options(job), capture_facts(folder, names))
+        extract_videos(folder, [video.stem], _options(job), capture_facts(folder, names, _options(job)))
 
     return guarded(job, "extract", video.stem, body)
 

@@ -21,7 +21,14 @@ def atomic_open(path: str | Path, mode: str = "w", *, newline: str | None = None
     A reader never sees a half-written file, and a crash mid-write leaves the old file intact.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise InputError(path, "is a folder: a file was expected here", fix="give the path of a file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InputError(
+            path.parent, "is a file: a folder was expected here", fix="give a path inside a folder"
+        ) from None
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = Path(tmp_name)
     try:

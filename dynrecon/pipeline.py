@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import atomic_write_text
+from dynrecon.atomic import atomic_write_text, require_writable
 from dynrecon.errors import InputError
 from labeling.skeleton import read_skeleton
 from reconstruct.outputs.export import (
@@ -268,6 +268,7 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
             raise InputError(given, "file not found")
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
+    options.register.check()
     if options.register.board is not None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
 
@@ -311,9 +312,20 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
 
 
 def _copy_into(source: Path, target: Path) -> None:
-    """Copy a user's file into the workspace unless it already is that file."""
-    if source.resolve() != target.resolve():
-        shutil.copyfile(source, target)
+    """Copy a user's file into the workspace unless it already is that file; a different file already there (the
+    labeling page's clicks) is kept beside it, with a warning, never overwritten."""
+    if source.resolve() == target.resolve():
+        return
+    if target.is_file() and target.read_bytes() != source.read_bytes():
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        kept = target.with_name(f"{target.stem}.before-{stamp}{target.suffix}")
+        n = 1
+        while kept.exists():
+            n += 1
+            kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
+        target.replace(kept)
+        log.warning("%s differed from %s: it is kept as %s", target, source, kept.name)
+    shutil.copyfile(source, target)
 
 
 def run(videos: Sequence[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> Path:
@@ -372,7 +384,7 @@ class Stages:
         self.options = options or PipelineOptions()
         self.videos = [Path(v) for v in videos]
         _check(self.videos, self.options)
-        self.ws = Path(workspace)
+        self.ws = require_writable(workspace)  # a file in the way is a one-line error, not a traceback
         self.ws.mkdir(parents=True, exist_ok=True)
         self.video_files = {f"video:{p.stem}": p for p in self.videos}
         self.state = State(self.ws)

@@ -125,11 +125,12 @@ def _run(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register, run_stages
     from sfm.register_cli import parse_scale
-    from tracking.options import TrackOptions
+    from tracking.options import MAX_WINDOW, TrackOptions
 
     scale = parse_scale(args.scale)
-    if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
-        raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
+    windows = (args.track_window, args.track_patch)
+    if not all(5 <= w <= MAX_WINDOW for w in windows) or args.max_frames < 2:
+        raise InputError(None, f"--track-window and --track-patch must be 5 to {MAX_WINDOW} px, --max-frames >= 2")
     register = dataclasses.replace(
         default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale, board=args.board
     )

@@ -51,6 +51,8 @@ def read_json(path: Path, *, missing_fix: str | None = None, fix: str | None = N
 
 def parse_frame(text: str, path: Path, where: str) -> int:
     """A frame number cell of a CSV file: an integer 0 <= frame < 2^31."""
+    if "_" in text:  # int() reads 1_000 as 1000: a typo, not a frame number
+        raise InputError(path, f"frame {shown(text)} is not an integer", where=where)
     try:
         frame = int(text)
     except ValueError:

@@ -26,6 +26,7 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
 from __future__ import annotations
 
 import logging
+import math
 import re
 import tomllib
 import xml.etree.ElementTree as ET
@@ -37,6 +38,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
 from dynrecon.readers import read_text, shown
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, write_cameras
@@ -88,14 +90,19 @@ class StaticCamera:
 # Readers
 
 
-def _attr(element: ET.Element, key: str, path: Path, where: str) -> float:
+def _attr(element: ET.Element, key: str, path: Path, where: str, default: float | None = None) -> float:
     value = element.get(key)
-    if value is None:
+    if value is None or (default is not None and not value.strip()):
+        if default is not None:
+            return default
         raise InputError(path, f'missing attribute "{key}"', where=where, fix="is this a Qualisys .qca file?")
     try:
-        return float(value)
+        number = float(value)
     except ValueError:
         raise InputError(path, f'attribute "{key}" = {value!r} is not a number', where=where) from None
+    if not math.isfinite(number):
+        raise InputError(path, f'attribute "{key}" = {value!r} is not a finite number', where=where)
+    return number
 
 
 def read_qca(path: str | Path) -> list[StaticCamera]:
@@ -107,6 +114,8 @@ def read_qca(path: str | Path) -> list[StaticCamera]:
         raise InputError(path, "file not found") from None
     except ET.ParseError as error:
         raise InputError(path, f"not valid XML: {error}") from None
+    except OSError as error:
+        raise InputError(path, f"not a readable file ({error.strerror or error})", fix="give the .qca file") from None
     cameras = []
     for index, element in enumerate(root.iter("camera")):
         name = element.get("serial") or f"camera{index + 1}"
@@ -133,7 +142,7 @@ def read_qca(path: str | Path) -> list[StaticCamera]:
         fy = _attr(intrinsic, "focalLengthV", path, where) / QCA_SUBPIXELS
         cx = _attr(intrinsic, "centerPointU", path, where) / QCA_SUBPIXELS - left
         cy = _attr(intrinsic, "centerPointV", path, where) / QCA_SUBPIXELS - top
-        skew = float(intrinsic.get("skew", "0") or 0) / QCA_SUBPIXELS
+        skew = _attr(intrinsic, "skew", path, where, default=0.0) / QCA_SUBPIXELS
         K = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         dist = np.array(
             [
@@ -347,11 +356,23 @@ def _normalized(name: str) -> str:
 
 
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:
-    """The camera for each video: by name (ignoring case, separators and leading zeros), else by order."""
+    """The camera for each video: by name (ignoring case, separators and leading zeros), else, when no name matches
+    at all, by order; some names matching and others not is an error (an order would give the matched cameras to
+    other videos)."""
     by_name = {_normalized(c.name): c for c in cameras}
     matched = [by_name.get(_normalized(v.name)) for v in videos]
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
+    if any(m is not None for m in matched):
+        unmatched = [v.name for v, m in zip(videos, matched, strict=True) if m is None]
+        taken = {id(m) for m in matched if m is not None}
+        left = [c.name for c in cameras if id(c) not in taken]
+        detail = f"videos {', '.join(unmatched)} match no camera name" if unmatched else "two videos match one camera"
+        raise InputError(
+            path,
+            f"{detail} (cameras left: {', '.join(left) or 'none'}), while other videos match by name",
+            fix="name each video after its camera (e.g. cam_1.mp4 for [cam_1]), or rename the cameras in the file",
+        )
     if len(cameras) == len(videos):
         log.warning(
             "%s: camera names %s do not match video names %s; matching them in the given order",
@@ -418,8 +439,15 @@ def run(
     """Write `out_dir/cameras.json`: every decoded frame of each video with its camera's static pose."""
     options = options or ImportCalibrationOptions()
     calibration = Path(calibration)
+    if not (math.isfinite(options.scale) and 1e-6 <= options.scale <= 1e6):
+        raise InputError(
+            None,
+            f"--scale {options.scale:g}: the world's scale factor must be a positive number (1e-6 to 1e6)",
+            fix="leave --scale out for the file's metres, or give e.g. --scale 1000 for millimetres",
+        )
     if not videos:
         raise InputError(calibration, "no videos given", fix="list the videos the calibration belongs to")
+    require_writable(out_dir)
     infos = [probe_video(v) for v in tqdm(videos, desc="probing videos", unit="video", leave=False)]
     names = [info.name for info in infos]
     duplicates = sorted({n for n in names if names.count(n) > 1})

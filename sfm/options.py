@@ -6,10 +6,34 @@ Cheap to import on purpose: the CLI builds its parser from these defaults withou
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from dynrecon.errors import InputError
+
 ALL_CORES = -1  # COLMAP's num_threads for one thread per core
+# pycolmap's CameraModelId names (without INVALID), kept here so that the options stay cheap to import
+CAMERA_MODELS = (
+    "SIMPLE_PINHOLE",
+    "PINHOLE",
+    "SIMPLE_RADIAL",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL",
+    "RADIAL_FISHEYE",
+    "OPENCV",
+    "OPENCV_FISHEYE",
+    "FULL_OPENCV",
+    "FOV",
+    "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE",
+    "SIMPLE_DIVISION",
+    "DIVISION",
+    "SIMPLE_FISHEYE",
+    "FISHEYE",
+    "EUCM",
+    "EQUIRECTANGULAR",
+)
 
 
 class Mapper(enum.Enum):
@@ -99,6 +123,49 @@ class RegisterOptions:
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
     init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
     num_threads: int = ALL_CORES
+
+    def check(self) -> None:
+        """A one-line InputError naming the first flag whose value no registration can use (before any work)."""
+        counts = {
+            "--max-frames": (self.max_frames, 2),
+            "--long-side": (self.long_side, 64),
+            "--max-features": (self.max_features, 100),
+            "--background-features": (self.background_features, 100),
+            "--init-min-inliers": (self.init_min_inliers, 8),
+            "--min-inliers": (self.min_inliers, 4),
+            "--keyframes": (self.keyframes, 1),
+            "--step": (self.step, 0),
+            "--overlap": (self.sequential_overlap, 0),
+            "--cross-partners": (self.cross_partners, 0),
+        }
+        for flag, (value, least) in counts.items():
+            if not least <= value <= 10**7:
+                raise InputError(
+                    None, f"{flag} {value}: must be a whole number from {least}", fix=f"give {flag} >= {least}"
+                )
+        ranges = {
+            "--keyframe-motion": (self.keyframe_motion, 0.0, 1.0),
+            "--keyframe-survival": (self.keyframe_survival, 0.0, 1.0),
+            "--max-ratio": (self.max_ratio, 0.0, 1.0),
+            "--mask-radius": (self.mask_radius, 0.0, 1e5),
+        }
+        for flag, (number, low, high) in ranges.items():
+            if not (math.isfinite(number) and low < number <= high):
+                raise InputError(
+                    None,
+                    f"{flag} {number}: must be above {low:g} and at most {high:g}",
+                    fix=f"give {flag} in that range",
+                )
+        if self.time_step is not None and not (math.isfinite(self.time_step) and self.time_step > 0):
+            raise InputError(
+                None, f"--time-step {self.time_step}: must be a positive number of seconds", fix="e.g. --time-step 0.5"
+            )
+        if self.camera_model not in CAMERA_MODELS:
+            raise InputError(
+                None,
+                f"--camera-model {self.camera_model!r} is not a COLMAP camera model",
+                fix=f"one of {', '.join(CAMERA_MODELS)}",
+            )
 
 
 class CalibrationFormat(enum.Enum):

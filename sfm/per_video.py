@@ -20,7 +20,7 @@ import shutil
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -281,12 +281,20 @@ class CaptureFacts:
 
     wide_baseline: bool  # any static video: one descriptor kind (DSP-SIFT with affine shapes) for all images
     masked: bool  # any mask written: extraction reads masks/
+    # `--intrinsics` per video name, matched against the whole capture (a file's cameras in order need all videos)
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]] = field(default_factory=dict)
 
 
-def capture_facts(out: Path, videos: list[str]) -> CaptureFacts:
+def capture_facts(out: Path, videos: list[str], options: RegisterOptions | None = None) -> CaptureFacts:
     layout = Layout(out)
     prepared = [read_prepared(layout.plan(v)) for v in videos]
-    return CaptureFacts(wide_baseline=any(p.plan.static for p in prepared), masked=sum(p.masks for p in prepared) > 0)
+    given = options.intrinsics if options is not None else None
+    intrinsics = known_intrinsics(given, [p.plan.info for p in prepared]) if given else {}
+    return CaptureFacts(
+        wide_baseline=any(p.plan.static for p in prepared),
+        masked=sum(p.masks for p in prepared) > 0,
+        intrinsics=intrinsics,
+    )
 
 
 @dataclass(kw_only=True)
@@ -306,10 +314,9 @@ def plan_extraction(out: Path, video: str, options: RegisterOptions, facts: Capt
     layout = Layout(out)
     prepared = read_prepared(layout.plan(video))
     plan = prepared.plan
-    intrinsics = known_intrinsics(options.intrinsics, [plan.info]) if options.intrinsics else {}
     model, params = options.camera_model, ""
-    if video in intrinsics:
-        K, dist = intrinsics[video]
+    if video in facts.intrinsics:
+        K, dist = facts.intrinsics[video]
         model, values = colmap_params(K, dist, plan.resize)
         params = ",".join(repr(float(v)) for v in values)
     args = {

@@ -24,6 +24,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError, InputError
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
@@ -64,6 +65,9 @@ class RegistrationError(DynreconError):
     """SfM could not put at least two videos into one model."""
 
 
+MIN_SCALE_M, MAX_SCALE_M = 1e-6, 1e6  # --scale distances outside this are a typo, not a subject
+
+
 def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOptions | None = None) -> Path:
     """Register `videos` into one world frame; returns the path of the written `cameras.json`.
 
@@ -71,6 +75,7 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     functions as parallel tasks."""
     options = options or RegisterOptions()
     paths = [Path(v) for v in videos]
+    options.check()
     _check_videos(paths)
     if options.board is not None:
         read_charuco_board(options.board)  # a bad board file fails before any work
@@ -79,17 +84,42 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     unreadable: dict[str, str] = {}
     with collected(notes), timed(notes, "probe"):
         infos = _probe_all(paths, unreadable)
-    clear_outputs(out)
     with collected(notes), timed(notes, "motion_test"):
         tracks = capture_tracks(options, out)
+    check_inputs(options, infos, tracks)
+    require_writable(out)
+    clear_outputs(out)  # only once the inputs are known good: a typo never costs the last run's results
     names = [info.name for info in infos]
     for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
         prepare_video(info, out, options, tracks)
-    extract_videos(out, names, options, capture_facts(out, names), runner=run_isolated)
+    extract_videos(out, names, options, capture_facts(out, names, options), runner=run_isolated)
     map_capture(out, names, options)
     for name in names:
         localize_video(out, name, options)
     return finish_capture(out, names, options, tracks, notes=notes, unreadable=unreadable)
+
+
+def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tracks | None) -> None:
+    """The inputs registration reads late (`--intrinsics`, `--scale`), checked before any work or any removal."""
+    if options.intrinsics is not None:
+        known_intrinsics(options.intrinsics, infos)
+    if options.scale is not None:
+        a, b, metres = options.scale
+        fix = "give two different tracked points and their distance in metres, e.g. --scale l_knee,l_ankle,0.42"
+        if a == b or not MIN_SCALE_M <= metres <= MAX_SCALE_M:
+            raise InputError(
+                None,
+                f"--scale {a},{b},{metres:g}: needs two different points {MIN_SCALE_M:g} to {MAX_SCALE_M:g} m apart",
+                fix=fix,
+            )
+        if tracks is not None:
+            points = set(tracks.point)
+            missing = [p for p in (a, b) if p not in points]
+            if missing:
+                shown = ", ".join(sorted(points)[:10])
+                raise InputError(
+                    tracks.path, f"--scale point(s) {', '.join(missing)} not in the tracks (points: {shown})", fix=fix
+                )
 
 
 def _probe_all(paths: list[Path], unreadable: dict[str, str]) -> list[ProbedVideo]:

@@ -61,6 +61,12 @@ class CharucoBoard:
         return board
 
 
+# Limits of a real board: a typo beyond them made OpenCV allocate gigabytes or fail inside its constructor.
+MAX_SQUARES = 100
+MIN_SQUARE_M, MAX_SQUARE_M = 1e-4, 10.0
+MIN_ARUCO_SCALE = 0.05
+
+
 def _dictionary_id(name: str, path: Path | None) -> int:
     value = getattr(cv2.aruco, name.upper(), None) if name.upper().startswith("DICT_") else None
     if not isinstance(value, int):
@@ -98,8 +104,10 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
         return float(value)
 
     columns, rows = number("columns"), number("rows")
-    if columns != int(columns) or rows != int(rows) or columns < 2 or rows < 2:
-        raise InputError(path, f"columns, rows = {columns:g}, {rows:g} must be integers >= 2", where=where)
+    if columns != int(columns) or rows != int(rows) or not (2 <= columns <= MAX_SQUARES and 2 <= rows <= MAX_SQUARES):
+        raise InputError(
+            path, f"columns, rows = {columns:g}, {rows:g} must be integers from 2 to {MAX_SQUARES}", where=where
+        )
     # caliscope spelled the key square_size_overide_cm in its code for a while: accept both.
     override = table.get("square_size_override_cm", table.get("square_size_overide_cm"))
     if override:
@@ -108,21 +116,49 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             / 100.0
         )
     else:
-        per_cm = CM_PER_INCH if str(table.get("units", "inch")).lower() in ("inch", "in") else 1.0
+        units = str(table.get("units", "inch")).lower()
+        if units not in ("inch", "in", "cm"):
+            raise InputError(path, f"units = {units!r} must be inch or cm", where=where)
+        per_cm = CM_PER_INCH if units in ("inch", "in") else 1.0
         square = min(number("board_height") / rows, number("board_width") / columns) * per_cm / 100.0
+    if not MIN_SQUARE_M <= square <= MAX_SQUARE_M:
+        raise InputError(
+            path,
+            f"a square of {square:g} m: not a printable board ({MIN_SQUARE_M:g} to {MAX_SQUARE_M:g} m)",
+            where=where,
+            fix="give the square's edge in cm (square_size_override_cm) or the board's size (board_width, height)",
+        )
     aruco_scale = number("aruco_scale", 0.75)
-    if aruco_scale >= 1:
-        raise InputError(path, f"aruco_scale = {aruco_scale} must be below 1 (marker / square edge)", where=where)
+    if not MIN_ARUCO_SCALE <= aruco_scale < 1:
+        raise InputError(
+            path,
+            f"aruco_scale = {aruco_scale:g} must be from {MIN_ARUCO_SCALE} to below 1 (marker / square edge)",
+            where=where,
+        )
     dictionary = str(table.get("dictionary", "DICT_4X4_50"))
-    _dictionary_id(dictionary, path)
+    markers = cv2.aruco.getPredefinedDictionary(_dictionary_id(dictionary, path)).bytesList.shape[0]
+    needed = int(columns) * int(rows) // 2
+    if needed > markers:
+        raise InputError(
+            path,
+            f"a {int(columns)} x {int(rows)} board needs {needed} markers; {dictionary} has {markers}",
+            where=where,
+            fix="give the dictionary the board was printed with",
+        )
+    flags = {}
+    for key in ("inverted", "legacy_pattern"):
+        value = table.get(key, False)
+        if not isinstance(value, bool):
+            raise InputError(path, f"{key} = {value!r} must be true or false", where=where)
+        flags[key] = value
     return CharucoBoard(
         columns=int(columns),
         rows=int(rows),
         square_size=square,
         marker_size=square * aruco_scale,
         dictionary=dictionary,
-        inverted=bool(table.get("inverted", False)),
-        legacy_pattern=bool(table.get("legacy_pattern", False)),
+        inverted=flags["inverted"],
+        legacy_pattern=flags["legacy_pattern"],
     )
 
 
@@ -195,6 +231,15 @@ def charuco_tracks(
     for name, path, (frame, _, _, count) in zip(names, paths, results, strict=True):
         video += [name] * len(frame)
         log.info("%s: board corners in %d of %d frames (%d corners)", path, len(np.unique(frame)), count, len(frame))
+        if not len(frame):
+            log.warning("%s: the board was found in none of its %d frames", path, count)
+    if results and not any(len(r[0]) for r in results):
+        raise InputError(
+            paths[0],
+            f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found with {min_corners} or more "
+            "corners in no frame of any video",
+            fix="check the board file against the printed board (dictionary, columns and rows, inverted)",
+        )
     frame = np.concatenate([r[0] for r in results]) if results else np.zeros(0, dtype=np.int64)
     ids = np.concatenate([r[1] for r in results]) if results else np.zeros(0, dtype=np.int64)
     xy = np.concatenate([r[2] for r in results]) if results else np.zeros((0, 2))

@@ -70,15 +70,15 @@ def _add_track(subparsers: argparse._SubParsersAction) -> None:
 
 def _run_track(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
-    from tracking.options import Blend, Method, TrackOptions
+    from tracking.options import MAX_WINDOW, Blend, Method, TrackOptions
     from tracking.stage import run
 
     if not args.workspace.is_dir():
         raise InputError(args.workspace, "workspace folder not found", fix="give the folder with labels.csv")
     if not 0.0 <= args.min_score <= 1.0:
         raise InputError(None, f"--min-score {args.min_score} is outside 0..1")
-    if args.fb_threshold <= 0 or args.win_size < 5:
-        raise InputError(None, "--fb-threshold must be > 0 and --win-size at least 5")
+    if not args.fb_threshold > 0 or not 5 <= args.win_size <= MAX_WINDOW:
+        raise InputError(None, f"--fb-threshold must be > 0 and --win-size from 5 to {MAX_WINDOW}")
     options = TrackOptions(
         method=Method(args.method),
         blend=Blend(args.blend),

@@ -8,6 +8,7 @@ BODY_25 (25 triplets) or COCO (18 triplets); other counts are named `kp0`, `kp1`
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -122,6 +123,12 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
         names = keypoint_names(len(flat) // 3)
         for k, name in enumerate(names):
             x, y, c = (float(v) for v in flat[3 * k : 3 * k + 3])
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(c)):
+                raise InputError(
+                    file,
+                    f"people[{person}] keypoint {k} ({name}) is x, y, c = {x:g}, {y:g}, {c:g}: not finite",
+                    fix="OpenPose writes finite numbers (0, 0, 0 where it found nothing); re-export the JSON",
+                )
             if c <= 0.0:
                 continue
             detections.append(Detection(video=video, frame=frame, point=name, x=x, y=y, score=c, where=file.name))

@@ -156,7 +156,8 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         kept = 0
         for d in detections:
             point = options.mapping.get(d.point, None if options.drop_unmapped and options.mapping else d.point)
-            if point is None or (d.score is not None and d.score < options.min_score):
+            # a NaN score is no confidence: left out whenever a minimum is asked for
+            if point is None or (d.score is not None and options.min_score > 0 and not d.score >= options.min_score):
                 continue
             key = (d.video, d.frame, point)
             if key in rows:

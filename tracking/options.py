@@ -23,6 +23,9 @@ class Blend(enum.Enum):
     FORWARD = "forward"  # forward only (backward only before a point's first label); the baseline
 
 
+MAX_WINDOW = 401  # pixels: beyond a window of a whole frame's side, only memory is spent
+
+
 @dataclass(kw_only=True)
 class TrackOptions:
     """What the CLI, the pipeline and the benchmarks vary; the fixed constants are in `tracking.propagate` and
@@ -45,5 +48,5 @@ class TrackOptions:
             raise ValueError(f"min_score {self.min_score} must be in [0, 1]")
         if self.fb_threshold <= 0.0:
             raise ValueError("fb_threshold must be positive")
-        if self.win_size < 5 or self.patch < 5:
-            raise ValueError("win_size and patch must be >= 5")
+        if not (5 <= self.win_size <= MAX_WINDOW and 5 <= self.patch <= MAX_WINDOW):
+            raise ValueError(f"win_size and patch must be from 5 to {MAX_WINDOW}")

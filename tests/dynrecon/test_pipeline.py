@@ -376,7 +376,7 @@ def test_the_register_hash_covers_the_calibration_contents(calibrated: Path, tmp
         ("folder", "is not a file: a calibration file was expected"),
         ("garbage", "lab.toml"),
         ("unknown format", "pass --calibration-format qca or toml"),
-        ("other cameras", "cannot be matched to 3 videos"),
+        ("other cameras", "match no camera name"),
         ("with intrinsics", "--intrinsics, --scale and --board (registration options) do not apply"),
         ("with a board", "--intrinsics, --scale and --board (registration options) do not apply"),
     ],

@@ -16,6 +16,7 @@ import pytest
 from synthetic_motion import simulated_phones
 
 from dynrecon import pipeline
+from dynrecon.errors import DynreconError
 from sfm.export import write_ply
 from sfm.stage import RegisterOptions, RegistrationError
 
@@ -127,3 +128,28 @@ def test_the_board_goes_to_the_subject_stage_and_an_edited_board_reruns_it(
     edited = pipeline.run_stages(videos, ws, options)
     assert [c.board for c in calls] == [None, board]
     assert "subject" in [s.name for s in edited.stages if not s.skipped]
+
+
+def test_given_labels_never_overwrite_the_clicks_in_the_workspace(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """WS/labels.csv holds the labeling page's clicks; `run --labels OTHER.csv` keeps them beside the copy."""
+
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        raise RegistrationError("only 0 of 3 videos registered (none)")
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    clicks = "video,frame,point,x,y,source\ncam0,99,knee,10,10,label\n"
+    (ws / "labels.csv").write_text(clicks)
+    other = tmp_path / "other.csv"
+    other.write_text("video,frame,point,x,y,source\ncam0,1,knee,12,10,label\n")
+    videos = [tmp_path / f"cam{i}.mp4" for i in range(3)]
+    for video in videos:
+        video.write_bytes(b"x")
+    with pytest.raises(DynreconError):  # the stand-in videos cannot be tracked; the labels were copied before
+        pipeline.run_stages(videos, ws, pipeline.PipelineOptions(labels=other))
+    kept = list(ws.glob("labels.before-*.csv"))
+    assert (ws / "labels.csv").read_text() == other.read_text()
+    assert len(kept) == 1 and kept[0].read_text() == clicks

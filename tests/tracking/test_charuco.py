@@ -88,7 +88,8 @@ def test_rendered_board(tmp_path: Path) -> None:
         expected = cv2.perspectiveTransform(board_px[:, None], H).reshape(-1, 2)
         error = tracks.xy[rows] - expected
         assert np.abs(error.mean(axis=0)).max() < 0.1 and np.abs(error).max() < 0.5, error
-    assert len(charuco_tracks([path], BOARD, min_corners=13)) == 0
+    with pytest.raises(InputError, match="found with 13 or more corners in no frame"):
+        charuco_tracks([path], BOARD, min_corners=13)  # every frame shows 12
     with pytest.raises(InputError, match="video file not found"):
         charuco_tracks([tmp_path / "missing.mp4"], BOARD)
 
