@@ -171,6 +171,8 @@ def _orthonormalize(R: np.ndarray) -> np.ndarray:
 def _toml_array(section: dict, key: str, shape: tuple[int, ...], path: Path, where: str) -> np.ndarray:
     if key not in section:
         raise InputError(path, f'missing key "{key}"', where=where, fix="see the Pose2Sim/anipose calib.toml layout")
+    if _has_bool(section[key]):  # float(True) is 1.0: a typo would become a focal length of one pixel
+        raise InputError(path, f'"{key}" must be numbers, not true/false', where=where)
     try:
         value = np.asarray(section[key], dtype=float)
     except (TypeError, ValueError):
@@ -182,9 +184,22 @@ def _toml_array(section: dict, key: str, shape: tuple[int, ...], path: Path, whe
     return value
 
 
+def _has_bool(value: object) -> bool:
+    return isinstance(value, bool) or (isinstance(value, list) and any(_has_bool(v) for v in value))
+
+
+def _toml_flag(section: dict, key: str, path: Path, where: str) -> bool:
+    value = section.get(key, False)
+    if not isinstance(value, bool):
+        raise InputError(path, f"{key} = {value!r} must be true or false", where=where)
+    return value
+
+
 def _toml_rotation(section: dict, path: Path, where: str) -> np.ndarray:
     """`rotation` as a Rodrigues 3-vector or a 3x3 matrix (nested or 9 flat numbers), checked and orthonormalized."""
     try:
+        if _has_bool(section["rotation"]):
+            raise ValueError("true/false")
         value = np.asarray(section["rotation"], dtype=float)
     except (TypeError, ValueError):
         raise InputError(path, '"rotation" must be numbers', where=where) from None
@@ -245,14 +260,14 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
         log.info("%s: translations read in millimetres", path)
     cameras = []
     for where, section, cam_id in _toml_sections(data):
-        if section.get("ignore", False) is True:
+        if _toml_flag(section, "ignore", path, where):
             log.info("%s: %s has ignore = true; skipped", path, where)
             continue
         if "matrix" not in section:
             log.warning("%s: %s has no intrinsics (`matrix`); skipped", path, where)
             continue
         name = str(section["name"]) if "name" in section else f"cam_{cam_id}" if cam_id is not None else where[1:-1]
-        if section.get("fisheye", False):
+        if _toml_flag(section, "fisheye", path, where):
             raise InputError(
                 path,
                 "fisheye cameras are not supported (cameras.json holds OpenCV pinhole distortion)",

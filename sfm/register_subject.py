@@ -74,11 +74,15 @@ def pose_from_subject(
         intrinsics, scale, board = _with_board(tracks, static, intrinsics, anchored, options, warnings)
     inputs, anchors = _subject_videos(static, set(tracks.video_names()), results, intrinsics, anchors_allowed)
     if len(inputs) < 2:
-        return {
-            "used": False,
-            "why": f"tracks cover only {len(inputs)} static video(s); the subject path needs 2",
-            "board": board,
-        }
+        why = f"tracks cover only {len(inputs)} static video(s); the subject path needs 2"
+        tracked, static_names = sorted(tracks.video_names()), sorted(v.info.name for v in static)
+        if not set(tracked) & set(static_names):
+            why += (
+                f" (the tracks' videos {', '.join(tracked[:6])} are none of the static videos "
+                f"{', '.join(static_names[:6])})"
+            )
+        warnings.append(f"subject path: {why}")
+        return {"used": False, "why": why, "board": board}
     names = {v.name for v in inputs}
     if len(anchors) == 1:
         # one anchor fixes the subject path's frame, not its scale: its cameras would not match the background's others

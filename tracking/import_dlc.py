@@ -17,6 +17,7 @@ from tracking.detections import Detection
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+_NUMBER = re.compile(r"[+-]?[\d.eE+-]+")
 
 
 def video_name_from_dlc(path: Path) -> str:
@@ -93,7 +94,7 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
 
 def _frame_of(path: Path, number: int, index_cells: list[str]) -> int:
     text = " ".join(c.strip() for c in index_cells if c.strip())
-    if text.isdigit():
+    if _NUMBER.fullmatch(text):  # an index, not an image name: -7 or 2.0 are refused, not read as 7 or 0
         return parse_frame(text, path, f"line {number}")
     match = _LAST_NUMBER.search(text)
     if match is None:

@@ -113,6 +113,8 @@ def _read_regular(path: Path) -> Tracks | None:
     points = list(map(str.strip, columns[index["point"]]))
     if not all(videos) or not all(points):
         return None
+    if any("_" in text for text in columns[index["frame"]]):
+        return None  # int() reads 1_000 as 1000: the checked reader says which line
     try:
         frame_numbers = list(map(int, columns[index["frame"]]))
         frames = np.array(frame_numbers, dtype=np.int64)

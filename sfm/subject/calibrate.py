@@ -164,7 +164,7 @@ def _check_scale_points(points: list[str], options: SubjectOptions) -> None:
         if missing:
             raise SubjectCalibrationError(
                 f"scale point(s) {', '.join(missing)} are not in the tracks (points: "
-                f"{', '.join(points[:10])}); fix options.scale"
+                f"{', '.join(points[:10])}); fix --scale (options.scale)"
             )
 
 

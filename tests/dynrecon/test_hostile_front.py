@@ -179,3 +179,45 @@ def test_tracks_out_is_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[st
     tracks.write_text("video,frame,point,x,y\ncam_0,0,knee,10,10\n")
     status = main(["-q", "import-tracks", str(tracks), "--out", str(tmp_path)])
     _one_line_error(capsys, status, "is a folder")
+
+
+DLC = """scorer,S,S,S
+bodyparts,nose,nose,nose
+coords,x,y,likelihood
+{index},10.5,20.25,0.99
+"""
+
+
+@pytest.mark.parametrize(("index", "words"), [("-7", ["-7 is negative"]), ("1.0", ["'1.0' is not an integer"])])
+def test_dlc_indexes_that_are_not_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], index: str, words: list[str]
+) -> None:
+    path = tmp_path / "cam_0DLC_resnet50.csv"
+    path.write_text(DLC.format(index=index))
+    status = main(["-q", "import-tracks", str(path), "--video", "cam_0", "--out", str(tmp_path / "t.csv")])
+    _one_line_error(capsys, status, "line 4", *words)
+
+
+def test_plain_csv_frame_with_an_underscore(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "in.csv"
+    path.write_text("video,frame,point,x,y\ncam_0,1_000,knee,10,10\n")
+    status = main(["-q", "import-tracks", str(path), "--out", str(tmp_path / "t.csv")])
+    _one_line_error(capsys, status, "'1_000' is not an integer")
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (("matrix = [ [ 300.0,", "matrix = [ [ true,"), ['"matrix" must be numbers, not true/false']),
+        (("fisheye = false", 'fisheye = "false"'), ["fisheye = 'false' must be true or false"]),
+    ],
+)
+def test_calibration_toml_with_true_false_where_numbers_or_flags_belong(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], change: tuple[str, str], words: list[str]
+) -> None:
+    calibration = _calibration(tmp_path / "calib.toml", ["cam_0", "cam_1"])
+    text = calibration.read_text()
+    assert change[0] in text, text
+    calibration.write_text(text.replace(change[0], change[1], 1))
+    args = ["-q", "import-calibration", str(calibration), *_videos(tmp_path), "--out", str(tmp_path / "ws")]
+    _one_line_error(capsys, main(args), "calib.toml", *words)
