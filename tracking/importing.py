@@ -174,18 +174,24 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         log.info("%s: %d of %d detections imported", path, kept, len(detections))
         if detections and not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
+    kept_extra: dict[str, dict[tuple[str, int, str], str]] = {}  # the user's own columns of the rows kept
     if out.is_file():
         old = read_tracks(out)
         sources = old.extra.get("source", [""] * len(old))
         scores = old.extra.get("score", [""] * len(old))
+        others = {name: values for name, values in old.extra.items() if name not in ("source", "score")}
+        kept_extra = {name: {} for name in others}
         for i in range(len(old)):
             key = (old.video[i], int(old.frame[i]), old.point[i])
             if sources[i] == SOURCE_LABEL or old.video[i] not in imported_videos:
                 rows[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i])
+                for name, values in others.items():
+                    kept_extra[name][key] = values[i]
     keys = list(rows)
     tracks = Tracks.from_rows(
         [(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],
         source=[rows[k][2] for k in keys],
         score=[rows[k][3] for k in keys],
+        **{name: [column.get(k, "") for k in keys] for name, column in kept_extra.items()},
     )
     return write_tracks(out, tracks)

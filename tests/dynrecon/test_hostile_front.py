@@ -221,3 +221,19 @@ def test_calibration_toml_with_true_false_where_numbers_or_flags_belong(
     calibration.write_text(text.replace(change[0], change[1], 1))
     args = ["-q", "import-calibration", str(calibration), *_videos(tmp_path), "--out", str(tmp_path / "ws")]
     _one_line_error(capsys, main(args), "calib.toml", *words)
+
+
+def test_import_keeps_the_users_own_columns_of_the_rows_it_keeps(tmp_path: Path) -> None:
+    out = tmp_path / "tracks.csv"
+    out.write_text("video,frame,point,x,y,source,note\ncam_1,0,knee,5,5,label,checked by hand\n")
+    new = tmp_path / "new.csv"
+    new.write_text("video,frame,point,x,y\ncam_0,0,knee,10,10\n")
+    assert main(["-q", "import-tracks", str(new), "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].endswith(",note") and any(line.endswith(",checked by hand") for line in lines[1:])
+
+
+def test_run_refuses_unknown_export_units_before_any_stage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status = main(["-q", "run", *_videos(tmp_path), "--out", str(tmp_path / "ws"), "--units", "furlong"])
+    _one_line_error(capsys, status, "--units 'furlong'")
+    assert not (tmp_path / "ws" / "register").exists()
