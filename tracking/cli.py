@@ -137,6 +137,12 @@ def _run_import(args: argparse.Namespace) -> int:
 
     if args.person < 0:
         raise InputError(None, f"--person {args.person} is negative")
+    if args.video is not None and len(args.inputs) > 1:
+        raise InputError(
+            args.inputs[1],
+            f"--video {args.video} names one video, but {len(args.inputs)} inputs were given",
+            fix="import each video's file with its own --video, or leave --video out (names from the file names)",
+        )
     options = ImportOptions(
         format=Format(args.format),
         video=args.video,

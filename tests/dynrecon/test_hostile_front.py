@@ -237,3 +237,13 @@ def test_run_refuses_unknown_export_units_before_any_stage(tmp_path: Path, capsy
     status = main(["-q", "run", *_videos(tmp_path), "--out", str(tmp_path / "ws"), "--units", "furlong"])
     _one_line_error(capsys, status, "--units 'furlong'")
     assert not (tmp_path / "ws" / "register").exists()
+
+
+def test_one_video_name_for_several_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    first, second = tmp_path / "a.csv", tmp_path / "b.csv"
+    for path in (first, second):
+        path.write_text(DLC.format(index="0"))
+    status = main(
+        ["-q", "import-tracks", str(first), str(second), "--video", "cam_0", "--out", str(tmp_path / "t.csv")]
+    )
+    _one_line_error(capsys, status, "b.csv", "--video cam_0 names one video")
