@@ -84,23 +84,29 @@ def pose_from_subject(
         warnings.append(f"subject path: {why}")
         return {"used": False, "why": why, "board": board}
     names = {v.name for v in inputs}
-    if len(anchors) == 1:
-        # one anchor fixes the subject path's frame, not its scale: its cameras would not match the background's others
-        others = sorted(n for n, frames in results.items() if n not in names and _posed(frames) is not None)
-        if others:
+    others = sorted(n for n, frames in results.items() if n not in names and _posed(frames) is not None)
+    if len(anchors) < 2 and others:
+        # the subject path's cameras get the background's frame and scale from two anchors; with fewer they would not
+        # match the background's other cameras (a silently inconsistent world)
+        if anchors:
             why = (
                 f"one static video the background posed ({anchors[0]}) fixes the subject path's frame but not its "
                 f"scale against the background's other cameras ({', '.join(others)})"
             )
-            warnings.append(
-                f"subject path: {why}; track the subject in a second static video the background posed, or register "
-                "the static videos without the others"
+        else:
+            why = (
+                "no tracked static video was posed by the background: the subject path's cameras would have another "
+                f"frame and scale than the background's ({', '.join(others)})"
             )
-            for video in unposed:
-                results[video.info.name] = {
-                    f: FramePose(pose=None, reason=f"subject path: {why}") for f in results[video.info.name]
-                }
-            return {"used": False, "why": why, "anchors": anchors, "board": board}
+        warnings.append(
+            f"subject path: {why}; track the subject in two static videos the background posed, or register the "
+            "static videos without the others"
+        )
+        for video in unposed:
+            results[video.info.name] = {
+                f: FramePose(pose=None, reason=f"subject path: {why}") for f in results[video.info.name]
+            }
+        return {"used": False, "why": why, "anchors": anchors, "board": board}
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=scale)
     try:

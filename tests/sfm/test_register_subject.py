@@ -56,4 +56,23 @@ def test_one_anchor_among_other_background_cameras_is_refused(tmp_path: Path) ->
     assert "not its scale" in section["why"] and "(hand)" in section["why"]
     assert all(r.pose is None and "not its scale" in r.reason for r in results["free"].values())
     assert results["anchor"][0].pose is not None and results["hand"][0].pose is not None
-    assert len(warnings) == 1 and "second static video" in warnings[0]
+    assert len(warnings) == 1 and "two static videos the background posed" in warnings[0]
+
+
+def test_no_anchor_beside_background_cameras_is_refused(tmp_path: Path) -> None:
+    """The background posed only a handheld video: the subject path's static cameras would be in a frame of their
+    own, beside it."""
+    plans = [_plan(tmp_path, "left", True), _plan(tmp_path, "right", True), _plan(tmp_path, "hand", False)]
+    unposed = {f: FramePose(pose=None, reason="not in the background model") for f in range(30)}
+    results = {
+        "left": dict(unposed),
+        "right": dict(unposed),
+        "hand": dict.fromkeys(range(30), FramePose(pose=pycolmap.Rigid3d(), source="sfm")),
+    }
+    warnings: list[str] = []
+
+    section = pose_from_subject(plans, results, _tracks(["left", "right"]), {}, RegisterOptions(), warnings)
+
+    assert section is not None and not section["used"] and section["anchors"] == []
+    assert "another frame and scale" in section["why"] and "(hand)" in section["why"]
+    assert all(r.pose is None for name in ("left", "right") for r in results[name].values())
