@@ -68,6 +68,7 @@ from sfm.stage import Localize, RegisterOptions, RegistrationError
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
 from tracking.charuco import read_charuco_board
+from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
 from tracking.tracks import read_tracks
@@ -267,6 +268,12 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     for given in (options.labels, options.tracks, options.skeleton):
         if given is not None and not given.is_file():
             raise InputError(given, "file not found")
+    # the user's own file is named in its errors, not the copy in WS that the stages read
+    names = {video.stem for video in videos}
+    if options.tracks is not None:
+        _check_video_names(options.tracks, read_tracks(options.tracks).video_names(), names)
+    if options.labels is not None:
+        _check_video_names(options.labels, list(dict.fromkeys(key[0] for key in read_labels(options.labels))), names)
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()
@@ -274,6 +281,16 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         raise InputError(None, f"--units {options.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
     if options.register.board is not None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
+
+
+def _check_video_names(path: Path, used: list[str], videos: set[str]) -> None:
+    unknown = [name for name in used if name not in videos]
+    if unknown:
+        raise InputError(
+            path,
+            f"video(s) {', '.join(unknown[:5])} are not among the videos given ({', '.join(sorted(videos)[:8])})",
+            fix="name the rows after the video files (file name without extension), or give those videos",
+        )
 
 
 def _option_files(register: RegisterOptions) -> dict[str, Path]:

@@ -247,3 +247,12 @@ def test_one_video_name_for_several_inputs(tmp_path: Path, capsys: pytest.Captur
         ["-q", "import-tracks", str(first), str(second), "--video", "cam_0", "--out", str(tmp_path / "t.csv")]
     )
     _one_line_error(capsys, status, "b.csv", "--video cam_0 names one video")
+
+
+def test_run_names_the_users_tracks_file_when_its_videos_are_not_given(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    tracks = tmp_path / "mine.csv"
+    tracks.write_text("video,frame,point,x,y\nleft,0,knee,10,10\n")
+    status = main(["-q", "run", *_videos(tmp_path), "--out", str(tmp_path / "ws"), "--tracks", str(tracks)])
+    _one_line_error(capsys, status, "mine.csv", "left are not among the videos given", "cam_0")
