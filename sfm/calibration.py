@@ -405,6 +405,7 @@ def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: 
 
 
 SAME_ASPECT = 0.002  # width and height scale alike within this fraction: the video is the calibrated image resized
+_SIZE_WARNINGS: set[tuple[str, str, int, int]] = set()
 
 
 def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: ProbedVideo, name: str) -> np.ndarray:
@@ -432,6 +433,10 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
             sx,
         )
         return K
+    said = (str(video.path), name, width, height)
+    if said in _SIZE_WARNINGS:  # registration reads the intrinsics in several steps: one warning per video
+        return K
+    _SIZE_WARNINGS.add(said)
     log.warning(
         "%s is %dx%d but camera %r was calibrated at %dx%d (another aspect ratio: a crop, a padding or a rotation); "
         "its intrinsics are used unchanged, so check that the video is the calibrated camera's full image",
