@@ -66,11 +66,10 @@ def _batch(args: argparse.Namespace) -> int:
     from batch.graph import BatchOptions, run_batch
     from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register
-    from dynrecon.pipeline_cli import calibration_options
+    from dynrecon.pipeline_cli import calibration_options, check_track_flags
     from tracking.options import TrackOptions
 
-    if args.track_window < 5 or args.track_patch < 5 or args.max_frames < 2:
-        raise InputError(None, "--track-window and --track-patch must be >= 5 px, --max-frames >= 2")
+    check_track_flags(args)
     if (args.workers is not None and args.workers < 1) or args.retries < 0:
         raise InputError(None, "--workers must be >= 1 and --retries >= 0")
     if args.calibration is not None and not args.calibration.is_file():  # else every capture fails alike

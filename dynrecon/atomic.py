@@ -26,9 +26,8 @@ def atomic_open(path: str | Path, mode: str = "w", *, newline: str | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
-        raise InputError(
-            path.parent, "is a file: a folder was expected here", fix="give a path inside a folder"
-        ) from None
+        blocking = next((p for p in reversed(path.parents) if p.is_file()), path.parent)
+        raise InputError(blocking, "is a file: a folder was expected here", fix="give a path inside a folder") from None
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = Path(tmp_name)
     try:

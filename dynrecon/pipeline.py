@@ -270,10 +270,23 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
             raise InputError(given, "file not found")
     # the user's own file is named in its errors, not the copy in WS that the stages read
     names = {video.stem for video in videos}
+    points: set[str] | None = None
     if options.tracks is not None:
-        _check_video_names(options.tracks, read_tracks(options.tracks).video_names(), names)
+        tracks = read_tracks(options.tracks)
+        _check_video_names(options.tracks, tracks.video_names(), names)
+        points = set(tracks.point)
     if options.labels is not None:
-        _check_video_names(options.labels, list(dict.fromkeys(key[0] for key in read_labels(options.labels))), names)
+        labels = read_labels(options.labels)
+        _check_video_names(options.labels, list(dict.fromkeys(key[0] for key in labels)), names)
+        points = {key[2] for key in labels}
+    scale = options.register.scale
+    if scale is not None and points is not None and not {scale[0], scale[1]} <= points:
+        missing = ", ".join(p for p in scale[:2] if p not in points)
+        raise InputError(
+            options.tracks or options.labels,
+            f"--scale point(s) {missing} not in these points ({', '.join(sorted(points)[:10])})",
+            fix="give two tracked points and their distance in metres, e.g. --scale l_knee,l_ankle,0.42",
+        )
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()

@@ -112,6 +112,16 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
     )
 
 
+def check_track_flags(args: argparse.Namespace) -> None:
+    """`--track-window`, `--track-patch` and `--max-frames` of `run` and `batch`: a one-line error when unusable."""
+    from dynrecon.errors import InputError
+    from tracking.options import MAX_WINDOW
+
+    windows = (args.track_window, args.track_patch)
+    if not all(5 <= w <= MAX_WINDOW for w in windows) or args.max_frames < 2:
+        raise InputError(None, f"--track-window and --track-patch must be 5 to {MAX_WINDOW} px, --max-frames >= 2")
+
+
 def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
     """The import options `add_calibration_arguments` parsed."""
     from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
@@ -122,15 +132,12 @@ def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from dynrecon.errors import InputError
     from dynrecon.pipeline import PipelineOptions, default_register, run_stages
     from sfm.register_cli import parse_scale
-    from tracking.options import MAX_WINDOW, TrackOptions
+    from tracking.options import TrackOptions
 
     scale = parse_scale(args.scale)
-    windows = (args.track_window, args.track_patch)
-    if not all(5 <= w <= MAX_WINDOW for w in windows) or args.max_frames < 2:
-        raise InputError(None, f"--track-window and --track-patch must be 5 to {MAX_WINDOW} px, --max-frames >= 2")
+    check_track_flags(args)
     register = dataclasses.replace(
         default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale, board=args.board
     )

@@ -106,7 +106,9 @@ def _recover_and_refine(
     checks = clock_checks(problem, clocks)
     if all(c.passed for c in checks):
         on_clocks = refine_on_clocks(problem, result.points, clocks, clock_options.model, options.refine)
-        clocks, on_clocks = _tracks_or_links(problem, judge, clocks, on_clocks, clock_options.model, options, report)
+        chosen, on_clocks = _tracks_or_links(problem, judge, clocks, on_clocks, clock_options.model, options, report)
+        if chosen is not clocks:  # the links' clocks pass the same checks before they are used
+            clocks, checks = chosen, clock_checks(problem, chosen)
         checks.extend(judge.clock_fit(on_clocks.result, spacing_assumed(clocks)))
         if all(c.passed for c in checks):
             report.update(on_clocks.report)

@@ -13,6 +13,7 @@ from pathlib import Path
 from dynrecon.errors import InputError
 
 ALL_CORES = -1  # COLMAP's num_threads for one thread per core
+MAX_COUNT = 10**7  # no count flag of registration is sensibly larger
 # pycolmap's CameraModelId names (without INVALID), kept here so that the options stay cheap to import
 CAMERA_MODELS = (
     "SIMPLE_PINHOLE",
@@ -127,7 +128,7 @@ class RegisterOptions:
     def check(self) -> None:
         """A one-line InputError naming the first flag whose value no registration can use (before any work)."""
         counts = {
-            "--max-frames": (self.max_frames, 2),
+            "--max-frames": (self.max_frames or 2, 2),  # 0: no cap
             "--long-side": (self.long_side, 64),
             "--max-features": (self.max_features, 100),
             "--background-features": (self.background_features, 100),
@@ -147,8 +148,9 @@ class RegisterOptions:
             "--keyframe-motion": (self.keyframe_motion, 0.0, 1.0),
             "--keyframe-survival": (self.keyframe_survival, 0.0, 1.0),
             "--max-ratio": (self.max_ratio, 0.0, 1.0),
-            "--mask-radius": (self.mask_radius, 0.0, 1e5),
         }
+        if self.use_masks:
+            ranges["--mask-radius"] = (self.mask_radius, 0.0, 1e5)
         for flag, (number, low, high) in ranges.items():
             if not (math.isfinite(number) and low < number <= high):
                 raise InputError(

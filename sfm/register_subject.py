@@ -95,8 +95,8 @@ def pose_from_subject(
             )
         else:
             why = (
-                "no tracked static video was posed by the background: the subject path's cameras would have another "
-                f"frame and scale than the background's ({', '.join(others)})"
+                "no tracked static video anchors the subject path in the background's world: its cameras would have "
+                f"another frame and scale than the background's ({', '.join(others)})"
             )
         warnings.append(
             f"subject path: {why}; track the subject in two static videos the background posed, or register the "
@@ -133,7 +133,7 @@ def pose_from_subject(
     metric = result.metric or len(anchors) >= 2  # one anchor fixes the frame, not the scale
     if not metric:
         warnings.append(
-            "subject path without background anchors or --scale: the units are arbitrary "
+            "subject path without two background anchors or --scale: the units are arbitrary "
             "(give --scale POINT_A,POINT_B,METRES, or --board with the board's corners)"
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
@@ -184,7 +184,7 @@ def _with_board(
     scale, why = options.scale, None
     if options.scale is not None:
         why = "--scale given"
-    elif anchored:
+    elif len(anchored) >= 2:  # one anchor fixes the frame only
         why = "the background's anchors set the frame and scale"
     elif not checked or misfit:
         worst = max(misfit, key=lambda f: f.rms_px or 0.0) if misfit else None

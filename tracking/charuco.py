@@ -211,11 +211,17 @@ def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np
 
 
 def charuco_tracks(
-    videos: Sequence[Path | str], board: Path | str | CharucoBoard, *, min_corners: int = 1, workers: int | None = None
+    videos: Sequence[Path | str],
+    board: Path | str | CharucoBoard,
+    *,
+    min_corners: int = 1,
+    workers: int | None = None,
+    require_any: bool = True,
 ) -> Tracks:
     """Board corners in every frame of every video: one row per (video, frame, corner), point `corner_<id>`.
 
-    Frames with fewer than `min_corners` corners are left out. Videos are decoded in `workers` threads
+    Frames with fewer than `min_corners` corners are left out; with `require_any`, a board found in no video is an
+    error (a wrong board file), else a warning per video. Videos are decoded in `workers` threads
     (default: one per video, at most the CPU count); OpenCV releases the GIL while decoding and detecting.
     """
     board = _board(board)
@@ -233,7 +239,7 @@ def charuco_tracks(
         log.info("%s: board corners in %d of %d frames (%d corners)", path, len(np.unique(frame)), count, len(frame))
         if not len(frame):
             log.warning("%s: the board was found in none of its %d frames", path, count)
-    if results and not any(len(r[0]) for r in results):
+    if require_any and results and not any(len(r[0]) for r in results):
         raise InputError(
             paths[0],
             f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found with {min_corners} or more "

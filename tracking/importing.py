@@ -105,7 +105,7 @@ def _read_charuco(path: Path, options: ImportOptions) -> list[Detection]:
 
     if options.board is None:
         raise InputError(path, "ChArUco corners need the board", fix="add --board charuco.toml (caliscope's)")
-    tracks = charuco_tracks([path], options.board)
+    tracks = charuco_tracks([path], options.board, require_any=False)  # run_import judges all the videos
     video = options.video or path.stem
     return [
         Detection(
@@ -174,6 +174,15 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         log.info("%s: %d of %d detections imported", path, kept, len(detections))
         if detections and not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
+    if options.board is not None and not rows and inputs:
+        from tracking.charuco import read_charuco_board
+
+        board = read_charuco_board(options.board)
+        raise InputError(
+            Path(inputs[0]),
+            f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found in no frame of any video",
+            fix="check the board file against the printed board (dictionary, columns and rows, inverted)",
+        )
     kept_extra: dict[str, dict[tuple[str, int, str], str]] = {}  # the user's own columns of the rows kept
     if out.is_file():
         old = read_tracks(out)

@@ -506,10 +506,11 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         warnings.extend(fuse_notes)
         _take_track_scatter(scatter, search, methods)
         if disagree:  # the tracks' clock was kept against W's links: the refinement measures both
-            alt_params = copy.deepcopy(params)
+            alt_params, alt_scatter = copy.deepcopy(params), scatter.copy()
             alt_methods = list(methods)
             for v in disagree:
                 alt_params.coef[v], alt_params.cov[v] = link_fit.params.coef[v], link_fit.params.cov[v]
+                alt_scatter[v] = link_fit.frame_scatter[v]
                 alt_methods[v] = "links"
             alternative = _report(
                 problem,
@@ -520,10 +521,10 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
                 alt_params,
                 alt_methods,
                 periods,
-                scatter,
+                alt_scatter,
                 link_fit,
                 track_rms,
-                [],
+                list(warnings),  # the same notes: they describe the evidence, not the choice
                 dict(diagnostics),
             )
     for w in warnings:

@@ -70,7 +70,7 @@ def test_a_register_typo_keeps_the_last_results(tmp_path: Path, capsys: pytest.C
         (["--scale", "a,b,1e-300"], ["--scale", "two different points"]),
         (["--keyframes", "-1"], ["--keyframes -1"]),
         (["--time-step", "nan"], ["--time-step nan"]),
-        (["--max-frames", "0"], ["--max-frames 0"]),
+        (["--max-frames", "-1"], ["--max-frames -1"]),
         (["--max-ratio", "nan"], ["--max-ratio nan"]),
         (["--camera-model", "FOO"], ["--camera-model 'FOO'"]),
     ],

@@ -81,6 +81,8 @@ def test_a_track_clock_a_cycle_off_loses_to_the_links_clock(monkeypatch):
     entry = chosen.report["links_clocks"]
     assert entry["kept"] == "links" and entry["residual_px"]["links"] < 0.5 * entry["residual_px"]["tracks"]
     assert chosen.report["path"] == "clocks"
+    assert chosen.clocks.video(entry["videos"][0]).method == "links"
+    assert any("kept the tracks' clock" in w for w in chosen.clocks.warnings)  # the evidence stays in the report
     expected = truth_array(problem, truth)
     error = np.nanmedian(np.linalg.norm(chosen.points - expected, axis=-1))
     assert error < 1.2 * np.nanmedian(np.linalg.norm(right.points - expected, axis=-1))

@@ -15,6 +15,7 @@ from dynrecon.errors import InputError
 from sfm.calibration import read_calibration
 from tracking.charuco import CharucoBoard, board_corner_positions, charuco_tracks, read_charuco_board
 from tracking.cli import add_commands
+from tracking.importing import ImportOptions, run_import
 from tracking.tracks import read_tracks
 
 BOARD = CharucoBoard(
@@ -192,3 +193,25 @@ def test_caliscope_corners_reproject(shared_dir: Path) -> None:
     ]
     print(f"charuco: neighbouring corners {np.median(spacing) * 100:.2f} cm apart (median of {len(spacing)})")
     assert len(spacing) > 50 and abs(np.median(spacing) - 0.054) < 0.003, np.median(spacing)
+
+
+def test_import_goes_on_when_one_video_never_shows_the_board(tmp_path: Path) -> None:
+    """A camera that never saw the board adds no rows (a warning); only a board found in no video is an error."""
+    size = (640, 480)
+    shown = _render(BOARD, [np.array([[1.2, 0.0, 150.0], [0.0, 1.2, 40.0], [2e-5, 1e-5, 1.0]])], size)
+    paths = {"cam_a": shown * 3, "cam_b": [np.full_like(shown[0], 160)] * 3}
+    for name, frames in paths.items():
+        writer = cv2.VideoWriter(str(tmp_path / f"{name}.avi"), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, size)
+        for frame in frames:
+            writer.write(frame)
+        writer.release()
+    board = tmp_path / "charuco.toml"
+    board.write_text(
+        f"columns = {BOARD.columns}\nrows = {BOARD.rows}\nsquare_size_override_cm = {BOARD.square_size * 100}\n"
+        f'aruco_scale = {BOARD.marker_size / BOARD.square_size}\ndictionary = "{BOARD.dictionary}"\n'
+        "inverted = true\n"
+    )
+    out = run_import([tmp_path / "cam_a.avi", tmp_path / "cam_b.avi"], tmp_path / "t.csv", ImportOptions(board=board))
+    assert set(read_tracks(out).video) == {"cam_a"}
+    with pytest.raises(InputError, match="found in no frame of any video"):
+        run_import([tmp_path / "cam_b.avi"], tmp_path / "u.csv", ImportOptions(board=board))
