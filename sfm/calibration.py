@@ -417,35 +417,22 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
     if (video.width, video.height) == (width, height):
         return K
     sx, sy = video.width / width, video.height / height
+    sizes = f"{video.path} is {video.width}x{video.height}, camera {name!r} was calibrated at {width}x{height}"
     if abs(sx - sy) <= SAME_ASPECT * max(sx, sy):
         K = K.astype(float).copy()
         # pixel centres sit at integer coordinates in OpenCV: x' = (x + 0.5) s - 0.5
         K[0, 0], K[0, 1], K[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
         K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
-        log.info(
-            "%s is %dx%d, camera %r was calibrated at %dx%d: its intrinsics are scaled by %.4g",
-            video.path,
-            video.width,
-            video.height,
-            name,
-            width,
-            height,
-            sx,
-        )
+        log.info("%s: its intrinsics are scaled by %.4g", sizes, sx)
         return K
     said = (str(video.path), name, width, height)
     if said in _SIZE_WARNINGS:  # registration reads the intrinsics in several steps: one warning per video
         return K
     _SIZE_WARNINGS.add(said)
     log.warning(
-        "%s is %dx%d but camera %r was calibrated at %dx%d (another aspect ratio: a crop, a padding or a rotation); "
-        "its intrinsics are used unchanged, so check that the video is the calibrated camera's full image",
-        video.path,
-        video.width,
-        video.height,
-        name,
-        width,
-        height,
+        "%s (another aspect ratio: a crop, a padding or a rotation); its intrinsics are used unchanged, so check "
+        "that the video is the calibrated camera's full image",
+        sizes,
     )
     return K
 

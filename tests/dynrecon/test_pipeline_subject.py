@@ -27,9 +27,9 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulated_phones(tmp_path_factory.mktemp("capture"))
 
 
-def test_static_videos_left_out_are_registered_from_the_tracks(
-    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def _subject_only_registration(capture: Path, monkeypatch: pytest.MonkeyPatch) -> list[RegisterOptions]:
+    """A stand-in registration: the background fails as on a static rig without shared background, the subject
+    stage writes the simulated capture's cameras. Returns the options of every call."""
     calls: list[RegisterOptions] = []
 
     def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
@@ -41,6 +41,13 @@ def test_static_videos_left_out_are_registered_from_the_tracks(
         write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
 
     monkeypatch.setattr(pipeline, "_register", register)
+    return calls
+
+
+def test_static_videos_left_out_are_registered_from_the_tracks(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls = _subject_only_registration(capture, monkeypatch)
     videos = []
     for name in ("cam0", "cam1", "cam2"):  # the stand-ins never read them; the record stage warns and goes on
         videos.append(tmp_path / f"{name}.mp4")
@@ -96,17 +103,7 @@ def test_a_static_video_the_background_left_out_triggers_the_subject_stage(
 def test_the_board_goes_to_the_subject_stage_and_an_edited_board_reruns_it(
     capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    calls: list[RegisterOptions] = []
-
-    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
-        calls.append(options)
-        if options.tracks is None:
-            raise RegistrationError("only 0 of 3 videos registered (none); cameras.json not written")
-        register_dir.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(capture / "cameras.json", register_dir / "cameras.json")
-        write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-
-    monkeypatch.setattr(pipeline, "_register", register)
+    calls = _subject_only_registration(capture, monkeypatch)
     videos = [tmp_path / f"cam{i}.mp4" for i in range(3)]
     for video in videos:
         video.write_bytes(b"x")
