@@ -57,7 +57,7 @@ def captures(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         "throw": simulated_capture(root / "throw", _options(3, Inputs.LABELS)),
     }
     broken = shutil.copytree(folders["walk"], root / "broken_tracks")
-    (broken / "tracks.csv").write_text("video,frame\ncam0,zero\n")  # fails on a worker, in the solve task
+    (broken / "tracks.csv").write_text("video,frame\ncam0,zero\n")  # fails on a worker: its inputs, checked first
     (root / "empty").mkdir()
     undecodable = shutil.copytree(folders["walk"], root / "undecodable")
     (undecodable / "cam1.avi").write_bytes(b"\x00not a video" * 100)  # fails on a worker, in its probe task
@@ -225,7 +225,7 @@ def test_results_are_those_of_each_capture_run_alone(first_batch, alone: Path) -
 @pytest.mark.parametrize(
     ("name", "stage", "reason"),
     [
-        ("broken_tracks", "solve", "header lacks column(s) point, x, y"),
+        ("broken_tracks", "register", "header lacks column(s) point, x, y"),
         ("empty", "read", "no videos"),
         ("undecodable", "probe", "cam1.avi"),
         ("no_calibration", "read", "calibration file not found"),

@@ -176,10 +176,12 @@ def test_register_takes_the_board_only_for_videos_without_intrinsics_or_an_ancho
     assert all(c["rms_px"] < 0.5 for c in cameras.values())
     assert merged["given"][0][0, 0] == pytest.approx(990.0) and "anchor" not in merged
     assert abs(merged["free"][0][0, 0] / K_TRUE[0, 0] - 1) < 0.02
-    # the background's anchors set the scale; without them, the board does
-    assert scale is None and section["scale"] is None and "anchors" in section["scale_why"]
-    merged, scale, section = _with_board(tracks, plans, given, set(), options, warnings)
+    # one anchor fixes the frame only: the board sets the scale, as without anchors; two anchors set it themselves
     assert scale is not None and scale[:2] == ("corner_0", "corner_11") and section["scale"][:2] == list(scale[:2])
+    merged, scale, section = _with_board(tracks, plans, given, set(), options, warnings)
+    assert scale is not None and scale[:2] == ("corner_0", "corner_11")
+    merged, scale, section = _with_board(tracks, plans, given, {"anchor", "given"}, options, warnings)
+    assert scale is None and section["scale"] is None and "anchors" in section["scale_why"]
     # a board file that is not the filmed board: no intrinsics, no scale, and a warning says why
     board_file.write_text('columns = 6\nrows = 4\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
     merged, scale, section = _with_board(tracks, plans, given, set(), options, warnings)
