@@ -246,7 +246,8 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
                 raise InputError(path, "frame appears twice", where=where, fix="keep one pose per frame")
             seen_frames.add(frame.frame)
             R = frame.R
-            orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
+            with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows to inf: refused below
+                orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
             if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
                 raise InputError(
                     path,
@@ -289,7 +290,8 @@ def _clearly_valid(cameras: CameraSet) -> bool:
         return False
     if not (np.isfinite(K).all() and np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite(dist).all()):
         return False
-    orthogonality = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows to inf: not plausible
+        orthogonality = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
     low, high = FOCAL_RANGE_PX
     focal = K[:, [0, 1], [0, 1]]
     return bool(
