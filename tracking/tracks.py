@@ -188,7 +188,8 @@ def _read_checked(path: Path) -> Tracks:
     for number, row in records:
         if not row or all(not cell.strip() for cell in row):
             continue
-        if len(row) < len(header):
+        if len(row) < len(header) or any(cell.strip() for cell in row[len(header) :]):
+            # a cell beyond the header belongs to no column: a comma too many moved the others
             raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=f"line {number}")
         video = row[index["video"]].strip()
         point = row[index["point"]].strip()

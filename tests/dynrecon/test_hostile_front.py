@@ -256,3 +256,10 @@ def test_run_names_the_users_tracks_file_when_its_videos_are_not_given(
     tracks.write_text("video,frame,point,x,y\nleft,0,knee,10,10\n")
     status = main(["-q", "run", *_videos(tmp_path), "--out", str(tmp_path / "ws"), "--tracks", str(tracks)])
     _one_line_error(capsys, status, "mine.csv", "left are not among the videos given", "cam_0")
+
+
+def test_a_tracks_row_with_a_cell_beyond_the_header(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "in.csv"
+    path.write_text("video,frame,point,x,y,score\ncam_0,0,knee,10,10,0.9,extra\n")
+    status = main(["-q", "import-tracks", str(path), "--out", str(tmp_path / "t.csv")])
+    _one_line_error(capsys, status, "line 2", "expected 6 fields, found 7")
