@@ -98,6 +98,7 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
     files = openpose_files(path)
     detections: list[Detection] = []
     seen: dict[int, Path] = {}
+    layout: tuple[int, Path] | None = None  # the keypoint count of the first file with a person, and that file
     for order, file in enumerate(files):
         match = _FRAME.search(file.stem)
         frame = parse_frame(match.group(1), file, "file name") if match else order
@@ -120,6 +121,14 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
         flat = people[person].get("pose_keypoints_2d") if isinstance(people[person], dict) else None
         if not isinstance(flat, list) or len(flat) % 3 or not all(isinstance(v, int | float) for v in flat):
             raise InputError(file, f"people[{person}].pose_keypoints_2d is not a list of x, y, c triplets")
+        if layout is None:
+            layout = (len(flat) // 3, file)
+        elif len(flat) // 3 != layout[0]:  # BODY_25 and COCO_18 name the same index differently
+            raise InputError(
+                file,
+                f"{len(flat) // 3} keypoints where {layout[1].name} has {layout[0]}: two OpenPose models in one folder",
+                fix="import each model's output separately (and map the names with --map)",
+            )
         names = keypoint_names(len(flat) // 3)
         for k, name in enumerate(names):
             x, y, c = (float(v) for v in flat[3 * k : 3 * k + 3])

@@ -165,7 +165,8 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
                     Path(path),
                     f"two detections of point {point!r} on frame {d.frame} of video {d.video!r}",
                     where=d.where,
-                    fix="check --map: two names were mapped to one",
+                    fix="check --map (two names mapped to one) and the frame numbers (two rows or image names that "
+                    "give the same frame)",
                 )
             score = "" if d.score is None else f"{d.score:.3f}"
             rows[key] = (d.x, d.y, fmt.value, score)

@@ -263,3 +263,13 @@ def test_a_tracks_row_with_a_cell_beyond_the_header(tmp_path: Path, capsys: pyte
     path.write_text("video,frame,point,x,y,score\ncam_0,0,knee,10,10,0.9,extra\n")
     status = main(["-q", "import-tracks", str(path), "--out", str(tmp_path / "t.csv")])
     _one_line_error(capsys, status, "line 2", "expected 6 fields, found 7")
+
+
+def test_openpose_folder_mixing_two_models(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "cam_0_json"
+    folder.mkdir()
+    for frame, count in ((0, 25), (1, 18)):
+        person = {"pose_keypoints_2d": [10.0, 10.0, 0.9] * count}
+        (folder / f"cam_0_{frame:012d}_keypoints.json").write_text(json.dumps({"people": [person]}))
+    status = main(["-q", "import-tracks", str(folder), "--out", str(tmp_path / "t.csv")])
+    _one_line_error(capsys, status, "000000000001_keypoints.json", "18 keypoints where", "has 25")
