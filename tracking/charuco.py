@@ -65,6 +65,8 @@ class CharucoBoard:
 MAX_SQUARES = 100
 MIN_SQUARE_M, MAX_SQUARE_M = 1e-4, 10.0
 MIN_ARUCO_SCALE = 0.05
+INCH_UNITS = ("inch", "inches", "in")
+CM_UNITS = ("cm", "centimeter", "centimeters", "centimetre", "centimetres")
 
 
 def _dictionary_id(name: str, path: Path | None) -> int:
@@ -116,10 +118,10 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             / 100.0
         )
     else:
-        units = str(table.get("units", "inch")).lower()
-        if units not in ("inch", "in", "cm"):
+        units = str(table.get("units", "inch")).strip().lower()
+        if units not in INCH_UNITS + CM_UNITS:
             raise InputError(path, f"units = {units!r} must be inch or cm", where=where)
-        per_cm = CM_PER_INCH if units in ("inch", "in") else 1.0
+        per_cm = CM_PER_INCH if units in INCH_UNITS else 1.0
         square = min(number("board_height") / rows, number("board_width") / columns) * per_cm / 100.0
     if not MIN_SQUARE_M <= square <= MAX_SQUARE_M:
         raise InputError(

@@ -273,3 +273,13 @@ def test_openpose_folder_mixing_two_models(tmp_path: Path, capsys: pytest.Captur
         (folder / f"cam_0_{frame:012d}_keypoints.json").write_text(json.dumps({"people": [person]}))
     status = main(["-q", "import-tracks", str(folder), "--out", str(tmp_path / "t.csv")])
     _one_line_error(capsys, status, "000000000001_keypoints.json", "18 keypoints where", "has 25")
+
+
+@pytest.mark.parametrize("units", ["cm", "centimeters", "Inches"])
+def test_board_units_spelled_as_people_do(tmp_path: Path, units: str) -> None:
+    from tracking.charuco import read_charuco_board
+
+    path = tmp_path / "charuco.toml"
+    path.write_text(f'columns = 4\nrows = 5\nboard_width = 8.5\nboard_height = 11\nunits = "{units}"\n')
+    square = read_charuco_board(path).square_size
+    assert square == pytest.approx((0.0254 if units == "Inches" else 0.01) * min(11 / 5, 8.5 / 4))
