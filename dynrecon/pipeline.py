@@ -64,7 +64,7 @@ from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
-from sfm.stage import Localize, RegisterOptions, RegistrationError
+from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
 from tracking.charuco import read_charuco_board
@@ -279,14 +279,8 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         labels = read_labels(options.labels)
         _check_video_names(options.labels, list(dict.fromkeys(key[0] for key in labels)), names)
         points = {key[2] for key in labels}
-    scale = options.register.scale
-    if scale is not None and points is not None and not {scale[0], scale[1]} <= points:
-        missing = ", ".join(p for p in scale[:2] if p not in points)
-        raise InputError(
-            options.tracks or options.labels,
-            f"--scale point(s) {missing} not in these points ({', '.join(sorted(points)[:10])})",
-            fix="give two tracked points and their distance in metres, e.g. --scale l_knee,l_ankle,0.42",
-        )
+    if options.register.scale is not None and points is not None:
+        check_scale_points(options.register.scale, points, options.tracks or options.labels)
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()

@@ -113,13 +113,18 @@ def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tra
                 fix=fix,
             )
         if tracks is not None:
-            points = set(tracks.point)
-            missing = [p for p in (a, b) if p not in points]
-            if missing:
-                shown = ", ".join(sorted(points)[:10])
-                raise InputError(
-                    tracks.path, f"--scale point(s) {', '.join(missing)} not in the tracks (points: {shown})", fix=fix
-                )
+            check_scale_points(options.scale, set(tracks.point), tracks.path)
+
+
+def check_scale_points(scale: tuple[str, str, float], points: set[str], path: Path | None) -> None:
+    """`--scale`'s two points are among `points` (of the tracks or labels file `path`)."""
+    missing = [p for p in scale[:2] if p not in points]
+    if missing:
+        raise InputError(
+            path,
+            f"--scale point(s) {', '.join(missing)} not in the tracks (points: {', '.join(sorted(points)[:10])})",
+            fix="give two different tracked points and their distance in metres, e.g. --scale l_knee,l_ankle,0.42",
+        )
 
 
 def _probe_all(paths: list[Path], unreadable: dict[str, str]) -> list[ProbedVideo]:

@@ -212,6 +212,17 @@ def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np
     return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), index
 
 
+def board_not_found(board: CharucoBoard, path: Path, min_corners: int | None = None) -> InputError:
+    """The error for a board found in no frame of any video (`path`: the first one), or in none with `min_corners`
+    corners or more: a wrong board file, mostly."""
+    enough = f" with {min_corners} or more corners" if min_corners is not None else ""
+    return InputError(
+        path,
+        f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found{enough} in no frame of any video",
+        fix="check the board file against the printed board (dictionary, columns and rows, inverted)",
+    )
+
+
 def charuco_tracks(
     videos: Sequence[Path | str],
     board: Path | str | CharucoBoard,
@@ -242,12 +253,7 @@ def charuco_tracks(
         if not len(frame):
             log.warning("%s: the board was found in none of its %d frames", path, count)
     if require_any and results and not any(len(r[0]) for r in results):
-        raise InputError(
-            paths[0],
-            f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found with {min_corners} or more "
-            "corners in no frame of any video",
-            fix="check the board file against the printed board (dictionary, columns and rows, inverted)",
-        )
+        raise board_not_found(board, paths[0], min_corners)
     frame = np.concatenate([r[0] for r in results]) if results else np.zeros(0, dtype=np.int64)
     ids = np.concatenate([r[1] for r in results]) if results else np.zeros(0, dtype=np.int64)
     xy = np.concatenate([r[2] for r in results]) if results else np.zeros((0, 2))

@@ -176,14 +176,9 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         if detections and not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
     if options.board is not None and not rows and inputs:
-        from tracking.charuco import read_charuco_board
+        from tracking.charuco import board_not_found, read_charuco_board
 
-        board = read_charuco_board(options.board)
-        raise InputError(
-            Path(inputs[0]),
-            f"the board ({board.columns} x {board.rows}, {board.dictionary}) was found in no frame of any video",
-            fix="check the board file against the printed board (dictionary, columns and rows, inverted)",
-        )
+        raise board_not_found(read_charuco_board(options.board), Path(inputs[0]))
     kept_extra: dict[str, dict[tuple[str, int, str], str]] = {}  # the user's own columns of the rows kept
     if out.is_file():
         old = read_tracks(out)
