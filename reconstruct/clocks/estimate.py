@@ -486,7 +486,7 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         "search": run_search,
     }
     params = link_fit.params
-    alternative: Clocks | None = None
+    swapped: tuple[ClockSet, list[str], np.ndarray] | None = None  # the links' clock where the tracks' was kept
     methods = ["links" if params.identified[v] else "unidentified" for v in range(N)]
     methods[ref] = "reference"
     track_rms = np.full(N, np.nan)
@@ -506,33 +506,33 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         warnings.extend(fuse_notes)
         _take_track_scatter(scatter, search, methods)
         if disagree:  # the tracks' clock was kept against W's links: the refinement measures both
-            alt_params, alt_scatter = copy.deepcopy(params), scatter.copy()
-            alt_methods = list(methods)
+            swapped = (copy.deepcopy(params), list(methods), scatter.copy())
             for v in disagree:
-                alt_params.coef[v], alt_params.cov[v] = link_fit.params.coef[v], link_fit.params.cov[v]
-                alt_scatter[v] = link_fit.frame_scatter[v]
-                alt_methods[v] = "links"
-            alternative = _report(
-                problem,
-                own,
-                sources,
-                ref,
-                model,
-                alt_params,
-                alt_methods,
-                periods,
-                alt_scatter,
-                link_fit,
-                track_rms,
-                list(warnings),  # the same notes: they describe the evidence, not the choice
-                dict(diagnostics),
-            )
+                swapped[0].coef[v], swapped[0].cov[v] = link_fit.params.coef[v], link_fit.params.cov[v]
+                swapped[1][v], swapped[2][v] = "links", link_fit.frame_scatter[v]
     for w in warnings:
         log.warning("clocks: %s", w)
-    clocks = _report(
-        problem, own, sources, ref, model, params, methods, periods, scatter, link_fit, track_rms, warnings, diagnostics
-    )
-    clocks.links_alternative = alternative
+
+    def clocks_of(chosen: ClockSet, chosen_methods: list[str], chosen_scatter: np.ndarray) -> Clocks:
+        # both hypotheses carry the same notes: they describe the evidence, not the choice
+        return _report(
+            problem,
+            own,
+            sources,
+            ref,
+            model,
+            chosen,
+            chosen_methods,
+            periods,
+            chosen_scatter,
+            link_fit,
+            track_rms,
+            list(warnings),
+            dict(diagnostics),
+        )
+
+    clocks = clocks_of(params, methods, scatter)
+    clocks.links_alternative = clocks_of(*swapped) if swapped is not None else None
     return clocks
 
 
