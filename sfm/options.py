@@ -140,9 +140,11 @@ class RegisterOptions:
             "--cross-partners": (self.cross_partners, 0),
         }
         for flag, (value, least) in counts.items():
-            if not least <= value <= 10**7:
+            if not least <= value <= MAX_COUNT:
                 raise InputError(
-                    None, f"{flag} {value}: must be a whole number from {least}", fix=f"give {flag} >= {least}"
+                    None,
+                    f"{flag} {value}: must be a whole number from {least} to {MAX_COUNT:,}",
+                    fix=f"give {flag} >= {least}",
                 )
         ranges = {
             "--keyframe-motion": (self.keyframe_motion, 0.0, 1.0),
