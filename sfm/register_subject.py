@@ -8,6 +8,7 @@ or the report says that the units are arbitrary.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -16,9 +17,11 @@ import pycolmap
 from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, calibrate_from_board
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
+from sfm.register_posed import posed_video, static_anchor
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
 from sfm.subject.model import ScalePointsError
 from sfm.subject.observations import select_rows
+from sfm.subject.posed import align_to_posed
 from sfm.subject.stability import Stability, check_stability
 from tracking.charuco import board_corner_positions, read_charuco_board
 from tracking.tracks import Tracks
@@ -85,9 +88,12 @@ def pose_from_subject(
         return {"used": False, "why": why, "board": board}
     names = {v.name for v in inputs}
     others = sorted(n for n, frames in results.items() if n not in names and _posed(frames) is not None)
-    if len(anchors) < 2 and others:
-        # the subject path's cameras get the background's frame and scale from two anchors; with fewer they would not
-        # match the background's other cameras (a silently inconsistent world)
+    # fewer than two static anchors beside other posed videos: the posed videos' tracks give the frame and scale
+    posed_tracked = sorted(set(others) & set(tracks.video_names()))
+    by_posed = len(anchors) < 2 and bool(others)
+    if by_posed and not posed_tracked:
+        # the subject path's cameras need the background's frame and scale; without a tracked posed video they
+        # would not match the background's other cameras (a silently inconsistent world)
         if anchors:
             why = (
                 f"one static video the background posed ({anchors[0]}) fixes the subject path's frame but not its "
@@ -95,18 +101,16 @@ def pose_from_subject(
             )
         else:
             why = (
-                "no tracked static video anchors the subject path in the background's world: its cameras would have "
-                f"another frame and scale than the background's ({', '.join(others)})"
+                "no tracked video the background posed anchors the subject path in the background's world: its "
+                f"cameras would have another frame and scale than the background's ({', '.join(others)})"
             )
         warnings.append(
-            f"subject path: {why}; track the subject in two static videos the background posed, or register the "
-            "static videos without the others"
+            f"subject path: {why}; track the subject in a video the background posed (a handheld one, or two static "
+            "ones), or register the static videos without the others"
         )
-        for video in unposed:
-            results[video.info.name] = {
-                f: FramePose(pose=None, reason=f"subject path: {why}") for f in results[video.info.name]
-            }
-        return {"used": False, "why": why, "anchors": anchors, "board": board}
+        return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
+    if by_posed:
+        inputs = [replace(v, cam_from_world=None) for v in inputs]  # solved free, then moved onto the posed videos
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=scale)
     try:
@@ -121,23 +125,46 @@ def pose_from_subject(
             subject_options = SubjectOptions(scale=None)
             result = calibrate_from_subject(subject_tracks, inputs, subject_options)
         stability = check_stability(subject_tracks, inputs, result, subject_options)
+        aligned = None
+        if by_posed:
+            posed_videos = [
+                posed_video(v, results[v.info.name], tracks, list(result.points))
+                for v in videos
+                if v.info.name in posed_tracked
+            ]
+            posed_videos += [static_anchor(v, results[v.name], tracks, result) for v in inputs if v.name in anchors]
+            aligned = align_to_posed(result, posed_videos, subject_options.max_offset)
+            aligned.apply(result)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
-        for video in unposed:
-            for frame in results[video.info.name]:
-                results[video.info.name][frame] = FramePose(pose=None, reason=f"subject path: {error}")
-        return {"used": False, "why": str(error), "anchors": anchors, "board": board}
+        return _refuse(
+            unposed, results, str(error), {"used": False, "why": str(error), "anchors": anchors, "board": board}
+        )
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
-    metric = result.metric or len(anchors) >= 2  # one anchor fixes the frame, not the scale
+    metric = result.metric or len(anchors) >= 2 or aligned is not None  # one anchor fixes the frame, not the scale
     if not metric:
         warnings.append(
             "subject path without two background anchors or --scale: the units are arbitrary "
             "(give --scale POINT_A,POINT_B,METRES, or --board with the board's corners)"
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
-    return {**_report(result, stability, posed, anchors, metric), "board": board}
+    section = {**_report(result, stability, posed, anchors, metric), "board": board}
+    if aligned is not None:
+        section["posed_videos"] = aligned.to_json()
+    return section
+
+
+def _refuse(
+    unposed: list[VideoPlan], results: dict[str, dict[int, FramePose]], why: str, section: dict[str, Any]
+) -> dict[str, Any]:
+    """The static videos the background left out stay unposed, and say why; returns the report's section."""
+    for video in unposed:
+        results[video.info.name] = {
+            f: FramePose(pose=None, reason=f"subject path: {why}") for f in results[video.info.name]
+        }
+    return section
 
 
 def _with_board(

@@ -402,7 +402,12 @@ def _export(
 ) -> Path:
     """background.ply (the model's points) and cameras.json (every posed frame); returns the cameras.json path."""
     cameras = CameraSet()
-    clock_offsets = {c["name"]: c["offset_s"] for c in (subject_report or {}).get("cameras", [])}
+    subject = subject_report or {}
+    # the posed videos' offsets (handheld ones that anchored the subject path) are on the same clock
+    clock_offsets = {
+        v["name"]: v["offset_s"] for v in subject.get("posed_videos", {}).get("videos", []) if v["reason"] is None
+    }
+    clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
     for video in registered_videos:
         cameras.videos.append(_video_cameras(video, results[video.info.name], clock_offsets.get(video.info.name)))
     if rec is not None:

@@ -168,6 +168,57 @@ def make_rig(
 
 
 @dataclass(kw_only=True)
+class Handheld:
+    """A handheld camera walking an arc around the subject: its tracks and every frame's true pose."""
+
+    name: str
+    tracks: Tracks
+    times: np.ndarray  # (F,) own seconds
+    K: np.ndarray  # (3, 3)
+    R: np.ndarray  # (F, 3, 3) cam_from_world
+    t: np.ndarray  # (F, 3)
+    offset: float  # global = own + offset
+    width: int = 1920
+    height: int = 1080
+
+
+def handheld(
+    *,
+    name: str = "phone",
+    duration: float = 20.0,
+    fps: float = 30.0,
+    offset: float = 0.61,
+    arc_deg: float = 40.0,
+    noise_px: float = 1.0,
+    sway_m: float = 0.03,
+    seed: int = 1,
+) -> Handheld:
+    """A phone walked along `arc_deg` of a 4 m circle around `skeleton_motion`'s room, aimed at its middle."""
+    rng = np.random.default_rng(seed)
+    width, hgt = 1920, 1080
+    own = np.arange(0.0, duration - max(offset, 0.0), 1.0 / fps)
+    angle = np.radians(20.0 + arc_deg * own / own[-1])
+    sway = sway_m * np.sin(2 * np.pi * 0.8 * own)
+    centres = np.column_stack([4.0 * np.cos(angle), 4.0 * np.sin(angle), 1.5 + sway])  # (F, 3)
+    aim = np.array([0.0, 0.0, 1.0]) + (rng.normal(0, 0.05, (len(own), 3)) if sway_m else 0.0)
+    poses = [_look_at(c, a) for c, a in zip(centres, np.broadcast_to(aim, centres.shape), strict=True)]
+    R = np.stack([p[0] for p in poses])
+    t = np.stack([p[1] for p in poses])
+    f = 0.9 * width
+    K = np.array([[f, 0, width / 2], [0, f, hgt / 2], [0, 0, 1.0]])
+    X = skeleton_motion(own + offset)  # (F, P, 3)
+    Xc = np.einsum("fij,fpj->fpi", R, X) + t[:, None]
+    uv = Xc[..., :2] / Xc[..., 2:3] * f + K[:2, 2] + rng.normal(0, noise_px, (*Xc.shape[:2], 2))
+    ok = (Xc[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < hgt)
+    names = [f"p{i}" for i in range(X.shape[1])]
+    rows = [
+        (name, int(fi), names[pi], float(uv[fi, pi, 0]), float(uv[fi, pi, 1]))
+        for fi, pi in zip(*np.nonzero(ok), strict=True)
+    ]
+    return Handheld(name=name, tracks=Tracks.from_rows(rows), times=own, K=K, R=R, t=t, offset=offset)
+
+
+@dataclass(kw_only=True)
 class Errors:
     posed: int
     centre_pct: float  # max camera-centre error after a similarity, % of the camera spread

@@ -39,8 +39,9 @@ def _tracks(videos: list[str]) -> Tracks:
 
 
 def test_one_anchor_among_other_background_cameras_is_refused(tmp_path: Path) -> None:
-    """One background-posed static video fixes the subject path's frame but not its scale: its cameras would sit at
-    another scale than the background's handheld ones, so the static videos it would pose stay unposed, and say why."""
+    """One background-posed static video fixes the subject path's frame but not its scale, and the handheld video
+    the background posed has no tracks: the subject path's cameras would sit at another scale than the background's,
+    so the static videos it would pose stay unposed, and say why (tests/sfm/test_subject_posed.py: with tracks)."""
     plans = [_plan(tmp_path, "anchor", True), _plan(tmp_path, "free", True), _plan(tmp_path, "hand", False)]
     pose = FramePose(pose=pycolmap.Rigid3d(), source="sfm")
     results = {
@@ -56,12 +57,12 @@ def test_one_anchor_among_other_background_cameras_is_refused(tmp_path: Path) ->
     assert "not its scale" in section["why"] and "(hand)" in section["why"]
     assert all(r.pose is None and "not its scale" in r.reason for r in results["free"].values())
     assert results["anchor"][0].pose is not None and results["hand"][0].pose is not None
-    assert len(warnings) == 1 and "two static videos the background posed" in warnings[0]
+    assert len(warnings) == 1 and "track the subject in a video the background posed" in warnings[0]
 
 
 def test_no_anchor_beside_background_cameras_is_refused(tmp_path: Path) -> None:
-    """The background posed only a handheld video: the subject path's static cameras would be in a frame of their
-    own, beside it."""
+    """The background posed only a handheld video, which has no tracks: the subject path's static cameras would be in
+    a frame of their own, beside it."""
     plans = [_plan(tmp_path, "left", True), _plan(tmp_path, "right", True), _plan(tmp_path, "hand", False)]
     unposed = {f: FramePose(pose=None, reason="not in the background model") for f in range(30)}
     results = {
