@@ -17,11 +17,12 @@ import pycolmap
 from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, calibrate_from_board
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
-from sfm.register_posed import posed_video, static_anchor
+from sfm.register_posed import posed_video
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
 from sfm.subject.model import ScalePointsError
 from sfm.subject.observations import select_rows
-from sfm.subject.posed import align_to_posed
+from sfm.subject.posed import Alignment
+from sfm.subject.posed_bundle import solve_with_posed
 from sfm.subject.stability import Stability, check_stability
 from tracking.charuco import board_corner_positions, read_charuco_board
 from tracking.tracks import Tracks
@@ -109,32 +110,26 @@ def pose_from_subject(
             "ones), or register the static videos without the others"
         )
         return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
-    if by_posed:
-        inputs = [replace(v, cam_from_world=None) for v in inputs]  # solved free, then moved onto the posed videos
     subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
     subject_options = SubjectOptions(scale=scale)
     try:
-        try:
-            result = calibrate_from_subject(subject_tracks, inputs, subject_options)
-        except ScalePointsError as error:
-            if board is None or board.get("scale") is None:
-                raise
-            # the board's scale pair (not the user's) may never be triangulated together: arbitrary units instead
-            warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
-            board.update(scale=None, scale_why=str(error))
-            subject_options = SubjectOptions(scale=None)
-            result = calibrate_from_subject(subject_tracks, inputs, subject_options)
-        stability = check_stability(subject_tracks, inputs, result, subject_options)
-        aligned = None
         if by_posed:
-            posed_videos = [
-                posed_video(v, results[v.info.name], tracks, list(result.points))
-                for v in videos
-                if v.info.name in posed_tracked
-            ]
-            posed_videos += [static_anchor(v, results[v.name], tracks, result) for v in inputs if v.name in anchors]
-            aligned = align_to_posed(result, posed_videos, subject_options.max_offset)
-            aligned.apply(result)
+            result, aligned, stability = _solve_with_posed(
+                subject_tracks, inputs, posed_tracked, videos, results, tracks, subject_options
+            )
+        else:
+            aligned = None
+            try:
+                result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+            except ScalePointsError as error:
+                if board is None or board.get("scale") is None:
+                    raise
+                # the board's scale pair (not the user's) may never be triangulated together: arbitrary units
+                warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
+                board.update(scale=None, scale_why=str(error))
+                subject_options = SubjectOptions(scale=None)
+                result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+            stability = check_stability(subject_tracks, inputs, result, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
         return _refuse(
@@ -154,6 +149,28 @@ def pose_from_subject(
     if aligned is not None:
         section["posed_videos"] = aligned.to_json()
     return section
+
+
+def _solve_with_posed(
+    subject_tracks: Tracks,
+    inputs: list[SubjectVideo],
+    posed_names: list[str],
+    videos: list[VideoPlan],
+    results: dict[str, dict[int, FramePose]],
+    tracks: Tracks,
+    options: SubjectOptions,
+) -> tuple[SubjectResult, Alignment, Stability]:
+    """The static videos posed in the world of the tracked videos the background posed (`solve_with_posed`),
+    and the folds' check of the same solve (the posed videos kept whole, at their fitted offsets)."""
+    points = subject_tracks.point_names()
+    posed = [posed_video(v, results[v.info.name], tracks, points) for v in videos if v.info.name in posed_names]
+    result, aligned = solve_with_posed(subject_tracks, inputs, posed, options)
+    known = [replace(p, offset=aligned.fit(p.name).offset) for p in posed]
+
+    def fold(part: Tracks, fold_options: SubjectOptions) -> SubjectResult:
+        return solve_with_posed(part, inputs, known, fold_options)[0]
+
+    return result, aligned, check_stability(subject_tracks, inputs, result, options, solve=fold)
 
 
 def _refuse(

@@ -9,7 +9,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -49,6 +49,9 @@ class Bundle:
     # (C, 2) image centres the principal points are pulled to, None = principal points held
     pp_prior: np.ndarray | None = None
     pp_sigma: float = 0.0  # pixels; the prior weighs like all of the camera's observations
+    # positions in `cams` of videos posed frame by frame (handheld ones the background posed): (F, 3, 3) R and
+    # (F, 3) t cam_from_world per frame, held (also in `fixed_pose`); their rvec and t are unused
+    frame_poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 def _nk(b: Bundle) -> int:
@@ -128,7 +131,12 @@ def _model(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple
         k = np.clip(np.floor(u).astype(np.int64), 0, T - 2)
         w = np.clip(u - k, 0.0, 1.0)[:, None]
         P3 = (1 - w) * X[k, p] + w * X[k + 1, p]  # (M, 3)
-        Xc = P3 @ R[j].T + t[j]
+        if j in b.frame_poses:
+            frames = arrays[j][3]
+            Rf, tf = b.frame_poses[j]
+            Xc = np.einsum("mij,mj->mi", Rf[frames], P3) + tf[frames]
+        else:
+            Xc = P3 @ R[j].T + t[j]
         z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
         xy = Xc[:, :2] / z[:, None]
         o = obs[c]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,10 +76,12 @@ def check_stability(
     videos: list[SubjectVideo],
     result: SubjectResult,
     options: SubjectOptions | None = None,
+    solve: Callable[[Tracks, SubjectOptions], SubjectResult] | None = None,
 ) -> Stability:
     """Solve each fold of `tracks` and compare its cameras with `result` (the solution on all of them).
 
-    A similarity needs 3 cameras; with 2, their relative rotation is compared."""
+    `solve` (fold's tracks, options) -> solution: how `result` was found (default `calibrate_from_subject` on
+    `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared."""
     whole = _as_cameras(result.cameras)
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
@@ -92,7 +95,11 @@ def check_stability(
     )
     for fold in range(FOLDS):
         try:
-            part = calibrate_from_subject(_fold(tracks, videos, fold), videos, fold_options)
+            fold_tracks = _fold(tracks, videos, fold)
+            if solve is None:
+                part = calibrate_from_subject(fold_tracks, videos, fold_options)
+            else:
+                part = solve(fold_tracks, fold_options)
         except SubjectCalibrationError as error:
             failures.append(f"fold {fold + 1}: {error}")
             continue

@@ -94,7 +94,9 @@ def test_a_phone_that_does_not_move_is_refused(solved: SubjectResult) -> None:
     """One fixed viewpoint sees the trajectory's shape but not its size: refused, and the message says so."""
     phone = handheld(duration=DURATION, arc_deg=0.0, sway_m=0.0)
     video = posed_video(_plan("phone", phone.times, False), _phone_poses(phone), phone.tracks, list(solved.points))
-    with pytest.raises(SubjectCalibrationError, match="do not fix the subject path's scale: their cameras move 0.0 %"):
+    with pytest.raises(
+        SubjectCalibrationError, match=r"do not fix the subject path's scale: their cameras move 0\.0 %"
+    ):
         align_to_posed(solved, [video])
 
 
@@ -106,7 +108,9 @@ def test_tracks_of_another_subject_are_refused(solved: SubjectResult) -> None:
     tracks = Tracks.from_rows(
         [
             (v, int(f), swapped[p], float(x), float(y))
-            for v, f, p, (x, y) in zip(phone.tracks.video, phone.tracks.frame, phone.tracks.point, phone.tracks.xy)
+            for v, f, p, (x, y) in zip(
+                phone.tracks.video, phone.tracks.frame, phone.tracks.point, phone.tracks.xy, strict=True
+            )
         ]
     )
     video = posed_video(_plan("phone", phone.times, False), _phone_poses(phone), tracks, list(solved.points))
@@ -128,7 +132,7 @@ def test_register_joins_static_cameras_to_a_handheld_phone(rig: tuple[Tracks, li
     rows = [
         (v, int(f), p, float(x), float(y))
         for t in (tracks, phone.tracks)
-        for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy)
+        for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
     ]
     intrinsics = {v.name: (v.K, v.dist) for v in videos}
     warnings: list[str] = []
@@ -147,3 +151,38 @@ def test_register_joins_static_cameras_to_a_handheld_phone(rig: tuple[Tracks, li
     centre, rotation = _errors(cameras, truth)
     assert centre < 2.0 and rotation < 1.0
     assert results["phone"][5].pose is not None and results["phone"][5].source == "sfm"
+
+
+def test_one_static_anchor_and_a_phone(rig: tuple[Tracks, list, Truth]) -> None:
+    """The background posed one static video and the phone: the static anchor keeps the background's pose, the
+    phone fixes the scale, and the other static videos land in their world."""
+    tracks, videos, truth = rig
+    phone = handheld(duration=DURATION, offset=0.61, arc_deg=40.0)
+    plans = [_plan(v.name, v.times, True) for v in videos] + [_plan("phone", phone.times, False)]
+    results = {
+        v.name: {f: FramePose(pose=None, reason="not in the background model") for f in range(len(v.times))}
+        for v in videos[1:]
+    }
+    anchor = pycolmap.Rigid3d(pycolmap.Rotation3d(truth.R[0]), truth.t[0])
+    results[videos[0].name] = dict.fromkeys(range(len(videos[0].times)), FramePose(pose=anchor, source="sfm"))
+    results["phone"] = _phone_poses(phone)
+    rows = [
+        (v, int(f), p, float(x), float(y))
+        for t in (tracks, phone.tracks)
+        for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
+    ]
+    intrinsics = {v.name: (v.K, v.dist) for v in videos}
+    warnings: list[str] = []
+
+    section = pose_from_subject(plans, results, Tracks.from_rows(rows), intrinsics, RegisterOptions(), warnings)
+
+    assert section is not None and section["used"] and section["anchors"] == [videos[0].name], (section, warnings)
+    assert sorted(v["name"] for v in section["posed_videos"]["videos"]) == sorted([videos[0].name, "phone"])
+    assert results[videos[0].name][0].pose is not None and results[videos[0].name][0].source == "sfm"
+    cameras = {}
+    for v in videos[1:]:
+        pose = results[v.name][0].pose
+        assert pose is not None
+        cameras[v.name] = (pose.rotation.matrix(), np.asarray(pose.translation))
+    centre, rotation = _errors(cameras, truth)
+    assert centre < 2.0 and rotation < 1.0
