@@ -3,7 +3,7 @@
 The frames of unsynchronized videos have no common clock. When `dynrecon solve` recovered the videos' clocks
 (sequencing.json, key `clocks`), every frame has a global time: the export resamples each trajectory on a uniform
 grid of that clock at `rate_hz` (linear interpolation between reconstructed frames, never across a gap longer than
-`MAX_GAP_FACTOR` median frame spacings), and `clock_note` states the clocks' median uncertainty. Without clocks the
+`MAX_GAP_FACTOR` frame periods of the slowest video), and `clock_note` states the clocks' median uncertainty. Without clocks the
 order comes from the decoder times of cameras.json when every frame has one (exact within a video, but it assumes
 the videos started together), else from the solver's sequencing (a spectral ordering of the self-expression graph:
 local, and the spacing between rows is not measured); the rows are then frames, evenly spaced at `rate_hz`, so the
@@ -143,9 +143,7 @@ def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float) ->
     count = int(np.floor((float(times.max()) - start) * rate_hz + 1e-9)) + 1
     grid = start + np.arange(count) / rate_hz
     order = np.argsort(times, kind="stable")
-    gaps = np.diff(times[order])
-    positive = gaps[gaps > 0]
-    max_gap = MAX_GAP_FACTOR * (float(np.median(positive)) if positive.size else 1.0 / rate_hz)
+    max_gap = MAX_GAP_FACTOR * _frame_period(points, times, rate_hz)
     P = len(points.point_names)
     xyz = np.full((count, P, 3), np.nan)
     for p in range(P):
@@ -164,6 +162,19 @@ def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float) ->
             column = np.interp(grid, instants, values[:, k])
             xyz[inside, p, k] = column[inside]
     return xyz, grid - start
+
+
+def _frame_period(points: FramePoints, times: np.ndarray, rate_hz: float) -> float:
+    """The slowest video's median step between its frames (seconds of the global clock)."""
+    names = np.asarray(points.videos)
+    steps = []
+    for name in np.unique(names):
+        own = np.sort(times[names == name])
+        gaps = np.diff(own)
+        gaps = gaps[gaps > 0]
+        if gaps.size:
+            steps.append(float(np.median(gaps)))
+    return max(steps) if steps else 1.0 / rate_hz
 
 
 def global_order(

@@ -180,6 +180,23 @@ def test_trc_on_the_clock_is_a_uniform_resampling_of_linear_motion(tmp_path):
     np.testing.assert_allclose(back.xyz[ok, 1], expected[ok], atol=1e-6)
 
 
+def test_nearly_synchronized_videos_export_every_instant(tmp_path):
+    """Two 30 fps videos 1 ms apart: their pooled frame times alternate 1 ms and 32 ms gaps, but the gap that may
+    not be bridged is measured in the videos' own frame periods, so every grid time between frames is filled."""
+    own = np.arange(30) / 30.0
+    times = np.concatenate([own, own + 0.001])
+    xyz = (1.0 + times[:, None] * np.array([1.0, 2.0, 3.0]))[:, None, :]  # off the origin (TRC: 0 0 0 = empty)
+    points = FramePoints(
+        videos=["a"] * 30 + ["b"] * 30,
+        frames=np.concatenate([np.arange(30), np.arange(30)]),
+        point_names=["p"],
+        xyz=xyz,
+        observed=np.ones((60, 1), bool),
+    )
+    back = read_mocap(write_trc_export(points, None, 60.0, tmp_path / "s.trc", times=times))
+    assert len(back.times) > 50 and not np.isnan(back.xyz).any()
+
+
 def test_c3d_on_the_clock_carries_the_uncertainty_note(tmp_path):
     ezc3d = pytest.importorskip("ezc3d")
     from reconstruct.outputs.export import clock_note
