@@ -20,9 +20,15 @@ from sfm.video import ProbedVideo, read_frames
 JPEG_QUALITY = 95
 
 
+def sfm_folder(video: str) -> str:
+    """The video's folder in frames/ and masks/ (and its COLMAP image names): the name with `%` and whitespace
+    percent-encoded, since COLMAP's pair lists split image names at spaces."""
+    return "".join(f"%{ord(c):02X}" if c == "%" or c.isspace() else c for c in video)
+
+
 def image_name(video: str, frame: int) -> str:
     """COLMAP image name (relative to the frames folder) of a decoded frame."""
-    return f"{video}/{frame:06d}.jpg"
+    return f"{sfm_folder(video)}/{frame:06d}.jpg"
 
 
 def select_frames(
@@ -73,7 +79,7 @@ def write_frames(
     Files of an earlier run are reused only when they come from the same video file at the same size (a
     `.source` stamp in the folder says which); otherwise the folder is emptied first."""
     names = []
-    folder = frames_dir / check_video_name(info.name, info.path)  # the folder may be emptied: never `..`
+    folder = frames_dir / sfm_folder(check_video_name(info.name, info.path))  # the folder may be emptied: never `..`
     stat = info.path.stat()
     stamp = f"{info.path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{resize.width}x{resize.height}\n"
     marker = folder / ".source"

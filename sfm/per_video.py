@@ -32,7 +32,7 @@ from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
 from sfm import colmap_steps
 from sfm.export import colmap_params
-from sfm.frames import JPEG_QUALITY, Resize, image_name, select_frames, write_frames
+from sfm.frames import JPEG_QUALITY, Resize, image_name, select_frames, sfm_folder, write_frames
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
 from sfm.keyframes import KeyframeChoice, choose_keyframes, even_choice
@@ -205,7 +205,7 @@ def write_video_images(
     """The video's SfM images (sampled frames, or a static video's background image) and their masks in
     masks/<video>/ (emptied first: a stale mask would hide features of this run's frames). Returns the SfM image
     names and how many masks were written."""
-    video_masks = layout.mask_dir / video.info.name
+    video_masks = layout.mask_dir / sfm_folder(video.info.name)
     if video_masks.exists():
         shutil.rmtree(video_masks)
     masked = 0
@@ -329,7 +329,7 @@ def plan_extraction(out: Path, video: str, options: RegisterOptions, facts: Capt
     }
     mask_dir = layout.mask_dir if facts.masked else None
     images = [layout.frames_dir / name for name in prepared.images]
-    masks = sorted((mask_dir / video).rglob("*.png")) if mask_dir is not None else []
+    masks = sorted((mask_dir / sfm_folder(video)).rglob("*.png")) if mask_dir is not None else []
     key = input_key([args], options.max_features, files_key(images), files_key(masks))
     if not prepared.images:
         layout.features(video).unlink(missing_ok=True)  # an earlier run's features must not be merged

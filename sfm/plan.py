@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from sfm.frames import Resize
+from sfm.frames import Resize, sfm_folder
 from sfm.keyframes import KeyframeChoice
 from sfm.static import MotionTest
 from sfm.video import ProbedVideo
@@ -28,7 +28,7 @@ class VideoPlan:
     @property
     def background_name(self) -> str:
         """The SfM image name of a static video's background (relative to the frames folder)."""
-        return f"{self.info.name}/{BACKGROUND_IMAGE}.jpg"
+        return f"{sfm_folder(self.info.name)}/{BACKGROUND_IMAGE}.jpg"
 
 
 @dataclass(kw_only=True)

@@ -15,7 +15,7 @@ import pytest
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from sfm.evaluate import compare
 from sfm.export import colmap_params, opencv_intrinsics, read_ply, write_ply
-from sfm.frames import Resize, select_frames
+from sfm.frames import Resize, image_name, select_frames, sfm_folder
 from sfm.isolated import ColmapCrashError, run_isolated
 from sfm.masks import mask_from_points
 from sfm.pairs import build_pairs
@@ -34,6 +34,16 @@ def test_select_frames() -> None:
     assert thinned.tolist() == [0, 25, 50, 74, 99]
     variable = _info(np.array([0.0, 0.01, 0.5, 0.52, 1.0, 1.6]))  # decoder timestamps, not frame counts
     assert select_frames(variable, time_step=0.5, max_frames=0).tolist() == [0, 2, 4, 5]
+
+
+def test_sfm_image_names_have_no_whitespace() -> None:
+    """COLMAP's pair lists split image names at spaces: phone file names ("WhatsApp Video 1.mp4") are encoded in
+    the SfM folders, one to one (`%` encoded too), and plain names are unchanged."""
+    names = ["cam0", "WhatsApp Video 1", "WhatsApp%20Video 1", "tab\there", "50 %"]
+    folders = [sfm_folder(n) for n in names]
+    assert folders[0] == "cam0" and len(set(folders)) == len(names)
+    assert not any(c.isspace() for f in folders for c in f)
+    assert image_name("WhatsApp Video 1", 7) == "WhatsApp%20Video%201/000007.jpg"
 
 
 def test_build_pairs() -> None:
