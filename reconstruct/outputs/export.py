@@ -3,12 +3,12 @@
 The frames of unsynchronized videos have no common clock. When `dynrecon solve` recovered the videos' clocks
 (sequencing.json, key `clocks`), every frame has a global time: the export resamples each trajectory on a uniform
 grid of that clock at `rate_hz` (linear interpolation between reconstructed frames, never across a gap longer than
-`MAX_GAP_FACTOR` frame periods of the slowest video), and `clock_note` states the clocks' median uncertainty. Without clocks the
-order comes from the decoder times of cameras.json when every frame has one (exact within a video, but it assumes
-the videos started together), else from the solver's sequencing (a spectral ordering of the self-expression graph:
-local, and the spacing between rows is not measured); the rows are then frames, evenly spaced at `rate_hz`, so the
-time axis is nominal, which `TIMING_NOTE` says inside the C3D file (docs/formats.md for TRC, whose header has no
-room for comments).
+`MAX_GAP_FACTOR` frame periods of the slowest video), and `clock_note` states the clocks' median uncertainty.
+Without clocks the order comes from the decoder times of cameras.json when every frame has one (exact within a
+video, but it assumes the videos started together), else from the solver's sequencing (a spectral ordering of the
+self-expression graph: local, and the spacing between rows is not measured); the rows are then frames, evenly
+spaced at `rate_hz`, so the time axis is nominal, which `TIMING_NOTE` says inside the C3D file (docs/formats.md for
+TRC, whose header has no room for comments).
 """
 
 from __future__ import annotations
