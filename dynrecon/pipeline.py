@@ -58,8 +58,7 @@ from reconstruct.outputs.export import (
 from reconstruct.outputs.mocap import UNIT_TO_MM
 from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
-from reconstruct.stage import SolveOptions
-from reconstruct.stage import run as solve_run
+from reconstruct.stage import SolveOptions, solve
 from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply, write_ply
@@ -71,7 +70,7 @@ from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import read_tracks
+from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -338,6 +337,34 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
         )
 
 
+def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, options: SolveOptions) -> None:
+    """The solve of the tracks of the videos registration posed: a video it could not pose (its register report
+    says why) is left out of the solve with a warning, not an error, so that the others are still reconstructed."""
+    cameras = read_cameras(cameras_path)
+    tracks = read_tracks(tracks_path)
+    posed = {v.name for v in cameras.videos if v.frames}
+    left_out = sorted(set(tracks.video) - posed)
+    if left_out:
+        log.warning(
+            "%s: video(s) %s have tracks but registration posed none of their frames (%s says why): their tracks "
+            "are left out of the solve",
+            tracks_path,
+            ", ".join(left_out),
+            cameras_path.parent / "register_report.json",
+        )
+        index = np.flatnonzero([v in posed for v in tracks.video])
+        tracks = Tracks(
+            video=[tracks.video[i] for i in index],
+            frame=tracks.frame[index],
+            point=[tracks.point[i] for i in index],
+            xy=tracks.xy[index],
+            extra={k: [v[i] for i in index] for k, v in tracks.extra.items()},
+            line=None if tracks.line is None else tracks.line[index],
+            path=tracks.path,
+        )
+    solve(cameras, tracks, options).write(out)
+
+
 def _copy_into(source: Path, target: Path) -> None:
     """Copy a user's file into the workspace unless it already is that file; a different file already there (the
     labeling page's clicks) is kept beside it, with a warning, never overwritten."""
@@ -550,7 +577,7 @@ class Stages:
             {"cameras": registration.cameras, "tracks": tracks},
             {"solve": solve_options},
             solved,
-            lambda: solve_run(registration.cameras, tracks, ws, solve_options),
+            lambda: _solve_posed_videos(registration.cameras, tracks, ws, solve_options),
         )
 
     def record(self, registration: Registration, tracks: Path) -> None:

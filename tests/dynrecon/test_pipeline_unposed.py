@@ -1,0 +1,33 @@
+"""`run`'s solve stage when registration left a tracked video unposed: the others are still reconstructed."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_motion import smooth_motion
+
+from dynrecon.pipeline import _solve_posed_videos
+from reconstruct.outputs.points import read_points
+from reconstruct.stage import SolveOptions
+from sfm.cameras import write_cameras
+from simulation.simulate import SimulationOptions, simulate_capture
+from tracking.tracks import Tracks, write_tracks
+
+
+def test_tracks_of_a_video_registration_did_not_pose_are_left_out(tmp_path: Path, caplog: pytest.LogCaptureFixture):
+    capture = simulate_capture(smooth_motion(60, 4), 120.0, SimulationOptions(seed=3))
+    cameras = write_cameras(tmp_path / "cameras.json", capture.cameras)
+    t = capture.tracks
+    ghost = [("cam_unposed", int(f), p, 100.0 + f, 200.0) for f in range(10) for p in t.point_names()]
+    rows = [(v, int(f), p, float(x), float(y)) for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)]
+    tracks = write_tracks(tmp_path / "tracks.csv", Tracks.from_rows(rows + ghost))
+
+    with caplog.at_level(logging.WARNING, logger="dynrecon.pipeline"):
+        _solve_posed_videos(cameras, tracks, tmp_path / "out", SolveOptions(recording=None))
+
+    assert any("cam_unposed" in r.message and "left out of the solve" in r.message for r in caplog.records)
+    points = read_points(tmp_path / "out" / "points3d.csv")
+    assert "cam_unposed" not in set(points.videos) and np.isfinite(points.xyz).any()
