@@ -125,7 +125,9 @@ class PipelineOptions:
     skeleton: Path | None = None  # skeleton JSON for the recording (points and connections)
     calibration: Path | None = None  # a lab calibration (`dynrecon import-calibration`'s files): replaces SfM
     calibration_options: ImportCalibrationOptions = field(default_factory=ImportCalibrationOptions)  # format, units
-    units: str = "mm"  # unit label written into TRC/C3D (SfM worlds have an arbitrary scale)
+    # unit label written into TRC/C3D; None: the world's own (metres from a calibration, --scale or --board), else mm
+    # (an SfM world's scale is arbitrary, which register says)
+    units: str | None = None
     force: bool = False  # redo every stage
 
     def background_register(self) -> RegisterOptions:
@@ -283,7 +285,7 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()
-    if options.units not in UNIT_TO_MM:  # before the solve, not at its export
+    if options.units is not None and options.units not in UNIT_TO_MM:  # before the solve, not at its export
         raise InputError(None, f"--units {options.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
     if options.register.board is not None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
@@ -602,7 +604,7 @@ class Stages:
 
     def export(self, registration: Registration) -> None:
         """The `export` stage: WS/points.trc, points.c3d."""
-        ws, units = self.ws, self.options.units
+        ws, units = self.ws, self.options.units or _world_units(self.options, registration)
         files = {"cameras": registration.cameras, "points": ws / "points3d.csv", "sequencing": ws / "sequencing.json"}
         self.run(
             "export",
@@ -730,6 +732,20 @@ def _record(
         background=BackgroundCloud(xyz=xyz, colors=rgb),
         video_files={p.stem: p for p in videos if p.suffix.lower() == ".mp4"},
     )
+
+
+def _world_units(options: PipelineOptions, registration: Registration) -> str:
+    """The unit of the cameras' world: a calibration's (metres times its --scale), the subject path's metres (from
+    --scale or --board), else mm as a label (an SfM world has an arbitrary scale)."""
+    if options.calibration is not None:
+        named = {1.0: "m", 100.0: "cm", 1000.0: "mm"}
+        return named.get(float(options.calibration_options.scale), "mm")
+    report = registration.cameras.parent / "register_report.json"
+    try:
+        subject = json.loads(report.read_text(encoding="utf-8")).get("subject") or {}
+    except (OSError, ValueError, AttributeError):
+        return "mm"
+    return "m" if subject.get("units") == "m" else "mm"
 
 
 def _export(ws: Path, cameras_path: Path, units: str) -> None:

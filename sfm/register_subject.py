@@ -146,6 +146,9 @@ def pose_from_subject(
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
     section = {**_report(result, stability, posed, anchors, metric), "board": board}
+    # metres only when the scale came from --scale or the board; the background's units are its own
+    metres = result.metric and subject_options.scale is not None and len(anchors) < 2 and aligned is None
+    section["units"] = "m" if metres else None
     if aligned is not None:
         section["posed_videos"] = aligned.to_json()
     return section

@@ -335,6 +335,8 @@ def test_run_with_a_calibration_equals_import_track_solve_by_hand(calibrated: Pa
         assert (ws / ours).read_bytes() == (hand / theirs).read_bytes(), ours
     for name in ("register/background.ply", "recording.rrd", "points.trc", "points.c3d"):
         assert (ws / name).is_file(), name
+    # the calibration's world is in metres, and the exports say so (an SfM world's default label is mm)
+    assert (ws / "points.trc").read_text().splitlines()[2].split("\t")[4] == "m"
     # The batch uses a capture folder's calibration the same way: the same bytes.
     assert all(not o.failed for o in run_capture(read_capture(calibrated), tmp_path / "batch"))
     for name in ("register/cameras.json", "tracks.csv", "points3d.csv", "sequencing.json", "points.trc", "points.c3d"):

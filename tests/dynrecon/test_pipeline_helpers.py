@@ -1,7 +1,9 @@
-"""`run`'s solve stage when registration left a tracked video unposed: the others are still reconstructed."""
+"""Parts of `run` (dynrecon/pipeline.py): the solve when registration left a tracked video unposed, and the
+exports' unit label."""
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -9,10 +11,11 @@ import numpy as np
 import pytest
 from synthetic_motion import smooth_motion
 
-from dynrecon.pipeline import _solve_posed_videos
+from dynrecon.pipeline import PipelineOptions, Registration, _solve_posed_videos, _world_units
 from reconstruct.outputs.points import read_points
 from reconstruct.stage import SolveOptions
 from sfm.cameras import write_cameras
+from sfm.options import ImportCalibrationOptions
 from simulation.simulate import SimulationOptions, simulate_capture
 from tracking.tracks import Tracks, write_tracks
 
@@ -31,3 +34,26 @@ def test_tracks_of_a_video_registration_did_not_pose_are_left_out(tmp_path: Path
     assert any("cam_unposed" in r.message and "left out of the solve" in r.message for r in caplog.records)
     points = read_points(tmp_path / "out" / "points3d.csv")
     assert "cam_unposed" not in set(points.videos) and np.isfinite(points.xyz).any()
+
+
+@pytest.mark.parametrize(
+    ("subject", "calibration_scale", "label"),
+    [
+        ({"used": True, "metric": True, "units": "m"}, None, "m"),  # --scale or --board
+        ({"used": True, "metric": True, "units": None}, None, "mm"),  # the background's anchors: its own scale
+        (None, None, "mm"),  # background SfM: arbitrary, a nominal label
+        (None, 1.0, "m"),  # a calibration in metres
+        (None, 1000.0, "mm"),  # imported with --scale 1000
+    ],
+)
+def test_the_export_label_is_the_worlds_unit(
+    tmp_path: Path, subject: dict | None, calibration_scale: float | None, label: str
+) -> None:
+    (tmp_path / "register_report.json").write_text(json.dumps({"subject": subject}))
+    options = PipelineOptions()
+    if calibration_scale is not None:
+        options = PipelineOptions(
+            calibration=tmp_path / "calibration.toml",
+            calibration_options=ImportCalibrationOptions(scale=calibration_scale),
+        )
+    assert _world_units(options, Registration.in_folder(tmp_path)) == label
