@@ -10,6 +10,7 @@ pose is not determined by the data and is not trusted.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -31,6 +32,7 @@ FOLDS = 3  # fold k leaves out the blocks whose index is k modulo FOLDS
 # A garbage detector, not an accuracy bound: a fold holds 2/3 of the data, so valid poses move too.
 MAX_CENTRE = 0.1  # largest centre change between a fold and the whole, fraction of the camera spread
 MAX_ROTATION_DEG = 5.0
+MAX_TRIPLES = 220  # camera triples tried for the fold's similarity (all of them up to 12 cameras)
 
 
 @dataclass(kw_only=True)
@@ -82,7 +84,6 @@ def check_stability(
 
     `solve` (fold's tracks, options) -> solution: how `result` was found (default `calibrate_from_subject` on
     `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared."""
-    whole = _as_cameras(result.cameras)
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
     out = Stability()
@@ -105,12 +106,9 @@ def check_stability(
             continue
         common = [c for c in part.cameras if any(w.name == c.name for w in result.cameras)]
         if len(common) >= 3:
-            errors = compare(_as_cameras(common), whole)
-            for (name, _), centre, angle in zip(
-                errors.keys, errors.center_errors, errors.rotation_errors_deg, strict=True
-            ):
-                out.centre[name] = max(out.centre.get(name, 0.0), float(centre) / spread)
-                out.rotation_deg[name] = max(out.rotation_deg.get(name, 0.0), float(angle))
+            for name, (centre, angle) in _robust_errors(common, result.cameras, spread).items():
+                out.centre[name] = max(out.centre.get(name, 0.0), centre)
+                out.rotation_deg[name] = max(out.rotation_deg.get(name, 0.0), angle)
                 verified.add(name)
         elif len(common) == 2:
             a, b = (next(w for w in result.cameras if w.name == c.name) for c in common)
@@ -144,6 +142,41 @@ def check_stability(
                 f"not determined by the tracks: its rotation moves by {value:.1f} deg between folds of the data "
                 f"(> {MAX_ROTATION_DEG:g} deg)"
             )
+    return out
+
+
+def _robust_errors(
+    part: list[SubjectCamera], whole: list[SubjectCamera], spread: float
+) -> dict[str, tuple[float, float]]:
+    """Per camera of `part`: centre change (fraction of `spread`) and rotation change (deg) from `whole`, after
+    the similarity that most cameras agree with: fitted on every three cameras, the one with the most cameras
+    within the tolerances kept and fitted again on those. One camera a fold poses badly then spoils no other's
+    comparison (a similarity on all of them would carry its error to every camera)."""
+    reference = {c.name: c for c in whole}
+    best: tuple[int, float, list[SubjectCamera]] | None = None
+    for triple in itertools.islice(itertools.combinations(part, 3), MAX_TRIPLES):
+        errors = _errors_after(part, list(triple), reference, spread)
+        inside = [c for c in part if errors[c.name][0] <= MAX_CENTRE and errors[c.name][1] <= MAX_ROTATION_DEG]
+        score = sum(e[0] / MAX_CENTRE + e[1] / MAX_ROTATION_DEG for e in errors.values())
+        if best is None or (len(inside), -score) > (best[0], -best[1]):
+            best = (len(inside), score, inside if len(inside) >= 3 else list(triple))
+    assert best is not None
+    return _errors_after(part, best[2], reference, spread)
+
+
+def _errors_after(
+    part: list[SubjectCamera], fit: list[SubjectCamera], reference: dict[str, SubjectCamera], spread: float
+) -> dict[str, tuple[float, float]]:
+    """Errors of every camera of `part` after the similarity fitted on `fit` (sfm.evaluate.compare's)."""
+    aligned = compare(_as_cameras(fit), _as_cameras(list(reference.values())))
+    out = {}
+    for c in part:
+        ref = reference[c.name]
+        centre = aligned.scale * aligned.rotation @ c.centre + aligned.translation
+        out[c.name] = (
+            float(np.linalg.norm(centre - ref.centre)) / spread,
+            _angle(c.R @ aligned.rotation.T @ ref.R.T),
+        )
     return out
 
 
