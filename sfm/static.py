@@ -30,6 +30,7 @@ SAMPLES = 24  # frames sampled evenly along the video for the test and the media
 MAX_SHIFT = 0.006  # static when no sampled frame moves the background by more (fraction of long side)
 MIN_TRACKED = 0.2  # share of background corners that must survive the forward-backward check
 SETTLED = 0.0012  # samples within this shift (fraction of long side) sit at the camera's main position
+MIN_ODD = 2  # sampled frames off the background (shifted or lost) that make a camera moving
 MOVED = 0.002  # a static camera whose samples sit this far from it for MOVED_RUN samples in a row was bumped
 MOVED_RUN = 3  # (one sample off is a passing occlusion, not a move)
 
@@ -135,17 +136,30 @@ def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) ->
         tracked.append(float(good.mean()))
         shifts.append(_camera_shift(corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good], gray.shape) * to_original)
     limit = MAX_SHIFT * max(info.width, info.height)
+    # one odd sample (a damaged or smeared frame, a flash, a knock) does not make a camera move: a moving one
+    # is off in many samples
+    lost = np.array(tracked) < MIN_TRACKED
+    off = np.array(shifts) > limit
     worst = int(np.argmax(shifts))
-    if min(tracked) < MIN_TRACKED:
+    if lost.sum() >= MIN_ODD:
         at = int(np.argmin(tracked))
         static = False
         reason = f"moving: only {tracked[at]:.0%} of {count} background corners tracked into frame {int(frames[at])}"
-    elif shifts[worst] > limit:
+    elif (off | lost).sum() >= MIN_ODD:
         static = False
         reason = f"moving: background shifted {shifts[worst]:.1f} px at frame {int(frames[worst])} (> {limit:.1f} px)"
     else:
         static = True
-        reason = f"static: background shifts at most {shifts[worst]:.2f} px over {len(frames)} sampled frames"
+        steady = [shift for shift, odd in zip(shifts, off | lost, strict=True) if not odd]
+        reason = (
+            f"static: background shifts at most {max(steady, default=0.0):.2f} px over {len(frames)} sampled frames"
+        )
+        if (off | lost).any():
+            at = int(np.flatnonzero(off | lost)[0])
+            reason += (
+                f" (one odd sample ignored: frame {int(frames[at])}, {shifts[at]:.1f} px, {tracked[at]:.0%} of the "
+                "corners tracked)"
+            )
     long_side = max(info.width, info.height)
     settled = [int(f) for f, shift in zip(frames, shifts, strict=True) if shift <= SETTLED * long_side]
     return MotionTest(

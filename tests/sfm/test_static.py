@@ -119,3 +119,19 @@ def test_a_bumped_static_camera_is_reported_and_its_background_uses_the_main_pos
     assert test.to_json()["moved"] == test.moved
     undisturbed = measure_motion(info)
     assert undisturbed.moved is None and undisturbed.settled == undisturbed.frames
+
+
+def test_one_damaged_frame_does_not_make_a_static_camera_moving(mixed: list, tmp_path: Path) -> None:
+    """A decoder's smeared frame (here frame 6 of cam0 shifted 12 px and blurred) is one odd sample: the camera
+    stays static and the report says which sample was ignored; the handheld camera is still moving."""
+    info = probe_video(mixed[0].path)
+    path = tmp_path / "damaged.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (info.width, info.height))
+    shift = np.float32([[1, 0, 12.0], [0, 1, 5.0]])
+    for frame, image in read_frames(info.path, np.arange(info.num_frames)):
+        smeared = cv2.GaussianBlur(cv2.warpAffine(image, shift, (info.width, info.height)), (9, 9), 3)
+        writer.write(smeared if frame == 6 else image)
+    writer.release()
+    test = measure_motion(probe_video(path))
+    assert test.static and "one odd sample ignored: frame 6" in test.reason, test.reason
+    assert not measure_motion(probe_video(mixed[1].path)).static
