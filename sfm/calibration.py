@@ -408,14 +408,26 @@ SAME_ASPECT = 0.002  # width and height scale alike within this fraction: the vi
 _SIZE_WARNINGS: set[tuple[str, str, int, int]] = set()
 
 
+class TurnedVideoError(InputError):
+    """The video is the calibrated image turned by 90 degrees (portrait against landscape)."""
+
+
 def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: ProbedVideo, name: str) -> np.ndarray:
     """K (3, 3) of camera `name`, calibrated at `size` (width, height), in `video`'s pixels: unchanged at the
     calibrated size; scaled where the video is the calibrated image resized (one scale for both axes: a phone
     calibrated at 4K filming at 1080p); otherwise unchanged, with a warning, since a crop or a padding cannot be
-    told from the sizes alone."""
+    told from the sizes alone. TurnedVideoError where the video is the calibrated image turned by 90 degrees
+    (or resized and turned): the turn's direction is not in the sizes, and K unchanged would be wrong."""
     width, height = size
     if (video.width, video.height) == (width, height):
         return K
+    if width != height and abs(video.width / height - video.height / width) <= SAME_ASPECT * video.width / height:
+        raise TurnedVideoError(
+            video.path,
+            f"is {video.width}x{video.height}, camera {name!r} was calibrated at {width}x{height}: the video is "
+            "the calibrated image turned by 90 degrees (portrait against landscape)",
+            fix="calibrate the camera in the video's orientation, or leave it out of the calibration file",
+        )
     sx, sy = video.width / width, video.height / height
     sizes = f"{video.path} is {video.width}x{video.height}, camera {name!r} was calibrated at {width}x{height}"
     if abs(sx - sy) <= SAME_ASPECT * max(sx, sy):
@@ -494,6 +506,7 @@ __all__ = [
     "CalibrationFormat",
     "ImportCalibrationOptions",
     "StaticCamera",
+    "TurnedVideoError",
     "Units",
     "intrinsics_at_video_size",
     "match_cameras",

@@ -3,14 +3,18 @@ file."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from dynrecon.errors import InputError
-from sfm.calibration import intrinsics_at_video_size, match_cameras, read_calibration
+from sfm.calibration import TurnedVideoError, intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
+
+log = logging.getLogger(__name__)
+_TURNED: set[tuple[str, str]] = set()  # registration reads the intrinsics in several steps: one warning per video
 
 
 def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
@@ -26,7 +30,13 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
             if not video.frames:
                 raise InputError(path, f"video {info.name!r} has no frames to take intrinsics from")
             first = video.frames[0]
-            K = intrinsics_at_video_size(first.K, (video.width, video.height), info, info.name)
+            try:
+                K = intrinsics_at_video_size(first.K, (video.width, video.height), info, info.name)
+            except TurnedVideoError as error:
+                if (str(path), info.name) not in _TURNED:
+                    _TURNED.add((str(path), info.name))
+                    log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)
+                continue
             result[info.name] = (K, first.dist)
         if not result:
             raise InputError(
@@ -36,7 +46,15 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
             )
         return result
     matched = match_cameras(read_calibration(path), infos, path)
-    return {
-        info.name: (intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name), camera.dist)
-        for info, camera in zip(infos, matched, strict=True)
-    }
+    result = {}
+    for info, camera in zip(infos, matched, strict=True):
+        try:
+            K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name)
+        except TurnedVideoError as error:
+            # its intrinsics are estimated from the data instead (a turned K is a guess: its direction is unknown)
+            if (str(path), info.name) not in _TURNED:
+                _TURNED.add((str(path), info.name))
+                log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)
+            continue
+        result[info.name] = (K, camera.dist)
+    return result

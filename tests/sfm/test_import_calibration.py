@@ -11,6 +11,7 @@ import pytest
 from dynrecon.cli import main
 from dynrecon.errors import InputError
 from sfm.calibration import StaticCamera, Units, read_calibration, read_qca, read_toml, write_toml
+from sfm.calibration import run as import_calibration
 from sfm.cameras import FrameCamera, read_cameras
 from sfm.intrinsics import known_intrinsics
 from sfm.video import probe_video
@@ -377,3 +378,20 @@ def test_a_video_resized_from_the_calibrated_size_gets_scaled_intrinsics(
         kept, _ = known_intrinsics(toml, [probe_video(other)])["cam1"]
     np.testing.assert_array_equal(kept, K)
     assert "another aspect ratio" in caplog.text and "cam1.mp4 is 64x40" in caplog.text
+
+
+def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A portrait video of a camera calibrated in landscape (or the reverse): `register --intrinsics` estimates
+    that video's intrinsics instead of using a K that does not fit it, and `import-calibration`, whose poses would
+    be wrong too, refuses it in one line."""
+    K = np.array([[200.0, 0.0, 61.0], [0.0, 202.0, 45.5], [0.0, 0.0, 1.0]])
+    camera = StaticCamera(name="cam_1", width=128, height=96, K=K, dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))
+    toml = write_toml(tmp_path / "calib.toml", [camera])
+    turned = tmp_path / "turned" / "cam1.mp4"
+    turned.parent.mkdir()
+    _write_video(turned, 3, (48, 64))  # portrait, half size
+    with caplog.at_level("WARNING"):
+        assert known_intrinsics(toml, [probe_video(turned)]) == {}
+    assert "turned by 90 degrees" in caplog.text and "estimated from the data instead" in caplog.text
+    with pytest.raises(InputError, match="turned by 90 degrees"):
+        import_calibration(toml, [turned], tmp_path / "ws")
