@@ -502,7 +502,12 @@ class Stages:
         except RegistrationError as error:
             if options.tracks is None and self.labels is None and not (self.ws / "tracks.csv").is_file():
                 raise
-            log.warning("%s; the static videos will be posed from the subject's tracks after tracking", error)
+            log.warning(
+                "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
+                "after tracking (the subject stage)",
+                error.what,
+                error.report or "register_report.json",
+            )
             return error
         return None
 

@@ -62,7 +62,13 @@ _wanted_frames = wanted_frames  # its older name (tests)
 
 
 class RegistrationError(DynreconError):
-    """SfM could not put at least two videos into one model."""
+    """SfM could not put at least two videos into one model. `what`: how many videos were posed; `report`: the
+    register_report.json that says why."""
+
+    def __init__(self, message: str, *, what: str = "", report: Path | None = None) -> None:
+        super().__init__(message)
+        self.what = what or message
+        self.report = report
 
 
 MIN_SCALE_M, MAX_SCALE_M = 1e-6, 1e6  # --scale distances outside this are a typo, not a subject
@@ -497,7 +503,7 @@ def _fail(
         )
     message = f"{what}; cameras.json not written: {hint}. Details: {out / 'register_report.json'}"
     _write_report(out, options, notes, unreadable, videos, results, summary, subject, error=message)
-    raise RegistrationError(message)
+    raise RegistrationError(message, what=what, report=out / "register_report.json")
 
 
 __all__ = [
