@@ -726,6 +726,9 @@ def _record(
     keys = [(v, int(f)) for v, f in zip(points.videos, points.frames, strict=True)]
     known = set(points.point_names)
     skeleton = [(a, b) for a, b in bones if a in known and b in known]
+    other = [p.name for p in videos if p.suffix.lower() != ".mp4"]
+    if other:  # rerun plays videos in .mp4 only (it refuses QuickTime's .mov, whatever the codec)
+        log.info("recording: %s not embedded (rerun plays .mp4 files; remux with ffmpeg -c copy)", ", ".join(other))
     write_recording(
         ws / "recording.rrd",
         cameras=cameras,

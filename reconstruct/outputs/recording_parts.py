@@ -19,6 +19,7 @@ from sfm.cameras import CameraSet, VideoCameras
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
+MAX_PREROLL = 60  # container samples before the first decoded frame searched when matching frames to samples
 
 POINTS_CLASS_ID = 0
 Columns = Iterable[rr.ComponentColumn]
@@ -360,8 +361,10 @@ def log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path, lookup: 
             error,
         )
         return
-    numbers = np.array(sorted(f.frame for f in video.frames), dtype=np.int64)
-    beyond = numbers >= len(timestamps)
+    frames = sorted(video.frames, key=lambda f: f.frame)
+    numbers = np.array([f.frame for f in frames], dtype=np.int64)
+    samples = _video_samples(timestamps, numbers, [f.time for f in frames])
+    beyond = samples < 0
     if beyond.any():
         log.warning(
             "%s has %d frames but cameras.json poses frame %d of video %r: those have no image",
@@ -370,16 +373,36 @@ def log_video(rec: rr.RecordingStream, video: VideoCameras, file: Path, lookup: 
             int(numbers[beyond][0]),
             video.name,
         )
-        numbers = numbers[~beyond]
+        numbers, samples = numbers[~beyond], samples[~beyond]
     rec.log(entity, asset, static=True)
     if len(numbers) == 0:
         return
-    refs = timestamps[numbers]
+    refs = timestamps[samples]
 
     def columns(mask: np.ndarray) -> Columns:
         return rr.VideoFrameReference.columns_nanos(refs[mask])
 
     send_rows(rec, entity, video.name, numbers, video_global_time(video, numbers, lookup), columns)
+
+
+def _video_samples(timestamps: np.ndarray, numbers: np.ndarray, times: list[float | None]) -> np.ndarray:
+    """(F,) the video file's sample of each decoded frame `numbers` (F,) (-1 = none). A container may hold samples
+    the decoder never shows (an edit list's preroll after a stream-copy trim, damaged frames), so a frame's number
+    is not its sample's: with decoder times, the frames are matched to the samples by time, the samples' start
+    chosen where the most frames land on a sample; without, sample n is frame n."""
+    by_number = np.where(numbers < len(timestamps), numbers, -1)
+    if len(timestamps) < 2 or any(t is None for t in times):
+        return by_number
+    t = np.array(times, dtype=float)  # seconds from the first decoded frame
+    ts = (timestamps - timestamps[0]) / 1e9
+    step = float(np.median(np.diff(ts)))
+    best, best_hits = by_number, -1
+    for start in ts[: MAX_PREROLL + 1]:
+        index = np.clip(np.searchsorted(ts, t + start - 0.5 * step), 0, len(ts) - 1)
+        hits = np.abs(ts[index] - (t + start)) <= 0.25 * step
+        if hits.sum() > best_hits:
+            best, best_hits = np.where(hits, index, -1), int(hits.sum())
+    return best if best_hits >= 0.5 * len(numbers) else by_number
 
 
 def log_residual(

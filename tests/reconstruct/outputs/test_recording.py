@@ -17,6 +17,7 @@ from reconstruct.outputs.recording_parts import (
     LABEL_COLOR,
     OTHER_SOURCE_COLOR,
     TRACK_COLOR,
+    _video_samples,
     camera_entity,
     point_colors,
     project,
@@ -385,9 +386,10 @@ def test_video_files_embedded_with_frame_references(tmp_path: Path, caplog: pyte
     too-short files and unknown videos are skipped with a warning, and the rest of the recording is intact."""
     cameras, points = make_scene()  # posed frames: left 0,3,6,9; right 1,4,7,10; top 2,5,8,11
     files = {
-        "left": write_video(tmp_path / "left.mp4", "vp09", 12),
-        "right": write_video(tmp_path / "right.mp4", "mp4v", 12),
-        "top": write_video(tmp_path / "top.mp4", "vp09", 6),
+        # at the scene's 30 fps: frame n's decoder time (cameras.json) is its sample's
+        "left": write_video(tmp_path / "left.mp4", "vp09", 12, fps=30.0),
+        "right": write_video(tmp_path / "right.mp4", "mp4v", 12, fps=30.0),
+        "top": write_video(tmp_path / "top.mp4", "vp09", 6, fps=30.0),
         "nobody": tmp_path / "nobody.mp4",
     }
     with caplog.at_level("WARNING", logger="reconstruct.outputs.recording"):
@@ -404,7 +406,7 @@ def test_video_files_embedded_with_frame_references(tmp_path: Path, caplog: pyte
     found = rrd_reader.entities(path)
     assert "/world/cameras/left/image" in found and "/world/cameras/right/image" not in found
     refs = rrd_reader.component_rows(path, "/world/cameras/left/image", "VideoFrameReference:timestamp", "frame:left")
-    assert {f: int(v[0]) for f, v in refs.items()} == {0: 0, 3: 300_000_000, 6: 600_000_000, 9: 900_000_000}
+    assert {f: round(int(v[0]) / 1e6) for f, v in refs.items()} == {0: 0, 3: 100, 6: 200, 9: 300}  # ms
     top = rrd_reader.component_rows(path, "/world/cameras/top/image", "VideoFrameReference:timestamp", "global_time")
     assert len(top) == 2  # frames 2 and 5; 8 and 11 lie beyond the 6-frame file
     blob = rrd_reader.static_component(path, "/world/cameras/left/image", "AssetVideo:blob")
@@ -442,3 +444,14 @@ def test_unknown_track_source_gets_its_own_colour(tmp_path: Path) -> None:
         path, f"/world/cameras/{VIDEOS[0]}/image/tracks", "Points2D:colors", f"frame:{VIDEOS[0]}"
     )[0]
     assert colors[:3].tolist() == [rgba(LABEL_COLOR), rgba(TRACK_COLOR), rgba(OTHER_SOURCE_COLOR)]
+
+
+def test_frames_take_their_own_samples_across_a_damaged_stretch() -> None:
+    """A file with 30 samples at 30 fps whose samples 10-14 do not decode: decoded frame 10 is sample 15 (by its
+    decoder time), not sample 10; an intact file maps frame n to sample n."""
+    timestamps = (np.arange(30) * 1e9 / 30).astype(np.int64)
+    decoded = np.r_[0:10, 15:30]  # the samples the decoder returned, numbered 0..24 as frames
+    frames = np.arange(len(decoded))
+    samples = _video_samples(timestamps, frames, list(decoded / 30.0))
+    np.testing.assert_array_equal(samples, decoded)
+    np.testing.assert_array_equal(_video_samples(timestamps, np.arange(30), list(np.arange(30) / 30.0)), np.arange(30))
