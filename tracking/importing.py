@@ -151,6 +151,15 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
     rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
     imported_videos: set[str] = set()
+    if options.board is not None:  # videos: their names must differ (two phones' IMG_0001.MOV), checked first
+        names = [Path(p).stem for p in inputs]
+        twice = next((i for i, name in enumerate(names) if name in names[:i]), None)
+        if twice is not None:
+            raise InputError(
+                Path(inputs[twice]),
+                f"video name {names[twice]!r} is used twice",
+                fix="video names (file names without extension) must be unique: rename one of the videos",
+            )
     for path in inputs:
         fmt, detections = read_detections(Path(path), options)
         kept = 0

@@ -215,3 +215,10 @@ def test_import_goes_on_when_one_video_never_shows_the_board(tmp_path: Path) -> 
     assert set(read_tracks(out).video) == {"cam_a"}
     with pytest.raises(InputError, match="found in no frame of any video"):
         run_import([tmp_path / "cam_b.avi"], tmp_path / "u.csv", ImportOptions(board=board))
+    # two phones' IMG_0001: refused before any decoding, naming the name (not two detections of one corner)
+    for phone in ("phone_a", "phone_b"):
+        (tmp_path / phone).mkdir()
+        (tmp_path / phone / "IMG_0001.avi").write_bytes((tmp_path / "cam_a.avi").read_bytes())
+    twice = [tmp_path / "phone_a" / "IMG_0001.avi", tmp_path / "phone_b" / "IMG_0001.avi"]
+    with pytest.raises(InputError, match="video name 'IMG_0001' is used twice"):
+        run_import(twice, tmp_path / "v.csv", ImportOptions(board=board))
