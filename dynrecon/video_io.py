@@ -16,6 +16,7 @@ through videos here, so that frame n of a video is the same image, at the same s
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import cv2
@@ -24,6 +25,9 @@ import numpy as np
 from dynrecon.errors import InputError
 
 log = logging.getLogger(__name__)
+# FFmpeg complains once per damaged packet (hundreds of lines for one bad file); the probe's warning says it once.
+# Read when OpenCV's FFmpeg backend opens its first video: every reader opens videos here.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 # Consecutive undecodable packets after which a video is taken to have ended (at the end every grab fails at once).
 MAX_SKIPPED = 256
