@@ -17,7 +17,7 @@ COMMANDS = {"batch": "many capture folders on Dask (this machine, or a cluster's
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
-    from dynrecon.pipeline_cli import add_calibration_arguments
+    from dynrecon.pipeline_cli import add_calibration_arguments, add_units_argument
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
@@ -57,7 +57,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "one lab calibration for every capture that has none of its own (what `dynrecon import-calibration` "
         "reads): imported instead of the SfM registration",
     )
-    parser.add_argument("--units", default="mm", help="unit label of the TRC/C3D exports")
+    add_units_argument(parser)
     parser.add_argument("--force", action="store_true", help="redo every stage of every capture")
     parser.set_defaults(func=_batch)
 

@@ -364,7 +364,7 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
             line=None if tracks.line is None else tracks.line[index],
             path=tracks.path,
         )
-    solve(cameras, tracks, options).write(out)
+    solve(cameras_path, tracks, options).write(out)  # the path: report.json names its inputs
 
 
 def _copy_into(source: Path, target: Path) -> None:

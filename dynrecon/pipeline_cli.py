@@ -87,14 +87,19 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         "a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, .qca, "
         ".xml): imported instead of the SfM registration",
     )
+    add_units_argument(parser)
+    parser.add_argument("--force", action="store_true", help="redo every stage")
+    parser.set_defaults(func=_run)
+
+
+def add_units_argument(parser: argparse.ArgumentParser) -> None:
+    """`--units` of `dynrecon run` and `dynrecon batch`."""
     parser.add_argument(
         "--units",
         default=None,
         help="unit label of the TRC/C3D exports (default: m when the world is metric: a calibration, --scale or "
         "--board; else mm, a nominal label of an arbitrary scale)",
     )
-    parser.add_argument("--force", action="store_true", help="redo every stage")
-    parser.set_defaults(func=_run)
 
 
 def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration: str) -> None:

@@ -41,6 +41,7 @@ def posed_video(video: VideoPlan, frames: dict[int, FramePose], tracks: Tracks, 
         t=t,
         xy=norm,
         focal=focal,
+        points=list(points),
         width=video.info.width,
         height=video.info.height,
     )

@@ -114,6 +114,15 @@ def pose_from_subject(
     subject_options = SubjectOptions(scale=scale)
     try:
         if by_posed:
+            if subject_options.scale is not None:
+                # the posed videos set the background's scale: a scale pair would be overridden (or refuse the path)
+                warnings.append(
+                    f"{'--board' if board is not None and board.get('scale') else '--scale'}: not used: the videos the "
+                    "background posed set the scale (the background's own units)"
+                )
+                if board is not None and board.get("scale"):
+                    board.update(scale=None, scale_why="the videos the background posed set the scale")
+                subject_options = SubjectOptions(scale=None)
             result, aligned, stability = _solve_with_posed(
                 subject_tracks, inputs, posed_tracked, videos, results, tracks, subject_options
             )
@@ -168,7 +177,8 @@ def _solve_with_posed(
     points = subject_tracks.point_names()
     posed = [posed_video(v, results[v.info.name], tracks, points) for v in videos if v.info.name in posed_names]
     result, aligned = solve_with_posed(subject_tracks, inputs, posed, options)
-    known = [replace(p, offset=aligned.fit(p.name).offset) for p in posed]
+    # the folds: the videos the whole solve kept, at its offsets (their columns follow each fold's points by name)
+    known = [replace(p, offset=aligned.fit(p.name).offset) for p in posed if aligned.fit(p.name).reason is None]
 
     def fold(part: Tracks, fold_options: SubjectOptions) -> SubjectResult:
         return solve_with_posed(part, inputs, known, fold_options)[0]

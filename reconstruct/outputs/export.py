@@ -3,7 +3,7 @@
 The frames of unsynchronized videos have no common clock. When `dynrecon solve` recovered the videos' clocks
 (sequencing.json, key `clocks`), every frame has a global time: the export resamples each trajectory on a uniform
 grid of that clock at `rate_hz` (linear interpolation between reconstructed frames, never across a gap longer than
-`MAX_GAP_FACTOR` frame periods of the slowest video), and `clock_note` states the clocks' median uncertainty.
+`MAX_GAP_FACTOR` frame periods of the fastest video), and `clock_note` states the clocks' median uncertainty.
 Without clocks the order comes from the decoder times of cameras.json when every frame has one (exact within a
 video, but it assumes the videos started together), else from the solver's sequencing (a spectral ordering of the
 self-expression graph: local, and the spacing between rows is not measured); the rows are then frames, evenly
@@ -165,7 +165,7 @@ def resample_on_clock(points: FramePoints, times: np.ndarray, rate_hz: float) ->
 
 
 def _frame_period(points: FramePoints, times: np.ndarray, rate_hz: float) -> float:
-    """The slowest video's median step between its frames (seconds of the global clock)."""
+    """The fastest video's median step between its frames (seconds of the global clock)."""
     names = np.asarray(points.videos)
     steps = []
     for name in np.unique(names):
@@ -174,7 +174,7 @@ def _frame_period(points: FramePoints, times: np.ndarray, rate_hz: float) -> flo
         gaps = gaps[gaps > 0]
         if gaps.size:
             steps.append(float(np.median(gaps)))
-    return max(steps) if steps else 1.0 / rate_hz
+    return min(steps) if steps else 1.0 / rate_hz
 
 
 def global_order(

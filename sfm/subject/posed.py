@@ -39,8 +39,9 @@ class PosedVideo:
     times: np.ndarray  # (F,) own seconds of every frame
     R: np.ndarray  # (F, 3, 3) cam_from_world, NaN where the frame has no pose
     t: np.ndarray  # (F, 3)
-    xy: np.ndarray  # (F, P, 2) undistorted normalized coordinates (points in the trajectory's order), NaN = unseen
+    xy: np.ndarray  # (F, P, 2) undistorted normalized coordinates of `points`, NaN = unseen
     focal: np.ndarray  # (F,) pixels per normalized unit: residuals in pixels
+    points: list[str]  # (P,) the point names of xy's columns
     offset: float | None = None  # known clock offset (global = own + offset), None = searched
     width: int = 0  # pixels (reports only)
     height: int = 0
@@ -48,6 +49,20 @@ class PosedVideo:
     @property
     def period(self) -> float:
         return float(np.median(np.diff(self.times))) if len(self.times) > 1 else 1.0 / 30
+
+    def columns(self, points: list[str]) -> np.ndarray:
+        """(F, len(points), 2): xy in the order of `points` (a trajectory's; NaN for points this video lacks)."""
+        return in_order(self.xy, self.points, points)
+
+
+def in_order(values: np.ndarray, names: list[str], points: list[str]) -> np.ndarray:
+    """(F, len(names), 2) columns named `names` -> (F, len(points), 2) in `points`' order (NaN where absent)."""
+    out = np.full((values.shape[0], len(points), 2), np.nan)
+    index = {name: i for i, name in enumerate(names)}
+    for j, name in enumerate(points):
+        if name in index:
+            out[:, j] = values[:, index[name]]
+    return out
 
 
 def observed(tracks: Tracks, name: str, n_frames: int, points: list[str]) -> np.ndarray:
@@ -158,7 +173,7 @@ def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: f
         h=float(result.times[1] - result.times[0]),
         X=np.stack([result.points[n] for n in names], axis=1),
     )
-    rows = [_rows(video) for video in posed]
+    rows = [_rows(video, names) for video in posed]
     fits: list[PosedFit] = []
     starts: list[tuple[float, np.ndarray] | None] = []
     for video, mine in zip(posed, rows, strict=True):
@@ -202,16 +217,16 @@ def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: f
     return alignment
 
 
-def _rows(video: PosedVideo) -> _Rows:
+def _rows(video: PosedVideo, points: list[str]) -> _Rows:
+    """The video's observations on its posed frames, points numbered as in `points` (the trajectory's)."""
+    xy = video.columns(points)
     posed = np.isfinite(video.R[:, 0, 0])
-    seen = np.isfinite(video.xy[..., 0]) & posed[:, None]  # (F, P)
+    seen = np.isfinite(xy[..., 0]) & posed[:, None]  # (F, P)
     stride = max(1, int(np.ceil(seen.sum() / MAX_OBSERVATIONS)))
     frames = np.flatnonzero(seen.any(1))[::stride]
     f, p = np.nonzero(seen[frames])
     f = frames[f]
-    return _Rows(
-        own=video.times[f], point=p, x=video.xy[f, p], R=video.R[f], t=video.t[f], focal=video.focal[f], frame=f
-    )
+    return _Rows(own=video.times[f], point=p, x=xy[f, p], R=video.R[f], t=video.t[f], focal=video.focal[f], frame=f)
 
 
 def _subset(rows: _Rows, n: int) -> _Rows:
@@ -345,6 +360,12 @@ def _search(
         residual_px=float("nan"),
         runner_up_ratio=ratio,
     )
+    if not len(rows.own):
+        fit.reason = (
+            "none of its tracked frames has a pose (its tracks and its posed frames do not overlap): track the "
+            "subject where the background posed it"
+        )
+        return fit, None
     if params is None or inliers < MIN_INLIERS:
         fit.reason = (
             f"only {inliers} of its tracked observations fit the subject path's trajectory at any clock offset "

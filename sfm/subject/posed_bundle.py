@@ -21,8 +21,8 @@ from sfm.subject.model import (
     SubjectResult,
     SubjectVideo,
 )
-from sfm.subject.observations import VideoObs, build_observations, normalize
-from sfm.subject.posed import Alignment, PosedVideo, align_to_posed, observed
+from sfm.subject.observations import VideoObs, build_observations, normalize, select_rows
+from sfm.subject.posed import Alignment, PosedVideo, align_to_posed, in_order, observed
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -57,6 +57,7 @@ def _static_posed(video: SubjectVideo, tracks: Tracks, result: SubjectResult, po
         t=np.broadcast_to(np.asarray(t, dtype=float), (F, 3)).copy(),
         xy=normalize(observed(tracks, video.name, F, points), camera.K, camera.dist),
         focal=np.full(F, 0.5 * (camera.K[0, 0] + camera.K[1, 1])),
+        points=points,
         offset=camera.offset,
         width=video.width,
         height=video.height,
@@ -74,10 +75,13 @@ def adjust_with_posed(
     statics = [
         dataclasses.replace(by_name[c.name], K=c.K, dist=c.dist, cam_from_world=None) for c in result.cameras
     ]  # intrinsics as solved: held
-    points, obs = build_observations(tracks, statics)
-    if points != list(result.points):
-        raise SubjectCalibrationError("internal: the tracks' points differ from the trajectory's")  # a caller's bug
-    obs += [_posed_obs(v) for v in anchors]
+    static_names = {v.name for v in statics}
+    # the videos the subject path posed (a refused one's rows are not "unknown"), columns in the trajectory's order
+    found, obs = build_observations(select_rows(tracks, np.array([v in static_names for v in tracks.video])), statics)
+    points = list(result.points)
+    for o in obs:
+        o.xy, o.norm = in_order(o.xy, found, points), in_order(o.norm, found, points)
+    obs += [_posed_obs(v, points) for v in anchors]
     offsets = np.array([c.offset for c in result.cameras] + [alignment.fit(v.name).offset for v in anchors])
     n = len(result.cameras)
     knots = Knots(
@@ -109,6 +113,10 @@ def adjust_with_posed(
         depth=float(np.median(np.linalg.norm(knots.X[finite] - centre, axis=-1))) if finite.any() else 1.0,
         frame_poses={n + i: (v.R, v.t) for i, v in enumerate(anchors)},
     )
+    end = knots.t0 + (len(knots.X) - 1) * knots.h
+    for i, video in enumerate(anchors):  # a phone filming longer than the static cameras: only the shared span
+        clock = video.times + offsets[n + i]
+        bundle.keep[n + i] &= ((clock >= knots.t0) & (clock <= end))[:, None]
     adjust(bundle, obs, INLIER_PX, rounds=1)  # started near its optimum; the static videos' outliers are known
     bundle.knots.X[~supported(bundle, obs)] = np.nan
     errors = residuals_px(bundle, obs)
@@ -144,10 +152,11 @@ def adjust_with_posed(
     )
 
 
-def _posed_obs(video: PosedVideo) -> VideoObs:
-    """A posed video as bundle observations: normalized coordinates (known intrinsics), on its posed frames."""
+def _posed_obs(video: PosedVideo, points: list[str]) -> VideoObs:
+    """A posed video as bundle observations: normalized coordinates (known intrinsics) of `points`, on its posed
+    frames."""
     posed = np.isfinite(video.R[:, 0, 0])
-    norm = np.where(posed[:, None, None], video.xy, np.nan)
+    norm = np.where(posed[:, None, None], video.columns(points), np.nan)
     focal = float(np.nanmedian(video.focal)) if np.isfinite(video.focal).any() else 1.0
     K = np.array([[focal, 0.0, 0.0], [0.0, focal, 0.0], [0.0, 0.0, 1.0]])
     return VideoObs(

@@ -154,7 +154,11 @@ def _robust_errors(
     comparison (a similarity on all of them would carry its error to every camera)."""
     reference = {c.name: c for c in whole}
     best: tuple[int, float, list[SubjectCamera]] | None = None
-    for triple in itertools.islice(itertools.combinations(part, 3), MAX_TRIPLES):
+    triples = list(itertools.combinations(part, 3))
+    if len(triples) > MAX_TRIPLES:  # an even sample over all cameras (the first ones would favour the first cameras)
+        pick = np.random.default_rng(0).choice(len(triples), MAX_TRIPLES, replace=False)
+        triples = [triples[i] for i in sorted(pick)]
+    for triple in triples:
         errors = _errors_after(part, list(triple), reference, spread)
         inside = [c for c in part if errors[c.name][0] <= MAX_CENTRE and errors[c.name][1] <= MAX_ROTATION_DEG]
         score = sum(e[0] / MAX_CENTRE + e[1] / MAX_ROTATION_DEG for e in errors.values())

@@ -197,6 +197,26 @@ def test_nearly_synchronized_videos_export_every_instant(tmp_path):
     assert len(back.times) > 50 and not np.isnan(back.xyz).any()
 
 
+def test_a_video_reconstructed_on_few_frames_bridges_no_gap(tmp_path):
+    """Video a at 30 fps loses the point for 3 s; video b has it on two frames only (1 s and 9 s): b's own frame
+    step (8 s) must not let the export bridge a's gap."""
+    own = np.arange(300) / 30.0
+    a = own[(own < 4.0) | (own >= 7.0)]
+    times = np.concatenate([a, [1.0 + 1e-3, 9.0 + 1e-3]])
+    xyz = (1.0 + times[:, None] * np.array([1.0, 2.0, 3.0]))[:, None, :]
+    points = FramePoints(
+        videos=["a"] * len(a) + ["b"] * 2,
+        frames=np.concatenate([np.arange(len(a)), [30, 270]]),
+        point_names=["p"],
+        xyz=xyz,
+        observed=np.ones((len(times), 1), bool),
+    )
+    back = read_mocap(write_trc_export(points, None, 30.0, tmp_path / "g.trc", times=times))
+    clock = back.times + times.min()
+    inside = (clock > 4.05) & (clock < 6.95)
+    assert inside.sum() > 80 and np.isnan(back.xyz[inside]).all()
+
+
 def test_c3d_on_the_clock_carries_the_uncertainty_note(tmp_path):
     ezc3d = pytest.importorskip("ezc3d")
     from reconstruct.outputs.export import clock_note
