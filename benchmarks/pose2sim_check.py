@@ -237,14 +237,7 @@ def desynchronize(
         keep[video.name] = {f.frame for f in frames}
         out.videos.append(dataclasses.replace(video, frames=frames))  # keeps the registered clock_offset
     rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep[v]]
-    kept = Tracks(
-        video=[tracks.video[i] for i in rows],
-        frame=tracks.frame[rows],
-        point=[tracks.point[i] for i in rows],
-        xy=tracks.xy[rows],
-        extra={k: [v[i] for i in rows] for k, v in tracks.extra.items()},
-    )
-    return out, kept
+    return out, tracks.take(rows)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ from sfm.subject.observations import select_rows
 from sfm.subject.synthetic import handheld, make_rig
 from sfm.video import ProbedVideo, probe_video
 from tracking.charuco import charuco_tracks
-from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.tracks import Tracks, join_tracks, read_tracks, write_tracks
 
 BLOCK_S = 0.25  # a composite "handheld" video switches between its two real cameras this often
 
@@ -119,13 +119,7 @@ def run_synthetic(case: str) -> dict[str, object]:
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(truth.R[0]), truth.t[0])
         results[videos[0].name] = dict.fromkeys(range(len(videos[0].times)), FramePose(pose=pose, source="sfm"))
     intrinsics = {v.name: (v.K, v.dist) for v in videos if v.K is not None}
-    joined = Tracks.from_rows(
-        [
-            (v, int(f), p, float(x), float(y))
-            for t in (tracks, phone.tracks)
-            for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
-        ]
-    )
+    joined = join_tracks(tracks, phone.tracks)
     warnings: list[str] = []
     started = time.perf_counter()
     section = pose_from_subject(plans, results, joined, intrinsics, RegisterOptions(), warnings)
@@ -199,13 +193,7 @@ def run_case(case: str, work: Path) -> dict[str, object]:
             )
             for f, c in enumerate(source)
         }
-    joined = Tracks.from_rows(
-        [
-            (v, int(f), p, float(x), float(y))
-            for t in all_tracks
-            for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
-        ]
-    )
+    joined = join_tracks(*all_tracks)
     warnings: list[str] = []
     started = time.perf_counter()
     section = pose_from_subject(plans, results, joined, intrinsics, RegisterOptions(), warnings)

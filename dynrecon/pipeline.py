@@ -70,7 +70,7 @@ from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import Tracks, read_tracks
+from tracking.tracks import read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -354,16 +354,7 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
             ", ".join(left_out),
             cameras_path.parent / "register_report.json",
         )
-        index = np.flatnonzero([v in posed for v in tracks.video])
-        tracks = Tracks(
-            video=[tracks.video[i] for i in index],
-            frame=tracks.frame[index],
-            point=[tracks.point[i] for i in index],
-            xy=tracks.xy[index],
-            extra={k: [v[i] for i in index] for k, v in tracks.extra.items()},
-            line=None if tracks.line is None else tracks.line[index],
-            path=tracks.path,
-        )
+        tracks = tracks.take(np.flatnonzero([v in posed for v in tracks.video]))
     solve(cameras_path, tracks, options).write(out)  # the path: report.json names its inputs
 
 

@@ -30,14 +30,9 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
             if not video.frames:
                 raise InputError(path, f"video {info.name!r} has no frames to take intrinsics from")
             first = video.frames[0]
-            try:
-                K = intrinsics_at_video_size(first.K, (video.width, video.height), info, info.name)
-            except TurnedVideoError as error:
-                if (str(path), info.name) not in _TURNED:
-                    _TURNED.add((str(path), info.name))
-                    log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)
-                continue
-            result[info.name] = (K, first.dist)
+            K = _at_video_size(first.K, (video.width, video.height), info, info.name, path)
+            if K is not None:
+                result[info.name] = (K, first.dist)
         if not result:
             raise InputError(
                 path,
@@ -48,13 +43,19 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
     matched = match_cameras(read_calibration(path), infos, path)
     result = {}
     for info, camera in zip(infos, matched, strict=True):
-        try:
-            K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name)
-        except TurnedVideoError as error:
-            # its intrinsics are estimated from the data instead (a turned K is a guess: its direction is unknown)
-            if (str(path), info.name) not in _TURNED:
-                _TURNED.add((str(path), info.name))
-                log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)
-            continue
-        result[info.name] = (K, camera.dist)
+        K = _at_video_size(camera.K, (camera.width, camera.height), info, camera.name, path)
+        if K is not None:
+            result[info.name] = (K, camera.dist)
     return result
+
+
+def _at_video_size(K: np.ndarray, size: tuple[int, int], info: ProbedVideo, name: str, path: Path) -> np.ndarray | None:
+    """K in the video's pixels, or None where the video is the calibrated image turned: its intrinsics are then
+    estimated from the data (a turned K is a guess: the turn's direction is unknown), said once."""
+    try:
+        return intrinsics_at_video_size(K, size, info, name)
+    except TurnedVideoError as error:
+        if (str(path), info.name) not in _TURNED:
+            _TURNED.add((str(path), info.name))
+            log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)
+        return None

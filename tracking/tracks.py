@@ -64,6 +64,19 @@ class Tracks:
     def where(self, row: int) -> str:
         return f"line {int(self.line[row])}" if self.line is not None else f"row {row}"
 
+    def take(self, index: np.ndarray | list[int]) -> Tracks:
+        """The rows `index` (in that order), with their extra columns and source lines."""
+        index = np.asarray(index, dtype=np.int64)
+        return Tracks(
+            video=[self.video[i] for i in index],
+            frame=self.frame[index],
+            point=[self.point[i] for i in index],
+            xy=self.xy[index],
+            extra={k: [v[i] for i in index] for k, v in self.extra.items()},
+            line=None if self.line is None else self.line[index],
+            path=self.path,
+        )
+
     @classmethod
     def from_rows(cls, rows: list[tuple[str, int, str, float, float]], **extra: list[str]) -> Tracks:
         return cls(
@@ -73,6 +86,16 @@ class Tracks:
             xy=np.array([(r[3], r[4]) for r in rows], dtype=float).reshape(-1, 2),
             extra={k: list(v) for k, v in extra.items()},
         )
+
+
+def join_tracks(*parts: Tracks) -> Tracks:
+    """The rows of every part, in order (video, frame, point, xy; extra columns dropped)."""
+    return Tracks(
+        video=[v for t in parts for v in t.video],
+        frame=np.concatenate([t.frame for t in parts]).astype(np.int64) if parts else np.zeros(0, np.int64),
+        point=[p for t in parts for p in t.point],
+        xy=np.concatenate([t.xy for t in parts]).reshape(-1, 2) if parts else np.zeros((0, 2)),
+    )
 
 
 def read_tracks(path: str | Path) -> Tracks:

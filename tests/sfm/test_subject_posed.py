@@ -18,7 +18,7 @@ from sfm.subject import SubjectCalibrationError, SubjectResult, calibrate_from_s
 from sfm.subject.posed import align_to_posed
 from sfm.subject.synthetic import Handheld, Truth, handheld, make_rig
 from sfm.video import ProbedVideo
-from tracking.tracks import Tracks
+from tracking.tracks import Tracks, join_tracks
 
 DURATION = 12.0
 
@@ -133,16 +133,11 @@ def test_register_joins_static_cameras_to_a_handheld_phone(rig: tuple[Tracks, li
         for v in videos
     }
     results["phone"] = _phone_poses(phone)
-    rows = [
-        (v, int(f), p, float(x), float(y))
-        for t in (tracks, phone.tracks)
-        for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
-    ]
     intrinsics = {v.name: (v.K, v.dist) for v in videos}
     warnings: list[str] = []
 
     options = RegisterOptions(scale=("p0", "p11", 5.0))
-    section = pose_from_subject(plans, results, Tracks.from_rows(rows), intrinsics, options, warnings)
+    section = pose_from_subject(plans, results, join_tracks(tracks, phone.tracks), intrinsics, options, warnings)
 
     assert section is not None and section["used"] and section["metric"], (section, warnings)
     assert sorted(section["posed"]) == sorted(v.name for v in videos)
@@ -175,15 +170,12 @@ def test_one_static_anchor_and_a_phone(rig: tuple[Tracks, list, Truth]) -> None:
     anchor = pycolmap.Rigid3d(pycolmap.Rotation3d(truth.R[0]), truth.t[0])
     results[videos[0].name] = dict.fromkeys(range(len(videos[0].times)), FramePose(pose=anchor, source="sfm"))
     results["phone"] = _phone_poses(phone)
-    rows = [
-        (v, int(f), p, float(x), float(y))
-        for t in (tracks, phone.tracks)
-        for v, f, p, (x, y) in zip(t.video, t.frame, t.point, t.xy, strict=True)
-    ]
     intrinsics = {v.name: (v.K, v.dist) for v in videos}
     warnings: list[str] = []
 
-    section = pose_from_subject(plans, results, Tracks.from_rows(rows), intrinsics, RegisterOptions(), warnings)
+    section = pose_from_subject(
+        plans, results, join_tracks(tracks, phone.tracks), intrinsics, RegisterOptions(), warnings
+    )
 
     assert section is not None and section["used"] and section["anchors"] == [videos[0].name], (section, warnings)
     assert sorted(v["name"] for v in section["posed_videos"]["videos"]) == sorted([videos[0].name, "phone"])
