@@ -7,7 +7,7 @@ reconstruct/temporal.py `_tracks_or_links`).
 The paper's protocol on mocap (tests/synthetic_motion.py), each video's decoder clock restarted at its first frame
 (the offsets are unknown), the seed solve once; then per shift the track search's clock of one video is moved by
 that many of its frame periods before the clocks are combined. Printed per shift: the path, which clock was kept
-and both residuals (report.json `temporal.links_clocks`), and the median / p90 3D error against the truth.
+and both predicted errors (GCV) and residuals (report.json `temporal.links_clocks`), and the median / p90 3D error against the truth.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def main() -> None:
         return f"{np.median(e):.2f} / {np.percentile(e, 90):.2f}"
 
     print(f"seed solve: {error_mm(seed.points)} mm (median / p90)\n")
-    print("| track clock moved (periods) | path | kept | residual tracks / links (px) | error median / p90 (mm) |")
+    print("| track clock moved (periods) | path | kept | predicted (residual) tracks / links (px) | error median / p90 (mm) |")
     print("|---|---|---|---|---|")
     for periods in (float(p) for p in args.periods.split(",")):
 
@@ -68,7 +68,12 @@ def main() -> None:
             estimate.search_clocks = search
         entry = temporal.report.get("links_clocks")
         kept = entry["kept"] if entry else "tracks (no disagreement)"
-        residual = f"{entry['residual_px']['tracks']:.3g} / {entry['residual_px']['links']:.3g}" if entry else ""
+        residual = (
+            f"{entry['predicted_px']['tracks']:.3g} / {entry['predicted_px']['links']:.3g} "
+            f"({entry['residual_px']['tracks']:.3g} / {entry['residual_px']['links']:.3g})"
+            if entry
+            else ""
+        )
         print(f"| {periods:g} | {temporal.report['path']} | {kept} | {residual} | {error_mm(temporal.points)} |")
 
 

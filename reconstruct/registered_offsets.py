@@ -5,8 +5,9 @@ Register's subject path fits each static video's clock offset from the subject's
 geometry, and writes it to cameras.json (`clock_offset`). The solve recovers clocks from its own evidence (W's
 links, the track search). Where the two disagree (`clocks.registered.check_registered_clocks`), one is wrong: the
 trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
-closely are kept. The solve's own clocks stay unless registration's fit clearly better; report.json
-`temporal.registered_offsets` gives both residuals and the choice.
+closely are kept: judged by the error their trajectories predict for unseen rays (GCV), or by the median residual
+against the seed's unrefined points. The solve's own clocks stay unless registration's fit clearly better;
+report.json `temporal.registered_offsets` gives both measures and the choice.
 """
 
 from __future__ import annotations
@@ -26,12 +27,12 @@ from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
 from reconstruct.tracks_path import start_points
-from reconstruct.trajectory import RefineOptions
+from reconstruct.trajectory import RefineOptions, predicted_px
 from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
 
-BETTER = 0.8  # registration's clocks are kept when their median reprojection residual is below this x the solve's
+BETTER = 0.8  # registration's clocks are kept when their error (criterion above) is below this x the solve's
 PATH = "registered_offsets"  # report.json temporal.path when they are kept
 
 
@@ -74,26 +75,39 @@ def prefer_registered_offsets(
     start = seed.points if seed.stages else start_points(problem, clocks.global_time)
     on_clocks = refine_on_clocks(problem, start, clocks, clocks.model, options)
     points = np.where(np.isfinite(on_clocks.result.points), on_clocks.result.points, start)
-    mine, theirs = _median_px(problem, temporal.points), _median_px(problem, points)
+    residual = {"solve": _median_px(problem, temporal.points), "registered": _median_px(problem, points)}
+    # refined trajectories are judged by the error they predict for unseen rays (a fit can bend through every ray);
+    # the seed's unrefined points have no such score: their residual is compared
+    solve_predicted = temporal.report.get("predicted_px") if temporal.refined else None
+    criterion = "predicted_px" if solve_predicted is not None else "residual_px"
+    mine = float(solve_predicted) if solve_predicted is not None else residual["solve"]
+    theirs = predicted_px(on_clocks.result) if solve_predicted is not None else residual["registered"]
     kept = bool(theirs < BETTER * mine)
     entry = {
         "tried": True,
-        "residual_px": {"solve": finite_or_none(mine), "registered": finite_or_none(theirs)},
+        "criterion": criterion,
+        "residual_px": {k: finite_or_none(v) for k, v in residual.items()},
+        "predicted_px": {
+            "solve": finite_or_none(solve_predicted),
+            "registered": finite_or_none(predicted_px(on_clocks.result)),
+        },
         "limit": BETTER,
         "kept": "registered" if kept else "solve",
     }
     if not kept:
         log.warning(
-            "the clocks disagree with registration's offsets, whose trajectories fit no better (median residual "
-            "%.3g px against the solve's %.3g px): the solve's clocks are kept",
+            "the clocks disagree with registration's offsets, whose trajectories fit no better (%s %.3g px against "
+            "the solve's %.3g px): the solve's clocks are kept",
+            criterion,
             theirs,
             mine,
         )
         temporal.report[PATH] = entry
         return temporal
     log.warning(
-        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (median "
-        "residual %.3g px against %.3g px): refined on registration's offsets",
+        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (%s %.3g "
+        "px against %.3g px): refined on registration's offsets",
+        criterion,
         theirs,
         mine,
     )

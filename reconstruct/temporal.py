@@ -28,7 +28,7 @@ from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, spacing_assumed
-from reconstruct.trajectory import RefineOptions, RefineResult, refine
+from reconstruct.trajectory import RefineOptions, RefineResult, predicted_px, refine
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 # by about a per cent, a runaway polish by tens of per cent.
 MAX_RATE_CORRECTION = 0.05
 POLISH_COST_SLACK = 1.01  # a polish is kept when its trajectory cost never rose above this x its start
-LINKS_BETTER = 0.8  # W's links' clocks replace the tracks' where their median residual is below this x the tracks'
+LINKS_BETTER = 0.8  # W's links' clocks replace the tracks' where their predicted error is below this x the tracks'
 
 
 class Refinement(enum.Enum):
@@ -142,23 +142,28 @@ def _tracks_or_links(
     report: dict[str, Any],
 ) -> tuple[Clocks, OnClocks]:
     """Where the tracks' clock of some video was kept against W's links (a periodic motion can mislead either), the
-    trajectories on the links' clocks too: the hypothesis whose trajectories meet their rays clearly more closely
-    (LINKS_BETTER) is kept, the tracks' otherwise (report.json `temporal.links_clocks`)."""
+    trajectories on the links' clocks too: the hypothesis whose trajectories predict rays they did not see clearly
+    better (LINKS_BETTER) is kept, the tracks' otherwise (report.json `temporal.links_clocks`)."""
     alternative = clocks.links_alternative
     if alternative is None:
         return clocks, on_clocks
     on_links = refine_on_clocks(problem, judge.result.points, alternative, model, options.refine)
-    mine, theirs = judge.residual(on_clocks.result.points), judge.residual(on_links.result.points)
+    mine, theirs = predicted_px(on_clocks.result), predicted_px(on_links.result)
     kept = bool(theirs < LINKS_BETTER * mine)
     videos = [c.name for c, a in zip(clocks.videos, alternative.videos, strict=True) if a.method != c.method]
     report["links_clocks"] = {
         "videos": videos,
-        "residual_px": {"tracks": finite_or_none(mine), "links": finite_or_none(theirs)},
+        "predicted_px": {"tracks": finite_or_none(mine), "links": finite_or_none(theirs)},
+        "residual_px": {
+            "tracks": finite_or_none(judge.residual(on_clocks.result.points)),
+            "links": finite_or_none(judge.residual(on_links.result.points)),
+        },
         "limit": LINKS_BETTER,
         "kept": "links" if kept else "tracks",
     }
     log.warning(
-        "clocks of %s: W's links' (median residual %.3g px) against the tracks' (%.3g px): the %s' kept",
+        "clocks of %s: W's links' (error predicted for unseen rays %.3g px) against the tracks' (%.3g px): the %s' "
+        "kept",
         ", ".join(videos),
         theirs,
         mine,
@@ -233,6 +238,7 @@ def _finish(
             "path": path.value,
             "checks": [c.to_json() for c in checks],
             "smoothness_median": finite_or_none(np.nanmedian(refined.smoothness)),
+            "predicted_px": finite_or_none(predicted_px(refined)),
             "outlier_observations": int(refined.outliers.sum()),
         }
     )

@@ -28,6 +28,7 @@ from __future__ import annotations
 import enum
 import itertools
 import logging
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, nullcontext
@@ -96,6 +97,9 @@ class RefineResult:
     smoothness: np.ndarray  # (P,) lambda used, NaN for points not refined
     scale_px: np.ndarray  # (P,) robust scale used, NaN for points not refined
     cost: list[float] = field(default_factory=list)  # total cost (px^2) after each round
+    # (P,) GCV score at the chosen smoothness (px^2 per residual component): the fit's error predicted for a ray it
+    # did not see; NaN for points not refined
+    gcv_px2: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _fit(
@@ -163,6 +167,7 @@ class _Track:
     weights: np.ndarray  # (m,) robust weights
     scale: float = 1.0  # robust scale, px
     smoothness: float = 1.0
+    gcv: float = math.nan  # GCV score at the chosen smoothness, px^2 per residual component
     residual: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (m,) px
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
@@ -222,6 +227,7 @@ def refine(
     outliers = np.zeros((F, P), dtype=bool)
     smoothness = np.full(P, np.nan)
     scale_px = np.full(P, np.nan)
+    gcv = np.full(P, np.nan)
     for track in tracks:
         p = track.point
         out[:, p] = track.positions[nodes.node_of_frame]
@@ -230,6 +236,7 @@ def refine(
         outliers[track.seen, p] = track.residual > OUTLIER_FACTOR * track.scale
         smoothness[p] = track.smoothness
         scale_px[p] = track.scale
+        gcv[p] = track.gcv
     if tracks:
         log.info(
             "refined %d point(s) on %d instants: smoothness median %.3g, %d outlier observation(s)",
@@ -246,7 +253,16 @@ def refine(
         smoothness=smoothness,
         scale_px=scale_px,
         cost=cost,
+        gcv_px2=gcv,
     )
+
+
+def predicted_px(result: RefineResult) -> float:
+    """The trajectories' error predicted for a ray they did not see (px): the root of the median over points of
+    their GCV scores. Unlike the residual, it is not fooled by a fit that bends through every ray (a wrong clock
+    makes the motion look fast, and a small smoothness then fits it)."""
+    finite = result.gcv_px2[np.isfinite(result.gcv_px2)]
+    return float(np.sqrt(np.median(finite))) if finite.size else math.nan
 
 
 def _irls(
@@ -337,6 +353,7 @@ def _choose_smoothness(
         effective = float(np.sum(track.weights)) * 2.0
         sigma = np.sqrt(fits.rss[k, g] / max(effective - fits.trace[k, g], 1.0))
         track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
+        track.gcv = float(_gcv_scores(fits.rss[k, g, None, None], fits.trace[k, g, None, None], m[k, None])[0, 0])
 
 
 def _choose_smoothness_in_window(
