@@ -330,17 +330,15 @@ def board_distance_errors(ws: Path) -> dict[str, float]:
     return {"median": round(float(np.median(every)), 2), "p90": round(float(np.percentile(every, 90)), 2)}
 
 
-def plain_pycolmap(ws: Path, per_video: int = 5) -> dict[str, Any]:
+def plain_models(ws: Path, per_video: int = 5) -> dict[int, Any]:
     """pycolmap's defaults on `per_video` evenly spaced frames of each office video (one camera per image, as a
-    user's first try), scored pair by pair within each model against camera_array.toml."""
+    user's first try): its models, by index."""
     import pycolmap
 
     shutil.rmtree(ws, ignore_errors=True)
     images = ws / "images"
     images.mkdir(parents=True)
-    names = [f"cam_{i}" for i in range(4)]
-    started = time.perf_counter()
-    for name in names:
+    for name in [f"cam_{i}" for i in range(4)]:
         capture = cv2.VideoCapture(str(CALISCOPE / "calibration" / "extrinsic" / f"{name}.mp4"))
         frames = []
         while True:
@@ -354,7 +352,14 @@ def plain_pycolmap(ws: Path, per_video: int = 5) -> dict[str, Any]:
     database = ws / "database.db"
     pycolmap.extract_features(database, images, device=pycolmap.Device.cpu)
     pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-    models = pycolmap.incremental_mapping(database, images, ws / "sparse")
+    return dict(pycolmap.incremental_mapping(database, images, ws / "sparse"))
+
+
+def plain_pycolmap(ws: Path, per_video: int = 5) -> dict[str, Any]:
+    """`plain_models`, scored pair by pair within each model against camera_array.toml."""
+    names = [f"cam_{i}" for i in range(4)]
+    started = time.perf_counter()
+    models = plain_models(ws, per_video)
     wall = time.perf_counter() - started
     truth = {c.name: c for c in read_calibration(CALISCOPE / "camera_array.toml")}
     posed: dict[str, str] = {name: "none" for name in names}

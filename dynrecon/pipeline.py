@@ -63,6 +63,7 @@ from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
+from sfm.register_check import refuted_in_folder
 from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
@@ -552,7 +553,15 @@ class Stages:
         (registered again with the subject's tracks, into WS/register_subject/)."""
         background = self.ws / REGISTER_DIR
         if background_failed is None and not _static_left_out(background / "register_report.json"):
-            return Registration.in_folder(background)
+            # the background registered without tracks: its static poses are checked against them now
+            refuted = refuted_in_folder(background, read_tracks(tracks), self.videos)
+            if not refuted:
+                return Registration.in_folder(background)
+            log.warning(
+                "the subject's tracks refute the background's poses of %s (%s): registering again with the tracks",
+                ", ".join(sorted(refuted)),
+                next(iter(refuted.values())),
+            )
         folder = self.ws / SUBJECT_DIR
         registration = Registration.in_folder(folder)
         subject_options = self.options.subject_register(tracks)

@@ -31,6 +31,7 @@ def write_report(
     rec: pycolmap.Reconstruction | None,
     error: str | None,
     subject: dict[str, Any] | None = None,
+    background_check: dict[str, Any] | None = None,
 ) -> None:
     model = None
     if rec is not None:
@@ -61,6 +62,7 @@ def write_report(
         "unreadable_videos": [{"path": path, "reason": reason} for path, reason in (unreadable or {}).items()],
         "warnings": warnings,
         "videos": [_video_entry(video, results.get(video.info.name, {})) for video in videos],
+        "background_check": background_check,
         "subject": subject,
     }
     atomic_write_text(path, json.dumps(report, indent=1) + "\n")

@@ -47,6 +47,7 @@ from sfm.per_video import (
 )
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
+from sfm.register_check import background_left, check_background
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, input_key
@@ -347,6 +348,8 @@ def finish_capture(
     _gather(notes, [p.notes for p in prepared], extracted, StepNotes.from_json(mapping), [n for _, n in localized])
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
+    with collected(notes), timed(notes, "background_check"):
+        summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
@@ -365,7 +368,9 @@ def finish_capture(
             f"only {len(registered_videos)} of {len(plans)} videos registered ({names})",
         )
     with timed(notes, "export"):
-        path = _export(registered_videos, results, rec, subject_report, out)
+        # a model whose every pose the subject refuted has its points in another world than the cameras
+        kept = rec if background_left(plans, results) else None
+        path = _export(registered_videos, results, kept, subject_report, out)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 
@@ -397,6 +402,7 @@ class _Summary:
     pairs: int
     matching: dict[str, int]
     rec: pycolmap.Reconstruction | None
+    background_check: dict[str, Any] | None = None  # its static poses against the subject's tracks
 
 
 def _export(
@@ -476,6 +482,7 @@ def _write_report(
         pairs=summary.pairs,
         matching=summary.matching,
         rec=summary.rec,
+        background_check=summary.background_check,
         subject=subject,
         error=error,
     )

@@ -56,6 +56,14 @@ def _pair_corr(oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1) 
     return xa.reshape(len(shifts), -1, 2), xb.reshape(len(shifts), -1, 2)
 
 
+def correspondences(oa: VideoObs, ob: VideoObs, shift: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pair's correspondences at one shift (own_b = own_a + shift): (M, 2) normalized coordinates in a and b,
+    every observation of a with b's track interpolated at that instant."""
+    xa, xb = _pair_corr(oa, ob, np.array([shift]))
+    ok = np.isfinite(xa[0, :, 0]) & np.isfinite(xb[0, :, 0])
+    return xa[0, ok], xb[0, ok]
+
+
 def _score(
     oa: VideoObs,
     ob: VideoObs,
@@ -210,9 +218,7 @@ def _geometry(
     iterations: int = 5000,
 ) -> PairFit:
     """The pair's model, inliers and degeneracy at a shift, from its correspondences (an even subset of n_max)."""
-    xa, xb = _pair_corr(oa, ob, np.array([shift]))
-    ok = np.isfinite(xa[0, :, 0]) & np.isfinite(xb[0, :, 0])
-    xa, xb = xa[0, ok], xb[0, ok]
+    xa, xb = correspondences(oa, ob, shift)
     if n_max and len(xa) > n_max:
         keep = np.linspace(0, len(xa) - 1, n_max).astype(np.int64)
         xa, xb = xa[keep], xb[keep]

@@ -1,0 +1,124 @@
+"""`register`'s check of the background's static poses against the moving subject (`sfm.subject.agreement`).
+
+Runs before the subject path, when the subject is tracked in two or more static videos that the background posed.
+A refuted video loses its background pose (every frame says why), so that the subject path poses it like a video the
+background left out; the report's `background_check` gives every pair's distances and the refuted videos.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dynrecon.errors import InputError
+from sfm.cameras import read_cameras
+from sfm.plan import FramePose, VideoPlan
+from sfm.subject import SubjectOptions, SubjectVideo
+from sfm.subject.agreement import check_agreement
+from sfm.subject.observations import select_rows
+from sfm.video import probe_video
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+
+def _background_pose(frames: dict[int, FramePose]) -> FramePose | None:
+    return next(
+        (r for r in frames.values() if r.pose is not None and r.intrinsics is not None and r.source != "subject"),
+        None,
+    )
+
+
+def check_background(
+    videos: list[VideoPlan],
+    results: dict[str, dict[int, FramePose]],
+    tracks: Tracks | None,
+    warnings: list[str],
+) -> dict[str, Any] | None:
+    """Check the static videos the background posed against the subject's tracks; a refuted video's frames lose
+    their pose (in `results`). Returns the report's `background_check` section, None where the background posed
+    fewer than two static videos."""
+    posed = [v for v in videos if v.static and _background_pose(results[v.info.name]) is not None]
+    if len(posed) < 2:
+        return None
+    tracked = set(tracks.video_names()) if tracks is not None else set()
+    checked = [v for v in posed if v.info.name in tracked]
+    if tracks is None or len(checked) < 2:
+        why = "the subject is tracked in fewer than two of the static videos the background posed"
+        return {"checked": False, "why": why, "pairs": [], "refuted": {}}
+    inputs = []
+    for video in checked:
+        known = _background_pose(results[video.info.name])
+        assert known is not None and known.pose is not None and known.intrinsics is not None
+        inputs.append(
+            SubjectVideo(
+                name=video.info.name,
+                width=video.info.width,
+                height=video.info.height,
+                times=video.info.times,
+                K=known.intrinsics[0],
+                dist=known.intrinsics[1],
+                cam_from_world=(known.pose.rotation.matrix(), np.asarray(known.pose.translation)),
+            )
+        )
+    names = {v.name for v in inputs}
+    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    agreement = check_agreement(rows, inputs, SubjectOptions().max_offset)
+    for name, why in agreement.refuted.items():
+        warnings.append(f"{name}: the background's pose is not used: {why}")
+        results[name] = {f: FramePose(pose=None, reason=f"background SfM: {why}") for f in results[name]}
+    if agreement.refuted:
+        log.warning("the subject's tracks refute the background's poses of %s", ", ".join(sorted(agreement.refuted)))
+    return {"checked": True, "why": None, **agreement.to_json()}
+
+
+def background_left(videos: list[VideoPlan], results: dict[str, dict[int, FramePose]]) -> bool:
+    """Whether any video still has a pose from the background (its model's points are then in the cameras' world)."""
+    return any(r.pose is not None and r.source != "subject" for v in videos for r in results[v.info.name].values())
+
+
+def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[str, str]:
+    """The check of an earlier registration (WS/register/: cameras.json and register_report.json, made without the
+    tracks) now that `tracks` exist: video -> why its background pose is refuted. Empty where the report is missing,
+    the check already ran there, or fewer than two tracked static videos were posed by the background."""
+    try:
+        report = json.loads((folder / "register_report.json").read_text(encoding="utf-8"))
+        cameras = read_cameras(folder / "cameras.json")
+    except (OSError, ValueError, InputError):
+        return {}
+    if (report.get("background_check") or {}).get("checked"):
+        return {}
+    static = {
+        v["name"]
+        for v in report.get("videos", [])
+        if v.get("camera") == "static" and v.get("posed_by", "none") not in ("none", "subject")
+    }
+    paths = {p.stem: p for p in videos}
+    inputs = []
+    for video in cameras.videos:
+        if video.name not in static or video.name not in paths or not video.frames:
+            continue
+        first = video.frames[0]
+        times = np.array([f.time if f.time is not None else np.nan for f in video.frames], dtype=float)
+        every = [f.frame for f in video.frames] == list(range(len(video.frames))) and np.isfinite(times).all()
+        inputs.append(
+            SubjectVideo(
+                name=video.name,
+                width=video.width,
+                height=video.height,
+                times=times if every else probe_video(paths[video.name]).times,  # a static video's every frame
+                K=first.K,
+                dist=first.dist,
+                cam_from_world=(first.R, first.t),
+            )
+        )
+    names = {v.name for v in inputs} & set(tracks.video_names())
+    if len(names) < 2:
+        return {}
+    inputs = [v for v in inputs if v.name in names]
+    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    return check_agreement(rows, inputs, SubjectOptions().max_offset).refuted

@@ -1,0 +1,168 @@
+"""Do the static cameras' known poses agree with the moving subject? A check of the background's model.
+
+Background SfM can build a model from consistent false matches (repeated plates, posters, wallpaper): the model is
+registered, and wrong. Static cameras far apart give it few true matches to outvote them. Where the subject is
+tracked in two static videos that the background posed, its correspondences give an independent epipolar geometry:
+per pair, the time offset and an essential matrix are fitted to the tracks alone (`pairs.fit_pair`), and the
+background's relative pose is scored on the same correspondences, at its best offset near the tracks'. A pose that
+leaves the subject `MAX_RATIO` times further from its epipolar lines than the tracks' own geometry, and by more than
+`MIN_ANGLE`, contradicts it. Videos in contradicted pairs are refuted greedily: the one in most of them first,
+until no contradicted pair remains among the rest (both of a lone pair: which one is wrong cannot be told).
+
+It is a garbage detector, not an accuracy bound: a pose a degree or two off passes, since tracks that are not
+better than that (joint detections) must not replace it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dynrecon.jsonvalues import finite_or_none
+from sfm.subject.geometry import sampson
+from sfm.subject.model import SEED, SubjectVideo
+from sfm.subject.observations import VideoObs, build_observations
+from sfm.subject.pairs import correspondences, fit_pair
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+MAX_RATIO = 5.0  # a contradicted pose leaves the subject this many times further from its epipolar lines ...
+MIN_ANGLE = 0.01  # ... and more than this (radians of normalized image distance, about 0.6 degree) further
+SHIFT_REACH = 2.0  # the pose's own best offset is searched this many frame periods around the tracks' offset
+SHIFT_STEP = 0.25  # in frame periods of the faster video
+TIE = 0.05  # mean log ratios closer than this do not tell two videos apart
+MIN_BASELINE = 1e-9  # relative: two poses at one centre (no epipolar geometry) are not checked
+
+
+@dataclass(kw_only=True)
+class PairAgreement:
+    """One pair of posed videos against the subject's tracks; distances are medians over the correspondences, in
+    pixels (normalized distance times the pair's mean focal)."""
+
+    a: str
+    b: str
+    checked: bool
+    why: str | None = None  # why it was not checked
+    offset_s: float | None = None  # o_b - o_a from the tracks (global = own + o)
+    tracks_px: float | None = None  # with the tracks' own epipolar geometry
+    poses_px: float | None = None  # with the poses' epipolar geometry
+    correspondences: int = 0
+    contradicted: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "a": self.a,
+            "b": self.b,
+            "checked": self.checked,
+            "why": self.why,
+            "offset_s": finite_or_none(self.offset_s),
+            "tracks_px": finite_or_none(self.tracks_px),
+            "poses_px": finite_or_none(self.poses_px),
+            "correspondences": self.correspondences,
+            "contradicted": self.contradicted,
+        }
+
+
+@dataclass(kw_only=True)
+class Agreement:
+    pairs: list[PairAgreement] = field(default_factory=list)
+    refuted: dict[str, str] = field(default_factory=dict)  # video -> why its pose is refuted
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "pairs": [p.to_json() for p in self.pairs],
+            "refuted": dict(self.refuted),
+            "limits": {"max_ratio": MAX_RATIO, "min_angle_rad": MIN_ANGLE},
+        }
+
+
+def check_agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: float = 10.0) -> Agreement:
+    """Check every pair of `videos` (each with `K` and `cam_from_world`) against the subject's `tracks`."""
+    for video in videos:
+        if video.K is None or video.cam_from_world is None:
+            raise ValueError(f"{video.name}: a pose and intrinsics are needed to check it")
+    _, obs = build_observations(tracks, videos)
+    rng = np.random.default_rng(SEED)
+    result = Agreement()
+    for a, b in itertools.combinations(range(len(videos)), 2):
+        result.pairs.append(_check_pair(obs[a], obs[b], a, b, max_offset, rng))
+    result.refuted = _refute(result.pairs)
+    return result
+
+
+def _check_pair(
+    oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng: np.random.Generator
+) -> PairAgreement:
+    out = PairAgreement(a=oa.name, b=ob.name, checked=False)
+    if oa.count() == 0 or ob.count() == 0:
+        out.why = f"{oa.name if oa.count() == 0 else ob.name} has no tracks"
+        return out
+    assert oa.video.cam_from_world is not None and ob.video.cam_from_world is not None
+    Ra, ta = oa.video.cam_from_world
+    Rb, tb = ob.video.cam_from_world
+    R = Rb @ Ra.T
+    t = tb - R @ ta
+    size = max(float(np.linalg.norm(ta)), float(np.linalg.norm(tb)), 1.0)
+    if np.linalg.norm(t) <= MIN_BASELINE * size:
+        out.why = "the two poses share one centre (no epipolar geometry)"
+        return out
+    fit = fit_pair(oa, ob, a, b, max_offset, rng)
+    if not fit.usable or fit.E is None:
+        out.why = f"the tracks do not determine the pair: {fit.reason or fit.degenerate}"
+        return out
+    focal = float(np.sqrt(oa.focal * ob.focal))
+    xa, xb = correspondences(oa, ob, fit.shift)
+    own = float(np.median(np.sqrt(sampson(fit.E[None], xa, xb)[0])))
+    tx = t / np.linalg.norm(t)
+    E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
+    period = min(oa.period, ob.period)
+    poses = np.inf
+    for shift in fit.shift + np.arange(-SHIFT_REACH, SHIFT_REACH + SHIFT_STEP / 2, SHIFT_STEP) * period:
+        ya, yb = correspondences(oa, ob, float(shift))
+        if len(ya) >= len(xa) // 2:  # a shift that loses most of the correspondences proves nothing
+            poses = min(poses, float(np.median(np.sqrt(sampson(E[None], ya, yb)[0]))))
+    out.checked = True
+    out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift
+    out.tracks_px, out.poses_px, out.correspondences = own * focal, poses * focal, len(xa)
+    out.contradicted = bool(poses > MAX_RATIO * own and poses - own > MIN_ANGLE)
+    return out
+
+
+def _refute(pairs: list[PairAgreement]) -> dict[str, str]:
+    """The videos whose poses go: the one in most contradicted pairs first, until none is left among the rest. Of
+    videos in as many, the one whose checked pairs fit worst on the whole (the mean log ratio of the poses' distance
+    to the tracks' own) goes; both of a pair that nothing else tells apart."""
+    checked = [p for p in pairs if p.checked and p.tracks_px and p.poses_px is not None]
+    refuted: dict[str, str] = {}
+    while True:
+        left = [p for p in checked if p.contradicted and p.a not in refuted and p.b not in refuted]
+        if not left:
+            return refuted
+        count: dict[str, int] = {}
+        for pair in left:
+            for name in (pair.a, pair.b):
+                count[name] = count.get(name, 0) + 1
+        most = max(count.values())
+        tied = [name for name, n in count.items() if n == most]
+        fit = {name: _misfit(name, [p for p in checked if p.a not in refuted and p.b not in refuted]) for name in tied}
+        worst = max(fit.values())
+        for name in tied:
+            if fit[name] < worst - TIE:
+                continue
+            pair = next(p for p in left if name in (p.a, p.b))
+            other = pair.b if name == pair.a else pair.a
+            refuted[name] = (
+                f"its pose contradicts the subject's tracks: with {other}'s they lie {pair.poses_px:.1f} px from the "
+                f"poses' epipolar lines, against {pair.tracks_px:.1f} px from the tracks' own epipolar geometry"
+                + (f" ({most} such pairs)" if most > 1 else "")
+            )
+
+
+def _misfit(name: str, pairs: list[PairAgreement]) -> float:
+    ratios = [np.log(max(p.poses_px or 0.0, 1e-12) / p.tracks_px) for p in pairs if name in (p.a, p.b) and p.tracks_px]
+    return float(np.mean(ratios)) if ratios else 0.0
