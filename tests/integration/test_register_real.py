@@ -129,3 +129,23 @@ def test_pose2sim_openpose_detections_pose_the_lab(shared_dir: Path, tmp_path: P
     assert errors["centre_pct"] < 5.0 and errors["rotation_deg"] < 2.0, errors
     # The videos are synchronized to about a frame (60 fps).
     assert all(abs(c["offset_s"]) < 1.5 / 60 for c in report["subject"]["cameras"]), report["subject"]["cameras"]
+
+
+def test_caliscope_false_background_model_is_refuted_by_the_board(
+    caliscope: tuple[list[Path], Path], tmp_path: Path
+) -> None:
+    """With the mapper's initial pair allowed 8 inliers, the office backgrounds give a two-image model from false
+    matches; the board's corners refute both of its poses, and the subject path poses all four webcams."""
+    videos, tracks = caliscope
+    report = _register(videos, tmp_path / "ws", tracks, "--init-min-inliers", "8")
+    assert report["model"] is not None and report["model"]["images"] >= 2, report["model"]
+    check = report["background_check"]
+    assert check["checked"] and len(check["refuted"]) >= 2, check
+    for pair in check["pairs"]:
+        assert pair["contradicted"] and pair["poses_px"] > 20 * pair["tracks_px"], pair
+    assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
+    errors = real.score(
+        read_cameras(tmp_path / "ws" / "cameras.json"),
+        real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)]),
+    )
+    assert errors["centre_pct"] < 5.0 and errors["rotation_deg"] < 4.0, errors  # no intrinsics given: 2.9 deg
