@@ -7,7 +7,8 @@ reconstruct/temporal.py `_tracks_or_links`).
 The paper's protocol on mocap (tests/synthetic_motion.py), each video's decoder clock restarted at its first frame
 (the offsets are unknown), the seed solve once; then per shift the track search's clock of one video is moved by
 that many of its frame periods before the clocks are combined. Printed per shift: the path, which clock was kept
-and both predicted errors (GCV) and residuals (report.json `temporal.links_clocks`), and the median / p90 3D error against the truth.
+and both predicted errors (GCV) and residuals (report.json `temporal.links_clocks`), and the median / p90 3D error
+against the truth.
 """
 
 from __future__ import annotations
@@ -51,7 +52,10 @@ def main() -> None:
         return f"{np.median(e):.2f} / {np.percentile(e, 90):.2f}"
 
     print(f"seed solve: {error_mm(seed.points)} mm (median / p90)\n")
-    print("| track clock moved (periods) | path | kept | predicted (residual) tracks / links (px) | error median / p90 (mm) |")
+    print(
+        "| track clock moved (periods) | path | kept | predicted (residual) tracks / links (px) "
+        "| error median / p90 (mm) |"
+    )
     print("|---|---|---|---|---|")
     for periods in (float(p) for p in args.periods.split(",")):
 

@@ -5,9 +5,9 @@ Register's subject path fits each static video's clock offset from the subject's
 geometry, and writes it to cameras.json (`clock_offset`). The solve recovers clocks from its own evidence (W's
 links, the track search). Where the two disagree (`clocks.registered.check_registered_clocks`), one is wrong: the
 trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
-closely are kept: judged by the error their trajectories predict for unseen rays (GCV), or by the median residual
-against the seed's unrefined points. The solve's own clocks stay unless registration's fit clearly better;
-report.json `temporal.registered_offsets` gives both measures and the choice.
+closely are kept: judged by the error their trajectories predict for unseen rays (GCV, over the points both
+refined), or by the median residual against the seed's unrefined points. The solve's own clocks stay unless
+registration's fit clearly better; report.json `temporal.registered_offsets` gives both measures and the choice.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
 from reconstruct.tracks_path import start_points
-from reconstruct.trajectory import RefineOptions, predicted_px
+from reconstruct.trajectory import RefineOptions, predicted_pair
 from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
@@ -76,20 +76,19 @@ def prefer_registered_offsets(
     on_clocks = refine_on_clocks(problem, start, clocks, clocks.model, options)
     points = np.where(np.isfinite(on_clocks.result.points), on_clocks.result.points, start)
     residual = {"solve": _median_px(problem, temporal.points), "registered": _median_px(problem, points)}
-    # refined trajectories are judged by the error they predict for unseen rays (a fit can bend through every ray);
-    # the seed's unrefined points have no such score: their residual is compared
-    solve_predicted = temporal.report.get("predicted_px") if temporal.refined else None
-    criterion = "predicted_px" if solve_predicted is not None else "residual_px"
-    mine = float(solve_predicted) if solve_predicted is not None else residual["solve"]
-    theirs = predicted_px(on_clocks.result) if solve_predicted is not None else residual["registered"]
+    # refined trajectories are judged by the error they predict for unseen rays (a fit can bend through every ray),
+    # over the points both refined; the seed's unrefined points have no such score: their residual is compared
+    predicted = predicted_pair(temporal.trajectories, on_clocks.result) if temporal.trajectories else None
+    criterion = "predicted_px" if predicted is not None else "residual_px"
+    mine, theirs = predicted if predicted is not None else (residual["solve"], residual["registered"])
     kept = bool(theirs < BETTER * mine)
     entry = {
         "tried": True,
         "criterion": criterion,
         "residual_px": {k: finite_or_none(v) for k, v in residual.items()},
         "predicted_px": {
-            "solve": finite_or_none(solve_predicted),
-            "registered": finite_or_none(predicted_px(on_clocks.result)),
+            "solve": finite_or_none(predicted[0] if predicted else None),
+            "registered": finite_or_none(predicted[1] if predicted else None),
         },
         "limit": BETTER,
         "kept": "registered" if kept else "solve",
@@ -128,6 +127,7 @@ def prefer_registered_offsets(
         times=on_clocks.clocks.global_time.copy(),
         refined=True,
         report=report,
+        trajectories=on_clocks.result,
     )
 
 

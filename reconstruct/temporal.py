@@ -28,7 +28,7 @@ from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, spacing_assumed
-from reconstruct.trajectory import RefineOptions, RefineResult, predicted_px, refine
+from reconstruct.trajectory import RefineOptions, RefineResult, predicted_pair, predicted_px, refine
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,7 @@ class Temporal:
     times: np.ndarray  # (F,) global seconds, NaN where the clocks could not be recovered
     refined: bool
     report: dict[str, Any]
+    trajectories: RefineResult | None = None  # the refinement the points come from (None: not refined)
 
 
 def recover_and_refine(problem: Problem, result: SolveResult, options: TemporalOptions | None = None) -> Temporal:
@@ -148,23 +149,28 @@ def _tracks_or_links(
     if alternative is None:
         return clocks, on_clocks
     on_links = refine_on_clocks(problem, judge.result.points, alternative, model, options.refine)
-    mine, theirs = predicted_px(on_clocks.result), predicted_px(on_links.result)
+    residual = judge.residual(on_clocks.result.points), judge.residual(on_links.result.points)
+    predicted = predicted_pair(on_clocks.result, on_links.result)
+    # the predicted errors where they compare the two, else (no point refined in both) the residuals
+    criterion = "predicted_px" if predicted is not None else "residual_px"
+    mine, theirs = predicted if predicted is not None else residual
     kept = bool(theirs < LINKS_BETTER * mine)
     videos = [c.name for c, a in zip(clocks.videos, alternative.videos, strict=True) if a.method != c.method]
     report["links_clocks"] = {
         "videos": videos,
-        "predicted_px": {"tracks": finite_or_none(mine), "links": finite_or_none(theirs)},
-        "residual_px": {
-            "tracks": finite_or_none(judge.residual(on_clocks.result.points)),
-            "links": finite_or_none(judge.residual(on_links.result.points)),
+        "criterion": criterion,
+        "predicted_px": {
+            "tracks": finite_or_none(predicted[0] if predicted else None),
+            "links": finite_or_none(predicted[1] if predicted else None),
         },
+        "residual_px": {"tracks": finite_or_none(residual[0]), "links": finite_or_none(residual[1])},
         "limit": LINKS_BETTER,
         "kept": "links" if kept else "tracks",
     }
     log.warning(
-        "clocks of %s: W's links' (error predicted for unseen rays %.3g px) against the tracks' (%.3g px): the %s' "
-        "kept",
+        "clocks of %s: W's links' (%s %.3g px) against the tracks' (%.3g px): the %s' kept",
         ", ".join(videos),
+        criterion,
         theirs,
         mine,
         "links" if kept else "tracks",
@@ -242,7 +248,9 @@ def _finish(
             "outlier_observations": int(refined.outliers.sum()),
         }
     )
-    return Temporal(clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report)
+    return Temporal(
+        clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report, trajectories=refined
+    )
 
 
 def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> bool:

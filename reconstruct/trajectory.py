@@ -258,11 +258,24 @@ def refine(
 
 
 def predicted_px(result: RefineResult) -> float:
-    """The trajectories' error predicted for a ray they did not see (px): the root of the median over points of
-    their GCV scores. Unlike the residual, it is not fooled by a fit that bends through every ray (a wrong clock
-    makes the motion look fast, and a small smoothness then fits it)."""
-    finite = result.gcv_px2[np.isfinite(result.gcv_px2)]
-    return float(np.sqrt(np.median(finite))) if finite.size else math.nan
+    """The trajectories' error predicted for a ray they did not see (px): the root of the median over refined points
+    of their GCV scores (inf where a point's every smoothness fits its rays exactly). Unlike the residual, it is not
+    fooled by a fit that bends through every ray (a wrong clock makes the motion look fast, and a small smoothness
+    then fits it)."""
+    refined = result.gcv_px2[~np.isnan(result.gcv_px2)]
+    return float(np.sqrt(np.median(refined))) if refined.size else math.nan
+
+
+def predicted_pair(a: RefineResult, b: RefineResult) -> tuple[float, float] | None:
+    """`predicted_px` of two refinements of one problem over the points both refined, or None where that does not
+    compare them (no such point, or every point's score infinite in both)."""
+    both = ~np.isnan(a.gcv_px2) & ~np.isnan(b.gcv_px2)
+    if not both.any():
+        return None
+    first, second = a.gcv_px2[both], b.gcv_px2[both]
+    if np.isinf(first).all() and np.isinf(second).all():
+        return None
+    return float(np.sqrt(np.median(first))), float(np.sqrt(np.median(second)))
 
 
 def _irls(
@@ -385,7 +398,7 @@ def _choose_smoothness_in_window(
     if inside:
         _choose_smoothness([views[k] for k in inside], prior_bands(window), grid, GCV_WINDOW, options, pool)
         for k in inside:
-            tracks[k].smoothness, tracks[k].scale = views[k].smoothness, views[k].scale
+            tracks[k].smoothness, tracks[k].scale, tracks[k].gcv = views[k].smoothness, views[k].scale, views[k].gcv
     if outside:
         _choose_smoothness(outside, prior, grid, n, options, pool)
 

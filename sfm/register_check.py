@@ -45,9 +45,12 @@ def check_background(
     posed = [v for v in videos if v.static and _background_pose(results[v.info.name]) is not None]
     if len(posed) < 2:
         return None
-    tracked = set(tracks.video_names()) if tracks is not None else set()
+    if tracks is None:
+        why = "no 2D tracks of the subject (WS/tracks.csv or --tracks) to check the background's poses against"
+        return {"checked": False, "why": why, "pairs": [], "refuted": {}}
+    tracked = set(tracks.video_names())
     checked = [v for v in posed if v.info.name in tracked]
-    if tracks is None or len(checked) < 2:
+    if len(checked) < 2:
         why = "the subject is tracked in fewer than two of the static videos the background posed"
         return {"checked": False, "why": why, "pairs": [], "refuted": {}}
     inputs = []
@@ -73,6 +76,12 @@ def check_background(
         results[name] = {f: FramePose(pose=None, reason=f"background SfM: {why}") for f in results[name]}
     if agreement.refuted:
         log.warning("the subject's tracks refute the background's poses of %s", ", ".join(sorted(agreement.refuted)))
+        moving = sorted(v.info.name for v in videos if not v.static and _background_pose(results[v.info.name]))
+        if moving and set(agreement.refuted) >= {v.name for v in inputs}:
+            warnings.append(
+                f"the subject's tracks refute every static pose the background gave; its poses of the moving videos "
+                f"{', '.join(moving)} come from the same model: check them (register_report.json background_check)"
+            )
     return {"checked": True, "why": None, **agreement.to_json()}
 
 
@@ -105,12 +114,17 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
         first = video.frames[0]
         times = np.array([f.time if f.time is not None else np.nan for f in video.frames], dtype=float)
         every = [f.frame for f in video.frames] == list(range(len(video.frames))) and np.isfinite(times).all()
+        try:
+            own = times if every else probe_video(paths[video.name]).times  # a static video's every frame has one
+        except InputError as error:
+            log.warning("%s: not checked against the tracks: %s", video.name, error)
+            continue
         inputs.append(
             SubjectVideo(
                 name=video.name,
                 width=video.width,
                 height=video.height,
-                times=times if every else probe_video(paths[video.name]).times,  # a static video's every frame
+                times=own,
                 K=first.K,
                 dist=first.dist,
                 cam_from_world=(first.R, first.t),
@@ -121,4 +135,12 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
         return {}
     inputs = [v for v in inputs if v.name in names]
     rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
-    return check_agreement(rows, inputs, SubjectOptions().max_offset).refuted
+    agreement = check_agreement(rows, inputs, SubjectOptions().max_offset)
+    if not agreement.refuted:
+        checked = [p for p in agreement.pairs if p.checked]
+        log.info(
+            "the background's static poses agree with the subject's tracks (%d of %d pairs checked)",
+            len(checked),
+            len(agreement.pairs),
+        )
+    return agreement.refuted

@@ -3,14 +3,16 @@
 Background SfM can build a model from consistent false matches (repeated plates, posters, wallpaper): the model is
 registered, and wrong. Static cameras far apart give it few true matches to outvote them. Where the subject is
 tracked in two static videos that the background posed, its correspondences give an independent epipolar geometry:
-per pair, the time offset and an essential matrix are fitted to the tracks alone (`pairs.fit_pair`), and the
-background's relative pose is scored on the same correspondences, at its best offset near the tracks'. A pose that
-leaves the subject `MAX_RATIO` times further from its epipolar lines than the tracks' own geometry, and by more than
-`MIN_ANGLE`, contradicts it. Videos in contradicted pairs are refuted greedily: the one in most of them first,
-until no contradicted pair remains among the rest (both of a lone pair: which one is wrong cannot be told).
+per pair, the time offset and an essential matrix are fitted to the tracks alone (`pairs.fit_pair`; a pair whose
+offset the tracks do not single out by `CLEAR_RATIO` is not checked, since it pairs other instants), and the
+background's relative pose is scored on the correspondences at its own best offset (any offset the videos' tracks
+overlap at, wherever the tracks' is). A pose that leaves the subject `MAX_RATIO` times further from its epipolar
+lines than the tracks' own geometry, and by more than `MIN_ANGLE`, contradicts it. Videos in contradicted pairs are
+refuted greedily: the one in most of them first, until no contradicted pair remains among the rest (both of a lone
+pair: which one is wrong cannot be told).
 
-It is a garbage detector, not an accuracy bound: a pose a degree or two off passes, since tracks that are not
-better than that (joint detections) must not replace it.
+It is a garbage detector, not an accuracy bound: its limits leave room for tracks as noisy as joint detections,
+whose own geometry is no better than a background pose a little off (docs/registration.md, "Measured").
 """
 
 from __future__ import annotations
@@ -24,17 +26,21 @@ import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
 from sfm.subject.geometry import sampson
-from sfm.subject.model import SEED, SubjectVideo
+from sfm.subject.model import MIN_SHARED, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
-from sfm.subject.pairs import correspondences, fit_pair
+from sfm.subject.pairs import correspondences, fit_pair, pair_correspondences
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
 MAX_RATIO = 5.0  # a contradicted pose leaves the subject this many times further from its epipolar lines ...
 MIN_ANGLE = 0.01  # ... and more than this (radians of normalized image distance, about 0.6 degree) further
-SHIFT_REACH = 2.0  # the pose's own best offset is searched this many frame periods around the tracks' offset
+CLEAR_RATIO = 1.15  # the tracks' offset must beat any other a frame away by this (the one-point pairs' margin)
+SHIFT_REACH = 1.0  # the poses' best offset: fine steps this many frame periods around each coarse candidate
 SHIFT_STEP = 0.25  # in frame periods of the faster video
+COARSE_CORRESPONDENCES = 2000  # at most (every k-th frame of a) in the coarse scan of the poses' offset
+FINE_PEAKS = 5  # coarse candidates searched finely
+CHUNK = 64  # shifts scored at once
 TIE = 0.05  # mean log ratios closer than this do not tell two videos apart
 MIN_BASELINE = 1e-9  # relative: two poses at one centre (no epipolar geometry) are not checked
 
@@ -52,6 +58,7 @@ class PairAgreement:
     tracks_px: float | None = None  # with the tracks' own epipolar geometry
     poses_px: float | None = None  # with the poses' epipolar geometry
     correspondences: int = 0
+    poses_offset_s: float | None = None  # o_b - o_a where the poses fit the subject best
     contradicted: bool = False
 
     def to_json(self) -> dict[str, Any]:
@@ -64,6 +71,7 @@ class PairAgreement:
             "tracks_px": finite_or_none(self.tracks_px),
             "poses_px": finite_or_none(self.poses_px),
             "correspondences": self.correspondences,
+            "poses_offset_s": finite_or_none(self.poses_offset_s),
             "contradicted": self.contradicted,
         }
 
@@ -115,21 +123,61 @@ def _check_pair(
     if not fit.usable or fit.E is None:
         out.why = f"the tracks do not determine the pair: {fit.reason or fit.degenerate}"
         return out
+    if fit.ambiguous or fit.runner_up_ratio < CLEAR_RATIO:
+        # an offset the tracks do not single out (one point, tracks that never overlap at the true offset) pairs
+        # other instants, which the tracks' own E fits and right poses do not
+        out.why = f"the tracks' time offset is not clear (runner-up ratio {fit.runner_up_ratio:.3g} < {CLEAR_RATIO})"
+        return out
     focal = float(np.sqrt(oa.focal * ob.focal))
     xa, xb = correspondences(oa, ob, fit.shift)
     own = float(np.median(np.sqrt(sampson(fit.E[None], xa, xb)[0])))
     tx = t / np.linalg.norm(t)
     E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
-    period = min(oa.period, ob.period)
-    poses = np.inf
-    for shift in fit.shift + np.arange(-SHIFT_REACH, SHIFT_REACH + SHIFT_STEP / 2, SHIFT_STEP) * period:
-        ya, yb = correspondences(oa, ob, float(shift))
-        if len(ya) >= len(xa) // 2:  # a shift that loses most of the correspondences proves nothing
-            poses = min(poses, float(np.median(np.sqrt(sampson(E[None], ya, yb)[0]))))
+    poses, shift = _poses_best(oa, ob, E, fit.shift, max_offset)
     out.checked = True
     out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift
+    out.poses_offset_s = -shift
     out.tracks_px, out.poses_px, out.correspondences = own * focal, poses * focal, len(xa)
     out.contradicted = bool(poses > MAX_RATIO * own and poses - own > MIN_ANGLE)
+    return out
+
+
+def _poses_best(oa: VideoObs, ob: VideoObs, E: np.ndarray, near: float, max_offset: float) -> tuple[float, float]:
+    """The poses' least median epipolar distance (normalized) over every time offset with `MIN_SHARED`
+    correspondences, and that offset (own_b = own_a + shift): their own best, wherever the tracks' offset is (a wrong
+    one pairs other instants). A coarse scan a frame period apart on at most `COARSE_CORRESPONDENCES`, then the best
+    few and the tracks' own offset `near` in steps of `SHIFT_STEP` periods."""
+    period = min(oa.period, ob.period)
+    lo = max(-max_offset, ob.times[0] - oa.times[-1])
+    hi = min(max_offset, ob.times[-1] - oa.times[0])
+    coarse = np.arange(lo, hi + period / 2, period)
+    stride = max(1, oa.count() // COARSE_CORRESPONDENCES)
+    starts = [near]
+    if len(coarse):
+        scores = np.concatenate(
+            [_medians(oa, ob, E, coarse[i : i + CHUNK], stride) for i in range(0, len(coarse), CHUNK)]
+        )
+        order = np.argsort(scores)[:FINE_PEAKS]
+        starts += [float(c) for c in coarse[order][np.isfinite(scores[order])]]
+    fine = np.concatenate(
+        [s + np.arange(-SHIFT_REACH, SHIFT_REACH + SHIFT_STEP / 2, SHIFT_STEP) * period for s in starts]
+    )
+    scores = np.concatenate([_medians(oa, ob, E, fine[i : i + CHUNK], 1) for i in range(0, len(fine), CHUNK)])
+    best = int(np.argmin(scores))
+    return float(scores[best]), float(fine[best])
+
+
+def _medians(oa: VideoObs, ob: VideoObs, E: np.ndarray, shifts: np.ndarray, stride: int) -> np.ndarray:
+    """(D,) median epipolar distance (normalized) of the correspondences at each shift; inf with fewer than
+    MIN_SHARED of them."""
+    xa, xb = pair_correspondences(oa, ob, shifts, stride)  # (D, M, 2) with NaN
+    distance = np.sqrt(sampson(E[None], xa, xb)[:, 0])  # (D, M)
+    valid = np.isfinite(distance)
+    distance = np.where(valid, distance, np.nan)
+    out = np.full(len(shifts), np.inf)
+    enough = valid.sum(axis=1) >= MIN_SHARED
+    if enough.any():
+        out[enough] = np.nanmedian(distance[enough], axis=1)
     return out
 
 

@@ -48,7 +48,9 @@ class PairFit:
         return self.reason is None and self.degenerate is None
 
 
-def _pair_corr(oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def pair_correspondences(
+    oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """shifts: (D,) -> xa, xb: (D, Fa / stride * P, 2) normalized with NaN (every `stride`-th frame of a)."""
     max_gap = 2.5 * ob.period  # bridge at most one missing frame
     xb = interpolate(ob.norm, ob.times, oa.times[None, ::stride] + shifts[:, None], max_gap)  # (D, Fa', P, 2)
@@ -59,7 +61,7 @@ def _pair_corr(oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1) 
 def correspondences(oa: VideoObs, ob: VideoObs, shift: float) -> tuple[np.ndarray, np.ndarray]:
     """The pair's correspondences at one shift (own_b = own_a + shift): (M, 2) normalized coordinates in a and b,
     every observation of a with b's track interpolated at that instant."""
-    xa, xb = _pair_corr(oa, ob, np.array([shift]))
+    xa, xb = pair_correspondences(oa, ob, np.array([shift]))
     ok = np.isfinite(xa[0, :, 0]) & np.isfinite(xb[0, :, 0])
     return xa[0, ok], xb[0, ok]
 
@@ -81,7 +83,7 @@ def _score(
     for start in range(0, len(shifts), CHUNK):
         sl = slice(start, start + CHUNK)
         stride = max(1, oa.norm.shape[0] * oa.norm.shape[1] // (8 * n_max))  # enough to pick n_max from
-        xa, xb = _pair_corr(oa, ob, shifts[sl], stride)
+        xa, xb = pair_correspondences(oa, ob, shifts[sl], stride)
         valid = np.isfinite(xa[..., 0]) & np.isfinite(xb[..., 0])  # (d, M)
         n_valid = valid.sum(1)
         counts[sl] = n_valid

@@ -16,6 +16,8 @@ from reconstruct.trajectory import (
     RefineOptions,
     RobustLoss,
     SmoothnessRule,
+    predicted_pair,
+    predicted_px,
     refine,
 )
 
@@ -206,6 +208,8 @@ def test_a_long_capture_chooses_its_smoothness_on_the_middle_window(monkeypatch:
     assert np.all(steps <= 1)  # the same grid value, or its neighbour
     before, after = np.median(error_mm(whole.points, truth)), np.median(error_mm(windowed.points, truth))
     assert after < 1.1 * before
+    # the error predicted for an unseen ray comes from the window's GCV too (it judges competing clocks)
+    assert np.isfinite(windowed.gcv_px2).all() and abs(predicted_px(windowed) / predicted_px(whole) - 1) < 0.2
 
 
 def test_a_point_seen_too_little_in_the_window_is_chosen_on_all_of_its_instants(
@@ -226,3 +230,18 @@ def test_a_point_seen_too_little_in_the_window_is_chosen_on_all_of_its_instants(
     monkeypatch.setattr(trajectory, "_choose_smoothness", spy)
     refine(problem, start, times)
     assert calls[:2] == [(3, 240), (1, 600)]
+
+
+def test_the_predicted_error_is_the_noise_and_compares_only_points_both_refined() -> None:
+    times, camera_of = round_robin(300, 120.0)
+    problem, truth = capture(times, camera_of, noise_px=1.0)
+    result = refine(problem, start_points(problem, truth), times)
+    assert 0.8 < predicted_px(result) < 1.4  # per-axis noise of 1 px, predicted for rays the fit did not see
+    other = trajectory.RefineResult(**{**vars(result), "gcv_px2": result.gcv_px2 * 4.0})
+    other.gcv_px2[0] = np.nan  # point 0 not refined there: left out of both
+    pair = predicted_pair(result, other)
+    assert pair is not None
+    assert pair[1] == pytest.approx(2 * pair[0]) and pair[0] == pytest.approx(np.sqrt(np.median(result.gcv_px2[1:])))
+    interpolating = trajectory.RefineResult(**{**vars(result), "gcv_px2": np.full_like(result.gcv_px2, np.inf)})
+    assert predicted_pair(interpolating, interpolating) is None  # nothing to compare: the caller uses residuals
+    assert predicted_pair(result, interpolating) == (pytest.approx(predicted_px(result)), np.inf)

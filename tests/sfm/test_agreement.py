@@ -96,6 +96,27 @@ def test_a_subject_on_a_line_checks_nothing() -> None:
     assert not any(p.checked for p in result.pairs) and all(p.why for p in result.pairs)
 
 
+def test_offsets_the_tracks_do_not_single_out_check_nothing() -> None:
+    """One tracked point, or tracks that never overlap at the true offset: the pair's best offset pairs other
+    instants, which the tracks' own geometry fits and the true poses do not. Such pairs are not checked."""
+    from sfm.subject.observations import select_rows
+
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=6.0, noise_px=0.7, seed=3)
+    right = _posed(videos, truth)
+    one_point = select_rows(tracks, np.array([p == tracks.point_names()[0] for p in tracks.point]))
+    apart = np.array(
+        [
+            not (
+                (v == "cam0" and f < len(videos[0].times) // 2 + 30) or (v == "cam1" and f > len(videos[1].times) // 4)
+            )
+            for v, f in zip(tracks.video, tracks.frame, strict=True)
+        ]
+    )
+    for part in (one_point, select_rows(tracks, apart)):
+        result = check_agreement(part, right)
+        assert result.refuted == {}, result.to_json()
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # register's wiring: a refuted background pose goes, and the subject path poses that camera
 
@@ -173,6 +194,9 @@ def test_no_check_without_tracks_or_with_one_posed_static_video(rig: tuple[Track
     plans = [_plan(v) for v in videos]
     results = {v.name: _background(v, (R, t)) for v, R, t in zip(videos, truth.R, truth.t, strict=True)}
     section = check_background(plans, results, None, [])
+    assert section is not None and not section["checked"] and "no 2D tracks" in section["why"]
+    one_tracked = Tracks.from_rows([("cam0", 0, "p0", 1.0, 2.0)])
+    section = check_background(plans, results, one_tracked, [])
     assert section is not None and not section["checked"] and "fewer than two" in section["why"]
     one = {v.name: (_background(v, (truth.R[0], truth.t[0])) if v.name == "cam0" else {}) for v in videos}
     assert check_background(plans, one, tracks, []) is None
