@@ -42,6 +42,7 @@ from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
 from reconstruct.tracks_referee import compare, referee_times, subsample, subsample_without_clocks
+from reconstruct.trajectory import predicted_px
 
 log = logging.getLogger(__name__)
 
@@ -217,12 +218,18 @@ def _attempt(
             "path": PATH,
             "checks": [c.to_json() for c in checks],
             "smoothness_median": finite_or_none(np.nanmedian(refined.smoothness)),
+            "predicted_px": finite_or_none(predicted_px(refined)),
             "outlier_observations": int(refined.outliers.sum()),
             "reason": f"{int(placed.sum())} reconstructable point(s): clocks from the tracks, no self-expressive solve",
         }
     )
     temporal = Temporal(
-        clocks=on_clocks.clocks, points=points, times=on_clocks.clocks.global_time.copy(), refined=True, report=report
+        clocks=on_clocks.clocks,
+        points=points,
+        times=on_clocks.clocks.global_time.copy(),
+        refined=True,
+        report=report,
+        trajectories=refined,
     )
     return TracksAttempt(
         temporal=temporal,

@@ -370,7 +370,9 @@ def finish_capture(
     with timed(notes, "export"):
         # a model whose every pose the subject refuted has its points in another world than the cameras
         kept = rec if background_left(plans, results) else None
-        path = _export(registered_videos, results, kept, subject_report, out)
+        refuted = set((summary.background_check or {}).get("refuted", {}))
+        dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
+        path = _export(registered_videos, results, _points(kept, dropped), subject_report, out)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 
@@ -405,14 +407,31 @@ class _Summary:
     background_check: dict[str, Any] | None = None  # its static poses against the subject's tracks
 
 
+def _points(rec: pycolmap.Reconstruction | None, dropped: set[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The model's points (N, 3) and colours (N, 3) uint8, without those seen by fewer than two images outside
+    `dropped` (images of videos whose poses the subject refuted: what they triangulated is not in the cameras'
+    world)."""
+    if rec is None:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    names = {image_id: image.name for image_id, image in rec.images.items()}
+    points = [
+        p
+        for p in rec.points3D.values()
+        if not dropped or sum(names[e.image_id] not in dropped for e in p.track.elements) >= 2
+    ]
+    xyz = np.array([p.xyz for p in points]).reshape(-1, 3)
+    return xyz, np.array([p.color for p in points], dtype=np.uint8).reshape(-1, 3)
+
+
 def _export(
     registered_videos: list[VideoPlan],
     results: Results,
-    rec: pycolmap.Reconstruction | None,
+    points: tuple[np.ndarray, np.ndarray],
     subject_report: dict[str, Any] | None,
     out: Path,
 ) -> Path:
-    """background.ply (the model's points) and cameras.json (every posed frame); returns the cameras.json path."""
+    """background.ply (`points`: the model's points and colours) and cameras.json (every posed frame); returns the
+    cameras.json path."""
     cameras = CameraSet()
     subject = subject_report or {}
     # the posed videos' offsets (handheld ones that anchored the subject path) are on the same clock
@@ -422,12 +441,7 @@ def _export(
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
     for video in registered_videos:
         cameras.videos.append(_video_cameras(video, results[video.info.name], clock_offsets.get(video.info.name)))
-    if rec is not None:
-        xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-        rgb = np.array([p.color for p in rec.points3D.values()], dtype=np.uint8).reshape(-1, 3)
-    else:
-        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-    write_ply(out / "background.ply", xyz, rgb)
+    write_ply(out / "background.ply", *points)
     return write_cameras(out / "cameras.json", cameras)
 
 

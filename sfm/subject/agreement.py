@@ -41,6 +41,9 @@ SHIFT_STEP = 0.25  # in frame periods of the faster video
 COARSE_CORRESPONDENCES = 2000  # at most (every k-th frame of a) in the coarse scan of the poses' offset
 FINE_PEAKS = 5  # coarse candidates searched finely
 CHUNK = 64  # shifts scored at once
+# the poses' offset needs this share of the correspondences the tracks' offset has: a short overlap at a far offset
+# lets a wrong pose fit a few of them
+MIN_SHARE = 0.25
 TIE = 0.05  # mean log ratios closer than this do not tell two videos apart
 MIN_BASELINE = 1e-9  # relative: two poses at one centre (no epipolar geometry) are not checked
 
@@ -133,7 +136,8 @@ def _check_pair(
     own = float(np.median(np.sqrt(sampson(fit.E[None], xa, xb)[0])))
     tx = t / np.linalg.norm(t)
     E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
-    poses, shift = _poses_best(oa, ob, E, fit.shift, max_offset)
+    least = max(MIN_SHARED, int(MIN_SHARE * len(xa)))
+    poses, shift = _poses_best(oa, ob, E, fit.shift, max_offset, least)
     out.checked = True
     out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift
     out.poses_offset_s = -shift
@@ -142,11 +146,13 @@ def _check_pair(
     return out
 
 
-def _poses_best(oa: VideoObs, ob: VideoObs, E: np.ndarray, near: float, max_offset: float) -> tuple[float, float]:
-    """The poses' least median epipolar distance (normalized) over every time offset with `MIN_SHARED`
-    correspondences, and that offset (own_b = own_a + shift): their own best, wherever the tracks' offset is (a wrong
-    one pairs other instants). A coarse scan a frame period apart on at most `COARSE_CORRESPONDENCES`, then the best
-    few and the tracks' own offset `near` in steps of `SHIFT_STEP` periods."""
+def _poses_best(
+    oa: VideoObs, ob: VideoObs, E: np.ndarray, near: float, max_offset: float, least: int
+) -> tuple[float, float]:
+    """The poses' least median epipolar distance (normalized) over every time offset with `least` correspondences,
+    and that offset (own_b = own_a + shift): their own best, wherever the tracks' offset is (a wrong one pairs other
+    instants). A coarse scan a frame period apart on at most `COARSE_CORRESPONDENCES`, then the best few and the
+    tracks' own offset `near` in steps of `SHIFT_STEP` periods."""
     period = min(oa.period, ob.period)
     lo = max(-max_offset, ob.times[0] - oa.times[-1])
     hi = min(max_offset, ob.times[-1] - oa.times[0])
@@ -155,27 +161,27 @@ def _poses_best(oa: VideoObs, ob: VideoObs, E: np.ndarray, near: float, max_offs
     starts = [near]
     if len(coarse):
         scores = np.concatenate(
-            [_medians(oa, ob, E, coarse[i : i + CHUNK], stride) for i in range(0, len(coarse), CHUNK)]
+            [_medians(oa, ob, E, coarse[i : i + CHUNK], stride, least // stride) for i in range(0, len(coarse), CHUNK)]
         )
         order = np.argsort(scores)[:FINE_PEAKS]
         starts += [float(c) for c in coarse[order][np.isfinite(scores[order])]]
     fine = np.concatenate(
         [s + np.arange(-SHIFT_REACH, SHIFT_REACH + SHIFT_STEP / 2, SHIFT_STEP) * period for s in starts]
     )
-    scores = np.concatenate([_medians(oa, ob, E, fine[i : i + CHUNK], 1) for i in range(0, len(fine), CHUNK)])
+    scores = np.concatenate([_medians(oa, ob, E, fine[i : i + CHUNK], 1, least) for i in range(0, len(fine), CHUNK)])
     best = int(np.argmin(scores))
     return float(scores[best]), float(fine[best])
 
 
-def _medians(oa: VideoObs, ob: VideoObs, E: np.ndarray, shifts: np.ndarray, stride: int) -> np.ndarray:
-    """(D,) median epipolar distance (normalized) of the correspondences at each shift; inf with fewer than
-    MIN_SHARED of them."""
+def _medians(oa: VideoObs, ob: VideoObs, E: np.ndarray, shifts: np.ndarray, stride: int, least: int) -> np.ndarray:
+    """(D,) median epipolar distance (normalized) of the correspondences at each shift; inf with fewer than `least`
+    of them."""
     xa, xb = pair_correspondences(oa, ob, shifts, stride)  # (D, M, 2) with NaN
     distance = np.sqrt(sampson(E[None], xa, xb)[:, 0])  # (D, M)
     valid = np.isfinite(distance)
     distance = np.where(valid, distance, np.nan)
     out = np.full(len(shifts), np.inf)
-    enough = valid.sum(axis=1) >= MIN_SHARED
+    enough = valid.sum(axis=1) >= max(least, 8)
     if enough.any():
         out[enough] = np.nanmedian(distance[enough], axis=1)
     return out

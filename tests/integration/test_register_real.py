@@ -144,6 +144,9 @@ def test_caliscope_false_background_model_is_refuted_by_the_board(
     for pair in check["pairs"]:
         assert pair["contradicted"] and pair["poses_px"] > 20 * pair["tracks_px"], pair
     assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
+    from sfm.export import read_ply
+
+    assert len(read_ply(tmp_path / "ws" / "background.ply")[0]) == 0  # the refuted model's points: another world
     errors = real.score(
         read_cameras(tmp_path / "ws" / "cameras.json"),
         real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)]),
