@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 
 from reconstruct import trajectory
 from reconstruct.block_inverse import BANDS
@@ -186,9 +187,14 @@ class _PolishCost:
         solved = self.pool.map(run, self.parts) if self.pool is not None else map(run, self.parts)
         squared = np.empty(self.num_observations)
         prior_values = []
-        for part, (distance2, value) in zip(self.parts, solved, strict=True):
-            squared[part.observations] = distance2
-            prior_values.append(value)
+        try:
+            for part, (distance2, value) in zip(self.parts, solved, strict=True):
+                squared[part.observations] = distance2
+                prior_values.append(value)
+        except LinAlgError:
+            # times that leave some point's system numerically singular are no candidate: the search moves on, and
+            # a polish whose own start is one is rejected (its cost is not finite)
+            return math.inf
         total = float(np.sum(self.weight * squared))
         return total + float(np.sum(self.strength * np.concatenate(prior_values)))
 

@@ -5,9 +5,10 @@ Register's subject path fits each static video's clock offset from the subject's
 geometry, and writes it to cameras.json (`clock_offset`). The solve recovers clocks from its own evidence (W's
 links, the track search). Where the two disagree (`clocks.registered.check_registered_clocks`), one is wrong: the
 trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
-closely are kept: judged by the error their trajectories predict for unseen rays (GCV, over the points both
-refined), or by the median residual against the seed's unrefined points. The solve's own clocks stay unless
-registration's fit clearly better; report.json `temporal.registered_offsets` gives both measures and the choice.
+closely are kept, by their median residual (not by the error they predict for unseen rays, as the links' clocks are:
+with cameras a degree off, right offsets can bend the trajectories through their rays more than wrong clocks do;
+docs/refinement.md). The solve's own clocks stay unless registration's fit clearly better; report.json
+`temporal.registered_offsets` gives both measures and the choice.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
 
-BETTER = 0.8  # registration's clocks are kept when their error (criterion above) is below this x the solve's
+BETTER = 0.8  # registration's clocks are kept when their median reprojection residual is below this x the solve's
 PATH = "registered_offsets"  # report.json temporal.path when they are kept
 
 
@@ -76,11 +77,10 @@ def prefer_registered_offsets(
     on_clocks = refine_on_clocks(problem, start, clocks, clocks.model, options)
     points = np.where(np.isfinite(on_clocks.result.points), on_clocks.result.points, start)
     residual = {"solve": _median_px(problem, temporal.points), "registered": _median_px(problem, points)}
-    # refined trajectories are judged by the error they predict for unseen rays (a fit can bend through every ray),
-    # over the points both refined; the seed's unrefined points have no such score: their residual is compared
+    # reported, not judged: see the module's docstring
     predicted = predicted_pair(temporal.trajectories, on_clocks.result) if temporal.trajectories else None
-    criterion = "predicted_px" if predicted is not None else "residual_px"
-    mine, theirs = predicted if predicted is not None else (residual["solve"], residual["registered"])
+    criterion = "residual_px"
+    mine, theirs = residual["solve"], residual["registered"]
     kept = bool(theirs < BETTER * mine)
     entry = {
         "tried": True,
