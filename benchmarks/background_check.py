@@ -112,8 +112,12 @@ def plain(tracks: Tracks, videos: list[SubjectVideo], work: Path) -> None:
             dist = np.array([camera.params[3], 0.0, 0.0, 0.0]) if len(camera.params) > 3 else None
             posed.append(
                 SubjectVideo(
-                    **{**vars(by_name[name]), "K": K, "dist": dist},
-                    cam_from_world=(pose.rotation.matrix(), np.asarray(pose.translation)),
+                    **{
+                        **vars(by_name[name]),
+                        "K": K,
+                        "dist": dist,
+                        "cam_from_world": (pose.rotation.matrix(), np.asarray(pose.translation)),
+                    }
                 )
             )
         errors = [

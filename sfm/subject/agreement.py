@@ -7,9 +7,10 @@ per pair, the time offset and an essential matrix are fitted to the tracks alone
 offset the tracks do not single out by `CLEAR_RATIO` is not checked, since it pairs other instants), and the
 background's relative pose is scored on the correspondences at its own best offset (any offset the videos' tracks
 overlap at, wherever the tracks' is). A pose that leaves the subject `MAX_RATIO` times further from its epipolar
-lines than the tracks' own geometry, and by more than `MIN_ANGLE`, contradicts it. Videos in contradicted pairs are
+lines than the tracks' own geometry, and by more than `MIN_PX`, contradicts it. Videos in contradicted pairs are
 refuted greedily: the one in most of them first, until no contradicted pair remains among the rest (both of a lone
-pair: which one is wrong cannot be told).
+pair: which one is wrong cannot be told). A pose whose intrinsics are no lens's (a focal outside `FOCAL_RANGE` times
+the image's long side) is refuted as it stands.
 
 It is a garbage detector, not an accuracy bound: its limits leave room for tracks as noisy as joint detections,
 whose own geometry is no better than a background pose a little off (docs/registration.md, "Measured").
@@ -34,7 +35,7 @@ from tracking.tracks import Tracks
 log = logging.getLogger(__name__)
 
 MAX_RATIO = 5.0  # a contradicted pose leaves the subject this many times further from its epipolar lines ...
-MIN_ANGLE = 0.01  # ... and more than this (radians of normalized image distance, about 0.6 degree) further
+MIN_PX = 3.0  # ... and more than this further (image pixels: a wrong focal scales angles, not what was measured)
 CLEAR_RATIO = 1.15  # the tracks' offset must beat any other a frame away by this (the one-point pairs' margin)
 SHIFT_REACH = 1.0  # the poses' best offset: fine steps this many frame periods around each coarse candidate
 SHIFT_STEP = 0.25  # in frame periods of the faster video
@@ -45,6 +46,8 @@ CHUNK = 64  # shifts scored at once
 # lets a wrong pose fit a few of them
 MIN_SHARE = 0.25
 TIE = 0.05  # mean log ratios closer than this do not tell two videos apart
+# focal (in units of the image's long side) of any lens: a fisheye's about 0.15, a 30x zoom's about 25
+FOCAL_RANGE = (0.1, 30.0)
 MIN_BASELINE = 1e-9  # relative: two poses at one centre (no epipolar geometry) are not checked
 
 
@@ -88,7 +91,7 @@ class Agreement:
         return {
             "pairs": [p.to_json() for p in self.pairs],
             "refuted": dict(self.refuted),
-            "limits": {"max_ratio": MAX_RATIO, "min_angle_rad": MIN_ANGLE},
+            "limits": {"max_ratio": MAX_RATIO, "min_px": MIN_PX},
         }
 
 
@@ -100,10 +103,27 @@ def check_agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: floa
     _, obs = build_observations(tracks, videos)
     rng = np.random.default_rng(SEED)
     result = Agreement()
+    lens = {v.name: why for v in videos if (why := _no_lens(v)) is not None}
     for a, b in itertools.combinations(range(len(videos)), 2):
+        if obs[a].name in lens or obs[b].name in lens:
+            why = f"{obs[a].name if obs[a].name in lens else obs[b].name}'s intrinsics are no lens"
+            result.pairs.append(PairAgreement(a=obs[a].name, b=obs[b].name, checked=False, why=why))
+            continue
         result.pairs.append(_check_pair(obs[a], obs[b], a, b, max_offset, rng))
-    result.refuted = _refute(result.pairs)
+    result.refuted = {**lens, **_refute(result.pairs)}
     return result
+
+
+def _no_lens(video: SubjectVideo) -> str | None:
+    """Why the video's intrinsics cannot be a camera's (a focal far outside any lens's), or None."""
+    assert video.K is not None
+    focal, side = float(np.sqrt(abs(video.K[0, 0] * video.K[1, 1]))), float(max(video.width, video.height))
+    if FOCAL_RANGE[0] * side <= focal <= FOCAL_RANGE[1] * side:
+        return None
+    return (
+        f"its intrinsics are no lens: a focal of {focal:.0f} px for a {side:.0f} px image (outside "
+        f"{FOCAL_RANGE[0]:g}-{FOCAL_RANGE[1]:g} x), a model fitted to false matches"
+    )
 
 
 def _check_pair(
@@ -142,7 +162,7 @@ def _check_pair(
     out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift
     out.poses_offset_s = -shift
     out.tracks_px, out.poses_px, out.correspondences = own * focal, poses * focal, len(xa)
-    out.contradicted = bool(poses > MAX_RATIO * own and poses - own > MIN_ANGLE)
+    out.contradicted = bool(poses > MAX_RATIO * own and (poses - own) * focal > MIN_PX)
     return out
 
 

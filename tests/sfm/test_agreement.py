@@ -79,6 +79,18 @@ def test_a_moved_camera_centre_is_refuted(rig: tuple[Tracks, list[SubjectVideo],
     assert list(result.refuted) == ["cam1"], result.to_json()
 
 
+def test_intrinsics_that_are_no_lens_are_refuted(rig: tuple[Tracks, list[SubjectVideo], Truth]) -> None:
+    """pycolmap's defaults on the office backgrounds fit focals of 3,000-400,000 px to 1280 px webcams."""
+    tracks, videos, truth = rig
+    posed = _posed(videos, truth)
+    K = posed[1].K.copy()  # type: ignore[union-attr]
+    K[0, 0] = K[1, 1] = 100 * max(posed[1].width, posed[1].height)
+    posed[1] = SubjectVideo(**{**vars(posed[1]), "K": K})
+    result = check_agreement(tracks, posed)
+    assert list(result.refuted) == ["cam1"] and "no lens" in result.refuted["cam1"]
+    assert all(p.checked != ("cam1" in (p.a, p.b)) for p in result.pairs)  # the others are still checked
+
+
 def test_a_lone_wrong_pair_refutes_both(rig: tuple[Tracks, list[SubjectVideo], Truth]) -> None:
     """Two cameras: which of them is wrong cannot be told, so neither pose is kept."""
     tracks, videos, truth = rig
