@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sfm.calibration import read_calibration
 from sfm.subject import SubjectVideo
-from sfm.subject.agreement import MAX_RATIO, check_agreement
+from sfm.subject.agreement import MAX_RATIO, MIN_PX, check_agreement
 from sfm.video import probe_video
 from tracking.charuco import charuco_tracks
 from tracking.tracks import Tracks, read_tracks
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"needs the shared data folder {SHARED}")
         return 1
     rng = np.random.default_rng(0)
-    print(f"limit: poses' distance > {MAX_RATIO:g} x the tracks' own (and > 0.01 rad more)\n")
+    print(f"limit: poses' distance > {MAX_RATIO:g} x the tracks' own (and > {MIN_PX:g} px more)\n")
     print("| rig | pose error | exactly it refuted | passed | another refuted | s per check |")
     print("|---|---|---|---|---|---|")
     for name in args.rigs.split(","):
