@@ -100,9 +100,6 @@ class RefineResult:
     # (P,) GCV score at the chosen smoothness (px^2 per residual component): the fit's error predicted for a ray it
     # did not see; NaN for points not refined
     gcv_px2: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    # (P,) share of the residual components each point's fit leaves free, (m - tr(H)) / m: near 0 it bends through
-    # every ray; NaN for points not refined
-    freedom: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _fit(
@@ -171,7 +168,6 @@ class _Track:
     scale: float = 1.0  # robust scale, px
     smoothness: float = 1.0
     gcv: float = math.nan  # GCV score at the chosen smoothness, px^2 per residual component
-    freedom: float = math.nan  # share of the residual components the fit leaves free there, (m - tr(H)) / m
     residual: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (m,) px
 
     def residuals(self, positions: np.ndarray) -> np.ndarray:
@@ -232,7 +228,6 @@ def refine(
     smoothness = np.full(P, np.nan)
     scale_px = np.full(P, np.nan)
     gcv = np.full(P, np.nan)
-    freedom = np.full(P, np.nan)
     for track in tracks:
         p = track.point
         out[:, p] = track.positions[nodes.node_of_frame]
@@ -242,7 +237,6 @@ def refine(
         smoothness[p] = track.smoothness
         scale_px[p] = track.scale
         gcv[p] = track.gcv
-        freedom[p] = track.freedom
     if tracks:
         log.info(
             "refined %d point(s) on %d instants: smoothness median %.3g, %d outlier observation(s)",
@@ -260,7 +254,6 @@ def refine(
         scale_px=scale_px,
         cost=cost,
         gcv_px2=gcv,
-        freedom=freedom,
     )
 
 
@@ -374,7 +367,6 @@ def _choose_smoothness(
         sigma = np.sqrt(fits.rss[k, g] / max(effective - fits.trace[k, g], 1.0))
         track.scale = max(SCALE_SIGMAS * sigma, MIN_SCALE_PX)
         track.gcv = float(_gcv_scores(fits.rss[k, g, None, None], fits.trace[k, g, None, None], m[k, None])[0, 0])
-        track.freedom = float((m[k, 0] - fits.trace[k, g]) / m[k, 0])
 
 
 def _choose_smoothness_in_window(
@@ -406,9 +398,7 @@ def _choose_smoothness_in_window(
     if inside:
         _choose_smoothness([views[k] for k in inside], prior_bands(window), grid, GCV_WINDOW, options, pool)
         for k in inside:
-            view = views[k]
-            tracks[k].smoothness, tracks[k].scale, tracks[k].gcv = view.smoothness, view.scale, view.gcv
-            tracks[k].freedom = view.freedom
+            tracks[k].smoothness, tracks[k].scale, tracks[k].gcv = views[k].smoothness, views[k].scale, views[k].gcv
     if outside:
         _choose_smoothness(outside, prior, grid, n, options, pool)
 
