@@ -79,12 +79,11 @@ def prefer_registered_offsets(
     residual = {"solve": _median_px(problem, temporal.points), "registered": _median_px(problem, points)}
     # reported, not judged: see the module's docstring
     predicted = predicted_pair(temporal.trajectories, on_clocks.result) if temporal.trajectories else None
-    criterion = "residual_px"
     mine, theirs = residual["solve"], residual["registered"]
     kept = bool(theirs < BETTER * mine)
     entry = {
         "tried": True,
-        "criterion": criterion,
+        "criterion": "residual_px",
         "residual_px": {k: finite_or_none(v) for k, v in residual.items()},
         "predicted_px": {
             "solve": finite_or_none(predicted[0] if predicted else None),
@@ -95,18 +94,16 @@ def prefer_registered_offsets(
     }
     if not kept:
         log.warning(
-            "the clocks disagree with registration's offsets, whose trajectories fit no better (%s %.3g px against "
-            "the solve's %.3g px): the solve's clocks are kept",
-            criterion,
+            "the clocks disagree with registration's offsets, whose trajectories fit no better (median residual "
+            "%.3g px against the solve's %.3g px): the solve's clocks are kept",
             theirs,
             mine,
         )
         temporal.report[PATH] = entry
         return temporal
     log.warning(
-        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (%s %.3g "
-        "px against %.3g px): refined on registration's offsets",
-        criterion,
+        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (median "
+        "residual %.3g px against %.3g px): refined on registration's offsets",
         theirs,
         mine,
     )
