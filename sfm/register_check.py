@@ -18,7 +18,7 @@ from dynrecon.errors import InputError
 from sfm.cameras import read_cameras
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectOptions, SubjectVideo
-from sfm.subject.agreement import check_agreement
+from sfm.subject.agreement import Agreement, check_agreement
 from sfm.subject.observations import select_rows
 from sfm.video import probe_video
 from tracking.tracks import Tracks
@@ -68,9 +68,7 @@ def check_background(
                 cam_from_world=(known.pose.rotation.matrix(), np.asarray(known.pose.translation)),
             )
         )
-    names = {v.name for v in inputs}
-    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
-    agreement = check_agreement(rows, inputs, SubjectOptions().max_offset)
+    agreement = _agreement(tracks, inputs)
     for name, why in agreement.refuted.items():
         warnings.append(f"{name}: the background's pose is not used: {why}")
         results[name] = {f: FramePose(pose=None, reason=f"background SfM: {why}") for f in results[name]}
@@ -130,12 +128,11 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
                 cam_from_world=(first.R, first.t),
             )
         )
-    names = {v.name for v in inputs} & set(tracks.video_names())
-    if len(names) < 2:
+    tracked = set(tracks.video_names())
+    inputs = [v for v in inputs if v.name in tracked]
+    if len(inputs) < 2:
         return {}
-    inputs = [v for v in inputs if v.name in names]
-    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
-    agreement = check_agreement(rows, inputs, SubjectOptions().max_offset)
+    agreement = _agreement(tracks, inputs)
     if not agreement.refuted:
         checked = [p for p in agreement.pairs if p.checked]
         log.info(
@@ -144,3 +141,10 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
             len(agreement.pairs),
         )
     return agreement.refuted
+
+
+def _agreement(tracks: Tracks, videos: list[SubjectVideo]) -> Agreement:
+    """`check_agreement` of `videos` on their own rows of `tracks`."""
+    names = {v.name for v in videos}
+    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    return check_agreement(rows, videos, SubjectOptions().max_offset)

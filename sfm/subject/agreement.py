@@ -197,9 +197,8 @@ def _medians(oa: VideoObs, ob: VideoObs, E: np.ndarray, shifts: np.ndarray, stri
     """(D,) median epipolar distance (normalized) of the correspondences at each shift; inf with fewer than `least`
     of them."""
     xa, xb = pair_correspondences(oa, ob, shifts, stride)  # (D, M, 2) with NaN
-    distance = np.sqrt(sampson(E[None], xa, xb)[:, 0])  # (D, M)
+    distance = np.sqrt(sampson(E[None], xa, xb)[:, 0])  # (D, M), NaN where either side is unobserved
     valid = np.isfinite(distance)
-    distance = np.where(valid, distance, np.nan)
     out = np.full(len(shifts), np.inf)
     enough = valid.sum(axis=1) >= max(least, 8)
     if enough.any():
