@@ -46,13 +46,15 @@ ROTATIONS = (2.0, 5.0, 10.0, 20.0, 40.0)
 MOVES = (0.2, 0.5)
 
 
-def rig(name: str) -> tuple[Tracks, list[SubjectVideo]]:
+def rig(name: str, shared: Path = SHARED) -> tuple[Tracks, list[SubjectVideo]]:
+    """A real rig of `shared` (../shared/data/videos) with its subject's tracks and every camera posed by the rig's
+    own calibration: "caliscope" (the board's corners) or "pose2sim" (Pose2Sim's OpenPose detections)."""
     if name == "caliscope":
-        root = SHARED / "caliscope_office"
+        root = shared / "caliscope_office"
         paths = sorted((root / "calibration" / "extrinsic").glob("cam_*.mp4"))
         calibration, tracks = root / "camera_array.toml", charuco_tracks(paths, root / "charuco.toml")
     else:
-        root = SHARED / "pose2sim_demo"
+        root = shared / "pose2sim_demo"
         paths = sorted((root / "videos").glob("cam*.mp4"))
         calibration = root / "calibration" / "Calib.qca.txt"
         tracks = read_tracks(REPO / "tests" / "data" / "pose2sim" / "openpose_tracks.csv")

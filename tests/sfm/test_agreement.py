@@ -18,10 +18,8 @@ from sfm.register_subject import pose_from_subject
 from sfm.subject import SubjectVideo
 from sfm.subject.agreement import check_agreement
 from sfm.subject.synthetic import Truth, make_rig
-from sfm.video import ProbedVideo, probe_video
-from tracking.tracks import Tracks, read_tracks
-
-REPO = Path(__file__).resolve().parents[2]
+from sfm.video import ProbedVideo
+from tracking.tracks import Tracks
 
 
 @pytest.fixture(scope="module")
@@ -218,25 +216,6 @@ def test_no_check_without_tracks_or_with_one_posed_static_video(rig: tuple[Track
 # The real rigs: their own calibrations agree with their subjects; a camera turned far does not
 
 
-def _real_videos(paths: list[Path], calibration: dict[str, tuple]) -> list[SubjectVideo]:
-    out = []
-    for path in paths:
-        info = probe_video(path)
-        K, dist, R, t = calibration[path.stem]
-        out.append(
-            SubjectVideo(
-                name=path.stem,
-                width=info.width,
-                height=info.height,
-                times=np.asarray(info.times),
-                K=K,
-                dist=dist,
-                cam_from_world=(R, t),
-            )
-        )
-    return out
-
-
 def _check_real(tracks: Tracks, videos: list[SubjectVideo], degrees: float) -> None:
     assert check_agreement(tracks, videos).refuted == {}
     for index, axis in enumerate([(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 1.0, 0.0)]):
@@ -249,27 +228,18 @@ def _check_real(tracks: Tracks, videos: list[SubjectVideo], degrees: float) -> N
 
 @pytest.mark.shared
 def test_pose2sim_lab_calibration_agrees_with_the_openpose_detections(shared_dir: Path) -> None:
-    from sfm.calibration import read_calibration
+    from benchmarks.background_check import rig
 
-    demo = shared_dir / "data" / "videos" / "pose2sim_demo"
-    paths = sorted((demo / "videos").glob("cam*.mp4"))
-    calibration = {c.name: (c.K, c.dist, c.R, c.t) for c in read_calibration(demo / "calibration" / "Calib.qca.txt")}
-    tracks = read_tracks(REPO / "tests" / "data" / "pose2sim" / "openpose_tracks.csv")
     # joint detections sit 5-7 px from their own epipolar geometry: a 10 degree pan of a camera in this ring moves
     # them mostly along the epipolar lines and passes (docs/registration.md); 20 degrees about any axis does not
-    _check_real(tracks, _real_videos(paths, calibration), 20.0)
+    _check_real(*rig("pose2sim", shared_dir / "data" / "videos"), 20.0)
 
 
 @pytest.mark.shared
 def test_caliscope_calibration_agrees_with_the_board_corners(shared_dir: Path) -> None:
-    from sfm.calibration import read_calibration
-    from tracking.charuco import charuco_tracks
+    from benchmarks.background_check import rig
 
-    office = shared_dir / "data" / "videos" / "caliscope_office"
-    paths = sorted((office / "calibration" / "extrinsic").glob("cam_*.mp4"))
-    calibration = {c.name: (c.K, c.dist, c.R, c.t) for c in read_calibration(office / "camera_array.toml")}
-    tracks = charuco_tracks(paths, office / "charuco.toml")
-    _check_real(tracks, _real_videos(paths, calibration), 10.0)
+    _check_real(*rig("caliscope", shared_dir / "data" / "videos"), 10.0)
 
 
 # ---------------------------------------------------------------------------------------------------------------
