@@ -22,6 +22,9 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - pose2sim-openpose-markers-intrinsics: the same desynchronized videos and detections, plus the committed labels
   (renumbered like the frames; labels on dropped frames left out) tracked through the desynchronized videos, with
   the lab intrinsics: the user's few precise markers next to the detections;
+- caliscope-mediapipe-intrinsics, pose2sim-mediapipe-intrinsics: another detector on both rigs: MediaPipe Pose's 33
+  keypoints of the person (committed tests/data/*/mediapipe_tracks.csv, made by benchmarks/mediapipe_tracks.py) on
+  the original videos, with the rig's intrinsics, `--subject always`;
 - caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
   mapping), the simpler method a user would try first; its models are scored pair by pair (relative rotation,
   and the direction of the baseline seen from the first camera), since it splits the videos over models.
@@ -65,6 +68,11 @@ CALISCOPE = SHARED / "caliscope_office"
 POSE2SIM = SHARED / "pose2sim_demo"
 LABELS = Path(__file__).resolve().parents[1] / "tests" / "data" / "pose2sim" / "labels.csv"
 OPENPOSE = LABELS.parent / "openpose_tracks.csv"
+# MediaPipe Pose keypoints of the original videos (benchmarks/mediapipe_tracks.py; tests/data/*/README.md)
+MEDIAPIPE = {
+    "caliscope": LABELS.parents[1] / "caliscope" / "mediapipe_tracks.csv",
+    "pose2sim": LABELS.parent / "mediapipe_tracks.csv",
+}
 DROPPED = {"cam_0": 0, "cam_1": 4, "cam_2": 9, "cam_3": 2}  # leading frames dropped per camera (desync)
 DROPPED_POSE2SIM = {"cam01": 0, "cam02": 3, "cam03": 7, "cam04": 1}
 CASES = (
@@ -81,6 +89,8 @@ CASES = (
     "pose2sim-openpose",
     "pose2sim-openpose-intrinsics",
     "pose2sim-openpose-markers-intrinsics",
+    "caliscope-mediapipe-intrinsics",
+    "pose2sim-mediapipe-intrinsics",
     "caliscope-plain",
 )
 
@@ -224,7 +234,12 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
     frame_period = 1 / 6.0
     if case.startswith("caliscope"):
         truth = truth_cameras(CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)])
-        if "subject" in case or case == "caliscope-auto":
+        if "mediapipe" in case:  # the original videos, captured together: offsets 0
+            videos = [CALISCOPE / "calibration" / "extrinsic" / f"cam_{i}.mp4" for i in range(4)]
+            (ws / "tracks.csv").write_bytes(MEDIAPIPE["caliscope"].read_bytes())
+            tracking_s = 0.0
+            true_offsets = {v.stem: 0.0 for v in videos}
+        elif "subject" in case or case == "caliscope-auto":
             videos = desynchronized_caliscope(work)
             started = time.perf_counter()
             write_tracks(ws / "tracks.csv", charuco_tracks(videos, CALISCOPE / "charuco.toml"))
@@ -252,6 +267,9 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             track_stage.run(ws, ws / "tracks.csv", videos={v.stem: v for v in videos})
             tracking_s = time.perf_counter() - started
             true_offsets = {v.stem: 0.0 for v in videos}  # synchronized to about a frame
+        elif "mediapipe" in case:
+            (ws / "tracks.csv").write_bytes(MEDIAPIPE["pose2sim"].read_bytes())
+            true_offsets = {v.stem: 0.0 for v in videos}
         elif "openpose" in case:
             videos, tracks = desynchronized_pose2sim(work)
             (ws / "tracks.csv").write_bytes(tracks.read_bytes())
@@ -271,7 +289,7 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             args += ["--intrinsics", str(POSE2SIM / "calibration" / "Calib.qca.txt")]
     if "background" in case:
         args += ["--subject", "never"]
-    elif "subject" in case or "openpose" in case:
+    elif "subject" in case or "openpose" in case or "mediapipe" in case:
         args += ["--subject", "always"]
     started = time.perf_counter()
     code = dynrecon(["register", *(str(v) for v in videos), "--out", str(ws), *args])

@@ -18,7 +18,7 @@ from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, cal
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_posed import posed_video
-from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, calibrate_from_subject
+from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, choose_noise
 from sfm.subject.model import ScalePointsError
 from sfm.subject.observations import select_rows
 from sfm.subject.posed import Alignment
@@ -129,7 +129,7 @@ def pose_from_subject(
         else:
             aligned = None
             try:
-                result = calibrate_from_subject(subject_tracks, inputs, subject_options)
+                result, stability = choose_noise(subject_tracks, inputs, subject_options)
             except ScalePointsError as error:
                 if board is None or board.get("scale") is None:
                     raise
@@ -137,8 +137,7 @@ def pose_from_subject(
                 warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
                 board.update(scale=None, scale_why=str(error))
                 subject_options = SubjectOptions(scale=None)
-                result = calibrate_from_subject(subject_tracks, inputs, subject_options)
-            stability = check_stability(subject_tracks, inputs, result, subject_options)
+                result, stability = choose_noise(subject_tracks, inputs, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
         return _refuse(
@@ -369,5 +368,7 @@ def _report(
         "failed": result.failed,
         "lens": result.lens.value,
         "lens_check": result.lens_check,
+        "inlier_px": result.inlier_px,
+        "noise_check": {f"{px:g}": trial.to_json() for px, trial in result.noise_check.items()},
         "stability": stability.to_json(),
     }

@@ -9,6 +9,7 @@ from __future__ import annotations
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import (
     Lens,
+    NoiseTrial,
     PairResult,
     SubjectCalibrationError,
     SubjectCamera,
@@ -16,9 +17,11 @@ from sfm.subject.model import (
     SubjectResult,
     SubjectVideo,
 )
+from sfm.subject.noise import choose_noise
 
 __all__ = [
     "Lens",
+    "NoiseTrial",
     "PairResult",
     "SubjectCalibrationError",
     "SubjectCamera",
@@ -26,4 +29,5 @@ __all__ = [
     "SubjectResult",
     "SubjectVideo",
     "calibrate_from_subject",
+    "choose_noise",
 ]

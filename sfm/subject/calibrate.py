@@ -43,8 +43,10 @@ FOCAL_SIGMA = 0.1  # relative prior on the self-calibrated focal (weighted like 
 def calibrate_from_subject(
     tracks: Tracks, videos: list[SubjectVideo], options: SubjectOptions | None = None
 ) -> SubjectResult:
-    """Pose static cameras (and their clock offsets, and unknown focals) from the 2D tracks of a moving subject."""
+    """Pose static cameras (and their clock offsets, and unknown focals) from the 2D tracks of a moving subject,
+    at the noise scale `options.inlier_px` (INLIER_PX when None; `choose_noise` tries several)."""
     options = options or SubjectOptions()
+    inlier_px = INLIER_PX if options.inlier_px is None else options.inlier_px
     rng = np.random.default_rng(SEED)
     points, obs = build_observations(tracks, videos)
     _check_scale_points(points, options)
@@ -53,7 +55,7 @@ def calibrate_from_subject(
     if len(with_tracks) < 2:
         raise SubjectCalibrationError(f"{len(with_tracks)} video(s) have tracks; track the subject in at least two")
 
-    fits = _fit_pairs(obs, with_tracks, options, rng)
+    fits = _fit_pairs(obs, with_tracks, options, rng, inlier_px)
     pairs = [_pair_result(obs, f) for f in fits]
     usable = [f for f in fits if f.usable]
     if not usable:
@@ -66,11 +68,13 @@ def calibrate_from_subject(
         if not np.isfinite(offsets[i]):
             failed[obs[i].name] = _why(obs, fits, i)
 
-    kept_fits = _refit_to_offsets(obs, usable, kept, offsets)
+    kept_fits = _refit_to_offsets(obs, usable, kept, offsets, inlier_px)
     if not kept_fits:
         raise SubjectCalibrationError("no pair's epipolar geometry agrees with the chained time offsets")
-    lens, obs, bundle, lens_check = _choose_lens(obs, kept_fits, offsets, len(points), reference, failed, options)
-    metric, fixed_anchor = _fix_frame(bundle, obs, videos)
+    lens, obs, bundle, lens_check = _choose_lens(
+        obs, kept_fits, offsets, len(points), reference, failed, options, inlier_px
+    )
+    metric, fixed_anchor = _fix_frame(bundle, obs, videos, inlier_px)
     bundle.knots.X[~supported(bundle, obs)] = np.nan  # knots no two cameras see are extrapolations
     if options.scale is not None and not metric:
         _apply_scale(bundle, points, options.scale, fixed_anchor)
@@ -84,6 +88,7 @@ def calibrate_from_subject(
         times=bundle.knots.times,
         lens=lens,
         lens_check=lens_check,
+        inlier_px=inlier_px,
     )
 
 
@@ -94,14 +99,15 @@ def _adjusted(
     n_points: int,
     reference: int,
     failed: dict[str, str],
+    inlier_px: float,
 ) -> Bundle:
     """Chained poses and the bundle adjustment, once `_estimate_focals` has set the unknown-K cameras' intrinsics
     (`obs` and `failed` are updated)."""
     knots = make_knots(obs, offsets, n_points)
-    poses = initial_poses(obs, offsets, fits, knots, INLIER_PX, failed)
+    poses = initial_poses(obs, offsets, fits, knots, inlier_px, failed)
     bundle = _initial_bundle(obs, poses, offsets, knots, reference)
-    adjust(bundle, obs, INLIER_PX)
-    _refuse_unsupported(bundle, obs, failed)
+    adjust(bundle, obs, inlier_px)
+    _refuse_unsupported(bundle, obs, failed, inlier_px)
     return bundle
 
 
@@ -113,6 +119,7 @@ def _choose_lens(
     reference: int,
     failed: dict[str, str],
     options: SubjectOptions,
+    inlier_px: float,
 ) -> tuple[Lens, list[VideoObs], Bundle, dict[str, float]]:
     """The bundle with the lens model of `options` or, with AUTO and unknown intrinsics, the simpler model
     (FOCAL) unless radial distortion predicts held-out observations better by HELD_OUT_GAIN. Returns the model,
@@ -121,7 +128,7 @@ def _choose_lens(
     if options.lens is not Lens.AUTO or not unknown:
         fixed = options.lens if unknown and options.lens is not Lens.AUTO else Lens.FOCAL
         _estimate_focals(obs, fits, fixed is Lens.RADIAL)
-        return fixed, obs, _adjusted(obs, fits, offsets, n_points, reference, failed), {}
+        return fixed, obs, _adjusted(obs, fits, offsets, n_points, reference, failed, inlier_px), {}
     tried: dict[Lens, tuple[list[VideoObs], Bundle, dict[str, str]]] = {}
     error: SubjectCalibrationError | None = None
     for lens in (Lens.FOCAL, Lens.RADIAL):
@@ -130,7 +137,7 @@ def _choose_lens(
             radial = _estimate_focals(mine, mine_fits, lens is Lens.RADIAL)
             if lens is Lens.RADIAL and not radial:
                 break  # no distortion found: the same model as FOCAL, whose bundle is not solved again
-            bundle = _adjusted(mine, mine_fits, offsets, n_points, reference, mine_failed)
+            bundle = _adjusted(mine, mine_fits, offsets, n_points, reference, mine_failed, inlier_px)
         except SubjectCalibrationError as e:
             error = error or e
             continue
@@ -143,7 +150,7 @@ def _choose_lens(
     if len(tried) == 2:  # the same observations left out of both
         for lens, (mine, bundle, _) in tried.items():
             test = [_thinned(mine[c]) for c in bundle.cams]
-            check[lens.value] = held_out_px(bundle, mine, INLIER_PX, BLOCK_S, test)
+            check[lens.value] = held_out_px(bundle, mine, inlier_px, BLOCK_S, test)
         simple, rich = tried[Lens.FOCAL][1], tried[Lens.RADIAL][1]
         if len(rich.cams) >= len(simple.cams) and check["radial"] < HELD_OUT_GAIN * check["focal"]:
             chosen = Lens.RADIAL
@@ -169,7 +176,7 @@ def _check_scale_points(points: list[str], options: SubjectOptions) -> None:
 
 
 def _fit_pairs(
-    obs: list[VideoObs], with_tracks: list[int], options: SubjectOptions, rng: np.random.Generator
+    obs: list[VideoObs], with_tracks: list[int], options: SubjectOptions, rng: np.random.Generator, inlier_px: float
 ) -> list[PairFit]:
     """Every pair of tracked videos: its time offset (searched, or at the known offsets) and epipolar geometry."""
     fits: list[PairFit] = []
@@ -177,9 +184,9 @@ def _fit_pairs(
         for b in with_tracks[n + 1 :]:
             known = options.offsets or {}
             if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
-                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name])
+                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], inlier_px)
             else:
-                fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng)
+                fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng, inlier_px)
             log.info(
                 "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
                 obs[a].name,
@@ -278,10 +285,10 @@ def _dist(o: VideoObs) -> np.ndarray:
     return np.zeros(5) if o.known_K or o.dist is None else o.dist
 
 
-def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> None:
+def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: float) -> None:
     """Drop the cameras the adjusted data do not support, and adjust the others again."""
     cams = bundle.cams
-    refused = _refuse(bundle, obs, failed)
+    refused = _refuse(bundle, obs, failed, inlier_px)
     if refused:
         _drop(bundle, refused)
         if len(bundle.cams) < 2:
@@ -289,10 +296,12 @@ def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, s
                 "the bundle adjustment cannot support the cameras' poses: "
                 + "; ".join(f"{obs[c].name}: {failed[obs[c].name]}" for c in cams if obs[c].name in failed)
             )
-        adjust(bundle, obs, INLIER_PX, rounds=1)
+        adjust(bundle, obs, inlier_px, rounds=1)
 
 
-def _fix_frame(bundle: Bundle, obs: list[VideoObs], videos: list[SubjectVideo]) -> tuple[bool, list[int]]:
+def _fix_frame(
+    bundle: Bundle, obs: list[VideoObs], videos: list[SubjectVideo], inlier_px: float
+) -> tuple[bool, list[int]]:
     """Move the solution onto the anchors' frame (and scale, with two or more) and adjust once more.
 
     Returns whether the scale is metric and the anchors' positions in `bundle.cams`."""
@@ -312,7 +321,7 @@ def _fix_frame(bundle: Bundle, obs: list[VideoObs], videos: list[SubjectVideo]) 
                 key=lambda i: np.linalg.norm(_centre(bundle, i) - _centre(bundle, j)),
             )
             bundle.gauge = (j, other, float(np.linalg.norm(_centre(bundle, other) - _centre(bundle, j))))
-        adjust(bundle, obs, INLIER_PX, rounds=1)
+        adjust(bundle, obs, inlier_px, rounds=1)
     return metric, fixed_anchor
 
 
@@ -352,17 +361,18 @@ def _thinned(o: VideoObs, budget: int = 2500) -> np.ndarray:
     return seen
 
 
-def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str]) -> list[int]:
+def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: float) -> list[int]:
     """Positions in `b.cams` whose adjusted pose is not supported: large residuals or too few agreeing points."""
+    limit = MAX_RESIDUAL_PX * inlier_px / INLIER_PX  # the refusal scales with the tracks' noise
     out = []
     for j, (res, f, p) in enumerate(camera_residuals(b, obs)):
         o = obs[b.cams[j]]
-        good = res <= 3 * INLIER_PX
+        good = res <= 3 * inlier_px
         median = float(np.median(res)) if len(res) else float("inf")
         cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
         distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
-        if median > MAX_RESIDUAL_PX:
-            why = f"median reprojection error {median:.1f} px after the bundle adjustment (> {MAX_RESIDUAL_PX:g})"
+        if median > limit:
+            why = f"median reprojection error {median:.1f} px after the bundle adjustment (> {limit:g})"
         elif int(good.sum()) < MIN_INLIERS:
             why = f"only {int(good.sum())} observations agree with the others' trajectory (< {MIN_INLIERS})"
         elif distinct < MIN_DISTINCT // 2:
@@ -414,7 +424,7 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
 
 
 def _refit_to_offsets(
-    obs: list[VideoObs], usable: list[PairFit], kept: list[int], offsets: np.ndarray
+    obs: list[VideoObs], usable: list[PairFit], kept: list[int], offsets: np.ndarray, inlier_px: float
 ) -> list[PairFit]:
     """The pairs at the chained offsets: a pair whose own offset disagrees (dropped or ambiguous) is refitted there."""
     out = []
@@ -426,7 +436,7 @@ def _refit_to_offsets(
         if k in kept and abs(shift - f.shift) <= tol:
             out.append(f)
             continue
-        g = fit_at(obs[f.a], obs[f.b], f.a, f.b, shift)
+        g = fit_at(obs[f.a], obs[f.b], f.a, f.b, shift, inlier_px)
         log.info(
             "pair %s-%s refitted at the chained offset %.3f s (own %.3f s): %d inliers, %s",
             obs[f.a].name,

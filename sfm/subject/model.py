@@ -33,7 +33,9 @@ class SubjectVideo:
 
 SEED = 0  # of the pair search's RANSAC sampling
 MIN_SHARED = 15  # interpolated correspondences needed for a pair
-INLIER_PX = 3.0  # RANSAC threshold (pixels)
+INLIER_PX = 3.0  # RANSAC threshold (pixels) of marker-grade tracks: clicks, tracked labels, board corners
+# Noise scales the subject path tries (pixels): marker-grade tracks, then a pose detector's keypoints
+NOISE_SCALES_PX = (INLIER_PX, 2 * INLIER_PX)
 MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
 MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
 MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused
@@ -56,6 +58,9 @@ class SubjectOptions:
     # they imply instead of searched.
     offsets: dict[str, float] | None = None
     lens: Lens = Lens.AUTO  # cameras without known intrinsics (the stability folds reuse the chosen one)
+    # The tracks' noise scale in pixels (RANSAC threshold; outliers and refusals scale with it). None: INLIER_PX
+    # in `calibrate_from_subject`; `choose_noise` measures which of NOISE_SCALES_PX the tracks support.
+    inlier_px: float | None = None
 
 
 @dataclass(kw_only=True)
@@ -89,6 +94,26 @@ class PairResult:
 
 
 @dataclass(kw_only=True)
+class NoiseTrial:
+    """The subject path at one noise scale, as `choose_noise` compared it."""
+
+    posed: int = 0
+    stable: int = 0  # posed cameras the folds reproduce
+    worst_fold_rotation_deg: float = float("inf")  # over the stable cameras (inf: none compared)
+    failed: str | None = None  # why the path failed at this scale
+
+    def to_json(self) -> dict[str, object]:
+        if self.failed is not None:
+            return {"failed": self.failed}
+        spread = self.worst_fold_rotation_deg
+        return {
+            "posed": self.posed,
+            "stable": self.stable,
+            "worst_fold_rotation_deg": round(spread, 3) if spread != float("inf") else None,
+        }
+
+
+@dataclass(kw_only=True)
 class SubjectResult:
     cameras: list[SubjectCamera]  # only the posed ones
     pairs: list[PairResult]
@@ -99,6 +124,8 @@ class SubjectResult:
     lens: Lens = Lens.FOCAL  # the lens model used (FOCAL or RADIAL)
     # held-out median reprojection error (pixels) of each lens model tried, when AUTO compared them
     lens_check: dict[str, float] = field(default_factory=dict)
+    inlier_px: float = INLIER_PX  # the noise scale used
+    noise_check: dict[float, NoiseTrial] = field(default_factory=dict)  # per scale `choose_noise` tried
 
     def camera(self, name: str) -> SubjectCamera | None:
         return next((c for c in self.cameras if c.name == name), None)

@@ -134,15 +134,24 @@ def _peaks(shifts: np.ndarray, scores: np.ndarray, separation: float, count: int
     return out
 
 
-def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng: np.random.Generator) -> PairFit:
-    """The pair's time shift (searched within `max_offset` seconds each way) and its geometry there."""
+def fit_pair(
+    oa: VideoObs,
+    ob: VideoObs,
+    a: int,
+    b: int,
+    max_offset: float,
+    rng: np.random.Generator,
+    inlier_px: float = INLIER_PX,
+) -> PairFit:
+    """The pair's time shift (searched within `max_offset` seconds each way) and its geometry there;
+    `inlier_px`: the tracks' noise scale (the RANSAC threshold)."""
     essential = oa.known_K and ob.known_K  # an E needs both calibrations; else an F (up to the focal guess)
     f_mean = float(np.sqrt(oa.focal * ob.focal))
     period = max(oa.period, ob.period)
     fine = FINE_STEP * min(oa.period, ob.period)
     speed = max(_image_speed(oa), _image_speed(ob))
     # a coarse step whose motion blur stays near the inlier threshold, between the fine step and 3 frames
-    coarse = float(np.clip(4 * INLIER_PX / max(speed, 1e-9), fine, 3 * period))
+    coarse = float(np.clip(4 * inlier_px / max(speed, 1e-9), fine, 3 * period))
     lo = max(-max_offset, ob.times[0] - oa.times[-1])
     hi = min(max_offset, ob.times[-1] - oa.times[0])
     empty = PairFit(
@@ -162,7 +171,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng:
         empty.reason = "the videos never overlap in time within max_offset"
         return empty
     grid = np.arange(lo, hi + coarse / 2, coarse)
-    thr_c = (INLIER_PX + 0.5 * coarse * speed) / f_mean
+    thr_c = (inlier_px + 0.5 * coarse * speed) / f_mean
     c_scores, c_counts = _score(oa, ob, grid, thr_c, 64, 200, False, MIN_SHARED, rng)
     if c_counts.max() < MIN_SHARED:
         empty.shared = int(c_counts.max())
@@ -175,7 +184,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng:
         f_grid = np.arange(peak - coarse, peak + coarse + step / 2, step)
         # the fine scores come from the full robust estimator (cv2 MAGSAC): the batched 8-point is too noisy here
         f_scores = np.array(
-            [_geometry(oa, ob, a, b, s, 1.0, essential, n_max=1500, iterations=1000).score for s in f_grid],
+            [_geometry(oa, ob, a, b, s, 1.0, essential, inlier_px, n_max=1500, iterations=1000).score for s in f_grid],
             dtype=float,
         )
         i = int(np.argmax(f_scores))
@@ -187,7 +196,7 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng:
                 shift += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
         candidates.append(shift)
     # the peaks compete on the full robust model's MSAC score (an E when both K are known: 5 dof discriminate best)
-    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential) for shift in candidates]
+    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, inlier_px) for shift in candidates]
     best = max(fits, key=lambda f: f.score)
     far = [f.score for f in fits if abs(f.shift - best.shift) > period]
     if far:  # best over the best elsewhere, with the same estimator: >= 1 by construction
@@ -203,9 +212,9 @@ def fit_pair(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng:
     return best
 
 
-def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float) -> PairFit:
+def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float, inlier_px: float = INLIER_PX) -> PairFit:
     """The pair's model at a given shift (own_b = own_a + shift), e.g. the one the chained offsets imply."""
-    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K)
+    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K, inlier_px)
 
 
 def _geometry(
@@ -216,6 +225,7 @@ def _geometry(
     shift: float,
     ratio: float,
     essential: bool,
+    inlier_px: float,
     n_max: int = 0,
     iterations: int = 5000,
 ) -> PairFit:
@@ -241,7 +251,7 @@ def _geometry(
         fit.reason = f"only {len(xa)} shared observations at the best time offset"
         return fit
     f_mean = float(np.sqrt(oa.focal * ob.focal))
-    thr = INLIER_PX / f_mean
+    thr = inlier_px / f_mean
     F: np.ndarray | None = None
     if essential:
         E, mask = cv2.findEssentialMat(
@@ -250,7 +260,7 @@ def _geometry(
     else:
         # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
         pa, pb = xa * oa.focal, xb * ob.focal
-        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, INLIER_PX, 0.9999, iterations)
+        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, inlier_px, 0.9999, iterations)
         if F is not None and F.shape == (3, 3):
             fa, fb = bougnoux(F)
             fit.focals = (fa, fb)

@@ -90,9 +90,12 @@ def check_stability(
     verified: set[str] = set()
     failures = []
     # The folds keep the whole solution's clock offsets: they test the geometry, and skip the offset search.
-    # ... and its lens model: the folds test the poses, not the model choice.
+    # ... and its lens model and noise scale: the folds test the poses, not the model choice.
     fold_options = dataclasses.replace(
-        options or SubjectOptions(), offsets={c.name: c.offset for c in result.cameras}, lens=result.lens
+        options or SubjectOptions(),
+        offsets={c.name: c.offset for c in result.cameras},
+        lens=result.lens,
+        inlier_px=result.inlier_px,
     )
     for fold in range(FOLDS):
         try:

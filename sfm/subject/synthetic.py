@@ -84,6 +84,7 @@ def make_rig(
     fps: tuple[float, ...] = (30.0, 25.0, 60.0, 29.97, 30.0),
     offsets: tuple[float, ...] = (0.0, 1.37, -2.21, 0.83, -0.52),
     noise_px: float = 0.7,
+    bias_px: float = 0.0,
     drop: float = 0.05,
     false_rate: float = 0.0,
     known_K: bool = True,
@@ -96,7 +97,9 @@ def make_rig(
     """Cameras around the scene, looking at its middle; video v's own clock starts at global time offsets[v].
 
     `focal` (in units of the image width) and `k1` (with k2 = 0.01) make every camera the same lens (identical
-    webcams; a wide-angle one with a small focal and a strong k1); `pp_sigma`: pixels of principal point scatter."""
+    webcams; a wide-angle one with a small focal and a strong k1); `pp_sigma`: pixels of principal point scatter;
+    `bias_px`: scatter of a constant shift per camera and point, as a pose detector's keypoint (a joint's centre
+    seen from another side) has on top of its `noise_px`."""
     rng = np.random.default_rng(seed)
     motion: Callable[[np.ndarray], np.ndarray]
     if kind in ("skeleton", "sway"):
@@ -131,6 +134,8 @@ def make_rig(
         Xc = X @ R.T + t
         uv, _ = cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(R)[0], t, K, dist)
         uv = uv.reshape(len(own), n_points, 2) + rng.normal(0, noise_px, (len(own), n_points, 2))
+        if bias_px:
+            uv += rng.normal(0, bias_px, (1, n_points, 2))
         ok = (Xc[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < hgt)
         ok &= rng.random(ok.shape) >= drop
         false = ok & (rng.random(ok.shape) < false_rate)

@@ -1,0 +1,95 @@
+"""Which noise scale do the tracks support? Solve at each of NOISE_SCALES_PX and keep the most reproducible poses.
+
+A RANSAC threshold made for marker-grade tracks (clicks, tracked labels, board corners: about a pixel) discards most
+of a pose detector's keypoints, which scatter several pixels around any one 3D point (a joint's centre shifts with
+the view); the poses then rest on whichever subset happened to agree and change from one part of the data to the
+next. A wider threshold lets marker-grade tracks' outliers in. The median residual cannot tell the two apart (a
+narrower threshold always fits its own inliers closer), nor, measured on detector keypoints, can the held-out
+reprojection error (dominated by the keypoints' own scatter); the folds of `check_stability` can: the scale whose
+poses the folds of the data reproduce best is kept, the first (marker-grade) one unless a wider one is clearly better.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+from sfm.subject.calibrate import calibrate_from_subject
+from sfm.subject.model import (
+    NOISE_SCALES_PX,
+    NoiseTrial,
+    ScalePointsError,
+    SubjectCalibrationError,
+    SubjectOptions,
+    SubjectResult,
+    SubjectVideo,
+)
+from sfm.subject.stability import Stability, check_stability
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+SPREAD_GAIN = 0.8  # a wider scale replaces the first where its folds' worst rotation change is this much smaller
+
+
+def choose_noise(
+    tracks: Tracks, videos: list[SubjectVideo], options: SubjectOptions | None = None
+) -> tuple[SubjectResult, Stability]:
+    """`calibrate_from_subject` and its `check_stability`, at `options.inlier_px` or, when None, at the scale of
+    NOISE_SCALES_PX whose poses the folds reproduce: a wider scale is kept where it leaves more cameras stable, or
+    the same number with a worst fold rotation change SPREAD_GAIN times the first's. `result.noise_check` says
+    what each scale gave."""
+    options = options or SubjectOptions()
+    if options.inlier_px is not None:
+        result = calibrate_from_subject(tracks, videos, options)
+        return result, check_stability(tracks, videos, result, options)
+    tried: dict[float, tuple[SubjectResult, Stability]] = {}
+    errors: dict[float, SubjectCalibrationError] = {}
+    for px in NOISE_SCALES_PX:
+        scaled = dataclasses.replace(options, inlier_px=px)
+        try:
+            result = calibrate_from_subject(tracks, videos, scaled)
+        except ScalePointsError:
+            raise  # the poses stand, the scale points do not: the caller decides
+        except SubjectCalibrationError as error:
+            errors[px] = error
+            continue
+        tried[px] = (result, check_stability(tracks, videos, result, scaled))
+    if not tried:
+        raise errors[NOISE_SCALES_PX[0]]
+    chosen = min(tried)
+    for px in sorted(tried):
+        if px != chosen and _better(tried[px], tried[chosen]):
+            chosen = px
+    check = {px: NoiseTrial(failed=str(e)) for px, e in errors.items()}
+    for px, (result, stability) in tried.items():
+        stable = _stable(result, stability)
+        check[px] = NoiseTrial(
+            posed=len(result.cameras), stable=len(stable), worst_fold_rotation_deg=_spread(stability, stable)
+        )
+    log.info(
+        "noise scale: %g px of %s (%s)",
+        chosen,
+        ", ".join(f"{px:g}" for px in NOISE_SCALES_PX),
+        "; ".join(f"{px:g} px: {trial.to_json()}" for px, trial in sorted(check.items())),
+    )
+    result, stability = tried[chosen]
+    result.noise_check = dict(sorted(check.items()))
+    return result, stability
+
+
+def _stable(result: SubjectResult, stability: Stability) -> list[str]:
+    return [c.name for c in result.cameras if c.name not in stability.unstable]
+
+
+def _spread(stability: Stability, names: list[str]) -> float:
+    """The largest rotation change (deg) between a fold and the whole over `names` (inf when none was compared)."""
+    values = [stability.rotation_deg[n] for n in names if n in stability.rotation_deg]
+    return max(values) if values else float("inf")
+
+
+def _better(wide: tuple[SubjectResult, Stability], first: tuple[SubjectResult, Stability]) -> bool:
+    stable_wide, stable_first = _stable(*wide), _stable(*first)
+    if len(stable_wide) != len(stable_first):
+        return len(stable_wide) > len(stable_first)
+    return _spread(wide[1], stable_wide) < SPREAD_GAIN * _spread(first[1], stable_first)
