@@ -7,8 +7,10 @@ links, the track search). Where the two disagree (`clocks.registered.check_regis
 trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
 closely are kept, by their median residual (not by the error they predict for unseen rays, as the links' clocks are:
 with cameras a degree off, right offsets can bend the trajectories through their rays more than wrong clocks do;
-docs/refinement.md). The solve's own clocks stay unless registration's fit clearly better; report.json
-`temporal.registered_offsets` gives both measures and the choice.
+docs/refinement.md). The solve's own clocks stay unless registration's fit clearly better. Where the solve
+identified no clock for some videos and kept its seed (whose points sit on their rays: no residual to compare),
+registration's offsets are its only clocks and are held to the checks the solve's own clocks meet (`clock_fit`).
+report.json `temporal.registered_offsets` gives the measures and the choice.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
+from reconstruct.time_checks import Check, RefinementJudge, spacing_assumed
 from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, predicted_pair
 from sfm.cameras import CameraSet
@@ -66,8 +69,11 @@ def prefer_registered_offsets(
     options: RefineOptions,
 ) -> Temporal:
     """`temporal`, or the trajectories refined on registration's offsets where the solve's clocks disagree with them
-    (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better."""
-    if check is None or check.get("agree", True):
+    (`check`: `check_registered_clocks` of `temporal.clocks`) or some are not identified, and registration's fit
+    their rays clearly better."""
+    unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
+    disagree = check is not None and not check.get("agree", True)
+    if not disagree and not unidentified:
         return temporal
     clocks = registered_clocks(problem, cameras, temporal.clocks)
     if clocks is None:
@@ -80,8 +86,7 @@ def prefer_registered_offsets(
     # reported, not judged: see the module's docstring
     predicted = predicted_pair(temporal.trajectories, on_clocks.result) if temporal.trajectories else None
     mine, theirs = residual["solve"], residual["registered"]
-    kept = bool(theirs < BETTER * mine)
-    entry = {
+    entry: dict[str, Any] = {
         "tried": True,
         "criterion": "residual_px",
         "residual_px": {k: finite_or_none(v) for k, v in residual.items()},
@@ -90,22 +95,36 @@ def prefer_registered_offsets(
             "registered": finite_or_none(predicted[1] if predicted else None),
         },
         "limit": BETTER,
-        "kept": "registered" if kept else "solve",
     }
+    checks: list[Check] = []
+    if temporal.refined:
+        kept = bool(theirs < BETTER * mine)
+    else:
+        # The seed's points sit on their rays (no residual to compare): with no clock of the solve's own for some
+        # videos, registration's offsets are its only clocks, held to the checks the solve's clocks meet.
+        checks = RefinementJudge(problem, seed, options).clock_fit(on_clocks.result, spacing_assumed(clocks))
+        kept = all(c.passed for c in checks)
+        entry.update(criterion="clock_fit", checks=[c.to_json() for c in checks], limit=None)
+    entry["kept"] = "registered" if kept else "solve"
+    relation = "disagree with" if disagree else f"leave {', '.join(unidentified)} unidentified, unlike"
+    if checks:
+        verdict = "; ".join(c.sentence() for c in checks)
+    else:
+        verdict = f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
     if not kept:
         log.warning(
-            "the clocks disagree with registration's offsets, whose trajectories fit no better (median residual "
-            "%.3g px against the solve's %.3g px): the solve's clocks are kept",
-            theirs,
-            mine,
+            "the solve's clocks %s registration's offsets, whose trajectories fit no better (%s): the solve's "
+            "clocks are kept",
+            relation,
+            verdict,
         )
         temporal.report[PATH] = entry
         return temporal
     log.warning(
-        "the solve's clocks disagree with registration's offsets, whose trajectories fit their rays better (median "
-        "residual %.3g px against %.3g px): refined on registration's offsets",
-        theirs,
-        mine,
+        "the solve's clocks %s registration's offsets, whose trajectories fit their rays (%s): refined on "
+        "registration's offsets",
+        relation,
+        verdict,
     )
     report = dict(temporal.report)
     report.update(on_clocks.report)
@@ -114,7 +133,12 @@ def prefer_registered_offsets(
             PATH: entry,
             "path": PATH,
             "refined": True,
-            "reason": f"the solve's clocks ({temporal.report.get('path')}) disagreed with registration's offsets",
+            "reason": f"the solve's clocks ({temporal.report.get('path')}) "
+            + (
+                "disagreed with registration's offsets"
+                if disagree
+                else f"left {', '.join(unidentified)} unidentified; registration's offsets identify them"
+            ),
         }
     )
     return replace(

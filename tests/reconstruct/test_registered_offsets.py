@@ -102,3 +102,28 @@ def test_kept_offsets_rebuild_the_tracks_paths_w(phones: Path, monkeypatch: pyte
     assert not solved.seed.stages and solved.temporal.report["path"] == PATH
     expected = time_w(solved.problem, solved.temporal.times).to_csc()
     assert abs(solved.seed.W.to_csc() - expected).max() == 0.0
+
+
+def test_a_kept_seed_with_unidentified_clocks_takes_registrations_offsets(phones: Path) -> None:
+    """The seed's points sit on their rays: no residual can beat them, so registration's offsets, the only clocks
+    for a video the solve could not time, are held to the clock checks instead."""
+    cameras = _cameras(phones, {})
+    options = SolveOptions(recording=None)
+    good = solve(cameras, phones / "tracks.csv", options)
+    problem = good.problem
+    truth = truth_array(problem, read_points(phones / "truth.csv"))
+    clocks = copy.deepcopy(good.temporal.clocks)
+    clocks.video("cam2").identified = False
+    seed_kept = Temporal(
+        clocks=clocks, points=good.seed.points, times=clocks.global_time.copy(), refined=False, report={"path": "seed"}
+    )
+
+    chosen = prefer_registered_offsets(
+        problem, cameras, good.seed, seed_kept, check_registered_clocks(cameras, clocks), options.temporal.refine
+    )
+
+    entry = chosen.report[PATH]
+    assert chosen.report["path"] == PATH and entry["kept"] == "registered" and entry["criterion"] == "clock_fit"
+    assert entry["checks"] and all(c["passed"] for c in entry["checks"])
+    assert "cam2 unidentified" in chosen.report["reason"]
+    assert _error_mm(chosen.points, truth) < _error_mm(good.seed.points, truth)
