@@ -20,6 +20,7 @@ from sfm.plan import FramePose, VideoPlan
 from sfm.register_posed import posed_video
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, choose_noise
 from sfm.subject.model import ScalePointsError
+from sfm.subject.noise import choose_scale
 from sfm.subject.observations import select_rows
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
@@ -175,14 +176,19 @@ def _solve_with_posed(
     and the folds' check of the same solve (the posed videos kept whole, at their fitted offsets)."""
     points = subject_tracks.point_names()
     posed = [posed_video(v, results[v.info.name], tracks, points) for v in videos if v.info.name in posed_names]
-    result, aligned = solve_with_posed(subject_tracks, inputs, posed, options)
-    # the folds: the videos the whole solve kept, at its offsets (their columns follow each fold's points by name)
-    known = [replace(p, offset=aligned.fit(p.name).offset) for p in posed if aligned.fit(p.name).reason is None]
 
-    def fold(part: Tracks, fold_options: SubjectOptions) -> SubjectResult:
-        return solve_with_posed(part, inputs, known, fold_options)[0]
+    def trial(scaled: SubjectOptions) -> tuple[SubjectResult, Stability, Alignment]:
+        result, aligned = solve_with_posed(subject_tracks, inputs, posed, scaled)
+        # the folds: the videos the whole solve kept, at its offsets (their columns follow each fold's points)
+        known = [replace(p, offset=aligned.fit(p.name).offset) for p in posed if aligned.fit(p.name).reason is None]
 
-    return result, aligned, check_stability(subject_tracks, inputs, result, options, solve=fold)
+        def fold(part: Tracks, fold_options: SubjectOptions) -> SubjectResult:
+            return solve_with_posed(part, inputs, known, fold_options)[0]
+
+        return result, check_stability(subject_tracks, inputs, result, scaled, solve=fold), aligned
+
+    result, stability, aligned = choose_scale(trial, options)
+    return result, aligned, stability
 
 
 def _refuse(

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
+from typing import TypeVar
 
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import (
@@ -29,6 +31,8 @@ from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")  # what a trial returns besides its result and folds (the posed videos' alignment)
+
 SPREAD_GAIN = 0.8  # a wider scale replaces the first where its folds' worst rotation change is this much smaller
 
 
@@ -36,33 +40,41 @@ def choose_noise(
     tracks: Tracks, videos: list[SubjectVideo], options: SubjectOptions | None = None
 ) -> tuple[SubjectResult, Stability]:
     """`calibrate_from_subject` and its `check_stability`, at `options.inlier_px` or, when None, at the scale of
-    NOISE_SCALES_PX whose poses the folds reproduce: a wider scale is kept where it leaves more cameras stable, or
-    the same number with a worst fold rotation change SPREAD_GAIN times the first's. `result.noise_check` says
-    what each scale gave."""
-    options = options or SubjectOptions()
+    NOISE_SCALES_PX whose poses the folds reproduce (`choose_scale`)."""
+
+    def trial(scaled: SubjectOptions) -> tuple[SubjectResult, Stability, None]:
+        result = calibrate_from_subject(tracks, videos, scaled)
+        return result, check_stability(tracks, videos, result, scaled), None
+
+    result, stability, _ = choose_scale(trial, options or SubjectOptions())
+    return result, stability
+
+
+def choose_scale(
+    trial: Callable[[SubjectOptions], tuple[SubjectResult, Stability, T]], options: SubjectOptions
+) -> tuple[SubjectResult, Stability, T]:
+    """`trial` (a subject-path solve and its folds) at `options.inlier_px` or, when None, at each of
+    NOISE_SCALES_PX: a wider scale is kept where it leaves more cameras stable, or the same number with a worst
+    fold rotation change SPREAD_GAIN times the first's. `result.noise_check` says what each scale gave."""
     if options.inlier_px is not None:
-        result = calibrate_from_subject(tracks, videos, options)
-        return result, check_stability(tracks, videos, result, options)
-    tried: dict[float, tuple[SubjectResult, Stability]] = {}
+        return trial(options)
+    tried: dict[float, tuple[SubjectResult, Stability, T]] = {}
     errors: dict[float, SubjectCalibrationError] = {}
     for px in NOISE_SCALES_PX:
-        scaled = dataclasses.replace(options, inlier_px=px)
         try:
-            result = calibrate_from_subject(tracks, videos, scaled)
+            tried[px] = trial(dataclasses.replace(options, inlier_px=px))
         except ScalePointsError:
             raise  # the poses stand, the scale points do not: the caller decides
         except SubjectCalibrationError as error:
             errors[px] = error
-            continue
-        tried[px] = (result, check_stability(tracks, videos, result, scaled))
     if not tried:
         raise errors[NOISE_SCALES_PX[0]]
     chosen = min(tried)
     for px in sorted(tried):
-        if px != chosen and _better(tried[px], tried[chosen]):
+        if px != chosen and _better(tried[px][:2], tried[chosen][:2]):
             chosen = px
     check = {px: NoiseTrial(failed=str(e)) for px, e in errors.items()}
-    for px, (result, stability) in tried.items():
+    for px, (result, stability, _) in tried.items():
         stable = _stable(result, stability)
         check[px] = NoiseTrial(
             posed=len(result.cameras), stable=len(stable), worst_fold_rotation_deg=_spread(stability, stable)
@@ -71,11 +83,11 @@ def choose_noise(
         "noise scale: %g px of %s (%s)",
         chosen,
         ", ".join(f"{px:g}" for px in NOISE_SCALES_PX),
-        "; ".join(f"{px:g} px: {trial.to_json()}" for px, trial in sorted(check.items())),
+        "; ".join(f"{px:g} px: {entry.to_json()}" for px, entry in sorted(check.items())),
     )
-    result, stability = tried[chosen]
-    result.noise_check = dict(sorted(check.items()))
-    return result, stability
+    kept = tried[chosen]
+    kept[0].noise_check = dict(sorted(check.items()))
+    return kept
 
 
 def _stable(result: SubjectResult, stability: Stability) -> list[str]:
@@ -89,6 +101,7 @@ def _spread(stability: Stability, names: list[str]) -> float:
 
 
 def _better(wide: tuple[SubjectResult, Stability], first: tuple[SubjectResult, Stability]) -> bool:
+    """Whether the wider scale's poses are the more reproducible."""
     stable_wide, stable_first = _stable(*wide), _stable(*first)
     if len(stable_wide) != len(stable_first):
         return len(stable_wide) > len(stable_first)

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
 from sfm.subject.geometry import rodrigues
-from sfm.subject.model import INLIER_PX, MIN_INLIERS, MIN_RATIO, SubjectCalibrationError, SubjectResult
+from sfm.subject.model import MIN_INLIERS, MIN_RATIO, SubjectCalibrationError, SubjectResult
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 MAX_OBSERVATIONS = 3000  # per posed video in the search and the fit (frames thinned evenly): speed
 COARSE_OBSERVATIONS = 600  # per posed video in the offset search's first pass
 MAX_SCALE_ERROR = 0.02  # relative: the scale's standard error or its two halves' disagreement, at most
-LOST_PX = 10 * INLIER_PX  # residual of an observation whose offset leaves the trajectory's time span
+LOST = 10  # residual, in noise scales, of an observation whose offset leaves the trajectory's time span
 MIN_BASELINE = 0.02  # the posed cameras' centres must spread this fraction of their distance to the subject
 
 
@@ -80,7 +80,7 @@ class PosedFit:
     name: str
     offset: float  # seconds, global = own + offset
     observations: int  # tracked frames x points compared with the trajectory
-    inliers: int  # within 3 x INLIER_PX
+    inliers: int  # within 3 noise scales (INLIER_PX unless the path chose another)
     residual_px: float  # median reprojection error of the trajectory in the video
     runner_up_ratio: float | None  # offset search: best inliers / best further than a frame (None: offset known)
     reason: str | None = None  # why the video does not anchor the subject path (None: it does)
@@ -163,8 +163,9 @@ class _Rows:
 
 def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: float = 10.0) -> Alignment:
     """The similarity (and the searched clock offsets) that best reproject the subject path's trajectory onto the
-    posed videos' tracks. Raises SubjectCalibrationError when no posed video agrees with the trajectory or the
-    scale is not fixed; the message says why."""
+    posed videos' tracks, at the noise scale `result` was solved with. Raises SubjectCalibrationError when no posed
+    video agrees with the trajectory or the scale is not fixed; the message says why."""
+    px = result.inlier_px
     names = list(result.points)
     if not names or len(result.times) < 2:
         raise SubjectCalibrationError("the subject path triangulated no trajectory to align with the posed videos")
@@ -177,7 +178,7 @@ def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: f
     fits: list[PosedFit] = []
     starts: list[tuple[float, np.ndarray] | None] = []
     for video, mine in zip(posed, rows, strict=True):
-        fit, similarity = _search(video, mine, trajectory, max_offset)
+        fit, similarity = _search(video, mine, trajectory, max_offset, px)
         fits.append(fit)
         starts.append(similarity)
     usable = [i for i, f in enumerate(fits) if f.reason is None]
@@ -189,7 +190,7 @@ def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: f
     used, videos, kept = [rows[i] for i in usable], [posed[i] for i in usable], [fits[i] for i in usable]
     offsets = np.array([f.offset for f in kept])
     # started from each video's own similarity: one static video's leaves the scale free, so the best is kept
-    tried = [_refine(start[1], used, videos, offsets, trajectory) for start in starts if start is not None]
+    tried = [_refine(start[1], used, videos, offsets, trajectory, px) for start in starts if start is not None]
     solution, residuals, offsets = min(tried, key=lambda t: float(t[0].cost))
     params = solution.x[:7]
     for fit, r, offset in zip(kept, used, offsets, strict=True):
@@ -197,13 +198,13 @@ def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: f
         finite = err[np.isfinite(err)]
         fit.offset = float(offset)
         fit.observations = len(finite)
-        fit.inliers = int((finite <= 3 * INLIER_PX).sum())
+        fit.inliers = int((finite <= 3 * px).sum())
         fit.residual_px = float(np.median(finite)) if len(finite) else float("inf")
     alignment = Alignment(
         scale=float(np.exp(params[3])),
         Q=rodrigues(params[:3]),
         T=params[4:7].copy(),
-        scale_error=_scale_error(solution, residuals, used),
+        scale_error=_scale_error(solution, residuals, used, px),
         fits=fits,
     )
     alignment.baseline = _baseline(used, kept, alignment, trajectory)
@@ -310,7 +311,7 @@ def _transform(params: np.ndarray, X: np.ndarray) -> np.ndarray:
     return float(np.exp(params[3])) * X @ rodrigues(params[:3]).T + params[4:7]
 
 
-def _score(rows: _Rows, X: np.ndarray) -> tuple[int, np.ndarray | None]:
+def _score(rows: _Rows, X: np.ndarray, px: float) -> tuple[int, np.ndarray | None]:
     """Inliers of the best similarity at one offset (trimmed linear fits), and its parameters."""
     valid = np.isfinite(X[:, 0])
     keep = valid.copy()
@@ -325,14 +326,14 @@ def _score(rows: _Rows, X: np.ndarray) -> tuple[int, np.ndarray | None]:
         finite = err[np.isfinite(err)]
         if not len(finite):
             return 0, None
-        keep = err <= max(3 * INLIER_PX, float(np.median(finite)))
+        keep = err <= max(3 * px, float(np.median(finite)))
     assert params is not None
     err = _reprojection_px(rows, _transform(params, X))
-    return int((err <= 3 * INLIER_PX).sum()), params
+    return int((err <= 3 * px).sum()), params
 
 
 def _search(
-    video: PosedVideo, rows: _Rows, trajectory: _Trajectory, max_offset: float
+    video: PosedVideo, rows: _Rows, trajectory: _Trajectory, max_offset: float, px: float
 ) -> tuple[PosedFit, tuple[float, np.ndarray] | None]:
     """The video's clock offset (searched over ±max_offset a frame apart, unless known) and a similarity there."""
     period = video.period
@@ -341,13 +342,13 @@ def _search(
     else:
         candidates = np.arange(-max_offset, max_offset + 0.5 * period, period)
     coarse = _subset(rows, COARSE_OBSERVATIONS)
-    scores = np.array([_score(coarse, trajectory.at(coarse.own + o, coarse.point))[0] for o in candidates])
+    scores = np.array([_score(coarse, trajectory.at(coarse.own + o, coarse.point), px)[0] for o in candidates])
     k = int(np.argmax(scores))
     far = np.abs(candidates - candidates[k]) > 1.5 * period
     runner = int(scores[far].max()) if far.any() else 0
     ratio = None if video.offset is not None else float(scores[k] / max(runner, 1))
     near = np.flatnonzero(np.abs(candidates - candidates[k]) <= 1.5 * period)  # all observations, near the best
-    full = [_score(rows, trajectory.at(rows.own + candidates[i], rows.point)) for i in near]
+    full = [_score(rows, trajectory.at(rows.own + candidates[i], rows.point), px) for i in near]
     best = int(np.argmax([f[0] for f in full]))
     inliers, params = full[best]
     offset = float(candidates[near[best]])
@@ -379,7 +380,12 @@ def _search(
 
 
 def _refine(
-    start: np.ndarray, rows: list[_Rows], videos: list[PosedVideo], offsets: np.ndarray, trajectory: _Trajectory
+    start: np.ndarray,
+    rows: list[_Rows],
+    videos: list[PosedVideo],
+    offsets: np.ndarray,
+    trajectory: _Trajectory,
+    px: float,
 ) -> tuple[OptimizeResult, Callable[[np.ndarray], np.ndarray], np.ndarray]:
     """Joint robust fit of the similarity and the searched offsets on every usable posed video's observations.
     Returns the solution (x: rvec, log scale, T, searched offsets), its residual function and every offset."""
@@ -398,15 +404,17 @@ def _refine(
             with np.errstate(all="ignore"):
                 e = (Xc[:, :2] / Xc[:, 2:3] - r.x) * r.focal[:, None]
             # an observation the offset moves off the trajectory costs like an outlier (no free way out)
-            out.append(np.where(np.isfinite(e), e, LOST_PX).ravel())
+            out.append(np.where(np.isfinite(e), e, LOST * px).ravel())
         return np.concatenate(out)
 
     x0 = np.concatenate([start, offsets[searched]])
-    solution = least_squares(residuals, x0, loss="soft_l1", f_scale=INLIER_PX, x_scale="jac", max_nfev=200)
+    solution = least_squares(residuals, x0, loss="soft_l1", f_scale=px, x_scale="jac", max_nfev=200)
     return solution, residuals, unpack(solution.x)
 
 
-def _scale_error(solution: OptimizeResult, residuals: Callable[[np.ndarray], np.ndarray], rows: list[_Rows]) -> float:
+def _scale_error(
+    solution: OptimizeResult, residuals: Callable[[np.ndarray], np.ndarray], rows: list[_Rows], px: float
+) -> float:
     """The larger of the relative scale's standard error (the fit's Jacobian, robust residual spread) and the
     disagreement of the similarities fitted again on the early and the late half of each video's observations."""
     J, r, x = solution.jac, solution.fun, solution.x
@@ -424,7 +432,7 @@ def _scale_error(solution: OptimizeResult, residuals: Callable[[np.ndarray], np.
         def one(y: np.ndarray, half: np.ndarray = half) -> np.ndarray:
             return residuals(np.concatenate([y, x[7:]]))[half]  # the offsets held
 
-        halves.append(float(least_squares(one, x[:7], loss="soft_l1", f_scale=INLIER_PX, x_scale="jac").x[3]))
+        halves.append(float(least_squares(one, x[:7], loss="soft_l1", f_scale=px, x_scale="jac").x[3]))
     return max(standard, abs(halves[0] - halves[1]))
 
 

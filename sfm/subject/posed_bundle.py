@@ -117,28 +117,30 @@ def adjust_with_posed(
     for i, video in enumerate(anchors):  # a phone filming longer than the static cameras: only the shared span
         clock = video.times + offsets[n + i]
         bundle.keep[n + i] &= ((clock >= knots.t0) & (clock <= end))[:, None]
-    adjust(bundle, obs, INLIER_PX, rounds=1)  # started near its optimum; the static videos' outliers are known
+    px = result.inlier_px
+    limit = MAX_RESIDUAL_PX * px / INLIER_PX  # the refusal scales with the tracks' noise, as in calibrate
+    adjust(bundle, obs, px, rounds=1)  # started near its optimum; the static videos' outliers are known
     bundle.knots.X[~supported(bundle, obs)] = np.nan
     errors = residuals_px(bundle, obs)
     bad = []
     for j, camera in enumerate(result.cameras):
         camera.R, camera.t = rotation(bundle.rvec[j]), bundle.t[j].copy()
         camera.offset = float(bundle.offsets[j])
-        camera.inliers, camera.residual_px = _count(errors[j])
-        if camera.residual_px > MAX_RESIDUAL_PX:
+        camera.inliers, camera.residual_px = _count(errors[j], px)
+        if camera.residual_px > limit:
             bad.append(f"{camera.name}: {camera.residual_px:.1f} px from its own tracks")
         if known[j] is not None and any(f.name == camera.name for f in alignment.fits):
             fit = alignment.fit(camera.name)
-            fit.offset, (fit.inliers, fit.residual_px) = camera.offset, _count(errors[j])
+            fit.offset, (fit.inliers, fit.residual_px) = camera.offset, _count(errors[j], px)
     for i, video in enumerate(anchors):
         fit = alignment.fit(video.name)
         fit.offset = float(bundle.offsets[n + i])
-        fit.inliers, fit.residual_px = _count(errors[n + i])
+        fit.inliers, fit.residual_px = _count(errors[n + i], px)
         fit.observations = len(errors[n + i])
-        if fit.residual_px > MAX_RESIDUAL_PX or fit.inliers < MIN_INLIERS:
+        if fit.residual_px > limit or fit.inliers < MIN_INLIERS:
             fit.reason = (
                 f"the subject's trajectory reprojects {fit.residual_px:.1f} px from its tracks "
-                f"({fit.inliers} of {fit.observations} within {3 * INLIER_PX:g} px)"
+                f"({fit.inliers} of {fit.observations} within {3 * px:g} px)"
             )
             bad.append(f"{video.name}: {fit.reason}")
     if bad:
@@ -172,6 +174,6 @@ def _posed_obs(video: PosedVideo, points: list[str]) -> VideoObs:
     )
 
 
-def _count(errors: np.ndarray) -> tuple[int, float]:
+def _count(errors: np.ndarray, px: float) -> tuple[int, float]:
     finite = errors[np.isfinite(errors)]
-    return int((finite <= 3 * INLIER_PX).sum()), float(np.median(finite)) if len(finite) else float("inf")
+    return int((finite <= 3 * px).sum()), float(np.median(finite)) if len(finite) else float("inf")
