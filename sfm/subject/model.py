@@ -99,17 +99,18 @@ class NoiseTrial:
 
     posed: int = 0
     stable: int = 0  # posed cameras the folds reproduce
-    worst_fold_rotation_deg: float = float("inf")  # over the stable cameras (inf: none compared)
+    # median over the stable cameras of each one's largest rotation change between a fold and the whole (inf: none)
+    fold_rotation_deg: float = float("inf")
     failed: str | None = None  # why the path failed at this scale
 
     def to_json(self) -> dict[str, object]:
         if self.failed is not None:
             return {"failed": self.failed}
-        spread = self.worst_fold_rotation_deg
+        spread = self.fold_rotation_deg
         return {
             "posed": self.posed,
             "stable": self.stable,
-            "worst_fold_rotation_deg": round(spread, 3) if spread != float("inf") else None,
+            "fold_rotation_deg": round(spread, 3) if spread != float("inf") else None,
         }
 
 

@@ -16,6 +16,8 @@ import logging
 from collections.abc import Callable
 from typing import TypeVar
 
+import numpy as np
+
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import (
     NOISE_SCALES_PX,
@@ -33,7 +35,7 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")  # what a trial returns besides its result and folds (the posed videos' alignment)
 
-SPREAD_GAIN = 0.8  # a wider scale replaces the first where its folds' worst rotation change is this much smaller
+SPREAD_GAIN = 0.8  # a wider scale replaces the first where its folds' rotation change is this much smaller
 
 
 def choose_noise(
@@ -54,8 +56,9 @@ def choose_scale(
     trial: Callable[[SubjectOptions], tuple[SubjectResult, Stability, T]], options: SubjectOptions
 ) -> tuple[SubjectResult, Stability, T]:
     """`trial` (a subject-path solve and its folds) at `options.inlier_px` or, when None, at each of
-    NOISE_SCALES_PX: a wider scale is kept where it leaves more cameras stable, or the same number with a worst
-    fold rotation change SPREAD_GAIN times the first's. `result.noise_check` says what each scale gave."""
+    NOISE_SCALES_PX: a wider scale is kept where it leaves more cameras stable, or the same number whose rotation
+    changes between a fold and the whole (median over the cameras) are SPREAD_GAIN times the first's.
+    `result.noise_check` says what each scale gave."""
     if options.inlier_px is not None:
         return trial(options)
     tried: dict[float, tuple[SubjectResult, Stability, T]] = {}
@@ -77,7 +80,7 @@ def choose_scale(
     for px, (result, stability, _) in tried.items():
         stable = _stable(result, stability)
         check[px] = NoiseTrial(
-            posed=len(result.cameras), stable=len(stable), worst_fold_rotation_deg=_spread(stability, stable)
+            posed=len(result.cameras), stable=len(stable), fold_rotation_deg=_spread(stability, stable)
         )
     log.info(
         "noise scale: %g px of %s (%s)",
@@ -95,9 +98,10 @@ def _stable(result: SubjectResult, stability: Stability) -> list[str]:
 
 
 def _spread(stability: Stability, names: list[str]) -> float:
-    """The largest rotation change (deg) between a fold and the whole over `names` (inf when none was compared)."""
+    """The median over `names` of each camera's largest rotation change (deg) between a fold and the whole (inf
+    when none was compared): the median, since one camera's worst fold is a noisy statistic."""
     values = [stability.rotation_deg[n] for n in names if n in stability.rotation_deg]
-    return max(values) if values else float("inf")
+    return float(np.median(values)) if values else float("inf")
 
 
 def _better(wide: tuple[SubjectResult, Stability], first: tuple[SubjectResult, Stability]) -> bool:

@@ -17,7 +17,7 @@ def test_detector_keypoints_get_the_wider_scale() -> None:
     assert err.posed == 4 and not stability.unstable
     assert err.centre_pct < 1.0 and err.rotation_deg < 0.5
     first, wide = (result.noise_check[px] for px in NOISE_SCALES_PX)
-    assert first.stable < 4 or first.worst_fold_rotation_deg > wide.worst_fold_rotation_deg
+    assert first.stable < 4 or first.fold_rotation_deg > wide.fold_rotation_deg
 
 
 def test_marker_grade_tracks_keep_the_first_scale() -> None:
