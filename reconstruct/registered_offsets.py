@@ -73,7 +73,8 @@ def prefer_registered_offsets(
     their rays clearly better."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
-    if not disagree and not unidentified:
+    registered = any(v.clock_offset is not None for v in cameras.videos)
+    if not disagree and not (unidentified and registered):
         return temporal
     clocks = registered_clocks(problem, cameras, temporal.clocks)
     if clocks is None:
