@@ -14,7 +14,7 @@ from synthetic_motion import simulated_phones, truth_array
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.outputs.points import read_points
 from reconstruct.registered_offsets import PATH, prefer_registered_offsets
-from reconstruct.stage import SolveOptions, solve
+from reconstruct.stage import Reconstruction, SolveOptions, solve
 from reconstruct.temporal import Temporal, TemporalOptions
 from reconstruct.tracks_path import time_w
 from reconstruct.trajectory import refine
@@ -39,12 +39,17 @@ def _error_mm(points: np.ndarray, truth: np.ndarray) -> float:
     return float(np.nanmedian(np.linalg.norm(points - truth, axis=-1)))
 
 
-def test_right_offsets_replace_clocks_that_went_wrong(phones: Path) -> None:
+def _right(phones: Path) -> tuple[CameraSet, SolveOptions, Reconstruction, np.ndarray]:
+    """Cameras with the true registered offsets, the solve's options, its solution and the true points."""
     cameras = _cameras(phones, {})
     options = SolveOptions(recording=None)
     good = solve(cameras, phones / "tracks.csv", options)
+    return cameras, options, good, truth_array(good.problem, read_points(phones / "truth.csv"))
+
+
+def test_right_offsets_replace_clocks_that_went_wrong(phones: Path) -> None:
+    cameras, options, good, truth = _right(phones)
     problem = good.problem
-    truth = truth_array(problem, read_points(phones / "truth.csv"))
     # The solve's clocks with one video half a second off (a periodic motion, a wrong track search), not polished.
     wrong_clocks = copy.deepcopy(good.temporal.clocks)
     moved = problem.video_index == problem.video_names.index("cam2")
@@ -107,11 +112,8 @@ def test_kept_offsets_rebuild_the_tracks_paths_w(phones: Path, monkeypatch: pyte
 def test_a_kept_seed_with_unidentified_clocks_takes_registrations_offsets(phones: Path) -> None:
     """The seed's points sit on their rays: no residual can beat them, so registration's offsets, the only clocks
     for a video the solve could not time, are held to the clock checks instead."""
-    cameras = _cameras(phones, {})
-    options = SolveOptions(recording=None)
-    good = solve(cameras, phones / "tracks.csv", options)
+    cameras, options, good, truth = _right(phones)
     problem = good.problem
-    truth = truth_array(problem, read_points(phones / "truth.csv"))
     clocks = copy.deepcopy(good.temporal.clocks)
     clocks.video("cam2").identified = False
     seed_kept = Temporal(
