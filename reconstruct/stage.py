@@ -104,6 +104,9 @@ class Reconstruction:
                     os.replace(pending, out_dir / "recording.rrd")
         finally:
             pending.unlink(missing_ok=True)
+            # a writer stopped early, or killed inside native code, may leave its own temporary file of `pending`
+            for leftover in out_dir.glob(f".{pending.name}.*.tmp"):
+                leftover.unlink(missing_ok=True)
         timings["stage_total"] = time.perf_counter() - self.started
         atomic_write_text(out_dir / "report.json", json.dumps(self.report, indent=1, default=_json_default) + "\n")
         log.info("wrote %s", out_dir)

@@ -4,6 +4,7 @@ both succeeded, and no temporary file is left either way (reconstruct/stage.py, 
 from __future__ import annotations
 
 import errno
+import time
 from pathlib import Path
 
 import pytest
@@ -42,3 +43,26 @@ def test_a_failed_write_publishes_no_recording(solved, tmp_path: Path, monkeypat
     names = sorted(p.name for p in tmp_path.iterdir())
     assert "recording.rrd" not in names and "report.json" not in names
     assert not [name for name in names if name.startswith(".")], names  # no pending or temporary file
+
+
+def test_a_writer_stopped_without_its_cleanup_leaves_no_temporary_file(
+    solved, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A writer stopped inside native code (or killed after the grace period) cannot remove its own temporary file:
+    the caller removes it."""
+
+    def stuck_writer(self: object, path: Path) -> float:
+        (path.parent / f".{path.name}.abc123.tmp").write_bytes(b"partial")
+        time.sleep(30)  # stopped here by the caller, without any cleanup of its own
+        return 0.0
+
+    def full_disk(*_: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(stage.Reconstruction, "_timed_recording", stuck_writer)
+    monkeypatch.setattr(stage, "write_sequencing", full_disk)
+    started = time.perf_counter()
+    with pytest.raises(OSError, match="No space left"):
+        solved.write(tmp_path)
+    assert time.perf_counter() - started < 20  # stopped, not waited for
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
