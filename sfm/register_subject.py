@@ -155,6 +155,14 @@ def pose_from_subject(
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
     section = {**_report(result, stability, posed, anchors, metric), "board": board}
+    if not posed:
+        reasons = {**result.failed, **stability.unstable}
+        section["why"] = (
+            "it posed no video that its tracks determine ("
+            + "; ".join(f"{name}: {why}" for name, why in reasons.items())
+            + "); check that each tracked point follows the same subject in every video, and track more points or "
+            "a longer, more varied motion"
+        )
     # metres only when the scale came from --scale or the board; the background's units are its own
     metres = result.metric and subject_options.scale is not None and len(anchors) < 2 and aligned is None
     section["units"] = "m" if metres else None

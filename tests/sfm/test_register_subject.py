@@ -6,11 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+import pytest
 
 from sfm.frames import Resize
 from sfm.options import RegisterOptions
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_subject import pose_from_subject
+from sfm.subject import SubjectCamera, SubjectResult
+from sfm.subject.stability import Stability
 from sfm.video import ProbedVideo
 from tracking.tracks import Tracks
 
@@ -77,3 +80,30 @@ def test_no_anchor_beside_background_cameras_is_refused(tmp_path: Path) -> None:
     assert section is not None and not section["used"] and section["anchors"] == []
     assert "another frame and scale" in section["why"] and "(hand)" in section["why"]
     assert all(r.pose is None for name in ("left", "right") for r in results[name].values())
+
+
+def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The subject path ran, but no camera it posed is determined by the tracks (e.g. a detector that follows other
+    people in other views): the section says why, for the command's one-line error, and no frame is posed."""
+    import sfm.register_subject as register_subject
+
+    names = ["a", "b", "c"]
+    plans = [_plan(tmp_path, name, True) for name in names]
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    cameras = [
+        SubjectCamera(name=n, K=np.eye(3), dist=None, R=np.eye(3), t=np.zeros(3), offset=0.0, inliers=50, residual_px=1)
+        for n in names
+    ]
+    unstable = {n: "not determined by the tracks: its centre moves by 30 % of the camera spread" for n in names}
+
+    def solved(*_: object) -> tuple[SubjectResult, Stability]:
+        return SubjectResult(cameras=cameras, pairs=[], failed={}, metric=False), Stability(unstable=unstable)
+
+    monkeypatch.setattr(register_subject, "choose_noise", solved)
+    warnings: list[str] = []
+
+    section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(), warnings)
+
+    assert section is not None and section["posed"] == []
+    assert "posed no video that its tracks determine" in section["why"] and "b: not determined" in section["why"]
+    assert all(r.pose is None for name in names for r in results[name].values())
