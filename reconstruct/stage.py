@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import atomic_write_text, require_writable
+from dynrecon.atomic import atomic_write_text, remove_temp_files, require_writable
 from dynrecon.beside import beside
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
@@ -105,8 +105,7 @@ class Reconstruction:
         finally:
             pending.unlink(missing_ok=True)
             # a writer stopped early, or killed inside native code, may leave its own temporary file of `pending`
-            for leftover in out_dir.glob(f".{pending.name}.*.tmp"):
-                leftover.unlink(missing_ok=True)
+            remove_temp_files(pending)
         timings["stage_total"] = time.perf_counter() - self.started
         atomic_write_text(out_dir / "report.json", json.dumps(self.report, indent=1, default=_json_default) + "\n")
         log.info("wrote %s", out_dir)
