@@ -66,12 +66,13 @@ def choose_scale(
     for px in NOISE_SCALES_PX:
         try:
             tried[px] = trial(dataclasses.replace(options, inlier_px=px))
-        except ScalePointsError:
-            raise  # the poses stand, the scale points do not: the caller decides
-        except SubjectCalibrationError as error:
+        except SubjectCalibrationError as error:  # ScalePointsError too: another scale may triangulate the pair
             errors[px] = error
     if not tried:
-        raise errors[NOISE_SCALES_PX[0]]
+        # a scale whose poses stood but not its scale pair first (the caller may solve again without the pair)
+        main = next((e for e in errors.values() if isinstance(e, ScalePointsError)), errors[NOISE_SCALES_PX[0]])
+        others = "; ".join(f"at {px:g} px: {e}" for px, e in errors.items() if e is not main)
+        raise type(main)(f"{main} ({others})" if others else str(main)) from main
     chosen = min(tried)
     for px in sorted(tried):
         if px != chosen and _better(tried[px][:2], tried[chosen][:2]):

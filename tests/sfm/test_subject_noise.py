@@ -3,8 +3,15 @@ marker-grade tracks keep the first one, each checked against synthetic ground tr
 
 from __future__ import annotations
 
-from sfm.subject import SubjectOptions, choose_noise
-from sfm.subject.model import NOISE_SCALES_PX
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from sfm.subject import SubjectCalibrationError, SubjectCamera, SubjectOptions, SubjectResult, choose_noise
+from sfm.subject.model import NOISE_SCALES_PX, ScalePointsError
+from sfm.subject.noise import choose_scale
+from sfm.subject.stability import Stability
 from sfm.subject.synthetic import compare, make_rig
 
 
@@ -34,3 +41,40 @@ def test_a_given_scale_is_used_alone() -> None:
     result, _ = choose_noise(tracks, videos, SubjectOptions(inlier_px=4.5))
     assert result.inlier_px == 4.5 and not result.noise_check
     assert compare(result, truth).rotation_deg < 1.0
+
+
+def _trial(
+    failures: dict[float, SubjectCalibrationError],
+) -> Callable[[SubjectOptions], tuple[SubjectResult, Stability, None]]:
+    """A stand-in solve: fails at the scales of `failures`, else one stable camera."""
+
+    def trial(options: SubjectOptions) -> tuple[SubjectResult, Stability, None]:
+        assert options.inlier_px is not None
+        if options.inlier_px in failures:
+            raise failures[options.inlier_px]
+        camera = SubjectCamera(
+            name="a", K=np.eye(3), dist=None, R=np.eye(3), t=np.zeros(3), offset=0.0, inliers=50, residual_px=1.0
+        )
+        result = SubjectResult(cameras=[camera], pairs=[], failed={}, metric=False, inlier_px=options.inlier_px)
+        return result, Stability(rotation_deg={"a": 1.0}), None
+
+    return trial
+
+
+def test_a_scale_that_fails_leaves_the_other() -> None:
+    first, wide = NOISE_SCALES_PX
+    result, _, _ = choose_scale(_trial({wide: ScalePointsError("never together")}), SubjectOptions())
+    assert result.inlier_px == first and "never together" in str(result.noise_check[wide].failed)
+    result, _, _ = choose_scale(_trial({first: SubjectCalibrationError("too few")}), SubjectOptions())
+    assert result.inlier_px == wide and result.noise_check[first].failed == "too few"
+
+
+def test_every_scale_failing_raises_the_first_reason_with_the_others() -> None:
+    first, wide = NOISE_SCALES_PX
+    failures = {first: SubjectCalibrationError("too few"), wide: SubjectCalibrationError("unstable")}
+    with pytest.raises(SubjectCalibrationError, match=r"too few \(at 6 px: unstable\)"):
+        choose_scale(_trial(failures), SubjectOptions())
+    # a scale pair never triangulated wins: the caller may solve again without it
+    failures[wide] = ScalePointsError("never together")
+    with pytest.raises(ScalePointsError, match="never together"):
+        choose_scale(_trial(failures), SubjectOptions())
