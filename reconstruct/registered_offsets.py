@@ -68,13 +68,16 @@ def prefer_registered_offsets(
     check: dict[str, Any] | None,
     options: RefineOptions,
 ) -> Temporal:
-    """`temporal`, or the trajectories refined on registration's offsets where the solve's clocks disagree with them
-    (`check`: `check_registered_clocks` of `temporal.clocks`) or some are not identified, and registration's fit
-    their rays clearly better."""
+    """`temporal`, or the trajectories refined on registration's offsets: where the solve's clocks disagree with them
+    (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better
+    (residual); or where the solve left some clock unidentified and kept its seed, and registration's pass the
+    clock checks (`clock_fit`)."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
     registered = any(v.clock_offset is not None for v in cameras.videos)
-    if not disagree and not (unidentified and registered):
+    # a free-times refinement (also "unidentified") fits its rays better than any clock: nothing to try there
+    seed_only = bool(unidentified) and registered and not temporal.refined
+    if not disagree and not seed_only:
         return temporal
     clocks = registered_clocks(problem, cameras, temporal.clocks)
     if clocks is None:
@@ -98,18 +101,19 @@ def prefer_registered_offsets(
         "limit": BETTER,
     }
     checks: list[Check] = []
-    if temporal.refined:
+    if not seed_only:
         kept = bool(theirs < BETTER * mine)
     else:
         # The seed's points sit on their rays (no residual to compare): with no clock of the solve's own for some
-        # videos, registration's offsets are its only clocks, held to the checks the solve's clocks meet.
+        # videos, registration's offsets are its only clocks, held to the checks the solve's clocks meet (with
+        # decoder times clock_fit reports without judging, as for the solve's own clocks).
         checks = RefinementJudge(problem, seed, options).clock_fit(on_clocks.result, spacing_assumed(clocks))
         kept = all(c.passed for c in checks)
         entry.update(criterion="clock_fit", checks=[c.to_json() for c in checks], limit=None)
     entry["kept"] = "registered" if kept else "solve"
     relation = "disagree with" if disagree else f"leave {', '.join(unidentified)} unidentified, unlike"
     if checks:
-        verdict = "; ".join(c.sentence() for c in checks)
+        verdict = "; ".join(f"{c.meaning} {c.value:.3g}, limit {c.limit:.3g}" for c in checks)
     else:
         verdict = f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
     if not kept:

@@ -156,10 +156,10 @@ def pose_from_subject(
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
     section = {**_report(result, stability, posed, anchors, metric), "board": board}
     if not posed:
-        reasons = {**result.failed, **stability.unstable}
+        reasons = {k: v for k, v in {**result.failed, **stability.unstable}.items() if k not in anchors}
         section["why"] = (
             "it posed no video that its tracks determine ("
-            + "; ".join(f"{name}: {why}" for name, why in reasons.items())
+            + ("; ".join(f"{name}: {why}" for name, why in reasons.items()) or "the videos to pose have no tracks")
             + "); check that each tracked point follows the same subject in every video, and track more points or "
             "a longer, more varied motion"
         )

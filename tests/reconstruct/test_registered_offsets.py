@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from synthetic_motion import simulated_phones, truth_array
 
+from reconstruct.clocks.model import TimeSource
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.outputs.points import read_points
 from reconstruct.registered_offsets import PATH, prefer_registered_offsets
@@ -126,6 +127,28 @@ def test_a_kept_seed_with_unidentified_clocks_takes_registrations_offsets(phones
 
     entry = chosen.report[PATH]
     assert chosen.report["path"] == PATH and entry["kept"] == "registered" and entry["criterion"] == "clock_fit"
-    assert entry["checks"] and all(c["passed"] for c in entry["checks"])
+    assert [c["name"] for c in entry["checks"]] == ["clock_fit"]  # decoder times: reported, not judged
     assert "cam2 unidentified" in chosen.report["reason"]
     assert _error_mm(chosen.points, truth) < _error_mm(good.seed.points, truth)
+
+
+def test_without_decoder_times_a_wrong_registered_offset_leaves_the_seed(phones: Path) -> None:
+    """Without decoder times the clock checks compare with free per-frame times: a registered offset half a second
+    off fits its rays worse than they do, and the seed stays."""
+    _, options, good, _ = _right(phones)
+    wrong = _cameras(phones, {"cam2": 0.5})
+    clocks = copy.deepcopy(good.temporal.clocks)
+    clocks.video("cam2").identified = False
+    for video in clocks.videos:
+        video.time_source = TimeSource.FPS
+    seed_kept = Temporal(
+        clocks=clocks, points=good.seed.points, times=clocks.global_time.copy(), refined=False, report={"path": "seed"}
+    )
+
+    chosen = prefer_registered_offsets(
+        good.problem, wrong, good.seed, seed_kept, check_registered_clocks(wrong, clocks), options.temporal.refine
+    )
+
+    entry = chosen.report[PATH]
+    assert entry["kept"] == "solve" and not entry["checks"][0]["passed"]
+    assert chosen is seed_kept and chosen.report["path"] == "seed"
