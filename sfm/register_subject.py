@@ -30,6 +30,8 @@ from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
+UNCERTAIN_DEG = 2.0  # a posed camera the folds turn by more than this is reported as uncertain (a warning)
+
 
 def _posed(results: dict[int, FramePose]) -> FramePose | None:
     return next((r for r in results.values() if r.pose is not None), None)
@@ -147,6 +149,7 @@ def pose_from_subject(
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
+    _warn_uncertain(stability, posed, warnings)
     metric = result.metric or len(anchors) >= 2 or aligned is not None  # one anchor fixes the frame, not the scale
     if not metric:
         warnings.append(
@@ -348,6 +351,17 @@ def _apply(
         if name in results and _posed(results[name]) is None:
             results[name] = {f: FramePose(pose=None, reason=f"subject path: {reason}") for f in results[name]}
     return posed
+
+
+def _warn_uncertain(stability: Stability, posed: list[str], warnings: list[str]) -> None:
+    """Posed cameras whose folds move them by more than UNCERTAIN_DEG: kept (under the garbage limit), but said."""
+    moved = {n: stability.rotation_deg[n] for n in posed if stability.rotation_deg.get(n, 0.0) > UNCERTAIN_DEG}
+    if moved:
+        warnings.append(
+            "subject path: the folds of the tracks turn "
+            + ", ".join(f"{n} by {d:.1f} deg" for n, d in moved.items())
+            + ": those poses are uncertain by about as much; track more points or a longer, more varied motion"
+        )
 
 
 def _report(
