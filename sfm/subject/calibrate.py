@@ -13,7 +13,6 @@ from sfm.subject.chain import Knots, initial_poses, make_knots
 from sfm.subject.focals import division_to_opencv, estimate_distortion, self_calibrate
 from sfm.subject.model import (
     INLIER_PX,
-    MAX_RESIDUAL_PX,
     MIN_DISTINCT,
     MIN_INLIERS,
     MIN_SHARED,
@@ -26,6 +25,7 @@ from sfm.subject.model import (
     SubjectOptions,
     SubjectResult,
     SubjectVideo,
+    max_residual_px,
 )
 from sfm.subject.observations import VideoObs, build_observations, normalize
 from sfm.subject.offsets import solve_offsets
@@ -363,7 +363,7 @@ def _thinned(o: VideoObs, budget: int = 2500) -> np.ndarray:
 
 def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: float) -> list[int]:
     """Positions in `b.cams` whose adjusted pose is not supported: large residuals or too few agreeing points."""
-    limit = MAX_RESIDUAL_PX * inlier_px / INLIER_PX  # the refusal scales with the tracks' noise
+    limit = max_residual_px(inlier_px)
     out = []
     for j, (res, f, p) in enumerate(camera_residuals(b, obs)):
         o = obs[b.cams[j]]

@@ -38,8 +38,13 @@ INLIER_PX = 3.0  # RANSAC threshold (pixels) of marker-grade tracks: clicks, tra
 NOISE_SCALES_PX = (INLIER_PX, 2 * INLIER_PX)
 MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
 MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
-MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused
+MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused (at INLIER_PX)
 MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
+
+
+def max_residual_px(inlier_px: float) -> float:
+    """The median reprojection error above which a camera is refused, at the noise scale `inlier_px`."""
+    return MAX_RESIDUAL_PX * inlier_px / INLIER_PX
 
 
 class Lens(Enum):

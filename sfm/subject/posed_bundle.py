@@ -13,13 +13,12 @@ from sfm.subject.bundle import Bundle, adjust, residuals_px, rotation, supported
 from sfm.subject.calibrate import _thinned, calibrate_from_subject, rotation_vector
 from sfm.subject.chain import Knots
 from sfm.subject.model import (
-    INLIER_PX,
-    MAX_RESIDUAL_PX,
     MIN_INLIERS,
     SubjectCalibrationError,
     SubjectOptions,
     SubjectResult,
     SubjectVideo,
+    max_residual_px,
 )
 from sfm.subject.observations import VideoObs, build_observations, normalize, select_rows
 from sfm.subject.posed import Alignment, PosedVideo, align_to_posed, in_order, observed
@@ -118,7 +117,7 @@ def adjust_with_posed(
         clock = video.times + offsets[n + i]
         bundle.keep[n + i] &= ((clock >= knots.t0) & (clock <= end))[:, None]
     px = result.inlier_px
-    limit = MAX_RESIDUAL_PX * px / INLIER_PX  # the refusal scales with the tracks' noise, as in calibrate
+    limit = max_residual_px(px)
     adjust(bundle, obs, px, rounds=1)  # started near its optimum; the static videos' outliers are known
     bundle.knots.X[~supported(bundle, obs)] = np.nan
     errors = residuals_px(bundle, obs)
