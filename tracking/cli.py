@@ -120,7 +120,13 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--min-score", type=float, default=0.0, help="leave out detections with a lower confidence (default 0)"
     )
-    parser.add_argument("--person", type=int, default=0, help="OpenPose: index in people[] (default 0)")
+    parser.add_argument(
+        "--person",
+        default="0",
+        metavar="N|all",
+        help="OpenPose with several people: people are linked through the frames and numbered by how much they are "
+        "seen; import person N (default 0, the one seen most) or all (points person<N>_<keypoint>)",
+    )
     parser.add_argument(
         "--board",
         type=Path,
@@ -135,8 +141,9 @@ def _run_import(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from tracking.importing import Format, ImportOptions, parse_mapping, run_import
 
-    if args.person < 0:
-        raise InputError(None, f"--person {args.person} is negative")
+    every_person = args.person.strip().lower() == "all"
+    if not every_person and not (args.person.strip().isdigit() and args.person.strip().isascii()):
+        raise InputError(None, f"--person {args.person}: expected a number 0, 1, ... or all")
     if args.video is not None and len(args.inputs) > 1:
         raise InputError(
             args.inputs[1],
@@ -149,7 +156,8 @@ def _run_import(args: argparse.Namespace) -> int:
         mapping=parse_mapping(args.map),
         drop_unmapped=args.drop_unmapped,
         min_score=args.min_score,
-        person=args.person,
+        person=0 if every_person else int(args.person),
+        every_person=every_person,
         board=args.board,
     )
     path = run_import(args.inputs, args.out, options)

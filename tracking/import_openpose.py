@@ -2,19 +2,25 @@
 
 Files are named `<video>_<12-digit frame>_keypoints.json`; the frame is the last number in the name (files
 without one are numbered in name order). A keypoint with confidence 0 is a missing detection. Names follow
-BODY_25 (25 triplets) or COCO (18 triplets); other counts are named `kp0`, `kp1`, ...
+BODY_25 (25 triplets) or COCO (18 triplets); other counts are named `kp0`, `kp1`, ... With several people in a
+frame, people are linked through the frames (tracking/people.py) and one person, or each, is imported.
 """
 
 from __future__ import annotations
 
 import json
-import math
+import logging
 import re
 from pathlib import Path
+
+import numpy as np
 
 from dynrecon.errors import InputError
 from dynrecon.readers import parse_frame
 from tracking.detections import Detection
+from tracking.people import link_people
+
+log = logging.getLogger(__name__)
 
 BODY_25 = (
     "Nose",
@@ -94,9 +100,46 @@ def video_name_from_openpose(path: Path) -> str:
     return name or path.stem
 
 
-def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
-    files = openpose_files(path)
+def read_openpose(path: Path, video: str, person: int = 0, every_person: bool = False) -> list[Detection]:
+    """The detections of one person (`person`: 0 = the one seen most, 1 = the next, ...; people are linked
+    through the frames by tracking/people.py, not taken by their index in `people[]`), or of every person
+    (`every_person`: points named `person<N>_<keypoint>`, as DeepLabCut names its individuals)."""
+    frames = _read_frames(openpose_files(path))
+    identities, people = link_people([(frame, poses) for frame, _, poses in frames])
+    if len(people) > 1:
+        log.warning(
+            "%s: %d people linked through the frames (%s)%s; --person N imports another, --person all every one",
+            path.name,
+            len(people),
+            ", ".join(f"person {n}: {p.frames} frames" for n, p in enumerate(people)),
+            "" if every_person else f": person {person} imported",
+        )
+    if not every_person and people and person >= len(people):
+        raise InputError(
+            path,
+            f"--person {person}: only {len(people)} people were linked through the frames",
+            fix=f"give --person 0 to {len(people) - 1} (0 is the person seen most) or --person all",
+        )
+    first = next((pose for _, _, poses in frames for pose in poses), None)
+    names = keypoint_names(len(first)) if first is not None else ()
     detections: list[Detection] = []
+    for (frame, file, poses), ids in zip(frames, identities, strict=True):
+        for pose, identity in zip(poses, ids, strict=True):
+            if not every_person and identity != person:
+                continue
+            prefix = f"person{identity}_" if every_person else ""
+            for k, name in enumerate(names):
+                x, y, c = (float(v) for v in pose[k])
+                if c > 0.0:
+                    detections.append(
+                        Detection(video=video, frame=frame, point=prefix + name, x=x, y=y, score=c, where=file.name)
+                    )
+    return detections
+
+
+def _read_frames(files: list[Path]) -> list[tuple[int, Path, list[np.ndarray]]]:
+    """Per file, in frame order: (frame, file, [(K, 3) x, y, confidence of each person with a pose])."""
+    frames: list[tuple[int, Path, list[np.ndarray]]] = []
     seen: dict[int, Path] = {}
     layout: tuple[int, Path] | None = None  # the keypoint count of the first file with a person, and that file
     for order, file in enumerate(files):
@@ -116,29 +159,36 @@ def read_openpose(path: Path, video: str, person: int = 0) -> list[Detection]:
         people = data.get("people") if isinstance(data, dict) else None
         if not isinstance(people, list):
             raise InputError(file, "no 'people' list", fix="expected OpenPose --write_json output")
-        if person >= len(people):
-            continue  # nobody detected in this frame
-        flat = people[person].get("pose_keypoints_2d") if isinstance(people[person], dict) else None
-        if not isinstance(flat, list) or len(flat) % 3 or not all(isinstance(v, int | float) for v in flat):
-            raise InputError(file, f"people[{person}].pose_keypoints_2d is not a list of x, y, c triplets")
-        if layout is None:
-            layout = (len(flat) // 3, file)
-        elif len(flat) // 3 != layout[0]:  # BODY_25 and COCO_18 name the same index differently
-            raise InputError(
-                file,
-                f"{len(flat) // 3} keypoints where {layout[1].name} has {layout[0]}: two OpenPose models in one folder",
-                fix="import each model's output separately (and map the names with --map)",
-            )
-        names = keypoint_names(len(flat) // 3)
-        for k, name in enumerate(names):
-            x, y, c = (float(v) for v in flat[3 * k : 3 * k + 3])
-            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(c)):
+        poses = []
+        for index, entry in enumerate(people):
+            flat = entry.get("pose_keypoints_2d") if isinstance(entry, dict) else None
+            if not isinstance(flat, list) or len(flat) % 3 or not all(isinstance(v, int | float) for v in flat):
+                raise InputError(file, f"people[{index}].pose_keypoints_2d is not a list of x, y, c triplets")
+            if not flat:
+                continue  # a face or hands without a body
+            if layout is None:
+                layout = (len(flat) // 3, file)
+            elif len(flat) // 3 != layout[0]:  # BODY_25 and COCO_18 name the same index differently
                 raise InputError(
                     file,
-                    f"people[{person}] keypoint {k} ({name}) is x, y, c = {x:g}, {y:g}, {c:g}: not finite",
+                    f"{len(flat) // 3} keypoints where {layout[1].name} has {layout[0]}: two OpenPose models in one "
+                    "folder",
+                    fix="import each model's output separately (and map the names with --map)",
+                )
+            pose = np.array(flat, dtype=float).reshape(-1, 3)
+            bad = np.flatnonzero(~np.isfinite(pose).all(axis=1))
+            if bad.size:
+                k = int(bad[0])
+                x, y, c = pose[k]
+                raise InputError(
+                    file,
+                    f"people[{index}] keypoint {k} ({keypoint_names(len(pose))[k]}) is x, y, c = {x:g}, {y:g}, {c:g}: "
+                    "not finite",
                     fix="OpenPose writes finite numbers (0, 0, 0 where it found nothing); re-export the JSON",
                 )
-            if c <= 0.0:
-                continue
-            detections.append(Detection(video=video, frame=frame, point=name, x=x, y=y, score=c, where=file.name))
-    return detections
+            pose[pose[:, 2] <= 0.0, 2] = 0.0
+            if pose[:, 2].any():
+                poses.append(pose)
+        frames.append((frame, file, poses))
+    frames.sort(key=lambda item: item[0])
+    return frames

@@ -44,7 +44,8 @@ class ImportOptions:
     mapping: dict[str, str] = field(default_factory=dict)  # old point name -> new
     drop_unmapped: bool = False  # with a mapping, keep only the points it names
     min_score: float = 0.0  # detections with a lower confidence are left out
-    person: int = 0  # OpenPose: which entry of `people`
+    person: int = 0  # OpenPose: which person, linked through the frames (0 = the one seen most)
+    every_person: bool = False  # OpenPose: every person, points named person<N>_<keypoint>
     board: Path | None = None  # ChArUco: caliscope's charuco.toml (or config.toml with a [charuco] table)
 
 
@@ -94,7 +95,9 @@ def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[De
     if fmt is Format.DLC:
         return fmt, read_dlc(path, options.video or video_name_from_dlc(path))
     if fmt is Format.OPENPOSE:
-        return fmt, read_openpose(path, options.video or video_name_from_openpose(path), options.person)
+        return fmt, read_openpose(
+            path, options.video or video_name_from_openpose(path), options.person, options.every_person
+        )
     if fmt is Format.CHARUCO:
         return fmt, _read_charuco(path, options)
     return fmt, _read_plain(path, options.video)

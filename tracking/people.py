@@ -1,0 +1,77 @@
+"""Who is who across the frames of one video.
+
+A multi-person pose detector lists each frame's people in no fixed order (OpenPose's `people[]`, ordered by its own
+scores frame by frame), so entry k of every frame is not one person. Each frame's poses are linked to the identities
+seen in the frames before by the least median keypoint displacement (Hungarian assignment), relative to the body's
+size; a pose that moved further than a person can between those frames starts a new identity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+MAX_STEP = 0.25  # median keypoint displacement per frame, as a fraction of the body's size, that still links a pose
+MAX_JUMP = 1.0  # ... and the most over any gap (a body's size)
+MAX_GAP = 30  # frames an identity may go unseen and still be linked
+MIN_SHARED = 3  # keypoints seen in both poses for the median displacement (fewer: their centroids)
+MIN_SIZE_PX = 20.0  # body size floor: a pose of one or two keypoints has no extent
+
+
+@dataclass(kw_only=True)
+class Identity:
+    """One person as linked through a video's frames."""
+
+    frames: int  # frames it is seen in
+    keypoints: int  # confident keypoints in all those frames
+    first: int  # first frame seen
+
+
+def link_people(poses: list[tuple[int, list[np.ndarray]]]) -> tuple[list[list[int]], list[Identity]]:
+    """poses: per frame (increasing), (frame, [(K, 3) x, y, confidence per person; confidence 0 = not seen]) ->
+    the identity of each person of each frame, and the identities, numbered by confident keypoints (most first,
+    so 0 is the person seen most)."""
+    last: list[tuple[int, np.ndarray]] = []  # per raw identity: (frame last seen, its pose there)
+    counts: list[list[int]] = []  # per raw identity: frames, keypoints, first frame
+    raw: list[list[int]] = []
+    for frame, people in poses:
+        active = [i for i, (seen, _) in enumerate(last) if frame - seen <= MAX_GAP]
+        assigned = [-1] * len(people)
+        if active and people:
+            # not divided by the gap: an identity unseen for longer must not win a pose from one seen just before
+            cost = np.array([[_step(last[i][1], pose) for pose in people] for i in active])
+            limits = np.array([min(MAX_STEP * (frame - last[i][0]), MAX_JUMP) for i in active])
+            rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, 1e9))
+            for r, c in zip(rows, cols, strict=True):
+                if cost[r, c] <= limits[r]:
+                    assigned[c] = active[r]
+        for c, pose in enumerate(people):
+            if assigned[c] < 0:
+                assigned[c] = len(last)
+                last.append((frame, pose))
+                counts.append([0, 0, frame])
+            identity = assigned[c]
+            last[identity] = (frame, pose)
+            counts[identity][0] += 1
+            counts[identity][1] += int((pose[:, 2] > 0).sum())
+        raw.append(assigned)
+    order = sorted(range(len(counts)), key=lambda i: (-counts[i][1], counts[i][2]))
+    number = {old: new for new, old in enumerate(order)}
+    identities = [Identity(frames=counts[i][0], keypoints=counts[i][1], first=counts[i][2]) for i in order]
+    return [[number[i] for i in frame] for frame in raw], identities
+
+
+def _step(a: np.ndarray, b: np.ndarray) -> float:
+    """Median displacement (in a's body sizes) of the keypoints seen in both poses (their centroids with fewer)."""
+    seen_a, seen_b = a[:, 2] > 0, b[:, 2] > 0
+    if not seen_a.any() or not seen_b.any():
+        return np.inf
+    both = seen_a & seen_b
+    if both.sum() >= MIN_SHARED:
+        distance = float(np.median(np.linalg.norm(a[both, :2] - b[both, :2], axis=1)))
+    else:
+        distance = float(np.linalg.norm(a[seen_a, :2].mean(axis=0) - b[seen_b, :2].mean(axis=0)))
+    extent = a[seen_a, :2].max(axis=0) - a[seen_a, :2].min(axis=0)
+    return distance / max(float(np.linalg.norm(extent)), MIN_SIZE_PX)
