@@ -10,6 +10,8 @@ with cameras a degree off, right offsets can bend the trajectories through their
 docs/refinement.md). The solve's own clocks stay unless registration's fit clearly better. Where the solve
 identified no clock for some videos and kept its seed (whose points sit on their rays: no residual to compare),
 registration's offsets are its only clocks and are held to the checks the solve's own clocks meet (`clock_fit`).
+The same where the solve found every clock but its own checks judged them too ambiguous to refine on (the seed
+kept), and registration's offsets, found independently from the epipolar geometry, agree with them.
 report.json `temporal.registered_offsets` gives the measures and the choice.
 """
 
@@ -74,9 +76,11 @@ def prefer_registered_offsets(
     clock checks (`clock_fit`)."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
+    # the solve's clocks, which its own checks found too ambiguous to use, and registration's agree
+    confirmed = check is not None and bool(check.get("agree")) and not unidentified
     registered = any(v.clock_offset is not None for v in cameras.videos)
     # a free-times refinement (also "unidentified") fits its rays better than any clock: nothing to try there
-    seed_only = bool(unidentified) and registered and not temporal.refined
+    seed_only = (bool(unidentified) or confirmed) and registered and not temporal.refined
     if not disagree and not seed_only:
         return temporal
     clocks = registered_clocks(problem, cameras, temporal.clocks)
@@ -111,7 +115,12 @@ def prefer_registered_offsets(
         kept = all(c.passed for c in checks)
         entry.update(criterion="clock_fit", checks=[c.to_json() for c in checks], limit=None)
     entry["kept"] = "registered" if kept else "solve"
-    relation = "disagree with" if disagree else f"leave {', '.join(unidentified)} unidentified, unlike"
+    if disagree:
+        relation = "disagree with"
+    elif unidentified:
+        relation = f"leave {', '.join(unidentified)} unidentified, unlike"
+    else:
+        relation = "failed the solve's own checks but agree with"
     if checks:
         verdict = "; ".join(f"{c.meaning} {c.value:.3g}, limit {c.limit:.3g}" for c in checks)
     else:
@@ -143,6 +152,8 @@ def prefer_registered_offsets(
                 "disagreed with registration's offsets"
                 if disagree
                 else f"left {', '.join(unidentified)} unidentified; registration's offsets identify them"
+                if unidentified
+                else "failed the solve's own checks; registration's offsets, found independently, agree with them"
             ),
         }
     )

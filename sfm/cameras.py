@@ -53,6 +53,9 @@ class VideoCameras:
     frames: list[FrameCamera] = field(default_factory=list)
     # Seconds, global time = own time + clock_offset: the clock the subject path of `register` found (None: unknown).
     clock_offset: float | None = None
+    # The video's own person numbers (points person<N>_<keypoint>) -> the number of that person across videos
+    # (`register` matched them: sfm/subject/people.py); None: the tracks' names are used as they are.
+    people: dict[int, int] | None = None
 
     def frame_numbers(self) -> np.ndarray:
         return np.array([f.frame for f in self.frames], dtype=np.int64)
@@ -100,6 +103,7 @@ def cameras_to_json(cameras: CameraSet) -> dict[str, Any]:
                 "frames": [_frame_to_json(f) for f in sorted(video.frames, key=lambda f: f.frame)],
             }
             | ({} if video.clock_offset is None else {"clock_offset": float(video.clock_offset)})
+            | ({} if video.people is None else {"people": {str(k): int(v) for k, v in sorted(video.people.items())}})
             for video in cameras.videos
         ]
     }
@@ -161,6 +165,7 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
             raise InputError(
                 path, f'"clock_offset" must be a finite number or absent, got {repr(clock_offset)[:40]}', where=where
             )
+        people = _people_from_json(vdata.get("people"), path, where)
         frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]") for fi, fdata in enumerate(vdata["frames"])]
         videos.append(
             VideoCameras(
@@ -170,9 +175,28 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
                 height=height,
                 frames=frames,
                 clock_offset=None if clock_offset is None else float(clock_offset),
+                people=people,
             )
         )
     return CameraSet(videos=videos)
+
+
+def _people_from_json(value: Any, path: Path | None, where: str) -> dict[int, int] | None:
+    """`"people": {"<own number>": <number across videos>, ...}` (absent: None)."""
+    if value is None:
+        return None
+    ok = isinstance(value, dict) and all(
+        isinstance(k, str) and k.isascii() and k.isdigit() and isinstance(v, int) and not isinstance(v, bool) and v >= 0
+        for k, v in value.items()
+    )
+    if not ok:
+        raise InputError(
+            path, f'"people" must map person numbers to person numbers, got {repr(value)[:60]}', where=where
+        )
+    mapped = {int(k): int(v) for k, v in value.items()}
+    if len(set(mapped.values())) != len(mapped):
+        raise InputError(path, f'"people" maps two people of the video onto one: {repr(value)[:60]}', where=where)
+    return mapped
 
 
 def _finite_number(value: Any) -> bool:

@@ -32,6 +32,7 @@ def write_report(
     error: str | None,
     subject: dict[str, Any] | None = None,
     background_check: dict[str, Any] | None = None,
+    people: dict[str, Any] | None = None,
 ) -> None:
     model = None
     if rec is not None:
@@ -63,6 +64,7 @@ def write_report(
         "warnings": warnings,
         "videos": [_video_entry(video, results.get(video.info.name, {})) for video in videos],
         "background_check": background_check,
+        "people": people,
         "subject": subject,
     }
     atomic_write_text(path, json.dumps(report, indent=1) + "\n")

@@ -48,6 +48,7 @@ from sfm.per_video import (
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
 from sfm.register_check import background_left, check_background
+from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, input_key
@@ -348,6 +349,8 @@ def finish_capture(
     _gather(notes, [p.notes for p in prepared], extracted, StepNotes.from_json(mapping), [n for _, n in localized])
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
+    with collected(notes), timed(notes, "people"):
+        tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
         summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
@@ -372,7 +375,8 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        path = _export(registered_videos, results, _points(kept, dropped), subject_report, out)
+        maps = people.maps if people is not None else {}
+        path = _export(registered_videos, results, _points(kept, dropped), subject_report, maps, out)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 
@@ -405,6 +409,7 @@ class _Summary:
     matching: dict[str, int]
     rec: pycolmap.Reconstruction | None
     background_check: dict[str, Any] | None = None  # its static poses against the subject's tracks
+    people: dict[str, Any] | None = None  # people numbered per video, matched across videos (sfm/register_people.py)
 
 
 def _points(rec: pycolmap.Reconstruction | None, dropped: set[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -428,10 +433,11 @@ def _export(
     results: Results,
     points: tuple[np.ndarray, np.ndarray],
     subject_report: dict[str, Any] | None,
+    people: dict[str, dict[int, int]],
     out: Path,
 ) -> Path:
-    """background.ply (`points`: the model's points and colours) and cameras.json (every posed frame); returns the
-    cameras.json path."""
+    """background.ply (`points`: the model's points and colours) and cameras.json (every posed frame, and each
+    video's map of its people when they were matched across videos); returns the cameras.json path."""
     cameras = CameraSet()
     subject = subject_report or {}
     # the posed videos' offsets (handheld ones that anchored the subject path) are on the same clock
@@ -440,12 +446,15 @@ def _export(
     }
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
     for video in registered_videos:
-        cameras.videos.append(_video_cameras(video, results[video.info.name], clock_offsets.get(video.info.name)))
+        name = video.info.name
+        cameras.videos.append(_video_cameras(video, results[name], clock_offsets.get(name), people.get(name)))
     write_ply(out / "background.ply", *points)
     return write_cameras(out / "cameras.json", cameras)
 
 
-def _video_cameras(video: VideoPlan, results: dict[int, FramePose], clock_offset: float | None) -> VideoCameras:
+def _video_cameras(
+    video: VideoPlan, results: dict[int, FramePose], clock_offset: float | None, people: dict[int, int] | None
+) -> VideoCameras:
     """One video's posed frames in the cameras.json contract."""
     frames = []
     for frame, result in sorted(results.items()):
@@ -469,6 +478,7 @@ def _video_cameras(video: VideoPlan, results: dict[int, FramePose], clock_offset
         fps=video.info.fps,
         frames=frames,
         clock_offset=clock_offset,
+        people=people,
     )
 
 
@@ -497,6 +507,7 @@ def _write_report(
         matching=summary.matching,
         rec=summary.rec,
         background_check=summary.background_check,
+        people=summary.people,
         subject=subject,
         error=error,
     )

@@ -1,0 +1,179 @@
+"""Which person is which across videos, from the epipolar geometry their keypoints support.
+
+`import-tracks --person all` numbers each video's people on their own (points `person<N>_<keypoint>`): person 1 of
+one video may be person 0 of another. For every pair of static videos and every pair of their people, the pair fit
+of the subject path (time offset searched, robust epipolar geometry) counts the keypoint observations one geometry
+explains; the same person in two views gives one rigid geometry for all of them, two different people do not. A
+pairing is kept when it is the best of its row and column in that pair's table by `MARGIN`; pairings are joined
+greedily (most inliers first) into people seen by several videos, never two people of one video in one person.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from sfm.people import PERSON, renumber_people
+from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
+from sfm.subject.observations import build_observations
+from sfm.subject.pairs import fit_pair
+from tracking.tracks import Tracks
+
+log = logging.getLogger(__name__)
+
+MARGIN = 1.25  # a pairing's inliers over the best rival pairing of either person in that pair of videos
+MIN_SEEN = 0.2  # people seen in fewer of their video's tracked frames are not matched (detector fragments)
+
+
+@dataclass(kw_only=True)
+class PeopleAssociation:
+    """The tracks with one number per person across videos, and how it was found."""
+
+    tracks: Tracks  # renumbered (`renumber_people` with `maps`)
+    groups: list[dict[str, int]]  # per person (its new number): video -> that video's own number
+    left_out: dict[str, list[int]]  # per video: its people matched with no other video's
+    tables: list[dict[str, Any]] = field(default_factory=list)  # per pair of videos: people and inlier counts
+    videos: list[str] = field(default_factory=list)  # the videos whose people were matched (each gets a map)
+
+    @property
+    def maps(self) -> dict[str, dict[int, int]]:
+        """Per video of a group: its own person numbers -> the numbers across videos (cameras.json `people`)."""
+        out: dict[str, dict[int, int]] = {name: {} for name in self.videos}
+        for new, group in enumerate(self.groups):
+            for video, own in group.items():
+                out.setdefault(video, {})[own] = new
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "people": [dict(group) for group in self.groups],
+            "left_out": {k: v for k, v in self.left_out.items() if v},
+            "pairs": self.tables,
+            "margin": MARGIN,
+        }
+
+
+def per_video_people(tracks: Tracks) -> dict[str, list[int]] | None:
+    """Each video's people (`person<N>_<keypoint>` points), when some video has two or more; else None."""
+    people: dict[str, set[int]] = {}
+    for video, point in zip(tracks.video, tracks.point, strict=True):
+        match = PERSON.match(point)
+        if match:
+            people.setdefault(video, set()).add(int(match.group(1)))
+    if not any(len(p) > 1 for p in people.values()):
+        return None
+    return {video: sorted(p) for video, p in people.items()}
+
+
+def associate_people(
+    tracks: Tracks, videos: list[SubjectVideo], inlier_px: float = NOISE_SCALES_PX[-1], max_offset: float = 10.0
+) -> PeopleAssociation:
+    """Number the people of `videos` (static cameras, with their times) consistently across them:
+    `person<N>_<keypoint>` renamed to the person's new number, people no other video's matched left out; other
+    points and videos are kept as they are."""
+    # intrinsics are not used: a fundamental matrix per pairing ranks the pairings as well, at a third of the cost
+    videos = [replace(v, K=None, dist=None, cam_from_world=None) for v in videos]
+    names = [v.name for v in videos]
+    person = np.full(len(tracks), -1)
+    keypoint = list(tracks.point)
+    for i, point in enumerate(tracks.point):
+        match = PERSON.match(point)
+        if match and tracks.video[i] in names:
+            person[i], keypoint[i] = int(match.group(1)), match.group(2)
+    video = np.array(tracks.video, dtype=object)
+    people = {n: _matched_people(tracks, video == n, person) for n in names}
+    rng = np.random.default_rng(SEED)
+    edges: list[tuple[int, tuple[str, int], tuple[str, int]]] = []
+    tables = []
+    pairs = [(a, b) for k, a in enumerate(videos) for b in videos[k + 1 :] if people[a.name] and people[b.name]]
+    for a, b in tqdm(pairs, desc="matching people across videos", unit="pair", leave=False):
+        table = np.zeros((len(people[a.name]), len(people[b.name])), dtype=int)
+        for r, i in enumerate(people[a.name]):
+            for c, j in enumerate(people[b.name]):
+                rows = ((video == a.name) & (person == i)) | ((video == b.name) & (person == j))
+                table[r, c] = _inliers(tracks, rows, keypoint, a, b, inlier_px, max_offset, rng)
+        tables.append(
+            {"videos": [a.name, b.name], "people": [people[a.name], people[b.name]], "inliers": table.tolist()}
+        )
+        log.info("people of %s (rows) and %s (columns), inliers:\n%s", a.name, b.name, table)
+        for r, c in zip(*np.nonzero(table >= MIN_INLIERS), strict=True):
+            rivals = max(np.delete(table[r], c).max(initial=0), np.delete(table[:, c], r).max(initial=0))
+            if table[r, c] >= MARGIN * rivals:
+                edges.append((int(table[r, c]), (a.name, people[a.name][r]), (b.name, people[b.name][c])))
+    groups = _join(edges)
+    matched = {(v, own) for group in groups for v, own in group.items()}
+    left_out = {n: [p for p in _all_people(video == n, person) if (n, p) not in matched] for n in names}
+    with_people = [n for n in names if _all_people(video == n, person)]
+    result = PeopleAssociation(tracks=tracks, groups=groups, left_out=left_out, tables=tables, videos=with_people)
+    result.tracks = renumber_people(tracks, result.maps)
+    return result
+
+
+def _all_people(rows: np.ndarray, person: np.ndarray) -> list[int]:
+    return sorted({int(p) for p in person[rows] if p >= 0})
+
+
+def _matched_people(tracks: Tracks, rows: np.ndarray, person: np.ndarray) -> list[int]:
+    """The video's people seen in at least MIN_SEEN of its tracked frames."""
+    frames = len(set(tracks.frame[rows].tolist()))
+    out = []
+    for p in _all_people(rows, person):
+        seen = len(set(tracks.frame[rows & (person == p)].tolist()))
+        if seen >= MIN_SEEN * frames:
+            out.append(p)
+    return out
+
+
+def _inliers(
+    tracks: Tracks,
+    rows: np.ndarray,
+    keypoint: list[str],
+    a: SubjectVideo,
+    b: SubjectVideo,
+    inlier_px: float,
+    max_offset: float,
+    rng: np.random.Generator,
+) -> int:
+    """Keypoint observations that one epipolar geometry (at the best time offset) explains between two people."""
+    index = np.flatnonzero(rows)
+    pair = tracks.take(index)
+    pair.point = [keypoint[i] for i in index]
+    _, obs = build_observations(pair, [a, b])
+    fit = fit_pair(obs[0], obs[1], 0, 1, max_offset, rng, inlier_px)
+    return int(fit.inliers) if fit.usable else 0
+
+
+def _join(edges: list[tuple[int, tuple[str, int], tuple[str, int]]]) -> list[dict[str, int]]:
+    """Pairings joined into people, most inliers first; a pairing that would put two people of one video in one
+    person is skipped. People are numbered by their pairings' inliers (most first)."""
+    group_of: dict[tuple[str, int], int] = {}
+    groups: list[dict[str, int]] = []
+    support: list[int] = []
+    for inliers, u, v in sorted(edges, key=lambda e: -e[0]):
+        gu, gv = group_of.get(u), group_of.get(v)
+        if gu is None and gv is None:
+            group_of[u] = group_of[v] = len(groups)
+            groups.append({u[0]: u[1], v[0]: v[1]})
+            support.append(inliers)
+        elif gu is not None and gv is not None:
+            if gu == gv or set(groups[gu]) & set(groups[gv]):
+                continue
+            groups[gu].update(groups[gv])
+            support[gu] += support[gv] + inliers
+            for member in groups[gv].items():
+                group_of[member] = gu
+            groups[gv], support[gv] = {}, -1
+        else:
+            g, w = (gu, v) if gu is not None else (gv, u)
+            assert g is not None
+            if w[0] in groups[g]:
+                continue
+            groups[g][w[0]] = w[1]
+            group_of[w] = g
+            support[g] += inliers
+    order = sorted((g for g in range(len(groups)) if groups[g]), key=lambda g: -support[g])
+    return [groups[g] for g in order]
