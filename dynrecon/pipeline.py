@@ -16,7 +16,8 @@ Workspace layout (paths relative to WS):
 Registration does not use the tracks for masks, so that new labels never force a new registration (the video
 sample registers every frame without masks). When the background leaves a static video out (or poses
 fewer than two videos) and there are labels or tracks, the `subject` stage registers again after tracking, with
-the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json.
+the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json. The same when
+the tracks number people per video (`import-tracks --person all`): registration matches them across the videos.
 
 With `PipelineOptions.calibration` (a lab calibration, any file `dynrecon import-calibration` reads), the `register`
 stage imports it instead of running SfM: register/cameras.json gives every frame its camera's fixed pose, and the
@@ -63,6 +64,7 @@ from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
+from sfm.people import per_video_people
 from sfm.register_check import refuted_in_folder
 from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
 from sfm.stage import run as register_run
@@ -552,16 +554,22 @@ class Stages:
         """The background's cameras, or, where it failed or left static videos out, the `subject` stage's
         (registered again with the subject's tracks, into WS/register_subject/)."""
         background = self.ws / REGISTER_DIR
+        track_set = read_tracks(tracks)
         if background_failed is None and not _static_left_out(background / "register_report.json"):
-            # the background registered without tracks: its static poses are checked against them now
-            refuted = refuted_in_folder(background, read_tracks(tracks), self.videos)
-            if not refuted:
-                return Registration.in_folder(background)
-            log.warning(
-                "the subject's tracks refute the background's poses of %s (%s): registering again with the tracks",
-                ", ".join(sorted(refuted)),
-                next(iter(refuted.values())),
-            )
+            if per_video_people(track_set) is not None:
+                # which person of one video is which of another: registration finds it from the tracks
+                log.info("the tracks number people per video: registering again with them, which matches the people")
+            else:
+                # the background registered without tracks: its static poses are checked against them now
+                refuted = refuted_in_folder(background, track_set, self.videos)
+                if not refuted:
+                    return Registration.in_folder(background)
+                log.warning(
+                    "the subject's tracks refute the background's poses of %s (%s): registering again with the "
+                    "tracks",
+                    ", ".join(sorted(refuted)),
+                    next(iter(refuted.values())),
+                )
         folder = self.ws / SUBJECT_DIR
         registration = Registration.in_folder(folder)
         subject_options = self.options.subject_register(tracks)

@@ -38,7 +38,7 @@ from reconstruct.tracks_path import refereed as tracks_path_refereed
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
-from sfm.people import people_maps, renumber_people
+from sfm.people import check_people_mapped, people_maps, renumber_people
 from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
@@ -148,6 +148,7 @@ def solve(
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
+    check_people_mapped(camera_set, track_set)
     track_set = renumber_people(track_set, people_maps(camera_set))
     problem, rejected = build_problem_checked(camera_set, track_set)
     read_inputs = time.perf_counter() - started

@@ -16,11 +16,12 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from sfm.cameras import read_cameras
+from sfm.people import per_video_people
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectOptions, SubjectVideo
 from sfm.subject.agreement import Agreement, check_agreement
 from sfm.subject.observations import select_rows
-from sfm.subject.people import associate_people, per_video_people
+from sfm.subject.people import associate_people
 from sfm.video import probe_video
 from tracking.tracks import Tracks
 

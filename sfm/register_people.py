@@ -7,9 +7,10 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from sfm.people import per_video_people
 from sfm.plan import VideoPlan
 from sfm.subject.model import SubjectVideo
-from sfm.subject.people import PeopleAssociation, associate_people, per_video_people
+from sfm.subject.people import PeopleAssociation, associate_people
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)

@@ -57,18 +57,6 @@ class PeopleAssociation:
         }
 
 
-def per_video_people(tracks: Tracks) -> dict[str, list[int]] | None:
-    """Each video's people (`person<N>_<keypoint>` points), when some video has two or more; else None."""
-    people: dict[str, set[int]] = {}
-    for video, point in zip(tracks.video, tracks.point, strict=True):
-        match = PERSON.match(point)
-        if match:
-            people.setdefault(video, set()).add(int(match.group(1)))
-    if not any(len(p) > 1 for p in people.values()):
-        return None
-    return {video: sorted(p) for video, p in people.items()}
-
-
 def associate_people(
     tracks: Tracks, videos: list[SubjectVideo], inlier_px: float = NOISE_SCALES_PX[-1], max_offset: float = 10.0
 ) -> PeopleAssociation:

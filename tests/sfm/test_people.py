@@ -12,9 +12,9 @@ import pytest
 
 from dynrecon.errors import InputError
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
-from sfm.people import renumber_people
+from sfm.people import check_people_mapped, per_video_people, renumber_people
 from sfm.subject.model import SubjectVideo
-from sfm.subject.people import associate_people, per_video_people
+from sfm.subject.people import associate_people
 from sfm.subject.synthetic import Truth, make_rig, skeleton_motion
 from tracking.import_openpose import read_openpose
 from tracking.tracks import Tracks
@@ -133,3 +133,16 @@ def test_pose2sim_two_participants_are_matched_as_the_lab_calibration_matches_th
         {"cam01": 0, "cam02": 0, "cam03": 0, "cam04": 0},
     ]
     assert found.left_out == {"cam01": [1, 3], "cam02": [1], "cam03": [], "cam04": []}
+
+
+def test_the_solve_refuses_people_numbered_per_video_without_a_map(tmp_path: Path) -> None:
+    from reconstruct.stage import solve
+
+    frame = FrameCamera(frame=0, K=np.eye(3), R=np.eye(3), t=np.zeros(3))
+    cameras = CameraSet(videos=[VideoCameras(name=n, width=4, height=4, frames=[frame]) for n in ("a", "b")])
+    rows = [(v, 0, f"person{p}_Nose", 1.0, 2.0) for v in ("a", "b") for p in (0, 1)]
+    tracks = Tracks.from_rows(rows)
+    tracks.path = tmp_path / "tracks.csv"
+    with pytest.raises(InputError, match=r"tracks\.csv: the tracks number people per video .* which person of a, b"):
+        solve(cameras, tracks)
+    check_people_mapped(cameras, Tracks.from_rows(rows[::2]))  # one person per video: nothing to match
