@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 MAX_STEP = 0.25  # median keypoint displacement per frame, as a fraction of the body's size, that still links a pose
 MAX_JUMP = 1.0  # ... and the most over any gap (a body's size)
@@ -33,6 +32,8 @@ def link_people(poses: list[tuple[int, list[np.ndarray]]]) -> tuple[list[list[in
     """poses: per frame (increasing), (frame, [(K, 3) x, y, confidence per person; confidence 0 = not seen]) ->
     the identity of each person of each frame, and the identities, numbered by confident keypoints (most first,
     so 0 is the person seen most)."""
+    from scipy.optimize import linear_sum_assignment  # here: `dynrecon track --help` must not load scipy
+
     last: list[tuple[int, np.ndarray]] = []  # per raw identity: (frame last seen, its pose there)
     counts: list[list[int]] = []  # per raw identity: frames, keypoints, first frame
     raw: list[list[int]] = []
