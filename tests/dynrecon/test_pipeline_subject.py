@@ -150,3 +150,45 @@ def test_given_labels_never_overwrite_the_clicks_in_the_workspace(
     kept = list(ws.glob("labels.before-*.csv"))
     assert (ws / "labels.csv").read_text() == other.read_text()
     assert len(kept) == 1 and kept[0].read_text() == clicks
+
+
+def test_tracks_that_number_people_per_video_are_registered_again(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The background posed every video, but the tracks number people per video (`import-tracks --person all`):
+    registration runs again with them (it matches the people and writes each video's map), and the solve uses
+    the maps; the second person of cam0, matched with nobody, is left out."""
+    from sfm.cameras import read_cameras, write_cameras
+    from tracking.tracks import Tracks, read_tracks, write_tracks
+
+    plain = read_tracks(capture / "tracks.csv")
+    rows = [
+        (v, int(f), f"person0_{p}", *map(float, xy))
+        for v, f, p, xy in zip(plain.video, plain.frame, plain.point, plain.xy, strict=True)
+    ]
+    rows += [(v, f, p.replace("person0", "person1"), x + 50, y) for v, f, p, x, y in rows if v == "cam0"]
+    write_tracks(tmp_path / "people.csv", Tracks.from_rows(rows))
+    calls: list[RegisterOptions] = []
+
+    def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
+        calls.append(options)
+        register_dir.mkdir(parents=True, exist_ok=True)
+        cameras = read_cameras(capture / "cameras.json")
+        for video in cameras.videos:
+            video.people = None if options.tracks is None else {0: 0}
+        write_cameras(register_dir / "cameras.json", cameras)
+        write_ply(register_dir / "background.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+        videos_report = [{"name": v.name, "camera": "static", "posed_by": "background SfM"} for v in cameras.videos]
+        (register_dir / "register_report.json").write_text(json.dumps({"videos": videos_report}))
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    videos = [tmp_path / f"cam{i}.mp4" for i in range(3)]
+    for video in videos:
+        video.write_bytes(b"x")
+    ws = tmp_path / "ws"
+    result = pipeline.run_stages(videos, ws, pipeline.PipelineOptions(tracks=tmp_path / "people.csv"))
+    assert [s.name for s in result.stages] == ["register", "subject", "solve", "record", "export"]
+    assert [c.tracks is None for c in calls] == [True, False]
+    header, *lines = (ws / "points3d.csv").read_text().splitlines()
+    points = {line.split(",")[header.split(",").index("point")] for line in lines}
+    assert points and all(p.startswith("person0_") for p in points)
