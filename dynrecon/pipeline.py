@@ -17,7 +17,8 @@ Registration does not use the tracks for masks, so that new labels never force a
 sample registers every frame without masks). When the background leaves a static video out (or poses
 fewer than two videos) and there are labels or tracks, the `subject` stage registers again after tracking, with
 the subject's tracks (`sfm.subject`), into register_subject/; later stages then use its cameras.json. The same when
-the tracks number people per video (`import-tracks --person all`): registration matches them across the videos.
+the tracks number people per video (`import-tracks --person all`): registration matches them across the videos
+(with a lab calibration the `subject` stage adds the people's maps to the calibration's cameras).
 
 With `PipelineOptions.calibration` (a lab calibration, any file `dynrecon import-calibration` reads), the `register`
 stage imports it instead of running SfM: register/cameras.json gives every frame its camera's fixed pose, and the
@@ -66,6 +67,7 @@ from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.people import per_video_people
 from sfm.register_check import refuted_in_folder
+from sfm.register_people import people_on_cameras
 from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
@@ -73,7 +75,7 @@ from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import read_tracks
+from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -555,8 +557,11 @@ class Stages:
         (registered again with the subject's tracks, into WS/register_subject/)."""
         background = self.ws / REGISTER_DIR
         track_set = read_tracks(tracks)
+        people = per_video_people(track_set) is not None
+        if background_failed is None and self.options.calibration is not None and people:
+            return self._people_on_calibration(background, tracks, track_set)
         if background_failed is None and not _static_left_out(background / "register_report.json"):
-            if per_video_people(track_set) is not None:
+            if people:
                 # which person of one video is which of another: registration finds it from the tracks
                 log.info("the tracks number people per video: registering again with them, which matches the people")
             else:
@@ -565,8 +570,7 @@ class Stages:
                 if not refuted:
                     return Registration.in_folder(background)
                 log.warning(
-                    "the subject's tracks refute the background's poses of %s (%s): registering again with the "
-                    "tracks",
+                    "the subject's tracks refute the background's poses of %s (%s): registering again with the tracks",
                     ", ".join(sorted(refuted)),
                     next(iter(refuted.values())),
                 )
@@ -580,6 +584,21 @@ class Stages:
             [registration.cameras, registration.background],
             lambda: _register(self.videos, folder, subject_options),
         )
+        return registration
+
+    def _people_on_calibration(self, background: Path, tracks: Path, track_set: Tracks) -> Registration:
+        """The calibration's cameras with each video's people map (the tracks number people per video), into
+        WS/register_subject/: the `subject` stage of a calibrated rig."""
+        folder = self.ws / SUBJECT_DIR
+        registration = Registration.in_folder(folder)
+
+        def match() -> None:
+            folder.mkdir(parents=True, exist_ok=True)
+            people_on_cameras(background / "cameras.json", track_set, self.videos, folder)
+            shutil.copyfile(background / "background.ply", registration.background)
+
+        files = {"cameras": background / "cameras.json", "tracks": tracks}
+        self.run("subject", files, {"people": True}, [registration.cameras, registration.background], match)
         return registration
 
     def solve(self, registration: Registration, tracks: Path) -> None:

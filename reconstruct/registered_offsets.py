@@ -72,8 +72,9 @@ def prefer_registered_offsets(
 ) -> Temporal:
     """`temporal`, or the trajectories refined on registration's offsets: where the solve's clocks disagree with them
     (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better
-    (residual); or where the solve left some clock unidentified and kept its seed, and registration's pass the
-    clock checks (`clock_fit`)."""
+    (residual); or where the solve kept its seed, having left some clock unidentified or found every clock but
+    judged them too ambiguous while registration's agree with them, and registration's pass the clock checks
+    (`clock_fit`)."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
     # the solve's clocks, which its own checks found too ambiguous to use, and registration's agree
@@ -108,9 +109,10 @@ def prefer_registered_offsets(
     if not seed_only:
         kept = bool(theirs < BETTER * mine)
     else:
-        # The seed's points sit on their rays (no residual to compare): with no clock of the solve's own for some
-        # videos, registration's offsets are its only clocks, held to the checks the solve's clocks meet (with
-        # decoder times clock_fit reports without judging, as for the solve's own clocks).
+        # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
+        # for the videos the solve could not time, or the independent confirmation of the clocks it found but did
+        # not trust; held to the checks the solve's clocks meet (with decoder times clock_fit reports without
+        # judging, as for the solve's own clocks).
         checks = RefinementJudge(problem, seed, options).clock_fit(on_clocks.result, spacing_assumed(clocks))
         kept = all(c.passed for c in checks)
         entry.update(criterion="clock_fit", checks=[c.to_json() for c in checks], limit=None)

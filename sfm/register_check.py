@@ -16,12 +16,10 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from sfm.cameras import read_cameras
-from sfm.people import per_video_people
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectOptions, SubjectVideo
 from sfm.subject.agreement import Agreement, check_agreement
 from sfm.subject.observations import select_rows
-from sfm.subject.people import associate_people
 from sfm.video import probe_video
 from tracking.tracks import Tracks
 
@@ -134,8 +132,6 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
     inputs = [v for v in inputs if v.name in tracked]
     if len(inputs) < 2:
         return {}
-    if per_video_people(tracks) is not None:  # one name per person across the videos before comparing them
-        tracks = associate_people(tracks, inputs).tracks
     agreement = _agreement(tracks, inputs)
     if not agreement.refuted:
         checked = [p for p in agreement.pairs if p.checked]

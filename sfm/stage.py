@@ -375,8 +375,7 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        maps = people.maps if people is not None else {}
-        path = _export(registered_videos, results, _points(kept, dropped), subject_report, maps, out)
+        path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 

@@ -92,6 +92,12 @@ def detect_format(path: Path) -> Format:
 
 def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[Detection]]:
     fmt = detect_format(path) if options.format is Format.AUTO else options.format
+    if fmt is not Format.OPENPOSE and (options.every_person or options.person):
+        raise InputError(
+            path,
+            f"--person applies to OpenPose JSON, not to {fmt.value} input",
+            fix="leave --person out (DeepLabCut names its individuals in the points: <individual>_<bodypart>)",
+        )
     if fmt is Format.DLC:
         return fmt, read_dlc(path, options.video or video_name_from_dlc(path))
     if fmt is Format.OPENPOSE:

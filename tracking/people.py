@@ -15,7 +15,6 @@ import numpy as np
 MAX_STEP = 0.25  # median keypoint displacement per frame, as a fraction of the body's size, that still links a pose
 MAX_JUMP = 1.0  # ... and the most over any gap (a body's size)
 MAX_GAP = 30  # frames an identity may go unseen and still be linked
-MIN_SHARED = 3  # keypoints seen in both poses for the median displacement (fewer: their centroids)
 MIN_SIZE_PX = 20.0  # body size floor: a pose of one or two keypoints has no extent
 
 
@@ -54,7 +53,11 @@ def link_people(poses: list[tuple[int, list[np.ndarray]]]) -> tuple[list[list[in
                 last.append((frame, pose))
                 counts.append([0, 0, frame])
             identity = assigned[c]
-            last[identity] = (frame, pose)
+            # keypoints this pose misses keep their last position: a partial pose keeps the body's size and shape
+            merged = last[identity][1].copy()
+            seen = pose[:, 2] > 0
+            merged[seen] = pose[seen]
+            last[identity] = (frame, merged)
             counts[identity][0] += 1
             counts[identity][1] += int((pose[:, 2] > 0).sum())
         raw.append(assigned)
@@ -65,12 +68,12 @@ def link_people(poses: list[tuple[int, list[np.ndarray]]]) -> tuple[list[list[in
 
 
 def _step(a: np.ndarray, b: np.ndarray) -> float:
-    """Median displacement (in a's body sizes) of the keypoints seen in both poses (their centroids with fewer)."""
+    """Median displacement (in a's body sizes) of the keypoints seen in both poses (their centroids when none is)."""
     seen_a, seen_b = a[:, 2] > 0, b[:, 2] > 0
     if not seen_a.any() or not seen_b.any():
         return np.inf
     both = seen_a & seen_b
-    if both.sum() >= MIN_SHARED:
+    if both.any():
         distance = float(np.median(np.linalg.norm(a[both, :2] - b[both, :2], axis=1)))
     else:
         distance = float(np.linalg.norm(a[seen_a, :2].mean(axis=0) - b[seen_b, :2].mean(axis=0)))

@@ -2,9 +2,11 @@
 
 `import-tracks --person all` numbers each video's people on their own (points `person<N>_<keypoint>`): person 1 of
 one video may be person 0 of another. For every pair of static videos and every pair of their people, the pair fit
-of the subject path (time offset searched, robust epipolar geometry) counts the keypoint observations one geometry
-explains; the same person in two views gives one rigid geometry for all of them, two different people do not. A
-pairing is kept when it is the best of its row and column in that pair's table by `MARGIN`; pairings are joined
+of the subject path (time offset searched, robust epipolar geometry) finds the geometry that pairing's keypoints
+support; the same person in two views gives one rigid geometry, two different people do not. Two static cameras
+have one geometry and one time offset for all their true pairings, so every pairing is then counted under each
+pairing's geometry, and the geometry whose best one-to-one assignment explains the most observations is the
+pair's. A pairing is kept when it is the best of its row and column in that table by `MARGIN`; pairings are joined
 greedily (most inliers first) into people seen by several videos, never two people of one video in one person.
 """
 
@@ -18,9 +20,10 @@ import numpy as np
 from tqdm import tqdm
 
 from sfm.people import PERSON, renumber_people
+from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
-from sfm.subject.observations import build_observations
-from sfm.subject.pairs import fit_pair
+from sfm.subject.observations import VideoObs, build_observations
+from sfm.subject.pairs import PairFit, correspondences, fit_pair
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -79,15 +82,25 @@ def associate_people(
     tables = []
     pairs = [(a, b) for k, a in enumerate(videos) for b in videos[k + 1 :] if people[a.name] and people[b.name]]
     for a, b in tqdm(pairs, desc="matching people across videos", unit="pair", leave=False):
-        table = np.zeros((len(people[a.name]), len(people[b.name])), dtype=int)
-        for r, i in enumerate(people[a.name]):
-            for c, j in enumerate(people[b.name]):
-                rows = ((video == a.name) & (person == i)) | ((video == b.name) & (person == j))
-                table[r, c] = _inliers(tracks, rows, keypoint, a, b, inlier_px, max_offset, rng)
+        shape = (len(people[a.name]), len(people[b.name]))
+        obs: dict[tuple[int, int], list[VideoObs]] = {}
+        fits: dict[tuple[int, int], PairFit] = {}
+        for r, c in np.ndindex(*shape):
+            rows = ((video == a.name) & (person == people[a.name][r])) | (
+                (video == b.name) & (person == people[b.name][c])
+            )
+            obs[r, c] = _observations(tracks, rows, keypoint, a, b)
+            fits[r, c] = fit_pair(obs[r, c][0], obs[r, c][1], 0, 1, max_offset, rng, inlier_px)
+        table, source = _shared_geometry(obs, fits, shape, inlier_px)
         tables.append(
-            {"videos": [a.name, b.name], "people": [people[a.name], people[b.name]], "inliers": table.tolist()}
+            {
+                "videos": [a.name, b.name],
+                "people": [people[a.name], people[b.name]],
+                "inliers": table.tolist(),
+                "geometry_of": None if source is None else [people[a.name][source[0]], people[b.name][source[1]]],
+            }
         )
-        log.info("people of %s (rows) and %s (columns), inliers:\n%s", a.name, b.name, table)
+        log.info("people of %s (rows) and %s (columns), inliers of one geometry:\n%s", a.name, b.name, table)
         for r, c in zip(*np.nonzero(table >= MIN_INLIERS), strict=True):
             rivals = max(np.delete(table[r], c).max(initial=0), np.delete(table[:, c], r).max(initial=0))
             if table[r, c] >= MARGIN * rivals:
@@ -116,23 +129,51 @@ def _matched_people(tracks: Tracks, rows: np.ndarray, person: np.ndarray) -> lis
     return out
 
 
-def _inliers(
-    tracks: Tracks,
-    rows: np.ndarray,
-    keypoint: list[str],
-    a: SubjectVideo,
-    b: SubjectVideo,
+def _observations(
+    tracks: Tracks, rows: np.ndarray, keypoint: list[str], a: SubjectVideo, b: SubjectVideo
+) -> list[VideoObs]:
+    """The two videos' observation arrays of one pairing: its two people's rows, named by keypoint alone."""
+    pair = tracks.take(np.flatnonzero(rows))
+    pair.point = [keypoint[i] for i in np.flatnonzero(rows)]
+    return build_observations(pair, [a, b])[1]
+
+
+def _shared_geometry(
+    obs: dict[tuple[int, int], list[VideoObs]],
+    fits: dict[tuple[int, int], PairFit],
+    shape: tuple[int, int],
     inlier_px: float,
-    max_offset: float,
-    rng: np.random.Generator,
-) -> int:
-    """Keypoint observations that one epipolar geometry (at the best time offset) explains between two people."""
-    index = np.flatnonzero(rows)
-    pair = tracks.take(index)
-    pair.point = [keypoint[i] for i in index]
-    _, obs = build_observations(pair, [a, b])
-    fit = fit_pair(obs[0], obs[1], 0, 1, max_offset, rng, inlier_px)
-    return int(fit.inliers) if fit.usable else 0
+) -> tuple[np.ndarray, tuple[int, int] | None]:
+    """(rows, columns) inlier counts of every pairing under one epipolar geometry and time offset, the one of the
+    pairing fits whose best one-to-one assignment explains the most observations (two static cameras have one
+    geometry: a wrong pairing can fit a geometry of its own, not the true pairings' one); and the pairing that
+    geometry came from (None: no pairing fitted one). A pairing whose own fit is unusable (degenerate: a person
+    standing still gives a few distinct positions) counts 0."""
+    from scipy.optimize import linear_sum_assignment
+
+    best, best_value, source = np.zeros(shape, dtype=int), -1, None
+    for key, fit in fits.items():
+        if not fit.usable or fit.E is None:
+            continue
+        table = np.zeros(shape, dtype=int)
+        for r, c in np.ndindex(*shape):
+            if fits[r, c].usable:
+                table[r, c] = _count(obs[r, c], fit, inlier_px)
+        rows, cols = linear_sum_assignment(-table)
+        value = int(table[rows, cols].sum())
+        if value > best_value:
+            best, best_value, source = table, value, key
+    return best, source
+
+
+def _count(obs: list[VideoObs], fit: PairFit, inlier_px: float) -> int:
+    """Observations of a pairing within `inlier_px` of `fit`'s epipolar geometry at its time offset."""
+    assert fit.E is not None
+    xa, xb = correspondences(obs[0], obs[1], fit.shift)
+    if not len(xa):
+        return 0
+    threshold = inlier_px / float(np.sqrt(obs[0].focal * obs[1].focal))
+    return int((sampson(fit.E[None], xa, xb)[0] < threshold**2).sum())
 
 
 def _join(edges: list[tuple[int, tuple[str, int], tuple[str, int]]]) -> list[dict[str, int]]:

@@ -146,3 +146,25 @@ def test_the_solve_refuses_people_numbered_per_video_without_a_map(tmp_path: Pat
     with pytest.raises(InputError, match=r"tracks\.csv: the tracks number people per video .* which person of a, b"):
         solve(cameras, tracks)
     check_people_mapped(cameras, Tracks.from_rows(rows[::2]))  # one person per video: nothing to match
+
+
+def test_people_on_a_calibrated_rigs_cameras(tmp_path: Path) -> None:
+    """A lab's calibration (imported without tracks) gets each video's people map from the tracks, as `register`
+    would find it (`dynrecon run --calibration` with tracks that number people per video)."""
+    from synthetic_motion import simulated_phones
+
+    from sfm.register_people import people_on_cameras
+    from tracking.tracks import read_tracks
+
+    capture = simulated_phones(tmp_path / "capture")
+    plain = read_tracks(capture / "tracks.csv")
+    names = sorted(set(plain.point))
+    numbers = {"cam0": (0, 1), "cam1": (1, 0), "cam2": (0, 1)}  # each video numbers the two halves its own way
+    rows = []
+    for v, f, p, xy in zip(plain.video, plain.frame, plain.point, plain.xy, strict=True):
+        half, k = divmod(names.index(p), len(names) // 2)
+        rows.append((v, int(f), f"person{numbers[v][half]}_k{k}", float(xy[0]), float(xy[1])))
+    path = people_on_cameras(capture / "cameras.json", Tracks.from_rows(rows), [], tmp_path)
+    maps = {v.name: v.people for v in read_cameras(path).videos}
+    assert maps["cam0"] == {0: maps["cam2"][0], 1: maps["cam2"][1]} and sorted(maps["cam0"].values()) == [0, 1]
+    assert maps["cam1"] == {1: maps["cam0"][0], 0: maps["cam0"][1]}

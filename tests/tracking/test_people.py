@@ -54,6 +54,10 @@ def test_gaps_jumps_and_stale_identities() -> None:
     frames += [(2, [_pose((103.0, 300.0))])]
     ids, _ = link_people(frames)
     assert ids[1][0] == ids[0][0] == ids[2][0]
+    # a frame where the detector found two keypoints of the person: still the same person, before and after
+    frames = [(f, [_pose((100.0 + 2 * f, 300.0), seen=2 if f == 10 else K)]) for f in range(40)]
+    ids, people = link_people(frames)
+    assert [p.frames for p in people] == [40]
 
 
 def _write_frames(folder: Path, frames: list[list[np.ndarray | None]]) -> None:
@@ -166,3 +170,11 @@ def test_person_option_on_the_command_line(tmp_path: Path, capsys: pytest.Captur
     assert len(set(read_tracks(tmp_path / "b.csv").point)) == 20
     assert main(["import-tracks", str(tmp_path / "cam1_json"), "--person", "-1", "--out", str(tmp_path / "c.csv")]) == 2
     assert "--person -1: expected a number 0, 1, ... or all" in capsys.readouterr().err
+
+
+def test_person_is_for_openpose_only(tmp_path: Path) -> None:
+    plain = tmp_path / "plain.csv"
+    plain.write_text("video,frame,point,x,y\ncam1,0,nose,1,2\n")
+    with pytest.raises(InputError, match="--person applies to OpenPose JSON, not to csv input"):
+        run_import([plain], tmp_path / "out.csv", ImportOptions(every_person=True))
+    assert len(read_tracks(run_import([plain], tmp_path / "out.csv", ImportOptions()))) == 1
