@@ -20,13 +20,15 @@ PERSON = re.compile(r"^person(\d+)_(.+)$")
 
 
 def per_video_people(tracks: Tracks) -> dict[str, list[int]] | None:
-    """Each video's people (`person<N>_<keypoint>` points), when some video has two or more; else None."""
+    """Each video's people (`person<N>_<keypoint>` points), when some video has two or more or the videos number
+    their one person differently (a threshold can leave another person than the first); else None: one name per
+    person, as one subject's tracks."""
     people: dict[str, set[int]] = {}
     for video, point in zip(tracks.video, tracks.point, strict=True):
         match = PERSON.match(point)
         if match:
             people.setdefault(video, set()).add(int(match.group(1)))
-    if not any(len(p) > 1 for p in people.values()):
+    if len({frozenset(p) for p in people.values()}) <= 1 and all(len(p) == 1 for p in people.values()):
         return None
     return {video: sorted(p) for video, p in people.items()}
 

@@ -73,6 +73,9 @@ def test_tracks_without_per_video_people_are_left_alone() -> None:
     tracks = Tracks.from_rows([("a", 0, "person0_Nose", 1.0, 2.0), ("b", 0, "Nose", 1.0, 2.0)])
     assert per_video_people(tracks) is None
     assert renumber_people(tracks, {}) is tracks
+    # one person per video, but not the same number: a threshold left another person in b; matched like several
+    tracks = Tracks.from_rows([("a", 0, "person0_Nose", 1.0, 2.0), ("b", 0, "person1_Nose", 1.0, 2.0)])
+    assert per_video_people(tracks) == {"a": [0], "b": [1]}
 
 
 def test_renumbering_and_the_cameras_json_map(tmp_path: Path) -> None:
