@@ -36,7 +36,6 @@ from sfm.frames import Resize
 from sfm.options import RegisterOptions
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_subject import pose_from_subject
-from sfm.subject.observations import select_rows
 from sfm.subject.synthetic import handheld, make_rig
 from sfm.video import ProbedVideo, probe_video
 from tracking.charuco import charuco_tracks
@@ -168,7 +167,7 @@ def run_case(case: str, work: Path) -> dict[str, object]:
     cameras = {c.name: c for c in read_calibration(calibration)}
     infos = {v.stem: probe_video(v) for v in videos}
     plans, results, intrinsics = [], {}, {}
-    subject_rows = select_rows(tracks, np.array([v in statics for v in tracks.video], dtype=bool))
+    subject_rows = tracks.of_videos(statics)
     all_tracks = [subject_rows]
     for name in statics:
         info = infos[name]
@@ -182,7 +181,7 @@ def run_case(case: str, work: Path) -> dict[str, object]:
             true_offsets["phone"] = true_offsets[a]
         else:
             info, source = infos[name], [name] * infos[name].num_frames
-            mine = select_rows(tracks, np.array([v == name for v in tracks.video], dtype=bool))
+            mine = tracks.of_videos([name])
         all_tracks.append(mine)
         plans.append(_plan(info, static=False))
         results[info.name] = {

@@ -19,7 +19,6 @@ from sfm.cameras import read_cameras
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectOptions, SubjectVideo
 from sfm.subject.agreement import Agreement, check_agreement
-from sfm.subject.observations import select_rows
 from sfm.video import probe_video
 from tracking.tracks import Tracks
 
@@ -146,5 +145,5 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
 def _agreement(tracks: Tracks, videos: list[SubjectVideo]) -> Agreement:
     """`check_agreement` of `videos` on their own rows of `tracks`."""
     names = {v.name for v in videos}
-    rows = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    rows = tracks.of_videos(names)
     return check_agreement(rows, videos, SubjectOptions().max_offset)

@@ -21,7 +21,6 @@ from sfm.register_posed import posed_video
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, choose_noise
 from sfm.subject.model import ScalePointsError
 from sfm.subject.noise import choose_scale
-from sfm.subject.observations import select_rows
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
 from sfm.subject.stability import Stability, check_stability
@@ -113,7 +112,7 @@ def pose_from_subject(
             "ones), or register the static videos without the others"
         )
         return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
-    subject_tracks = select_rows(tracks, np.array([v in names for v in tracks.video], dtype=bool))
+    subject_tracks = tracks.of_videos(names)
     subject_options = SubjectOptions(scale=scale)
     try:
         if by_posed:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import itertools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -76,6 +77,11 @@ class Tracks:
             line=None if self.line is None else self.line[index],
             path=self.path,
         )
+
+    def of_videos(self, names: Iterable[str]) -> Tracks:
+        """The rows of the videos `names`, in their order here."""
+        wanted = set(names)
+        return self.take([i for i, video in enumerate(self.video) if video in wanted])
 
     @classmethod
     def from_rows(cls, rows: list[tuple[str, int, str, float, float]], **extra: list[str]) -> Tracks:

@@ -43,18 +43,6 @@ class VideoObs:
         self.norm = normalize(self.xy, self.K, self.dist)
 
 
-def select_rows(tracks: Tracks, keep: np.ndarray) -> Tracks:
-    """The observations of `tracks` where `keep` (N,) bool is set (extra columns dropped)."""
-    index = np.flatnonzero(keep)
-    return Tracks(
-        video=[tracks.video[i] for i in index],
-        frame=tracks.frame[index],
-        point=[tracks.point[i] for i in index],
-        xy=tracks.xy[index],
-        path=tracks.path,
-    )
-
-
 def guess_K(video: SubjectVideo) -> np.ndarray:  # noqa: N802
     f = 1.2 * max(video.width, video.height)  # a guess: a field of view of about 45° across the long side
     return np.array([[f, 0, (video.width - 1) / 2], [0, f, (video.height - 1) / 2], [0, 0, 1.0]])

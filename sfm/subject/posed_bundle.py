@@ -20,7 +20,7 @@ from sfm.subject.model import (
     SubjectVideo,
     max_residual_px,
 )
-from sfm.subject.observations import VideoObs, build_observations, normalize, select_rows
+from sfm.subject.observations import VideoObs, build_observations, normalize
 from sfm.subject.posed import Alignment, PosedVideo, align_to_posed, in_order, observed
 from tracking.tracks import Tracks
 
@@ -76,7 +76,7 @@ def adjust_with_posed(
     ]  # intrinsics as solved: held
     static_names = {v.name for v in statics}
     # the videos the subject path posed (a refused one's rows are not "unknown"), columns in the trajectory's order
-    found, obs = build_observations(select_rows(tracks, np.array([v in static_names for v in tracks.video])), statics)
+    found, obs = build_observations(tracks.of_videos(static_names), statics)
     points = list(result.points)
     for o in obs:
         o.xy, o.norm = in_order(o.xy, found, points), in_order(o.norm, found, points)

@@ -21,7 +21,6 @@ from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from sfm.evaluate import compare
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import SubjectCalibrationError, SubjectCamera, SubjectOptions, SubjectResult, SubjectVideo
-from sfm.subject.observations import select_rows
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -61,7 +60,7 @@ def _fold(tracks: Tracks, videos: list[SubjectVideo], fold: int) -> Tracks:
     for row, (video, frame) in enumerate(zip(tracks.video, tracks.frame, strict=True)):
         own = times[video][int(frame)] if video in times and int(frame) < len(times[video]) else 0.0
         keep[row] = int(own // BLOCK) % FOLDS != fold
-    return select_rows(tracks, keep)
+    return tracks.take(np.flatnonzero(keep))
 
 
 def _as_cameras(cameras: list[SubjectCamera]) -> CameraSet:

@@ -109,11 +109,10 @@ def test_a_subject_on_a_line_checks_nothing() -> None:
 def test_offsets_the_tracks_do_not_single_out_check_nothing() -> None:
     """One tracked point, or tracks that never overlap at the true offset: the pair's best offset pairs other
     instants, which the tracks' own geometry fits and the true poses do not. Such pairs are not checked."""
-    from sfm.subject.observations import select_rows
 
     tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=6.0, noise_px=0.7, seed=3)
     right = _posed(videos, truth)
-    one_point = select_rows(tracks, np.array([p == tracks.point_names()[0] for p in tracks.point]))
+    one_point = tracks.take(np.flatnonzero(np.array([p == tracks.point_names()[0] for p in tracks.point])))
     apart = np.array(
         [
             not (
@@ -122,7 +121,7 @@ def test_offsets_the_tracks_do_not_single_out_check_nothing() -> None:
             for v, f in zip(tracks.video, tracks.frame, strict=True)
         ]
     )
-    for part in (one_point, select_rows(tracks, apart)):
+    for part in (one_point, tracks.take(np.flatnonzero(apart))):
         result = check_agreement(part, right)
         assert result.refuted == {}, result.to_json()
 

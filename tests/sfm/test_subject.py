@@ -8,7 +8,6 @@ import pytest
 from sfm.subject import SubjectCalibrationError, SubjectOptions, calibrate_from_subject
 from sfm.subject.geometry import bougnoux
 from sfm.subject.model import ScalePointsError
-from sfm.subject.observations import select_rows
 from sfm.subject.synthetic import compare, make_rig
 from tracking.tracks import Tracks
 
@@ -109,7 +108,7 @@ def test_scale_points_never_seen_at_one_time_are_their_own_error() -> None:
     drop = (point == "p11") & (
         (video == "cam2") | ((video == "cam0") & (frame >= half)) | ((video == "cam1") & (frame < half))
     )
-    kept = select_rows(tracks, ~drop)
+    kept = tracks.take(np.flatnonzero(~drop))
     with pytest.raises(ScalePointsError, match="never triangulated together"):
         calibrate_from_subject(kept, videos, SubjectOptions(scale=("p0", "p11", 1.0)))
 
