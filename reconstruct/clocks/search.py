@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -389,9 +388,11 @@ class _Joint:
             gaps = np.stack([_query(self.raw, v, u, self.clock(coef, u).own_time(g), rows) for u in active if u != v])
             if not len(gaps):
                 continue
-            with warnings.catch_warnings():  # observations outside every other video's span: all-NaN, kept
-                warnings.simplefilter("ignore", RuntimeWarning)
-                median = np.nanmedian(gaps, axis=0)
+            # observations outside every other video's span (all-NaN columns) are kept; not a filtered warning,
+            # since warnings.catch_warnings is not thread-safe (a Dask worker's threads)
+            spanned = np.isfinite(gaps).any(axis=0)
+            median = np.full(gaps.shape[1:], np.nan)
+            median[spanned] = np.nanmedian(gaps[:, spanned], axis=0)
             bad = np.isfinite(median) & (median > threshold)
             dropped += int(bad.sum())
             rays = track.rays.copy()
