@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 NO_FORK = "DYNRECON_NO_FORK"  # set to anything: always a thread
-STOP_GRACE_S = 2.0  # a child stopped early has this long to clean up after SIGTERM
+STOP_GRACE_S = 5.0  # a child stopped early has this long to clean up after SIGTERM (a loaded machine delays it)
 _PR_SET_PDEATHSIG = 1
 
 
