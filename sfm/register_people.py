@@ -41,8 +41,10 @@ def match_people(
     maps: dict[str, dict[int, int]] = {}
     section: dict[str, Any]
     if len(static) < 2:
-        why = f"{len(static)} static video(s) have people in their tracks; matching them needs 2"
-        section = {"matched": False, "why": why}
+        section = {
+            "matched": False,
+            "why": f"{len(static)} static video(s) have people in their tracks; matching them needs 2",
+        }
     else:
         videos = [
             SubjectVideo(name=p.info.name, width=p.info.width, height=p.info.height, times=p.info.times) for p in static
@@ -50,10 +52,6 @@ def match_people(
         found = associate_people(tracks, videos)
         maps = found.maps
         section = {"matched": bool(found.groups), **found.to_json()}
-        why = (
-            "no person of one video moves consistently with a person of another (one epipolar geometry for their "
-            "keypoints); check that the videos film the same people at the same time"
-        )
         if found.groups:
             described = "; ".join(
                 f"person {n}: " + ", ".join(f"{video} {own}" for video, own in group.items())
@@ -67,7 +65,10 @@ def match_people(
                     "; ".join(f"{video}: {', '.join(map(str, own))}" for video, own in dropped.items()),
                 )
         else:
-            section["why"] = why
+            section["why"] = (
+                "no person of one video moves consistently with a person of another (one epipolar geometry for "
+                "their keypoints); check that the videos film the same people at the same time"
+            )
     if not section["matched"]:
         warnings.append(f"people: {section['why']}; the person<N>_ points are left out")
     for name in people:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from sfm.people import PERSON, renumber_people
+from sfm.people import PERSON
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
@@ -34,9 +34,8 @@ MIN_SEEN = 0.2  # people seen in fewer of their video's tracked frames are not m
 
 @dataclass(kw_only=True)
 class PeopleAssociation:
-    """The tracks with one number per person across videos, and how it was found."""
+    """One number per person across videos (`maps`, for `renumber_people`), and how it was found."""
 
-    tracks: Tracks  # renumbered (`renumber_people` with `maps`)
     groups: list[dict[str, int]]  # per person (its new number): video -> that video's own number
     left_out: dict[str, list[int]]  # per video: its people matched with no other video's
     tables: list[dict[str, Any]] = field(default_factory=list)  # per pair of videos: people and inlier counts
@@ -63,9 +62,9 @@ class PeopleAssociation:
 def associate_people(
     tracks: Tracks, videos: list[SubjectVideo], inlier_px: float = NOISE_SCALES_PX[-1], max_offset: float = 10.0
 ) -> PeopleAssociation:
-    """Number the people of `videos` (static cameras, with their times) consistently across them:
-    `person<N>_<keypoint>` renamed to the person's new number, people no other video's matched left out; other
-    points and videos are kept as they are."""
+    """Number the people of `videos` (static cameras, with their times) consistently across them: each video's map
+    from its own person numbers to the numbers across videos (`renumber_people` applies it: people no other video's
+    matched left out; other points and videos kept as they are)."""
     # intrinsics are not used: a fundamental matrix per pairing ranks the pairings as well, at a third of the cost
     videos = [replace(v, K=None, dist=None, cam_from_world=None) for v in videos]
     names = [v.name for v in videos]
@@ -107,11 +106,10 @@ def associate_people(
                 edges.append((int(table[r, c]), (a.name, people[a.name][r]), (b.name, people[b.name][c])))
     groups = _join(edges)
     matched = {(v, own) for group in groups for v, own in group.items()}
-    left_out = {n: [p for p in _all_people(video == n, person) if (n, p) not in matched] for n in names}
-    with_people = [n for n in names if _all_people(video == n, person)]
-    result = PeopleAssociation(tracks=tracks, groups=groups, left_out=left_out, tables=tables, videos=with_people)
-    result.tracks = renumber_people(tracks, result.maps)
-    return result
+    everyone = {n: _all_people(video == n, person) for n in names}
+    left_out = {n: [p for p in own if (n, p) not in matched] for n, own in everyone.items()}
+    with_people = [n for n, own in everyone.items() if own]
+    return PeopleAssociation(groups=groups, left_out=left_out, tables=tables, videos=with_people)
 
 
 def _all_people(rows: np.ndarray, person: np.ndarray) -> list[int]:

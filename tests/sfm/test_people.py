@@ -62,7 +62,8 @@ def test_people_are_matched_across_videos() -> None:
     assert found.left_out == {"cam0": [], "cam1": [], "cam2": [1]}  # the bystander: no other video has them
     # the renumbered tracks: one name per person in every video, the bystander left out
     walker = found.maps["cam0"][0]
-    names = {(v, p) for v, p in zip(found.tracks.video, found.tracks.point, strict=True) if p.endswith("_k3")}
+    renamed = renumber_people(tracks, found.maps)
+    names = {(v, p) for v, p in zip(renamed.video, renamed.point, strict=True) if p.endswith("_k3")}
     assert names == {(v, f"person{n}_k3") for v in ("cam0", "cam1", "cam2") for n in (0, 1)}
     assert found.maps["cam1"][1] == walker and found.maps["cam2"] == {0: walker, 2: 1 - walker}
     table = found.to_json()["pairs"][0]
