@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
-from sfm.cameras import read_cameras
+from sfm.cameras import VideoCameras, read_cameras
 from sfm.plan import FramePose, VideoPlan
 from sfm.subject import SubjectOptions, SubjectVideo
 from sfm.subject.agreement import Agreement, check_agreement
@@ -109,10 +109,8 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
         if video.name not in static or video.name not in paths or not video.frames:
             continue
         first = video.frames[0]
-        times = np.array([f.time if f.time is not None else np.nan for f in video.frames], dtype=float)
-        every = [f.frame for f in video.frames] == list(range(len(video.frames))) and np.isfinite(times).all()
         try:
-            own = times if every else probe_video(paths[video.name]).times  # a static video's every frame has one
+            own = static_times(video, paths[video.name])
         except InputError as error:
             log.warning("%s: not checked against the tracks: %s", video.name, error)
             continue
@@ -140,6 +138,17 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
             len(agreement.pairs),
         )
     return agreement.refuted
+
+
+def static_times(video: VideoCameras, path: Path | None) -> np.ndarray:
+    """(F,) own seconds of every frame of a static video: from cameras.json when it has every frame's time (a static
+    video's every frame is posed), else probed from its file."""
+    times = np.array([f.time if f.time is not None else np.nan for f in video.frames], dtype=float)
+    if [f.frame for f in video.frames] == list(range(len(video.frames))) and np.isfinite(times).all():
+        return times
+    if path is None:
+        raise InputError(None, f"{video.name}: cameras.json lacks frame times and its video was not given")
+    return probe_video(path).times
 
 
 def _agreement(tracks: Tracks, videos: list[SubjectVideo]) -> Agreement:

@@ -8,14 +8,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from sfm.cameras import read_cameras, write_cameras
 from sfm.people import per_video_people, renumber_people
 from sfm.plan import VideoPlan
+from sfm.register_check import static_times
 from sfm.subject.model import SubjectVideo
 from sfm.subject.people import associate_people
-from sfm.video import probe_video
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -86,9 +84,7 @@ def people_on_cameras(cameras_path: Path, tracks: Tracks, videos: list[Path], ou
     for video in cameras.videos:
         if video.name not in people or not video.frames:
             continue
-        times = np.array([f.time if f.time is not None else np.nan for f in video.frames], dtype=float)
-        every = [f.frame for f in video.frames] == list(range(len(video.frames))) and np.isfinite(times).all()
-        own = times if every else probe_video(paths[video.name]).times
+        own = static_times(video, paths.get(video.name))
         inputs.append(SubjectVideo(name=video.name, width=video.width, height=video.height, times=own))
     maps = associate_people(tracks, inputs).maps if len(inputs) >= 2 else {}
     if not any(maps.values()):
