@@ -8,15 +8,12 @@ map for each such video are refused (`check_people_mapped`): their names would j
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from dynrecon.errors import InputError
 from sfm.cameras import CameraSet
+from tracking.people import PERSON, person_point
 from tracking.tracks import Tracks
-
-PERSON = re.compile(r"^person(\d+)_(.+)$")
 
 
 def per_video_people(tracks: Tracks) -> dict[str, list[int]] | None:
@@ -54,7 +51,7 @@ def renumber_people(tracks: Tracks, maps: dict[str, dict[int, int]]) -> Tracks:
         if new is None:
             keep[i] = False
         else:
-            point[i] = f"person{new}_{match.group(2)}"
+            point[i] = person_point(new, match.group(2))
     index = np.flatnonzero(keep)
     out = tracks.take(index)
     out.point = [point[i] for i in index]

@@ -18,7 +18,7 @@ import numpy as np
 from dynrecon.errors import InputError
 from dynrecon.readers import parse_frame
 from tracking.detections import Detection
-from tracking.people import link_people
+from tracking.people import link_people, person_point
 
 log = logging.getLogger(__name__)
 
@@ -127,12 +127,12 @@ def read_openpose(path: Path, video: str, person: int = 0, every_person: bool = 
         for pose, identity in zip(poses, ids, strict=True):
             if not every_person and identity != person:
                 continue
-            prefix = f"person{identity}_" if every_person else ""
             for k, name in enumerate(names):
                 x, y, c = (float(v) for v in pose[k])
                 if c > 0.0:
+                    point = person_point(identity, name) if every_person else name
                     detections.append(
-                        Detection(video=video, frame=frame, point=prefix + name, x=x, y=y, score=c, where=file.name)
+                        Detection(video=video, frame=frame, point=point, x=x, y=y, score=c, where=file.name)
                     )
     return detections
 

@@ -8,14 +8,22 @@ size; a pose that moved further than a person can between those frames starts a 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
 
+PERSON = re.compile(r"^person(\d+)_(.+)$")  # a keypoint of person N, as `person_point` names it
 MAX_STEP = 0.25  # median keypoint displacement per frame, as a fraction of the body's size, that still links a pose
 MAX_JUMP = 1.0  # ... and the most over any gap (a body's size)
 MAX_GAP = 30  # frames an identity may go unseen and still be linked
 MIN_SIZE_PX = 20.0  # body size floor: a pose of one or two keypoints has no extent
+
+
+def person_point(person: int, keypoint: str) -> str:
+    """The point name of `keypoint` of person `person` (`import-tracks --person all`; as DeepLabCut prefixes its
+    individuals' names)."""
+    return f"person{person}_{keypoint}"
 
 
 @dataclass(kw_only=True)

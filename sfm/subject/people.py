@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from sfm.people import PERSON
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
 from sfm.subject.pairs import PairFit, correspondences, fit_pair
+from tracking.people import PERSON
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
