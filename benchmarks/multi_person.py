@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.pose2sim_check import similarity_distances, triangulate
+from benchmarks.pose2sim_check import desynchronize, similarity_distances, triangulate
 from benchmarks.register_real import score, truth_cameras
 from dynrecon.cli import main as dynrecon
 from reconstruct.outputs.points import read_points
@@ -87,12 +87,6 @@ def stand_in_videos(work: Path) -> list[Path]:
     return paths
 
 
-def desynchronized(tracks: Tracks) -> Tracks:
-    """Camera k keeps frames k, k+4, k+8, ...: no two cameras share an instant."""
-    keep = np.array([int(f) % 4 == NAMES.index(v) for v, f in zip(tracks.video, tracks.frame, strict=True)], dtype=bool)
-    return tracks.take(np.flatnonzero(keep))
-
-
 def lab_reference(tracks: Tracks, cameras: list[Any]) -> dict[tuple[int, str], np.ndarray]:
     """(frame, point) -> the synchronized triangulation of the tracks seen by 3+ cameras with `cameras` (in NAMES
     order), where it reprojects within 30 px in every view."""
@@ -135,7 +129,8 @@ def run_case(case: str, work: Path, videos: list[Path]) -> dict[str, Any]:
     row["offset_frames"] = max(abs(o - offsets[NAMES[0]]) * 60 for o in offsets.values()) if offsets else None
     cameras = read_cameras(ws / "cameras.json")
     tracks = renumber_people(read_tracks(ws / "tracks.csv"), people_maps(cameras))
-    write_tracks(ws / "desynchronized.csv", desynchronized(read_tracks(ws / "tracks.csv")))
+    # camera k keeps frames k, k+4, k+8, ...: no two cameras share an instant
+    write_tracks(ws / "desynchronized.csv", desynchronize(cameras, read_tracks(ws / "tracks.csv"), 4, (0, 99))[1])
     started = time.perf_counter()
     inputs = ["--cameras", str(ws / "cameras.json"), "--tracks", str(ws / "desynchronized.csv")]
     dynrecon(["solve", *inputs, "--out", str(ws / "solve"), "--no-recording"])
