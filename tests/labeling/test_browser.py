@@ -130,7 +130,9 @@ def goto_frame(page, frame: int) -> None:
     page.fill("#frame", str(frame))
     page.press("#frame", "Enter")
     page.wait_for_function(
-        "f => window.dynreconLabel.state.frame === f && window.dynreconLabel.state.imgKey.endsWith('|' + f)", arg=frame
+        # imgKey stays null until the first image has loaded: a throwing predicate would end the wait.
+        "f => window.dynreconLabel.state.frame === f && (window.dynreconLabel.state.imgKey ?? '').endsWith('|' + f)",
+        arg=frame,
     )
 
 
