@@ -52,7 +52,15 @@ from dynrecon.demo import VIDEO_NAMES, VIDEO_SAMPLE, pipeline_options
 from dynrecon.pipeline import REGISTER_DIR, align_to_truth
 from reconstruct import stage as solve_stage
 from reconstruct.outputs.points import FramePoints, read_points
-from reconstruct.trust import TrustOptions, TrustPreset, flag_points, flag_rule, preset_options, video_ends
+from reconstruct.trust import (
+    TrustOptions,
+    TrustPreset,
+    flag_points,
+    flag_rule,
+    off_videos,
+    preset_options,
+    video_ends,
+)
 from sfm import calibration as import_calibration
 from sfm.cameras import read_cameras, write_cameras
 from tracking import stage as track_stage
@@ -94,12 +102,17 @@ def score(scored: Scored, options: TrustOptions) -> dict[str, Any]:
     flag, limits = flag_points(
         options, scored.reconstructed, {**scored.points.extra, "video_end": end, "observed": scored.points.observed}
     )
+    names, video_index = np.unique(scored.points.videos, return_inverse=True)
+    off = off_videos(options, scored.reconstructed, scored.points.extra["residual_px"], video_index)
+    for v in off:
+        flag |= scored.reconstructed & (video_index == v)[:, None]
     known = scored.reconstructed & np.isfinite(scored.error)
     error, flagged = scored.error[known], flag[known]
     counts: dict[str, Any] = {
         "points": int(known.sum()),
         "flagged": int(flagged.sum()),
         "limits": {k: round(v, 3) for k, v in limits.items()},
+        "off_videos": [str(names[v]) for v in off],
     }
     for limit in LARGE_MM:
         large = error > limit
@@ -328,7 +341,11 @@ def main(argv: list[str] | None = None) -> int:
         recall30 = f"{c['caught30'] / c['large30']:.2f}" if c["large30"] else "undefined (no error over 30 mm)"
         recall10 = f"{c['caught10'] / c['large10']:.2f}" if c["large10"] else "undefined"
         share = 100 * c["flagged"] / max(c["points"], 1)
-        print(f"{name}: default flags {share:.1f} %, recall > 30 mm {recall30}, recall > 10 mm {recall10}")
+        off = ", ".join(c["off_videos"]) or "none"
+        print(
+            f"{name}: default flags {share:.1f} %, recall > 30 mm {recall30}, recall > 10 mm {recall10}, "
+            f"videos flagged whole: {off}"
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0

@@ -81,6 +81,9 @@ class TrustOptions:
     mostly from neighbours that miss it too, i.e. extrapolated (an observed point is held by its ray).
     end_step_relative: ... or, at a video's first or last frame, the point moves to its neighbouring frame by more
     than this x the median step_px (0: not used): W extrapolates a fast point at the capture's ends.
+    video_relative: ... or its video's median residual_px exceeds max(`residual_px`, this x the median of the other
+    videos' medians), with 3 videos or more (0: not used; `off_videos`): a whole video that the others' shapes do
+    not explain follows another subject, or its camera or clock is wrong, and every point of it is suspect.
     """
 
     residual_px: float = 5.0
@@ -94,6 +97,7 @@ class TrustOptions:
     sequence_relative: float = 0.0
     min_support: float = 0.0
     end_step_relative: float = 0.0
+    video_relative: float = 3.0
 
 
 class TrustPreset(enum.Enum):
@@ -141,6 +145,8 @@ class Trust:
     reconstructed: np.ndarray  # (F, P) bool
     video_names: list[str] = field(default_factory=list)  # (N,) for the per-video counts of the summary
     video_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (F,)
+    # video name -> its median residual_px and the limit it broke (`off_videos`); all its points are flagged
+    off_videos: dict[str, dict[str, float]] = field(default_factory=dict)
     options: TrustOptions = field(default_factory=TrustOptions)
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -214,6 +220,7 @@ class Trust:
             "reconstructed": total,
             "flagged_share": flagged / total if total else None,
             "per_video": per_video,
+            "off_videos": self.off_videos,
             "rule": flag_rule(self.options),
             "limits": {k: finite_or_none(v) for k, v in self.limits.items()},
             "options": asdict(self.options),
@@ -240,12 +247,18 @@ def flag_rule(options: TrustOptions) -> str:
         )
         + (f" or component < {options.min_component}" if options.min_component > 0 else "")
         + (
+            f" or its video's median residual_px > max({options.residual_px:g}, {options.video_relative:g} x the "
+            "other videos' median) (3+ videos)"
+            if options.video_relative > 0
+            else ""
+        )
+        + (
             f" or smoothness_px > max({options.smoothness_px:g}, {options.smoothness_relative:g} x median "
             "smoothness_px)"
             if options.smoothness_px > 0
             else ""
         )
-        + "; medians over the solve's reconstructed points"
+        + "; medians over the solve's observed points"
     )
 
 
@@ -480,6 +493,17 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "video_end": end,
         },
     )
+    off = off_videos(options, reconstructed, residual_px, problem.video_index)
+    for v, (median, limit) in off.items():
+        flag |= reconstructed & (problem.video_index == v)[:, None]
+        log.warning(
+            "trust: %s: its points miss the shapes the other videos see by %.1f px (median residual), over %.1f px: "
+            "its tracks may follow another subject (import-tracks --person), or its camera or clock is wrong; "
+            "every point of it is flagged",
+            problem.video_names[v],
+            median,
+            limit,
+        )
     log.info(
         "trust: %d of %d reconstructed points flagged (%s)",
         int(flag.sum()),
@@ -507,6 +531,10 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         reconstructed=reconstructed,
         video_names=list(problem.video_names),
         video_index=problem.video_index.copy(),
+        off_videos={
+            problem.video_names[v]: {"median_residual_px": float(m), "limit_px": float(lim)}
+            for v, (m, lim) in off.items()
+        },
         options=options,
     )
 
@@ -578,12 +606,17 @@ def flag_points(
     smoothness_px, support, step_px), `observed` and `video_end` (bool, `video_ends`), each of the shape of
     `reconstructed`; so
     the rule can be re-run on a written points3d.csv (benchmarks/trust_real.py). Every limit is the larger of a
-    floor and a multiple of the measure's median over the solve: the median is the capture's own noise level."""
+    floor and a multiple of the measure's median over the solve's observed points (all reconstructed points where
+    none is): the median is the capture's own noise level, which lives in the observations (unobserved points
+    follow their neighbours; where they are most of a solve, their median would set the limit below the noise)."""
     residual_px, bound_px = measures["residual_px"], measures["bound_px"]
     jump, component, smoothness_px = measures["sequence_jump"], measures["component"], measures["smoothness_px"]
 
+    observed = reconstructed & measures["observed"].astype(bool)
+    scale = observed if observed.any() else reconstructed
+
     def median(values: np.ndarray) -> float:
-        known = reconstructed & np.isfinite(values)
+        known = scale & np.isfinite(values)
         return float(np.median(values[known])) if known.any() else 0.0
 
     limits = {
@@ -608,3 +641,29 @@ def flag_points(
         limits["step_px"] = options.end_step_relative * median(step_px)
         flag |= reconstructed & measures["video_end"] & (np.nan_to_num(step_px) > limits["step_px"])
     return flag, limits
+
+
+def off_videos(
+    options: TrustOptions, reconstructed: np.ndarray, residual_px: np.ndarray, video_index: np.ndarray
+) -> dict[int, tuple[float, float]]:
+    """Videos whose points the other videos' shapes do not explain: video index -> (its median residual_px, the
+    limit it exceeds), the limit being max(`options.residual_px`, `options.video_relative` x the median of the other
+    videos' medians). Needs 3 videos with reconstructed points (with 2, neither can be told to be the odd one).
+
+    reconstructed, residual_px: (F, P); video_index: (F,)."""
+    if options.video_relative <= 0:
+        return {}
+    medians = {}
+    for v in np.unique(video_index):
+        known = reconstructed[video_index == v] & np.isfinite(residual_px[video_index == v])
+        if known.any():
+            medians[int(v)] = float(np.median(residual_px[video_index == v][known]))
+    if len(medians) < 3:
+        return {}
+    out = {}
+    for v, median in medians.items():
+        others = float(np.median([m for u, m in medians.items() if u != v]))
+        limit = max(options.residual_px, options.video_relative * others)
+        if median > limit:
+            out[v] = (median, limit)
+    return out

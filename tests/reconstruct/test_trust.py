@@ -4,8 +4,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from synthetic_motion import synthetic_problem, truth_array
+from synthetic_motion import smooth_motion, synthetic_problem, truth_array
 
+from reconstruct.inputs import build_problem
 from reconstruct.solver.alternation import solve
 from reconstruct.solver.rays import viewing_rays
 from reconstruct.trust import (
@@ -15,6 +16,7 @@ from reconstruct.trust import (
     flag_points,
     neighbourhood_condition,
     neighbourhoods,
+    off_videos,
     preset_options,
     sequence_jump,
     trust_measures,
@@ -379,3 +381,38 @@ def test_flag_points_is_scale_free_above_its_floors():
     flag, _ = flag_points(options, reconstructed, base)
     assert flag[3, 2] and not flag[5, 2] and flag[0, 4] and not flag[100, 4]
     assert not flag_points(preset_options(TrustPreset.BALANCED), reconstructed, base)[0][[3, 0], [2, 4]].any()
+
+
+@pytest.mark.parametrize("preset", list(TrustPreset))
+def test_a_video_whose_points_name_other_things_is_flagged_whole_and_reported(solved, preset, caplog):
+    from simulation.simulate import SimulationOptions, simulate_capture
+
+    assert trust_measures(*solved[:2], preset_options(preset)).off_videos == {}
+    # cam0's tracks name each point after the next one: another subject as far as the other videos can tell.
+    capture = simulate_capture(smooth_motion(120, 5, 3), 120.0, SimulationOptions(seed=3))
+    tracks = capture.tracks
+    names = tracks.point_names()
+    following = dict(zip(names, names[1:] + names[:1], strict=True))
+    tracks.point = [following[p] if v == "cam0" else p for v, p in zip(tracks.video, tracks.point, strict=True)]
+    problem = build_problem(capture.cameras, tracks, point_names=capture.truth.point_names)
+    trust = trust_measures(problem, solve(problem), preset_options(preset))
+    assert list(trust.off_videos) == ["cam0"]
+    assert trust.off_videos["cam0"]["median_residual_px"] > trust.off_videos["cam0"]["limit_px"]
+    own = problem.video_index == 0
+    assert trust.flag[own][trust.reconstructed[own]].all()
+    assert trust.flag[~own].mean() < 0.5
+    assert json.loads(json.dumps(trust.summary()))["off_videos"] == trust.off_videos
+    assert "cam0: its points miss the shapes the other videos see" in caplog.text
+
+
+def test_off_videos_needs_three_videos_and_follows_the_others_median():
+    options = TrustOptions()  # residual_px floor 5, video_relative 3
+    video_index = np.repeat([0, 1, 2], 10)
+    reconstructed = np.ones((30, 2), dtype=bool)
+    residual_px = np.repeat([[6.0], [7.0], [40.0]], 10, axis=0) * np.ones((1, 2))
+    assert off_videos(options, reconstructed, residual_px, video_index) == {2: (40.0, pytest.approx(19.5))}
+    # two videos: neither can be told to be the odd one
+    assert off_videos(options, reconstructed[:20], residual_px[:20], video_index[:20]) == {}
+    # under the floor: clean solves do not flag their round-off
+    assert off_videos(options, reconstructed, residual_px / 10, video_index) == {}
+    assert off_videos(replace(options, video_relative=0.0), reconstructed, residual_px, video_index) == {}
