@@ -103,7 +103,8 @@ def score(scored: Scored, options: TrustOptions) -> dict[str, Any]:
         options, scored.reconstructed, {**scored.points.extra, "video_end": end, "observed": scored.points.observed}
     )
     names, video_index = np.unique(scored.points.videos, return_inverse=True)
-    off = off_videos(options, scored.reconstructed, scored.points.extra["residual_px"], video_index)
+    observed = scored.reconstructed & scored.points.observed.astype(bool)
+    off = off_videos(options, observed, scored.points.extra["residual_px"], video_index)
     for v in off:
         flag |= scored.reconstructed & (video_index == v)[:, None]
     known = scored.reconstructed & np.isfinite(scored.error)

@@ -493,7 +493,8 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "video_end": end,
         },
     )
-    off = off_videos(options, reconstructed, residual_px, problem.video_index)
+    # judged on observed points, as the rule's medians are; all the video's points are flagged
+    off = off_videos(options, reconstructed & problem.observed, residual_px, problem.video_index)
     for v, (median, limit) in off.items():
         flag |= reconstructed & (problem.video_index == v)[:, None]
         log.warning(
@@ -646,9 +647,10 @@ def flag_points(
 def off_videos(
     options: TrustOptions, reconstructed: np.ndarray, residual_px: np.ndarray, video_index: np.ndarray
 ) -> dict[int, tuple[float, float]]:
-    """Videos whose points the other videos' shapes do not explain: video index -> (its median residual_px, the
-    limit it exceeds), the limit being max(`options.residual_px`, `options.video_relative` x the median of the other
-    videos' medians). Needs 3 videos with reconstructed points (with 2, neither can be told to be the odd one).
+    """Videos whose points the other videos' shapes do not explain: video index -> (its median residual_px over
+    `reconstructed`, the limit it exceeds), the limit being max(`options.residual_px`, `options.video_relative` x
+    the median of the other videos' medians). Needs 3 videos with points (with 2, neither can be told to be the odd
+    one).
 
     reconstructed, residual_px: (F, P); video_index: (F,)."""
     if options.video_relative <= 0:
