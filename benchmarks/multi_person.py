@@ -14,7 +14,10 @@ Cases (each a fresh workspace):
   seen most), then `register --subject always`;
 - `all`: `--person all` (every person, numbered per video), then `register --subject always`, which matches the
   people across the videos;
-- `-intrinsics` on either: with the lab's intrinsics (`--intrinsics Calib.qca.txt`).
+- `-intrinsics` on either: with the lab's intrinsics (`--intrinsics Calib.qca.txt`);
+- `dlc-all-intrinsics`: the same people as DeepLabCut multi-animal output: `all`'s linked people written per camera
+  as DLC's .h5 (`to_hdf(key="df_with_missing", format="table")`, individuals `animal1`, ... in a shuffled order per
+  camera), imported with `import-tracks --person all`, then as `all-intrinsics`.
 
 Per case: the cameras against the lab's calibration after a similarity (worst centre error in % of the camera
 spread, worst rotation error), register's time offsets (frames; the videos are synchronized), the people matched,
@@ -54,7 +57,7 @@ DATA = REPO / "tests" / "data" / "pose2sim_multi" / "openpose_people.jsonl"
 SHARED = REPO.parent / "shared"
 CALIBRATION = SHARED / "data" / "videos" / "pose2sim_demo" / "calibration" / "Calib.qca.txt"
 NAMES = [f"cam0{c}" for c in range(1, 5)]
-CASES = ("main", "main-intrinsics", "all", "all-intrinsics")
+CASES = ("main", "main-intrinsics", "all", "all-intrinsics", "dlc-all-intrinsics")
 MIN_SCORE = 0.3
 
 
@@ -65,6 +68,41 @@ def openpose_folders(work: Path) -> dict[str, Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"people": line["people"]}))
     return {name: work / "openpose" / f"{name}_json" for name in NAMES}
+
+
+def write_dlc_h5(tracks: Tracks, folder: Path) -> dict[str, Path]:
+    """Each camera's people (person<N>_<keypoint>) as a DeepLabCut multi-animal .h5, written as DLC writes it;
+    individuals animal1, animal2, ... in a shuffled order per camera. Video -> its file."""
+    import pandas as pd
+
+    from tracking.people import PERSON
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(7)
+    out = {}
+    for name in NAMES:
+        rows = [i for i, v in enumerate(tracks.video) if v == name]
+        people = sorted({int(PERSON.match(tracks.point[i]).group(1)) for i in rows})  # type: ignore[union-attr]
+        keypoints = sorted({PERSON.match(tracks.point[i]).group(2) for i in rows})  # type: ignore[union-attr]
+        animal = {p: f"animal{k + 1}" for k, p in enumerate(rng.permutation(people))}
+        columns = [(a, k, c) for a in sorted(animal.values()) for k in keypoints for c in ("x", "y", "likelihood")]
+        frames = int(tracks.frame.max()) + 1
+        table = np.full((frames, len(columns)), np.nan)
+        where = {key: j for j, key in enumerate(columns)}
+        for i in rows:
+            person, keypoint = PERSON.match(tracks.point[i]).groups()  # type: ignore[union-attr]
+            a = animal[int(person)]
+            table[tracks.frame[i], where[a, keypoint, "x"]] = tracks.xy[i, 0]
+            table[tracks.frame[i], where[a, keypoint, "y"]] = tracks.xy[i, 1]
+            table[tracks.frame[i], where[a, keypoint, "likelihood"]] = float(tracks.extra["score"][i] or "nan")
+        index = pd.MultiIndex.from_tuples(
+            [("DLC_dlcrnetms5_demoJan1shuffle1_1000", *c) for c in columns],
+            names=["scorer", "individuals", "bodyparts", "coords"],
+        )
+        path = folder / f"{name}DLC_dlcrnetms5_demoJan1shuffle1_1000_el.h5"
+        pd.DataFrame(table, columns=index).to_hdf(path, key="df_with_missing", format="table", mode="w")
+        out[name] = path
+    return out
 
 
 def stand_in_videos(work: Path) -> list[Path]:
@@ -110,9 +148,14 @@ def run_case(case: str, work: Path, videos: list[Path]) -> dict[str, Any]:
     for stale in ("cameras.json", "register_report.json", "tracks.csv"):
         (ws / stale).unlink(missing_ok=True)
     folders = openpose_folders(work)
-    every = case.startswith("all")
+    every = case.startswith(("all", "dlc"))
     for name, folder in folders.items():
         run_import([folder], ws / "tracks.csv", ImportOptions(video=name, min_score=MIN_SCORE, every_person=every))
+    if case.startswith("dlc"):
+        files = write_dlc_h5(read_tracks(ws / "tracks.csv"), ws / "dlc")
+        (ws / "tracks.csv").unlink()
+        for name, path in files.items():
+            run_import([path], ws / "tracks.csv", ImportOptions(video=name, every_person=True))
     args = ["--subject", "always"] + (["--intrinsics", str(CALIBRATION)] if "intrinsics" in case else [])
     started = time.perf_counter()
     code = dynrecon(["register", *(str(v) for v in videos), "--out", str(ws), *args])

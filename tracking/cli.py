@@ -105,7 +105,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         nargs="+",
         metavar="INPUT",
-        help="DLC .csv, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
+        help="DLC .csv or .h5, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
     )
     parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument(
@@ -122,10 +122,10 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--person",
-        default="0",
         metavar="N|all",
-        help="OpenPose with several people: people are linked through the frames and numbered by how much they are "
-        "seen; import person N (default 0, the one seen most) or all (points person<N>_<keypoint>)",
+        help="OpenPose with several people (linked through the frames) or DeepLabCut's individuals, numbered by how "
+        "much they are seen: import person N (OpenPose's default 0, the one seen most; DeepLabCut's default: every "
+        "individual under its own name) or all (points person<N>_<keypoint>, matched across videos by register)",
     )
     parser.add_argument(
         "--board",
@@ -141,8 +141,8 @@ def _run_import(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from tracking.importing import Format, ImportOptions, parse_mapping, run_import
 
-    every_person = args.person.strip().lower() == "all"
-    if not every_person and not (args.person.strip().isdigit() and args.person.strip().isascii()):
+    every_person = args.person is not None and args.person.strip().lower() == "all"
+    if args.person is not None and not every_person and not (args.person.strip().isdigit() and args.person.isascii()):
         raise InputError(None, f"--person {args.person}: expected a number 0, 1, ... or all")
     if args.video is not None and len(args.inputs) > 1:
         raise InputError(
@@ -156,7 +156,7 @@ def _run_import(args: argparse.Namespace) -> int:
         mapping=parse_mapping(args.map),
         drop_unmapped=args.drop_unmapped,
         min_score=args.min_score,
-        person=0 if every_person else int(args.person),
+        person=None if every_person or args.person is None else int(args.person),
         every_person=every_person,
         board=args.board,
     )

@@ -1,23 +1,50 @@
-"""DeepLabCut CSV (as written by DLC, or exported from its .h5 with pandas `to_csv`).
+"""DeepLabCut output: its CSV (as written by DLC, or exported with pandas `to_csv`) and its .h5 (DLC's default
+output: a pandas table under the key `df_with_missing`, or `tracks` for stitched multi-animal tracklets).
 
-Header rows: `scorer`, optionally `individuals` (multi-animal), `bodyparts`, `coords` (`x, y, likelihood`, or
-only `x, y` in labeled-data files). The leading index column(s) hold the frame number, or an image path whose
-last number is the frame (`labeled-data/cam01/img0012.png`). Empty or NaN cells are missing detections.
+Header (CSV rows, or the .h5 columns' levels): `scorer`, optionally `individuals` (multi-animal), `bodyparts`,
+`coords` (`x, y, likelihood`, or only `x, y` in labeled-data files). The index holds the frame number, or an image
+path whose last number is the frame (`labeled-data/cam01/img0012.png`). Empty or NaN cells are missing detections.
+
+Multi-animal files name each point `<individual>_<bodypart>` (the `single` individual's unique bodyparts keep their
+bare names). DLC's identities hold within a video, not across separately analysed videos (unless the model was
+trained to tell the animals apart): `person` / `every_person` number the individuals by how much they are seen, as
+OpenPose's people are (`tracking.people.person_point`), so that `register` can match them across the videos.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from dynrecon.errors import InputError
 from dynrecon.readers import csv_records, parse_frame, shown
 from tracking.detections import Detection
+from tracking.people import person_point
+
+log = logging.getLogger(__name__)
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
+H5_SUFFIXES = (".h5", ".hdf5")
+H5_KEYS = ("df_with_missing", "tracks")  # DLC's keys: video analysis, stitched multi-animal tracklets
+SINGLE = "single"  # DLC's individual for the unique bodyparts of a multi-animal project
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
 _NUMBER = re.compile(r"[+-]?[\d.eE+-]+")
+_FIX = "expected DeepLabCut header rows scorer, [individuals,] bodyparts, coords"
+
+
+@dataclass(kw_only=True)
+class _Table:
+    """A DLC file read: per point (individual, bodypart) its coordinate columns of `values`."""
+
+    columns: dict[tuple[str, str], dict[str, int]]  # (individual or "", bodypart) -> coordinate -> column
+    frames: np.ndarray  # (R,) frame of each row
+    values: np.ndarray  # (R, C) floats, NaN = empty
+    where: list[str]  # (R,) "line N" / "row N", for messages
 
 
 def video_name_from_dlc(path: Path) -> str:
@@ -27,7 +54,118 @@ def video_name_from_dlc(path: Path) -> str:
     return stem[:index] if index > 0 else stem
 
 
-def read_dlc(path: Path, video: str) -> list[Detection]:
+def read_dlc(path: Path, video: str, person: int | None = None, every_person: bool = False) -> list[Detection]:
+    """The detections of a DLC CSV or .h5 file. Multi-animal: `person` N keeps the individual seen N-th most (bare
+    bodypart names), `every_person` names every individual's points person<N>_<bodypart>; neither keeps DLC's
+    names, `<individual>_<bodypart>`."""
+    table = _read_h5(path) if path.suffix.lower() in H5_SUFFIXES else _read_csv(path)
+    names = _point_names(path, table, person, every_person)
+    detections: list[Detection] = []
+    for key, cols in table.columns.items():
+        name = names.get(key)
+        if name is None:
+            continue
+        x, y = table.values[:, cols["x"]], table.values[:, cols["y"]]
+        likelihood = table.values[:, cols["likelihood"]] if "likelihood" in cols else None
+        for r in np.flatnonzero(np.isfinite(x) & np.isfinite(y)):
+            score = None if likelihood is None or math.isnan(likelihood[r]) else float(likelihood[r])
+            detections.append(
+                Detection(
+                    video=video,
+                    frame=int(table.frames[r]),
+                    point=name,
+                    x=float(x[r]),
+                    y=float(y[r]),
+                    score=score,
+                    where=f"{path.name}:{table.where[r]}",
+                )
+            )
+    return detections
+
+
+def _point_names(
+    path: Path, table: _Table, person: int | None, every_person: bool
+) -> dict[tuple[str, str], str | None]:
+    """(individual, bodypart) -> the point name it is imported as (None: left out)."""
+    individuals = list(dict.fromkeys(i for i, _ in table.columns if i))
+    if person is None and not every_person:
+        if len(individuals) > 1:
+            log.warning(
+                "%s: %d individuals (%s): each name is taken as the same animal in every video; where DeepLabCut "
+                "did not learn to tell them apart, --person all lets register match them across the videos from "
+                "their motion",
+                path.name,
+                len(individuals),
+                ", ".join(individuals),
+            )
+        return {(i, part): f"{i}_{part}" if i else part for i, part in table.columns}
+    if not individuals:
+        raise InputError(
+            path,
+            "--person applies to multi-animal files, and this one has no individuals row",
+            fix="leave --person out",
+        )
+    seen = {i: 0 for i in individuals}
+    for (i, _), cols in table.columns.items():
+        if i:
+            seen[i] += int(np.isfinite(table.values[:, cols["x"]]).sum())
+    ranked = sorted(individuals, key=lambda i: -seen[i])  # stable: ties keep the file's order
+    number = {i: n for n, i in enumerate(ranked)}
+    log.info(
+        "%s: individuals by how much they are seen: %s",
+        path.name,
+        ", ".join(f"{n} = {i} ({seen[i]} detections)" for n, i in enumerate(ranked)),
+    )
+    if not every_person and person is not None and person >= len(ranked):
+        raise InputError(
+            path,
+            f"--person {person}, but the file has {len(ranked)} individuals ({', '.join(individuals)})",
+            fix=f"give a number below {len(ranked)}, or --person all",
+        )
+    names: dict[tuple[str, str], str | None] = {}
+    for i, part in table.columns:
+        if not i:  # the `single` individual's unique bodyparts: one per scene
+            names[i, part] = part
+        elif every_person:
+            names[i, part] = person_point(number[i], part)
+        else:
+            names[i, part] = part if number[i] == person else None
+    return names
+
+
+def _columns(path: Path, header: dict[str, list[str]], first: int, where: str) -> dict[tuple[str, str], dict[str, int]]:
+    """(individual, bodypart) -> coordinate -> column, from the header's rows (`first`: the first data column)."""
+    for name in ("bodyparts", "coords"):
+        if name not in header:
+            raise InputError(path, f"no '{name}' header row", where=where, fix=_FIX)
+    coords, parts, individuals = header["coords"], header["bodyparts"], header.get("individuals")
+    columns: dict[tuple[str, str], dict[str, int]] = {}
+    for col in range(first, len(coords)):
+        coord = coords[col]
+        if coord not in ("x", "y", "likelihood"):
+            raise InputError(
+                path,
+                f"column {col + 1} of the coords row is {coord!r}",
+                where=where,
+                fix="coordinates must be x, y or likelihood",
+            )
+        part = parts[col] if col < len(parts) else ""
+        if not part:
+            raise InputError(path, f"column {col + 1} has no bodypart name", where="bodyparts row", fix=_FIX)
+        individual = individuals[col] if individuals is not None and col < len(individuals) else ""
+        key = ("" if individual == SINGLE else individual, part)
+        if coord in columns.setdefault(key, {}):
+            point = f"{individual}_{part}" if key[0] else part
+            raise InputError(path, f"two {coord!r} columns for point {point!r}", where=f"column {col + 1}")
+        columns[key][coord] = col
+    for (individual, part), cols in columns.items():
+        if "x" not in cols or "y" not in cols:
+            point = f"{individual}_{part}" if individual else part
+            raise InputError(path, f"point {point!r} lacks an x or y column", where="coords row", fix=_FIX)
+    return columns
+
+
+def _read_csv(path: Path) -> _Table:
     # Records never span lines (csv_records refuses that), so list index + 1 is the file line.
     rows = [row for _, row in csv_records(path)]
     header: dict[str, list[str]] = {}
@@ -35,86 +173,102 @@ def read_dlc(path: Path, video: str) -> list[Detection]:
     while line < len(rows) and rows[line] and rows[line][0].strip().lower() in HEADER_NAMES:
         header[rows[line][0].strip().lower()] = [c.strip() for c in rows[line]]
         line += 1
-    fix = "expected DeepLabCut header rows scorer, [individuals,] bodyparts, coords"
-    for name in ("bodyparts", "coords"):
-        if name not in header:
-            raise InputError(path, f"no '{name}' header row", where=f"line {line + 1}", fix=fix)
-    coords = header["coords"]
-    parts = header["bodyparts"]
-    individuals = header.get("individuals")
+    coords = header.get("coords", [])
     # Leading index columns have no coordinate name (DLC writes 1 to 3 of them).
     first = next((i for i, c in enumerate(coords) if i > 0 and c in ("x", "y", "likelihood")), None)
+    for name in ("bodyparts", "coords"):
+        if name not in header:
+            raise InputError(path, f"no '{name}' header row", where=f"line {line + 1}", fix=_FIX)
     if first is None:
-        raise InputError(path, "the coords row names no x/y columns", where=f"line {line}", fix=fix)
-    columns: dict[str, dict[str, int]] = {}  # point -> coordinate -> column
-    for col in range(first, len(coords)):
-        coord = coords[col]
-        if coord not in ("x", "y", "likelihood"):
-            raise InputError(
-                path,
-                f"column {col + 1} of the coords row is {coord!r}",
-                where=f"line {line}",
-                fix="coordinates must be x, y or likelihood",
-            )
-        part = parts[col] if col < len(parts) else ""
-        if not part:
-            raise InputError(path, f"column {col + 1} has no bodypart name", where="bodyparts row", fix=fix)
-        individual = individuals[col] if individuals is not None and col < len(individuals) else ""
-        point = f"{individual}_{part}" if individual and individual != "single" else part
-        if coord in columns.setdefault(point, {}):
-            raise InputError(path, f"two {coord!r} columns for point {point!r}", where=f"column {col + 1}")
-        columns[point][coord] = col
-    for point, cols in columns.items():
-        if "x" not in cols or "y" not in cols:
-            raise InputError(path, f"point {point!r} lacks an x or y column", where="coords row", fix=fix)
-    detections: list[Detection] = []
+        raise InputError(path, "the coords row names no x/y columns", where=f"line {line}", fix=_FIX)
+    columns = _columns(path, header, first, f"line {line}")
+    width = max(c for cols in columns.values() for c in cols.values()) + 1
+    frames, values, where = [], [], []
     for number, row in enumerate(rows[line:], start=line + 1):
         if not row or all(not c.strip() for c in row):
             continue
-        frame = _frame_of(path, number, row[:first])
-        for point, cols in columns.items():
-            x = _number(path, number, row, cols["x"])
-            y = _number(path, number, row, cols["y"])
-            likelihood = _number(path, number, row, cols["likelihood"]) if "likelihood" in cols else None
-            if x is None or y is None:
-                continue
-            detections.append(
-                Detection(
-                    video=video,
-                    frame=frame,
-                    point=point,
-                    x=x,
-                    y=y,
-                    score=likelihood,
-                    where=f"{path.name}:line {number}",
+        frames.append(_frame_of(path, f"line {number}", row[:first]))
+        values.append([_number(path, number, row, col) if col >= first else math.nan for col in range(width)])
+        where.append(f"line {number}")
+    return _Table(
+        columns=columns,
+        frames=np.array(frames, dtype=np.int64),
+        values=np.array(values, dtype=float).reshape(len(values), width),
+        where=where,
+    )
+
+
+def _read_h5(path: Path) -> _Table:
+    """DLC's .h5: a pandas table (PyTables), read with pandas."""
+    try:
+        import pandas as pd
+    except ImportError:
+        raise InputError(
+            path, "reading DeepLabCut .h5 needs pandas and tables", fix="pip install pandas tables, or import DLC's CSV"
+        ) from None
+    if not path.is_file():
+        raise InputError(path, "file not found" if not path.exists() else "not a file")
+    try:
+        with pd.HDFStore(path, mode="r") as store:
+            keys = [k.lstrip("/") for k in store.keys()]  # noqa: SIM118 (an HDFStore)
+            key = next((k for k in H5_KEYS if k in keys), keys[0] if len(keys) == 1 else None)
+            if key is None:
+                raise InputError(
+                    path,
+                    f"no DeepLabCut table in it (keys: {', '.join(keys) or 'none'})",
+                    fix=f"DeepLabCut writes its points under {' or '.join(H5_KEYS)}",
                 )
-            )
-    return detections
+            frame = store[key]
+    except InputError:
+        raise
+    except ImportError:
+        raise InputError(path, "reading DeepLabCut .h5 needs the tables package", fix="pip install tables") from None
+    except Exception as error:  # HDF5 and PyTables raise many types for a damaged or foreign file
+        raise InputError(
+            path, f"not a readable pandas HDF5 file ({type(error).__name__})", fix="give DeepLabCut's .h5 or its CSV"
+        ) from None
+    names = [str(n).lower() if n is not None else "" for n in getattr(frame.columns, "names", [])]
+    if not hasattr(frame, "columns") or "coords" not in names or "bodyparts" not in names:
+        raise InputError(path, f"table {key!r} has column levels {names}, not DeepLabCut's", fix=_FIX)
+    header = {name: ["", *(str(c[level]) for c in frame.columns)] for level, name in enumerate(names) if name}
+    columns = {k: {c: col - 1 for c, col in cols.items()} for k, cols in _columns(path, header, 1, key).items()}
+    try:
+        values = frame.to_numpy(dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(
+            path, f"table {key!r} holds values that are not numbers", fix="give DeepLabCut's .h5"
+        ) from None
+    where = [f"row {r + 1}" for r in range(len(frame))]
+    frames = []
+    for r, label in enumerate(frame.index):
+        cells = [str(c) for c in label] if isinstance(label, tuple) else [str(label)]
+        frames.append(_frame_of(path, where[r], cells))
+    return _Table(columns=columns, frames=np.array(frames, dtype=np.int64), values=values, where=where)
 
 
-def _frame_of(path: Path, number: int, index_cells: list[str]) -> int:
+def _frame_of(path: Path, where: str, index_cells: list[str]) -> int:
     text = " ".join(c.strip() for c in index_cells if c.strip())
     if _NUMBER.fullmatch(text):  # an index, not an image name: -7 or 2.0 are refused, not read as 7 or 0
-        return parse_frame(text, path, f"line {number}")
+        return parse_frame(text, path, where)
     match = _LAST_NUMBER.search(text)
     if match is None:
         raise InputError(
             path,
             f"cannot tell the frame number from {shown(text)}",
-            where=f"line {number}",
+            where=where,
             fix="the first column must be the frame index or an image name ending in a number",
         )
-    return parse_frame(match.group(1), path, f"line {number}")
+    return parse_frame(match.group(1), path, where)
 
 
-def _number(path: Path, number: int, row: list[str], col: int) -> float | None:
+def _number(path: Path, number: int, row: list[str], col: int) -> float:
     if col >= len(row):
         raise InputError(path, f"expected at least {col + 1} fields, found {len(row)}", where=f"line {number}")
     cell = row[col].strip()
     if not cell:
-        return None
+        return math.nan
     try:
         value = float(cell)
     except ValueError:
         raise InputError(path, f"{cell!r} in column {col + 1} is not a number", where=f"line {number}") from None
-    return value if math.isfinite(value) else None
+    return value if math.isfinite(value) else math.nan

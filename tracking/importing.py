@@ -1,7 +1,7 @@
 """`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
 threshold.
 
-Formats: DeepLabCut CSV, OpenPose JSON per frame, plain `video,frame,point,x,y[,score]` CSV, and videos of a
+Formats: DeepLabCut CSV and .h5, OpenPose JSON per frame, plain `video,frame,point,x,y[,score]` CSV, and videos of a
 ChArUco board (`--board charuco.toml`: its corners, see tracking/charuco.py). Imported rows
 get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
 videos and its manual labels (`source=label`) are kept; the labels win over imported rows on the same frame
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from dynrecon.errors import InputError
 from tracking.detections import Detection
-from tracking.import_dlc import read_dlc, video_name_from_dlc
+from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
 from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 
@@ -44,8 +44,10 @@ class ImportOptions:
     mapping: dict[str, str] = field(default_factory=dict)  # old point name -> new
     drop_unmapped: bool = False  # with a mapping, keep only the points it names
     min_score: float = 0.0  # detections with a lower confidence are left out
-    person: int = 0  # OpenPose: which person, linked through the frames (0 = the one seen most)
-    every_person: bool = False  # OpenPose: every person, points named person<N>_<keypoint>
+    # OpenPose people (linked through the frames) or DeepLabCut individuals, numbered by how much they are seen: which
+    # one to import (OpenPose: None = 0, the one seen most; DeepLabCut: None = every individual under DLC's names)
+    person: int | None = None
+    every_person: bool = False  # every person / individual, points named person<N>_<keypoint>
     board: Path | None = None  # ChArUco: caliscope's charuco.toml (or config.toml with a [charuco] table)
 
 
@@ -69,12 +71,8 @@ def detect_format(path: Path) -> Format:
         return Format.CHARUCO
     if path.is_dir() or path.suffix.lower() == ".json":
         return Format.OPENPOSE
-    if path.suffix.lower() in (".h5", ".hdf5"):
-        raise InputError(
-            path,
-            "DeepLabCut .h5 files are not read directly",
-            fix="export it with pandas: pd.read_hdf(p).to_csv('out.csv'), then import the CSV",
-        )
+    if path.suffix.lower() in H5_SUFFIXES:
+        return Format.DLC
     try:
         with path.open(encoding="utf-8") as handle:
             first = handle.readline()
@@ -92,17 +90,20 @@ def detect_format(path: Path) -> Format:
 
 def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[Detection]]:
     fmt = detect_format(path) if options.format is Format.AUTO else options.format
-    if fmt is not Format.OPENPOSE and (options.every_person or options.person):
+    if fmt not in (Format.OPENPOSE, Format.DLC) and (options.every_person or options.person is not None):
         raise InputError(
             path,
-            f"--person applies to OpenPose JSON, not to {fmt.value} input",
-            fix="leave --person out (DeepLabCut names its individuals in the points: <individual>_<bodypart>)",
+            f"--person applies to OpenPose JSON and DeepLabCut multi-animal files, not to {fmt.value} input",
+            fix="leave --person out",
         )
     if fmt is Format.DLC:
-        return fmt, read_dlc(path, options.video or video_name_from_dlc(path))
+        return fmt, read_dlc(path, options.video or video_name_from_dlc(path), options.person, options.every_person)
     if fmt is Format.OPENPOSE:
         return fmt, read_openpose(
-            path, options.video or video_name_from_openpose(path), options.person, options.every_person
+            path,
+            options.video or video_name_from_openpose(path),
+            0 if options.person is None else options.person,
+            options.every_person,
         )
     if fmt is Format.CHARUCO:
         return fmt, _read_charuco(path, options)
