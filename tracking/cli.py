@@ -105,7 +105,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         nargs="+",
         metavar="INPUT",
-        help="DLC .csv or .h5, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
+        help="DLC .csv or .h5, SLEAP analysis .h5, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
     )
     parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument(
@@ -123,9 +123,10 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--person",
         metavar="N|all",
-        help="OpenPose with several people (linked through the frames) or DeepLabCut's individuals, numbered by how "
-        "much they are seen: import person N (OpenPose's default 0, the one seen most; DeepLabCut's default: every "
-        "individual under its own name) or all (points person<N>_<keypoint>, matched across videos by register)",
+        help="OpenPose's people (linked through the frames), DeepLabCut's individuals or SLEAP's tracks, numbered "
+        "by how much they are seen: import person N (OpenPose's default 0, the one seen most; DeepLabCut's and "
+        "SLEAP's default: each under its own name) or all (points person<N>_<keypoint>, matched across videos by "
+        "register)",
     )
     parser.add_argument(
         "--board",

@@ -13,7 +13,6 @@ OpenPose's people are (`tracking.people.person_point`), so that `register` can m
 
 from __future__ import annotations
 
-import logging
 import math
 import re
 from dataclasses import dataclass
@@ -24,9 +23,7 @@ import numpy as np
 from dynrecon.errors import InputError
 from dynrecon.readers import csv_records, parse_frame, shown
 from tracking.detections import Detection
-from tracking.people import person_point
-
-log = logging.getLogger(__name__)
+from tracking.people import individual_names
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
 H5_SUFFIXES = (".h5", ".hdf5")
@@ -59,7 +56,10 @@ def read_dlc(path: Path, video: str, person: int | None = None, every_person: bo
     bodypart names), `every_person` names every individual's points person<N>_<bodypart>; neither keeps DLC's
     names, `<individual>_<bodypart>`."""
     table = _read_h5(path) if path.suffix.lower() in H5_SUFFIXES else _read_csv(path)
-    names = _point_names(path, table, person, every_person)
+    seen: dict[str, int] = {}
+    for (individual, _), cols in table.columns.items():
+        seen[individual] = seen.get(individual, 0) + int(np.isfinite(table.values[:, cols["x"]]).sum())
+    names = individual_names(path, list(table.columns), seen, person, every_person)
     detections: list[Detection] = []
     for key, cols in table.columns.items():
         name = names.get(key)
@@ -81,56 +81,6 @@ def read_dlc(path: Path, video: str, person: int | None = None, every_person: bo
                 )
             )
     return detections
-
-
-def _point_names(
-    path: Path, table: _Table, person: int | None, every_person: bool
-) -> dict[tuple[str, str], str | None]:
-    """(individual, bodypart) -> the point name it is imported as (None: left out)."""
-    individuals = list(dict.fromkeys(i for i, _ in table.columns if i))
-    if person is None and not every_person:
-        if len(individuals) > 1:
-            log.warning(
-                "%s: %d individuals (%s): each name is taken as the same animal in every video; where DeepLabCut "
-                "did not learn to tell them apart, --person all lets register match them across the videos from "
-                "their motion",
-                path.name,
-                len(individuals),
-                ", ".join(individuals),
-            )
-        return {(i, part): f"{i}_{part}" if i else part for i, part in table.columns}
-    if not individuals:
-        raise InputError(
-            path,
-            "--person applies to multi-animal files, and this one has no individuals row",
-            fix="leave --person out",
-        )
-    seen = {i: 0 for i in individuals}
-    for (i, _), cols in table.columns.items():
-        if i:
-            seen[i] += int(np.isfinite(table.values[:, cols["x"]]).sum())
-    ranked = sorted(individuals, key=lambda i: -seen[i])  # stable: ties keep the file's order
-    number = {i: n for n, i in enumerate(ranked)}
-    log.info(
-        "%s: individuals by how much they are seen: %s",
-        path.name,
-        ", ".join(f"{n} = {i} ({seen[i]} detections)" for n, i in enumerate(ranked)),
-    )
-    if not every_person and person is not None and person >= len(ranked):
-        raise InputError(
-            path,
-            f"--person {person}, but the file has {len(ranked)} individuals ({', '.join(individuals)})",
-            fix=f"give a number below {len(ranked)}, or --person all",
-        )
-    names: dict[tuple[str, str], str | None] = {}
-    for i, part in table.columns:
-        if not i:  # the `single` individual's unique bodyparts: one per scene
-            names[i, part] = part
-        elif every_person:
-            names[i, part] = person_point(number[i], part)
-        else:
-            names[i, part] = part if number[i] == person else None
-    return names
 
 
 def _columns(path: Path, header: dict[str, list[str]], first: int, where: str) -> dict[tuple[str, str], dict[str, int]]:

@@ -1,8 +1,9 @@
 """`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
 threshold.
 
-Formats: DeepLabCut CSV and .h5, OpenPose JSON per frame, plain `video,frame,point,x,y[,score]` CSV, and videos of a
-ChArUco board (`--board charuco.toml`: its corners, see tracking/charuco.py). Imported rows
+Formats: DeepLabCut CSV and .h5, SLEAP's analysis HDF5, OpenPose JSON per frame, plain
+`video,frame,point,x,y[,score]` CSV, and videos of a ChArUco board (`--board charuco.toml`: its corners, see
+tracking/charuco.py). Imported rows
 get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
 videos and its manual labels (`source=label`) are kept; the labels win over imported rows on the same frame
 and point.
@@ -19,6 +20,7 @@ from dynrecon.errors import InputError
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
+from tracking.import_sleap import EXPORT_FIX, is_sleap_analysis, read_sleap_analysis, video_name_from_sleap
 from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -29,6 +31,7 @@ SCORE_COLUMNS = ("score", "likelihood", "confidence")
 class Format(enum.Enum):
     AUTO = "auto"
     DLC = "dlc"
+    SLEAP = "sleap"  # SLEAP's analysis HDF5
     OPENPOSE = "openpose"
     CSV = "csv"
     CHARUCO = "charuco"  # the inputs are videos; corners of the board given by ImportOptions.board
@@ -71,8 +74,10 @@ def detect_format(path: Path) -> Format:
         return Format.CHARUCO
     if path.is_dir() or path.suffix.lower() == ".json":
         return Format.OPENPOSE
+    if path.suffix.lower() == ".slp":
+        raise InputError(path, "SLEAP project files (.slp) are not read", fix=EXPORT_FIX)
     if path.suffix.lower() in H5_SUFFIXES:
-        return Format.DLC
+        return Format.SLEAP if is_sleap_analysis(path) else Format.DLC
     try:
         with path.open(encoding="utf-8") as handle:
             first = handle.readline()
@@ -90,14 +95,18 @@ def detect_format(path: Path) -> Format:
 
 def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[Detection]]:
     fmt = detect_format(path) if options.format is Format.AUTO else options.format
-    if fmt not in (Format.OPENPOSE, Format.DLC) and (options.every_person or options.person is not None):
+    if fmt not in (Format.OPENPOSE, Format.DLC, Format.SLEAP) and (options.every_person or options.person is not None):
         raise InputError(
             path,
-            f"--person applies to OpenPose JSON and DeepLabCut multi-animal files, not to {fmt.value} input",
+            f"--person applies to OpenPose JSON, DeepLabCut and SLEAP files, not to {fmt.value} input",
             fix="leave --person out",
         )
     if fmt is Format.DLC:
         return fmt, read_dlc(path, options.video or video_name_from_dlc(path), options.person, options.every_person)
+    if fmt is Format.SLEAP:
+        return fmt, read_sleap_analysis(
+            path, options.video or video_name_from_sleap(path), options.person, options.every_person
+        )
     if fmt is Format.OPENPOSE:
         return fmt, read_openpose(
             path,

@@ -8,10 +8,16 @@ size; a pose that moved further than a person can between those frames starts a 
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from dynrecon.errors import InputError
+
+log = logging.getLogger(__name__)
 
 PERSON = re.compile(r"^person(\d+)_(.+)$")  # a keypoint of person N, as `person_point` names it
 MAX_STEP = 0.25  # median keypoint displacement per frame, as a fraction of the body's size, that still links a pose
@@ -24,6 +30,60 @@ def person_point(person: int, keypoint: str) -> str:
     """The point name of `keypoint` of person `person` (`import-tracks --person all`; as DeepLabCut prefixes its
     individuals' names)."""
     return f"person{person}_{keypoint}"
+
+
+def individual_names(
+    path: Path,
+    points: list[tuple[str, str]],
+    seen: dict[str, int],
+    person: int | None,
+    every_person: bool,
+    word: str = "individuals",
+) -> dict[tuple[str, str], str | None]:
+    """The point names of a tracker's named individuals (DeepLabCut's individuals, SLEAP's tracks), whose identities
+    hold within a video only: (individual or "" for a scene point, bodypart) -> the name it is imported as, None to
+    leave it out. The individuals are numbered by `seen` (detections; most first, ties in the file's order), as
+    OpenPose's people are: `person` N keeps individual N under the bare bodypart names, `every_person` names each
+    person<N>_<bodypart> (`person_point`), and neither keeps the tracker's names, <individual>_<bodypart>."""
+    individuals = list(dict.fromkeys(i for i, _ in points if i))
+    if person is None and not every_person:
+        if len(individuals) > 1:
+            log.warning(
+                "%s: %d %s (%s): each name is taken as the same animal in every video; where the tracker did not "
+                "learn to tell them apart, --person all lets register match them across the videos from their motion",
+                path.name,
+                len(individuals),
+                word,
+                ", ".join(individuals),
+            )
+        return {(i, part): f"{i}_{part}" if i else part for i, part in points}
+    if not individuals:
+        raise InputError(
+            path, f"--person applies to files with several {word}, and this one names none", fix="leave --person out"
+        )
+    ranked = sorted(individuals, key=lambda i: -seen.get(i, 0))  # stable: ties keep the file's order
+    number = {i: n for n, i in enumerate(ranked)}
+    log.info(
+        "%s: %s by how much they are seen: %s",
+        path.name,
+        word,
+        ", ".join(f"{n} = {i} ({seen.get(i, 0)} detections)" for n, i in enumerate(ranked)),
+    )
+    if not every_person and person is not None and person >= len(ranked):
+        raise InputError(
+            path,
+            f"--person {person}, but the file has {len(ranked)} {word} ({', '.join(individuals)})",
+            fix=f"give a number below {len(ranked)}, or --person all",
+        )
+    names: dict[tuple[str, str], str | None] = {}
+    for i, part in points:
+        if not i:  # a scene point (DLC's `single` unique bodyparts): one per video
+            names[i, part] = part
+        elif every_person:
+            names[i, part] = person_point(number[i], part)
+        else:
+            names[i, part] = part if number[i] == person else None
+    return names
 
 
 @dataclass(kw_only=True)

@@ -110,7 +110,7 @@ def test_person_numbers_individuals_by_how_much_they_are_seen(tmp_path: Path) ->
     with pytest.raises(InputError, match=r"--person 2, but the file has 2 individuals \(mouse1, mouse2\)"):
         run_import([h5], tmp_path / "c.csv", ImportOptions(video="cam1", person=2))
     single = write_h5(dlc_frame(None, ["nose"], np.ones((2, 3))), tmp_path / "one.h5")
-    with pytest.raises(InputError, match="--person applies to multi-animal files"):
+    with pytest.raises(InputError, match="--person applies to files with several individuals, and this one names none"):
         run_import([single], tmp_path / "d.csv", ImportOptions(every_person=True))
 
 

@@ -175,8 +175,6 @@ def test_person_option_on_the_command_line(tmp_path: Path, capsys: pytest.Captur
 def test_person_is_for_openpose_and_dlc_only(tmp_path: Path) -> None:
     plain = tmp_path / "plain.csv"
     plain.write_text("video,frame,point,x,y\ncam1,0,nose,1,2\n")
-    with pytest.raises(
-        InputError, match="--person applies to OpenPose JSON and DeepLabCut multi-animal files, not to csv"
-    ):
+    with pytest.raises(InputError, match="--person applies to OpenPose JSON, DeepLabCut and SLEAP files, not to csv"):
         run_import([plain], tmp_path / "out.csv", ImportOptions(every_person=True))
     assert len(read_tracks(run_import([plain], tmp_path / "out.csv", ImportOptions()))) == 1

@@ -1,0 +1,112 @@
+"""SLEAP's analysis HDF5, as written by sleap-io (tests/data/sleap), and SLEAP's older layouts."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from dynrecon.errors import InputError
+from tracking.import_sleap import video_name_from_sleap
+from tracking.importing import Format, ImportOptions, detect_format, run_import
+from tracking.tracks import read_tracks
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "sleap"
+
+
+def truth() -> dict[tuple[int, str, str], tuple[float, float, float]]:
+    with (DATA / "truth.csv").open() as handle:
+        return {
+            (int(r["frame"]), r["track"], r["node"]): (float(r["x"]), float(r["y"]), float(r["score"]))
+            for r in csv.DictReader(handle)
+        }
+
+
+def imported(path: Path, out: Path, **options) -> dict[tuple[int, str], tuple[float, float, float]]:
+    tracks = read_tracks(run_import([path], out, ImportOptions(**options)))
+    assert set(tracks.video) == {"cam1"}
+    assert set(tracks.extra["source"]) == {"sleap"}
+    return {
+        (int(tracks.frame[i]), tracks.point[i]): (
+            float(tracks.xy[i, 0]),
+            float(tracks.xy[i, 1]),
+            float(tracks.extra["score"][i]),
+        )
+        for i in range(len(tracks))
+    }
+
+
+def expected(names: dict[str, str]) -> dict[tuple[int, str], tuple[float, float, float]]:
+    """truth under point names track -> prefix ('' = bare node names; a track not in `names` is left out)."""
+    return {(f, f"{names[t]}_{n}" if names[t] else n): v for (f, t, n), v in truth().items() if t in names}
+
+
+@pytest.mark.parametrize("name", ["cam1.analysis.h5", "cam1.standard.analysis.h5"])
+def test_both_presets_import_every_point_with_its_score(tmp_path: Path, name: str, caplog) -> None:
+    path = DATA / name
+    assert detect_format(path) is Format.SLEAP
+    with caplog.at_level(logging.WARNING):
+        got = imported(path, tmp_path / "t.csv", video="cam1")
+    assert got == pytest.approx(expected({"mouseA": "mouseA", "mouseB": "mouseB"}), abs=1e-3)
+    assert "2 tracks (mouseA, mouseB)" in caplog.text and "--person all" in caplog.text
+
+
+def test_sleaps_own_layouts_without_dims(tmp_path: Path) -> None:
+    # SLEAP's export (before sleap-io's dims attribute): track, xy, node, frame
+    legacy = tmp_path / "cam1.analysis.h5"
+    shutil.copy(DATA / "cam1.analysis.h5", legacy)
+    with h5py.File(legacy, "r+") as f:
+        del f["tracks"].attrs["dims"]
+    reference = imported(DATA / "cam1.analysis.h5", tmp_path / "a.csv")
+    assert imported(legacy, tmp_path / "b.csv") == reference
+    # transpose=False: frame, node, xy, track
+    untransposed = tmp_path / "un" / "cam1.analysis.h5"
+    untransposed.parent.mkdir()
+    shutil.copy(DATA / "cam1.analysis.h5", untransposed)
+    with h5py.File(untransposed, "r+") as f:
+        tracks = f["tracks"][()]  # track, xy, node, frame
+        scores = f["point_scores"][()]  # track, node, frame
+        del f["tracks"], f["point_scores"]
+        f["tracks"] = np.transpose(tracks, (3, 2, 1, 0))
+        f["point_scores"] = np.transpose(scores, (2, 1, 0))
+        f.attrs["transpose"] = False
+    assert imported(untransposed, tmp_path / "c.csv") == reference
+
+
+def test_person_numbers_tracks_by_how_much_they_are_seen(tmp_path: Path) -> None:
+    path = DATA / "cam1.analysis.h5"  # mouseA: 35 points, mouseB: 27
+    every = imported(path, tmp_path / "a.csv", every_person=True)
+    assert every == pytest.approx(expected({"mouseA": "person0", "mouseB": "person1"}), abs=1e-3)
+    assert imported(path, tmp_path / "b.csv", person=1) == pytest.approx(expected({"mouseB": ""}), abs=1e-3)
+    with pytest.raises(InputError, match=r"--person 2, but the file has 2 tracks \(mouseA, mouseB\)"):
+        run_import([path], tmp_path / "c.csv", ImportOptions(person=2))
+
+
+def test_the_cli_and_video_names(tmp_path: Path) -> None:
+    out = tmp_path / "tracks.csv"
+    assert main(["import-tracks", str(DATA / "cam1.analysis.h5"), "--person", "all", "--out", str(out)]) == 0
+    assert {p.split("_")[0] for p in read_tracks(out).point} == {"person0", "person1"}
+    assert video_name_from_sleap(Path("labels.v001.predictions.analysis.h5")) == "labels.v001"
+    assert video_name_from_sleap(Path("cam2.slp.predictions.analysis.h5")) == "cam2"
+
+
+def test_slp_and_broken_files_give_one_line_errors(tmp_path: Path) -> None:
+    slp = tmp_path / "labels.predictions.slp"
+    slp.write_bytes(b"\x89HDF\r\n\x1a\n")
+    with pytest.raises(InputError, match=r"labels.predictions.slp: SLEAP project files \(.slp\) are not read \(export"):
+        run_import([slp], tmp_path / "o.csv", ImportOptions())
+    bad = tmp_path / "cam1.analysis.h5"
+    shutil.copy(DATA / "cam1.analysis.h5", bad)
+    with h5py.File(bad, "r+") as f:
+        del f["node_names"]
+        f["node_names"] = np.array([b"head", b"tail"])
+    with pytest.raises(InputError, match=r"'tracks' has 3 nodes but 'node_names' 2") as info:
+        run_import([bad], tmp_path / "o.csv", ImportOptions())
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "o.csv").exists()
