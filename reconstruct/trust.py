@@ -63,8 +63,8 @@ class TrustOptions:
 
     residual_px, bound_px, relative: a point is flagged when its residual in pixels, or that residual amplified by
     the condition (the paper's bound |l| <= |b| / sigma_min with the point's residual for |b|), exceeds the floor
-    (`residual_px`, `bound_px`) and `relative` times its median over the solve (the median follows the noise level
-    and frame rate: a scale-free limit).
+    (`residual_px`, `bound_px`) and `relative` times its median over the solve's observed points (the median
+    follows the noise level and frame rate: a scale-free limit).
     sequence_jump: ... or the local sequencing breaks by more than this many frame gaps (correct interpolation stays
     within a few; the paper's wrong-partner failure jumps by seconds).
     min_component: ... or the frame lies in a connected component of the W graph with fewer frames than this (0: not

@@ -177,8 +177,10 @@ def _read_h5(path: Path) -> _Table:
         raise InputError(
             path, f"not a readable pandas HDF5 file ({type(error).__name__})", fix="give DeepLabCut's .h5 or its CSV"
         ) from None
-    names = [str(n).lower() if n is not None else "" for n in getattr(frame.columns, "names", [])]
-    if not hasattr(frame, "columns") or "coords" not in names or "bodyparts" not in names:
+    if not isinstance(frame, pd.DataFrame):
+        raise InputError(path, f"{key!r} holds a {type(frame).__name__}, not DeepLabCut's table", fix=_FIX)
+    names = [str(n).lower() if n is not None else "" for n in frame.columns.names]
+    if "coords" not in names or "bodyparts" not in names:
         raise InputError(path, f"table {key!r} has column levels {names}, not DeepLabCut's", fix=_FIX)
     header = {name: ["", *(str(c[level]) for c in frame.columns)] for level, name in enumerate(names) if name}
     columns = {k: {c: col - 1 for c, col in cols.items()} for k, cols in _columns(path, header, 1, key).items()}

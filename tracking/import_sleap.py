@@ -4,7 +4,8 @@
 Datasets: `tracks` (x, y; NaN = missing), `node_names`, `track_names`, optionally `point_scores`. Axis order: the
 `dims` attribute of `tracks` where sleap-io wrote one (its `matlab` and `standard` presets), else SLEAP's own layout
 (`transpose` true or absent: track, xy, node, frame; false: frame, node, xy, track). The frame axis starts at the
-video's frame 0 (SLEAP's default `all_frames`). SLEAP's tracks, like DeepLabCut's individuals, hold within a video:
+video's frame 0 (SLEAP's default `all_frames`; an export without it starts at the first labelled frame and does
+not say which, so its frames would be shifted). SLEAP's tracks, like DeepLabCut's individuals, hold within a video:
 `person` / `every_person` as in `tracking.people.individual_names`.
 
 SLEAP's own project files (.slp) change layout with its versions and are not read: export the analysis HDF5.
@@ -13,8 +14,10 @@ SLEAP's own project files (.slp) change layout with its versions and are not rea
 from __future__ import annotations
 
 import json
+import logging
 import math
-from pathlib import Path
+import re
+from pathlib import Path, PureWindowsPath
 from typing import Any
 
 import numpy as np
@@ -26,6 +29,8 @@ from tracking.people import individual_names
 MATLAB = ("track", "xy", "node", "frame")  # SLEAP's analysis export
 LEGACY_UNTRANSPOSED = ("frame", "node", "xy", "track")
 CANONICAL = ("frame", "track", "node", "xy")
+log = logging.getLogger(__name__)
+_EXPORT_NAME = re.compile(r".+\.\d{3}_(.+)")  # SLEAP's default export name <labels>.<index>_<video>
 EXPORT_FIX = "export SLEAP's analysis HDF5: sleap-convert --format analysis FILE.slp (or File > Export Analysis HDF5)"
 
 
@@ -66,8 +71,10 @@ def read_sleap_analysis(
         raise InputError(path, f"'point_scores' is {scores.shape}, 'tracks' {tracks.shape}", fix=EXPORT_FIX)
     if names and len(names) != n_tracks:
         raise InputError(path, f"'tracks' has {n_tracks} tracks but 'track_names' {len(names)}", fix=EXPORT_FIX)
-    # an untracked single-animal export has one track and no name: its nodes keep their bare names
-    track_names = names if names and n_tracks > 1 else [""] * n_tracks if n_tracks == 1 else _numbered(n_tracks)
+    if n_tracks == 0:
+        log.warning("%s: no tracks in it: nothing to import", path.name)
+    # untracked instances (no track names): one slot keeps the bare node names, several are numbered
+    track_names = names if names else [""] if n_tracks == 1 else _numbered(n_tracks)
     if len(set(track_names)) != len(track_names):
         raise InputError(path, f"track names repeat: {', '.join(track_names)}", fix="name SLEAP's tracks uniquely")
     seen = {t: int(np.isfinite(tracks[:, k, :, 0]).sum()) for k, t in enumerate(track_names)}
@@ -97,13 +104,27 @@ def read_sleap_analysis(
 
 
 def video_name_from_sleap(path: Path) -> str:
-    """`cam01.predictions.analysis.h5` -> `cam01` (SLEAP's export names); other names -> the file stem."""
+    """The stem of the video the file was exported from (its `video_path` dataset, which SLEAP and sleap-io
+    write), else the file name without `.analysis.h5` (SLEAP names its exports
+    `<labels>.<index>_<video>.analysis.h5`: the video's stem follows the first `_`)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            source = _text(f["video_path"][()]) if "video_path" in f else ""
+    except (OSError, KeyError, ValueError, TypeError):
+        source = ""
+    if source.strip():
+        return PureWindowsPath(source).stem if "\\" in source else Path(source).stem
     name = path.name
     for suffix in (".analysis.h5", ".h5", ".hdf5"):
         if name.lower().endswith(suffix):
             name = name[: -len(suffix)]
             break
-    for suffix in (".predictions", ".slp"):
+    exported = _EXPORT_NAME.fullmatch(name)
+    if exported:
+        return exported.group(1)
+    for suffix in (".predictions", ".slp"):  # sleap-track writes <video>.predictions.slp
         if name.lower().endswith(suffix):
             name = name[: -len(suffix)]
     return name or path.stem

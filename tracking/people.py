@@ -56,11 +56,11 @@ def individual_names(
                 word,
                 ", ".join(individuals),
             )
-        return {(i, part): f"{i}_{part}" if i else part for i, part in points}
-    if not individuals:
-        raise InputError(
-            path, f"--person applies to files with several {word}, and this one names none", fix="leave --person out"
-        )
+        return _unique(path, {(i, part): f"{i}_{part}" if i else part for i, part in points})
+    if not individuals:  # one unnamed subject, as OpenPose's single person: person 0
+        if person not in (None, 0):
+            raise InputError(path, f"--person {person}, but the file names no {word}", fix="leave --person out")
+        return _unique(path, {(i, part): person_point(0, part) if every_person else part for i, part in points})
     ranked = sorted(individuals, key=lambda i: -seen.get(i, 0))  # stable: ties keep the file's order
     number = {i: n for n, i in enumerate(ranked)}
     log.info(
@@ -83,6 +83,21 @@ def individual_names(
             names[i, part] = person_point(number[i], part)
         else:
             names[i, part] = part if number[i] == person else None
+    return _unique(path, names)
+
+
+def _unique(path: Path, names: dict[tuple[str, str], str | None]) -> dict[tuple[str, str], str | None]:
+    """`names`, unless two points would be imported under one name (a scene point named as an animal's bodypart)."""
+    owner: dict[str, tuple[str, str]] = {}
+    for key, name in names.items():
+        if name is None:
+            continue
+        if name in owner:
+            first, second = (f"{i}_{part}" if i else part for i, part in (owner[name], key))
+            raise InputError(
+                path, f"{first} and {second} would both be imported as {name!r}", fix="rename one with --map first"
+            )
+        owner[name] = key
     return names
 
 

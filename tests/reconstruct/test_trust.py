@@ -416,3 +416,33 @@ def test_off_videos_needs_three_videos_and_follows_the_others_median():
     # under the floor: clean solves do not flag their round-off
     assert off_videos(options, reconstructed, residual_px / 10, video_index) == {}
     assert off_videos(replace(options, video_relative=0.0), reconstructed, residual_px, video_index) == {}
+
+
+def test_flag_points_takes_its_medians_over_observed_points():
+    # Unobserved points follow their neighbours (residual ~0): where they are most of a solve, a median over every
+    # point would set the limit under the observations' own noise and flag most observed points.
+    rng = np.random.default_rng(2)
+    shape = (300, 4)
+    observed = np.zeros(shape, dtype=bool)
+    observed[:100] = True
+    measures = {
+        "residual_px": np.where(observed, 3.0 + np.abs(rng.normal(size=shape)), 0.05),
+        "bound_px": np.ones(shape),
+        "sequence_jump": np.zeros(shape),
+        "component": np.full(shape, 300.0),
+        "smoothness_px": np.zeros(shape),
+        "support": np.ones(shape),
+        "observed": observed,
+        "step_px": np.ones(shape),
+        "video_end": np.zeros(shape, dtype=bool),
+    }
+    reconstructed = np.ones(shape, dtype=bool)
+    options = preset_options(TrustPreset.SENSITIVE)
+    flag, limits = flag_points(options, reconstructed, measures)
+    assert limits["residual_px"] == pytest.approx(2.5 * np.median(measures["residual_px"][observed]))
+    assert flag[observed].mean() < 0.05
+    # nothing observed: the median over every reconstructed point
+    nothing = {**measures, "observed": np.zeros(shape, dtype=bool)}
+    assert flag_points(options, reconstructed, nothing)[1]["residual_px"] == pytest.approx(
+        max(1.5, 2.5 * np.median(measures["residual_px"]))
+    )

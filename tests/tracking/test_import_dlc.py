@@ -109,9 +109,29 @@ def test_person_numbers_individuals_by_how_much_they_are_seen(tmp_path: Path) ->
     assert sum(p == "snout" for _, _, p in one) == 2  # mouse1's frames
     with pytest.raises(InputError, match=r"--person 2, but the file has 2 individuals \(mouse1, mouse2\)"):
         run_import([h5], tmp_path / "c.csv", ImportOptions(video="cam1", person=2))
+    # a single-animal file is one subject, as OpenPose's single person: person 0
     single = write_h5(dlc_frame(None, ["nose"], np.ones((2, 3))), tmp_path / "one.h5")
-    with pytest.raises(InputError, match="--person applies to files with several individuals, and this one names none"):
-        run_import([single], tmp_path / "d.csv", ImportOptions(every_person=True))
+    assert {p for _, _, p in rows(run_import([single], tmp_path / "d.csv", ImportOptions(person=0)))} == {"nose"}
+    every_one = rows(run_import([single], tmp_path / "e.csv", ImportOptions(every_person=True)))
+    assert {p for _, _, p in every_one} == {"person0_nose"}
+    with pytest.raises(InputError, match="--person 1, but the file names no individuals"):
+        run_import([single], tmp_path / "f.csv", ImportOptions(person=1))
+
+
+def test_names_that_would_collide_are_refused(tmp_path: Path) -> None:
+    # --person 0 names the most seen mouse's snout `snout`, as the scene's own `snout` (a unique bodypart) is named
+    tuples = [(SCORER, i, "snout", c) for i in ("mouse1", "mouse2", "single") for c in ("x", "y", "likelihood")]
+    names = ["scorer", "individuals", "bodyparts", "coords"]
+    frame = pd.DataFrame(np.ones((2, 9)), columns=pd.MultiIndex.from_tuples(tuples, names=names))
+    with pytest.raises(InputError, match=r"mouse1_snout and snout would both be imported as 'snout'"):
+        run_import([write_h5(frame, tmp_path / "cam1.h5")], tmp_path / "a.csv", ImportOptions(person=0))
+
+
+def test_a_series_is_not_a_dlc_table(tmp_path: Path) -> None:
+    path = tmp_path / "s.h5"
+    pd.Series([1.0, 2.0]).to_hdf(path, key="df_with_missing", format="table")
+    with pytest.raises(InputError, match="'df_with_missing' holds a Series, not DeepLabCut's table"):
+        run_import([path], tmp_path / "a.csv", ImportOptions())
 
 
 def test_the_cli_reads_h5_with_person_all(tmp_path: Path) -> None:

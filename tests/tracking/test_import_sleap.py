@@ -92,8 +92,31 @@ def test_the_cli_and_video_names(tmp_path: Path) -> None:
     out = tmp_path / "tracks.csv"
     assert main(["import-tracks", str(DATA / "cam1.analysis.h5"), "--person", "all", "--out", str(out)]) == 0
     assert {p.split("_")[0] for p in read_tracks(out).point} == {"person0", "person1"}
-    assert video_name_from_sleap(Path("labels.v001.predictions.analysis.h5")) == "labels.v001"
-    assert video_name_from_sleap(Path("cam2.slp.predictions.analysis.h5")) == "cam2"
+    assert set(read_tracks(out).video) == {"cam1"}  # from the file's video_path
+    # SLEAP's export names, where a file has no video_path: <labels>.<index>_<video>.analysis.h5
+    assert video_name_from_sleap(tmp_path / "cam2.predictions.000_cam2.analysis.h5") == "cam2"
+    assert video_name_from_sleap(tmp_path / "labels.v001.predictions.analysis.h5") == "labels.v001"
+    renamed = tmp_path / "predictions.000_front.analysis.h5"
+    shutil.copy(DATA / "cam1.analysis.h5", renamed)
+    with h5py.File(renamed, "r+") as f:
+        del f["video_path"]
+    assert video_name_from_sleap(renamed) == "front"
+    with h5py.File(renamed, "r+") as f:
+        f["video_path"] = "C:\\videos\\side.mp4"
+    assert video_name_from_sleap(renamed) == "side"
+
+
+def test_one_named_track_keeps_its_name_and_is_person_0(tmp_path: Path) -> None:
+    one = tmp_path / "cam1.analysis.h5"
+    shutil.copy(DATA / "cam1.analysis.h5", one)
+    with h5py.File(one, "r+") as f:  # mouseA alone, as SLEAP exports a video where only one track was seen
+        tracks, scores = f["tracks"][()][:1], f["point_scores"][()][:1]
+        for name in ("tracks", "point_scores", "track_names"):
+            del f[name]
+        f["tracks"], f["point_scores"], f["track_names"] = tracks, scores, np.array([b"mouseA"])
+        f["tracks"].attrs["dims"] = '["track", "xy", "node", "frame"]'
+    assert imported(one, tmp_path / "a.csv") == pytest.approx(expected({"mouseA": "mouseA"}), abs=1e-3)
+    assert imported(one, tmp_path / "b.csv", person=0) == pytest.approx(expected({"mouseA": ""}), abs=1e-3)
 
 
 def test_slp_and_broken_files_give_one_line_errors(tmp_path: Path) -> None:
