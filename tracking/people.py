@@ -47,14 +47,16 @@ def individual_names(
     person<N>_<bodypart> (`person_point`), and neither keeps the tracker's names, <individual>_<bodypart>."""
     individuals = list(dict.fromkeys(i for i, _ in points if i))
     if person is None and not every_person:
-        if len(individuals) > 1:
+        present = [i for i in individuals if seen.get(i, 0) > 0]
+        if len(present) > 1:
             log.warning(
-                "%s: %d %s (%s): each name is taken as the same animal in every video; where the tracker did not "
-                "learn to tell them apart, --person all lets register match them across the videos from their motion",
+                "%s: %d %s seen (%s): each name is taken as the same animal in every video; where the tracker did "
+                "not learn to tell them apart, --person all lets register match them across the videos from their "
+                "motion",
                 path.name,
-                len(individuals),
+                len(present),
                 word,
-                ", ".join(individuals),
+                ", ".join(present),
             )
         return _unique(path, {(i, part): f"{i}_{part}" if i else part for i, part in points})
     if not individuals:  # one unnamed subject, as OpenPose's single person: person 0

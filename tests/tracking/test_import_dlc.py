@@ -95,7 +95,7 @@ def test_individuals_keep_dlc_names_by_default_with_a_warning(tmp_path: Path, ca
     with caplog.at_level(logging.WARNING):
         got = rows(run_import([h5], tmp_path / "a.csv", ImportOptions(video="cam1")))
     assert {p for _, _, p in got} == {"mouse1_snout", "mouse2_snout", "ball"}
-    assert "2 individuals (mouse1, mouse2)" in caplog.text and "--person all" in caplog.text
+    assert "2 individuals seen (mouse1, mouse2)" in caplog.text and "--person all" in caplog.text
 
 
 def test_person_numbers_individuals_by_how_much_they_are_seen(tmp_path: Path) -> None:
@@ -165,3 +165,19 @@ def test_foreign_h5_files_give_one_line_errors(tmp_path: Path, make, message: st
         run_import([path], tmp_path / "out.csv", ImportOptions())
     assert "\n" not in str(info.value) and "bad.h5" in str(info.value)
     assert not (tmp_path / "out.csv").exists()
+
+
+def test_a_real_multi_animal_labels_file(tmp_path: Path, caplog) -> None:
+    """DeepLabCut's own labeled-data CSV (tests/data/dlc): 7 pups of which 2 are labelled, and the unique bodyparts."""
+    path = Path(__file__).resolve().parents[1] / "data" / "dlc" / "CollectedData_JohnDoe.csv"
+    with caplog.at_level(logging.WARNING):
+        named = rows(run_import([path], tmp_path / "a.csv", ImportOptions(video="cam1")))
+    assert "2 individuals seen (pup1, pup2)" in caplog.text
+    assert {f for _, f, _ in named} == {144, 838, 39580}  # from the image names
+    assert named["cam1", 838, "pup1_pup_snout"][:2] == (148.48, 155.2606635)
+    assert named["cam1", 144, "nest"][:2] == (892.5866667, 385.5924171)  # the `single` individual: bare names
+    every = rows(run_import([path], tmp_path / "b.csv", ImportOptions(video="cam1", every_person=True)))
+    # pup1 (8 points) is person 0, pup2 (2 points) person 1
+    assert sum(p.startswith("person0_") for _, _, p in every) == 8
+    assert sum(p.startswith("person1_") for _, _, p in every) == 2
+    assert len(every) == len(named) == 28

@@ -59,7 +59,7 @@ def test_both_presets_import_every_point_with_its_score(tmp_path: Path, name: st
     with caplog.at_level(logging.WARNING):
         got = imported(path, tmp_path / "t.csv", video="cam1")
     assert same(got, expected({"mouseA": "mouseA", "mouseB": "mouseB"}))
-    assert "2 tracks (mouseA, mouseB)" in caplog.text and "--person all" in caplog.text
+    assert "2 tracks seen (mouseA, mouseB)" in caplog.text and "--person all" in caplog.text
 
 
 def test_sleaps_own_layouts_without_dims(tmp_path: Path) -> None:
