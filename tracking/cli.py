@@ -105,7 +105,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         nargs="+",
         metavar="INPUT",
-        help="DLC .csv or .h5, SLEAP analysis .h5, OpenPose JSON file or folder, plain .csv, or a video (with --board)",
+        help="DLC .csv or .h5, SLEAP .slp or analysis .h5, OpenPose JSON file or folder, plain .csv, or a video "
+        "(with --board)",
     )
     parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument(

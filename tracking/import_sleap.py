@@ -1,5 +1,6 @@
-"""SLEAP's analysis HDF5 (`sleap-convert --format analysis`, or File > Export Analysis HDF5; sleap-io's
-`save_analysis_h5`): dense arrays of every track's nodes over the video's frames.
+"""SLEAP's files: its project / predictions files (.slp, `read_sleap_slp`) and its analysis HDF5
+(`sleap-convert --format analysis`, or File > Export Analysis HDF5; sleap-io's `save_analysis_h5`): dense arrays of
+every track's nodes over the video's frames (`read_sleap_analysis`).
 
 Datasets: `tracks` (x, y; NaN = missing), `node_names`, `track_names`, optionally `point_scores`. Axis order: the
 `dims` attribute of `tracks` where sleap-io wrote one (its `matlab` and `standard` presets), else SLEAP's own layout
@@ -8,7 +9,10 @@ video's frame 0 (SLEAP's default `all_frames`; an export without it starts at th
 not say which, so its frames would be shifted). SLEAP's tracks, like DeepLabCut's individuals, hold within a video:
 `person` / `every_person` as in `tracking.people.individual_names`.
 
-SLEAP's own project files (.slp) change layout with its versions and are not read: export the analysis HDF5.
+.slp (SLEAP format 1.2 and later, as SLEAP and sleap-io write it: HDF5 tables `frames`, `instances`, `points`,
+`pred_points`, JSON `metadata`, `tracks_json`, `videos_json`): every video of the file is imported under its file's
+stem; a user instance corrected from a prediction replaces it; points not visible are missing. Older or unknown
+layouts are refused with the export command.
 """
 
 from __future__ import annotations
@@ -103,6 +107,106 @@ def read_sleap_analysis(
     return detections
 
 
+MIN_SLP_FORMAT = 1.2  # instances with a tracking score: SLEAP 1.1 onwards (older files: pixel corners, not centres)
+USER, PREDICTED = 0, 1  # instance_type
+
+
+def read_sleap_slp(
+    path: Path, video: str | None, person: int | None = None, every_person: bool = False
+) -> list[Detection]:
+    """The points of every video of a SLEAP .slp file (`video`: the name for a file of one video)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            format_id = float(f["metadata"].attrs.get("format_id", 0.0))
+            if format_id < MIN_SLP_FORMAT:
+                raise InputError(
+                    path, f"SLEAP file format {format_id:g} is older than {MIN_SLP_FORMAT}", fix=EXPORT_FIX
+                )
+            metadata = json.loads(_text(f["metadata"].attrs["json"]))
+            tracks = [str(json.loads(_text(t))[1]) for t in f["tracks_json"][()]] if "tracks_json" in f else []
+            videos = [_video_stem(json.loads(_text(v)), k) for k, v in enumerate(f["videos_json"][()])]
+            frames, instances = f["frames"][()], f["instances"][()]
+            points = {USER: f["points"][()], PREDICTED: f["pred_points"][()]}
+    except InputError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError, IndexError) as error:
+        raise InputError(path, f"not a readable SLEAP .slp file ({error})", fix=EXPORT_FIX) from None
+    try:
+        names = [str(n["name"]) for n in metadata["nodes"]]
+        skeletons = [[names[int(n["id"])] for n in skeleton["nodes"]] for skeleton in metadata["skeletons"]]
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise InputError(
+            path, "its skeletons are stored in a layout this reader does not know", fix=EXPORT_FIX
+        ) from None
+    if video is not None and len(videos) > 1:
+        raise InputError(
+            path,
+            f"--video names one video, but the file holds {len(videos)} ({', '.join(videos)})",
+            fix="leave --video out",
+        )
+    if video is not None:
+        videos = [video]
+    if len(set(videos)) != len(videos):
+        raise InputError(
+            path, f"its videos' file names repeat ({', '.join(videos)})", fix="give each video its own name"
+        )
+    # per video: (track name or "", node) -> frame -> (x, y, score); user instances first, replacing their predictions
+    found: dict[int, dict[tuple[str, str], dict[int, tuple[float, float, float | None]]]] = {}
+    replaced = {
+        int(i["from_predicted"]) for i in instances if int(i["instance_type"]) == USER and int(i["from_predicted"]) >= 0
+    }
+    frame_of = {int(fr["frame_id"]): (int(fr["video"]), int(fr["frame_idx"])) for fr in frames}
+    untracked: dict[tuple[int, int], int] = {}
+    for instance in sorted(instances, key=lambda i: int(i["instance_type"]) != USER):
+        kind = int(instance["instance_type"])
+        if kind not in points or (kind == PREDICTED and int(instance["instance_id"]) in replaced):
+            continue
+        v, frame = frame_of[int(instance["frame_id"])]
+        track = int(instance["track"])
+        name = tracks[track] if 0 <= track < len(tracks) else ""
+        if not name:
+            untracked[v, frame] = untracked.get((v, frame), 0) + 1
+            if untracked[v, frame] > 1:
+                raise InputError(
+                    path,
+                    f"several untracked instances on frame {frame} of {videos[v]}",
+                    fix="track them in SLEAP (sleap-track with a tracker), or keep one instance per frame",
+                )
+        rows = points[kind][int(instance["point_id_start"]) : int(instance["point_id_end"])]
+        nodes = skeletons[int(instance["skeleton"])]
+        for node, point in zip(nodes, rows, strict=False):
+            x, y = float(point["x"]), float(point["y"])
+            if not bool(point["visible"]) or not (math.isfinite(x) and math.isfinite(y)):
+                continue
+            score = float(point["score"]) if kind == PREDICTED and "score" in (rows.dtype.names or ()) else None
+            found.setdefault(v, {}).setdefault((name, node), {}).setdefault(frame, (x, y, score))
+    detections: list[Detection] = []
+    for v, per_point in sorted(found.items()):
+        seen: dict[str, int] = {}
+        for (individual, _), per_frame in per_point.items():
+            seen[individual] = seen.get(individual, 0) + len(per_frame)
+        named = individual_names(path, list(per_point), seen, person, every_person, word="tracks")
+        for key, per_frame in per_point.items():
+            point = named[key]
+            if point is None:
+                continue
+            for frame, (x, y, score) in sorted(per_frame.items()):
+                where = f"{path.name}:{videos[v]} frame {frame}"
+                detections.append(
+                    Detection(video=videos[v], frame=frame, point=point, x=x, y=y, score=score, where=where)
+                )
+    return detections
+
+
+def _video_stem(entry: dict[str, Any], k: int) -> str:
+    source = entry.get("backend", {}).get("filename") or entry.get("filename") or ""
+    if isinstance(source, list):  # an image sequence: its first image's folder
+        source = str(Path(str(source[0])).parent) if source else ""
+    return _stem(str(source)) or f"video{k}"
+
+
 def video_name_from_sleap(path: Path) -> str:
     """The stem of the video the file was exported from (its `video_path` dataset, which SLEAP and sleap-io
     write), else the file name without `.analysis.h5` (SLEAP names its exports
@@ -115,7 +219,7 @@ def video_name_from_sleap(path: Path) -> str:
     except (OSError, KeyError, ValueError, TypeError):
         source = ""
     if source.strip():
-        return PureWindowsPath(source).stem if "\\" in source else Path(source).stem
+        return _stem(source)
     name = path.name
     for suffix in (".analysis.h5", ".h5", ".hdf5"):
         if name.lower().endswith(suffix):
@@ -128,6 +232,11 @@ def video_name_from_sleap(path: Path) -> str:
         if name.lower().endswith(suffix):
             name = name[: -len(suffix)]
     return name or path.stem
+
+
+def _stem(source: str) -> str:
+    """A video file's stem, from a POSIX or a Windows path (SLEAP projects move between machines)."""
+    return PureWindowsPath(source).stem if "\\" in source else Path(source).stem
 
 
 def _dims(path: Path, f: Any) -> tuple[str, ...]:

@@ -1,7 +1,7 @@
 """`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
 threshold.
 
-Formats: DeepLabCut CSV and .h5, SLEAP's analysis HDF5, OpenPose JSON per frame, plain
+Formats: DeepLabCut CSV and .h5, SLEAP .slp and analysis HDF5, OpenPose JSON per frame, plain
 `video,frame,point,x,y[,score]` CSV, and videos of a ChArUco board (`--board charuco.toml`: its corners, see
 tracking/charuco.py). Imported rows
 get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
@@ -20,7 +20,7 @@ from dynrecon.errors import InputError
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
-from tracking.import_sleap import EXPORT_FIX, is_sleap_analysis, read_sleap_analysis, video_name_from_sleap
+from tracking.import_sleap import is_sleap_analysis, read_sleap_analysis, read_sleap_slp, video_name_from_sleap
 from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ def detect_format(path: Path) -> Format:
     if path.is_dir() or path.suffix.lower() == ".json":
         return Format.OPENPOSE
     if path.suffix.lower() == ".slp":
-        raise InputError(path, "SLEAP project files (.slp) are not read", fix=EXPORT_FIX)
+        return Format.SLEAP
     if path.suffix.lower() in H5_SUFFIXES:
         return Format.SLEAP if is_sleap_analysis(path) else Format.DLC
     try:
@@ -103,6 +103,8 @@ def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[De
         )
     if fmt is Format.DLC:
         return fmt, read_dlc(path, options.video or video_name_from_dlc(path), options.person, options.every_person)
+    if fmt is Format.SLEAP and path.suffix.lower() == ".slp":
+        return fmt, read_sleap_slp(path, options.video, options.person, options.every_person)
     if fmt is Format.SLEAP:
         return fmt, read_sleap_analysis(
             path, options.video or video_name_from_sleap(path), options.person, options.every_person

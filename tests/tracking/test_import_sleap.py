@@ -124,11 +124,64 @@ def test_one_named_track_keeps_its_name_and_is_person_0(tmp_path: Path) -> None:
     assert same(imported(one, tmp_path / "b.csv", person=0), expected({"mouseA": ""}))
 
 
-def test_slp_and_broken_files_give_one_line_errors(tmp_path: Path) -> None:
-    slp = tmp_path / "labels.predictions.slp"
-    slp.write_bytes(b"\x89HDF\r\n\x1a\n")
-    with pytest.raises(InputError, match=r"labels.predictions.slp: SLEAP project files \(.slp\) are not read \(export"):
-        run_import([slp], tmp_path / "o.csv", ImportOptions())
+def slp_truth() -> dict[tuple[str, int, str], tuple[float, float, str]]:
+    with (DATA / "two_cameras_truth.csv").open() as handle:
+        return {
+            (r["video"], int(r["frame"]), f"{r['track']}_{r['node']}"): (float(r["x"]), float(r["y"]), r["score"])
+            for r in csv.DictReader(handle)
+        }
+
+
+def test_a_slp_of_two_videos_with_a_corrected_instance(tmp_path: Path) -> None:
+    """sleap-io's own .slp (tests/data/sleap/make_sleap_slp.py): both videos, the user's correction instead of the
+    prediction it came from, a point not visible left out."""
+    path = DATA / "two_cameras.slp"
+    assert detect_format(path) is Format.SLEAP
+    tracks = read_tracks(run_import([path], tmp_path / "t.csv", ImportOptions()))
+    got = {
+        (tracks.video[i], int(tracks.frame[i]), tracks.point[i]): (
+            float(tracks.xy[i, 0]),
+            float(tracks.xy[i, 1]),
+            tracks.extra["score"][i],
+        )
+        for i in range(len(tracks))
+    }
+    want = slp_truth()
+    assert got.keys() == want.keys()
+    for key, (x, y, score) in want.items():
+        assert got[key][:2] == pytest.approx((x, y), abs=1e-6)
+        assert got[key][2] == ("" if not score else f"{float(score):.3f}")
+    assert ("cam2", 4, "mouseB_tail") not in got
+    every = read_tracks(run_import([path], tmp_path / "e.csv", ImportOptions(every_person=True)))
+    assert {p.split("_")[0] for p in every.point} == {"person0", "person1"}  # numbered per video
+    with pytest.raises(InputError, match=r"--video names one video, but the file holds 2 \(cam1, cam2\)"):
+        run_import([path], tmp_path / "v.csv", ImportOptions(video="x"))
+
+
+def test_slp_files_this_reader_does_not_know_are_refused(tmp_path: Path) -> None:
+    old = tmp_path / "old.slp"
+    shutil.copy(DATA / "two_cameras.slp", old)
+    with h5py.File(old, "r+") as f:
+        f["metadata"].attrs["format_id"] = 1.0
+    with pytest.raises(InputError, match=r"old.slp: SLEAP file format 1 is older than 1.2 \(export SLEAP's analysis"):
+        run_import([old], tmp_path / "o.csv", ImportOptions())
+    untracked = tmp_path / "untracked.slp"
+    shutil.copy(DATA / "two_cameras.slp", untracked)
+    with h5py.File(untracked, "r+") as f:
+        instances = f["instances"][()]
+        instances["track"] = -1
+        f["instances"][...] = instances
+    with pytest.raises(InputError, match=r"several untracked instances on frame 0 of cam1 \(track them in SLEAP"):
+        run_import([untracked], tmp_path / "o.csv", ImportOptions())
+    junk = tmp_path / "junk.slp"
+    junk.write_bytes(b"\x89HDF\r\n\x1a\n")
+    with pytest.raises(InputError, match=r"junk.slp: not a readable SLEAP .slp file") as info:
+        run_import([junk], tmp_path / "o.csv", ImportOptions())
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_broken_analysis_files_give_one_line_errors(tmp_path: Path) -> None:
     bad = tmp_path / "cam1.analysis.h5"
     shutil.copy(DATA / "cam1.analysis.h5", bad)
     with h5py.File(bad, "r+") as f:
