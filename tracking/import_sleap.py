@@ -9,10 +9,11 @@ video's frame 0 (SLEAP's default `all_frames`; an export without it starts at th
 not say which, so its frames would be shifted). SLEAP's tracks, like DeepLabCut's individuals, hold within a video:
 `person` / `every_person` as in `tracking.people.individual_names`.
 
-.slp (SLEAP format 1.2 and later, as SLEAP and sleap-io write it: HDF5 tables `frames`, `instances`, `points`,
+.slp (SLEAP formats 1.1 to below 3.0, as SLEAP and sleap-io write them: HDF5 tables `frames`, `instances`, `points`,
 `pred_points`, JSON `metadata`, `tracks_json`, `videos_json`): every video of the file is imported under its file's
-stem; a user instance corrected from a prediction replaces it; points not visible are missing. Older or unknown
-layouts are refused with the export command.
+stem; per frame and track the user's instance where there is one (SLEAP hides that track's predictions), else the
+prediction; points not visible are missing; untracked instances of a tracked file are left out (with a warning).
+Older, newer, cropped or unknown layouts are refused with the export command.
 """
 
 from __future__ import annotations
@@ -107,26 +108,27 @@ def read_sleap_analysis(
     return detections
 
 
-MIN_SLP_FORMAT = 1.2  # instances with a tracking score: SLEAP 1.1 onwards (older files: pixel corners, not centres)
+SLP_FORMATS = (1.1, 3.0)  # pixel centres from 1.1 (older: corners); 3.0 changed the tables (sleap-io refuses it too)
 USER, PREDICTED = 0, 1  # instance_type
 
 
 def read_sleap_slp(
     path: Path, video: str | None, person: int | None = None, every_person: bool = False
 ) -> list[Detection]:
-    """The points of every video of a SLEAP .slp file (`video`: the name for a file of one video)."""
+    """The points of every video of a SLEAP .slp file (`video`: the name for a file of one video). Per frame and
+    track one instance: the user's where there is one (SLEAP hides that track's predictions), else the prediction."""
     import h5py
 
     try:
         with h5py.File(path, "r") as f:
             format_id = float(f["metadata"].attrs.get("format_id", 0.0))
-            if format_id < MIN_SLP_FORMAT:
-                raise InputError(
-                    path, f"SLEAP file format {format_id:g} is older than {MIN_SLP_FORMAT}", fix=EXPORT_FIX
-                )
+            if not SLP_FORMATS[0] <= format_id < SLP_FORMATS[1]:
+                raise InputError(path, f"SLEAP file format {format_id:g} is not read", fix=EXPORT_FIX)
+            if "video_crops" in f:
+                raise InputError(path, "its videos are crops (points in crop coordinates)", fix=EXPORT_FIX)
             metadata = json.loads(_text(f["metadata"].attrs["json"]))
             tracks = [str(json.loads(_text(t))[1]) for t in f["tracks_json"][()]] if "tracks_json" in f else []
-            videos = [_video_stem(json.loads(_text(v)), k) for k, v in enumerate(f["videos_json"][()])]
+            videos = [_video_stem(json.loads(_text(v))) for v in f["videos_json"][()]]
             frames, instances = f["frames"][()], f["instances"][()]
             points = {USER: f["points"][()], PREDICTED: f["pred_points"][()]}
     except InputError:
@@ -135,64 +137,71 @@ def read_sleap_slp(
         raise InputError(path, f"not a readable SLEAP .slp file ({error})", fix=EXPORT_FIX) from None
     try:
         names = [str(n["name"]) for n in metadata["nodes"]]
-        skeletons = [[names[int(n["id"])] for n in skeleton["nodes"]] for skeleton in metadata["skeletons"]]
-    except (KeyError, TypeError, ValueError, IndexError):
+        skeletons = [
+            [names[int(n["id"])] for n in skeleton.get("nx_graph", skeleton)["nodes"]]
+            for skeleton in metadata["skeletons"]
+        ]
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
         raise InputError(
             path, "its skeletons are stored in a layout this reader does not know", fix=EXPORT_FIX
         ) from None
-    if video is not None and len(videos) > 1:
-        raise InputError(
-            path,
-            f"--video names one video, but the file holds {len(videos)} ({', '.join(videos)})",
-            fix="leave --video out",
-        )
+    if len(set(tracks)) != len(tracks):
+        raise InputError(path, f"track names repeat: {', '.join(tracks)}", fix="name SLEAP's tracks uniquely")
     if video is not None:
+        if len(videos) > 1:
+            raise InputError(
+                path,
+                f"--video names one video, but the file holds {len(videos)} ({', '.join(v or '?' for v in videos)})",
+                fix="leave --video out",
+            )
         videos = [video]
+    if any(not v for v in videos):
+        raise InputError(path, "a video of the file has no file name (an embedded video?)", fix=EXPORT_FIX)
     if len(set(videos)) != len(videos):
         raise InputError(
             path, f"its videos' file names repeat ({', '.join(videos)})", fix="give each video its own name"
         )
-    # per video: (track name or "", node) -> frame -> (x, y, score); user instances first, replacing their predictions
-    found: dict[int, dict[tuple[str, str], dict[int, tuple[float, float, float | None]]]] = {}
-    replaced = {
-        int(i["from_predicted"]) for i in instances if int(i["instance_type"]) == USER and int(i["from_predicted"]) >= 0
-    }
-    frame_of = {int(fr["frame_id"]): (int(fr["video"]), int(fr["frame_idx"])) for fr in frames}
-    untracked: dict[tuple[int, int], int] = {}
-    for instance in sorted(instances, key=lambda i: int(i["instance_type"]) != USER):
-        kind = int(instance["instance_type"])
-        if kind not in points or (kind == PREDICTED and int(instance["instance_id"]) in replaced):
-            continue
-        v, frame = frame_of[int(instance["frame_id"])]
-        track = int(instance["track"])
-        name = tracks[track] if 0 <= track < len(tracks) else ""
-        if not name:
-            untracked[v, frame] = untracked.get((v, frame), 0) + 1
-            if untracked[v, frame] > 1:
-                raise InputError(
-                    path,
-                    f"several untracked instances on frame {frame} of {videos[v]}",
-                    fix="track them in SLEAP (sleap-track with a tracker), or keep one instance per frame",
-                )
-        rows = points[kind][int(instance["point_id_start"]) : int(instance["point_id_end"])]
-        nodes = skeletons[int(instance["skeleton"])]
-        for node, point in zip(nodes, rows, strict=False):
-            x, y = float(point["x"]), float(point["y"])
-            if not bool(point["visible"]) or not (math.isfinite(x) and math.isfinite(y)):
-                continue
-            score = float(point["score"]) if kind == PREDICTED and "score" in (rows.dtype.names or ()) else None
-            found.setdefault(v, {}).setdefault((name, node), {}).setdefault(frame, (x, y, score))
+    try:
+        chosen, untracked = _chosen_instances(path, frames, instances, videos, tracked=bool(tracks))
+        if untracked:
+            log.warning(
+                "%s: %d untracked instances beside the tracked ones are left out (no track tells who they are)",
+                path.name,
+                untracked,
+            )
+        # per video: (track index or -1, node) -> frame -> (x, y, score)
+        found: dict[int, dict[tuple[int, str], dict[int, tuple[float, float, float | None]]]] = {}
+        for (v, frame, track), instance in chosen.items():
+            kind = int(instance["instance_type"])
+            rows = points[kind][int(instance["point_id_start"]) : int(instance["point_id_end"])]
+            nodes = skeletons[int(instance["skeleton"])]
+            scored = kind == PREDICTED and "score" in (rows.dtype.names or ())
+            for node, point in zip(nodes, rows, strict=True):
+                x, y = float(point["x"]), float(point["y"])
+                if not bool(point["visible"]) or not (math.isfinite(x) and math.isfinite(y)):
+                    continue
+                score = float(point["score"]) if scored and math.isfinite(float(point["score"])) else None
+                found.setdefault(v, {}).setdefault((track, node), {})[frame] = (x, y, score)
+    except InputError:
+        raise
+    except (KeyError, IndexError, ValueError, TypeError) as error:
+        raise InputError(
+            path, f"its instances do not fit its frames, skeletons or points ({error})", fix=EXPORT_FIX
+        ) from None
     detections: list[Detection] = []
     for v, per_point in sorted(found.items()):
+        keys = sorted(per_point, key=lambda key: key[0])  # the file's track order: ties in --person follow it
         seen: dict[str, int] = {}
-        for (individual, _), per_frame in per_point.items():
-            seen[individual] = seen.get(individual, 0) + len(per_frame)
-        named = individual_names(path, list(per_point), seen, person, every_person, word="tracks")
-        for key, per_frame in per_point.items():
-            point = named[key]
+        for track, _ in keys:
+            name = tracks[track] if track >= 0 else ""
+            seen[name] = seen.get(name, 0) + len(per_point[track, _])
+        labelled = [(tracks[t] if t >= 0 else "", node) for t, node in keys]
+        named = individual_names(path, labelled, seen, person, every_person, word="tracks")
+        for key, label in zip(keys, labelled, strict=True):
+            point = named[label]
             if point is None:
                 continue
-            for frame, (x, y, score) in sorted(per_frame.items()):
+            for frame, (x, y, score) in sorted(per_point[key].items()):
                 where = f"{path.name}:{videos[v]} frame {frame}"
                 detections.append(
                     Detection(video=videos[v], frame=frame, point=point, x=x, y=y, score=score, where=where)
@@ -200,11 +209,64 @@ def read_sleap_slp(
     return detections
 
 
-def _video_stem(entry: dict[str, Any], k: int) -> str:
-    source = entry.get("backend", {}).get("filename") or entry.get("filename") or ""
-    if isinstance(source, list):  # an image sequence: its first image's folder
-        source = str(Path(str(source[0])).parent) if source else ""
-    return _stem(str(source)) or f"video{k}"
+def _chosen_instances(
+    path: Path, frames: np.ndarray, instances: np.ndarray, videos: list[str], tracked: bool
+) -> tuple[dict[tuple[int, int, int], np.void], int]:
+    """(video, frame, track index or -1) -> the instance to import: the user's where there is one, else the
+    prediction; and how many untracked instances of a `tracked` file were left out. Two instances of one kind on one
+    track and frame (or two untracked ones in an untracked file) are an error."""
+    frame_of = {}
+    for row in frames:
+        v = int(row["video"])
+        if not 0 <= v < len(videos):
+            raise InputError(
+                path, f"frame {int(row['frame_idx'])} refers to video {v} of {len(videos)}", fix=EXPORT_FIX
+            )
+        frame_of[int(row["frame_id"])] = (v, int(row["frame_idx"]))
+    chosen: dict[tuple[int, int, int], np.void] = {}
+    kinds: dict[tuple[int, int, int], int] = {}
+    untracked = 0
+    for instance in instances:
+        kind = int(instance["instance_type"])
+        if kind not in (USER, PREDICTED):
+            continue
+        v, frame = frame_of[int(instance["frame_id"])]
+        track = int(instance["track"])
+        if track < 0 and tracked:
+            untracked += 1
+            continue
+        key = (v, frame, track)
+        if key in kinds and kinds[key] == kind:
+            what = f"track {track}" if track >= 0 else "no track"
+            raise InputError(
+                path,
+                f"two {'user' if kind == USER else 'predicted'} instances with {what} on frame {frame} of {videos[v]}",
+                fix="track them in SLEAP (sleap-track with a tracker), or keep one instance per track and frame",
+            )
+        if key not in kinds or kind == USER:  # the user's instance hides the track's prediction
+            chosen[key], kinds[key] = instance, kind
+    return chosen, untracked
+
+
+def _video_stem(entry: dict[str, Any]) -> str:
+    """A video's name from its videos_json entry: its file's stem (an image sequence: its folder's name; an embedded
+    video: the source video's), "" where none is known."""
+    backend = entry.get("backend") or {}
+    for source in (
+        backend.get("filename"),
+        entry.get("filename"),
+        (entry.get("source_video") or {}).get("backend", {}).get("filename"),
+    ):
+        if isinstance(source, str) and source.strip() not in ("", "."):
+            return _stem(source)
+    filenames = backend.get("filenames") or (entry.get("filename") if isinstance(entry.get("filename"), list) else None)
+    if filenames:
+        return (
+            PureWindowsPath(str(filenames[0])).parent.name
+            if "\\" in str(filenames[0])
+            else Path(str(filenames[0])).parent.name
+        )
+    return ""
 
 
 def video_name_from_sleap(path: Path) -> str:

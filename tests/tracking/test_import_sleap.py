@@ -158,27 +158,67 @@ def test_a_slp_of_two_videos_with_a_corrected_instance(tmp_path: Path) -> None:
         run_import([path], tmp_path / "v.csv", ImportOptions(video="x"))
 
 
+def slp_copy(tmp_path: Path, name: str, change) -> Path:
+    path = tmp_path / name
+    shutil.copy(DATA / "two_cameras.slp", path)
+    with h5py.File(path, "r+") as f:
+        change(f)
+    return path
+
+
+def untrack(f, tracks_too: bool) -> None:
+    instances = f["instances"][()]
+    instances["track"] = -1
+    f["instances"][...] = instances
+    if tracks_too:
+        del f["tracks_json"]
+
+
 def test_slp_files_this_reader_does_not_know_are_refused(tmp_path: Path) -> None:
-    old = tmp_path / "old.slp"
-    shutil.copy(DATA / "two_cameras.slp", old)
-    with h5py.File(old, "r+") as f:
-        f["metadata"].attrs["format_id"] = 1.0
-    with pytest.raises(InputError, match=r"old.slp: SLEAP file format 1 is older than 1.2 \(export SLEAP's analysis"):
-        run_import([old], tmp_path / "o.csv", ImportOptions())
-    untracked = tmp_path / "untracked.slp"
-    shutil.copy(DATA / "two_cameras.slp", untracked)
-    with h5py.File(untracked, "r+") as f:
+    cases = [
+        ("old.slp", lambda f: f["metadata"].attrs.__setitem__("format_id", 1.0), r"SLEAP file format 1 is not read"),
+        ("new.slp", lambda f: f["metadata"].attrs.__setitem__("format_id", 3.0), r"SLEAP file format 3 is not read"),
+        ("crops.slp", lambda f: f.create_dataset("video_crops", data=[[0, 0, 10, 10]]), r"its videos are crops"),
+        (
+            "untracked.slp",
+            lambda f: untrack(f, tracks_too=True),
+            r"two predicted instances with no track on frame 0 of cam1 \(track them in SLEAP",
+        ),
+        ("junk.slp", None, r"not a readable SLEAP .slp file"),
+    ]
+    for name, change, message in cases:
+        if change is None:
+            path = tmp_path / name
+            path.write_bytes(b"\x89HDF\r\n\x1a\n")
+        else:
+            path = slp_copy(tmp_path, name, change)
+        with pytest.raises(InputError, match=message) as info:
+            run_import([path], tmp_path / "o.csv", ImportOptions())
+        assert "\n" not in str(info.value) and name in str(info.value)
+        assert not (tmp_path / "o.csv").exists()
+
+
+def test_two_predictions_on_one_track_are_refused_and_untracked_extras_left_out(tmp_path: Path, caplog) -> None:
+    def second_prediction_on_track_0(f) -> None:  # frame 0 of cam1: mouseB's prediction moved to mouseA's track
         instances = f["instances"][()]
-        instances["track"] = -1
+        instances["track"][1] = 0
         f["instances"][...] = instances
-    with pytest.raises(InputError, match=r"several untracked instances on frame 0 of cam1 \(track them in SLEAP"):
-        run_import([untracked], tmp_path / "o.csv", ImportOptions())
-    junk = tmp_path / "junk.slp"
-    junk.write_bytes(b"\x89HDF\r\n\x1a\n")
-    with pytest.raises(InputError, match=r"junk.slp: not a readable SLEAP .slp file") as info:
-        run_import([junk], tmp_path / "o.csv", ImportOptions())
-    assert "\n" not in str(info.value)
-    assert not (tmp_path / "o.csv").exists()
+
+    twice = slp_copy(tmp_path, "twice.slp", second_prediction_on_track_0)
+    with pytest.raises(InputError, match=r"two predicted instances with track 0 on frame 0 of cam1"):
+        run_import([twice], tmp_path / "o.csv", ImportOptions())
+
+    def one_untracked(f) -> None:
+        instances = f["instances"][()]
+        instances["track"][1] = -1
+        f["instances"][...] = instances
+
+    extra = slp_copy(tmp_path, "extra.slp", one_untracked)
+    with caplog.at_level(logging.WARNING):
+        tracks = read_tracks(run_import([extra], tmp_path / "e.csv", ImportOptions()))
+    assert "1 untracked instances beside the tracked ones are left out" in caplog.text
+    assert not any(p in ("head", "thorax", "tail") for p in tracks.point)  # no bare, scene-like points
+    assert len(tracks) == len(slp_truth()) - 3  # mouseB's 3 points on cam1 frame 0
 
 
 def test_broken_analysis_files_give_one_line_errors(tmp_path: Path) -> None:
