@@ -55,9 +55,9 @@ from reconstruct.outputs.points import FramePoints, read_points
 from reconstruct.trust import (
     TrustOptions,
     TrustPreset,
+    flag_off_videos,
     flag_points,
     flag_rule,
-    off_videos,
     preset_options,
     video_ends,
 )
@@ -103,10 +103,10 @@ def score(scored: Scored, options: TrustOptions) -> dict[str, Any]:
         options, scored.reconstructed, {**scored.points.extra, "video_end": end, "observed": scored.points.observed}
     )
     names, video_index = np.unique(scored.points.videos, return_inverse=True)
-    observed = scored.reconstructed & scored.points.observed.astype(bool)
-    off = off_videos(options, observed, scored.points.extra["residual_px"], video_index)
-    for v in off:
-        flag |= scored.reconstructed & (video_index == v)[:, None]
+    points = scored.points
+    off = flag_off_videos(
+        options, flag, scored.reconstructed, points.observed, points.extra["residual_px"], video_index
+    )
     known = scored.reconstructed & np.isfinite(scored.error)
     error, flagged = scored.error[known], flag[known]
     counts: dict[str, Any] = {

@@ -493,10 +493,8 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "video_end": end,
         },
     )
-    # judged on observed points, as the rule's medians are; all the video's points are flagged
-    off = off_videos(options, reconstructed & problem.observed, residual_px, problem.video_index)
+    off = flag_off_videos(options, flag, reconstructed, problem.observed, residual_px, problem.video_index)
     for v, (median, limit) in off.items():
-        flag |= reconstructed & (problem.video_index == v)[:, None]
         log.warning(
             "trust: %s: its points miss the shapes the other videos see by %.1f px (median residual), over %.1f px: "
             "its tracks may follow another subject (import-tracks --person), or its camera or clock is wrong; "
@@ -657,9 +655,10 @@ def off_videos(
         return {}
     medians = {}
     for v in np.unique(video_index):
-        known = reconstructed[video_index == v] & np.isfinite(residual_px[video_index == v])
+        own = video_index == v
+        known = reconstructed[own] & np.isfinite(residual_px[own])
         if known.any():
-            medians[int(v)] = float(np.median(residual_px[video_index == v][known]))
+            medians[int(v)] = float(np.median(residual_px[own][known]))
     if len(medians) < 3:
         return {}
     out = {}
@@ -669,3 +668,19 @@ def off_videos(
         if median > limit:
             out[v] = (median, limit)
     return out
+
+
+def flag_off_videos(
+    options: TrustOptions,
+    flag: np.ndarray,
+    reconstructed: np.ndarray,
+    observed: np.ndarray,
+    residual_px: np.ndarray,
+    video_index: np.ndarray,
+) -> dict[int, tuple[float, float]]:
+    """The whole-video rule: `off_videos` judged on the observed points (as the rule's medians are), and every
+    reconstructed point of those videos set in `flag` (F, P), in place. Returns `off_videos`'s result."""
+    off = off_videos(options, reconstructed & observed.astype(bool), residual_px, video_index)
+    for v in off:
+        flag |= reconstructed & (video_index == v)[:, None]
+    return off
