@@ -23,7 +23,7 @@ import numpy as np
 from dynrecon.errors import InputError
 from dynrecon.readers import csv_records, parse_frame, shown
 from tracking.detections import Detection
-from tracking.people import individual_names
+from tracking.people import individual_names, tool_name
 
 HEADER_NAMES = ("scorer", "individuals", "bodyparts", "coords")
 H5_SUFFIXES = (".h5", ".hdf5")
@@ -56,10 +56,8 @@ def read_dlc(path: Path, video: str, person: int | None = None, every_person: bo
     bodypart names), `every_person` names every individual's points person<N>_<bodypart>; neither keeps DLC's
     names, `<individual>_<bodypart>`."""
     table = _read_h5(path) if path.suffix.lower() in H5_SUFFIXES else _read_csv(path)
-    seen: dict[str, int] = {}
-    for (individual, _), cols in table.columns.items():
-        seen[individual] = seen.get(individual, 0) + int(np.isfinite(table.values[:, cols["x"]]).sum())
-    names = individual_names(path, list(table.columns), seen, person, every_person)
+    counts = {key: int(np.isfinite(table.values[:, cols["x"]]).sum()) for key, cols in table.columns.items()}
+    names = individual_names(path, counts, person, every_person)
     detections: list[Detection] = []
     for key, cols in table.columns.items():
         name = names.get(key)
@@ -84,10 +82,8 @@ def read_dlc(path: Path, video: str, person: int | None = None, every_person: bo
 
 
 def _columns(path: Path, header: dict[str, list[str]], first: int, where: str) -> dict[tuple[str, str], dict[str, int]]:
-    """(individual, bodypart) -> coordinate -> column, from the header's rows (`first`: the first data column)."""
-    for name in ("bodyparts", "coords"):
-        if name not in header:
-            raise InputError(path, f"no '{name}' header row", where=where, fix=_FIX)
+    """(individual, bodypart) -> coordinate -> column, from the header's rows, which include bodyparts and coords
+    (`first`: the first data column)."""
     coords, parts, individuals = header["coords"], header["bodyparts"], header.get("individuals")
     columns: dict[tuple[str, str], dict[str, int]] = {}
     for col in range(first, len(coords)):
@@ -105,13 +101,11 @@ def _columns(path: Path, header: dict[str, list[str]], first: int, where: str) -
         individual = individuals[col] if individuals is not None and col < len(individuals) else ""
         key = ("" if individual == SINGLE else individual, part)
         if coord in columns.setdefault(key, {}):
-            point = f"{individual}_{part}" if key[0] else part
-            raise InputError(path, f"two {coord!r} columns for point {point!r}", where=f"column {col + 1}")
+            raise InputError(path, f"two {coord!r} columns for point {tool_name(*key)!r}", where=f"column {col + 1}")
         columns[key][coord] = col
-    for (individual, part), cols in columns.items():
+    for key, cols in columns.items():
         if "x" not in cols or "y" not in cols:
-            point = f"{individual}_{part}" if individual else part
-            raise InputError(path, f"point {point!r} lacks an x or y column", where="coords row", fix=_FIX)
+            raise InputError(path, f"point {tool_name(*key)!r} lacks an x or y column", where="coords row", fix=_FIX)
     return columns
 
 

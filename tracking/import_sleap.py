@@ -22,7 +22,7 @@ import json
 import logging
 import math
 import re
-from pathlib import Path, PureWindowsPath
+from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 from typing import Any
 
 import numpy as np
@@ -82,9 +82,12 @@ def read_sleap_analysis(
     track_names = names if names else [""] if n_tracks == 1 else _numbered(n_tracks)
     if len(set(track_names)) != len(track_names):
         raise InputError(path, f"track names repeat: {', '.join(track_names)}", fix="name SLEAP's tracks uniquely")
-    seen = {t: int(np.isfinite(tracks[:, k, :, 0]).sum()) for k, t in enumerate(track_names)}
-    points = [(t, node) for t in track_names for node in nodes]
-    named = individual_names(path, points, seen, person, every_person, word="tracks")
+    counts = {
+        (t, node): int(np.isfinite(tracks[:, k, n, 0]).sum())
+        for k, t in enumerate(track_names)
+        for n, node in enumerate(nodes)
+    }
+    named = individual_names(path, counts, person, every_person, word="tracks")
     detections: list[Detection] = []
     for k, t in enumerate(track_names):
         for n, node in enumerate(nodes):
@@ -191,12 +194,9 @@ def read_sleap_slp(
     detections: list[Detection] = []
     for v, per_point in sorted(found.items()):
         keys = sorted(per_point, key=lambda key: key[0])  # the file's track order: ties in --person follow it
-        seen: dict[str, int] = {}
-        for track, _ in keys:
-            name = tracks[track] if track >= 0 else ""
-            seen[name] = seen.get(name, 0) + len(per_point[track, _])
         labelled = [(tracks[t] if t >= 0 else "", node) for t, node in keys]
-        named = individual_names(path, labelled, seen, person, every_person, word="tracks")
+        counts = {label: len(per_point[key]) for key, label in zip(keys, labelled, strict=True)}
+        named = individual_names(path, counts, person, every_person, word="tracks")
         for key, label in zip(keys, labelled, strict=True):
             point = named[label]
             if point is None:
@@ -260,13 +260,7 @@ def _video_stem(entry: dict[str, Any]) -> str:
         if isinstance(source, str) and source.strip() not in ("", "."):
             return _stem(source)
     filenames = backend.get("filenames") or (entry.get("filename") if isinstance(entry.get("filename"), list) else None)
-    if filenames:
-        return (
-            PureWindowsPath(str(filenames[0])).parent.name
-            if "\\" in str(filenames[0])
-            else Path(str(filenames[0])).parent.name
-        )
-    return ""
+    return _path(str(filenames[0])).parent.name if filenames else ""
 
 
 def video_name_from_sleap(path: Path) -> str:
@@ -296,9 +290,14 @@ def video_name_from_sleap(path: Path) -> str:
     return name or path.stem
 
 
+def _path(source: str) -> PurePath:
+    """A path written on POSIX or on Windows (SLEAP projects move between machines)."""
+    return PureWindowsPath(source) if "\\" in source else PurePosixPath(source)
+
+
 def _stem(source: str) -> str:
-    """A video file's stem, from a POSIX or a Windows path (SLEAP projects move between machines)."""
-    return PureWindowsPath(source).stem if "\\" in source else Path(source).stem
+    """A video file's stem, from a POSIX or a Windows path."""
+    return _path(source).stem
 
 
 def _dims(path: Path, f: Any) -> tuple[str, ...]:

@@ -31,7 +31,7 @@ SCORE_COLUMNS = ("score", "likelihood", "confidence")
 class Format(enum.Enum):
     AUTO = "auto"
     DLC = "dlc"
-    SLEAP = "sleap"  # SLEAP's analysis HDF5
+    SLEAP = "sleap"  # SLEAP's .slp or analysis HDF5
     OPENPOSE = "openpose"
     CSV = "csv"
     CHARUCO = "charuco"  # the inputs are videos; corners of the board given by ImportOptions.board
@@ -47,8 +47,8 @@ class ImportOptions:
     mapping: dict[str, str] = field(default_factory=dict)  # old point name -> new
     drop_unmapped: bool = False  # with a mapping, keep only the points it names
     min_score: float = 0.0  # detections with a lower confidence are left out
-    # OpenPose people (linked through the frames) or DeepLabCut individuals, numbered by how much they are seen: which
-    # one to import (OpenPose: None = 0, the one seen most; DeepLabCut: None = every individual under DLC's names)
+    # OpenPose people (linked through the frames), DeepLabCut individuals or SLEAP tracks, numbered by how much they
+    # are seen: which one to import (OpenPose: None = 0, the one seen most; the others: None = each under its name)
     person: int | None = None
     every_person: bool = False  # every person / individual, points named person<N>_<keypoint>
     board: Path | None = None  # ChArUco: caliscope's charuco.toml (or config.toml with a [charuco] table)

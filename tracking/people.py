@@ -32,19 +32,28 @@ def person_point(person: int, keypoint: str) -> str:
     return f"person{person}_{keypoint}"
 
 
+def tool_name(individual: str, part: str) -> str:
+    """A tracker's own name of a point: <individual>_<bodypart>, or the bare bodypart of a scene point ("")."""
+    return f"{individual}_{part}" if individual else part
+
+
 def individual_names(
     path: Path,
-    points: list[tuple[str, str]],
-    seen: dict[str, int],
+    detections: dict[tuple[str, str], int],
     person: int | None,
     every_person: bool,
     word: str = "individuals",
 ) -> dict[tuple[str, str], str | None]:
     """The point names of a tracker's named individuals (DeepLabCut's individuals, SLEAP's tracks), whose identities
-    hold within a video only: (individual or "" for a scene point, bodypart) -> the name it is imported as, None to
-    leave it out. The individuals are numbered by `seen` (detections; most first, ties in the file's order), as
-    OpenPose's people are: `person` N keeps individual N under the bare bodypart names, `every_person` names each
-    person<N>_<bodypart> (`person_point`), and neither keeps the tracker's names, <individual>_<bodypart>."""
+    hold within a video only. detections: (individual or "" for a scene point, bodypart) -> its detections, in the
+    file's order. Returns each such point -> the name it is imported as, None to leave it out. The individuals are
+    numbered by their detections (most first, ties in the file's order), as OpenPose's people are: `person` N keeps
+    individual N under the bare bodypart names, `every_person` names each person<N>_<bodypart> (`person_point`), and
+    neither keeps the tracker's names (`tool_name`)."""
+    points = list(detections)
+    seen: dict[str, int] = {}
+    for (individual, _), count in detections.items():
+        seen[individual] = seen.get(individual, 0) + count
     individuals = list(dict.fromkeys(i for i, _ in points if i))
     if person is None and not every_person:
         present = [i for i in individuals if seen.get(i, 0) > 0]
@@ -58,7 +67,7 @@ def individual_names(
                 word,
                 ", ".join(present),
             )
-        return _unique(path, {(i, part): f"{i}_{part}" if i else part for i, part in points})
+        return _unique(path, {(i, part): tool_name(i, part) for i, part in points})
     if not individuals:  # one unnamed subject, as OpenPose's single person: person 0
         if person not in (None, 0):
             raise InputError(path, f"--person {person}, but the file names no {word}", fix="leave --person out")
@@ -95,7 +104,7 @@ def _unique(path: Path, names: dict[tuple[str, str], str | None]) -> dict[tuple[
         if name is None:
             continue
         if name in owner:
-            first, second = (f"{i}_{part}" if i else part for i, part in (owner[name], key))
+            first, second = (tool_name(*k) for k in (owner[name], key))
             raise InputError(
                 path, f"{first} and {second} would both be imported as {name!r}", fix="rename one with --map first"
             )
