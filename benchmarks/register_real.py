@@ -1,6 +1,6 @@
 """`dynrecon register` on the real static rigs in ../shared, against their own calibrations.
 
-    python benchmarks/register_real.py [--cases NAME,...] [--work /tmp/register_real]
+    python benchmarks/register_real.py [--cases NAME,...] [--work /tmp/register_real] [--caliscope SESSION]
 
 Cases (each a fresh workspace; `register` as a user runs it, with its defaults unless named):
 - caliscope-background: the 4 office webcams, background only (`--subject never`), no calibration given;
@@ -25,6 +25,10 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-mediapipe-intrinsics, pose2sim-mediapipe-intrinsics: another detector on both rigs: MediaPipe Pose's 33
   keypoints of the person (committed tests/data/*/mediapipe_tracks.csv, made by benchmarks/mediapipe_tracks.py) on
   the original videos, with the rig's intrinsics, `--subject always`;
+- `--caliscope SESSION`: the caliscope cases on another caliscope session folder (its camera_array.toml,
+  charuco.toml, calibration/extrinsic/cam_*.mp4 and timestamps.csv, with or without a frame_index column), such as
+  the other recordings of the same office in caliscope's repository (tests/sessions/post_optimization,
+  tests/sessions/4_cam_recording): recordings this project was not built on.
 - caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
   mapping), the simpler method a user would try first; its models are scored pair by pair (relative rotation,
   and the direction of the baseline seen from the first camera), since it splits the videos over models.
@@ -176,7 +180,7 @@ def desynchronized(sources: dict[str, Path], dropped: dict[str, int], out: Path)
 def desynchronized_caliscope(work: Path) -> list[Path]:
     """The office videos without their first DROPPED[name] frames."""
     sources = {name: CALISCOPE / "calibration" / "extrinsic" / f"{name}.mp4" for name in DROPPED}
-    return desynchronized(sources, DROPPED, work / "caliscope_desync")
+    return desynchronized(sources, DROPPED, work / f"{CALISCOPE.name}_desync")
 
 
 def desynchronized_pose2sim(work: Path) -> tuple[list[Path], Path]:
@@ -212,10 +216,12 @@ def desynchronized_labels(out: Path) -> Path:
 def caliscope_true_offsets() -> dict[str, float]:
     """Seconds: own time of a desynchronized video + offset = cam_0's clock, from the real capture times."""
     data = np.genfromtxt(CALISCOPE / "calibration" / "extrinsic" / "timestamps.csv", delimiter=",", names=True)
+    # older sessions have no frame_index: a camera's rows are its frames in capture order
+    order = "frame_index" if "frame_index" in (data.dtype.names or ()) else "frame_time"
     offsets = {}
     for name, drop in DROPPED.items():
         rows = data[data["cam_id"] == int(name.split("_")[1])]
-        rows = rows[np.argsort(rows["frame_index"])][drop:]
+        rows = rows[np.argsort(rows[order])][drop:]
         own = np.arange(len(rows)) / 6.0  # the decoder's times of the resampled 6 fps video
         offsets[name] = float(np.median(rows["frame_time"] - own))
     reference = offsets["cam_0"]
@@ -423,20 +429,23 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument("--work", type=Path, default=Path("/tmp/register_real"))
+    parser.add_argument("--caliscope", type=Path, default=CALISCOPE, help="a caliscope session folder")
     args = parser.parse_args(argv)
+    global CALISCOPE  # the caliscope cases' session
+    CALISCOPE = args.caliscope.resolve()
     if not CALISCOPE.exists() or not POSE2SIM.exists():
-        print(f"needs the real videos in {SHARED}")
+        print(f"needs the real videos in {SHARED} (and {CALISCOPE})")
         return 1
     rows = [run_case(case, args.work) for case in args.cases.split(",")]
-    print("\n| case | posed | centre err % spread | rotation err deg | offsets err (frames) | register s |")
-    print("|---|---|---|---|---|---|")
+    print("\n| case | posed | centre err % spread | rotation err deg | offsets err (frames) | board mm | register s |")
+    print("|---|---|---|---|---|---|---|")
     for row in rows:
         posed = sum(1 for v in row["posed"].values() if v != "none")
         paths = ", ".join(f"{k}: {v}" for k, v in row["posed"].items())
         offsets = row.get("offset_error_frames")
         print(
             f"| {row['case']} | {posed}/4 ({paths}) | {row.get('centre_pct')} | {row.get('rotation_deg')} | "
-            f"{offsets} | {row['wall_s']} |"
+            f"{offsets} | {row.get('board_mm', '')} | {row['wall_s']} |"
         )
     for row in rows:
         print(json.dumps(row))

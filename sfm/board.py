@@ -98,6 +98,9 @@ def board_views(tracks: Tracks, video: str, board: CharucoBoard) -> tuple[list[n
         if finite.sum() < MIN_CORNERS:
             continue
         on_board = np.array([positions[str(tracks.point[i])] for i in here[finite]])
+        if np.ptp(on_board[:, 2]) > 0:  # both faces of a two-sided board in one frame: not one plane
+            continue
+        on_board[:, 2] = 0.0  # a back face's plane, moved onto the front's: the intrinsics do not see it
         spread = np.linalg.svd(on_board[:, :2] - on_board[:, :2].mean(axis=0), compute_uv=False)
         if spread[1] < 0.5 * board.square_size:  # one row or column of corners: no homography
             continue

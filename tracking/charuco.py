@@ -4,8 +4,14 @@ The board comes from caliscope's `charuco.toml` (or the `[charuco]` table of its
 (squares), `dictionary` (an OpenCV predefined dictionary name such as DICT_4X4_1000), `square_size_override_cm`
 (the printed square edge; without it the square fills `board_width` x `board_height` in `units`), `aruco_scale`
 (marker edge / square edge) and `inverted` (printed white on black: frames are inverted, 255 - gray, before
-detection). The board is OpenCV's `CharucoBoard((columns, rows), ...)`, as caliscope builds it, so corner ids and
+detection) and `thickness_cm` (a two-sided board's substrate). The board is OpenCV's
+`CharucoBoard((columns, rows), ...)`, as caliscope builds it, so corner ids and
 positions are the same as caliscope's: corner i at `getChessboardCorners()[i]` (metres, z = 0).
+
+A two-sided board (caliscope's: the back face carries a mirror print aligned with the front) is seen mirrored by a
+camera behind it: a frame where the board is not found is searched again flipped left-right, and the corners found
+are flipped back. Corner i of the back face lies directly behind front corner i: the same point (`corner_<id>`)
+without a thickness, `corner_<id>_back` at z = +thickness with one.
 
 Rows of the result: video = the file name without extension, frame = 0-based decoded frame index, point =
 `corner_<id>`, x, y in OpenCV pixels (top-left pixel centre is (0, 0)), `source` = "charuco".
@@ -34,8 +40,8 @@ SOURCE_CHARUCO = "charuco"
 CM_PER_INCH = 2.54
 
 
-def corner_name(corner_id: int) -> str:
-    return f"corner_{corner_id}"
+def corner_name(corner_id: int, *, back: bool = False) -> str:
+    return f"corner_{corner_id}_back" if back else f"corner_{corner_id}"
 
 
 @dataclass(kw_only=True)
@@ -49,6 +55,7 @@ class CharucoBoard:
     dictionary: str = "DICT_4X4_50"  # name of an OpenCV predefined aruco dictionary
     inverted: bool = False  # printed inverted: detect on 255 - gray
     legacy_pattern: bool = False  # OpenCV < 4.6 layout (matters for an even number of rows)
+    thickness: float = 0.0  # metres between a two-sided board's faces
 
     @property
     def num_corners(self) -> int:
@@ -147,6 +154,9 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             where=where,
             fix="give the dictionary the board was printed with",
         )
+    thickness = table.get("thickness_cm", 0.0)
+    if isinstance(thickness, bool) or not isinstance(thickness, int | float) or not 0 <= thickness < 100:
+        raise InputError(path, f"thickness_cm = {thickness!r} must be a number from 0 to 100", where=where)
     flags = {}
     for key in ("inverted", "legacy_pattern"):
         value = table.get(key, False)
@@ -161,6 +171,7 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
         dictionary=dictionary,
         inverted=flags["inverted"],
         legacy_pattern=flags["legacy_pattern"],
+        thickness=float(thickness) / 100.0,
     )
 
 
@@ -169,23 +180,38 @@ def _board(board: Path | str | CharucoBoard) -> CharucoBoard:
 
 
 def board_corner_positions(board: Path | str | CharucoBoard) -> dict[str, np.ndarray]:
-    """`corner_<id>` -> (3,) position on the board in metres (board frame: x along columns, y along rows, z = 0)."""
-    corners = np.asarray(_board(board).opencv().getChessboardCorners(), dtype=float).reshape(-1, 3)
-    return {corner_name(i): corner for i, corner in enumerate(corners)}
+    """`corner_<id>` -> (3,) position on the board in metres (board frame: x along columns, y along rows, z = 0);
+    with a thickness also `corner_<id>_back` at z = +thickness (cameras that see the front look along +z)."""
+    board = _board(board)
+    corners = np.asarray(board.opencv().getChessboardCorners(), dtype=float).reshape(-1, 3)
+    positions = {corner_name(i): corner for i, corner in enumerate(corners)}
+    if board.thickness > 0:
+        positions |= {
+            corner_name(i, back=True): corner + np.array([0.0, 0.0, board.thickness])
+            for i, corner in enumerate(corners)
+        }
+    return positions
 
 
 def detect_corners(
-    gray: np.ndarray, detector: cv2.aruco.CharucoDetector, *, inverted: bool = False
+    gray: np.ndarray, detector: cv2.aruco.CharucoDetector, *, inverted: bool = False, mirrored: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Corner ids (K,) int64 and pixel positions (K, 2) of the board in one (H, W) uint8 frame."""
-    corners, ids, _, _ = detector.detectBoard(255 - gray if inverted else gray)
+    """Corner ids (K,) int64 and pixel positions (K, 2) of the board in one (H, W) uint8 frame; `mirrored`: the
+    board's mirror print (its back face), searched in the frame flipped left-right, positions in the frame's own."""
+    image = 255 - gray if inverted else gray
+    corners, ids, _, _ = detector.detectBoard(cv2.flip(image, 1) if mirrored else image)
     if ids is None or len(ids) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 2))
-    return np.asarray(ids, dtype=np.int64).ravel(), np.asarray(corners, dtype=float).reshape(-1, 2)
+    xy = np.asarray(corners, dtype=float).reshape(-1, 2)
+    if mirrored:
+        xy[:, 0] = gray.shape[1] - 1 - xy[:, 0]  # column c of the flipped frame is column W - 1 - c
+    return np.asarray(ids, dtype=np.int64).ravel(), xy
 
 
-def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(frame (N,), corner id (N,), xy (N, 2), decoded frame count) for one video."""
+def _detect_video(
+    path: Path, board: CharucoBoard, min_corners: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """(frame (N,), corner id (N,), xy (N, 2), back face (N,) bool, decoded frame count) for one video."""
     if not path.is_file():
         raise InputError(path, "video file not found" if not path.exists() else "not a video file")
     capture = video_io.open_video(path)
@@ -193,23 +219,31 @@ def _detect_video(path: Path, board: CharucoBoard, min_corners: int) -> tuple[np
     frames: list[np.ndarray] = []
     ids: list[np.ndarray] = []
     xy: list[np.ndarray] = []
+    back: list[np.ndarray] = []
     index = 0
+    last_mirrored = False  # the face seen last is tried first: a camera mostly sees one face
     try:
         while (image := video_io.read(capture)) is not None:
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-            corner_ids, corner_xy = detect_corners(gray, detector, inverted=board.inverted)
+            for mirrored in (last_mirrored, not last_mirrored):
+                corner_ids, corner_xy = detect_corners(gray, detector, inverted=board.inverted, mirrored=mirrored)
+                if len(corner_ids):
+                    last_mirrored = mirrored
+                    break
             if len(corner_ids) >= min_corners:
                 frames.append(np.full(len(corner_ids), index, dtype=np.int64))
                 ids.append(corner_ids)
                 xy.append(corner_xy)
+                back.append(np.full(len(corner_ids), last_mirrored))
             index += 1
     finally:
         capture.release()
     if index == 0:
         raise InputError(path, "no decodable frames", fix="check the file plays; convert it to H.264")
     if not frames:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)), index
-    return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), index
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros((0, 2)), np.zeros(0, dtype=bool), index
+    return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), np.concatenate(back), index
 
 
 def board_not_found(board: CharucoBoard, path: Path, min_corners: int | None = None) -> InputError:
@@ -247,9 +281,13 @@ def charuco_tracks(
     with ThreadPoolExecutor(max_workers=workers) as pool:
         results = list(pool.map(lambda p: _detect_video(p, board, min_corners), paths))
     video: list[str] = []
-    for name, path, (frame, _, _, count) in zip(names, paths, results, strict=True):
+    for name, path, (frame, _, _, back, count) in zip(names, paths, results, strict=True):
         video += [name] * len(frame)
         log.info("%s: board corners in %d of %d frames (%d corners)", path, len(np.unique(frame)), count, len(frame))
+        if back.any():
+            log.info(
+                "%s: the board's back face (its mirror print) in %d of those frames", path, len(np.unique(frame[back]))
+            )
         if not len(frame):
             log.warning("%s: the board was found in none of its %d frames", path, count)
     if require_any and results and not any(len(r[0]) for r in results):
@@ -257,10 +295,12 @@ def charuco_tracks(
     frame = np.concatenate([r[0] for r in results]) if results else np.zeros(0, dtype=np.int64)
     ids = np.concatenate([r[1] for r in results]) if results else np.zeros(0, dtype=np.int64)
     xy = np.concatenate([r[2] for r in results]) if results else np.zeros((0, 2))
+    back = np.concatenate([r[3] for r in results]) if results else np.zeros(0, dtype=bool)
+    back &= board.thickness > 0  # without a thickness the faces' corners are the same points
     return Tracks(
         video=video,
         frame=frame,
-        point=[corner_name(int(i)) for i in ids],
+        point=[corner_name(int(i), back=bool(b)) for i, b in zip(ids, back, strict=True)],
         xy=xy,
         extra={"source": [SOURCE_CHARUCO] * len(video)},
     )

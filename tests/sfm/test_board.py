@@ -37,10 +37,18 @@ def _board_poses(rng: np.random.Generator, count: int, tilt_deg: float) -> list[
     return poses
 
 
-def _tracks(video: str, poses: list[tuple[np.ndarray, np.ndarray]], noise_px: float, seed: int = 0) -> Tracks:
+def _tracks(
+    video: str,
+    poses: list[tuple[np.ndarray, np.ndarray]],
+    noise_px: float,
+    seed: int = 0,
+    board: CharucoBoard = BOARD,
+    back: bool = False,
+) -> Tracks:
+    """Projected corners; `back`: the back face's (`corner_<id>_back`) of a board with a thickness."""
     rng = np.random.default_rng(seed)
-    positions = board_corner_positions(BOARD)
-    names = list(positions)
+    positions = board_corner_positions(board)
+    names = [n for n in positions if n.endswith("_back") == back]
     corners = np.array([positions[n] for n in names])
     rows_video, rows_frame, rows_point, rows_xy = [], [], [], []
     for frame, (rvec, tvec) in enumerate(poses):
@@ -66,6 +74,24 @@ def test_intrinsics_from_the_board_views() -> None:
     assert found.rms_px is not None and found.rms_px < 0.5
     report = found.to_json()
     assert report["used"] and report["views"] == 40 and 0 < report["focal_std_pct"] < 1
+
+
+def test_back_face_views_of_a_thick_board() -> None:
+    """The back face's corners lie on their own plane (z = +thickness): its views calibrate like the front's."""
+    thick = CharucoBoard(**{**vars(BOARD), "thickness": 0.01})
+    poses = _board_poses(np.random.default_rng(1), 40, tilt_deg=35)
+    front = _tracks("cam", poses[:20], noise_px=0.3, board=thick)
+    back = _tracks("cam", poses[20:], noise_px=0.3, board=thick, back=True)
+    tracks = Tracks(
+        video=[*front.video, *back.video],
+        frame=np.r_[front.frame, back.frame + 20],
+        point=[*front.point, *back.point],
+        xy=np.r_[front.xy, back.xy],
+    )
+    found = calibrate_from_board(tracks, "cam", SIZE, thick)
+    assert found.used and found.views == 40, found.why
+    assert found.K is not None and abs(found.K[0, 0] / K_TRUE[0, 0] - 1) < 0.01
+    assert found.rms_px is not None and found.rms_px < 0.5
 
 
 def test_a_misread_view_is_left_out() -> None:

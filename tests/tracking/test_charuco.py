@@ -39,6 +39,11 @@ def test_read_board_and_corner_positions(tmp_path: Path) -> None:
     # Without the override the square fills the board: min(11 in / 5, 8.5 in / 4) = 2.125 in.
     path.write_text("[charuco]\ncolumns = 4\nrows = 5\nboard_height = 11.0\nboard_width = 8.5\n")
     assert read_charuco_board(path).square_size == pytest.approx(2.125 * 0.0254)
+    path.write_text("columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\nthickness_cm = 0.6\n")
+    assert read_charuco_board(path).thickness == pytest.approx(0.006)
+    path.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\nthickness_cm = "thin"\n')
+    with pytest.raises(InputError, match="thickness_cm"):
+        read_charuco_board(path)
     path.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_9X9_1"\n')
     with pytest.raises(InputError, match="unknown aruco dictionary"):
         read_charuco_board(path)
@@ -93,6 +98,40 @@ def test_rendered_board(tmp_path: Path) -> None:
         charuco_tracks([path], BOARD, min_corners=13)  # every frame shows 12
     with pytest.raises(InputError, match="video file not found"):
         charuco_tracks([tmp_path / "missing.mp4"], BOARD)
+
+
+def test_back_face_of_a_two_sided_board(tmp_path: Path) -> None:
+    """A camera behind a two-sided board sees the mirror print: found by the flipped search, each corner where the
+    front corner of its id lies (the board seen through a reflecting homography); `corner_<id>_back` with a
+    thickness. A front view in the same video is still found unflipped."""
+    ppm, size = 1000.0, (640, 480)
+    width_px = round(BOARD.columns * BOARD.square_size * ppm)
+    behind = np.array([[1.1, 0.1, 180], [-0.05, 1.1, 70], [1e-5, 2e-5, 1.0]]) @ np.array(
+        [[-1.0, 0, width_px - 1], [0, 1.0, 0], [0, 0, 1.0]]
+    )  # board pixel -> image, orientation-reversing
+    front = np.array([[1.2, 0, 150], [0, 1.2, 40], [0, 0, 1.0]])
+    path = tmp_path / "cam_c.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, size)
+    for frame in _render(BOARD, [behind, front, behind], size):
+        writer.write(frame)
+    writer.release()
+    tracks = charuco_tracks([path], BOARD)
+    positions = board_corner_positions(BOARD)
+    assert sorted(set(tracks.frame.tolist())) == [0, 1, 2] and set(tracks.point) == set(positions)
+    for frame, H in enumerate((behind, front, behind)):
+        rows = np.flatnonzero(tracks.frame == frame)
+        assert len(rows) == 12
+        board_px = np.array([positions[tracks.point[r]][:2] * ppm - 0.5 for r in rows])
+        expected = cv2.perspectiveTransform(board_px[:, None], H).reshape(-1, 2)
+        assert np.abs(tracks.xy[rows] - expected).max() < 0.5, tracks.xy[rows] - expected
+
+    thick = CharucoBoard(**{**vars(BOARD), "thickness": 0.005})
+    named = charuco_tracks([path], thick)
+    back = {str(p) for p, f in zip(named.point, named.frame, strict=True) if f != 1}
+    assert back == {f"corner_{i}_back" for i in range(12)}
+    assert {str(p) for p, f in zip(named.point, named.frame, strict=True) if f == 1} == set(positions)
+    thick_positions = board_corner_positions(thick)
+    np.testing.assert_allclose(thick_positions["corner_4_back"], positions["corner_4"] + [0, 0, 0.005])
 
 
 def test_import_tracks_charuco(tmp_path: Path) -> None:
