@@ -426,12 +426,12 @@ def _pair_errors(a: str, b: str, pose_a: Any, pose_b: Any, truth: dict[str, Any]
 
 
 def main(argv: list[str] | None = None) -> int:
+    global CALISCOPE  # the caliscope cases' session (--caliscope)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument("--work", type=Path, default=Path("/tmp/register_real"))
     parser.add_argument("--caliscope", type=Path, default=CALISCOPE, help="a caliscope session folder")
     args = parser.parse_args(argv)
-    global CALISCOPE  # the caliscope cases' session
     CALISCOPE = args.caliscope.resolve()
     if not CALISCOPE.exists() or not POSE2SIM.exists():
         print(f"needs the real videos in {SHARED} (and {CALISCOPE})")
