@@ -7,7 +7,7 @@ register, label, and rerun: only what the new labels change is redone. `force` r
 Workspace layout (paths relative to WS):
     register/          cameras.json, background.ply, register_report.json, frames/, sfm/ (dynrecon register)
     labels.csv         the clicks (from the labeling page, or a copy of --labels)
-    tracks.csv         written by the track stage, or a copy of --tracks
+    tracks.csv         written by the track stage (labels tracked, or --board's corners), or a copy of --tracks
     points3d.csv, sequencing.json, report.json    the solve stage
     recording.rrd      the rerun recording (background cloud, videos, tracks, 3D points, skeleton)
     points.trc, points.c3d                        exports in the estimated global order
@@ -496,7 +496,8 @@ class Stages:
         try:
             self.run("register", files, settings, outputs, lambda: sfm(self.videos, folder, register_options))
         except RegistrationError as error:
-            if options.tracks is None and self.labels is None and not (self.ws / "tracks.csv").is_file():
+            tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
+            if not tracks_coming and not (self.ws / "tracks.csv").is_file():
                 raise
             log.warning(
                 "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
@@ -540,6 +541,16 @@ class Stages:
                 {"track": options.track},
                 [tracks_path],
                 lambda: write(tracks_path),
+            )
+        elif options.register.board is not None and (not tracks_path.is_file() or "track" in self.state.stages):
+            # the board's corners are the tracks (a tracks.csv the user put in WS is theirs: kept)
+            board = options.register.board
+            self.run(
+                "track",
+                {**self.video_files, "board": board},
+                {"board": board.name},
+                [tracks_path],
+                lambda: _board_corners(self.videos, board, tracks_path),
             )
         elif not tracks_path.is_file():
             log.info(
@@ -697,6 +708,13 @@ def _static_left_out(report_path: Path) -> bool:
         return any(v.get("camera") == "static" and v.get("posed_by") == "none" for v in report.get("videos", []))
     except (OSError, ValueError, AttributeError, TypeError):
         return False
+
+
+def _board_corners(videos: list[Path], board: Path, tracks_path: Path) -> None:
+    from tracking.importing import Format, ImportOptions, run_import
+
+    tracks_path.unlink(missing_ok=True)  # the import keeps rows of other videos: start clean
+    run_import(videos, tracks_path, ImportOptions(format=Format.CHARUCO, board=board))
 
 
 def _track(ws: Path, tracks_path: Path, videos: list[Path], options: TrackOptions) -> None:

@@ -79,8 +79,8 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         "--board",
         type=Path,
         default=None,
-        help="ChArUco board file (charuco.toml) whose corners are in the tracks: intrinsics and scale of the "
-        "static videos posed from the subject",
+        help="ChArUco board file (charuco.toml) seen in the videos: intrinsics and scale of the static videos "
+        "posed from the subject; without --tracks or labels its corners found in the videos are the tracks",
     )
     add_calibration_arguments(
         parser,

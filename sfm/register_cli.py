@@ -145,8 +145,9 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         type=Path,
         default=None,
         metavar="CHARUCO_TOML",
-        help="a ChArUco board (caliscope charuco.toml / config.toml) whose corner_<id> points are in the tracks "
-        "(import-tracks --board): the subject path's intrinsics (videos without --intrinsics) and scale",
+        help="a ChArUco board (caliscope charuco.toml / config.toml) seen in the videos: the subject path's "
+        "intrinsics (videos without --intrinsics) and scale; without tracks its corners are found in the videos "
+        "(written to WS/tracks.csv)",
     )
 
 

@@ -12,6 +12,7 @@ pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -97,6 +98,10 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     check_inputs(options, infos, tracks)
     require_writable(out)
     clear_outputs(out)  # only once the inputs are known good: a typo never costs the last run's results
+    if tracks is None and options.board is not None:
+        with collected(notes), timed(notes, "board_corners"):
+            tracks = board_tracks([info.path for info in infos], options.board, out)
+        options = dataclasses.replace(options, tracks=tracks.path)  # the report names the file
     names = [info.name for info in infos]
     for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
         prepare_video(info, out, options, tracks)
@@ -166,6 +171,15 @@ def _check_videos(videos: list[Path]) -> None:
                 f"video name {name!r} is used twice",
                 fix="video names (file names without extension) must be unique",
             )
+
+
+def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:
+    """`--board` without tracks: the board's corners found in the videos are the subject's tracks, written to
+    WS/tracks.csv as `import-tracks VIDEO... --board` writes them (the solve reads them there)."""
+    from tracking.importing import Format, ImportOptions, run_import
+
+    log.info("no tracks: the board's corners found in the videos are the subject's tracks (%s)", out / "tracks.csv")
+    return read_tracks(run_import(list(videos), out / "tracks.csv", ImportOptions(format=Format.CHARUCO, board=board)))
 
 
 def capture_tracks(options: RegisterOptions, out: Path) -> Tracks | None:

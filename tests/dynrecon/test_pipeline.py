@@ -19,6 +19,7 @@ from dynrecon.errors import InputError
 from dynrecon.pipeline import (
     STAGES,
     PipelineOptions,
+    Stages,
     default_register,
     inputs_key,
     run_stages,
@@ -410,3 +411,42 @@ def test_run_calibration_errors_are_one_line(calibrated: Path, tmp_path: Path, c
     assert "Traceback" not in err
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"dynrecon run: error: {calibration}") and reason in last, err
+
+
+def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
+    """`run --board` with neither labels nor tracks: the board's corners found in the videos are WS/tracks.csv
+    (the track stage, skipped when up to date); a tracks.csv the user put in WS is theirs and kept."""
+    from tracking.charuco import read_charuco_board
+    from tracking.tracks import read_tracks
+
+    board = tmp_path / "charuco.toml"
+    board.write_text(
+        'columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n'
+        "aruco_scale = 0.75\ninverted = true\n"
+    )
+    printed = 255 - read_charuco_board(board).opencv().generateImage((216, 270))  # 1000 px per metre, inverted
+    videos = []
+    for name, shift in (("cam_a", 100), ("cam_b", 160)):
+        path = tmp_path / f"{name}.avi"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (640, 480))
+        for i in range(3):
+            H = np.array([[1.0, 0, shift + 5.0 * i], [0, 1.0, 20], [0, 0, 1]])
+            frame = cv2.warpPerspective(printed, H, (640, 480), flags=cv2.INTER_AREA, borderValue=(160,))
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+        writer.release()
+        videos.append(path)
+    options = PipelineOptions(register=replace(default_register(), board=board))
+    stages = Stages(videos, tmp_path / "ws", options)
+    tracks_path = stages.track()
+    assert tracks_path == tmp_path / "ws" / "tracks.csv"
+    tracks = read_tracks(tracks_path)
+    assert len(tracks) == 2 * 3 * 12 and set(tracks.video) == {"cam_a", "cam_b"}
+    assert [s.name for s in stages.result.stages] == ["track"] and not stages.result.stages[0].skipped
+    again = Stages(videos, tmp_path / "ws", options)
+    again.track()
+    assert again.result.stages[0].skipped
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "tracks.csv").write_text("video,frame,point,x,y\ncam_a,0,nose,1,2\n")
+    Stages(videos, own, options).track()
+    assert (own / "tracks.csv").read_text() == "video,frame,point,x,y\ncam_a,0,nose,1,2\n"

@@ -20,7 +20,7 @@ from benchmarks import register_real as real
 from dynrecon.cli import main
 from sfm.cameras import read_cameras
 from tracking.charuco import charuco_tracks
-from tracking.tracks import write_tracks
+from tracking.tracks import read_tracks, write_tracks
 
 pytestmark = [pytest.mark.shared, pytest.mark.slow]
 
@@ -66,8 +66,20 @@ def test_caliscope_static_rig_from_the_subject(caliscope: tuple[list[Path], Path
 
 def test_caliscope_board_gives_intrinsics_and_metres(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
     videos, tracks = caliscope
-    # No calibration given: each webcam's intrinsics from its own views of the board, the scale from its corners.
-    report = _register(videos, tmp_path / "ws", tracks, "--board", str(real.CALISCOPE / "charuco.toml"))
+    # No calibration and no tracks given: the board's corners found in the videos are the tracks (WS/tracks.csv,
+    # the same rows as import-tracks --board), each webcam's intrinsics come from its own views of the board, the
+    # scale from its corners.
+    ws = tmp_path / "ws"
+    assert (
+        main(["register", *(str(v) for v in videos), "--out", str(ws), "--board", str(real.CALISCOPE / "charuco.toml")])
+        == 0
+    )
+    report = json.loads((ws / "register_report.json").read_text())
+    assert report["options"]["tracks"] == str(ws / "tracks.csv") and report["timings_s"]["board_corners"] > 0
+    found, given = read_tracks(ws / "tracks.csv"), read_tracks(tracks)
+    assert sorted(zip(found.video, found.frame.tolist(), found.point, strict=True)) == sorted(
+        zip(given.video, given.frame.tolist(), given.point, strict=True)
+    )
     board = report["subject"]["board"]
     assert [c["used"] for c in board["cameras"]] == [True] * 4, board
     true_focals = [904, 760, 651, 640]  # camera_array.toml's (from caliscope's own intrinsic videos)
