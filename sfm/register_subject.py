@@ -15,6 +15,7 @@ import numpy as np
 import pycolmap
 
 from sfm.board import MIN_VIEWS, SCALE_FRAMES, BoardIntrinsics, board_scale, calibrate_from_board
+from sfm.board_hint import board_hint
 from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_posed import posed_video
@@ -59,16 +60,17 @@ def pose_from_subject(
             warnings.append(f"--board {options.board}: not used: {why}")
         return None
     if tracks is None:
+        hint = board_hint([v.info.path for v in unposed]) if unposed else None
         if unposed:
             warnings.append(
                 f"static videos {', '.join(v.info.name for v in unposed)} were not posed by the background; "
                 "2D tracks of the moving subject can pose them: run `dynrecon track WS` (or import-tracks) "
-                "and register again"
+                "and register again" + (f"; {hint}" if hint else "")
             )
         return {
             "used": False,
             "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
-            "import-tracks) and register again",
+            "import-tracks) and register again" + (f"; {hint}" if hint else ""),
         }
     board: dict[str, Any] | None = None
     scale = options.scale
