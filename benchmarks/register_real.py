@@ -323,15 +323,18 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
                 for n in names
             }
         row["pairs"] = [(p["videos"], p["runner_up_ratio"], p["degenerate"]) for p in subject.get("pairs", [])]
-    if code == 0 and case.startswith("caliscope") and subject.get("metric"):
-        row["board_mm"] = board_distance_errors(ws)
+    if code == 0 and case.startswith("caliscope") and "subject" in case:
+        # arbitrary units: scored after one scale fitted to the board (marked "scaled")
+        metric = bool(subject.get("metric"))
+        row["board_mm"] = board_distance_errors(ws, fit_scale=not metric) | ({} if metric else {"scaled": True})
     return row
 
 
-def board_distance_errors(ws: Path) -> dict[str, float]:
+def board_distance_errors(ws: Path, fit_scale: bool = False) -> dict[str, float]:
     """The sync-free solve (`dynrecon solve`, defaults) of the corner tracks on the registered cameras, scored by
     the board's known geometry: |distance between two corners a video observed in one frame - their distance on
-    the board|, mm, over every such pair (the solve's metres come from registration's scale)."""
+    the board|, mm, over every such pair (the solve's metres come from registration's scale; with `fit_scale`, for
+    cameras in arbitrary units, the distances are first scaled by the median ratio of true to found)."""
     out = ws / "solve"
     inputs = ["--cameras", str(ws / "cameras.json"), "--tracks", str(ws / "tracks.csv")]
     code = dynrecon(["solve", *inputs, "--out", str(out), "--no-recording"])
@@ -340,17 +343,20 @@ def board_distance_errors(ws: Path) -> dict[str, float]:
     points = read_points(out / "points3d.csv")
     positions = board_corner_positions(CALISCOPE / "charuco.toml")
     true = np.array([positions.get(name, np.full(3, np.nan)) for name in points.point_names])
-    errors = []
+    found_d, true_d = [], []
     for xyz, observed in zip(points.xyz, points.observed.astype(bool), strict=True):
         seen = np.flatnonzero(observed & np.isfinite(xyz).all(axis=1) & np.isfinite(true).all(axis=1))
         if seen.size < 2:
             continue
         a, b = np.triu_indices(seen.size, 1)
-        found = np.linalg.norm(xyz[seen[a]] - xyz[seen[b]], axis=1)
-        errors.append(np.abs(found - np.linalg.norm(true[seen[a]] - true[seen[b]], axis=1)))
-    if not errors:
+        found_d.append(np.linalg.norm(xyz[seen[a]] - xyz[seen[b]], axis=1))
+        true_d.append(np.linalg.norm(true[seen[a]] - true[seen[b]], axis=1))
+    if not found_d:
         return {}
-    every = 1000.0 * np.concatenate(errors)
+    found_all, true_all = np.concatenate(found_d), np.concatenate(true_d)
+    if fit_scale:
+        found_all = found_all * float(np.median(true_all / found_all))
+    every = 1000.0 * np.abs(found_all - true_all)
     return {"median": round(float(np.median(every)), 2), "p90": round(float(np.percentile(every, 90)), 2)}
 
 

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.atomic import atomic_write_text, require_writable
 from dynrecon.errors import InputError
 from labeling.skeleton import read_skeleton
@@ -61,6 +62,7 @@ from reconstruct.outputs.mocap import UNIT_TO_MM
 from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
 from reconstruct.stage import SolveOptions, solve
+from sfm.board_hint import board_hint
 from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, FrameCamera, read_cameras
 from sfm.export import read_ply, write_ply
@@ -71,11 +73,11 @@ from sfm.register_people import people_on_cameras
 from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
-from tracking.charuco import read_charuco_board
+from tracking.charuco import charuco_tracks, read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import Tracks, read_tracks
+from tracking.tracks import Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +139,8 @@ class PipelineOptions:
 
     def background_register(self) -> RegisterOptions:
         """The `register` stage's options: without tracks, so that new labels never force a new registration."""
-        return dataclasses.replace(self.register, tracks=None, board=None)  # the board needs tracks
+        # the board needs tracks; the pipeline names markers in view itself when no tracks come (Stages.register)
+        return dataclasses.replace(self.register, tracks=None, board=None, board_hint=False)
 
     def subject_register(self, tracks: Path) -> RegisterOptions:
         """The `subject` stage's options: the registration again, with the subject's tracks."""
@@ -498,6 +501,9 @@ class Stages:
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
+                hint = board_hint(self.videos) if options.register.board_hint else None
+                if hint:
+                    raise RegistrationError(f"{error}; {hint}", what=error.what, report=error.report) from None
                 raise
             log.warning(
                 "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
@@ -542,7 +548,7 @@ class Stages:
                 [tracks_path],
                 lambda: write(tracks_path),
             )
-        elif options.register.board is not None and (not tracks_path.is_file() or "track" in self.state.stages):
+        elif options.register.board is not None and self._tracks_are_ours(tracks_path):
             # the board's corners are the tracks (a tracks.csv the user put in WS is theirs: kept)
             board = options.register.board
             self.run(
@@ -562,6 +568,13 @@ class Stages:
         if not tracks_path.is_file():
             raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
         return tracks_path
+
+    def _tracks_are_ours(self, tracks_path: Path) -> bool:
+        """Whether WS/tracks.csv may be (re)written by the track stage: missing, or the one it wrote last."""
+        if not tracks_path.is_file():
+            return True
+        recorded = self.state.stages.get("track", {}).get("outputs", {}).get(tracks_path.name)
+        return recorded is not None and file_hash(tracks_path) == recorded
 
     def subject(self, tracks: Path, background_failed: RegistrationError | None = None) -> Registration:
         """The background's cameras, or, where it failed or left static videos out, the `subject` stage's
@@ -711,10 +724,16 @@ def _static_left_out(report_path: Path) -> bool:
 
 
 def _board_corners(videos: list[Path], board: Path, tracks_path: Path) -> None:
-    from tracking.importing import Format, ImportOptions, run_import
-
-    tracks_path.unlink(missing_ok=True)  # the import keeps rows of other videos: start clean
-    run_import(videos, tracks_path, ImportOptions(format=Format.CHARUCO, board=board))
+    """The board's corners in the videos that decode (registration leaves the others out too) -> tracks.csv."""
+    readable = []
+    for video in videos:
+        try:
+            video_io.open_video(video).release()
+        except InputError as error:
+            log.warning("%s: no board corners looked for: %s", video, error)
+            continue
+        readable.append(video)
+    write_tracks(tracks_path, charuco_tracks(readable or videos, board))
 
 
 def _track(ws: Path, tracks_path: Path, videos: list[Path], options: TrackOptions) -> None:

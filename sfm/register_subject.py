@@ -60,7 +60,7 @@ def pose_from_subject(
             warnings.append(f"--board {options.board}: not used: {why}")
         return None
     if tracks is None:
-        hint = board_hint([v.info.path for v in unposed]) if unposed else None
+        hint = board_hint([v.info.path for v in unposed]) if unposed and options.board_hint else None
         if unposed:
             warnings.append(
                 f"static videos {', '.join(v.info.name for v in unposed)} were not posed by the background; "

@@ -54,8 +54,8 @@ from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, input_key
 from sfm.video import ProbedVideo, probe_video, video_name
-from tracking.charuco import read_charuco_board
-from tracking.tracks import Tracks, read_tracks
+from tracking.charuco import charuco_tracks, read_charuco_board
+from tracking.tracks import Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
 
@@ -95,13 +95,14 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
         infos = _probe_all(paths, unreadable)
     with collected(notes), timed(notes, "motion_test"):
         tracks = capture_tracks(options, out)
-    check_inputs(options, infos, tracks)
-    require_writable(out)
-    clear_outputs(out)  # only once the inputs are known good: a typo never costs the last run's results
     if tracks is None and options.board is not None:
+        require_writable(out)
         with collected(notes), timed(notes, "board_corners"):
             tracks = board_tracks([info.path for info in infos], options.board, out)
         options = dataclasses.replace(options, tracks=tracks.path)  # the report names the file
+    check_inputs(options, infos, tracks)
+    require_writable(out)
+    clear_outputs(out)  # only once the inputs are known good: a typo never costs the last run's results
     names = [info.name for info in infos]
     for info in tqdm(infos, desc="testing camera motion", unit="video", leave=False):
         prepare_video(info, out, options, tracks)
@@ -176,15 +177,17 @@ def _check_videos(videos: list[Path]) -> None:
 def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:
     """`--board` without tracks: the board's corners found in the videos are the subject's tracks, written to
     WS/tracks.csv as `import-tracks VIDEO... --board` writes them (the solve reads them there)."""
-    from tracking.importing import Format, ImportOptions, run_import
-
     log.info("no tracks: the board's corners found in the videos are the subject's tracks (%s)", out / "tracks.csv")
-    return read_tracks(run_import(list(videos), out / "tracks.csv", ImportOptions(format=Format.CHARUCO, board=board)))
+    out.mkdir(parents=True, exist_ok=True)
+    write_tracks(out / "tracks.csv", charuco_tracks(videos, board))
+    return read_tracks(out / "tracks.csv")
 
 
 def capture_tracks(options: RegisterOptions, out: Path) -> Tracks | None:
     """The subject's tracks registration uses (masks, the subject path): the given ones, or WS's tracks.csv."""
     path = options.tracks or (out / "tracks.csv" if (out / "tracks.csv").exists() else None)
+    if path is not None and options.tracks is None and options.board is not None:
+        log.info("tracks: %s (delete it to find the board's corners in the videos again)", path)
     return read_tracks(path) if path is not None else None
 
 

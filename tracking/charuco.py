@@ -291,7 +291,7 @@ def charuco_tracks(
         if not len(frame):
             log.warning("%s: the board was found in none of its %d frames", path, count)
     if require_any and results and not any(len(r[0]) for r in results):
-        raise board_not_found(board, paths[0], min_corners)
+        raise board_not_found(board, paths[0], min_corners if min_corners > 1 else None)
     frame = np.concatenate([r[0] for r in results]) if results else np.zeros(0, dtype=np.int64)
     ids = np.concatenate([r[1] for r in results]) if results else np.zeros(0, dtype=np.int64)
     xy = np.concatenate([r[2] for r in results]) if results else np.zeros((0, 2))

@@ -149,6 +149,31 @@ def test_a_bad_board_file_is_a_one_line_error_before_any_work(
     assert not (tmp_path / "ws").exists()
 
 
+def test_a_board_found_in_no_video_keeps_the_last_results(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`register --board` without tracks looks for the corners before it clears anything: a board file that does
+    not match the videos is a one-line error, and the last run's results stay."""
+    board = tmp_path / "charuco.toml"
+    board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    videos = []
+    texture = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8), (5, 5), 1.0)
+    for name in ("a", "b"):
+        path = tmp_path / f"{name}.avi"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (320, 240))
+        for _ in range(3):
+            writer.write(cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR))
+        writer.release()
+        videos.append(str(path))
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    kept = {name: f"last run's {name}" for name in ("cameras.json", "background.ply", "register_report.json")}
+    for name, text in kept.items():
+        (ws / name).write_text(text)
+    assert main(["register", *videos, "--out", str(ws), "--board", str(board)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "in no frame of any video" in err
+    assert {name: (ws / name).read_text() for name in kept} == kept and not (ws / "tracks.csv").exists()
+
+
 def _plans(folder: Path, names: list[str]) -> list[VideoPlan]:
     """Static videos of SIZE, 30 frames each, as register's plan has them."""
     return [
