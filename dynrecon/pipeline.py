@@ -503,7 +503,9 @@ class Stages:
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
                 hint = board_hint(self.videos) if options.register.board_hint else None
                 if hint:
-                    raise RegistrationError(f"{error}; {hint}", what=error.what, report=error.report) from None
+                    head, details, where = str(error).partition(". Details: ")  # the hint before the report's path
+                    message = f"{head}; {hint}{details}{where}"
+                    raise RegistrationError(message, what=error.what, report=error.report) from None
                 raise
             log.warning(
                 "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
