@@ -34,12 +34,28 @@ def eight_point(xa: np.ndarray, xb: np.ndarray, essential: bool) -> np.ndarray:
     # F33 = 1: a batched 8x8 solve is much faster than batched SVDs (the rare F33 = 0 case just scores 0)
     # (a tiny ridge keeps hypotheses with a repeated sample solvable: they simply score low)
     with np.errstate(all="ignore"):
-        f = np.linalg.solve(A + 1e-10 * np.eye(8), -one[..., None])[..., 0]
+        f = _solve_batch(A + 1e-10 * np.eye(8), -one[..., None])[..., 0]
     F = np.concatenate([f, np.ones((*f.shape[:-1], 1))], axis=-1).reshape((*A.shape[:-2], 3, 3))
     F = np.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0)
     U, S, Vt = np.linalg.svd(F)
     S = np.broadcast_to(np.array([1.0, 1.0, 0.0]), S.shape) if essential else S * np.array([1.0, 1.0, 0.0])
     return np.einsum("...ij,...j,...jk->...ik", U, S, Vt)
+
+
+def _solve_batch(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.linalg.solve over a batch (..., n, n), (..., n, 1); a sample whose matrix is still singular (duplicate
+    points: the ridge vanishes beside large entries) gives NaN instead of failing the whole batch."""
+    try:
+        return np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        flat_A, flat_b = A.reshape(-1, *A.shape[-2:]), b.reshape(-1, *b.shape[-2:])
+        out = np.full(flat_b.shape, np.nan)
+        for i in range(len(flat_A)):
+            try:
+                out[i] = np.linalg.solve(flat_A[i], flat_b[i])
+            except np.linalg.LinAlgError:
+                continue
+        return out.reshape(b.shape)
 
 
 def weighted_fit(xa: np.ndarray, xb: np.ndarray, w: np.ndarray, essential: bool) -> np.ndarray:
