@@ -45,7 +45,6 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon import video_io
 from dynrecon.atomic import atomic_write_text, require_writable
 from dynrecon.errors import InputError
 from labeling.skeleton import read_skeleton
@@ -70,14 +69,14 @@ from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.people import per_video_people
 from sfm.register_check import refuted_in_folder
 from sfm.register_people import people_on_cameras
-from sfm.stage import Localize, RegisterOptions, RegistrationError, check_scale_points
+from sfm.stage import Localize, RegisterOptions, RegistrationError, board_tracks, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy, evaluate
-from tracking.charuco import charuco_tracks, read_charuco_board
+from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.tracks import Tracks, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -503,9 +502,7 @@ class Stages:
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
                 hint = board_hint(self.videos) if options.register.board_hint else None
                 if hint:
-                    head, details, where = str(error).partition(". Details: ")  # the hint before the report's path
-                    message = f"{head}; {hint}{details}{where}"
-                    raise RegistrationError(message, what=error.what, report=error.report) from None
+                    raise error.with_hint(hint) from None
                 raise
             log.warning(
                 "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
@@ -558,7 +555,7 @@ class Stages:
                 {**self.video_files, "board": board},
                 {"board": board.name},
                 [tracks_path],
-                lambda: _board_corners(self.videos, board, tracks_path),
+                lambda: board_tracks(self.videos, board, self.ws),
             )
         elif not tracks_path.is_file():
             log.info(
@@ -723,19 +720,6 @@ def _static_left_out(report_path: Path) -> bool:
         return any(v.get("camera") == "static" and v.get("posed_by") == "none" for v in report.get("videos", []))
     except (OSError, ValueError, AttributeError, TypeError):
         return False
-
-
-def _board_corners(videos: list[Path], board: Path, tracks_path: Path) -> None:
-    """The board's corners in the videos that decode (registration leaves the others out too) -> tracks.csv."""
-    readable = []
-    for video in videos:
-        try:
-            video_io.open_video(video).release()
-        except InputError as error:
-            log.warning("%s: no board corners looked for: %s", video, error)
-            continue
-        readable.append(video)
-    write_tracks(tracks_path, charuco_tracks(readable or videos, board))
 
 
 def _track(ws: Path, tracks_path: Path, videos: list[Path], options: TrackOptions) -> None:

@@ -61,16 +61,17 @@ def pose_from_subject(
         return None
     if tracks is None:
         hint = board_hint([v.info.path for v in unposed]) if unposed and options.board_hint else None
+        then = f"; {hint}" if hint else ""
         if unposed:
             warnings.append(
                 f"static videos {', '.join(v.info.name for v in unposed)} were not posed by the background; "
                 "2D tracks of the moving subject can pose them: run `dynrecon track WS` (or import-tracks) "
-                "and register again" + (f"; {hint}" if hint else "")
+                f"and register again{then}"
             )
         return {
             "used": False,
             "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
-            "import-tracks) and register again" + (f"; {hint}" if hint else ""),
+            f"import-tracks) and register again{then}",
         }
     board: dict[str, Any] | None = None
     scale = options.scale

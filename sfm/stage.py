@@ -25,6 +25,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from dynrecon import video_io
 from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError, InputError
 from sfm import colmap_steps
@@ -68,10 +69,23 @@ class RegistrationError(DynreconError):
     """SfM could not put at least two videos into one model. `what`: how many videos were posed; `report`: the
     register_report.json that says why."""
 
-    def __init__(self, message: str, *, what: str = "", report: Path | None = None) -> None:
+    def __init__(self, message: str, *, what: str = "", report: Path | None = None, reason: str = "") -> None:
         super().__init__(message)
         self.what = what or message
         self.report = report
+        self.reason = reason  # why, and what to do (the message's middle part)
+
+    @classmethod
+    def of(cls, what: str, reason: str, report: Path) -> RegistrationError:
+        return cls(
+            f"{what}; cameras.json not written: {reason}. Details: {report}", what=what, report=report, reason=reason
+        )
+
+    def with_hint(self, hint: str) -> RegistrationError:
+        """The same failure with `hint` added to what to do."""
+        if not self.reason or self.report is None:  # a message carried as text (the batch's tasks)
+            return RegistrationError(f"{self}; {hint}", what=self.what, report=self.report)
+        return RegistrationError.of(self.what, f"{self.reason}; {hint}", self.report)
 
 
 MIN_SCALE_M, MAX_SCALE_M = 1e-6, 1e6  # --scale distances outside this are a typo, not a subject
@@ -175,11 +189,21 @@ def _check_videos(videos: list[Path]) -> None:
 
 
 def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:
-    """`--board` without tracks: the board's corners found in the videos are the subject's tracks, written to
-    WS/tracks.csv as `import-tracks VIDEO... --board` writes them (the solve reads them there)."""
+    """`--board` without tracks: the board's corners found in the videos that decode (registration leaves the
+    others out too) are the subject's tracks, written to WS/tracks.csv as `import-tracks VIDEO... --board` writes
+    them (the solve reads them there)."""
     log.info("no tracks: the board's corners found in the videos are the subject's tracks (%s)", out / "tracks.csv")
+    readable = []
+    for video in videos:
+        try:
+            video_io.open_video(video).release()
+        except InputError as error:
+            log.warning("%s: no board corners looked for: %s", video, error)
+            continue
+        readable.append(video)
     out.mkdir(parents=True, exist_ok=True)
-    write_tracks(out / "tracks.csv", charuco_tracks(videos, board))
+    write_tracks(out / "tracks.csv", charuco_tracks(readable or videos, board))
+    # read back: this run sees the CSV's rounded positions, as a later run reading WS/tracks.csv will
     return read_tracks(out / "tracks.csv")
 
 
@@ -549,9 +573,9 @@ def _fail(
             "try more overlap between the videos' views, more frames (--max-frames, --step), known intrinsics "
             "(--intrinsics), or --keyframes / --max-features higher"
         )
-    message = f"{what}; cameras.json not written: {hint}. Details: {out / 'register_report.json'}"
-    _write_report(out, options, notes, unreadable, videos, results, summary, subject, error=message)
-    raise RegistrationError(message, what=what, report=out / "register_report.json")
+    error = RegistrationError.of(what, hint, out / "register_report.json")
+    _write_report(out, options, notes, unreadable, videos, results, summary, subject, error=str(error))
+    raise error
 
 
 __all__ = [
@@ -562,6 +586,7 @@ __all__ = [
     "RegisterOptions",
     "RegistrationError",
     "SubjectPath",
+    "board_tracks",
     "capture_tracks",
     "finish_capture",
     "map_capture",
