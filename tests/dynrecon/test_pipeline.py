@@ -416,6 +416,8 @@ def test_run_calibration_errors_are_one_line(calibrated: Path, tmp_path: Path, c
 def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
     """`run --board` with neither labels nor tracks: the board's corners found in the videos are WS/tracks.csv
     (the track stage, skipped when up to date); a tracks.csv the user put in WS is theirs and kept."""
+    from board_video import render_board, write_video
+
     from tracking.charuco import read_charuco_board
     from tracking.tracks import read_tracks
 
@@ -424,17 +426,18 @@ def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
         'columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n'
         "aruco_scale = 0.75\ninverted = true\n"
     )
-    printed = 255 - read_charuco_board(board).opencv().generateImage((216, 270))  # 1000 px per metre, inverted
-    videos = []
-    for name, shift in (("cam_a", 100), ("cam_b", 160)):
-        path = tmp_path / f"{name}.avi"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (640, 480))
-        for i in range(3):
-            H = np.array([[1.0, 0, shift + 5.0 * i], [0, 1.0, 20], [0, 0, 1]])
-            frame = cv2.warpPerspective(printed, H, (640, 480), flags=cv2.INTER_AREA, borderValue=(160,))
-            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
-        writer.release()
-        videos.append(path)
+    shifts = {"cam_a": 100, "cam_b": 160}
+    videos = [
+        write_video(
+            tmp_path / f"{name}.avi",
+            render_board(
+                read_charuco_board(board),
+                [np.array([[1.0, 0, shift + 5.0 * i], [0, 1.0, 20], [0, 0, 1]]) for i in range(3)],
+                (640, 480),
+            ),
+        )
+        for name, shift in shifts.items()
+    ]
     options = PipelineOptions(register=replace(default_register(), board=board))
     stages = Stages(videos, tmp_path / "ws", options)
     tracks_path = stages.track()

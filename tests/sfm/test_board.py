@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from board_video import write_video
 
 from dynrecon.cli import main
 from sfm.board import MIN_VIEWS, board_scale, calibrate_from_board
@@ -154,15 +155,8 @@ def test_a_board_found_in_no_video_keeps_the_last_results(tmp_path: Path, capsys
     not match the videos is a one-line error, and the last run's results stay."""
     board = tmp_path / "charuco.toml"
     board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
-    videos = []
     texture = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8), (5, 5), 1.0)
-    for name in ("a", "b"):
-        path = tmp_path / f"{name}.avi"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (320, 240))
-        for _ in range(3):
-            writer.write(cv2.cvtColor(texture, cv2.COLOR_GRAY2BGR))
-        writer.release()
-        videos.append(str(path))
+    videos = [str(write_video(tmp_path / f"{name}.avi", [texture] * 3)) for name in ("a", "b")]
     ws = tmp_path / "ws"
     ws.mkdir()
     kept = {name: f"last run's {name}" for name in ("cameras.json", "background.ply", "register_report.json")}

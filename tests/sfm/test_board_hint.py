@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from board_video import render_board, write_video
 
 from sfm.board_hint import board_hint, markers_in_view
 from tracking.charuco import CharucoBoard
@@ -15,25 +16,13 @@ BOARD = CharucoBoard(
 )
 
 
-def _video(path: Path, frames: list[np.ndarray]) -> Path:
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (640, 480))
-    for frame in frames:
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
-    writer.release()
-    return path
-
-
 def test_markers_of_a_board_are_named_and_texture_is_not(tmp_path: Path) -> None:
-    printed = 255 - BOARD.opencv().generateImage((216, 270))  # printed inverted, as caliscope's
-    board_frames = [
-        cv2.warpPerspective(
-            printed, np.array([[1.3, 0, 100 + 10 * i], [0, 1.3, 40], [0, 0, 1]]), (640, 480), borderValue=(160,)
-        )
-        for i in range(6)
-    ]
+    board_frames = render_board(
+        BOARD, [np.array([[1.3, 0, 100 + 10 * i], [0, 1.3, 40], [0, 0, 1]]) for i in range(6)], (640, 480)
+    )
     texture = np.random.default_rng(0).integers(0, 256, (480, 640), dtype=np.uint8)
-    board_video = _video(tmp_path / "cam_a.avi", board_frames)
-    texture_video = _video(tmp_path / "cam_b.avi", [cv2.GaussianBlur(texture, (5, 5), 1.0)] * 6)
+    board_video = write_video(tmp_path / "cam_a.avi", board_frames)
+    texture_video = write_video(tmp_path / "cam_b.avi", [cv2.GaussianBlur(texture, (5, 5), 1.0)] * 6)
     found = markers_in_view([board_video, texture_video])
     assert list(found) == ["DICT_4X4_1000"] and found["DICT_4X4_1000"] == {"cam_a": list(range(10))}
     hint = board_hint([board_video, texture_video])

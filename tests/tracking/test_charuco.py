@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from board_video import PPM, render_board, write_video
 
 from dynrecon.errors import InputError
 from sfm.calibration import read_calibration
@@ -49,38 +50,19 @@ def test_read_board_and_corner_positions(tmp_path: Path) -> None:
         read_charuco_board(path)
 
 
-def _render(board: CharucoBoard, homographies: list[np.ndarray], size: tuple[int, int]) -> list[np.ndarray]:
-    """Frames showing the board (printed at 1000 px per metre) through each board-pixel -> image homography."""
-    ppm = 1000.0
-    image = board.opencv().generateImage(
-        (round(board.columns * board.square_size * ppm), round(board.rows * board.square_size * ppm))
-    )
-    if board.inverted:
-        image = 255 - image
-    frames = []
-    for H in homographies:
-        frame = cv2.warpPerspective(image, H, size, flags=cv2.INTER_AREA, borderValue=(160,))
-        frames.append(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
-    return frames
-
-
 def test_rendered_board(tmp_path: Path) -> None:
     """Corners found where the homography puts them (the image from generateImage has pixel centres at
     (i + 0.5) / ppm metres), in OpenCV's pixel convention: no bias (the other convention is off by ~0.3 px on
     both axes); an empty frame gives no rows."""
-    ppm, size = 1000.0, (640, 480)
+    ppm, size = PPM, (640, 480)  # the rendering's print scale
     homographies = []
     for angle, shift in ((0.0, (150, 40)), (0.2, (200, 60)), (-0.3, (120, 90))):
         c, s = np.cos(angle), np.sin(angle)
         homographies.append(np.array([[1.2 * c, -1.2 * s, shift[0]], [1.2 * s, 1.2 * c, shift[1]], [2e-5, 1e-5, 1.0]]))
-    frames = _render(BOARD, homographies, size)
+    frames = render_board(BOARD, homographies, size)
     frames.insert(1, np.full_like(frames[0], 160))
     homographies.insert(1, np.eye(3))
-    path = tmp_path / "cam_a.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, size)
-    for frame in frames:
-        writer.write(frame)
-    writer.release()
+    path = write_video(tmp_path / "cam_a.avi", frames)
     tracks = charuco_tracks([path], BOARD)
     assert set(tracks.video) == {"cam_a"} and set(tracks.extra["source"]) == {"charuco"}
     assert sorted(set(tracks.frame.tolist())) == [0, 2, 3]
@@ -104,17 +86,13 @@ def test_back_face_of_a_two_sided_board(tmp_path: Path) -> None:
     """A camera behind a two-sided board sees the mirror print: found by the flipped search, each corner where the
     front corner of its id lies (the board seen through a reflecting homography); `corner_<id>_back` with a
     thickness. A front view in the same video is still found unflipped."""
-    ppm, size = 1000.0, (640, 480)
+    ppm, size = PPM, (640, 480)  # the rendering's print scale
     width_px = round(BOARD.columns * BOARD.square_size * ppm)
     behind = np.array([[1.1, 0.1, 180], [-0.05, 1.1, 70], [1e-5, 2e-5, 1.0]]) @ np.array(
         [[-1.0, 0, width_px - 1], [0, 1.0, 0], [0, 0, 1.0]]
     )  # board pixel -> image, orientation-reversing
     front = np.array([[1.2, 0, 150], [0, 1.2, 40], [0, 0, 1.0]])
-    path = tmp_path / "cam_c.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, size)
-    for frame in _render(BOARD, [behind, front, behind], size):
-        writer.write(frame)
-    writer.release()
+    path = write_video(tmp_path / "cam_c.avi", render_board(BOARD, [behind, front, behind], size))
     tracks = charuco_tracks([path], BOARD)
     positions = board_corner_positions(BOARD)
     assert sorted(set(tracks.frame.tolist())) == [0, 1, 2] and set(tracks.point) == set(positions)
@@ -135,11 +113,9 @@ def test_back_face_of_a_two_sided_board(tmp_path: Path) -> None:
 
 
 def test_import_tracks_charuco(tmp_path: Path) -> None:
-    path = tmp_path / "cam_b.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, (640, 480))
-    for frame in _render(BOARD, [np.array([[1.0, 0, 100], [0, 1.0, 20], [0, 0, 1]])], (640, 480)):
-        writer.write(frame)
-    writer.release()
+    path = write_video(
+        tmp_path / "cam_b.avi", render_board(BOARD, [np.array([[1.0, 0, 100], [0, 1.0, 20], [0, 0, 1]])], (640, 480))
+    )
     board = tmp_path / "charuco.toml"
     board.write_text(
         'columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n'
@@ -237,13 +213,10 @@ def test_caliscope_corners_reproject(shared_dir: Path) -> None:
 def test_import_goes_on_when_one_video_never_shows_the_board(tmp_path: Path) -> None:
     """A camera that never saw the board adds no rows (a warning); only a board found in no video is an error."""
     size = (640, 480)
-    shown = _render(BOARD, [np.array([[1.2, 0.0, 150.0], [0.0, 1.2, 40.0], [2e-5, 1e-5, 1.0]])], size)
+    shown = render_board(BOARD, [np.array([[1.2, 0.0, 150.0], [0.0, 1.2, 40.0], [2e-5, 1e-5, 1.0]])], size)
     paths = {"cam_a": shown * 3, "cam_b": [np.full_like(shown[0], 160)] * 3}
     for name, frames in paths.items():
-        writer = cv2.VideoWriter(str(tmp_path / f"{name}.avi"), cv2.VideoWriter.fourcc(*"FFV1"), 10.0, size)
-        for frame in frames:
-            writer.write(frame)
-        writer.release()
+        write_video(tmp_path / f"{name}.avi", frames)
     board = tmp_path / "charuco.toml"
     board.write_text(
         f"columns = {BOARD.columns}\nrows = {BOARD.rows}\nsquare_size_override_cm = {BOARD.square_size * 100}\n"
