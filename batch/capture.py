@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from dynrecon.errors import InputError
+from dynrecon.names import VIDEO_SUFFIXES
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
 MANIFEST_NAME = "capture.json"
 LABELS_NAME = "labels.csv"
 TRACKS_NAME = "tracks.csv"

@@ -52,7 +52,7 @@ def plan_task(job: CaptureJob, video: Path, probe: TaskOutcome) -> TaskOutcome:
         folder = _folder(job)
         clear_outputs(folder)  # every plan task of the capture does it: removing a missing file is harmless
         options = _options(job)
-        prepare_video(probe_video(video), folder, options, capture_tracks(options, folder))
+        prepare_video(probe_video(video), folder, options, capture_tracks(options, folder, _names(job)))
 
     return guarded(job, "plan", video.stem, body)
 
@@ -112,7 +112,7 @@ def finish_register_task(job: CaptureJob, localized: list[TaskOutcome]) -> TaskO
     names = _names(job)
 
     def finish(videos: list[Path], folder: Path, options: RegisterOptions) -> None:
-        finish_capture(folder, names, options, capture_tracks(options, folder))
+        finish_capture(folder, names, options, capture_tracks(options, folder, names))
 
     def body(outcome: TaskOutcome) -> None:
         stages = job.stages()

@@ -15,9 +15,10 @@ from pathlib import Path
 
 from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
+from dynrecon.names import VIDEO_SUFFIXES
 from dynrecon.readers import read_json
 from labeling.skeleton import Skeleton, skeleton_from_json
-from tracking.workspace import CONFIG_NAME, VIDEO_SUFFIXES
+from tracking.workspace import CONFIG_NAME
 
 log = logging.getLogger(__name__)
 

@@ -39,7 +39,7 @@ from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
 from sfm.people import check_people_mapped, people_maps, renumber_people
-from tracking.tracks import Tracks, read_tracks
+from tracking.tracks import Tracks, matched_to_videos, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +147,7 @@ def solve(
     started = time.perf_counter()
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
+    track_set = matched_to_videos(track_set, [video.name for video in camera_set.videos])
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
     check_people_mapped(camera_set, track_set)
     track_set = renumber_people(track_set, people_maps(camera_set))

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 import tomllib
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -40,8 +39,9 @@ from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
+from dynrecon.names import name_key
 from dynrecon.readers import read_text, shown
-from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, write_cameras
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
 from sfm.video import ProbedVideo, probe_video
 
@@ -50,6 +50,8 @@ log = logging.getLogger(__name__)
 QCA_SUBPIXELS = 64.0
 QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # flips the y and z camera axes
 FREEMOCAP_MM_KEY = "charuco_square_size"  # in FreeMoCap's [metadata]: the board's square size in mm
+MOVING_FIX = "register those videos together with this recording's, or leave that camera's video out"
+SAME_POSE = 1e-6  # a static camera's frames share one pose: rotation and translation equal to this (relative)
 
 
 @dataclass(kw_only=True)
@@ -64,6 +66,7 @@ class StaticCamera:
     dist: np.ndarray  # (4,) or (5,)
     R: np.ndarray | None  # (3, 3)
     t: np.ndarray | None  # (3,)
+    no_pose: str | None = None  # why R and t are None, where the file says (default: intrinsics only)
 
     @property
     def has_pose(self) -> bool:
@@ -71,6 +74,8 @@ class StaticCamera:
 
     def pose(self, path: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(R, t); an InputError naming the camera when the file gives it no pose."""
+        if (self.R is None or self.t is None) and self.no_pose is not None:
+            raise InputError(path, self.no_pose, where=f"camera {self.name!r}", fix=MOVING_FIX)
         if self.R is None or self.t is None:
             raise InputError(
                 path,
@@ -333,6 +338,40 @@ def write_toml(path: str | Path, cameras: list[StaticCamera]) -> Path:
     return path
 
 
+def read_cameras_json(path: str | Path) -> list[StaticCamera]:
+    """The cameras of dynrecon's `cameras.json` (another recording by the same cameras, e.g. a board filmed
+    before the session): one per video, its first frame's intrinsics and distortion; a pose only where every
+    frame has the same one (a static camera), else intrinsics only (`no_pose` says why)."""
+    path = Path(path)
+    cameras = []
+    for video in read_cameras(path).videos:
+        if not video.frames:
+            continue
+        first = video.frames[0]
+        R, t = first.R, first.t
+        scale = max(1.0, float(np.abs(t).max()))
+        moving = any(
+            np.abs(f.R - R).max() > SAME_POSE or np.abs(f.t - t).max() > SAME_POSE * scale for f in video.frames
+        )
+        cameras.append(
+            StaticCamera(
+                name=video.name,
+                width=video.width,
+                height=video.height,
+                K=first.K.copy(),
+                dist=np.zeros(4) if first.dist is None else first.dist.copy(),
+                R=None if moving else R.copy(),
+                t=None if moving else t.copy(),
+                no_pose=f"video {video.name!r}'s camera moves in this recording: its poses fit no other video"
+                if moving
+                else None,
+            )
+        )
+    if not cameras:
+        raise InputError(path, "no video has a posed frame", fix="give the cameras.json of a registered recording")
+    return cameras
+
+
 def read_calibration(
     path: str | Path, fmt: CalibrationFormat = CalibrationFormat.AUTO, units: Units = Units.AUTO
 ) -> list[StaticCamera]:
@@ -342,14 +381,18 @@ def read_calibration(
         lower = path.name.lower()
         if lower.endswith(".toml"):
             fmt = CalibrationFormat.TOML
+        elif lower.endswith(".json"):
+            fmt = CalibrationFormat.CAMERAS_JSON
         elif ".qca" in lower or lower.endswith(".xml"):
             fmt = CalibrationFormat.QCA
         else:
             raise InputError(
                 path,
                 "cannot tell the calibration format from the name",
-                fix="pass --format qca or --format toml",
+                fix="pass --format qca, toml or json",
             )
+    if fmt is CalibrationFormat.CAMERAS_JSON:
+        return read_cameras_json(path)  # read_cameras has checked it
     cameras = read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
     for camera in cameras:
         where = f"camera {shown(camera.name)}"
@@ -365,17 +408,12 @@ def read_calibration(
 # Matching calibrated cameras to videos
 
 
-def _normalized(name: str) -> str:
-    """'cam_01', 'Cam1', 'cam01' all become 'cam1': calibration tools and users spell numbers differently."""
-    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name.lower()))
-
-
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:
     """The camera for each video: by name (ignoring case, separators and leading zeros), else, when no name matches
     at all, by order; some names matching and others not is an error (an order would give the matched cameras to
     other videos)."""
-    by_name = {_normalized(c.name): c for c in cameras}
-    matched = [by_name.get(_normalized(v.name)) for v in videos]
+    by_name = {name_key(c.name): c for c in cameras}
+    matched = [by_name.get(name_key(v.name)) for v in videos]
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
     if any(m is not None for m in matched):
@@ -511,6 +549,7 @@ __all__ = [
     "intrinsics_at_video_size",
     "match_cameras",
     "read_calibration",
+    "read_cameras_json",
     "read_qca",
     "read_toml",
     "run",

@@ -30,7 +30,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "calibration",
         type=Path,
         help="calibration file (.qca.txt / .qca / .xml, or .toml: Pose2Sim/anipose/FreeMoCap [cam_N], "
-        "caliscope [cameras.N] or [cam_N])",
+        "caliscope [cameras.N] or [cam_N]; or the cameras.json of another recording by the same static cameras, "
+        "e.g. a board filmed before the session)",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dynrecon.errors import InputError
+from dynrecon.names import name_key
 from sfm.calibration import TurnedVideoError, intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
@@ -20,15 +21,15 @@ _TURNED: set[tuple[str, str]] = set()  # registration reads the intrinsics in se
 def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
     if path.suffix.lower() == ".json":
-        cameras = read_cameras(path)
-        result = {}
+        # a cameras.json may hold more or fewer videos than this capture: those named alike are taken
+        by_key = {name_key(video.name): video for video in read_cameras(path).videos}
+        result: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         for info in infos:
-            try:
-                video = cameras.video(info.name)
-            except KeyError:
+            video = by_key.get(name_key(info.name))
+            if video is None:
                 continue
             if not video.frames:
-                raise InputError(path, f"video {info.name!r} has no frames to take intrinsics from")
+                raise InputError(path, f"video {video.name!r} has no frames to take intrinsics from")
             first = video.frames[0]
             K = _at_video_size(first.K, (video.width, video.height), info, info.name, path)
             if K is not None:

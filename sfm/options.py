@@ -179,6 +179,7 @@ class CalibrationFormat(enum.Enum):
     AUTO = "auto"
     QCA = "qca"
     TOML = "toml"  # every TOML layout: Pose2Sim/anipose/FreeMoCap [cam_N], caliscope [cameras.N] and [cam_N]
+    CAMERAS_JSON = "json"  # dynrecon's own cameras.json of another recording by the same static cameras
 
 
 class Units(enum.Enum):

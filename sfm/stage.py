@@ -56,7 +56,7 @@ from sfm.report import write_report
 from sfm.resume import StepLog, input_key
 from sfm.video import ProbedVideo, probe_video, video_name
 from tracking.charuco import charuco_tracks, read_charuco_board
-from tracking.tracks import Tracks, read_tracks, write_tracks
+from tracking.tracks import Tracks, matched_to_videos, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     with collected(notes), timed(notes, "probe"):
         infos = _probe_all(paths, unreadable)
     with collected(notes), timed(notes, "motion_test"):
-        tracks = capture_tracks(options, out)
+        tracks = capture_tracks(options, out, [info.name for info in infos])
     if tracks is None and options.board is not None:
         require_writable(out)
         with collected(notes), timed(notes, "board_corners"):
@@ -207,12 +207,13 @@ def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:
     return read_tracks(out / "tracks.csv")
 
 
-def capture_tracks(options: RegisterOptions, out: Path) -> Tracks | None:
-    """The subject's tracks registration uses (masks, the subject path): the given ones, or WS's tracks.csv."""
+def capture_tracks(options: RegisterOptions, out: Path, videos: Sequence[str]) -> Tracks | None:
+    """The subject's tracks registration uses (masks, the subject path): the given ones, or WS's tracks.csv; their
+    video names matched to `videos` (the capture's video names)."""
     path = options.tracks or (out / "tracks.csv" if (out / "tracks.csv").exists() else None)
     if path is not None and options.tracks is None and options.board is not None:
         log.info("tracks: %s (delete it to find the board's corners in the videos again)", path)
-    return read_tracks(path) if path is not None else None
+    return matched_to_videos(read_tracks(path), videos) if path is not None else None
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -398,6 +399,9 @@ def finish_capture(
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
+    moving_hint = _moving_hint(plans, registered_videos, tracks, options)
+    if moving_hint:
+        notes.warnings.append(moving_hint)
     if len(registered_videos) < 2:
         names = ", ".join(v.info.name for v in registered_videos) or "none"
         _fail(
@@ -410,6 +414,7 @@ def finish_capture(
             summary,
             subject_report,
             f"only {len(registered_videos)} of {len(plans)} videos registered ({names})",
+            moving_hint,
         )
     with timed(notes, "export"):
         # a model whose every pose the subject refuted has its points in another world than the cameras
@@ -553,6 +558,25 @@ def _write_report(
     )
 
 
+def _moving_hint(
+    plans: list[VideoPlan], registered: list[VideoPlan], tracks: Tracks | None, options: RegisterOptions
+) -> str | None:
+    """One line for tracked videos that the motion test found moving and nothing posed: the subject path poses
+    only static cameras, and a subject filling a tripod's view (a board held close) can look like camera motion."""
+    if options.camera_motion is not CameraMotion.AUTO or tracks is None:
+        return None
+    tracked = set(tracks.video_names())
+    posed = {v.info.name for v in registered}
+    lost = [v for v in plans if not v.static and v.info.name not in posed and v.info.name in tracked]
+    if not lost:
+        return None
+    reasons = "; ".join(f"{v.info.name}: {v.motion.reason}" for v in lost if v.motion is not None)
+    return (
+        f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and not posed; the subject path "
+        "poses static cameras only: if they stood still, register again with --camera-motion static"
+    )
+
+
 def _fail(
     out: Path,
     options: RegisterOptions,
@@ -563,6 +587,7 @@ def _fail(
     summary: _Summary,
     subject: dict[str, Any] | None,
     what: str,
+    moving_hint: str | None = None,
 ) -> NoReturn:
     if subject is not None and subject.get("why"):
         hint = (
@@ -573,6 +598,8 @@ def _fail(
             "try more overlap between the videos' views, more frames (--max-frames, --step), known intrinsics "
             "(--intrinsics), or --keyframes / --max-features higher"
         )
+    if moving_hint:
+        hint += f"; {moving_hint}"
     error = RegistrationError.of(what, hint, out / "register_report.json")
     _write_report(out, options, notes, unreadable, videos, results, summary, subject, error=str(error))
     raise error

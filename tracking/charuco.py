@@ -22,10 +22,11 @@ from __future__ import annotations
 import logging
 import os
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -84,7 +85,9 @@ def _dictionary_id(name: str, path: Path | None) -> int:
 
 
 def read_charuco_board(path: str | Path) -> CharucoBoard:
-    """caliscope's `charuco.toml` (keys at the top level) or its `config.toml` (a `[charuco]` table)."""
+    """caliscope's `charuco.toml` (keys at the top level) or its `config.toml` (a `[charuco]` table); anipose's
+    `config.toml` (a `[calibration]` table with `board_type = "charuco"`) or sleap-anipose's `board.toml`
+    (`board_x`, `board_y`, `square_length`, ...), their lengths in mm."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -96,6 +99,10 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
         ) from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(path, f"not valid TOML: {error}") from None
+    if isinstance(data.get("calibration"), dict) and "board_size" in data["calibration"]:
+        return _anipose_board(data["calibration"], path, "[calibration]")
+    if "board_x" in data:
+        return _anipose_board(data, path, None)
     table = data.get("charuco", data)
     where = "[charuco]" if "charuco" in data else None
     if not isinstance(table, dict) or "columns" not in table or "rows" not in table:
@@ -103,20 +110,10 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             path,
             "no ChArUco board (columns, rows) found",
             where=where,
-            fix="give caliscope's charuco.toml or config.toml",
+            fix="give caliscope's charuco.toml or config.toml, anipose's config.toml or sleap-anipose's board.toml",
         )
-
-    def number(key: str, default: float | None = None) -> float:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value) or value <= 0:
-            raise InputError(path, f"{key} = {value!r} must be a positive number", where=where)
-        return float(value)
-
+    number = _number_reader(table, path, where)
     columns, rows = number("columns"), number("rows")
-    if columns != int(columns) or rows != int(rows) or not (2 <= columns <= MAX_SQUARES and 2 <= rows <= MAX_SQUARES):
-        raise InputError(
-            path, f"columns, rows = {columns:g}, {rows:g} must be integers from 2 to {MAX_SQUARES}", where=where
-        )
     # caliscope spelled the key square_size_overide_cm in its code for a while: accept both.
     override = table.get("square_size_override_cm", table.get("square_size_overide_cm"))
     if override:
@@ -130,6 +127,112 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             raise InputError(path, f"units = {units!r} must be inch or cm", where=where)
         per_cm = CM_PER_INCH if units in INCH_UNITS else 1.0
         square = min(number("board_height") / rows, number("board_width") / columns) * per_cm / 100.0
+    aruco_scale = number("aruco_scale", 0.75)
+    thickness = table.get("thickness_cm", 0.0)
+    if isinstance(thickness, bool) or not isinstance(thickness, int | float) or not 0 <= thickness < 100:
+        raise InputError(path, f"thickness_cm = {thickness!r} must be a number from 0 to 100", where=where)
+    return _checked_board(
+        table,
+        path,
+        where,
+        columns=columns,
+        rows=rows,
+        square=square,
+        aruco_scale=aruco_scale,
+        dictionary=str(table.get("dictionary", "DICT_4X4_50")),
+        thickness=float(thickness) / 100.0,
+    )
+
+
+# sleap-anipose's board.toml key -> anipose's [calibration] key
+_ANIPOSE_KEYS = {
+    "square_length": "board_square_side_length",
+    "marker_length": "board_marker_length",
+    "marker_bits": "board_marker_bits",
+    "dict_size": "board_marker_dict_number",
+}
+
+
+def _anipose_board(table: dict[str, Any], path: Path, where: str | None) -> CharucoBoard:
+    """anipose's `[calibration]` (`board_size = [columns, rows]`, `board_square_side_length`,
+    `board_marker_length`, `board_marker_bits`, `board_marker_dict_number`) or sleap-anipose's `board.toml`
+    (`board_x`, `board_y`, `square_length`, `marker_length`, `marker_bits`, `dict_size`); lengths in mm, the
+    unit anipose's documentation uses. The board is built as aniposelib builds it (OpenCV's current layout)."""
+    if where is not None:  # anipose's config.toml: rename its keys to sleap-anipose's
+        kind = str(table.get("board_type", "charuco")).strip().lower()
+        if kind != "charuco":
+            raise InputError(
+                path,
+                f"board_type = {kind!r}: only a ChArUco board's corners are found and named",
+                where=where,
+                fix="film a ChArUco board, or track the subject instead",
+            )
+        size = table["board_size"]
+        if not isinstance(size, list) or len(size) != 2:
+            raise InputError(path, f"board_size = {size!r} must be [columns, rows]", where=where)
+        table = (
+            {"board_x": size[0], "board_y": size[1]}
+            | {short: table[key] for short, key in _ANIPOSE_KEYS.items() if key in table}
+            | {k: v for k, v in table.items() if k in ("inverted", "legacy_pattern")}
+        )
+    key = {short: (short if where is None else long) for short, long in _ANIPOSE_KEYS.items()}
+    number = _number_reader(table, path, where, names=key)
+    square, marker = number("square_length") / 1000.0, number("marker_length") / 1000.0
+    bits, count = number("marker_bits", 4), number("dict_size", 50)
+    if bits not in (4, 5, 6, 7) or count not in (50, 100, 250, 1000):
+        raise InputError(
+            path,
+            f"{key['marker_bits']} = {bits:g}, {key['dict_size']} = {count:g}: no such aruco dictionary",
+            where=where,
+            fix="marker bits 4 to 7 and a dictionary size of 50, 100, 250 or 1000",
+        )
+    return _checked_board(
+        table,
+        path,
+        where,
+        columns=number("board_x"),
+        rows=number("board_y"),
+        square=square,
+        aruco_scale=marker / square,
+        dictionary=f"DICT_{int(bits)}X{int(bits)}_{int(count)}",
+        thickness=0.0,
+    )
+
+
+def _number_reader(
+    table: dict[str, Any], path: Path, where: str | None, *, names: dict[str, str] | None = None
+) -> Callable[..., float]:
+    """number(key, default): the table's positive number at `key`; errors name the key as the file spells it
+    (`names`: key -> the file's name for it)."""
+
+    def number(key: str, default: float | None = None) -> float:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value) or value <= 0:
+            shown_key = (names or {}).get(key, key)
+            raise InputError(path, f"{shown_key} = {value!r} must be a positive number", where=where)
+        return float(value)
+
+    return number
+
+
+def _checked_board(
+    table: dict[str, Any],
+    path: Path,
+    where: str | None,
+    *,
+    columns: float,
+    rows: float,
+    square: float,
+    aruco_scale: float,
+    dictionary: str,
+    thickness: float,
+) -> CharucoBoard:
+    """The board, after the checks every layout shares: a printable size, a marker inside its square, a
+    dictionary with enough markers, and the layout flags (`inverted`, `legacy_pattern`)."""
+    if columns != int(columns) or rows != int(rows) or not (2 <= columns <= MAX_SQUARES and 2 <= rows <= MAX_SQUARES):
+        raise InputError(
+            path, f"columns, rows = {columns:g}, {rows:g} must be integers from 2 to {MAX_SQUARES}", where=where
+        )
     if not MIN_SQUARE_M <= square <= MAX_SQUARE_M:
         raise InputError(
             path,
@@ -137,14 +240,12 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             where=where,
             fix="give the square's edge in cm (square_size_override_cm) or the board's size (board_width, height)",
         )
-    aruco_scale = number("aruco_scale", 0.75)
     if not MIN_ARUCO_SCALE <= aruco_scale < 1:
         raise InputError(
             path,
-            f"aruco_scale = {aruco_scale:g} must be from {MIN_ARUCO_SCALE} to below 1 (marker / square edge)",
+            f"aruco_scale (marker edge / square edge) = {aruco_scale:g} must be from {MIN_ARUCO_SCALE} to below 1",
             where=where,
         )
-    dictionary = str(table.get("dictionary", "DICT_4X4_50"))
     markers = cv2.aruco.getPredefinedDictionary(_dictionary_id(dictionary, path)).bytesList.shape[0]
     needed = int(columns) * int(rows) // 2
     if needed > markers:
@@ -154,9 +255,6 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
             where=where,
             fix="give the dictionary the board was printed with",
         )
-    thickness = table.get("thickness_cm", 0.0)
-    if isinstance(thickness, bool) or not isinstance(thickness, int | float) or not 0 <= thickness < 100:
-        raise InputError(path, f"thickness_cm = {thickness!r} must be a number from 0 to 100", where=where)
     flags = {}
     for key in ("inverted", "legacy_pattern"):
         value = table.get(key, False)
@@ -171,7 +269,7 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
         dictionary=dictionary,
         inverted=flags["inverted"],
         legacy_pattern=flags["legacy_pattern"],
-        thickness=float(thickness) / 100.0,
+        thickness=thickness,
     )
 
 

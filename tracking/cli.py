@@ -115,7 +115,11 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         default="auto",
         help="input format (default: detected from the file)",
     )
-    parser.add_argument("--video", help="video name for DLC/OpenPose input (default: from the file name)")
+    parser.add_argument(
+        "--video",
+        help="the video the input's detections belong to: its name or file (cam1 or videos/cam1.mp4 both name "
+        "cam1; default: from the input's file name)",
+    )
     parser.add_argument("--map", default="", metavar="OLD=NEW,...", help="rename points, e.g. nose=head,Neck=neck")
     parser.add_argument("--drop-unmapped", action="store_true", help="with --map, keep only the mapped points")
     parser.add_argument(
@@ -139,6 +143,16 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=_run_import)
 
 
+def _video_name(value: str | None) -> str | None:
+    """--video's name: a video file given there names its video by its stem, as the videos' own names are."""
+    from dynrecon.names import VIDEO_SUFFIXES
+
+    if value is None:
+        return None
+    path = Path(value)
+    return path.stem if path.suffix.lower() in VIDEO_SUFFIXES or len(path.parts) > 1 else value
+
+
 def _run_import(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from tracking.importing import Format, ImportOptions, parse_mapping, run_import
@@ -154,7 +168,7 @@ def _run_import(args: argparse.Namespace) -> int:
         )
     options = ImportOptions(
         format=Format(args.format),
-        video=args.video,
+        video=_video_name(args.video),
         mapping=parse_mapping(args.map),
         drop_unmapped=args.drop_unmapped,
         min_score=args.min_score,

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from dynrecon.names import VIDEO_SUFFIXES
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
@@ -35,9 +36,6 @@ class Format(enum.Enum):
     OPENPOSE = "openpose"
     CSV = "csv"
     CHARUCO = "charuco"  # the inputs are videos; corners of the board given by ImportOptions.board
-
-
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
 
 
 @dataclass(kw_only=True)

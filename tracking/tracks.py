@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import logging
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -17,7 +18,10 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
+from dynrecon.names import name_key
 from dynrecon.readers import MAX_FRAME, csv_records, parse_frame, shown
+
+log = logging.getLogger(__name__)
 
 REQUIRED_COLUMNS = ("video", "frame", "point", "x", "y")
 # Values of the optional `source` column written by dynrecon (importers write their own, e.g. "charuco").
@@ -92,6 +96,38 @@ class Tracks:
             xy=np.array([(r[3], r[4]) for r in rows], dtype=float).reshape(-1, 2),
             extra={k: list(v) for k, v in extra.items()},
         )
+
+
+def matched_to_videos(tracks: Tracks, videos: Iterable[str]) -> Tracks:
+    """`tracks` with each video name that names none of `videos` renamed to the one video whose name it matches
+    when case, separators, leading zeros and a file suffix are ignored (`back.mp4` -> `back`, `Cam01` -> `cam_1`),
+    with a warning. Names that match no video, or several, or a video the tracks already name, stay as they are."""
+    videos = list(videos)
+    known = set(videos)
+    by_key: dict[str, list[str]] = {}
+    for video in videos:
+        by_key.setdefault(name_key(video), []).append(video)
+    named = set(tracks.video_names())
+    renamed: dict[str, str] = {}
+    for name in named - known:
+        candidates = by_key.get(name_key(name), [])
+        if len(candidates) == 1 and candidates[0] not in named:
+            renamed[name] = candidates[0]
+    targets = list(renamed.values())
+    renamed = {old: new for old, new in renamed.items() if targets.count(new) == 1}
+    if not renamed:
+        return tracks
+    for old, new in sorted(renamed.items()):
+        log.warning("%s: video %r taken as the video %r", tracks.path or "tracks", old, new)
+    return Tracks(
+        video=[renamed.get(v, v) for v in tracks.video],
+        frame=tracks.frame,
+        point=tracks.point,
+        xy=tracks.xy,
+        extra=tracks.extra,
+        line=tracks.line,
+        path=tracks.path,
+    )
 
 
 def join_tracks(*parts: Tracks) -> Tracks:

@@ -13,12 +13,12 @@ import json
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from dynrecon.names import VIDEO_SUFFIXES
 from tracking import labels as labels_csv
 
 CONFIG_NAME = "labeling.json"
 LABELS_NAME = "labels.csv"
 TRACKS_NAME = "tracks.csv"
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
 
 
 def workspace_videos(workspace: Path, given: list[Path] | None = None) -> dict[str, Path]:

@@ -12,7 +12,7 @@ from dynrecon.cli import main
 from dynrecon.errors import InputError
 from sfm.calibration import StaticCamera, Units, read_calibration, read_qca, read_toml, write_toml
 from sfm.calibration import run as import_calibration
-from sfm.cameras import FrameCamera, read_cameras
+from sfm.cameras import FrameCamera, read_cameras, write_cameras
 from sfm.intrinsics import known_intrinsics
 from sfm.video import probe_video
 
@@ -395,3 +395,44 @@ def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest
     assert "turned by 90 degrees" in caplog.text and "estimated from the data instead" in caplog.text
     with pytest.raises(InputError, match="turned by 90 degrees"):
         import_calibration(toml, [turned], tmp_path / "ws")
+
+
+def test_cameras_json_of_another_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A board recording's cameras.json calibrates the session's videos of the same static cameras: their poses,
+    K and distortion carried over by name (another frame count, `cam01` <-> `cam_1`); `--intrinsics` takes its K;
+    a camera that moves in that recording has no one pose to give."""
+    rng = np.random.default_rng(5)
+    cameras = _random_cameras(["cam_1", "cam_2"])
+    board = tmp_path / "board"
+    videos = []
+    for camera in cameras:
+        path = board / f"{camera.name}.mp4"
+        path.parent.mkdir(exist_ok=True)
+        _write_video(path, 3, (camera.width, camera.height))
+        videos.append(str(path))
+    toml = write_toml(tmp_path / "calib.toml", cameras)
+    assert main(["import-calibration", str(toml), *videos, "--out", str(board)]) == 0
+    session = []
+    for name in ("cam01", "cam02"):
+        path = tmp_path / "session" / f"{name}.mp4"
+        path.parent.mkdir(exist_ok=True)
+        _write_video(path, 7, (64, 48))
+        session.append(str(path))
+    assert main(["import-calibration", str(board / "cameras.json"), *session, "--out", str(tmp_path / "ws")]) == 0
+    result = read_cameras(tmp_path / "ws" / "cameras.json")
+    assert [v.name for v in result.videos] == ["cam01", "cam02"] and all(len(v.frames) == 7 for v in result.videos)
+    for video, camera in zip(result.videos, cameras, strict=True):
+        np.testing.assert_allclose(video.frames[6].R, camera.R, atol=1e-9)
+        np.testing.assert_allclose(video.frames[6].t, camera.t, atol=1e-12)
+        np.testing.assert_allclose(video.frames[6].K, camera.K)
+        np.testing.assert_allclose(video.frames[6].dist, camera.dist)
+    intrinsics = known_intrinsics(board / "cameras.json", [probe_video(Path(v)) for v in session])
+    np.testing.assert_allclose(intrinsics["cam02"][0], cameras[1].K)
+
+    moved = read_cameras(board / "cameras.json")
+    moved.videos[1].frames[2].t = moved.videos[1].frames[2].t + rng.normal(size=3)
+    write_cameras(board / "cameras.json", moved)
+    assert main(["import-calibration", str(board / "cameras.json"), *session, "--out", str(tmp_path / "ws2")]) == 2
+    err = capsys.readouterr().err
+    assert "video 'cam_2''s camera moves in this recording" in err and "leave that camera's video out" in err, err
+    assert not (tmp_path / "ws2" / "cameras.json").exists()

@@ -105,8 +105,8 @@ def test_a_poses_file_reads_back_bit_for_bit(tmp_path: Path) -> None:
         assert np.array_equal(got.intrinsics[1], pose.intrinsics[1])
 
 
-def _prepare(video: Path, out: Path, options: RegisterOptions) -> str:
-    prepare_video(probe_video(video), out, options, capture_tracks(options, out))
+def _prepare(video: Path, out: Path, options: RegisterOptions, names: list[str]) -> str:
+    prepare_video(probe_video(video), out, options, capture_tracks(options, out, names))
     return video.stem
 
 
@@ -129,11 +129,11 @@ def test_per_video_steps_in_separate_processes_give_the_serial_cameras(tmp_path:
 
     names = [p.stem for p in paths]
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
-        list(pool.map(_prepare, reversed(paths), [split] * 3, [options] * 3))
+        list(pool.map(_prepare, reversed(paths), [split] * 3, [options] * 3, [names] * 3))
         list(pool.map(_extract, reversed(names), [names] * 3, [split] * 3, [options] * 3))
         map_capture(split, names, options)
         list(pool.map(localize_video, [split] * 3, reversed(names), [options] * 3))
-    finish_capture(split, names, options, capture_tracks(options, split))
+    finish_capture(split, names, options, capture_tracks(options, split, names))
 
     assert (split / "cameras.json").read_bytes() == (serial / "cameras.json").read_bytes()
     assert (split / "background.ply").read_bytes() == (serial / "background.ply").read_bytes()
@@ -141,3 +141,22 @@ def test_per_video_steps_in_separate_processes_give_the_serial_cameras(tmp_path:
     assert all(layout.features(name).exists() and layout.poses(name).exists() for name in names)
     report = json.loads((split / "register_report.json").read_text())
     assert report["ok"] and set(report["timings_s"]) >= {"decode", "extract", "match", "map", "localize"}
+
+
+def test_a_tracked_video_found_moving_and_left_unposed_is_named_with_the_way_out(tmp_path: Path) -> None:
+    """A tripod whose view a held board fills can measure as moving; the subject path poses static cameras only:
+    the report names it, its measured reason and --camera-motion static. Not when the user chose the motion, when
+    nothing is tracked in it, or when it was posed."""
+    from sfm.options import CameraMotion
+    from sfm.stage import _moving_hint
+    from tracking.tracks import Tracks
+
+    plan = _plan(tmp_path)
+    tracks = Tracks.from_rows([("cam0", 0, "corner_0", 1.0, 2.0)])
+    hint = _moving_hint([plan], [], tracks, RegisterOptions())
+    assert hint is not None and hint.startswith("cam0 measured as moving (cam0: moved)")
+    assert hint.endswith("register again with --camera-motion static")
+    assert _moving_hint([plan], [], tracks, RegisterOptions(camera_motion=CameraMotion.MOVING)) is None
+    assert _moving_hint([plan], [plan], tracks, RegisterOptions()) is None
+    assert _moving_hint([plan], [], Tracks.from_rows([("cam1", 0, "a", 1.0, 2.0)]), RegisterOptions()) is None
+    assert _moving_hint([plan], [], None, RegisterOptions()) is None

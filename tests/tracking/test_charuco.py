@@ -50,6 +50,39 @@ def test_read_board_and_corner_positions(tmp_path: Path) -> None:
         read_charuco_board(path)
 
 
+def test_anipose_board_files(tmp_path: Path) -> None:
+    """sleap-anipose's board.toml (its test session's file) and anipose's config.toml [calibration]: lengths in mm,
+    the dictionary from marker bits and size; the board as aniposelib builds it; a checkerboard is refused."""
+    sleap = tmp_path / "board.toml"
+    sleap.write_text(
+        "board_x = 8\nboard_y = 11\nsquare_length = 24.0\nmarker_length = 18.75\nmarker_bits = 4\ndict_size = 1000"
+    )
+    board = read_charuco_board(sleap)
+    assert (board.columns, board.rows, board.dictionary) == (8, 11, "DICT_4X4_1000")
+    assert board.square_size == pytest.approx(0.024) and board.marker_size == pytest.approx(0.01875)
+    assert len(board_corner_positions(board)) == 7 * 10
+    anipose = tmp_path / "config.toml"
+    anipose.write_text(
+        'project = "x"\n[calibration]\nboard_type = "charuco"\nboard_size = [10, 7]\nboard_marker_bits = 5\n'
+        "board_marker_dict_number = 100\nboard_marker_length = 18.75\nboard_square_side_length = 25\n"
+    )
+    board = read_charuco_board(anipose)
+    assert (board.columns, board.rows, board.dictionary) == (10, 7, "DICT_5X5_100")
+    assert board.square_size == pytest.approx(0.025) and board.marker_size == pytest.approx(0.01875)
+    anipose.write_text('[calibration]\nboard_type = "checkerboard"\nboard_size = [9, 6]\n')
+    with pytest.raises(InputError, match="board_type = 'checkerboard'"):
+        read_charuco_board(anipose)
+    sleap.write_text("board_x = 8\nboard_y = 11\nsquare_length = 24.0\nmarker_length = 18.75\nmarker_bits = 3\n")
+    with pytest.raises(InputError, match="no such aruco dictionary"):
+        read_charuco_board(sleap)
+    sleap.write_text("board_x = 8\nboard_y = 11\nsquare_length = 24.0\nmarker_length = 30\n")
+    with pytest.raises(InputError, match="aruco_scale"):
+        read_charuco_board(sleap)  # a marker larger than its square
+    anipose.write_text("[calibration]\nboard_size = [10, 7]\nboard_marker_length = 18.75\n")
+    with pytest.raises(InputError, match="board_square_side_length = None must be a positive number"):
+        read_charuco_board(anipose)
+
+
 def test_rendered_board(tmp_path: Path) -> None:
     """Corners found where the homography puts them (the image from generateImage has pixel centres at
     (i + 0.5) / ppm metres), in OpenCV's pixel convention: no bias (the other convention is off by ~0.3 px on

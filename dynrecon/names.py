@@ -1,0 +1,18 @@
+"""Video names: the file suffixes read as videos, and the key that matches names spelled differently."""
+
+from __future__ import annotations
+
+import re
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
+
+
+def name_key(name: str) -> str:
+    """'Cam_01.mp4', 'cam01', 'cam-1' all become 'cam1': tools and users spell a video's name differently (case,
+    separators, leading zeros, a file suffix)."""
+    name = name.lower()
+    for suffix in VIDEO_SUFFIXES:
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name))
