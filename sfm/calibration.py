@@ -20,7 +20,9 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
 - `rotation` may be a Rodrigues 3-vector or a 3x3 matrix (9 numbers) in every TOML layout.
 - FreeMoCap's `*_camera_calibration.toml` is anipose's layout with translations in millimetres (its charuco
   square size is given in mm). Units rule (`Units.AUTO`): millimetres when the `[metadata]` table has
-  `charuco_square_size` (which only FreeMoCap writes), else metres; `--units m|mm` overrides it.
+  `charuco_square_size` (FreeMoCap) or `square_length` (sleap-anipose), or when the cameras are over MM_SPREAD
+  units apart (anipose's own files give the board's unit, mm in its documentation), else metres; `--units m|mm`
+  overrides it.
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ log = logging.getLogger(__name__)
 QCA_SUBPIXELS = 64.0
 QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # flips the y and z camera axes
 FREEMOCAP_MM_KEY = "charuco_square_size"  # in FreeMoCap's [metadata]: the board's square size in mm
+# [metadata] keys that give the board's square in mm, so the translations are mm: FreeMoCap's, sleap-anipose's
+MM_KEYS = (FREEMOCAP_MM_KEY, "square_length")
+# Without such a key: cameras further apart than this many units are a rig measured in mm (anipose's calibrations
+# use the board's unit, mm in its documentation); a rig this many metres across is a stadium, not a lab.
+MM_SPREAD = 100.0
 MOVING_FIX = "register those videos together with this recording's, or leave that camera's video out"
 SAME_POSE = 1e-6  # a static camera's frames share one pose: rotation and translation equal to this (relative)
 
@@ -239,11 +246,19 @@ def _toml_sections(data: dict) -> list[tuple[str, dict, str | None]]:
 
 
 def toml_units(data: dict, units: Units = Units.AUTO) -> float:
-    """Metres per translation unit: `units`, or for AUTO mm when `[metadata]` has FreeMoCap's square size."""
+    """Metres per translation unit: `units`, or for AUTO mm when `[metadata]` gives the board's square in mm
+    (FreeMoCap's `charuco_square_size`, sleap-anipose's `square_length`), else metres (`read_toml` then checks
+    the cameras' spread)."""
     if units is Units.AUTO:
         metadata = data.get("metadata")
-        units = Units.MM if isinstance(metadata, dict) and FREEMOCAP_MM_KEY in metadata else Units.M
+        units = Units.MM if isinstance(metadata, dict) and any(k in metadata for k in MM_KEYS) else Units.M
     return 0.001 if units is Units.MM else 1.0
+
+
+def _spread(cameras: list[StaticCamera]) -> float:
+    """The largest distance between two camera centres (0 with fewer than two posed cameras)."""
+    centres = [camera.center for camera in cameras if camera.has_pose]
+    return max((float(np.linalg.norm(a - b)) for i, a in enumerate(centres) for b in centres[i + 1 :]), default=0.0)
 
 
 def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]:
@@ -308,6 +323,16 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
             "no camera table (with a `matrix`) found",
             fix="expected [cam_1] (or caliscope's [cameras.0]) with size, matrix, distortions, rotation, translation",
         )
+    spread = _spread(cameras)
+    if units is Units.AUTO and metres == 1.0 and spread > MM_SPREAD:
+        log.warning(
+            "%s: the cameras are up to %.0f units apart: translations read in millimetres (--units m if they are "
+            "metres)",
+            path,
+            spread,
+        )
+        for camera in cameras:
+            camera.t = None if camera.t is None else camera.t * 0.001
     return cameras
 
 

@@ -45,8 +45,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "--units",
         choices=[u.value for u in Units],
         default="auto",
-        help="unit of TOML translations (default auto: mm for FreeMoCap files, whose [metadata] has "
-        "charuco_square_size, else m)",
+        help="unit of TOML translations (default auto: mm when [metadata] gives the board's square in mm, as "
+        "FreeMoCap's and sleap-anipose's do, or the cameras are over 100 units apart; else m)",
     )
     parser.add_argument(
         "--scale",

@@ -183,7 +183,8 @@ class CalibrationFormat(enum.Enum):
 
 
 class Units(enum.Enum):
-    """Length unit of TOML translations. AUTO: mm for FreeMoCap files (`[metadata] charuco_square_size`), else m."""
+    """Length unit of TOML translations. AUTO: mm where `[metadata]` gives the board's square in mm (FreeMoCap,
+    sleap-anipose) or the cameras are over 100 units apart (an anipose rig in the board's mm), else m."""
 
     AUTO = "auto"
     M = "m"

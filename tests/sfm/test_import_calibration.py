@@ -267,6 +267,29 @@ def test_freemocap_round_trip_millimetres(tmp_path: Path) -> None:
     np.testing.assert_allclose(result.videos[1].frames[0].t, 1000.0 * cameras[1].t, atol=1e-9)
 
 
+def test_anipose_millimetres(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """sleap-anipose writes its board (square_length, mm) into [metadata]: mm translations. anipose's own files
+    give no unit: cameras hundreds of units apart are read in mm, with a warning; a metric lab is left in metres."""
+    cameras = _random_cameras(["back", "top"])
+    for camera in cameras:
+        camera.t = camera.t * 300.0  # a rig about 0.5 m across, written in mm
+    path = write_toml(tmp_path / "calibration.toml", cameras)
+    text = path.read_text(encoding="utf-8").replace("adjusted = false", "board_x = 8\nsquare_length = 24.0")
+    path.write_text(text, encoding="utf-8")
+    np.testing.assert_allclose(read_calibration(path)[1].t, cameras[1].t / 1000.0)
+    write_toml(path, cameras)  # anipose's own [metadata]: no unit given
+    with caplog.at_level("WARNING"):
+        read = read_calibration(path)
+    np.testing.assert_allclose(read[1].t, cameras[1].t / 1000.0)
+    assert "translations read in millimetres (--units m if they are metres)" in caplog.text
+    np.testing.assert_allclose(read_calibration(path, units=Units.M)[1].t, cameras[1].t)
+    metric = _random_cameras(["cam_1", "cam_2"])  # about 2 units apart: metres, no warning
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        np.testing.assert_allclose(read_calibration(write_toml(path, metric))[1].t, metric[1].t)
+    assert "millimetres" not in caplog.text
+
+
 def test_rotation_matrix_or_rodrigues_in_every_layout(tmp_path: Path) -> None:
     R = _rotation(np.random.default_rng(11))
     rvec = cv2.Rodrigues(R)[0].ravel()
