@@ -126,7 +126,9 @@ def plan_video(
     motion = None
     with timed(notes, "motion_test"):
         if options.camera_motion is CameraMotion.AUTO:
-            motion = measure_motion(info)
+            # the tracked subject: where it hides the background, the samples say nothing about the camera
+            subject = track_points(tracks, info.name) if tracks is not None else None
+            motion = measure_motion(info, subject, options.mask_radius)
             static = motion.static
             log.info("%s: %s", info.name, motion.reason)
             if motion.moved:

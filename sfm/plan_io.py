@@ -113,6 +113,7 @@ def _motion_to_json(motion: MotionTest) -> dict[str, Any]:
         "tracked": [float(s) for s in motion.tracked],
         "corners": motion.corners,
         "settled": [int(f) for f in motion.settled],
+        "hidden": [int(f) for f in motion.hidden],
         "moved": motion.moved,
     }
 
@@ -126,6 +127,7 @@ def _motion_from_json(d: dict[str, Any]) -> MotionTest:
         tracked=[float(s) for s in d["tracked"]],
         corners=int(d["corners"]),
         settled=[int(f) for f in d["settled"]],
+        hidden=[int(f) for f in d.get("hidden", [])],
         moved=d["moved"],
     )
 

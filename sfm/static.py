@@ -7,7 +7,9 @@ instead, and every frame of the video takes that image's pose.
 
 The test: background corners of the median image are tracked (pyramidal LK, forward-backward check) into each
 sampled frame. A static camera leaves them where they are; a handheld one moves them all. Pixels where the frames
-differ from the median most of the time (the moving subject) and the tracked subject points are masked out first.
+differ from the median most of the time (the moving subject) are masked out first, and so is where the tracked
+subject usually is (a board held in front of a tripod stays in the median). In each sampled frame the corners the
+tracked subject covers then are left out: a sample where it hides most of them says nothing about the camera.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import cv2
 import numpy as np
 
 from sfm.frames import Resize
+from sfm.masks import mask_from_points
 from sfm.video import ProbedVideo, read_frames
 
 log = logging.getLogger(__name__)
@@ -33,6 +36,8 @@ SETTLED = 0.0012  # samples within this shift (fraction of long side) sit at the
 MIN_ODD = 2  # sampled frames off the background (shifted or lost) that make a camera moving
 MOVED = 0.002  # a static camera whose samples sit this far from it for MOVED_RUN samples in a row was bumped
 MOVED_RUN = 3  # (one sample off is a passing occlusion, not a move)
+USUAL = 0.3  # the tracked subject covers a pixel in this share of the samples: it is part of the median image
+HIDDEN = 0.5  # a sample whose tracked subject covers more of the corners is not evidence either way
 
 
 @dataclass(kw_only=True)
@@ -44,7 +49,8 @@ class MotionTest:
     reason: str
     frames: list[int] = field(default_factory=list)
     shifts: list[float] = field(default_factory=list)
-    tracked: list[float] = field(default_factory=list)  # share of corners tracked per sampled frame
+    tracked: list[float] = field(default_factory=list)  # share of the visible corners tracked per sampled frame
+    hidden: list[int] = field(default_factory=list)  # sampled frames where the tracked subject hid most corners
     corners: int = 0
     settled: list[int] = field(default_factory=list)  # sampled frames at the camera's main position
     moved: str | None = None  # a static camera that was bumped or refocused: where and by how much
@@ -58,6 +64,7 @@ class MotionTest:
             "median_shift_px": round(float(np.median(self.shifts)), 3) if self.shifts else None,
             "min_tracked": round(min(self.tracked), 3) if self.tracked else None,
             "frames_sampled": len(self.frames),
+            "hidden_by_subject": self.hidden,
             "moved": self.moved,
         }
 
@@ -96,10 +103,28 @@ def _moving_pixels(stack: np.ndarray, median: np.ndarray) -> np.ndarray:
     return differs.mean(axis=0) > 0.3
 
 
-def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) -> MotionTest:
+def _subject_masks(
+    subject: dict[int, np.ndarray] | None, frames: np.ndarray, work: Resize, radius: float
+) -> list[np.ndarray] | None:
+    """Per sampled frame, (H, W) uint8 at the work size, 0 where the tracked subject is (its points' hull dilated
+    by `radius` original pixels; the nearest tracked frame's, within half the samples' spacing: a sample far from
+    any tracked frame has nothing masked); None without tracks."""
+    if not subject:
+        return None
+    known = np.array(sorted(subject))
+    reach = (float(np.diff(frames).min()) - 1) / 2 if len(frames) > 1 else 0.0  # each tracked frame: one sample
+    masks = []
+    for f in frames:
+        nearest = int(known[np.abs(known - f).argmin()])
+        points = subject[nearest] if abs(nearest - f) <= reach else np.zeros((0, 2))
+        masks.append(mask_from_points(points, work, radius))
+    return masks
+
+
+def measure_motion(info: ProbedVideo, subject: dict[int, np.ndarray] | None = None, radius: float = 40.0) -> MotionTest:
     """Measure whether the camera of `info` moves (the sampled frame numbers are in the test's `frames`).
 
-    subject_mask: (H, W) uint8 at WORK_LONG_SIDE, 0 where the tracked subject is (optional)."""
+    subject: the tracked subject's points per frame, (P, 2) original pixels (optional); `radius` around them."""
     frames = sample_frames(info, SAMPLES)
     work = Resize.for_video(info, WORK_LONG_SIDE)
     grays = np.stack([_gray(image, work) for _, image in read_frames(info.path, frames)])
@@ -107,8 +132,10 @@ def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) ->
         return MotionTest(static=False, reason="fewer than 2 frames: treated as moving", frames=frames.tolist())
     median = np.median(grays, axis=0).astype(np.uint8)
     mask = np.where(_moving_pixels(grays, median), 0, 255).astype(np.uint8)
-    if subject_mask is not None:
-        mask = np.minimum(mask, subject_mask)
+    covers = _subject_masks(subject, frames, work, radius)
+    if covers is not None:
+        usual = np.mean([c == 0 for c in covers], axis=0) >= USUAL
+        mask[usual] = 0
     corners = cv2.goodFeaturesToTrack(median, maxCorners=400, qualityLevel=0.01, minDistance=8, mask=mask)
     if corners is None or len(corners) < MIN_CORNERS:
         # Everything moves (a handheld camera) or the view has no texture: no static background to lean on.
@@ -127,41 +154,31 @@ def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) ->
         "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
     }
     to_original = 1.0 / work.scale
-    shifts, tracked = [], []
-    for gray in grays:
+    shifts, tracked, hidden = [], [], []
+    pixels = np.clip(np.round(corners.reshape(-1, 2)).astype(np.int64), 0, [median.shape[1] - 1, median.shape[0] - 1])
+    for k, gray in enumerate(grays):
         moved, status, _ = cv2.calcOpticalFlowPyrLK(median, gray, corners, None, **lk)  # type: ignore[call-overload]
         back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray, median, moved, None, **lk)  # type: ignore[call-overload]
         good = (status.ravel() == 1) & (status_back.ravel() == 1)
         good &= np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 1.0
-        tracked.append(float(good.mean()))
+        visible = np.ones(len(good), bool) if covers is None else covers[k][pixels[:, 1], pixels[:, 0]] > 0
+        hidden.append(bool(visible.mean() < 1.0 - HIDDEN))
+        good &= visible
+        tracked.append(float(good.sum() / max(1, visible.sum())))
         shifts.append(_camera_shift(corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good], gray.shape) * to_original)
     limit = MAX_SHIFT * max(info.width, info.height)
-    # one odd sample (a damaged or smeared frame, a flash, a knock) does not make a camera move: a moving one
-    # is off in many samples
-    lost = np.array(tracked) < MIN_TRACKED
-    off = np.array(shifts) > limit
-    worst = int(np.argmax(shifts))
-    if lost.sum() >= MIN_ODD:
-        at = int(np.argmin(tracked))
-        static = False
-        reason = f"moving: only {tracked[at]:.0%} of {count} background corners tracked into frame {int(frames[at])}"
-    elif (off | lost).sum() >= MIN_ODD:
-        static = False
-        reason = f"moving: background shifted {shifts[worst]:.1f} px at frame {int(frames[worst])} (> {limit:.1f} px)"
-    else:
-        static = True
-        steady = [shift for shift, odd in zip(shifts, off | lost, strict=True) if not odd]
-        reason = (
-            f"static: background shifts at most {max(steady, default=0.0):.2f} px over {len(frames)} sampled frames"
-        )
-        if (off | lost).any():
-            at = int(np.flatnonzero(off | lost)[0])
-            reason += (
-                f" (one odd sample ignored: frame {int(frames[at])}, {shifts[at]:.1f} px, {tracked[at]:.0%} of the "
-                "corners tracked)"
-            )
+    kinds = _sample_kinds(np.array(shifts), np.array(tracked), np.array(hidden, dtype=bool), limit)
+    static, reason = _decide(kinds, frames, shifts, tracked, count, limit)
     long_side = max(info.width, info.height)
     settled = [int(f) for f, shift in zip(frames, shifts, strict=True) if shift <= SETTLED * long_side]
+    measured = [shift if kind in (REST, DISPLACED) else 0.0 for shift, kind in zip(shifts, kinds, strict=True)]
+    moved = _moved(info.name, frames, measured, MOVED * long_side) if static else None
+    unmeasured = [int(f) for f, kind in zip(frames, kinds, strict=True) if kind == UNMEASURED]
+    if static and len(unmeasured) >= MIN_ODD:
+        moved = (f"{moved}; " if moved else "") + (
+            f"{info.name}: the background was not seen in sampled frames {', '.join(map(str, unmeasured))} (hidden "
+            "by something untracked, or the camera moved): those frames take the static pose"
+        )
     return MotionTest(
         static=static,
         reason=reason,
@@ -170,8 +187,65 @@ def measure_motion(info: ProbedVideo, subject_mask: np.ndarray | None = None) ->
         tracked=tracked,
         corners=count,
         settled=settled,
-        moved=_moved(info.name, frames, shifts, MOVED * long_side) if static else None,
+        hidden=[int(f) for f, h in zip(frames, hidden, strict=True) if h],
+        moved=moved,
     )
+
+
+# What one sampled frame says about the camera
+REST = "rest"  # the background measured where it is in the median
+DISPLACED = "displaced"  # the background measured elsewhere: the camera moved
+UNMEASURED = "unmeasured"  # too few corners tracked to measure (occluded, blurred, or moved far)
+HIDDEN_KIND = "hidden"  # the tracked subject covers most corners: not evidence either way
+
+
+def _sample_kinds(shifts: np.ndarray, tracked: np.ndarray, hidden: np.ndarray, limit: float) -> list[str]:
+    measured = (tracked >= MIN_TRACKED) & np.isfinite(shifts)
+    return [
+        HIDDEN_KIND if h else (DISPLACED if shift > limit else REST) if m else UNMEASURED
+        for shift, m, h in zip(shifts, measured, hidden, strict=True)
+    ]
+
+
+def _decide(
+    kinds: list[str], frames: np.ndarray, shifts: list[float], tracked: list[float], count: int, limit: float
+) -> tuple[bool, str]:
+    """Static or moving, and why. One odd sample (a damaged or smeared frame, a flash, a knock) does not make a
+    camera move: a moving one is displaced in several samples. Unmeasured samples alone make it move only when
+    they are many or the background is at rest in few: a person passing close to a tripod hides its corners in
+    a few samples, while a handheld camera's corners are measured displaced or lost in most."""
+    n = {kind: kinds.count(kind) for kind in (REST, DISPLACED, UNMEASURED, HIDDEN_KIND)}
+    seen = len(kinds) - n[HIDDEN_KIND]
+    odd = [i for i, kind in enumerate(kinds) if kind in (DISPLACED, UNMEASURED)]
+    if seen <= MIN_ODD:
+        return False, (
+            f"the tracked subject hides the background in {n[HIDDEN_KIND]} of {len(frames)} sampled frames: "
+            "treated as moving"
+        )
+    if n[DISPLACED] >= MIN_ODD or (n[DISPLACED] and len(odd) >= MIN_ODD):
+        worst = max((i for i in odd if kinds[i] == DISPLACED), key=lambda i: shifts[i])
+        return False, (
+            f"moving: background shifted {shifts[worst]:.1f} px at frame {int(frames[worst])} (> {limit:.1f} px)"
+        )
+    if n[UNMEASURED] >= MIN_ODD and (n[UNMEASURED] > seen / 3 or n[REST] < seen / 2):
+        at = min(odd, key=lambda i: tracked[i])
+        return (
+            False,
+            f"moving: only {tracked[at]:.0%} of {count} background corners tracked into frame {int(frames[at])}",
+        )
+    steady = [shifts[i] for i, kind in enumerate(kinds) if kind == REST]
+    reason = f"static: background shifts at most {max(steady, default=0.0):.2f} px over {len(frames)} sampled frames"
+    if n[HIDDEN_KIND]:
+        reason += f" ({n[HIDDEN_KIND]} hidden by the tracked subject)"
+    if len(odd) == 1:
+        at = odd[0]
+        reason += (
+            f" (one odd sample ignored: frame {int(frames[at])}, {shifts[at]:.1f} px, {tracked[at]:.0%} of the "
+            "corners tracked)"
+        )
+    elif odd:
+        reason += f" ({len(odd)} samples with too few corners tracked to measure)"
+    return True, reason
 
 
 def _moved(name: str, frames: np.ndarray, shifts: list[float], limit: float) -> str | None:

@@ -135,3 +135,48 @@ def test_one_damaged_frame_does_not_make_a_static_camera_moving(mixed: list, tmp
     test = measure_motion(probe_video(path))
     assert test.static and "one odd sample ignored: frame 6" in test.reason, test.reason
     assert not measure_motion(probe_video(mixed[1].path)).static
+
+
+def _occluded_video(
+    source: Path, path: Path, shifts: dict[int, int], *, textured: bool, whole: bool = False
+) -> dict[int, np.ndarray]:
+    """`source` with a rectangle over 70 % of the view in the frames of `shifts` (frame -> its x offset in
+    pixels; a board held close, textured, or a flat grey occluder; `whole`: the whole view grey); returns its
+    corners per frame (what a board's tracks give)."""
+    info = probe_video(source)
+    w, h = info.width, info.height
+    texture = cv2.resize(np.random.default_rng(3).integers(0, 255, (h // 8, w // 8, 3), np.uint8), (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (w, h))
+    corners = {}
+    for frame, image in read_frames(source, np.arange(info.num_frames)):
+        if frame in shifts:
+            x0, y0 = (0, 0) if whole else (int(0.05 * w) + shifts[frame], int(0.1 * h))
+            x1, y1 = (w, h) if whole else (x0 + int(0.8 * w), y0 + int(0.85 * h))
+            image = image.copy()
+            patch = np.roll(texture, shifts[frame], axis=1) if textured else 128
+            image[y0:y1, max(0, x0) : x1] = patch if np.isscalar(patch) else patch[y0:y1, max(0, x0) : x1]
+            corners[int(frame)] = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
+        writer.write(image)
+    writer.release()
+    return corners
+
+
+def test_a_subject_hiding_a_tripods_view_does_not_make_it_moving(mixed: list, tmp_path: Path) -> None:
+    """A board held close to a tripod (tracked: its corners) hides most of its background in 3 of 12 samples:
+    those samples are not evidence either way, and the camera is static. An untracked occluder over the whole
+    view in 2 samples leaves them unmeasured: static, and the report says which frames took the static pose
+    unseen. The handheld camera with the same board is still moving."""
+    close = {4: 0, 5: 30, 6: 60}
+    board = _occluded_video(mixed[0].path, tmp_path / "board.mp4", close, textured=True)
+    test = measure_motion(probe_video(tmp_path / "board.mp4"), board, 10.0)
+    assert test.static and test.hidden == [4, 5, 6] and test.moved is None, (test.reason, test.hidden)
+    assert "3 hidden by the tracked subject" in test.reason and test.to_json()["hidden_by_subject"] == [4, 5, 6]
+
+    _occluded_video(mixed[0].path, tmp_path / "covered.mp4", {4: 0, 5: 0}, textured=False, whole=True)
+    test = measure_motion(probe_video(tmp_path / "covered.mp4"))
+    assert test.static and test.moved is not None, test.reason
+    assert "not seen in sampled frames 4, 5" in test.moved and "take the static pose" in test.moved
+
+    board = _occluded_video(mixed[1].path, tmp_path / "handheld.mp4", close, textured=True)
+    test = measure_motion(probe_video(tmp_path / "handheld.mp4"), board, 10.0)
+    assert not test.static and "moving" in test.reason, test.reason
