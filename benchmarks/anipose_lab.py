@@ -118,12 +118,12 @@ def main() -> int:
     )
 
     tracked = args.work / "tracked"
-    seconds = 0.0
+    seconds, codes = 0.0, []
     for cam, video in zip(CAMERAS, video_paths, strict=True):
         analysis = session / cam / f"minimal_{cam}_proofread.analysis.h5"
         code, took = _run(["import-tracks", str(analysis), "--video", video, "--out", str(tracked / "tracks.csv")])
-        seconds += took
-    rows.append(("4 import the SLEAP predictions", code, round(seconds, 1), {}, None))
+        seconds, codes = seconds + took, [*codes, code]
+    rows.append(("4 import the SLEAP predictions", max(codes), round(seconds, 1), {}, None))
     code, seconds = _run(["register", *video_paths, "--out", str(tracked)])
     rows.append(
         (

@@ -8,11 +8,11 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpe
 
 
 def name_key(name: str) -> str:
-    """'Cam_01.mp4', 'cam01', 'cam-1' all become 'cam1': tools and users spell a video's name differently (case,
-    separators, leading zeros, a file suffix)."""
+    """'Cam_01.mp4', 'cam01', 'cam-1' all become 'cam-1': tools and users spell a video's name differently (case,
+    separators, leading zeros, a file suffix). Its words and numbers stay apart: 'cam1_2' is not 'cam12'."""
     name = name.lower()
     for suffix in VIDEO_SUFFIXES:
         if name.endswith(suffix):
             name = name[: -len(suffix)]
             break
-    return re.sub(r"\d+", lambda m: str(int(m.group())), re.sub(r"[^0-9a-z]", "", name))
+    return "-".join(str(int(t)) if t.isdigit() else t for t in re.findall(r"[^\W\d_]+|\d+", name))

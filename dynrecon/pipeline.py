@@ -76,7 +76,7 @@ from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
 from tracking.stage import run as track_run
-from tracking.tracks import Tracks, read_tracks
+from tracking.tracks import Tracks, matched_to_videos, read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +280,7 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     names = {video.stem for video in videos}
     points: set[str] | None = None
     if options.tracks is not None:
-        tracks = read_tracks(options.tracks)
+        tracks = matched_to_videos(read_tracks(options.tracks), names)  # back.mp4 for back: what register reads
         _check_video_names(options.tracks, tracks.video_names(), names)
         points = set(tracks.point)
     if options.labels is not None:
@@ -317,7 +317,7 @@ def _option_files(register: RegisterOptions) -> dict[str, Path]:
 def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, register: RegisterOptions) -> None:
     """A calibration that exists, can be read and has a known format, without the registration options it
     replaces: checked before any stage runs."""
-    fix = "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml)"
+    fix = "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml, cameras.json)"
     if not calibration.exists():
         raise InputError(calibration, "calibration file not found", fix=fix)
     if not calibration.is_file():
@@ -337,12 +337,12 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
         )
     lower = calibration.name.lower()
     # sfm.calibration's own rule for the format; its message would name import-calibration's --format.
-    known = lower.endswith((".toml", ".xml")) or ".qca" in lower
+    known = lower.endswith((".toml", ".xml", ".json")) or ".qca" in lower
     if imported.format is CalibrationFormat.AUTO and not known:
         raise InputError(
             calibration,
             "cannot tell the calibration format from the name",
-            fix="pass --calibration-format qca or toml, or name the file .toml / .qca.txt / .qca / .xml",
+            fix="pass --calibration-format qca, toml or json, or name the file .toml / .qca.txt / .qca / .xml / .json",
         )
 
 
@@ -350,7 +350,7 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
     """The solve of the tracks of the videos registration posed: a video it could not pose (its register report
     says why) is left out of the solve with a warning, not an error, so that the others are still reconstructed."""
     cameras = read_cameras(cameras_path)
-    tracks = read_tracks(tracks_path)
+    tracks = matched_to_videos(read_tracks(tracks_path), [v.name for v in cameras.videos])
     posed = {v.name for v in cameras.videos if v.frames}
     left_out = sorted(set(tracks.video) - posed)
     if left_out:

@@ -57,6 +57,7 @@ MM_KEYS = (FREEMOCAP_MM_KEY, "square_length")
 # Without such a key: cameras further apart than this many units are a rig measured in mm (anipose's calibrations
 # use the board's unit, mm in its documentation); a rig this many metres across is a stadium, not a lab.
 MM_SPREAD = 100.0
+UNSURE_SPREAD = 10.0  # between this and MM_SPREAD units: metres, but said (a close-up rig in mm is as likely)
 MOVING_FIX = "register those videos together with this recording's, or leave that camera's video out"
 SAME_POSE = 1e-6  # a static camera's frames share one pose: rotation and translation equal to this (relative)
 
@@ -251,7 +252,10 @@ def toml_units(data: dict, units: Units = Units.AUTO) -> float:
     the cameras' spread)."""
     if units is Units.AUTO:
         metadata = data.get("metadata")
-        units = Units.MM if isinstance(metadata, dict) and any(k in metadata for k in MM_KEYS) else Units.M
+        sizes = [metadata.get(k) for k in MM_KEYS] if isinstance(metadata, dict) else []
+        # a square of 1 or more units is mm (a metre-wide square is no board); 0.024 would be metres
+        in_mm = any(isinstance(v, int | float) and not isinstance(v, bool) and v >= 1 for v in sizes)
+        units = Units.MM if in_mm else Units.M
     return 0.001 if units is Units.MM else 1.0
 
 
@@ -324,6 +328,13 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
             fix="expected [cam_1] (or caliscope's [cameras.0]) with size, matrix, distortions, rotation, translation",
         )
     spread = _spread(cameras)
+    if units is Units.AUTO and metres == 1.0 and UNSURE_SPREAD < spread <= MM_SPREAD:
+        log.warning(
+            "%s: the cameras are up to %.0f units apart: translations read in metres (--units mm if they are "
+            "millimetres)",
+            path,
+            spread,
+        )
     if units is Units.AUTO and metres == 1.0 and spread > MM_SPREAD:
         log.warning(
             "%s: the cameras are up to %.0f units apart: translations read in millimetres (--units m if they are "
@@ -371,6 +382,7 @@ def read_cameras_json(path: str | Path) -> list[StaticCamera]:
     cameras = []
     for video in read_cameras(path).videos:
         if not video.frames:
+            log.warning("%s: video %r has no posed frame (that recording's registration left it out)", path, video.name)
             continue
         first = video.frames[0]
         R, t = first.R, first.t
@@ -433,12 +445,21 @@ def read_calibration(
 # Matching calibrated cameras to videos
 
 
+def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
+    """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
+    zeros and a video suffix are ignored (None when none or several do: cam1 with both cam01 and cam_1)."""
+    exact = [c for c in cameras if c.name == name]
+    if exact:
+        return exact[0]
+    alike = [c for c in cameras if name_key(c.name) == name_key(name)]
+    return alike[0] if len(alike) == 1 else None
+
+
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:
     """The camera for each video: by name (ignoring case, separators and leading zeros), else, when no name matches
     at all, by order; some names matching and others not is an error (an order would give the matched cameras to
     other videos)."""
-    by_name = {name_key(c.name): c for c in cameras}
-    matched = [by_name.get(name_key(v.name)) for v in videos]
+    matched = [camera_named(cameras, v.name) for v in videos]
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
     if any(m is not None for m in matched):

@@ -22,14 +22,17 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
     """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
     if path.suffix.lower() == ".json":
         # a cameras.json may hold more or fewer videos than this capture: those named alike are taken
-        by_key = {name_key(video.name): video for video in read_cameras(path).videos}
+        videos = read_cameras(path).videos
         result: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         for info in infos:
-            video = by_key.get(name_key(info.name))
-            if video is None:
+            exact = [v for v in videos if v.name == info.name]
+            alike = exact or [v for v in videos if name_key(v.name) == name_key(info.name)]
+            if len(alike) != 1:
                 continue
+            video = alike[0]
             if not video.frames:
-                raise InputError(path, f"video {video.name!r} has no frames to take intrinsics from")
+                log.warning("%s: video %r has no posed frame to take intrinsics from", path, video.name)
+                continue
             first = video.frames[0]
             K = _at_video_size(first.K, (video.width, video.height), info, info.name, path)
             if K is not None:

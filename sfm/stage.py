@@ -400,7 +400,7 @@ def finish_capture(
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
     moving_hint = _moving_hint(plans, registered_videos, tracks, options)
-    if moving_hint:
+    if moving_hint and len(registered_videos) >= 2:  # a failure says it in its error instead
         notes.warnings.append(moving_hint)
     if len(registered_videos) < 2:
         names = ", ".join(v.info.name for v in registered_videos) or "none"

@@ -170,7 +170,11 @@ def measure_motion(info: ProbedVideo, subject: dict[int, np.ndarray] | None = No
     kinds = _sample_kinds(np.array(shifts), np.array(tracked), np.array(hidden, dtype=bool), limit)
     static, reason = _decide(kinds, frames, shifts, tracked, count, limit)
     long_side = max(info.width, info.height)
-    settled = [int(f) for f, shift in zip(frames, shifts, strict=True) if shift <= SETTLED * long_side]
+    settled = [
+        int(f)
+        for f, shift, kind in zip(frames, shifts, kinds, strict=True)
+        if kind == REST and shift <= SETTLED * long_side
+    ]
     measured = [shift if kind in (REST, DISPLACED) else 0.0 for shift, kind in zip(shifts, kinds, strict=True)]
     moved = _moved(info.name, frames, measured, MOVED * long_side) if static else None
     unmeasured = [int(f) for f, kind in zip(frames, kinds, strict=True) if kind == UNMEASURED]
@@ -200,24 +204,40 @@ HIDDEN_KIND = "hidden"  # the tracked subject covers most corners: not evidence 
 
 
 def _sample_kinds(shifts: np.ndarray, tracked: np.ndarray, hidden: np.ndarray, limit: float) -> list[str]:
-    measured = (tracked >= MIN_TRACKED) & np.isfinite(shifts)
-    return [
-        HIDDEN_KIND if h else (DISPLACED if shift > limit else REST) if m else UNMEASURED
-        for shift, m, h in zip(shifts, measured, hidden, strict=True)
-    ]
+    """A measured displacement is evidence even where the tracked subject hides most corners; tracked corners
+    with no rigid group among them (an infinite shift) count as displaced, as before the subject was known."""
+    kinds = []
+    for shift, share, h in zip(shifts, tracked, hidden, strict=True):
+        if share >= MIN_TRACKED and shift > limit and (np.isfinite(shift) or not h):
+            kinds.append(DISPLACED)
+        elif h:
+            kinds.append(HIDDEN_KIND)
+        else:
+            kinds.append(REST if share >= MIN_TRACKED else UNMEASURED)
+    return kinds
+
+
+def _end_run(kinds: list[str]) -> int:
+    """The longest run of unmeasured samples at the start or the end (hidden ones skipped): where a camera was
+    carried off or turned away, unlike an occlusion the background comes back from."""
+    seen = [kind for kind in kinds if kind != HIDDEN_KIND]
+    lead = next((i for i, kind in enumerate(seen) if kind != UNMEASURED), len(seen))
+    trail = next((i for i, kind in enumerate(reversed(seen)) if kind != UNMEASURED), len(seen))
+    return max(lead, trail)
 
 
 def _decide(
     kinds: list[str], frames: np.ndarray, shifts: list[float], tracked: list[float], count: int, limit: float
 ) -> tuple[bool, str]:
     """Static or moving, and why. One odd sample (a damaged or smeared frame, a flash, a knock) does not make a
-    camera move: a moving one is displaced in several samples. Unmeasured samples alone make it move only when
-    they are many or the background is at rest in few: a person passing close to a tripod hides its corners in
-    a few samples, while a handheld camera's corners are measured displaced or lost in most."""
+    camera move: a moving one is displaced in several samples. Unmeasured samples without a displaced one make it
+    move when they are over a third of the samples, or MOVED_RUN of them open or close the video: a person
+    standing close to a tripod hides its corners in a few samples and the background comes back where it was,
+    while a handheld camera's corners are measured displaced or lost in most."""
     n = {kind: kinds.count(kind) for kind in (REST, DISPLACED, UNMEASURED, HIDDEN_KIND)}
     seen = len(kinds) - n[HIDDEN_KIND]
     odd = [i for i, kind in enumerate(kinds) if kind in (DISPLACED, UNMEASURED)]
-    if seen <= MIN_ODD:
+    if n[HIDDEN_KIND] and seen <= MIN_ODD:
         return False, (
             f"the tracked subject hides the background in {n[HIDDEN_KIND]} of {len(frames)} sampled frames: "
             "treated as moving"
@@ -227,7 +247,7 @@ def _decide(
         return False, (
             f"moving: background shifted {shifts[worst]:.1f} px at frame {int(frames[worst])} (> {limit:.1f} px)"
         )
-    if n[UNMEASURED] >= MIN_ODD and (n[UNMEASURED] > seen / 3 or n[REST] < seen / 2):
+    if n[UNMEASURED] >= MIN_ODD and (n[UNMEASURED] > seen / 3 or _end_run(kinds) >= MOVED_RUN):
         at = min(odd, key=lambda i: tracked[i])
         return (
             False,
@@ -244,7 +264,7 @@ def _decide(
             "corners tracked)"
         )
     elif odd:
-        reason += f" ({len(odd)} samples with too few corners tracked to measure)"
+        reason += f" ({len(odd)} samples with under {MIN_TRACKED:.0%} of the corners tracked)"
     return True, reason
 
 

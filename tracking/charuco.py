@@ -176,6 +176,8 @@ def _anipose_board(table: dict[str, Any], path: Path, where: str | None) -> Char
             | {k: v for k, v in table.items() if k in ("inverted", "legacy_pattern")}
         )
     key = {short: (short if where is None else long) for short, long in _ANIPOSE_KEYS.items()}
+    if where is not None:
+        key |= {"board_x": "board_size[0]", "board_y": "board_size[1]"}
     number = _number_reader(table, path, where, names=key)
     square, marker = number("square_length") / 1000.0, number("marker_length") / 1000.0
     bits, count = number("marker_bits", 4), number("dict_size", 50)

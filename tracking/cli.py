@@ -150,7 +150,7 @@ def _video_name(value: str | None) -> str | None:
     if value is None:
         return None
     path = Path(value)
-    return path.stem if path.suffix.lower() in VIDEO_SUFFIXES or len(path.parts) > 1 else value
+    return path.stem if path.suffix.lower() in VIDEO_SUFFIXES else path.name
 
 
 def _run_import(args: argparse.Namespace) -> int:

@@ -115,6 +115,16 @@ def matched_to_videos(tracks: Tracks, videos: Iterable[str]) -> Tracks:
             renamed[name] = candidates[0]
     targets = list(renamed.values())
     renamed = {old: new for old, new in renamed.items() if targets.count(new) == 1}
+    for name in sorted(named - known - set(renamed)):
+        alike = by_key.get(name_key(name), [])
+        if alike:  # spelled like a video, but another name already takes it (or several videos match)
+            log.warning(
+                "%s: video %r names none of the videos, and is not taken as %s (another name of the tracks is, or "
+                "several videos match)",
+                tracks.path or "tracks",
+                name,
+                " or ".join(repr(v) for v in alike),
+            )
     if not renamed:
         return tracks
     for old, new in sorted(renamed.items()):

@@ -372,13 +372,29 @@ def test_the_register_hash_covers_the_calibration_contents(calibrated: Path, tmp
     assert [s.name for s in moved.stages if not s.skipped] == ["register", "solve", "record", "export"]
 
 
+def test_run_takes_another_recordings_cameras_json_and_tracks_named_by_file(calibrated: Path, tmp_path: Path) -> None:
+    """The cameras.json of a recording by the same static cameras (a board filmed before) as `--calibration`, and
+    tracks whose video column names the files (`cam0.avi`): the same cameras and points as the lab's file."""
+    first = tmp_path / "first"
+    assert cli.main(_run_calibrated(calibrated, first)) == 0
+    lines = (first / "tracks.csv").read_text().splitlines()
+    by_file = [lines[0], *(line.replace(",", ".avi,", 1) for line in lines[1:])]
+    (tmp_path / "tracks.csv").write_text("\n".join(by_file) + "\n")
+    argv = _run_calibrated(calibrated, tmp_path / "second")
+    argv[argv.index("--calibration") + 1] = str(first / "register" / "cameras.json")
+    argv[argv.index("--labels") : argv.index("--labels") + 2] = ["--tracks", str(tmp_path / "tracks.csv")]
+    assert cli.main(argv) == 0
+    for name in ("register/cameras.json", "points3d.csv"):
+        assert (tmp_path / "second" / name).read_bytes() == (first / name).read_bytes(), name
+
+
 @pytest.mark.parametrize(
     ("case", "reason"),
     [
         ("missing", "calibration file not found"),
         ("folder", "is not a file: a calibration file was expected"),
         ("garbage", "lab.toml"),
-        ("unknown format", "pass --calibration-format qca or toml"),
+        ("unknown format", "pass --calibration-format qca, toml or json"),
         ("other cameras", "match no camera name"),
         ("with intrinsics", "--intrinsics, --scale and --board (registration options) do not apply"),
         ("with a board", "--intrinsics, --scale and --board (registration options) do not apply"),

@@ -283,6 +283,16 @@ def test_anipose_millimetres(tmp_path: Path, caplog: pytest.LogCaptureFixture) -
     np.testing.assert_allclose(read[1].t, cameras[1].t / 1000.0)
     assert "translations read in millimetres (--units m if they are metres)" in caplog.text
     np.testing.assert_allclose(read_calibration(path, units=Units.M)[1].t, cameras[1].t)
+    text = path.read_text(encoding="utf-8").replace("adjusted = false", "square_length = 0.024")
+    path.write_text(text, encoding="utf-8")  # a board in metres: the translations too
+    np.testing.assert_allclose(read_calibration(path)[1].t, cameras[1].t / 1000.0)  # still > 100 apart: mm
+    middling = _random_cameras(["cam_1", "cam_2"])
+    for camera in middling:
+        camera.t = camera.t * 20.0
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        np.testing.assert_allclose(read_calibration(write_toml(path, middling))[1].t, middling[1].t)
+    assert "read in metres (--units mm if they are millimetres)" in caplog.text
     metric = _random_cameras(["cam_1", "cam_2"])  # about 2 units apart: metres, no warning
     caplog.clear()
     with caplog.at_level("WARNING"):

@@ -180,3 +180,50 @@ def test_a_subject_hiding_a_tripods_view_does_not_make_it_moving(mixed: list, tm
     board = _occluded_video(mixed[1].path, tmp_path / "handheld.mp4", close, textured=True)
     test = measure_motion(probe_video(tmp_path / "handheld.mp4"), board, 10.0)
     assert not test.static and "moving" in test.reason, test.reason
+
+
+@pytest.mark.parametrize(
+    ("kinds", "static"),
+    [
+        ("RR", True),  # a two-frame video at rest
+        ("RD", True),  # one odd sample
+        ("RRRRDD", False),  # displaced twice
+        ("RRRRDU", False),  # displaced once, unmeasured once
+        ("RRRRRRRRUURRRRRR", True),  # a person passing close to a tripod: the background comes back
+        ("RRRRRRRRRRRRRUUU", False),  # the last samples lost: carried off or turned away
+        ("UUURRRRRRRRRRRRR", False),  # the same at the start
+        ("RRRRRRRUUUUUURRR", False),  # over a third unmeasured
+        ("HHHHHHHHHHHHHHHHHHHHRRRD", True),  # hidden samples are no evidence; one odd sample
+        ("HHHHHHHHHHHHHHHHHHHHHHRR", False),  # the subject hides nearly every sample: cannot tell
+    ],
+)
+def test_motion_decision_rules(kinds: str, static: bool) -> None:
+    """The decision from what each sample measured: R at rest, D displaced, U unmeasured, H hidden by the tracked
+    subject (`sfm.static._decide`)."""
+    from sfm.static import _decide
+
+    names = {"R": "rest", "D": "displaced", "U": "unmeasured", "H": "hidden"}
+    samples = [names[k] for k in kinds]
+    shifts = [10.0 if k == "D" else 0.1 for k in kinds]
+    tracked = [0.05 if k == "U" else 0.9 for k in kinds]
+    decided, reason = _decide(samples, np.arange(len(kinds)), shifts, tracked, 100, 3.0)
+    assert decided is static, reason
+
+
+def test_sample_kinds() -> None:
+    """A measured displacement counts where the subject hides most corners; an infinite shift with the corners
+    tracked (no rigid group) is displaced, as it was before the subject was known, unless hidden."""
+    from sfm.static import _sample_kinds
+
+    shifts = np.array([0.1, 9.0, np.inf, np.inf, 9.0, np.inf, 0.1])
+    tracked = np.array([0.9, 0.9, 0.9, 0.9, 0.9, 0.1, 0.1])
+    hidden = np.array([False, False, False, True, True, False, True])
+    assert _sample_kinds(shifts, tracked, hidden, 3.0) == [
+        "rest",
+        "displaced",
+        "displaced",
+        "hidden",
+        "displaced",
+        "unmeasured",
+        "hidden",
+    ]

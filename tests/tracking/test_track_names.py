@@ -19,8 +19,10 @@ def _tracks(*videos: str) -> Tracks:
 
 def test_name_key_ignores_case_separators_zeros_and_suffix() -> None:
     assert {name_key(n) for n in ("back.mp4", "Back", "BACK.MOV", "back")} == {"back"}
-    assert {name_key(n) for n in ("cam_01", "Cam1", "cam-1.avi", "CAM001")} == {"cam1"}
+    assert {name_key(n) for n in ("cam_01", "Cam1", "cam-1.avi", "CAM001")} == {"cam-1"}
     assert name_key("cam10") != name_key("cam1") and name_key("back.txt") != name_key("back")
+    assert name_key("cam1_2") != name_key("cam12") and name_key("cam_0_1") != name_key("cam1")
+    assert name_key("Kamera_ä") != name_key("Kamera_ö")
 
 
 def test_unknown_video_names_are_matched_when_unambiguous(caplog: pytest.LogCaptureFixture) -> None:
@@ -40,6 +42,7 @@ def test_unknown_video_names_are_matched_when_unambiguous(caplog: pytest.LogCapt
 def test_import_video_option_takes_a_file_or_a_name(tmp_path: Path) -> None:
     assert _video_name("videos/back.mp4") == "back" and _video_name("back.MOV") == "back"
     assert _video_name("back") == "back" and _video_name("take.2") == "take.2" and _video_name(None) is None
+    assert _video_name("videos/session.01") == "session.01"
     plain = tmp_path / "detections.csv"
     plain.write_text("video,frame,point,x,y\nrecorded,0,nose,1,2\n")
     parser = argparse.ArgumentParser()
