@@ -105,6 +105,7 @@ def add_units_argument(parser: argparse.ArgumentParser) -> None:
 def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration: str) -> None:
     """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
     `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
+    from sfm.cli import SYNCHRONIZED_HELP
     from sfm.options import CalibrationFormat, Units
 
     parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
@@ -119,6 +120,9 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         choices=[u.value for u in Units],
         default="auto",
         help="unit of the calibration's TOML translations, as import-calibration's --units (default auto)",
+    )
+    parser.add_argument(
+        "--synchronized", action="store_true", help=f"with --calibration: {SYNCHRONIZED_HELP} (import-calibration's)"
     )
 
 
@@ -137,7 +141,9 @@ def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
     from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
 
     return ImportCalibrationOptions(
-        format=CalibrationFormat(args.calibration_format), units=Units(args.calibration_units)
+        format=CalibrationFormat(args.calibration_format),
+        units=Units(args.calibration_units),
+        synchronized=args.synchronized,
     )
 
 

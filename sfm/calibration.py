@@ -577,7 +577,14 @@ def run(
             for i, time in enumerate(info.times)
         ]
         result.videos.append(
-            VideoCameras(name=info.name, width=info.width, height=info.height, fps=info.fps, frames=frames)
+            VideoCameras(
+                name=info.name,
+                width=info.width,
+                height=info.height,
+                fps=info.fps,
+                frames=frames,
+                clock_offset=0.0 if options.synchronized else None,
+            )
         )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

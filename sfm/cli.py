@@ -54,7 +54,14 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         default=1.0,
         help="multiply world coordinates (metres) by this factor (default 1)",
     )
+    parser.add_argument("--synchronized", action="store_true", help=SYNCHRONIZED_HELP)
     parser.set_defaults(func=_run_import)
+
+
+SYNCHRONIZED_HELP = (
+    "the videos were recorded on one clock (a triggered rig, frame i of each at the same instant): each video's "
+    "clock_offset is 0 in cameras.json, which the solve tests against the clocks it recovers and keeps if it fits"
+)
 
 
 def _run_import(args: argparse.Namespace) -> int:
@@ -65,7 +72,12 @@ def _run_import(args: argparse.Namespace) -> int:
         args.calibration,
         args.videos,
         args.out,
-        ImportCalibrationOptions(format=CalibrationFormat(args.format), units=Units(args.units), scale=args.scale),
+        ImportCalibrationOptions(
+            format=CalibrationFormat(args.format),
+            units=Units(args.units),
+            scale=args.scale,
+            synchronized=args.synchronized,
+        ),
     )
     print(path)  # noqa: T201
     return 0

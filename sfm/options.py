@@ -198,6 +198,9 @@ class ImportCalibrationOptions:
     format: CalibrationFormat = CalibrationFormat.AUTO
     units: Units = Units.AUTO  # TOML translations' unit (see Units)
     scale: float = 1.0  # multiplies the world coordinates (after conversion to metres)
+    # The videos were recorded on one clock (a triggered rig): every video's clock_offset is 0, which the solve
+    # then tests against its own clocks (it keeps whichever fits better)
+    synchronized: bool = False
 
 
 __all__ = [

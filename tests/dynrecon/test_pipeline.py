@@ -386,6 +386,18 @@ def test_run_takes_another_recordings_cameras_json_and_tracks_named_by_file(cali
     assert cli.main(argv) == 0
     for name in ("register/cameras.json", "points3d.csv"):
         assert (tmp_path / "second" / name).read_bytes() == (first / name).read_bytes(), name
+    # The simulated phones started 0.06-0.15 s apart. Declared synchronized (a false claim), the solve tests that
+    # clock against its own, says they disagree, tries it, and keeps its own: the same points.
+    argv[argv.index("--out") + 1] = str(tmp_path / "synced")
+    assert cli.main([*argv, "--synchronized"]) == 0
+    assert {v.clock_offset for v in read_cameras(tmp_path / "synced" / "register" / "cameras.json").videos} == {0.0}
+    report = json.loads((tmp_path / "synced" / "report.json").read_text())
+    assert report["clocks"]["registration_check"]["agree"] is False
+    assert (
+        report["temporal"]["registered_offsets"]["tried"]
+        and report["temporal"]["registered_offsets"]["kept"] == "solve"
+    )
+    assert (tmp_path / "synced" / "points3d.csv").read_bytes() == (first / "points3d.csv").read_bytes()
 
 
 @pytest.mark.parametrize(

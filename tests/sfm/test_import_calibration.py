@@ -454,6 +454,10 @@ def test_cameras_json_of_another_recording(tmp_path: Path, capsys: pytest.Captur
     assert main(["import-calibration", str(board / "cameras.json"), *session, "--out", str(tmp_path / "ws")]) == 0
     result = read_cameras(tmp_path / "ws" / "cameras.json")
     assert [v.name for v in result.videos] == ["cam01", "cam02"] and all(len(v.frames) == 7 for v in result.videos)
+    assert all(v.clock_offset is None for v in result.videos)  # no clock known: the solve finds the offsets
+    synced = ["import-calibration", str(board / "cameras.json"), *session, "--out", str(tmp_path / "synced")]
+    assert main([*synced, "--synchronized"]) == 0  # a triggered rig: one clock, which the solve then tests
+    assert [v.clock_offset for v in read_cameras(tmp_path / "synced" / "cameras.json").videos] == [0.0, 0.0]
     for video, camera in zip(result.videos, cameras, strict=True):
         np.testing.assert_allclose(video.frames[6].R, camera.R, atol=1e-9)
         np.testing.assert_allclose(video.frames[6].t, camera.t, atol=1e-12)
