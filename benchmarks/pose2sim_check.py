@@ -2,7 +2,7 @@
 subsets against triangulation from the lab calibration on synchronized frames.
 
     python benchmarks/pose2sim_check.py [--work /tmp/pose2sim_check] [--labels tests/data/pose2sim/labels.csv]
-        [--cameras lab|subject-intrinsics|subject] [--markers]
+        [--cameras lab|subject-intrinsics|subject] [--markers] [--synchronized]
 
 Steps (all in mm, world frame of the QCA calibration):
 1. cameras: `import-calibration` of the lab's QCA file (`--scale 1000`: mm), every frame of every video posed;
@@ -308,6 +308,7 @@ def run_check(
     clock_shifts: bool = False,
     cameras_from: str = "lab",
     markers: bool = False,
+    synchronized: bool = False,
 ) -> CheckResult:
     demo = shared / DEMO
     videos = sorted((demo / "videos").glob("cam*.mp4"))
@@ -318,7 +319,7 @@ def run_check(
         demo / "calibration" / "Calib.qca.txt",
         list(videos),
         work,
-        import_calibration.ImportCalibrationOptions(scale=1000.0),
+        import_calibration.ImportCalibrationOptions(scale=1000.0, synchronized=synchronized),
     )
     seconds["import"] = time.perf_counter() - started
 
@@ -487,6 +488,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="with --cameras subject*: register from the OpenPose detections plus the labels' tracks",
     )
+    parser.add_argument(
+        "--synchronized",
+        action="store_true",
+        help="import the lab's calibration with --synchronized: the videos' clocks declared equal (the lab's rig "
+        "is triggered), which the solve tests",
+    )
     parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
@@ -500,6 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         clock_shifts=args.shift_clocks,
         cameras_from=args.cameras,
         markers=args.markers,
+        synchronized=args.synchronized,
     )
     print(table(result))
     return 0
