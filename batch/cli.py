@@ -77,7 +77,12 @@ def _batch(args: argparse.Namespace) -> int:
     if args.verbose < 2:  # the scheduler's and workers' start-up chatter, unless the user asks for debug output
         logging.getLogger("distributed").setLevel(logging.WARNING)
     pipeline = PipelineOptions(
-        register=dataclasses.replace(default_register(), max_frames=args.max_frames, num_threads=args.sfm_threads),
+        register=dataclasses.replace(
+            default_register(),
+            max_frames=args.max_frames,
+            num_threads=args.sfm_threads,
+            synchronized=args.synchronized,  # a capture without a calibration: its subject path
+        ),
         track=TrackOptions(win_size=args.track_window, patch=args.track_patch),
         calibration=args.calibration,
         calibration_options=calibration_options(args),

@@ -122,7 +122,10 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         help="unit of the calibration's TOML translations, as import-calibration's --units (default auto)",
     )
     parser.add_argument(
-        "--synchronized", action="store_true", help=f"with --calibration: {SYNCHRONIZED_HELP} (import-calibration's)"
+        "--synchronized",
+        action="store_true",
+        help=f"{SYNCHRONIZED_HELP} (import-calibration's); without --calibration, register's subject path fits each "
+        "pair of videos at offset 0 unless its tracks clearly prefer another",
     )
 
 
@@ -155,7 +158,12 @@ def _run(args: argparse.Namespace) -> int:
     scale = parse_scale(args.scale)
     check_track_flags(args)
     register = dataclasses.replace(
-        default_register(), max_frames=args.max_frames, intrinsics=args.intrinsics, scale=scale, board=args.board
+        default_register(),
+        max_frames=args.max_frames,
+        intrinsics=args.intrinsics,
+        scale=scale,
+        board=args.board,
+        synchronized=args.synchronized and args.calibration is None,
     )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
     options = PipelineOptions(

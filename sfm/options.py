@@ -101,6 +101,9 @@ class RegisterOptions:
     camera_motion: CameraMotion = CameraMotion.AUTO
     subject: SubjectPath = SubjectPath.AUTO
     scale: tuple[str, str, float] | None = None  # (point A, point B, metres) for the subject path's scale
+    # A triggered rig: the videos share one clock. The subject path fits each pair at offset 0 unless the pair's
+    # tracks clearly prefer another offset (then the claim is reported contradicted for that pair)
+    synchronized: bool = False
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video, evenly spaced; each is matched with every one of the other videos

@@ -141,6 +141,12 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         help="the distance between two tracked points, for the subject path's scale without background anchors",
     )
     static.add_argument(
+        "--synchronized",
+        action="store_true",
+        help="the videos were recorded on one clock (a triggered rig): the subject path fits each pair at offset 0 "
+        "unless its tracks clearly prefer another (the report says which pairs contradict it)",
+    )
+    static.add_argument(
         "--board",
         type=Path,
         default=None,
@@ -215,6 +221,7 @@ def _run_register(args: argparse.Namespace) -> int:
         camera_motion=CameraMotion(args.camera_motion),
         subject=SubjectPath(args.subject),
         scale=parse_scale(args.scale),
+        synchronized=args.synchronized,
         board=args.board,
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,

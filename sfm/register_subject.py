@@ -116,7 +116,9 @@ def pose_from_subject(
         )
         return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
     subject_tracks = tracks.of_videos(names)
-    subject_options = SubjectOptions(scale=scale)
+    # a triggered rig: every static video on one clock, a claim each pair's tracks then test
+    claimed = {name: 0.0 for name in names} if options.synchronized else None
+    subject_options = SubjectOptions(scale=scale, claimed_offsets=claimed)
     try:
         if by_posed:
             if subject_options.scale is not None:
@@ -127,7 +129,7 @@ def pose_from_subject(
                 )
                 if board is not None and board.get("scale"):
                     board.update(scale=None, scale_why="the videos the background posed set the scale")
-                subject_options = SubjectOptions(scale=None)
+                subject_options = SubjectOptions(scale=None, claimed_offsets=claimed)
             result, aligned, stability = _solve_with_posed(
                 subject_tracks, inputs, posed_tracked, videos, results, tracks, subject_options
             )
@@ -141,7 +143,7 @@ def pose_from_subject(
                 # the board's scale pair (not the user's) may never be triangulated together: arbitrary units
                 warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
                 board.update(scale=None, scale_why=str(error))
-                subject_options = SubjectOptions(scale=None)
+                subject_options = SubjectOptions(scale=None, claimed_offsets=claimed)
                 result, stability = choose_noise(subject_tracks, inputs, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
@@ -150,6 +152,9 @@ def pose_from_subject(
         )
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
+    for pair in result.pairs:
+        if pair.claim not in (None, "held"):
+            warnings.append(f"--synchronized: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
     _warn_uncertain(stability, posed, warnings)
     metric = result.metric or len(anchors) >= 2 or aligned is not None  # one anchor fixes the frame, not the scale
@@ -392,6 +397,7 @@ def _report(
                 "shared": int(p.shared),
                 "runner_up_ratio": round(float(p.runner_up_ratio), 3),
                 "degenerate": p.degenerate,
+                "claim": p.claim,
             }
             for p in result.pairs
         ],

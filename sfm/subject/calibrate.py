@@ -12,6 +12,7 @@ from sfm.subject.bundle import Bundle, adjust, camera_residuals, held_out_px, re
 from sfm.subject.chain import Knots, initial_poses, make_knots
 from sfm.subject.focals import division_to_opencv, estimate_distortion, self_calibrate
 from sfm.subject.model import (
+    CLAIM_RATIO,
     INLIER_PX,
     MIN_DISTINCT,
     MIN_INLIERS,
@@ -182,11 +183,13 @@ def _fit_pairs(
     fits: list[PairFit] = []
     for n, a in enumerate(with_tracks):
         for b in with_tracks[n + 1 :]:
-            known = options.offsets or {}
+            known, claimed = options.offsets or {}, options.claimed_offsets or {}
             if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
                 fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], inlier_px)
             else:
                 fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng, inlier_px)
+                if obs[a].name in claimed and obs[b].name in claimed:
+                    fit = _tested_claim(obs, fit, claimed[obs[a].name] - claimed[obs[b].name], inlier_px)
             log.info(
                 "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
                 obs[a].name,
@@ -202,6 +205,27 @@ def _fit_pairs(
     return fits
 
 
+def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_px: float) -> PairFit:
+    """The pair at its declared shift, unless its tracks contradict it: the searched shift lies over a frame away
+    and scores CLAIM_RATIO better, without another shift explaining them as well (then the searched fit, its
+    `claim` saying why). Where the search finds nothing clear, the declaration decides the pair's offset (a
+    triggered rig's clocks agree to far under a frame)."""
+    a, b = searched.a, searched.b
+    period = max(obs[a].period, obs[b].period)
+    declared = fit_at(obs[a], obs[b], a, b, shift, inlier_px)
+    apart = abs(searched.shift - shift) > period
+    if apart and searched.E is not None and not searched.ambiguous and searched.score > CLAIM_RATIO * declared.score:
+        searched.claim = (
+            f"contradicted: the tracks put the offset at {-searched.shift:.3f} s, not {-shift:.3f} s "
+            f"(score {searched.score / max(declared.score, 1e-9):.2f} x the declared one's)"
+        )
+        log.warning("pair %s-%s: the declared clocks are %s", obs[a].name, obs[b].name, searched.claim)
+        return searched
+    declared.claim = "held"
+    declared.runner_up_ratio = searched.runner_up_ratio
+    return declared
+
+
 def _pair_result(obs: list[VideoObs], f: PairFit) -> PairResult:
     return PairResult(
         a=obs[f.a].name,
@@ -214,6 +238,7 @@ def _pair_result(obs: list[VideoObs], f: PairFit) -> PairResult:
         ambiguous=f.ambiguous,
         distinct=f.distinct,
         reason=f.reason,
+        claim=f.claim,
     )
 
 

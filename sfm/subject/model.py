@@ -38,6 +38,7 @@ INLIER_PX = 3.0  # RANSAC threshold (pixels) of marker-grade tracks: clicks, tra
 NOISE_SCALES_PX = (INLIER_PX, 2 * INLIER_PX)
 MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
 MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
+CLAIM_RATIO = 1.2  # a declared offset is contradicted when the searched one scores this much better, a frame away
 MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused (at INLIER_PX)
 MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
 
@@ -62,6 +63,9 @@ class SubjectOptions:
     # Known clock offsets (s, global = own + offset; e.g. from an earlier solve): pairs are fitted at the offsets
     # they imply instead of searched.
     offsets: dict[str, float] | None = None
+    # Declared clock offsets (a triggered rig: all 0): tested per pair against the searched offset, used where
+    # the tracks do not clearly prefer another (known `offsets` are used untested)
+    claimed_offsets: dict[str, float] | None = None
     lens: Lens = Lens.AUTO  # cameras without known intrinsics (the stability folds reuse the chosen one)
     # The tracks' noise scale in pixels (RANSAC threshold; outliers and refusals scale with it). None: INLIER_PX
     # in `calibrate_from_subject`; `choose_noise` measures which of NOISE_SCALES_PX the tracks support.
@@ -96,6 +100,7 @@ class PairResult:
     ambiguous: bool = False  # runner_up_ratio below MIN_RATIO: the offset is trusted only without better pairs
     distinct: int = 0  # distinct positions among the pair's inliers
     reason: str | None = None  # why the pair is unusable, None when usable
+    claim: str | None = None  # with declared offsets: "held", or why the tracks contradict them
 
 
 @dataclass(kw_only=True)

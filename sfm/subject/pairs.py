@@ -42,6 +42,7 @@ class PairFit:
     distinct: int = 0  # distinct (coarsely clustered) positions among the inliers
     F_px: np.ndarray | None = None  # (3, 3) fundamental matrix in centred pixels of the current focals (unknown K)
     ambiguous: bool = False  # another time offset explains the tracks almost as well
+    claim: str | None = None  # with declared offsets: "held", or why the tracks contradict them
 
     @property
     def usable(self) -> bool:

@@ -156,3 +156,21 @@ def test_unknown_scale_point_name() -> None:
     tracks, videos, _ = make_rig(kind="skeleton", n_cameras=2, duration=2.0, seed=6)
     with pytest.raises(SubjectCalibrationError, match="nose"):
         calibrate_from_subject(tracks, videos, SubjectOptions(scale=("nose", "p1", 1.0)))
+
+
+def test_declared_synchronization_is_tested_per_pair() -> None:
+    """A triggered rig's claim (`register --synchronized`: every clock at 0) holds on every pair of a synchronized
+    rig; on a rig whose clocks differ by seconds every pair contradicts it, the searched offsets are used, and the
+    cameras and clocks come out right."""
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=8.0, offsets=(0.0, 0.0, 0.0), seed=2)
+    claim = SubjectOptions(claimed_offsets={v.name: 0.0 for v in videos})
+    result = calibrate_from_subject(tracks, videos, claim)
+    assert [p.claim for p in result.pairs] == ["held"] * 3
+    err = compare(result, truth)
+    assert err.posed == 3 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
+
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=8.0, seed=2)  # clocks 1.4-2.2 s apart
+    result = calibrate_from_subject(tracks, videos, claim)
+    assert all(p.claim is not None and p.claim.startswith("contradicted") for p in result.pairs), result.pairs
+    err = compare(result, truth)
+    assert err.posed == 3 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
