@@ -67,7 +67,7 @@ def _run(args: list[str]) -> tuple[int, float]:
 
 
 def _solve_summary(ws: Path) -> dict[str, Any] | None:
-    """Trust's flagged share, the clocks' path and the median reprojection residual of the kept trajectories."""
+    """Trust's flagged points, the refinement's path, and whether the solve's clocks agree with a declared one."""
     if not (ws / "report.json").exists():
         return None
     report = json.loads((ws / "report.json").read_text())

@@ -496,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--shared", type=Path, default=Path(os.environ.get("DYNRECON_SHARED", REPO.parent / "shared")))
     args = parser.parse_args(argv)
+    if args.synchronized and args.cameras != "lab":
+        parser.error("--synchronized declares the lab calibration's clocks: use it with --cameras lab")
     logging.basicConfig(level=logging.INFO, format="%(levelname).1s %(name)s: %(message)s")
     if not (args.shared / DEMO).is_dir():
         print(f"needs {args.shared / DEMO} (the shared data folder)")

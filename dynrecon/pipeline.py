@@ -291,8 +291,6 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         check_scale_points(options.register.scale, points, options.tracks or options.labels)
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
-    elif options.calibration_options.synchronized and not options.register.synchronized:
-        log.warning("--synchronized: not used without a calibration (registration finds the videos' clocks)")
     options.register.check()
     if options.units is not None and options.units not in UNIT_TO_MM:  # before the solve, not at its export
         raise InputError(None, f"--units {options.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")

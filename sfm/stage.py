@@ -421,7 +421,9 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out)
+        path = _export(
+            registered_videos, results, _points(kept, dropped), subject_report, people, out, options.synchronized
+        )
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 
@@ -480,9 +482,12 @@ def _export(
     subject_report: dict[str, Any] | None,
     people: dict[str, dict[int, int]],
     out: Path,
+    synchronized: bool = False,
 ) -> Path:
     """background.ply (`points`: the model's points and colours) and cameras.json (every posed frame, and each
-    video's map of its people when they were matched across videos); returns the cameras.json path."""
+    video's map of its people when they were matched across videos); returns the cameras.json path. With
+    `synchronized` and no clock from the subject path, every video's clock_offset is the declared 0 (the solve
+    tests it)."""
     cameras = CameraSet()
     subject = subject_report or {}
     # the posed videos' offsets (handheld ones that anchored the subject path) are on the same clock
@@ -490,6 +495,9 @@ def _export(
         v["name"]: v["offset_s"] for v in subject.get("posed_videos", {}).get("videos", []) if v["reason"] is None
     }
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
+    if synchronized and not clock_offsets:
+        clock_offsets = {video.info.name: 0.0 for video in registered_videos}
+        log.info("--synchronized: every video's clock_offset is 0 in cameras.json (the solve tests it)")
     for video in registered_videos:
         name = video.info.name
         cameras.videos.append(_video_cameras(video, results[name], clock_offsets.get(name), people.get(name)))

@@ -207,22 +207,25 @@ def _fit_pairs(
 
 def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_px: float) -> PairFit:
     """The pair at its declared shift, unless its tracks contradict it: the searched shift lies over a frame away
-    and scores CLAIM_RATIO better, without another shift explaining them as well (then the searched fit, its
-    `claim` saying why). Where the search finds nothing clear, the declaration decides the pair's offset (a
-    triggered rig's clocks agree to far under a frame)."""
+    and scores CLAIM_RATIO better (then the searched fit, ambiguous or not, its `claim` saying why), or the
+    declared shift gives no usable geometry where the searched one does. Elsewhere the declaration decides the
+    pair's offset (a triggered rig's clocks agree to far under a frame)."""
     a, b = searched.a, searched.b
     period = max(obs[a].period, obs[b].period)
     declared = fit_at(obs[a], obs[b], a, b, shift, inlier_px)
     apart = abs(searched.shift - shift) > period
-    if apart and searched.E is not None and not searched.ambiguous and searched.score > CLAIM_RATIO * declared.score:
+    if apart and searched.E is not None and searched.score > CLAIM_RATIO * declared.score:
         searched.claim = (
-            f"contradicted: the tracks put the offset at {-searched.shift:.3f} s, not {-shift:.3f} s "
+            f"contradicted: the tracks put the offset at {-searched.shift + 0.0:.3f} s, not {-shift + 0.0:.3f} s "
             f"(score {searched.score / max(declared.score, 1e-9):.2f} x the declared one's)"
         )
         log.warning("pair %s-%s: the declared clocks are %s", obs[a].name, obs[b].name, searched.claim)
         return searched
+    if not declared.usable and searched.usable:
+        searched.claim = f"not used: at the declared offset, {declared.reason or declared.degenerate}"
+        return searched
     declared.claim = "held"
-    declared.runner_up_ratio = searched.runner_up_ratio
+    declared.runner_up_ratio = searched.runner_up_ratio  # the search's: how clearly the tracks alone fix it
     return declared
 
 

@@ -174,3 +174,51 @@ def test_declared_synchronization_is_tested_per_pair() -> None:
     assert all(p.claim is not None and p.claim.startswith("contradicted") for p in result.pairs), result.pairs
     err = compare(result, truth)
     assert err.posed == 3 and err.rotation_deg < 1.0 and err.offset_frames < 0.25
+
+
+@pytest.mark.parametrize(
+    ("searched", "declared", "claim"),
+    [
+        ((2.0, 10.0, True, True), (0.0, 3.0, True), "contradicted"),  # far, and clearly better
+        ((2.0, 10.0, True, False), (0.0, 3.0, True), "contradicted"),  # far and better, though ambiguous
+        ((2.0, 10.0, True, True), (0.0, 9.0, True), "held"),  # far, but not clearly better
+        ((0.01, 10.0, True, True), (0.0, 3.0, True), "held"),  # within a frame
+        ((2.0, 10.0, True, True), (0.0, 9.0, False), "not used"),  # the declared offset gives nothing usable
+    ],
+)
+def test_the_declared_clock_decision(
+    monkeypatch: pytest.MonkeyPatch, searched: tuple, declared: tuple, claim: str
+) -> None:
+    """`_tested_claim` on a pair's searched fit (shift s, score, has a model, clear) against the fit at the
+    declared shift (shift, score, usable): which one the pair keeps, and what its `claim` says."""
+    import numpy as np
+
+    from sfm.subject import calibrate
+    from sfm.subject.pairs import PairFit
+
+    def fit(shift: float, score: float, usable: bool = True, clear: bool = True) -> PairFit:
+        return PairFit(
+            a=0,
+            b=1,
+            shift=-shift,
+            inliers=100,
+            shared=120,
+            runner_up_ratio=2.0 if clear else 1.01,
+            degenerate=None if usable else "plane",
+            xa=np.zeros((0, 2)),
+            xb=np.zeros((0, 2)),
+            E=np.eye(3),
+            focals=(np.nan, np.nan),
+            score=score,
+            ambiguous=not clear,
+        )
+
+    monkeypatch.setattr(calibrate, "fit_at", lambda *args, **kwargs: fit(*declared))
+
+    class Video:
+        period = 1 / 30
+        name = "v"
+
+    kept = calibrate._tested_claim([Video(), Video()], fit(*searched), 0.0, 3.0)  # type: ignore[list-item]
+    assert kept.claim is not None and kept.claim.startswith(claim), kept.claim
+    assert kept.shift == (-declared[0] if claim == "held" else -searched[0])
