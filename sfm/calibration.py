@@ -533,6 +533,24 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
     return K
 
 
+def _refuse_repeated_poses(cameras: list[StaticCamera], poses: list[tuple[np.ndarray, np.ndarray]], path: Path) -> None:
+    """Two cameras at one pose are one camera given twice (a copied table): every point seen by both would be
+    triangulated from a zero baseline, silently wrong."""
+    for i, (Ri, ti) in enumerate(poses):
+        for j in range(i + 1, len(poses)):
+            Rj, tj = poses[j]
+            scale = max(1.0, float(np.abs(ti).max()), float(np.abs(tj).max()))
+            if np.abs(Ri - Rj).max() < 1e-9 and np.abs(ti - tj).max() < 1e-9 * scale:
+                raise InputError(
+                    path,
+                    f"cameras {cameras[i].name!r} and {cameras[j].name!r} have the same pose: one camera given "
+                    "twice (a copied table?)",
+                    where=f"camera {cameras[j].name!r}",
+                    fix="calibrate that camera again, or leave its video out; register --intrinsics still takes the "
+                    "file's intrinsics",
+                )
+
+
 def run(
     calibration: str | Path,
     videos: Sequence[str | Path],
@@ -562,6 +580,7 @@ def run(
         )
     cameras = match_cameras(read_calibration(calibration, options.format, options.units), infos, calibration)
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
+    _refuse_repeated_poses(cameras, poses, calibration)
     result = CameraSet()
     for info, camera, (R, t) in zip(infos, cameras, poses, strict=True):
         K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name)

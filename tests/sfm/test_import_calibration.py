@@ -473,3 +473,20 @@ def test_cameras_json_of_another_recording(tmp_path: Path, capsys: pytest.Captur
     err = capsys.readouterr().err
     assert "video 'cam_2''s camera moves in this recording" in err and "leave that camera's video out" in err, err
     assert not (tmp_path / "ws2" / "cameras.json").exists()
+
+
+def test_a_camera_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """sleap-anipose's test calibration gives its `side` camera `top`'s table: two videos at one pose would be
+    triangulated from a zero baseline. import-calibration refuses it, naming both; --intrinsics takes the K."""
+    cameras = _random_cameras(["side", "top"])
+    cameras[1].R, cameras[1].t = cameras[0].R, cameras[0].t
+    toml = write_toml(tmp_path / "calibration.toml", cameras)
+    videos = []
+    for camera in cameras:
+        videos.append(tmp_path / f"{camera.name}.mp4")
+        _write_video(videos[-1], 2, (64, 48))
+    assert main(["import-calibration", str(toml), *map(str, videos), "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "cameras 'side' and 'top' have the same pose: one camera given twice" in err, err
+    assert not (tmp_path / "ws" / "cameras.json").exists()
+    np.testing.assert_allclose(known_intrinsics(toml, [probe_video(v) for v in videos])["top"][0], cameras[1].K)
