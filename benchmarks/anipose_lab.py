@@ -120,17 +120,27 @@ def main() -> int:
     anipose = {c.name: (c.R, c.t) for c in read_calibration(session / "calibration.toml") if c.name != "side"}
     rows.append(("2 register the clips --board", code, seconds, _posed_by(cal), _compare(reference, anipose)))
 
-    background = args.work / "background"
-    code, seconds = _run(["register", *video_paths, "--out", str(background)])
-    rows.append(
-        (
-            "3 register the session (nothing else)",
-            code,
-            seconds,
-            _posed_by(background),
-            _compare(_poses(background), reference),
+    def register(step: str, ws: Path) -> None:
+        code, seconds = _run(["register", *video_paths, "--out", str(ws)])
+        rows.append((step, code, seconds, _posed_by(ws), _compare(_poses(ws), reference)))
+
+    def solve(step: str, ws: Path) -> None:
+        tracks = args.work / "tracked" / "tracks.csv"
+        code, seconds = _run(
+            [
+                "solve",
+                "--cameras",
+                str(ws / "cameras.json"),
+                "--tracks",
+                str(tracks),
+                "--out",
+                str(ws),
+                "--no-recording",
+            ]
         )
-    )
+        rows.append((step, code, seconds, {}, _solve_summary(ws)))
+
+    register("3 register the session (nothing else)", args.work / "background")
 
     tracked = args.work / "tracked"
     seconds, codes = 0.0, []
@@ -139,52 +149,19 @@ def main() -> int:
         code, took = _run(["import-tracks", str(analysis), "--video", video, "--out", str(tracked / "tracks.csv")])
         seconds, codes = seconds + took, [*codes, code]
     rows.append(("4 import the SLEAP predictions", max(codes), round(seconds, 1), {}, None))
-    code, seconds = _run(["register", *video_paths, "--out", str(tracked)])
-    rows.append(
-        (
-            "5 register the session with the tracks",
-            code,
-            seconds,
-            _posed_by(tracked),
-            _compare(_poses(tracked), reference),
-        )
-    )
+    register("5 register the session with the tracks", tracked)
 
     solved = args.work / "solved"
     code, seconds = _run(["import-calibration", str(cal / "cameras.json"), *video_paths, "--out", str(solved)])
     rows.append(("6 import-calibration cal/cameras.json", code, seconds, {}, _compare(_poses(solved), reference)))
-    code, seconds = _run(
-        [
-            "solve",
-            "--cameras",
-            str(solved / "cameras.json"),
-            "--tracks",
-            str(tracked / "tracks.csv"),
-            "--out",
-            str(solved),
-            "--no-recording",
-        ]
-    )
-    rows.append(("7 solve the 15 body parts", code, seconds, {}, _solve_summary(solved)))
+    solve("7 solve the 15 body parts", solved)
 
     synced = args.work / "synced"  # the lab's cameras are triggered: the same, declared on one clock
     code, seconds = _run(
         ["import-calibration", str(cal / "cameras.json"), *video_paths, "--out", str(synced), "--synchronized"]
     )
     rows.append(("8 import-calibration --synchronized", code, seconds, {}, None))
-    code, seconds = _run(
-        [
-            "solve",
-            "--cameras",
-            str(synced / "cameras.json"),
-            "--tracks",
-            str(tracked / "tracks.csv"),
-            "--out",
-            str(synced),
-            "--no-recording",
-        ]
-    )
-    rows.append(("9 solve on that clock", code, seconds, {}, _solve_summary(synced)))
+    solve("9 solve on that clock", synced)
 
     print("| step | exit | s | posed by | against the reference |")
     print("|---|---|---|---|---|")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
 
@@ -16,3 +17,9 @@ def name_key(name: str) -> str:
             name = name[: -len(suffix)]
             break
     return "-".join(str(int(t)) if t.isdigit() else t for t in re.findall(r"[^\W\d_]+|\d+", name))
+
+
+def spelled_alike(name: str, names: Iterable[str]) -> list[str]:
+    """[`name`] when it is among `names`, else those of `names` with its key: one is a match, several ambiguous."""
+    names = list(names)
+    return [name] if name in names else [n for n in names if name_key(n) == name_key(name)]

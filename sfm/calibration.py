@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
-from dynrecon.names import name_key
+from dynrecon.names import spelled_alike
 from dynrecon.readers import read_text, shown
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
@@ -328,22 +328,20 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
             fix="expected [cam_1] (or caliscope's [cameras.0]) with size, matrix, distortions, rotation, translation",
         )
     spread = _spread(cameras)
-    if units is Units.AUTO and metres == 1.0 and UNSURE_SPREAD < spread <= MM_SPREAD:
+    if units is Units.AUTO and metres == 1.0 and spread > UNSURE_SPREAD:  # no unit given, and metres are unsure
+        in_mm = spread > MM_SPREAD
+        read, other = ("millimetres", "metres") if in_mm else ("metres", "millimetres")
         log.warning(
-            "%s: the cameras are up to %.0f units apart: translations read in metres (--units mm if they are "
-            "millimetres)",
+            "%s: the cameras are up to %.0f units apart: translations read in %s (--units %s if they are %s)",
             path,
             spread,
+            read,
+            "m" if in_mm else "mm",
+            other,
         )
-    if units is Units.AUTO and metres == 1.0 and spread > MM_SPREAD:
-        log.warning(
-            "%s: the cameras are up to %.0f units apart: translations read in millimetres (--units m if they are "
-            "metres)",
-            path,
-            spread,
-        )
-        for camera in cameras:
-            camera.t = None if camera.t is None else camera.t * 0.001
+        if in_mm:
+            for camera in cameras:
+                camera.t = None if camera.t is None else camera.t * 0.001
     return cameras
 
 
@@ -448,11 +446,8 @@ def read_calibration(
 def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
     """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
     zeros and a video suffix are ignored (None when none or several do: cam1 with both cam01 and cam_1)."""
-    exact = [c for c in cameras if c.name == name]
-    if exact:
-        return exact[0]
-    alike = [c for c in cameras if name_key(c.name) == name_key(name)]
-    return alike[0] if len(alike) == 1 else None
+    found = spelled_alike(name, [c.name for c in cameras])
+    return next(c for c in cameras if c.name == found[0]) if len(found) == 1 else None
 
 
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dynrecon.errors import InputError
-from dynrecon.names import name_key
+from dynrecon.names import spelled_alike
 from sfm.calibration import TurnedVideoError, intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
@@ -25,11 +25,10 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
         videos = read_cameras(path).videos
         result: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         for info in infos:
-            exact = [v for v in videos if v.name == info.name]
-            alike = exact or [v for v in videos if name_key(v.name) == name_key(info.name)]
-            if len(alike) != 1:
+            found = spelled_alike(info.name, [v.name for v in videos])
+            if len(found) != 1:
                 continue
-            video = alike[0]
+            video = next(v for v in videos if v.name == found[0])
             if not video.frames:
                 log.warning("%s: video %r has no posed frame to take intrinsics from", path, video.name)
                 continue

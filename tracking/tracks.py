@@ -7,6 +7,7 @@ solver. A missing row means "not observed". Pixel coordinates follow OpenCV (top
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import logging
 import math
@@ -18,7 +19,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
-from dynrecon.names import name_key
+from dynrecon.names import spelled_alike
 from dynrecon.readers import MAX_FRAME, csv_records, parse_frame, shown
 
 log = logging.getLogger(__name__)
@@ -103,41 +104,25 @@ def matched_to_videos(tracks: Tracks, videos: Iterable[str]) -> Tracks:
     when case, separators, leading zeros and a file suffix are ignored (`back.mp4` -> `back`, `Cam01` -> `cam_1`),
     with a warning. Names that match no video, or several, or a video the tracks already name, stay as they are."""
     videos = list(videos)
-    known = set(videos)
-    by_key: dict[str, list[str]] = {}
-    for video in videos:
-        by_key.setdefault(name_key(video), []).append(video)
     named = set(tracks.video_names())
-    renamed: dict[str, str] = {}
-    for name in named - known:
-        candidates = by_key.get(name_key(name), [])
-        if len(candidates) == 1 and candidates[0] not in named:
-            renamed[name] = candidates[0]
+    alike = {name: spelled_alike(name, videos) for name in named - set(videos)}
+    renamed = {name: found[0] for name, found in alike.items() if len(found) == 1 and found[0] not in named}
     targets = list(renamed.values())
     renamed = {old: new for old, new in renamed.items() if targets.count(new) == 1}
-    for name in sorted(named - known - set(renamed)):
-        alike = by_key.get(name_key(name), [])
-        if alike:  # spelled like a video, but another name already takes it (or several videos match)
+    for name in sorted(set(alike) - set(renamed)):
+        if alike[name]:  # spelled like a video, but another name already takes it (or several videos match)
             log.warning(
                 "%s: video %r names none of the videos, and is not taken as %s (another name of the tracks is, or "
                 "several videos match)",
                 tracks.path or "tracks",
                 name,
-                " or ".join(repr(v) for v in alike),
+                " or ".join(repr(v) for v in alike[name]),
             )
     if not renamed:
         return tracks
     for old, new in sorted(renamed.items()):
         log.warning("%s: video %r taken as the video %r", tracks.path or "tracks", old, new)
-    return Tracks(
-        video=[renamed.get(v, v) for v in tracks.video],
-        frame=tracks.frame,
-        point=tracks.point,
-        xy=tracks.xy,
-        extra=tracks.extra,
-        line=tracks.line,
-        path=tracks.path,
-    )
+    return dataclasses.replace(tracks, video=[renamed.get(v, v) for v in tracks.video])
 
 
 def join_tracks(*parts: Tracks) -> Tracks:
