@@ -204,16 +204,17 @@ def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:
     out.mkdir(parents=True, exist_ok=True)
     write_tracks(out / "tracks.csv", charuco_tracks(readable or videos, board))
     # read back: this run sees the CSV's rounded positions, as a later run reading WS/tracks.csv will
-    return read_tracks(out / "tracks.csv")
+    return read_tracks(out / "tracks.csv").canonical()
 
 
 def capture_tracks(options: RegisterOptions, out: Path, videos: Sequence[str]) -> Tracks | None:
     """The subject's tracks registration uses (masks, the subject path): the given ones, or WS's tracks.csv; their
-    video names matched to `videos` (the capture's video names)."""
+    video names matched to `videos` (the capture's video names), rows in canonical order (the same poses whatever
+    order the file lists them in)."""
     path = options.tracks or (out / "tracks.csv" if (out / "tracks.csv").exists() else None)
     if path is not None and options.tracks is None and options.board is not None:
         log.info("tracks: %s (delete it to find the board's corners in the videos again)", path)
-    return matched_to_videos(read_tracks(path), videos) if path is not None else None
+    return matched_to_videos(read_tracks(path), videos).canonical() if path is not None else None
 
 
 # ----------------------------------------------------------------------------------------------------------

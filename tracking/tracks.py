@@ -83,6 +83,14 @@ class Tracks:
             path=self.path,
         )
 
+    def canonical(self) -> Tracks:
+        """The same rows sorted by (video, frame, point): what is computed from them does not depend on the
+        order the rows came in."""
+        if not len(self):
+            return self
+        order = np.lexsort((_ranks(self.point), self.frame, _ranks(self.video)))
+        return self.take(order)
+
     def of_videos(self, names: Iterable[str]) -> Tracks:
         """The rows of the videos `names`, in their order here."""
         wanted = set(names)
@@ -216,6 +224,11 @@ def _codes(names: list[str]) -> np.ndarray:
     """(N,) int64: each name's index among the distinct names."""
     index = {name: i for i, name in enumerate(dict.fromkeys(names))}
     return np.fromiter(map(index.__getitem__, names), dtype=np.int64, count=len(names))
+
+
+def _ranks(names: list[str]) -> np.ndarray:
+    """(N,) int64: each name's rank among the distinct names, sorted."""
+    return np.unique(np.asarray(names, dtype=str), return_inverse=True)[1].astype(np.int64)
 
 
 def _read_checked(path: Path) -> Tracks:

@@ -49,6 +49,7 @@ def calibrate_from_subject(
     options = options or SubjectOptions()
     inlier_px = INLIER_PX if options.inlier_px is None else options.inlier_px
     rng = np.random.default_rng(SEED)
+    tracks = tracks.canonical()
     points, obs = build_observations(tracks, videos)
     _check_scale_points(points, options)
     with_tracks = [i for i, o in enumerate(obs) if o.count() > 0]

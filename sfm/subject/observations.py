@@ -60,8 +60,9 @@ def normalize(xy: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndar
 
 
 def build_observations(tracks: Tracks, videos: list[SubjectVideo]) -> tuple[list[str], list[VideoObs]]:
-    """Observation arrays of every video (in `videos` order) over the union of point names."""
-    points = tracks.point_names()
+    """Observation arrays of every video (in `videos` order) over the union of point names (sorted: the result
+    does not depend on the tracks' row order)."""
+    points = sorted(tracks.point_names())
     p_index = {p: i for i, p in enumerate(points)}
     v_index = {v.name: i for i, v in enumerate(videos)}
     vid = np.array([v_index.get(v, -1) for v in tracks.video], dtype=np.int64)  # (N,)
