@@ -317,11 +317,19 @@ def _option_files(register: RegisterOptions) -> dict[str, Path]:
 def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, register: RegisterOptions) -> None:
     """A calibration that exists, can be read and has a known format, without the registration options it
     replaces: checked before any stage runs."""
-    fix = "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml, cameras.json)"
+    fix = (
+        "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml, cameras.json, "
+        "a Label3D/DANNCE .mat)"
+    )
     if not calibration.exists():
         raise InputError(calibration, "calibration file not found", fix=fix)
     if not calibration.is_file():
-        raise InputError(calibration, "is not a file: a calibration file was expected", fix=fix)
+        raise InputError(
+            calibration,
+            "is not a file: a calibration file was expected",
+            fix="a folder of DANNCE's cam*_params.mat: `dynrecon import-calibration FOLDER VIDEO... --out CAL`, then "
+            "--calibration CAL/cameras.json",
+        )
     try:
         with calibration.open("rb"):
             pass
@@ -337,12 +345,13 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
         )
     lower = calibration.name.lower()
     # sfm.calibration's own rule for the format; its message would name import-calibration's --format.
-    known = lower.endswith((".toml", ".xml", ".json")) or ".qca" in lower
+    known = lower.endswith((".toml", ".xml", ".json", ".mat")) or ".qca" in lower
     if imported.format is CalibrationFormat.AUTO and not known:
         raise InputError(
             calibration,
             "cannot tell the calibration format from the name",
-            fix="pass --calibration-format qca, toml or json, or name the file .toml / .qca.txt / .qca / .xml / .json",
+            fix="pass --calibration-format qca, toml, json or dannce, or name the file .toml / .qca.txt / .qca / .xml "
+            "/ .json / .mat",
         )
 
 

@@ -18,6 +18,8 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
   are left out; cameras are named `cam_<cam_id>` (its videos are cam_0.mp4...). A camera with intrinsics only
   (no rotation/translation yet) is read with R = t = None: `register --intrinsics` can use it, `run` refuses it.
 - `rotation` may be a Rodrigues 3-vector or a 3x3 matrix (9 numbers) in every TOML layout.
+- DANNCE / Label3D `.mat` files (`sfm/calibration_dannce.py`): no image size, so width = height = 0 (the
+  video's own size is taken).
 - FreeMoCap's `*_camera_calibration.toml` is anipose's layout with translations in millimetres (its charuco
   square size is given in mm). Units rule (`Units.AUTO`): millimetres when the `[metadata]` table has
   `charuco_square_size` (FreeMoCap) or `square_length` (sleap-anipose), or when the cameras are over MM_SPREAD
@@ -43,6 +45,7 @@ from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
 from dynrecon.names import spelled_alike
 from dynrecon.readers import read_text, shown
+from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
 from sfm.video import ProbedVideo, probe_video
@@ -65,7 +68,7 @@ SAME_POSE = 1e-6  # a static camera's frames share one pose: rotation and transl
 @dataclass(kw_only=True)
 class StaticCamera:
     """One calibrated camera. R, t: cam_from_world (OpenCV), t in metres, both None for an intrinsics-only
-    calibration; K, dist: OpenCV pixels."""
+    calibration; K, dist: OpenCV pixels; width = height = 0 where the file gives no image size (the video's)."""
 
     name: str
     width: int
@@ -410,11 +413,14 @@ def read_cameras_json(path: str | Path) -> list[StaticCamera]:
 def read_calibration(
     path: str | Path, fmt: CalibrationFormat = CalibrationFormat.AUTO, units: Units = Units.AUTO
 ) -> list[StaticCamera]:
-    """Cameras of a QCA or TOML file; TOML cameras may lack a pose (R = t = None): see StaticCamera.pose."""
+    """Cameras of a QCA, TOML, cameras.json or DANNCE file; TOML cameras may lack a pose (R = t = None): see
+    StaticCamera.pose."""
     path = Path(path)
     if fmt is CalibrationFormat.AUTO:
         lower = path.name.lower()
-        if lower.endswith(".toml"):
+        if is_dannce(path):
+            fmt = CalibrationFormat.DANNCE
+        elif lower.endswith(".toml"):
             fmt = CalibrationFormat.TOML
         elif lower.endswith(".json"):
             fmt = CalibrationFormat.CAMERAS_JSON
@@ -424,14 +430,21 @@ def read_calibration(
             raise InputError(
                 path,
                 "cannot tell the calibration format from the name",
-                fix="pass --format qca, toml or json",
+                fix="pass --format qca, toml, json or dannce",
             )
     if fmt is CalibrationFormat.CAMERAS_JSON:
         return read_cameras_json(path)  # read_cameras has checked it
-    cameras = read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
+    if fmt is CalibrationFormat.DANNCE:
+        cameras = [
+            StaticCamera(name=c.name, width=0, height=0, K=c.K, dist=c.dist, R=c.R, t=c.t)
+            for c in read_dannce(path, mm=units is not Units.M)
+        ]
+    else:
+        cameras = read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
     for camera in cameras:
         where = f"camera {shown(camera.name)}"
-        if not (0 < camera.width < 2**31 and 0 < camera.height < 2**31):
+        sizeless = fmt is CalibrationFormat.DANNCE and camera.width == camera.height == 0
+        if not sizeless and not (0 < camera.width < 2**31 and 0 < camera.height < 2**31):
             raise InputError(path, f"image size {camera.width}x{camera.height} is not positive", where=where)
         check_plausible(camera.K, camera.t, camera.dist, path, where)
         if camera.R is not None and not np.all(np.isfinite(camera.R)):
@@ -496,9 +509,24 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
     calibrated size; scaled where the video is the calibrated image resized (one scale for both axes: a phone
     calibrated at 4K filming at 1080p); otherwise unchanged, with a warning, since a crop or a padding cannot be
     told from the sizes alone. TurnedVideoError where the video is the calibrated image turned by 90 degrees
-    (or resized and turned): the turn's direction is not in the sizes, and K unchanged would be wrong."""
+    (or resized and turned): the turn's direction is not in the sizes, and K unchanged would be wrong. A size of
+    (0, 0) (the file gives none) takes the video's, if the principal point lies in it."""
     width, height = size
     if (video.width, video.height) == (width, height):
+        return K
+    if (width, height) == (0, 0):  # the file gives no size: the video is taken as the calibrated image
+        cx, cy = K[0, 2], K[1, 2]
+        if not (0 <= cx < video.width and 0 <= cy < video.height):  # a loose calibration's, used as the lab does
+            log.warning(
+                "%s: camera %s: principal point (%.1f, %.1f) outside this %dx%d video; used as the file gives "
+                "it (check that each video is given with its own camera)",
+                video.path,
+                name,
+                cx,
+                cy,
+                video.width,
+                video.height,
+            )
         return K
     if width != height and abs(video.width / height - video.height / width) <= SAME_ASPECT * video.width / height:
         raise TurnedVideoError(

@@ -30,8 +30,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "calibration",
         type=Path,
         help="calibration file (.qca.txt / .qca / .xml, or .toml: Pose2Sim/anipose/FreeMoCap [cam_N], "
-        "caliscope [cameras.N] or [cam_N]; or the cameras.json of another recording by the same static cameras, "
-        "e.g. a board filmed before the session)",
+        "caliscope [cameras.N] or [cam_N]; DANNCE/Label3D: a *_dannce.mat, or a folder of cam*_params.mat; or "
+        "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session)",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
     parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json")
@@ -46,7 +46,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         choices=[u.value for u in Units],
         default="auto",
         help="unit of TOML translations (default auto: mm when [metadata] gives the board's square in mm, as "
-        "FreeMoCap's and sleap-anipose's do, or the cameras are over 100 units apart; else m)",
+        "FreeMoCap's and sleap-anipose's do, or the cameras are over 100 units apart; else m; DANNCE's: mm)",
     )
     parser.add_argument(
         "--scale",

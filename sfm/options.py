@@ -183,11 +183,13 @@ class CalibrationFormat(enum.Enum):
     QCA = "qca"
     TOML = "toml"  # every TOML layout: Pose2Sim/anipose/FreeMoCap [cam_N], caliscope [cameras.N] and [cam_N]
     CAMERAS_JSON = "json"  # dynrecon's own cameras.json of another recording by the same static cameras
+    DANNCE = "dannce"  # DANNCE / Label3D MATLAB files: a *_dannce.mat, or a folder of cam*_params.mat
 
 
 class Units(enum.Enum):
     """Length unit of TOML translations. AUTO: mm where `[metadata]` gives the board's square in mm (FreeMoCap,
-    sleap-anipose) or the cameras are over 100 units apart (an anipose rig in the board's mm), else m."""
+    sleap-anipose) or the cameras are over 100 units apart (an anipose rig in the board's mm), else m. DANNCE's
+    files: mm unless M."""
 
     AUTO = "auto"
     M = "m"
