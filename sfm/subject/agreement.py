@@ -27,7 +27,7 @@ import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
 from sfm.subject.geometry import sampson
-from sfm.subject.model import MIN_SHARED, SEED, SubjectVideo
+from sfm.subject.model import MIN_SHARED, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
 from sfm.subject.pairs import correspondences, fit_pair, pair_correspondences
 from tracking.tracks import Tracks
@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 MAX_RATIO = 5.0  # a contradicted pose leaves the subject this many times further from its epipolar lines ...
 MIN_PX = 3.0  # ... and more than this further (image pixels: a wrong focal scales angles, not what was measured)
 CLEAR_RATIO = 1.15  # the tracks' offset must beat any other a frame away by this (the one-point pairs' margin)
+OWN_FIT_PX = max(NOISE_SCALES_PX)  # ... and their own geometry fit half its correspondences within this (median)
 SHIFT_REACH = 1.0  # the poses' best offset: fine steps this many frame periods around each coarse candidate
 SHIFT_STEP = 0.25  # in frame periods of the faster video
 COARSE_CORRESPONDENCES = 2000  # at most (every k-th frame of a) in the coarse scan of the poses' offset
@@ -157,6 +158,10 @@ def _check_pair(
     tx = t / np.linalg.norm(t)
     E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
     least = max(MIN_SHARED, int(MIN_SHARE * len(xa)))
+    if own * focal > OWN_FIT_PX:
+        # the tracks' own geometry leaves most correspondences off its lines: their offset pairs other instants
+        out.why = f"the tracks' own geometry fits them at {own * focal:.1f} px (> {OWN_FIT_PX:g}): offset not clear"
+        return out
     poses, shift = _poses_best(oa, ob, E, fit.shift, max_offset, least)
     out.checked = True
     out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift

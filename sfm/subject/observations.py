@@ -19,7 +19,7 @@ class VideoObs:
     name: str
     video: SubjectVideo
     times: np.ndarray  # (F,) own seconds
-    period: float  # median frame period (s)
+    period: float  # the tracks' sampling period (s): the median step between tracked frames, at least a frame
     xy: np.ndarray  # (F, P, 2) pixels, NaN = unobserved
     norm: np.ndarray  # (F, P, 2) undistorted normalized coordinates with `K` (a guess when not known)
     K: np.ndarray  # (3, 3) known or current estimate
@@ -86,7 +86,7 @@ def build_observations(tracks: Tracks, videos: list[SubjectVideo]) -> tuple[list
             )
         rows, frames = rows[inside], frames[inside]
         xy[frames, pid[rows]] = tracks.xy[rows]
-        period = float(np.median(np.diff(times))) if len(times) > 1 else 1.0 / 30
+        period = sampling_period(times, xy)
         known = video.K is not None
         K = np.asarray(video.K, dtype=float) if known else guess_K(video)
         dist = np.asarray(video.dist, dtype=float) if video.dist is not None else None
@@ -104,6 +104,15 @@ def build_observations(tracks: Tracks, videos: list[SubjectVideo]) -> tuple[list
             )
         )
     return points, out
+
+
+def sampling_period(times: np.ndarray, xy: np.ndarray) -> float:
+    """Seconds between the tracks' samples: the median step between frames with an observation (tracks of every
+    4th frame of a 120 fps video: 1/30 s), at least the median frame period."""
+    frame = float(np.median(np.diff(times))) if len(times) > 1 else 1.0 / 30
+    tracked = times[np.isfinite(xy[..., 0]).any(axis=1)]  # (F',) times of the frames with any observation
+    steps = np.diff(tracked)
+    return max(frame, float(np.median(steps))) if len(steps) else frame
 
 
 def interpolate(values: np.ndarray, times: np.ndarray, query: np.ndarray, max_gap: float) -> np.ndarray:

@@ -53,7 +53,7 @@ def pair_correspondences(
     oa: VideoObs, ob: VideoObs, shifts: np.ndarray, stride: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
     """shifts: (D,) -> xa, xb: (D, Fa / stride * P, 2) normalized with NaN (every `stride`-th frame of a)."""
-    max_gap = 2.5 * ob.period  # bridge at most one missing frame
+    max_gap = 2.5 * ob.period  # bridge at most one missing sample
     xb = interpolate(ob.norm, ob.times, oa.times[None, ::stride] + shifts[:, None], max_gap)  # (D, Fa', P, 2)
     xa = np.broadcast_to(oa.norm[::stride], xb.shape)
     return xa.reshape(len(shifts), -1, 2), xb.reshape(len(shifts), -1, 2)
@@ -119,9 +119,17 @@ def _score(
 
 
 def _image_speed(o: VideoObs) -> float:
-    """Median speed of the tracked points in pixels per second."""
-    d = np.linalg.norm(np.diff(o.norm, axis=0), axis=-1) * o.focal / o.period  # (F - 1, P)
-    d = d[np.isfinite(d)]
+    """Median speed of the tracked points in pixels per second, between consecutive samples of each point."""
+    speeds = []
+    for p in range(o.norm.shape[1]):
+        seen = np.flatnonzero(np.isfinite(o.norm[:, p, 0]))
+        if len(seen) < 2:
+            continue
+        dt = np.diff(o.times[seen])
+        near = dt <= 1.5 * o.period  # samples one apart, not across a gap
+        step = np.linalg.norm(np.diff(o.norm[seen, p], axis=0), axis=-1) * o.focal
+        speeds.append(step[near] / dt[near])
+    d = np.concatenate(speeds) if speeds else np.zeros(0)
     return float(np.median(d)) if len(d) else 0.0
 
 

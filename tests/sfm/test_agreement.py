@@ -54,7 +54,9 @@ def test_the_true_poses_agree_with_the_subject(rig: tuple[Tracks, list[SubjectVi
         assert pair.poses_px < 2 * pair.tracks_px + 0.5, pair  # the truth fits as well as the tracks' own geometry
         index = {n: i for i, n in enumerate(truth.names)}
         true = truth.offsets[index[pair.b]] - truth.offsets[index[pair.a]]
-        assert abs(pair.offset_s - true) < 0.01, pair  # type: ignore[operator]
+        # the tracks' pair offset, before any chaining or bundle: within a frame of the slower video
+        frame = max(truth.periods[index[pair.a]], truth.periods[index[pair.b]])
+        assert abs(pair.offset_s - true) < frame, pair  # type: ignore[operator]
 
 
 @pytest.mark.parametrize("degrees", [5.0, 15.0, 40.0])

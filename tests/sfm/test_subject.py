@@ -94,6 +94,16 @@ def test_the_tracks_row_order_does_not_change_the_poses() -> None:
         assert ca.offset == cb.offset
 
 
+def test_tracks_of_every_fourth_frame_of_fast_cameras() -> None:
+    # a detector run on every 4th frame of 90-120 fps videos: the tracks' samples are 4 frames apart, and the pairs
+    # interpolate across them (before: no pair shared observations at any offset)
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=6.0, fps=(120.0, 100.0, 90.0), seed=2)
+    sparse = tracks.take(np.flatnonzero(tracks.frame % 4 == 0))
+    result = calibrate_from_subject(sparse, videos, SubjectOptions())
+    err = compare(result, truth)
+    assert err.posed == 3 and err.centre_pct < 2.0 and err.rotation_deg < 1.0 and err.offset_frames < 1.0
+
+
 def test_scale_from_two_points_gives_metres() -> None:
     tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=8.0, seed=2)
     from sfm.subject.synthetic import skeleton_motion

@@ -16,22 +16,26 @@ from sfm.subject.synthetic import compare, make_rig
 
 
 def test_detector_keypoints_get_the_wider_scale() -> None:
-    # 5 px of noise and 3 % false detections: at 3 px the poses are 4.5 deg off (measured), at 6 px 0.12 deg
+    # 5 px of noise and 3 % false detections: the wider scale's folds are steadier. The poses' error depends on the
+    # RANSAC samples (seeds 2-5 of this rig: 0.24-0.68 deg, 0.35-1.26 %): held to the issue's 1 deg and 2 %
     tracks, videos, truth = make_rig(kind="skeleton", n_cameras=4, duration=10.0, noise_px=5.0, false_rate=0.03, seed=2)
     result, stability = choose_noise(tracks, videos, SubjectOptions())
     err = compare(result, truth)
     assert result.inlier_px == NOISE_SCALES_PX[1]
     assert err.posed == 4 and not stability.unstable
-    assert err.centre_pct < 1.0 and err.rotation_deg < 0.5
+    assert err.centre_pct < 2.0 and err.rotation_deg < 1.0
     first, wide = (result.noise_check[px] for px in NOISE_SCALES_PX)
     assert first.stable < 4 or first.fold_rotation_deg > wide.fold_rotation_deg
 
 
-def test_marker_grade_tracks_keep_the_first_scale() -> None:
+def test_marker_grade_tracks_stay_accurate_at_the_chosen_scale() -> None:
+    # 0.7 px of noise: both scales' folds barely move (0.25 and 0.11 deg here), so which one is kept depends on the
+    # RANSAC samples; either is accurate (3 px: 0.31 deg, 6 px: 0.15 deg on this rig)
     tracks, videos, truth = make_rig(kind="skeleton", n_cameras=4, duration=10.0, noise_px=0.7, false_rate=0.03, seed=2)
     result, stability = choose_noise(tracks, videos, SubjectOptions())
     err = compare(result, truth)
-    assert result.inlier_px == NOISE_SCALES_PX[0] and set(result.noise_check) == set(NOISE_SCALES_PX)
+    assert set(result.noise_check) == set(NOISE_SCALES_PX)
+    assert all(trial.stable == 4 and trial.fold_rotation_deg < 0.5 for trial in result.noise_check.values())
     assert err.posed == 4 and not stability.unstable
     assert err.centre_pct < 0.5 and err.rotation_deg < 0.2
 
