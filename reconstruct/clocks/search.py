@@ -133,18 +133,13 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_Vide
     for v in range(len(problem.video_names)):
         rows = np.flatnonzero(problem.video_index == v)
         rows = rows[np.argsort(own[rows], kind="stable")]
-        # the frames the tracks sample (every 4th of a 120 fps video, say): interpolated across, a gap of
-        # MAX_GAP_PERIODS of their own step at most
-        rows = rows[np.isfinite(rays[rows, :, 0]).any(axis=1)]
-        steps = np.diff(own[rows])
-        period = max(float(periods[v]), float(np.median(steps))) if len(steps) else float(periods[v])
         tracks.append(
             _VideoRays(
                 own=own[rows],
                 centers=centers[rows],
                 rays=rays[rows],
                 focal=focal[rows],
-                max_gap=MAX_GAP_PERIODS * period,
+                max_gap=MAX_GAP_PERIODS * float(periods[v]),
             )
         )
     return tracks

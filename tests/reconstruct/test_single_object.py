@@ -24,26 +24,3 @@ def test_one_point_solves_within_bound(tmp_path: Path) -> None:
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["temporal"]["path"] == "tracks", report["temporal"].get("reason")
     assert set(report["timings"]) >= {"clocks", "refinement"}
-
-
-def test_tracks_of_every_fourth_frame_recover_the_clocks(tmp_path: Path) -> None:
-    """A detector run on every 4th frame: the clock search interpolates across the untracked frames (before, it
-    found no offset, and the seed solve ran on every frame instead)."""
-    from dynrecon.cli import main
-
-    assert main(["-q", "simulate", "--mode", "flight", "--duration", "6", "--seed", "1", "--out", str(tmp_path)]) == 0
-    lines = (tmp_path / "tracks.csv").read_text().splitlines()
-    kept = [lines[0], *(line for line in lines[1:] if int(line.split(",")[1]) % 4 == 0)]
-    (tmp_path / "sparse.csv").write_text("\n".join(kept) + "\n")
-    out = tmp_path / "out"
-    cmd = ["-q", "solve", "--cameras", str(tmp_path / "cameras.json"), "--tracks", str(tmp_path / "sparse.csv")]
-    assert main([*cmd, "--out", str(out), "--no-recording"]) == 0
-    report = json.loads((out / "report.json").read_text())
-    assert report["temporal"]["path"] == "tracks", report["temporal"].get("reason")
-    truth = {v["name"]: v for v in json.loads((tmp_path / "clocks_truth.json").read_text())["videos"]}
-    clocks = json.loads((out / "sequencing.json").read_text())["clocks"]
-    ref = truth[clocks["reference"]]["offset_s"]
-    for video in clocks["videos"]:
-        assert video["identified"], video["video"]
-        error = video["offset"] - (truth[video["video"]]["offset_s"] - ref)
-        assert abs(error) * truth[video["video"]]["fps"] < 0.2, video
