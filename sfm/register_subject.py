@@ -129,7 +129,7 @@ def pose_from_subject(
                 )
                 if board is not None and board.get("scale"):
                     board.update(scale=None, scale_why="the videos the background posed set the scale")
-                subject_options = SubjectOptions(scale=None, claimed_offsets=claimed)
+                subject_options = replace(subject_options, scale=None)
             result, aligned, stability = _solve_with_posed(
                 subject_tracks, inputs, posed_tracked, videos, results, tracks, subject_options
             )
@@ -143,7 +143,7 @@ def pose_from_subject(
                 # the board's scale pair (not the user's) may never be triangulated together: arbitrary units
                 warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
                 board.update(scale=None, scale_why=str(error))
-                subject_options = SubjectOptions(scale=None, claimed_offsets=claimed)
+                subject_options = replace(subject_options, scale=None)
                 result, stability = choose_noise(subject_tracks, inputs, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")

@@ -155,13 +155,13 @@ def _check_pair(
     focal = float(np.sqrt(oa.focal * ob.focal))
     xa, xb = correspondences(oa, ob, fit.shift)
     own = float(np.median(np.sqrt(sampson(fit.E[None], xa, xb)[0])))
-    tx = t / np.linalg.norm(t)
-    E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
-    least = max(MIN_SHARED, int(MIN_SHARE * len(xa)))
     if own * focal > OWN_FIT_PX:
         # the tracks' own geometry leaves most correspondences off its lines: their offset pairs other instants
         out.why = f"the tracks' own geometry fits them at {own * focal:.1f} px (> {OWN_FIT_PX:g}): offset not clear"
         return out
+    tx = t / np.linalg.norm(t)
+    E = np.array([[0, -tx[2], tx[1]], [tx[2], 0, -tx[0]], [-tx[1], tx[0], 0]]) @ R
+    least = max(MIN_SHARED, int(MIN_SHARE * len(xa)))
     poses, shift = _poses_best(oa, ob, E, fit.shift, max_offset, least)
     out.checked = True
     out.offset_s = -fit.shift  # own_b = own_a + shift at one instant: o_b - o_a = -shift

@@ -182,9 +182,9 @@ def _fit_pairs(
 ) -> list[PairFit]:
     """Every pair of tracked videos: its time offset (searched, or at the known offsets) and epipolar geometry."""
     fits: list[PairFit] = []
+    known, claimed = options.offsets or {}, options.claimed_offsets or {}
     for n, a in enumerate(with_tracks):
         for b in with_tracks[n + 1 :]:
-            known, claimed = options.offsets or {}, options.claimed_offsets or {}
             if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
                 fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], inlier_px)
             else:
