@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
+from reconstruct.clocks.given import given_offsets_check
 from reconstruct.clocks.model import Clocks
+from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
@@ -69,12 +71,13 @@ def prefer_registered_offsets(
     temporal: Temporal,
     check: dict[str, Any] | None,
     options: RefineOptions,
+    search: SearchOptions | None = None,
 ) -> Temporal:
     """`temporal`, or the trajectories refined on registration's offsets: where the solve's clocks disagree with them
     (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better
     (residual); or where the solve kept its seed, having left some clock unidentified or found every clock but
-    judged them too ambiguous while registration's agree with them, and registration's pass the clock checks
-    (`clock_fit`)."""
+    judged them too ambiguous while registration's agree with them, and registration's are not refuted by the
+    tracks (`given_offsets`, with `search`) and pass the clock checks (`clock_fit`)."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
     # the solve's clocks, which its own checks found too ambiguous to use, and registration's agree
@@ -87,6 +90,18 @@ def prefer_registered_offsets(
     clocks = registered_clocks(problem, cameras, temporal.clocks)
     if clocks is None:
         temporal.report[PATH] = {"tried": False, "reason": "some videos have no registered clock offset"}
+        return temporal
+    # first, the tracks must not clearly prefer other offsets (clocks/given.py)
+    given, verdicts = given_offsets_check(problem, clocks, search or SearchOptions())
+    if not given.passed:
+        log.warning("registration's offsets were not used: %s", given.sentence())
+        temporal.report[PATH] = {
+            "tried": True,
+            "criterion": "given_offsets",
+            "checks": [given.to_json()],
+            "given_offsets": [v.to_json() for v in verdicts],
+            "kept": "solve",
+        }
         return temporal
     start = seed.points if seed.stages else start_points(problem, clocks.global_time)
     on_clocks = refine_on_clocks(problem, start, clocks, clocks.model, options)

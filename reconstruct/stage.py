@@ -27,13 +27,13 @@ from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
 from reconstruct.registered_offsets import PATH as REGISTERED_PATH
-from reconstruct.registered_offsets import prefer_registered_offsets
+from reconstruct.registered_offsets import prefer_registered_offsets, registered_clocks
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
-from reconstruct.solver.problem import Problem
+from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
+from reconstruct.tracks_path import FEW_POINTS, TracksAttempt, clocks_seed, solve_on_given_clocks, solve_on_tracks
 from reconstruct.tracks_path import applies as tracks_path_applies
-from reconstruct.tracks_path import clocks_seed, solve_on_tracks
 from reconstruct.tracks_path import refereed as tracks_path_refereed
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
@@ -160,7 +160,7 @@ def solve(
         problem.num_points,
         int(problem.observed.sum()),
     )
-    result, temporal = _solve_and_refine(problem, options)
+    result, temporal = _solve_and_refine(problem, options, camera_set)
     result.timings["read_inputs"] = read_inputs
     # the split of clocks and refinement, where reconstruct/temporal.py reports one
     result.timings.update(temporal.report.get("timings", {}))
@@ -168,7 +168,13 @@ def solve(
     if options.temporal.refinement is Refinement.CLOCKS:
         t0 = time.perf_counter()
         temporal = prefer_registered_offsets(
-            problem, camera_set, result, temporal, registration_check, options.temporal.refine
+            problem,
+            camera_set,
+            result,
+            temporal,
+            registration_check,
+            options.temporal.refine,
+            options.temporal.clocks.track_search,
         )
         if not result.stages and temporal.report.get("path") == REGISTERED_PATH:
             # the tracks path's W came from the clocks just replaced: the trust measures need the kept ones'
@@ -204,9 +210,10 @@ def solve(
     )
 
 
-def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveResult, Temporal]:
+def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSet) -> tuple[SolveResult, Temporal]:
     """The tracks path (for few points, or refereed beyond) when it passes its checks (reconstruct/tracks_path.py),
-    else the seed solve and the clocks and refinement after it; the report says which and why."""
+    else, for at most FEW_POINTS points, cameras.json's clock offsets when they fit (the seed solve is singular
+    there), else the seed solve and the clocks and refinement after it; the report says which and why."""
     temporal_options = options.temporal
     tried: dict[str, Any] | None = None
     attempt_seconds = 0.0
@@ -219,19 +226,77 @@ def _solve_and_refine(problem: Problem, options: SolveOptions) -> tuple[SolveRes
             attempt.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
             return attempt.seed, attempt.temporal
         tried, attempt_seconds = attempt.report, time.perf_counter() - t0
+        given = _on_given_offsets(problem, cameras, attempt, temporal_options)
+        if given is not None:
+            given.seed.timings["tracks_path_attempt"] = attempt_seconds
+            given.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
+            return given.seed, given.temporal
+    if tried is not None:
+        log.warning("solving with the seed solve%s", _seed_cost_hint(problem))
     result = solve_problem(problem, options.solver)
     t0 = time.perf_counter()
     temporal = recover_and_refine(problem, result, temporal_options)
     result.timings["clocks_and_refinement"] = time.perf_counter() - t0
     if tried is not None:
         # the tracks' clocks failed a check: the seed solve's answer, with the tracks' attempt
-        temporal.report["tracks_path"] = {"checks": tried["checks"], "failed": tried["failed"]}
+        temporal.report["tracks_path"] = _tried(tried)
         if "referee" in tried:
-            temporal.report["tracks_path"]["referee"] = tried["referee"]
             result.timings["referee"] = tried["referee"]["seconds"]
         result.timings["tracks_path_attempt"] = attempt_seconds  # what the failed attempt cost, referee included
         temporal.report["reason"] = f"tracks path failed its check {tried['failed']!r}: the seed solve was run"
     return result, temporal
+
+
+@dataclasses.dataclass(kw_only=True)
+class _Given:
+    seed: SolveResult
+    temporal: Temporal
+
+
+def _on_given_offsets(
+    problem: Problem, cameras: CameraSet, attempt: TracksAttempt, options: TemporalOptions
+) -> _Given | None:
+    """Few points whose tracks did not single out their clocks: the trajectories on cameras.json's clock offsets
+    (registration's, or declared synchronized), held to the tracks path's fit check, instead of the seed solve,
+    whose W-step is singular for so few points (docs/measurements.md); None where they are missing or fail."""
+    if attempt.clocks is None or int(reconstructable_points(problem).sum()) > FEW_POINTS:
+        return None
+    clocks = registered_clocks(problem, cameras, attempt.clocks)
+    if clocks is None:
+        return None
+    given = solve_on_given_clocks(problem, clocks, options, REGISTERED_PATH)
+    tried = _tried(attempt.report)
+    if given.temporal is None or given.seed is None:
+        attempt.report["registered_offsets"] = {"checks": given.report["checks"], "failed": given.report["failed"]}
+        return None
+    log.warning(
+        "the tracks did not single out the clocks (check %r failed): the trajectories are fitted on cameras.json's "
+        "clock offsets, which fit them (%s)",
+        attempt.report["failed"],
+        given.temporal.report["checks"][-1]["meaning"],
+    )
+    given.temporal.report["tracks_path"] = tried
+    given.temporal.report["reason"] = (
+        f"tracks path failed its check {attempt.report['failed']!r}; with {FEW_POINTS} or fewer points the seed "
+        "solve is singular: fitted on cameras.json's clock offsets, which passed the tracks path's fit check"
+    )
+    return _Given(seed=given.seed, temporal=given.temporal)
+
+
+def _seed_cost_hint(problem: Problem) -> str:
+    """What the seed solve costs where its W-step is singular (few points), and how to avoid it."""
+    count = int(reconstructable_points(problem).sum())
+    if count > FEW_POINTS:
+        return ""
+    return (
+        f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
+        "clock offsets in cameras.json, register's or `import-calibration --synchronized`, avoid it)"
+    )
+
+
+def _tried(report: dict[str, Any]) -> dict[str, Any]:
+    """report.json `temporal.tracks_path`: the failed attempt's checks (and referee, offsets tried after it)."""
+    return {key: report[key] for key in ("checks", "failed", "referee", "registered_offsets") if key in report}
 
 
 def run(

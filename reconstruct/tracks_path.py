@@ -31,7 +31,9 @@ import numpy as np
 from dynrecon.beside import beside
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
-from reconstruct.clocks.model import frame_periods
+from reconstruct.clocks.given import given_offsets_check
+from reconstruct.clocks.model import ClockModel, Clocks, frame_periods
+from reconstruct.clocks.ray_gap import ray_gap_px
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.blas import one_blas_thread
@@ -39,7 +41,7 @@ from reconstruct.solver.initialize import PairInit
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
-from reconstruct.temporal import Temporal, TemporalOptions, refine_on_clocks
+from reconstruct.temporal import OnClocks, Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
 from reconstruct.tracks_referee import compare, referee_times, subsample, subsample_without_clocks
 from reconstruct.trajectory import predicted_px
@@ -66,6 +68,7 @@ class TracksAttempt:
     temporal: Temporal | None
     seed: SolveResult | None
     report: dict[str, Any]
+    clocks: Clocks | None = None  # the clocks tried (also when a check failed)
 
 
 def applies(problem: Problem, max_points: int) -> bool:
@@ -154,31 +157,19 @@ def _attempt(
     many = int(reconstructable_points(problem).sum()) > FEW_POINTS
     checks = clock_checks(problem, clocks, MANY_POINTS_DISTINCTNESS if many else MIN_DISTINCTNESS)
     if not all(c.passed for c in checks):
-        return _failed(checks, report)  # leaving the stack stops a referee still running
+        return _failed(checks, report, clocks)  # leaving the stack stops a referee still running
     if referee is not None and running is None:
         index = subsample(problem, clocks.global_time)
         running = stack.enter_context(beside(_timed_referee, problem, index, referee, clock_options))
         beside_what = "refinement"
     t0 = time.perf_counter()
-    times = clocks.global_time.copy()
-    start = start_points(problem, times)
-    placed = np.isfinite(start).all(axis=-1).any(axis=0)
+    start = start_points(problem, clocks.global_time)
     timings["start_points"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    try:
-        on_clocks = refine_on_clocks(problem, start, clocks, clock_options.model, options.refine)
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as error:
+    on_clocks = _refine(problem, start, clocks, clock_options.model, options, checks)
+    if on_clocks is None:
         # clocks that passed the track checks but break the refinement: the seed solve decides, as on a failed check
-        checks.append(
-            Check(
-                name="refinement",
-                value=1.0,
-                limit=0.0,
-                passed=False,
-                meaning=f"the refinement on the tracks' clocks failed ({type(error).__name__}: {error}); failures",
-            )
-        )
-        return _failed(checks, report)
+        return _failed(checks, report, clocks)
     timings["refinement"] = time.perf_counter() - t0
     if running is not None and index is not None:
         t0 = time.perf_counter()
@@ -191,36 +182,104 @@ def _attempt(
         timings["referee_wait"] = time.perf_counter() - t0
         checks.append(check)
         if not check.passed:
-            return _failed(checks, report)
-    refined = on_clocks.result
-    residual = reprojection_px(problem, refined.points)
+            return _failed(checks, report, clocks)
+    gap = clocks.diagnostics.get("track_residual_px")
+    checks.append(_fit_check(problem, on_clocks, gap if isinstance(gap, float) else math.nan, "the tracks' clocks"))
+    if not all(c.passed for c in checks):
+        return _failed(checks, report, clocks)
+    placed = int((np.isfinite(start).all(axis=-1).any(axis=0)).sum())
+    reason = f"{placed} reconstructable point(s): clocks from the tracks, no self-expressive solve"
+    return _accepted(problem, start, on_clocks, checks, report, reason, PATH)
+
+
+def solve_on_given_clocks(problem: Problem, clocks: Clocks, options: TemporalOptions, path: str) -> TracksAttempt:
+    """The tracks path's trajectories and fit check on clocks it did not find itself (registration's or declared
+    offsets, for few points whose tracks do not single out their clocks, where the seed solve is singular): the
+    fit's yardstick is how closely the tracks' rays meet at those clocks (`clocks/ray_gap.py`). `path` names the
+    result in report.json `temporal.path`."""
+    t0 = time.perf_counter()
+    report: dict[str, Any] = {"refinement": options.refinement.value, "refined": False, "timings": {}}
+    check, verdicts = given_offsets_check(problem, clocks, options.clocks.track_search)
+    report["given_offsets"] = [v.to_json() for v in verdicts]
+    checks = [check]
+    if not check.passed:
+        return _failed(checks, report, clocks, what="cameras.json's clock offsets were")
+    gap = ray_gap_px(problem, clocks.global_time)
+    start = start_points(problem, clocks.global_time)
+    on_clocks = _refine(problem, start, clocks, clocks.model, options, checks)
+    if on_clocks is None:
+        return _failed(checks, report, clocks, what="cameras.json's clock offsets were")
+    checks.append(_fit_check(problem, on_clocks, gap, "these clocks"))
+    report["timings"]["refinement"] = time.perf_counter() - t0
+    report["ray_gap_px"] = finite_or_none(gap)
+    if not checks[-1].passed:
+        return _failed(checks, report, clocks, what="cameras.json's clock offsets were")
+    placed = int((np.isfinite(start).all(axis=-1).any(axis=0)).sum())
+    reason = f"{placed} reconstructable point(s) on cameras.json's clock offsets, no self-expressive solve"
+    return _accepted(problem, start, on_clocks, checks, report, reason, path)
+
+
+def _refine(
+    problem: Problem,
+    start: np.ndarray,
+    clocks: Clocks,
+    model: ClockModel,
+    options: TemporalOptions,
+    checks: list[Check],
+) -> OnClocks | None:
+    """`refine_on_clocks`, or None with a failed `refinement` check appended when it raises a numerical error."""
+    try:
+        return refine_on_clocks(problem, start, clocks, model, options.refine)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as error:
+        checks.append(
+            Check(
+                name="refinement",
+                value=1.0,
+                limit=0.0,
+                passed=False,
+                meaning=f"the refinement on the clocks failed ({type(error).__name__}: {error}); failures",
+            )
+        )
+        return None
+
+
+def _fit_check(problem: Problem, on_clocks: OnClocks, gap: float, clocks_name: str) -> Check:
+    """`tracks_fit`: the trajectories meet their rays about as closely as the rays meet each other on the clocks."""
+    residual = reprojection_px(problem, on_clocks.result.points)
     finite = residual[np.isfinite(residual)]
     median = float(np.median(finite)) if finite.size else math.nan
-    gap = clocks.diagnostics.get("track_residual_px")
-    gap = float(gap) if isinstance(gap, float) and math.isfinite(gap) else 0.0
+    gap = gap if math.isfinite(gap) else 0.0
     limit = TRACKS_FIT_FACTOR * gap + TRACKS_FIT_PX
-    checks.append(
-        Check(
-            name="tracks_fit",
-            value=median,
-            limit=limit,
-            passed=bool(median <= limit),
-            meaning=f"median reprojection residual (px) on the tracks' clocks, against their {gap:.3g} px ray gap",
-        )
+    return Check(
+        name="tracks_fit",
+        value=median,
+        limit=limit,
+        passed=bool(median <= limit),
+        meaning=f"median reprojection residual (px) on {clocks_name}, against their {gap:.3g} px ray gap",
     )
-    if not all(c.passed for c in checks):
-        return _failed(checks, report)
+
+
+def _accepted(
+    problem: Problem,
+    start: np.ndarray,
+    on_clocks: OnClocks,
+    checks: list[Check],
+    report: dict[str, Any],
+    reason: str,
+    path: str,
+) -> TracksAttempt:
+    refined = on_clocks.result
     points = np.where(np.isfinite(refined.points), refined.points, start)
     report.update(on_clocks.report)
     report.update(
         {
             "refined": True,
-            "path": PATH,
+            "path": path,
             "checks": [c.to_json() for c in checks],
             "smoothness_median": finite_or_none(np.nanmedian(refined.smoothness)),
             "predicted_px": finite_or_none(predicted_px(refined)),
             "outlier_observations": int(refined.outliers.sum()),
-            "reason": f"{int(placed.sum())} reconstructable point(s): clocks from the tracks, no self-expressive solve",
+            "reason": reason,
         }
     )
     temporal = Temporal(
@@ -233,8 +292,9 @@ def _attempt(
     )
     return TracksAttempt(
         temporal=temporal,
-        seed=clocks_seed(problem, start, points, on_clocks.clocks.global_time, timings),
+        seed=clocks_seed(problem, start, points, on_clocks.clocks.global_time, report["timings"]),
         report=report,
+        clocks=on_clocks.clocks,
     )
 
 
@@ -245,11 +305,13 @@ def _timed_referee(
     return referee_times(problem, index, referee, clock_options), time.perf_counter() - started
 
 
-def _failed(checks: list[Check], report: dict[str, Any]) -> TracksAttempt:
+def _failed(
+    checks: list[Check], report: dict[str, Any], clocks: Clocks, what: str = "the tracks path"
+) -> TracksAttempt:
     failed = next(c for c in checks if not c.passed)
-    log.warning("the tracks path was not used: %s; solving with the seed solve", failed.sentence())
+    log.warning("%s not used: %s", what, failed.sentence())
     report.update({"checks": [c.to_json() for c in checks], "failed": failed.name})
-    return TracksAttempt(temporal=None, seed=None, report=report)
+    return TracksAttempt(temporal=None, seed=None, report=report, clocks=clocks)
 
 
 def clocks_seed(

@@ -145,6 +145,29 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_Vide
     return tracks
 
 
+def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+    """As `_tracks`, on each video's frames with an observation of `points` only, interpolated across at most
+    MAX_GAP_PERIODS of its sampling step (tracks of every 4th frame: across the untracked frames between them)."""
+    seen = problem.observed[:, points].any(axis=1) & np.isfinite(own)
+    rays = viewing_rays(problem)[:, points]
+    centers = problem.centers
+    focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
+    periods = frame_periods(own, problem.video_index, len(problem.video_names))
+    tracks = []
+    for v in range(len(problem.video_names)):
+        rows = np.flatnonzero((problem.video_index == v) & seen)
+        rows = rows[np.argsort(own[rows], kind="stable")]
+        steps = np.diff(own[rows])
+        steps = steps[steps > 0]
+        step = max(float(np.nan_to_num(periods[v])), float(np.median(steps)) if steps.size else 0.0)
+        tracks.append(
+            _VideoRays(
+                own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows], max_gap=MAX_GAP_PERIODS * step
+            )
+        )
+    return tracks
+
+
 def gap_px(
     c1: np.ndarray,
     r1: np.ndarray,
@@ -234,16 +257,29 @@ def _grid_cost(
     return cost
 
 
+def _pair_queries(
+    tracks: list[_VideoRays], v: int, u: int, options: SearchOptions
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pair's query rows of v and u (subsampled) and the interpolated samples a hypothesis needs."""
+    qv = _subsample(len(tracks[v].own), options.max_queries)
+    qu = _subsample(len(tracks[u].own), options.max_queries)
+    seen_v = np.isfinite(tracks[v].rays[qv, :, 0])
+    seen_u = np.isfinite(tracks[u].rays[qu, :, 0])
+    return qv, qu, max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
+
+
+def pair_cost(tracks: list[_VideoRays], v: int, u: int, alpha: float, beta: float, options: SearchOptions) -> float:
+    """The pair search's cost (px^2) of one hypothesis own_u = alpha + beta own_v (inf: too little overlap)."""
+    qv, qu, need = _pair_queries(tracks, v, u, options)
+    return float(_grid_cost(tracks, v, u, qv, qu, np.array([alpha]), beta, need, options.inlier_px**2)[0])
+
+
 def search_pair(
     tracks: list[_VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray, sources: list[TimeSource]
 ) -> PairHypothesis | None:
     """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
     tv, tu = tracks[v], tracks[u]
-    qv = _subsample(len(tv.own), options.max_queries)
-    qu = _subsample(len(tu.own), options.max_queries)
-    seen_v = np.isfinite(tv.rays[qv, :, 0])
-    seen_u = np.isfinite(tu.rays[qu, :, 0])
-    need = max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
+    qv, qu, need = _pair_queries(tracks, v, u, options)
     step = COARSE_STEP_PERIODS * float(np.nanmax([periods[v], periods[u]]))
     c2 = options.inlier_px**2
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
