@@ -26,14 +26,13 @@ from typing import Any
 import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
-from reconstruct.clocks.given import given_offsets_check
 from reconstruct.clocks.model import Clocks
 from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import reprojection_px
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
-from reconstruct.time_checks import Check, RefinementJudge, spacing_assumed
+from reconstruct.time_checks import Check, RefinementJudge, given_offsets_check, spacing_assumed
 from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, predicted_pair
 from sfm.cameras import CameraSet

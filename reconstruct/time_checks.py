@@ -18,7 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from reconstruct.clocks.given import PairVerdict, pair_verdicts
 from reconstruct.clocks.model import Clocks, TimeSource, frame_periods
+from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import FreeTimes, refine_free_times, reprojection_px
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
@@ -260,3 +262,23 @@ class RefinementJudge:
         points = np.where(far[..., None], self.result.points, refined.points)
         counted = np.isfinite(self.result.points[..., 0])
         return points, float(far[counted].mean()) if counted.any() else 0.0
+
+
+def given_offsets_check(problem: Problem, clocks: Clocks, options: SearchOptions) -> tuple[Check, list[PairVerdict]]:
+    """`given_offsets`: no pair of videos refutes the offsets of `clocks` (each video's global = own + offset)."""
+    offsets = np.array([video.offset for video in clocks.videos])
+    verdicts = pair_verdicts(problem, clocks.own_time, offsets, options)
+    refuting = [v for v in verdicts if v.refutes]
+    first = (
+        f"{refuting[0].v}-{refuting[0].u} at {refuting[0].best_s:+.3f} s, not {refuting[0].given_s:+.3f}"
+        if refuting
+        else "none"
+    )
+    check = Check(
+        name="given_offsets",
+        value=float(len(refuting)),
+        limit=0.0,
+        passed=not refuting,
+        meaning=f"pairs of videos whose tracks clearly prefer another offset (first: {first})",
+    )
+    return check, verdicts

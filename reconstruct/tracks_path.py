@@ -31,7 +31,6 @@ import numpy as np
 from dynrecon.beside import beside
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.estimate import ClockOptions, estimate_clocks_from_tracks
-from reconstruct.clocks.given import given_offsets_check
 from reconstruct.clocks.model import ClockModel, Clocks, frame_periods
 from reconstruct.clocks.ray_gap import ray_gap_px
 from reconstruct.free_times import reprojection_px
@@ -42,7 +41,7 @@ from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import OnClocks, Temporal, TemporalOptions, refine_on_clocks
-from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks
+from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks, given_offsets_check
 from reconstruct.tracks_referee import compare, referee_times, subsample, subsample_without_clocks
 from reconstruct.trajectory import predicted_px
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
-from reconstruct.clocks.model import Clocks, TimeSource, frame_periods
+from reconstruct.clocks.model import TimeSource, frame_periods
 from reconstruct.clocks.search import (
     COARSE_STEP_PERIODS,
     DISTINCT_STEPS,
@@ -28,7 +28,6 @@ from reconstruct.clocks.search import (
     search_pair,
 )
 from reconstruct.solver.problem import Problem
-from reconstruct.time_checks import Check
 
 REFUTE_RATIO = 2.0  # the pair's runner-up and the given offset's cost over its best, both at least this
 
@@ -97,23 +96,3 @@ def pair_verdicts(problem: Problem, own: np.ndarray, offsets: np.ndarray, option
                 )
             )
     return verdicts
-
-
-def given_offsets_check(problem: Problem, clocks: Clocks, options: SearchOptions) -> tuple[Check, list[PairVerdict]]:
-    """`given_offsets`: no pair of videos refutes the offsets of `clocks` (each video's global = own + offset)."""
-    offsets = np.array([video.offset for video in clocks.videos])
-    verdicts = pair_verdicts(problem, clocks.own_time, offsets, options)
-    refuting = [v for v in verdicts if v.refutes]
-    first = (
-        f"{refuting[0].v}-{refuting[0].u} at {refuting[0].best_s:+.3f} s, not {refuting[0].given_s:+.3f}"
-        if refuting
-        else "none"
-    )
-    check = Check(
-        name="given_offsets",
-        value=float(len(refuting)),
-        limit=0.0,
-        passed=not refuting,
-        meaning=f"pairs of videos whose tracks clearly prefer another offset (first: {first})",
-    )
-    return check, verdicts
