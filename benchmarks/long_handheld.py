@@ -258,7 +258,7 @@ def main() -> int:
         print(
             f"{video['name']}: {video['registered']}/{video['frames_given']} registered, {video['sfm_frames']} "
             f"keyframes {keys.get('by_reason')}, tracked {video['registered_by_tracking']}, keyframes added "
-            f"{video['keyframes_added']}, failed {len(video['failed'])}"
+            f"{video['keyframes_added']}, failed {sum(run['frames'] for run in video['failed'])}"
         )
     errors = compare(read_cameras(path), truth)
     print(

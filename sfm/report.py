@@ -73,11 +73,9 @@ def write_report(
 def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str, Any]:
     posed = [r for r in per_frame.values() if r.pose is not None]
     errors = [r.error for r in posed if r.error is not None]
-    failed = [
-        {"frame": int(f), "reason": r.reason or "unknown"} for f, r in sorted(per_frame.items()) if r.pose is None
-    ]
+    failed = _failed_runs(per_frame)
     if not per_frame:
-        failed = [{"frame": None, "reason": "not reached (SfM stopped before localization)"}]
+        failed = [{"first": None, "last": None, "frames": 0, "reason": "not reached (SfM stopped before localization)"}]
     sources = sorted({r.source for r in posed if r.source})
     return {
         "name": video.info.name,
@@ -108,6 +106,26 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
             if r.pose is not None
         ],
     }
+
+
+def _failed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
+    """Unposed frames as runs of neighbours (no posed frame between them) that failed for the same reason: one entry
+    per run, not per frame, since a failed video repeats one reason for every frame (megabytes for minutes of
+    120 fps video)."""
+    runs: list[dict[str, Any]] = []
+    open_run = False
+    for frame, result in sorted(per_frame.items()):
+        if result.pose is not None:
+            open_run = False
+            continue
+        reason = result.reason or "unknown"
+        if open_run and runs[-1]["reason"] == reason:
+            runs[-1]["last"] = int(frame)
+            runs[-1]["frames"] += 1
+        else:
+            runs.append({"first": int(frame), "last": int(frame), "frames": 1, "reason": reason})
+        open_run = True
+    return runs
 
 
 def _path(source: str | None) -> str:
