@@ -305,7 +305,7 @@ def _timed_referee(
 
 
 def _failed(
-    checks: list[Check], report: dict[str, Any], clocks: Clocks, what: str = "the tracks path"
+    checks: list[Check], report: dict[str, Any], clocks: Clocks, what: str = "the tracks path was"
 ) -> TracksAttempt:
     failed = next(c for c in checks if not c.passed)
     log.warning("%s not used: %s", what, failed.sentence())

@@ -51,6 +51,10 @@ MIN_DISTINCTNESS = 1.15  # runner-up cost / best cost of a pair usable for the c
 REFINE_ROUNDS = 3
 REFINE_THRESHOLDS = (8.0, 5.0, 4.0)  # samples kept per refinement round: gap below this many robust scales
 CLUSTER_S = 0.5  # residuals within this time of one video form one cluster of the covariance
+# Sparse tracks (every n-th frame tracked) are interpolated across their own step only for this few points: with
+# many, per-point gaps between people or joints changed the real multi-person Pose2Sim solve (docs/clocks.md).
+SPARSE_MAX_POINTS = 3
+SPARSE_STEP_PERIODS = 1.5  # a video whose tracked frames are this many frame periods apart (median) is sparse
 
 
 @dataclass(kw_only=True)
@@ -166,6 +170,27 @@ def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> lis
             )
         )
     return tracks
+
+
+def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
+    """Tracks of at most SPARSE_MAX_POINTS points sampled sparser than the frames (a video's median step between
+    observed frames over SPARSE_STEP_PERIODS of its frame periods: a detector run on every 4th frame)."""
+    observed = problem.observed
+    if int(observed.any(axis=0).sum()) > SPARSE_MAX_POINTS:
+        return False
+    periods = frame_periods(own, problem.video_index, len(problem.video_names))
+    for v in range(len(problem.video_names)):
+        seen = np.sort(own[(problem.video_index == v) & observed.any(axis=1) & np.isfinite(own)])
+        steps = np.diff(seen)
+        steps = steps[steps > 0]
+        if steps.size and np.isfinite(periods[v]) and float(np.median(steps)) > SPARSE_STEP_PERIODS * periods[v]:
+            return True
+    return False
+
+
+def _video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+    """Every frame's rays, or for sparse tracks of few points the tracked samples' (`sparse_tracks`)."""
+    return sampled_tracks(problem, own, points) if sparse_tracks(problem, own) else _tracks(problem, own, points)
 
 
 def gap_px(
@@ -622,7 +647,7 @@ def search_clocks(
     periods = frame_periods(own, problem.video_index, N)
     centers = video_centers(own, problem.video_index, N)
     pairs, coef, reached = _pairs_and_chain(problem, own, ref, sources, options, counts, periods, centers)
-    full_tracks = _tracks(problem, own, np.flatnonzero(counts > 0))
+    full_tracks = _video_tracks(problem, own, np.flatnonzero(counts > 0))
     starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
     if start is not None and start.identified.sum() > 1:
         starts.append(("links", start.coef.copy(), start.identified.copy()))
@@ -645,7 +670,7 @@ def _pairs_and_chain(
     names = problem.video_names
     coarse_points = np.argsort(-counts, kind="stable")[: options.max_points]
     coarse_points = coarse_points[counts[coarse_points] > 0]
-    tracks = _tracks(problem, own, coarse_points)
+    tracks = _video_tracks(problem, own, coarse_points)
     pairs = [
         p
         for v in range(N)
