@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from reconstruct.clocks.search import MAD_TO_SIGMA, MAX_GAP_PERIODS, gap_px
+from reconstruct.clocks.search import MAD_TO_SIGMA, MAX_GAP_PERIODS, gap_px, median_step
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import viewing_rays
 
@@ -65,10 +65,5 @@ def _sorted_rows(problem: Problem, times: np.ndarray, seen: np.ndarray, video: i
 
 def _sampling_step(problem: Problem, times: np.ndarray, video: int, tracked: np.ndarray) -> float:
     """The video's step between its tracked samples (median), at least its frame period."""
-    own = np.sort(times[(problem.video_index == video) & np.isfinite(times)])
-    frame_steps = np.diff(own)
-    frame_steps = frame_steps[frame_steps > 0]
-    frame = float(np.median(frame_steps)) if frame_steps.size else 0.0
-    steps = np.diff(tracked)
-    steps = steps[steps > 0]
-    return max(frame, float(np.median(steps)) if steps.size else 0.0)
+    own = times[(problem.video_index == video) & np.isfinite(times)]
+    return max(median_step(own), median_step(tracked))

@@ -128,31 +128,11 @@ class _VideoRays:
         return centers, rays, self.focal[k]
 
 
-def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
-    rays = viewing_rays(problem)[:, points]
-    centers = problem.centers
-    focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
-    periods = frame_periods(own, problem.video_index, len(problem.video_names))
-    tracks = []
-    for v in range(len(problem.video_names)):
-        rows = np.flatnonzero(problem.video_index == v)
-        rows = rows[np.argsort(own[rows], kind="stable")]
-        tracks.append(
-            _VideoRays(
-                own=own[rows],
-                centers=centers[rows],
-                rays=rays[rows],
-                focal=focal[rows],
-                max_gap=MAX_GAP_PERIODS * float(periods[v]),
-            )
-        )
-    return tracks
-
-
-def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
-    """As `_tracks`, on each video's frames with an observation of `points` only, interpolated across at most
-    MAX_GAP_PERIODS of its sampling step (tracks of every 4th frame: across the untracked frames between them)."""
-    seen = problem.observed[:, points].any(axis=1) & np.isfinite(own)
+def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool = False) -> list[_VideoRays]:
+    """Each video's rays of `points` at every frame, interpolated across at most MAX_GAP_PERIODS frame periods; or,
+    `sampled`, at its frames with an observation of them only, across MAX_GAP_PERIODS of its sampling step (tracks of
+    every 4th frame: across the untracked frames between them)."""
+    seen = problem.observed[:, points].any(axis=1) & np.isfinite(own) if sampled else np.ones(len(own), dtype=bool)
     rays = viewing_rays(problem)[:, points]
     centers = problem.centers
     focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -161,15 +141,31 @@ def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> lis
     for v in range(len(problem.video_names)):
         rows = np.flatnonzero((problem.video_index == v) & seen)
         rows = rows[np.argsort(own[rows], kind="stable")]
-        steps = np.diff(own[rows])
-        steps = steps[steps > 0]
-        step = max(float(np.nan_to_num(periods[v])), float(np.median(steps)) if steps.size else 0.0)
+        step = float(periods[v])
+        if sampled:
+            step = max(float(np.nan_to_num(periods[v])), median_step(own[rows]))
         tracks.append(
             _VideoRays(
-                own=own[rows], centers=centers[rows], rays=rays[rows], focal=focal[rows], max_gap=MAX_GAP_PERIODS * step
+                own=own[rows],
+                centers=centers[rows],
+                rays=rays[rows],
+                focal=focal[rows],
+                max_gap=MAX_GAP_PERIODS * step,
             )
         )
     return tracks
+
+
+def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+    """`_tracks` on the tracked samples of `points` only."""
+    return _tracks(problem, own, points, sampled=True)
+
+
+def median_step(times: np.ndarray) -> float:
+    """The median positive step between sorted `times` (s); 0 without one."""
+    steps = np.diff(np.sort(times))
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if steps.size else 0.0
 
 
 def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
@@ -179,13 +175,12 @@ def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
     if int(observed.any(axis=0).sum()) > SPARSE_MAX_POINTS:
         return False
     periods = frame_periods(own, problem.video_index, len(problem.video_names))
-    for v in range(len(problem.video_names)):
-        seen = np.sort(own[(problem.video_index == v) & observed.any(axis=1) & np.isfinite(own)])
-        steps = np.diff(seen)
-        steps = steps[steps > 0]
-        if steps.size and np.isfinite(periods[v]) and float(np.median(steps)) > SPARSE_STEP_PERIODS * periods[v]:
-            return True
-    return False
+    tracked = observed.any(axis=1) & np.isfinite(own)
+    steps = [median_step(own[(problem.video_index == v) & tracked]) for v in range(len(problem.video_names))]
+    return any(
+        step > 0 and np.isfinite(period) and step > SPARSE_STEP_PERIODS * period
+        for step, period in zip(steps, periods, strict=True)
+    )
 
 
 def _video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
