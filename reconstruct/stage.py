@@ -228,9 +228,10 @@ def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSe
         tried, attempt_seconds = attempt.report, time.perf_counter() - t0
         given = _on_given_offsets(problem, cameras, attempt, temporal_options)
         if given is not None:
-            given.seed.timings["tracks_path_attempt"] = attempt_seconds
-            given.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
-            return given.seed, given.temporal
+            seed, temporal = given
+            seed.timings["tracks_path_attempt"] = attempt_seconds
+            seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
+            return seed, temporal
     if tried is not None:
         log.warning("solving with the seed solve%s", _seed_cost_hint(problem))
     result = solve_problem(problem, options.solver)
@@ -247,15 +248,9 @@ def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSe
     return result, temporal
 
 
-@dataclasses.dataclass(kw_only=True)
-class _Given:
-    seed: SolveResult
-    temporal: Temporal
-
-
 def _on_given_offsets(
     problem: Problem, cameras: CameraSet, attempt: TracksAttempt, options: TemporalOptions
-) -> _Given | None:
+) -> tuple[SolveResult, Temporal] | None:
     """Few points whose tracks did not single out their clocks: the trajectories on cameras.json's clock offsets
     (registration's, or declared synchronized), held to the tracks path's fit check, instead of the seed solve,
     whose W-step is singular for so few points (docs/measurements.md); None where they are missing or fail."""
@@ -269,18 +264,21 @@ def _on_given_offsets(
     if given.temporal is None or given.seed is None:
         attempt.report["registered_offsets"] = {"checks": given.report["checks"], "failed": given.report["failed"]}
         return None
+    fit = given.temporal.report["checks"][-1]
     log.warning(
         "the tracks did not single out the clocks (check %r failed): the trajectories are fitted on cameras.json's "
-        "clock offsets, which fit them (%s)",
+        "clock offsets, which no pair of videos refutes and which fit them (%s %.3g, limit %.3g)",
         attempt.report["failed"],
-        given.temporal.report["checks"][-1]["meaning"],
+        fit["meaning"],
+        fit["value"],
+        fit["limit"],
     )
     given.temporal.report["tracks_path"] = tried
     given.temporal.report["reason"] = (
         f"tracks path failed its check {attempt.report['failed']!r}; with {FEW_POINTS} or fewer points the seed "
         "solve is singular: fitted on cameras.json's clock offsets, which passed the tracks path's fit check"
     )
-    return _Given(seed=given.seed, temporal=given.temporal)
+    return given.seed, given.temporal
 
 
 def _seed_cost_hint(problem: Problem) -> str:
