@@ -6,6 +6,7 @@ The parsers are built from `sfm.options` only; the stages are imported when a co
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 
@@ -55,7 +56,31 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         help="multiply world coordinates (metres) by this factor (default 1)",
     )
     parser.add_argument("--synchronized", action="store_true", help=SYNCHRONIZED_HELP)
+    parser.add_argument(
+        "--offsets",
+        type=_offsets,
+        default={},
+        metavar="NAME=S,...",
+        help="known clock offsets in seconds per video (global time = the video's own time + offset: from a clap "
+        "or a timecode), e.g. cam1=0,cam2=0.033; written to cameras.json, which the solve tests against the "
+        "tracks like registration's offsets",
+    )
     parser.set_defaults(func=_run_import)
+
+
+def _offsets(text: str) -> dict[str, float]:
+    """NAME=SECONDS,... -> {name: seconds}; a one-line argparse error otherwise."""
+    out: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        try:
+            seconds = float(value)
+        except ValueError:
+            seconds = math.nan
+        if not sep or not name.strip() or not math.isfinite(seconds) or name.strip() in out:
+            raise argparse.ArgumentTypeError(f"{item!r}: give NAME=SECONDS once per video, e.g. cam2=0.033")
+        out[name.strip()] = seconds
+    return out
 
 
 SYNCHRONIZED_HELP = (
@@ -77,6 +102,7 @@ def _run_import(args: argparse.Namespace) -> int:
             units=Units(args.units),
             scale=args.scale,
             synchronized=args.synchronized,
+            offsets=args.offsets,
         ),
     )
     print(path)  # noqa: T201

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from dynrecon.errors import InputError
@@ -206,6 +206,9 @@ class ImportCalibrationOptions:
     # The videos were recorded on one clock (a triggered rig): every video's clock_offset is 0, which the solve
     # then tests against its own clocks (it keeps whichever fits better)
     synchronized: bool = False
+    # Known clock offsets per video name (s, global time = own time + offset: a clap, a timecode), written as
+    # cameras.json clock_offset and tested by the solve like registration's; videos left out get none
+    offsets: dict[str, float] = field(default_factory=dict)
 
 
 __all__ = [

@@ -67,6 +67,38 @@ def test_toml_round_trip(tmp_path: Path) -> None:
             np.testing.assert_allclose(frame.dist, camera.dist)
 
 
+def test_known_clock_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rng = np.random.default_rng(4)
+    K = np.array([[500.0, 0.0, 31.5], [0.0, 500.0, 23.5], [0.0, 0.0, 1.0]])
+    cameras = [
+        StaticCamera(name=f"cam{i}", width=64, height=48, K=K, dist=np.zeros(4), R=_rotation(rng), t=rng.normal(size=3))
+        for i in (1, 2)
+    ]
+    toml = write_toml(tmp_path / "calib.toml", cameras)
+    videos = []
+    for i in (1, 2):
+        _write_video(tmp_path / f"cam{i}.mp4", 3, (64, 48))
+        videos.append(str(tmp_path / f"cam{i}.mp4"))
+    args = ["import-calibration", str(toml), *videos, "--out", str(tmp_path / "ws")]
+    assert main([*args, "--offsets", "cam1=0, cam2=-0.25"]) == 0
+    capsys.readouterr()
+    assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, -0.25]
+    assert main([*args, "--offsets", "cam2=0.5"]) == 0  # a video left out gets none
+    assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [None, 0.5]
+    assert main([*args, "--synchronized"]) == 0
+    assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, 0.0]
+    capsys.readouterr()
+    assert main([*args, "--offsets", "cam3=0.1"]) == 2
+    assert "--offsets names video 'cam3', which is not among the videos (cam1, cam2)" in capsys.readouterr().err
+    for wrong in ("cam1=soon", "cam1=0,cam1=1", "cam1=nan", "0.5"):
+        with pytest.raises(SystemExit) as exit_:  # argparse's usage line and one error line
+            main([*args, "--offsets", wrong])
+        assert exit_.value.code == 2
+        assert "give NAME=SECONDS once per video" in capsys.readouterr().err
+    assert main([*args, "--offsets", "cam1=0", "--synchronized"]) == 2
+    assert "--synchronized and --offsets both given" in capsys.readouterr().err
+
+
 def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     empty = tmp_path / "empty.mp4"
     empty.write_bytes(b"")
