@@ -3,10 +3,9 @@ against the tracks before they are used: each pair of videos' own track search (
 refute them. A pair refutes the given offsets when its search is clearly distinct (runner-up at least REFUTE_RATIO x
 its best cost), its best lies outside the given offset's basin (more than the search's DISTINCT_STEPS grid steps
 away) and the given relative offset costs at least REFUTE_RATIO x that best. Refuting asks for more than the
-search's own MIN_DISTINCTNESS: with cameras a degree off, pairs of the Pose2Sim lab preferred a wrong offset by
-1.5-3x over registration's right one at distinctness 1.5, while a video 0.5 s off costs 18-64x on a simulated
-flight. Pairs whose search is not that distinct, or that do not overlap at the given offset, say nothing; within the
-basin the clock polish settles the offset.
+search's own MIN_DISTINCTNESS: with cameras a degree off, a pair's search can prefer a wrong offset mildly
+(docs/refinement.md, "Few points on cameras.json's offsets"). Pairs whose search is not that distinct, or that do
+not overlap at the given offset, say nothing; within the basin the clock polish settles the offset.
 """
 
 from __future__ import annotations
@@ -24,8 +23,8 @@ from reconstruct.clocks.search import (
     DISTINCT_STEPS,
     SearchOptions,
     pair_cost,
-    sampled_tracks,
     search_pair,
+    video_tracks,
 )
 from reconstruct.solver.problem import Problem
 
@@ -72,7 +71,7 @@ def pair_verdicts(problem: Problem, own: np.ndarray, offsets: np.ndarray, option
     counts = problem.observed.sum(axis=0)
     points = np.argsort(-counts, kind="stable")[: options.max_points]
     points = points[counts[points] > 0]
-    tracks = sampled_tracks(problem, own, points)
+    tracks = video_tracks(problem, own, points)  # as the search reads them
     periods = frame_periods(own, problem.video_index, N)
     sources = [TimeSource.DECODER] * N  # the given offsets keep each video's own rate
     verdicts = []

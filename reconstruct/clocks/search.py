@@ -183,7 +183,7 @@ def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
     )
 
 
-def _video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+def video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
     """Every frame's rays, or for sparse tracks of few points the tracked samples' (`sparse_tracks`)."""
     return sampled_tracks(problem, own, points) if sparse_tracks(problem, own) else _tracks(problem, own, points)
 
@@ -642,7 +642,7 @@ def search_clocks(
     periods = frame_periods(own, problem.video_index, N)
     centers = video_centers(own, problem.video_index, N)
     pairs, coef, reached = _pairs_and_chain(problem, own, ref, sources, options, counts, periods, centers)
-    full_tracks = _video_tracks(problem, own, np.flatnonzero(counts > 0))
+    full_tracks = video_tracks(problem, own, np.flatnonzero(counts > 0))
     starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
     if start is not None and start.identified.sum() > 1:
         starts.append(("links", start.coef.copy(), start.identified.copy()))
@@ -665,7 +665,7 @@ def _pairs_and_chain(
     names = problem.video_names
     coarse_points = np.argsort(-counts, kind="stable")[: options.max_points]
     coarse_points = coarse_points[counts[coarse_points] > 0]
-    tracks = _video_tracks(problem, own, coarse_points)
+    tracks = video_tracks(problem, own, coarse_points)
     pairs = [
         p
         for v in range(N)
