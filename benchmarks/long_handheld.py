@@ -41,6 +41,7 @@ from sfm import RegisterOptions, track_pose
 from sfm import register as run_register
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from sfm.evaluate import compare
+from sfm.report import posed_frames
 from sfm.synthetic.room import TEXELS_PER_METRE, Room, render
 from sfm.synthetic.scene import look_at
 
@@ -272,7 +273,7 @@ def main() -> int:
 
 def _path_table(report: dict, keys: list, centre: np.ndarray, rotation: np.ndarray, total: int) -> None:
     """Frames and their errors (after the similarity over all posed frames) per path that posed them."""
-    path_of = {(v["name"], p["frame"]): p["path"] for v in report["videos"] for p in v["posed"]}
+    path_of = {(v["name"], f): p["path"] for v in report["videos"] for f, p in posed_frames(v).items()}
     added = sum(v["keyframes_added"] for v in report["videos"])
     print(
         f"\n| path | frames | centre err median / mean / max (mm) | rotation err median / max (deg) |  (added {added})"

@@ -99,32 +99,56 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
         "registered_by_subject": sum(1 for r in posed if r.source == "subject"),
         "mean_reprojection_error_px": float(np.mean(errors)) if errors else None,
         "failed": failed,
-        "posed": [
-            {"frame": int(f), "path": _path(r.source), "inliers": r.inliers}
-            | ({"added_keyframe": True} if r.source == ADDED_KEYFRAME else {})
-            for f, r in sorted(per_frame.items())
-            if r.pose is not None
-        ],
+        "posed": _posed_runs(per_frame),
     }
 
 
-def _failed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
-    """Unposed frames as runs of neighbours (no posed frame between them) that failed for the same reason: one entry
-    per run, not per frame, since a failed video repeats one reason for every frame (megabytes for minutes of
-    120 fps video)."""
+def _posed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
+    """Posed frames as runs of consecutive frame numbers posed the same way without PnP inliers of their own (a static
+    or subject-posed video: one run); a frame with its own inliers (SfM, PnP) is a run of one."""
     runs: list[dict[str, Any]] = []
-    open_run = False
     for frame, result in sorted(per_frame.items()):
-        if result.pose is not None:
-            open_run = False
+        if result.pose is None:
             continue
-        reason = result.reason or "unknown"
-        if open_run and runs[-1]["reason"] == reason:
+        entry = {"path": _path(result.source), "inliers": result.inliers}
+        entry |= {"added_keyframe": True} if result.source == ADDED_KEYFRAME else {}
+        if runs and result.inliers is None and _extends(runs[-1], int(frame), entry):
             runs[-1]["last"] = int(frame)
             runs[-1]["frames"] += 1
         else:
-            runs.append({"first": int(frame), "last": int(frame), "frames": 1, "reason": reason})
-        open_run = True
+            runs.append({"first": int(frame), "last": int(frame), "frames": 1} | entry)
+    return runs
+
+
+def _extends(run: dict[str, Any], frame: int, entry: dict[str, Any]) -> bool:
+    """`frame` follows `run` directly and shares everything else with it."""
+    shared = {k: v for k, v in run.items() if k not in ("first", "last", "frames")}
+    return run["last"] + 1 == frame and shared == entry
+
+
+def posed_frames(video: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    """A register_report.json video entry's posed frames: frame -> its run's `path`, `inliers` (and
+    `added_keyframe`)."""
+    out: dict[int, dict[str, Any]] = {}
+    for run in video["posed"]:
+        shared = {k: v for k, v in run.items() if k not in ("first", "last", "frames")}
+        out.update(dict.fromkeys(range(run["first"], run["last"] + 1), shared))
+    return out
+
+
+def _failed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
+    """Unposed frames as runs of consecutive frame numbers that failed for the same reason: one entry per run, not
+    per frame, since a failed video repeats one reason for every frame (megabytes for minutes of 120 fps video)."""
+    runs: list[dict[str, Any]] = []
+    for frame, result in sorted(per_frame.items()):
+        if result.pose is not None:
+            continue
+        entry = {"reason": result.reason or "unknown"}
+        if runs and _extends(runs[-1], int(frame), entry):
+            runs[-1]["last"] = int(frame)
+            runs[-1]["frames"] += 1
+        else:
+            runs.append({"first": int(frame), "last": int(frame), "frames": 1} | entry)
     return runs
 
 

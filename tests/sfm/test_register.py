@@ -15,6 +15,7 @@ from dynrecon.cli import main
 from sfm.cameras import CameraSet, read_cameras
 from sfm.evaluate import compare
 from sfm.export import read_ply
+from sfm.report import posed_frames
 from sfm.synthetic.demo import render_demo, sphere_tracks, three_cameras
 from sfm.synthetic.room import Room
 from sfm.video import probe_video, read_frames
@@ -78,7 +79,7 @@ def test_register_synthetic_room(tmp_path: Path) -> None:
     assert len(list((ws / "sfm" / "masks" / "cam0").glob("*.png"))) == 10
     # JPEGs of the 6 SfM frames; tracked in-between frames are never written, SIFT fallbacks are.
     cam0 = next(v for v in report["videos"] if v["name"] == "cam0")
-    sift = sum(1 for p in cam0["posed"] if p["path"] == "sift")
+    sift = sum(1 for p in posed_frames(cam0).values() if p["path"] == "sift")
     assert len(list((ws / "frames" / "cam0").glob("*.jpg"))) == 6 + sift
 
 
@@ -221,7 +222,7 @@ def test_frames_without_texture_are_reported_and_the_rest_register(tmp_path: Pat
     video = next(v for v in report["videos"] if v["name"] == "covered")
     failed = {f: run["reason"] for run in video["failed"] for f in range(run["first"], run["last"] + 1)}
     assert sum(run["frames"] for run in video["failed"]) == len(failed)  # the runs hold no posed frame
-    posed = {p["frame"] for p in video["posed"]}
+    posed = set(posed_frames(video))
     assert {7, 8, 9} <= set(failed) and all("SIFT: no features" in failed[f] for f in (7, 8, 9))
     assert any(w.startswith("covered/") and "untextured or blurred" in w for w in report["warnings"])
     assert set(range(7)) <= posed
