@@ -104,15 +104,15 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
 
 
 def _posed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
-    """Posed frames as runs of consecutive frame numbers posed the same way without PnP inliers of their own (a static
-    or subject-posed video: one run); a frame with its own inliers (SfM, PnP) is a run of one."""
+    """Posed frames as runs of consecutive frame numbers posed the same way (path, inliers): a static or
+    subject-posed video, whose frames share one pose, is one run; PnP frames with inliers of their own stay apart."""
     runs: list[dict[str, Any]] = []
     for frame, result in sorted(per_frame.items()):
         if result.pose is None:
             continue
         entry = {"path": _path(result.source), "inliers": result.inliers}
         entry |= {"added_keyframe": True} if result.source == ADDED_KEYFRAME else {}
-        if runs and result.inliers is None and _extends(runs[-1], int(frame), entry):
+        if runs and _extends(runs[-1], int(frame), entry):
             runs[-1]["last"] = int(frame)
             runs[-1]["frames"] += 1
         else:

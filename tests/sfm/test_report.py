@@ -23,9 +23,11 @@ def test_unposed_frames_are_reported_as_runs_split_by_reason_and_by_posed_frames
     assert _failed_runs({1000: posed}) == []
 
 
-def test_a_static_video_is_one_posed_run_and_pnp_frames_keep_their_inliers() -> None:
+def test_a_static_or_subject_video_is_one_posed_run_and_pnp_frames_keep_their_inliers() -> None:
     static = {f: FramePose(pose=pycolmap.Rigid3d(), source="static") for f in range(500)}
     assert _posed_runs(static) == [{"first": 0, "last": 499, "frames": 500, "path": "static", "inliers": None}]
+    subject = {f: FramePose(pose=pycolmap.Rigid3d(), source="subject", inliers=2256) for f in range(100)}
+    assert _posed_runs(subject) == [{"first": 0, "last": 99, "frames": 100, "path": "subject", "inliers": 2256}]
     moving = {0: FramePose(pose=pycolmap.Rigid3d(), source="sfm", inliers=300)}
     moving |= {f: FramePose(pose=pycolmap.Rigid3d(), source="pnp", inliers=40 + f) for f in (1, 2)}
     moving |= {3: FramePose(pose=None, reason="lost"), 5: FramePose(pose=pycolmap.Rigid3d(), source="static")}
