@@ -105,7 +105,7 @@ def add_units_argument(parser: argparse.ArgumentParser) -> None:
 def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration: str) -> None:
     """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
     `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
-    from sfm.cli import SYNCHRONIZED_HELP
+    from sfm.cli import OFFSETS_HELP, SYNCHRONIZED_HELP, parse_offsets
     from sfm.options import CalibrationFormat, Units
 
     parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
@@ -127,6 +127,7 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         help=f"{SYNCHRONIZED_HELP} (import-calibration's); without --calibration, register's subject path fits each "
         "pair of videos at offset 0 unless its tracks clearly prefer another",
     )
+    parser.add_argument("--offsets", type=parse_offsets, default={}, metavar="NAME=S,...", help=OFFSETS_HELP)
 
 
 def check_track_flags(args: argparse.Namespace) -> None:
@@ -147,6 +148,7 @@ def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
         format=CalibrationFormat(args.calibration_format),
         units=Units(args.calibration_units),
         synchronized=args.synchronized,
+        offsets=args.offsets,
     )
 
 
@@ -164,6 +166,7 @@ def _run(args: argparse.Namespace) -> int:
         scale=scale,
         board=args.board,
         synchronized=args.synchronized and args.calibration is None,
+        offsets=args.offsets if args.calibration is None else {},
     )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
     options = PipelineOptions(

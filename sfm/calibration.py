@@ -47,7 +47,7 @@ from dynrecon.names import spelled_alike
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
-from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units, declared_offsets
 from sfm.video import ProbedVideo, probe_video
 
 log = logging.getLogger(__name__)
@@ -574,26 +574,6 @@ def _refuse_repeated_poses(cameras: list[StaticCamera], poses: list[tuple[np.nda
                 )
 
 
-def _clock_offsets(options: ImportCalibrationOptions, names: list[str]) -> dict[str, float]:
-    """cameras.json clock_offset per video: 0 for all with `synchronized`, else `offsets` (names checked)."""
-    if options.synchronized and options.offsets:
-        raise InputError(
-            None, "--synchronized and --offsets both given", fix="give one: --synchronized means every offset is 0"
-        )
-    if options.synchronized:
-        return dict.fromkeys(names, 0.0)
-    for name, offset in options.offsets.items():
-        if name not in names:
-            raise InputError(
-                None,
-                f"--offsets names video {name!r}, which is not among the videos ({', '.join(names)})",
-                fix="name each video by its file name without extension, e.g. --offsets cam1=0,cam2=0.033",
-            )
-        if not math.isfinite(offset):
-            raise InputError(None, f"--offsets {name}={offset}: not a finite number of seconds", fix="give seconds")
-    return dict(options.offsets)
-
-
 def run(
     calibration: str | Path,
     videos: Sequence[str | Path],
@@ -621,7 +601,7 @@ def run(
             f"video name {duplicates[0]!r} is used twice",
             fix="video names (file names without extension) must be unique",
         )
-    offsets = _clock_offsets(options, names)
+    offsets = declared_offsets(options.synchronized, options.offsets, names)
     cameras = match_cameras(read_calibration(calibration, options.format, options.units), infos, calibration)
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     _refuse_repeated_poses(cameras, poses, calibration)

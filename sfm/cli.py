@@ -58,17 +58,15 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--synchronized", action="store_true", help=SYNCHRONIZED_HELP)
     parser.add_argument(
         "--offsets",
-        type=_offsets,
+        type=parse_offsets,
         default={},
         metavar="NAME=S,...",
-        help="known clock offsets in seconds per video (global time = the video's own time + offset: from a clap "
-        "or a timecode), e.g. cam1=0,cam2=0.033; written to cameras.json, which the solve tests against the "
-        "tracks like registration's offsets",
+        help=OFFSETS_HELP,
     )
     parser.set_defaults(func=_run_import)
 
 
-def _offsets(text: str) -> dict[str, float]:
+def parse_offsets(text: str) -> dict[str, float]:
     """NAME=SECONDS,... -> {name: seconds}; a one-line argparse error otherwise."""
     out: dict[str, float] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
@@ -83,6 +81,11 @@ def _offsets(text: str) -> dict[str, float]:
     return out
 
 
+OFFSETS_HELP = (
+    "known clock offsets in seconds per video (global time = the video's own time + offset: from a clap or a "
+    "timecode), e.g. cam1=0,cam2=0.033; written to cameras.json, which the solve tests against the tracks like "
+    "registration's offsets"
+)
 SYNCHRONIZED_HELP = (
     "the videos were recorded on one clock (a triggered rig, frame i of each at the same instant): each video's "
     "clock_offset is 0 in cameras.json, which the solve tests against the clocks it recovers and keeps if it fits"

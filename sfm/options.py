@@ -104,6 +104,8 @@ class RegisterOptions:
     # A triggered rig: the videos share one clock. The subject path fits each pair at offset 0 unless the pair's
     # tracks clearly prefer another offset (then the claim is reported contradicted for that pair)
     synchronized: bool = False
+    # Known clock offsets per video name (s, global = own time + offset): claimed and tested as --synchronized's 0s
+    offsets: dict[str, float] = field(default_factory=dict)
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video, evenly spaced; each is matched with every one of the other videos
@@ -211,6 +213,27 @@ class ImportCalibrationOptions:
     offsets: dict[str, float] = field(default_factory=dict)
 
 
+def declared_offsets(synchronized: bool, offsets: dict[str, float], names: list[str]) -> dict[str, float]:
+    """The clock offsets the user declared for the videos `names`: 0 for all with `synchronized` (a triggered rig),
+    else `offsets` (a clap, a timecode); a one-line InputError for both at once, an unknown name or a non-number."""
+    if synchronized and offsets:
+        raise InputError(
+            None, "--synchronized and --offsets both given", fix="give one: --synchronized means every offset is 0"
+        )
+    if synchronized:
+        return dict.fromkeys(names, 0.0)
+    for name, offset in offsets.items():
+        if name not in names:
+            raise InputError(
+                None,
+                f"--offsets names video {name!r}, which is not among the videos ({', '.join(names)})",
+                fix="name each video by its file name without extension, e.g. --offsets cam1=0,cam2=0.033",
+            )
+        if not math.isfinite(offset):
+            raise InputError(None, f"--offsets {name}={offset}: not a finite number of seconds", fix="give seconds")
+    return dict(offsets)
+
+
 __all__ = [
     "ALL_CORES",
     "CalibrationFormat",
@@ -223,4 +246,5 @@ __all__ = [
     "RegisterOptions",
     "SubjectPath",
     "Units",
+    "declared_offsets",
 ]

@@ -120,6 +120,7 @@ def _add_sfm_arguments(sfm: argparse._ArgumentGroup, defaults: RegisterOptions) 
 
 
 def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
+    from sfm.cli import parse_offsets
     from sfm.options import CameraMotion, SubjectPath
 
     static.add_argument(
@@ -145,6 +146,15 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         action="store_true",
         help="the videos were recorded on one clock (a triggered rig): the subject path fits each pair at offset 0 "
         "unless its tracks clearly prefer another (the report says which pairs contradict it)",
+    )
+    static.add_argument(
+        "--offsets",
+        type=parse_offsets,
+        default={},
+        metavar="NAME=S,...",
+        help="known clock offsets in seconds per video (global time = own time + offset: a clap, a timecode), "
+        "e.g. cam1=0,cam2=0.033: the subject path fits each pair at them unless its tracks clearly prefer another, "
+        "and cameras.json carries them where it found no clock, for the solve to test",
     )
     static.add_argument(
         "--board",
@@ -222,6 +232,7 @@ def _run_register(args: argparse.Namespace) -> int:
         subject=SubjectPath(args.subject),
         scale=parse_scale(args.scale),
         synchronized=args.synchronized,
+        offsets=args.offsets,
         board=args.board,
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,

@@ -34,7 +34,7 @@ from sfm.export import write_ply
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
 from sfm.layout import Layout
-from sfm.options import ALL_CORES, CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath
+from sfm.options import ALL_CORES, CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath, declared_offsets
 from sfm.pairs import build_pairs, word_vectors
 from sfm.per_video import (
     capture_facts,
@@ -128,7 +128,9 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
 
 
 def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tracks | None) -> None:
-    """The inputs registration reads late (`--intrinsics`, `--scale`), checked before any work or any removal."""
+    """The inputs registration reads late (`--intrinsics`, `--scale`, `--offsets`), checked before any work or any
+    removal."""
+    declared_offsets(options.synchronized, options.offsets, [info.name for info in infos])
     if options.intrinsics is not None:
         known_intrinsics(options.intrinsics, infos)
     if options.scale is not None:
@@ -422,9 +424,8 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        path = _export(
-            registered_videos, results, _points(kept, dropped), subject_report, people, out, options.synchronized
-        )
+        declared = declared_offsets(options.synchronized, options.offsets, videos)
+        path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out, declared)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
 
@@ -483,12 +484,12 @@ def _export(
     subject_report: dict[str, Any] | None,
     people: dict[str, dict[int, int]],
     out: Path,
-    synchronized: bool = False,
+    declared: dict[str, float] | None = None,
 ) -> Path:
     """background.ply (`points`: the model's points and colours) and cameras.json (every posed frame, and each
-    video's map of its people when they were matched across videos); returns the cameras.json path. With
-    `synchronized` and no clock from the subject path, every video's clock_offset is the declared 0 (the solve
-    tests it)."""
+    video's map of its people when they were matched across videos); returns the cameras.json path. Without a
+    clock from the subject path, each video's clock_offset is the `declared` one (--synchronized's 0, --offsets;
+    the solve tests them)."""
     cameras = CameraSet()
     subject = subject_report or {}
     # the posed videos' offsets (handheld ones that anchored the subject path) are on the same clock
@@ -496,9 +497,9 @@ def _export(
         v["name"]: v["offset_s"] for v in subject.get("posed_videos", {}).get("videos", []) if v["reason"] is None
     }
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
-    if synchronized and not clock_offsets:
-        clock_offsets = {video.info.name: 0.0 for video in registered_videos}
-        log.info("--synchronized: every video's clock_offset is 0 in cameras.json (the solve tests it)")
+    if declared and not clock_offsets:
+        clock_offsets = dict(declared)
+        log.info("the declared clock offsets are written to cameras.json (the solve tests them)")
     for video in registered_videos:
         name = video.info.name
         cameras.videos.append(_video_cameras(video, results[name], clock_offsets.get(name), people.get(name)))

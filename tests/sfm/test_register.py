@@ -47,10 +47,14 @@ def test_register_synthetic_room(tmp_path: Path) -> None:
         # One thread makes COLMAP deterministic (random_seed is fixed); with threads this small scene's errors vary.
         "--threads",
         "1",
+        # known clock offsets (a clap): no subject path here, so cameras.json carries them for the solve to test
+        "--offsets",
+        "cam0=0,cam2=-0.25",
     ]
     assert main(args) == 0
 
     cameras = read_cameras(ws / "cameras.json")
+    assert [cameras.video(n).clock_offset for n in ("cam0", "cam1", "cam2")] == [0.0, None, -0.25]
     for video in truth.videos:
         assert cameras.video(video.name).frame_numbers().tolist() == video.frame_numbers().tolist()
         np.testing.assert_allclose(
@@ -111,6 +115,13 @@ def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "'a' is used twice" in capsys.readouterr().err
     assert main(["register", str(video), str(tmp_path / "b"), "--out", str(tmp_path / "ws")]) == 2
     assert "is a directory" in capsys.readouterr().err
+    other = _flat_video(tmp_path / "c.mp4", frames=2)
+    two = ["register", str(video), str(other), "--out", str(tmp_path / "ws")]
+    assert main([*two, "--offsets", "a=0,d=0.1"]) == 2
+    assert "--offsets names video 'd', which is not among the videos (a, c)" in capsys.readouterr().err
+    assert main([*two, "--offsets", "a=0", "--synchronized"]) == 2
+    assert "--synchronized and --offsets both given" in capsys.readouterr().err
+    assert not (tmp_path / "ws" / "register_report.json").exists()  # refused before any work
 
 
 def test_an_unreadable_video_is_left_out_and_the_others_go_on(
