@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from dynrecon.pipeline import PipelineOptions
     from sfm.options import ImportCalibrationOptions
 
 COMMANDS = {
@@ -153,7 +154,20 @@ def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from dynrecon.pipeline import PipelineOptions, default_register, run_stages
+    from dynrecon.pipeline import run_stages
+
+    options = pipeline_options(args)
+    result = run_stages(args.videos, args.out, options)
+    for stage in result.stages:
+        print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
+    if (result.workspace / "recording.rrd").is_file():
+        print(f"open the recording with: rerun {result.workspace / 'recording.rrd'}")  # noqa: T201
+    return 0
+
+
+def pipeline_options(args: argparse.Namespace) -> PipelineOptions:
+    """`dynrecon run`'s parsed flags as the pipeline's options (a lab calibration replaces register's clock flags)."""
+    from dynrecon.pipeline import PipelineOptions, default_register
     from sfm.register_cli import parse_scale
     from tracking.options import TrackOptions
 
@@ -180,12 +194,7 @@ def _run(args: argparse.Namespace) -> int:
         units=args.units,
         force=args.force,
     )
-    result = run_stages(args.videos, args.out, options)
-    for stage in result.stages:
-        print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
-    if (result.workspace / "recording.rrd").is_file():
-        print(f"open the recording with: rerun {result.workspace / 'recording.rrd'}")  # noqa: T201
-    return 0
+    return options
 
 
 def _add_demo(subparsers: argparse._SubParsersAction) -> None:

@@ -63,3 +63,15 @@ def test_a_user_error_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     )
     error = capsys.readouterr().err
     assert error.startswith("dynrecon solve: error: ") and error.count("\n") == 1
+
+
+def test_run_passes_known_offsets_to_register_or_to_the_calibration_import() -> None:
+    from dynrecon.pipeline_cli import pipeline_options
+
+    base = ["run", "cam1.mp4", "cam2.mp4", "--out", "ws", "--offsets", "cam1=0,cam2=0.1"]
+    plain = pipeline_options(cli.build_parser().parse_args(base))
+    assert plain.register.offsets == {"cam1": 0.0, "cam2": 0.1}
+    assert plain.calibration_options.offsets == {"cam1": 0.0, "cam2": 0.1}
+    # with a lab calibration the import writes them and registration (not run) never sees them
+    calibrated = pipeline_options(cli.build_parser().parse_args([*base, "--calibration", "lab.toml"]))
+    assert calibrated.register.offsets == {} and calibrated.calibration_options.offsets == {"cam1": 0.0, "cam2": 0.1}
