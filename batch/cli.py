@@ -82,6 +82,7 @@ def _batch(args: argparse.Namespace) -> int:
             max_frames=args.max_frames,
             num_threads=args.sfm_threads,
             synchronized=args.synchronized,  # a capture without a calibration: its subject path
+            offsets=args.offsets,  # the same names in every capture (a rig's fixed trigger delays)
         ),
         track=TrackOptions(win_size=args.track_window, patch=args.track_patch),
         calibration=args.calibration,
