@@ -72,6 +72,10 @@ def _batch(args: argparse.Namespace) -> int:
     check_track_flags(args)
     if (args.workers is not None and args.workers < 1) or args.retries < 0:
         raise InputError(None, "--workers must be >= 1 and --retries >= 0")
+    if args.synchronized and args.offsets:  # else every capture fails alike
+        raise InputError(
+            None, "--synchronized and --offsets both given", fix="give one: --synchronized means every offset is 0"
+        )
     if args.calibration is not None and not args.calibration.is_file():  # else every capture fails alike
         raise InputError(args.calibration, "is not a file: give the rig's calibration file with --calibration")
     if args.verbose < 2:  # the scheduler's and workers' start-up chatter, unless the user asks for debug output

@@ -424,7 +424,12 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        declared = declared_offsets(options.synchronized, options.offsets, videos)
+        # check_inputs checked the names for `register` and `run`; a batch's capture takes the names it has
+        declared = (
+            dict.fromkeys(videos, 0.0)
+            if options.synchronized
+            else {name: offset for name, offset in options.offsets.items() if name in videos}
+        )
         path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out, declared)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
