@@ -106,8 +106,8 @@ def add_units_argument(parser: argparse.ArgumentParser) -> None:
 def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration: str) -> None:
     """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
     `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
-    from sfm.cli import OFFSETS_HELP, SYNCHRONIZED_HELP, parse_offsets
-    from sfm.options import CalibrationFormat, Units
+    from sfm.cli import SYNCHRONIZED_HELP
+    from sfm.options import OFFSETS_HELP, CalibrationFormat, Units, parse_offsets
 
     parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
     parser.add_argument(

@@ -6,7 +6,6 @@ The parsers are built from `sfm.options` only; the stages are imported when a co
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 
@@ -17,7 +16,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_import(subparsers: argparse._SubParsersAction) -> None:
-    from sfm.options import CalibrationFormat, Units
+    from sfm.options import OFFSETS_HELP, CalibrationFormat, Units, parse_offsets
 
     parser = subparsers.add_parser(
         "import-calibration",
@@ -66,26 +65,6 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=_run_import)
 
 
-def parse_offsets(text: str) -> dict[str, float]:
-    """NAME=SECONDS,... -> {name: seconds}; a one-line argparse error otherwise."""
-    out: dict[str, float] = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        name, sep, value = item.partition("=")
-        try:
-            seconds = float(value)
-        except ValueError:
-            seconds = math.nan
-        if not sep or not name.strip() or not math.isfinite(seconds) or name.strip() in out:
-            raise argparse.ArgumentTypeError(f"{item!r}: give NAME=SECONDS once per video, e.g. cam2=0.033")
-        out[name.strip()] = seconds
-    return out
-
-
-OFFSETS_HELP = (
-    "known clock offsets in seconds per video (global time = the video's own time + offset: from a clap or a "
-    "timecode), e.g. cam1=0,cam2=0.033; written to cameras.json, which the solve tests against the tracks like "
-    "registration's offsets"
-)
 SYNCHRONIZED_HELP = (
     "the videos were recorded on one clock (a triggered rig, frame i of each at the same instant): each video's "
     "clock_offset is 0 in cameras.json, which the solve tests against the clocks it recovers and keeps if it fits"

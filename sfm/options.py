@@ -5,6 +5,7 @@ Cheap to import on purpose: the CLI builds its parser from these defaults withou
 
 from __future__ import annotations
 
+import argparse
 import enum
 import math
 from dataclasses import dataclass, field
@@ -234,6 +235,28 @@ def declared_offsets(synchronized: bool, offsets: dict[str, float], names: list[
     return dict(offsets)
 
 
+OFFSETS_HELP = (
+    "known clock offsets in seconds per video (global time = the video's own time + offset: from a clap or a "
+    "timecode), e.g. cam1=0,cam2=0.033; written to cameras.json, which the solve tests against the tracks like "
+    "registration's offsets"
+)
+
+
+def parse_offsets(text: str) -> dict[str, float]:
+    """NAME=SECONDS,... -> {name: seconds}; a one-line argparse error otherwise."""
+    out: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        try:
+            seconds = float(value)
+        except ValueError:
+            seconds = math.nan
+        if not sep or not name.strip() or not math.isfinite(seconds) or name.strip() in out:
+            raise argparse.ArgumentTypeError(f"{item!r}: give NAME=SECONDS once per video, e.g. cam2=0.033")
+        out[name.strip()] = seconds
+    return out
+
+
 __all__ = [
     "ALL_CORES",
     "CalibrationFormat",
@@ -247,4 +270,5 @@ __all__ = [
     "SubjectPath",
     "Units",
     "declared_offsets",
+    "parse_offsets",
 ]

@@ -120,8 +120,7 @@ def _add_sfm_arguments(sfm: argparse._ArgumentGroup, defaults: RegisterOptions) 
 
 
 def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
-    from sfm.cli import parse_offsets
-    from sfm.options import CameraMotion, SubjectPath
+    from sfm.options import CameraMotion, SubjectPath, parse_offsets
 
     static.add_argument(
         "--camera-motion",

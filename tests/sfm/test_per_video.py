@@ -164,9 +164,9 @@ def test_a_tracked_video_found_moving_and_left_unposed_is_named_with_the_way_out
 
 
 def test_a_declared_clock_goes_into_cameras_json_when_the_subject_path_found_none(tmp_path: Path) -> None:
-    """`register --synchronized` with every video posed by the background: cameras.json carries the declared clock
-    (clock_offset 0), which the solve then tests; without the declaration, or where the subject path found the
-    clocks, those are written."""
+    """`register --synchronized` (or `--offsets`) with every video posed by the background: cameras.json carries the
+    declared clock (clock_offset 0, or the given one), which the solve then tests; without the declaration, or where
+    the subject path found the clocks, those are written."""
     from sfm.stage import _export
 
     plan = _plan(tmp_path)
@@ -174,10 +174,13 @@ def test_a_declared_clock_goes_into_cameras_json_when_the_subject_path_found_non
     pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0, 0, 1])), np.zeros(3))
     results = {"cam0": {f: FramePose(pose=pose, source="static", intrinsics=(K, None)) for f in range(7)}}
     points = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-    for synchronized, subject, expected in (
-        (True, None, 0.0),
-        (False, None, None),
-        (True, {"cameras": [{"name": "cam0", "offset_s": 0.25}]}, 0.25),
+    for n, (declared, subject, expected) in enumerate(
+        (
+            ({"cam0": 0.0}, None, 0.0),
+            ({"cam0": -0.125}, None, -0.125),
+            (None, None, None),
+            ({"cam0": 0.0}, {"cameras": [{"name": "cam0", "offset_s": 0.25}]}, 0.25),
+        )
     ):
-        path = _export([plan], results, points, subject, {}, tmp_path / str(synchronized), synchronized)
+        path = _export([plan], results, points, subject, {}, tmp_path / str(n), declared)
         assert read_cameras(path).videos[0].clock_offset == expected
