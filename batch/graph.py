@@ -41,6 +41,7 @@ from batch.tasks import (
 )
 from dynrecon.errors import DynreconError, InputError
 from dynrecon.pipeline import PipelineOptions
+from sfm.options import declared_offsets
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ def run_batch(captures: Sequence[str | Path], out: str | Path, options: BatchOpt
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     state = BatchState(out)
-    good = _read_captures(captures, state, out, options.progress)
+    good = _read_captures(captures, state, out, options.progress, options.pipeline)
     state.save()
     graphs = build_graph(good, out, options)
     if graphs:
@@ -131,7 +132,9 @@ def run_batch(captures: Sequence[str | Path], out: str | Path, options: BatchOpt
     return BatchReport(out=out, captures={c.name: state.captures[c.name] for c in good} | _unread(state, captures))
 
 
-def _read_captures(folders: Sequence[str | Path], state: BatchState, out: Path, echo: bool) -> list[Capture]:
+def _read_captures(
+    folders: Sequence[str | Path], state: BatchState, out: Path, echo: bool, pipeline: PipelineOptions
+) -> list[Capture]:
     good: list[Capture] = []
     seen: dict[str, Path] = {}
     for folder in folders:
@@ -140,6 +143,8 @@ def _read_captures(folders: Sequence[str | Path], state: BatchState, out: Path, 
             capture = read_capture(path)
             if capture.name in seen:
                 raise InputError(path, f"capture name {capture.name!r} is also {seen[capture.name]}", fix="rename one")
+            # --offsets name the videos of every capture: one without them fails here, before any work
+            declared_offsets(pipeline.register.synchronized, pipeline.register.offsets, capture.video_names)
         except DynreconError as error:
             status = state.start(path.name, path, None)
             status.fail("read", one_line(error))

@@ -272,3 +272,15 @@ def test_the_python_api_builds_the_same_graph(first_batch, captures: dict[str, P
     with Client(cluster.address, timeout="30s"):
         outcomes = dask.compute(*[graph.final for graph in graphs])
     assert [(o.capture, o.stage, o.status) for o in outcomes] == [(n, "solve", "skipped") for n in GOOD]
+
+
+def test_offsets_naming_a_video_a_capture_lacks_fail_it_before_any_work(
+    captures: dict[str, Path], tmp_path: Path
+) -> None:
+    code, screen = _batch([str(captures["walk"]), "--out", str(tmp_path), "--offsets", "cam0=0,cam9=0.1"])
+    assert code == 1, screen
+    entry = _state(tmp_path)["walk"]
+    assert entry["status"] == "failed" and entry["stage"] == "read"
+    assert "--offsets names video 'cam9', which is not among the videos" in entry["error"]
+    code, screen = _batch([str(captures["walk"]), "--out", str(tmp_path), "--offsets", "cam0=0", "--synchronized"])
+    assert code == 2 and "--synchronized and --offsets both given" in screen
