@@ -424,7 +424,7 @@ def finish_capture(
         kept = rec if background_left(plans, results) else None
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
-        # check_inputs checked the names for `register` and `run`; a batch's capture takes the names it has
+        # register, run (check_inputs) and batch (at read) refused unknown names before any work
         declared = (
             dict.fromkeys(videos, 0.0)
             if options.synchronized
