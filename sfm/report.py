@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import enum
 import json
+from collections.abc import Iterable
 from dataclasses import is_dataclass
 from pathlib import Path
 from typing import Any
@@ -106,24 +107,43 @@ def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str,
 def _posed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
     """Posed frames as runs of consecutive frame numbers posed the same way (path, inliers): a static or
     subject-posed video, whose frames share one pose, is one run; PnP frames with inliers of their own stay apart."""
+    return _runs(
+        (
+            int(frame),
+            {"path": _path(r.source), "inliers": r.inliers}
+            | ({"added_keyframe": True} if r.source == ADDED_KEYFRAME else {}),
+        )
+        for frame, r in sorted(per_frame.items())
+        if r.pose is not None
+    )
+
+
+def _failed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
+    """Unposed frames as runs of consecutive frame numbers that failed for the same reason: one entry per run, not
+    per frame, since a failed video repeats one reason for every frame (megabytes for minutes of 120 fps video)."""
+    return _runs(
+        (int(frame), {"reason": r.reason or "unknown"}) for frame, r in sorted(per_frame.items()) if r.pose is None
+    )
+
+
+RUN_KEYS = ("first", "last", "frames")  # a run's span; its other keys are what its frames share
+
+
+def _runs(entries: Iterable[tuple[int, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """(frame, entry) pairs in frame order as runs `{first, last, frames, **entry}` of consecutive frame numbers
+    with equal entries."""
     runs: list[dict[str, Any]] = []
-    for frame, result in sorted(per_frame.items()):
-        if result.pose is None:
-            continue
-        entry = {"path": _path(result.source), "inliers": result.inliers}
-        entry |= {"added_keyframe": True} if result.source == ADDED_KEYFRAME else {}
-        if runs and _extends(runs[-1], int(frame), entry):
-            runs[-1]["last"] = int(frame)
+    for frame, entry in entries:
+        if runs and runs[-1]["last"] + 1 == frame and _shared(runs[-1]) == entry:
+            runs[-1]["last"] = frame
             runs[-1]["frames"] += 1
         else:
-            runs.append({"first": int(frame), "last": int(frame), "frames": 1} | entry)
+            runs.append({"first": frame, "last": frame, "frames": 1} | entry)
     return runs
 
 
-def _extends(run: dict[str, Any], frame: int, entry: dict[str, Any]) -> bool:
-    """`frame` follows `run` directly and shares everything else with it."""
-    shared = {k: v for k, v in run.items() if k not in ("first", "last", "frames")}
-    return run["last"] + 1 == frame and shared == entry
+def _shared(run: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in run.items() if k not in RUN_KEYS}
 
 
 def posed_frames(video: dict[str, Any]) -> dict[int, dict[str, Any]]:
@@ -131,25 +151,8 @@ def posed_frames(video: dict[str, Any]) -> dict[int, dict[str, Any]]:
     `added_keyframe`)."""
     out: dict[int, dict[str, Any]] = {}
     for run in video["posed"]:
-        shared = {k: v for k, v in run.items() if k not in ("first", "last", "frames")}
-        out.update(dict.fromkeys(range(run["first"], run["last"] + 1), shared))
+        out.update(dict.fromkeys(range(run["first"], run["last"] + 1), _shared(run)))
     return out
-
-
-def _failed_runs(per_frame: dict[int, FramePose]) -> list[dict[str, Any]]:
-    """Unposed frames as runs of consecutive frame numbers that failed for the same reason: one entry per run, not
-    per frame, since a failed video repeats one reason for every frame (megabytes for minutes of 120 fps video)."""
-    runs: list[dict[str, Any]] = []
-    for frame, result in sorted(per_frame.items()):
-        if result.pose is not None:
-            continue
-        entry = {"reason": result.reason or "unknown"}
-        if runs and _extends(runs[-1], int(frame), entry):
-            runs[-1]["last"] = int(frame)
-            runs[-1]["frames"] += 1
-        else:
-            runs.append({"first": int(frame), "last": int(frame), "frames": 1} | entry)
-    return runs
 
 
 def _path(source: str | None) -> str:
