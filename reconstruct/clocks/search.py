@@ -143,7 +143,7 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool
         rows = rows[np.argsort(own[rows], kind="stable")]
         step = float(periods[v])
         if sampled:
-            step = max(float(np.nan_to_num(periods[v])), median_step(own[rows]))
+            step = max(float(np.nan_to_num(periods[v])), _median_step(own[rows]))
         tracks.append(
             _VideoRays(
                 own=own[rows],
@@ -161,7 +161,7 @@ def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> lis
     return _tracks(problem, own, points, sampled=True)
 
 
-def median_step(times: np.ndarray) -> float:
+def _median_step(times: np.ndarray) -> float:
     """The median positive step between sorted `times` (s); 0 without one."""
     steps = np.diff(np.sort(times))
     steps = steps[steps > 0]
@@ -176,7 +176,7 @@ def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
         return False
     periods = frame_periods(own, problem.video_index, len(problem.video_names))
     tracked = observed.any(axis=1) & np.isfinite(own)
-    steps = [median_step(own[(problem.video_index == v) & tracked]) for v in range(len(problem.video_names))]
+    steps = [_median_step(own[(problem.video_index == v) & tracked]) for v in range(len(problem.video_names))]
     return any(
         step > 0 and np.isfinite(period) and step > SPARSE_STEP_PERIODS * period
         for step, period in zip(steps, periods, strict=True)
