@@ -4,12 +4,13 @@ the solver's clocks").
 Register's subject path fits each static video's clock offset from the subject's 2D tracks and the epipolar
 geometry, and writes it to cameras.json (`clock_offset`). The solve recovers clocks from its own evidence (W's
 links, the track search). Where the two disagree (`clocks.registered.check_registered_clocks`), one is wrong: the
-trajectories are refined on registration's offsets too, and the clocks whose trajectories meet their rays more
-closely are kept, by their median residual (not by the error they predict for unseen rays, as the links' clocks are:
-with cameras a degree off, right offsets can bend the trajectories through their rays more than wrong clocks do;
-docs/refinement.md). The solve's own clocks stay unless registration's fit clearly better. Where the solve
-identified no clock for some videos and kept its seed (whose points sit on their rays: no residual to compare),
-registration's offsets are its only clocks and are held to the checks the solve's own clocks meet (`clock_fit`).
+trajectories are refined on registration's offsets too, and the clocks that predict each video's rays better from
+the other videos' alone (`reconstruct.heldout`) are kept. Not by the in-sample residual: a wrong clock can move a
+video out of the others' time span, where its rays are met alone, or bend the trajectories through them (measured on
+the Pose2Sim lab and a synthetic flight, docs/refinement.md). The solve's own clocks stay unless registration's
+predict clearly better. Where the solve identified no clock for some videos and kept its seed (whose points sit on
+their rays: no residual to compare), registration's offsets are its only clocks and are held to the checks the
+solve's own clocks meet (`clock_fit`).
 The same where the solve found every clock but its own checks judged them too ambiguous to refine on (the seed
 kept), and registration's offsets, found independently from the epipolar geometry, agree with them.
 report.json `temporal.registered_offsets` gives the measures and the choice.
@@ -29,6 +30,7 @@ from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.model import Clocks
 from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import reprojection_px
+from reconstruct.heldout import heldout_px
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
@@ -39,7 +41,7 @@ from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
 
-BETTER = 0.8  # registration's clocks are kept when their median reprojection residual is below this x the solve's
+BETTER = 0.8  # registration's clocks are kept when their median held-out error is below this x the solve's
 PATH = "registered_offsets"  # report.json temporal.path when they are kept
 
 
@@ -73,10 +75,11 @@ def prefer_registered_offsets(
     search: SearchOptions | None = None,
 ) -> Temporal:
     """`temporal`, or the trajectories refined on registration's offsets: where the solve's clocks disagree with them
-    (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's fit their rays clearly better
-    (residual); or where the solve kept its seed, having left some clock unidentified or found every clock but
-    judged them too ambiguous while registration's agree with them, and registration's are not refuted by the
-    tracks (`given_offsets`, with `search`) and pass the clock checks (`clock_fit`)."""
+    (`check`: `check_registered_clocks` of `temporal.clocks`) and registration's predict each video's rays from
+    the other videos' clearly better (`heldout_px`); or where the solve kept its seed, having left some clock
+    unidentified or found every clock but judged them too ambiguous while registration's agree with them, and
+    registration's are not refuted by the tracks (`given_offsets`, with `search`) and pass the clock checks
+    (`clock_fit`)."""
     unidentified = [c.name for c in temporal.clocks.videos if not c.identified]
     disagree = check is not None and not check.get("agree", True)
     # the solve's clocks, which its own checks found too ambiguous to use, and registration's agree
@@ -108,10 +111,9 @@ def prefer_registered_offsets(
     residual = {"solve": _median_px(problem, temporal.points), "registered": _median_px(problem, points)}
     # reported, not judged: see the module's docstring
     predicted = predicted_pair(temporal.trajectories, on_clocks.result) if temporal.trajectories else None
-    mine, theirs = residual["solve"], residual["registered"]
     entry: dict[str, Any] = {
         "tried": True,
-        "criterion": "residual_px",
+        "criterion": "heldout_px",
         "residual_px": {k: finite_or_none(v) for k, v in residual.items()},
         "predicted_px": {
             "solve": finite_or_none(predicted[0] if predicted else None),
@@ -120,8 +122,25 @@ def prefer_registered_offsets(
         "limit": BETTER,
     }
     checks: list[Check] = []
+    mine = theirs = math.nan
     if not seed_only:
-        kept = bool(theirs < BETTER * mine)
+        solve_times = temporal.times
+        if not np.isfinite(solve_times).all():
+            # no time for some frame: nothing to hold the solve's answer to, which stays
+            kept = False
+            entry.update(criterion="none", reason="the solve's answer has frames without a time")
+        else:
+            held = {
+                "solve": heldout_px(problem, solve_times, options),
+                "registered": heldout_px(problem, on_clocks.clocks.global_time, options),
+            }
+            mine, theirs = held["solve"].median_px, held["registered"].median_px
+            kept = bool(theirs < BETTER * mine)
+            entry["heldout_px"] = {k: finite_or_none(h.median_px) for k, h in held.items()}
+            entry["heldout_per_video_px"] = {
+                name: {k: finite_or_none(float(h.per_video_px[v])) for k, h in held.items()}
+                for v, name in enumerate(problem.video_names)
+            }
     else:
         # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
         # for the videos the solve could not time, or the independent confirmation of the clocks it found but did
@@ -140,7 +159,7 @@ def prefer_registered_offsets(
     if checks:
         verdict = "; ".join(f"{c.meaning} {c.value:.3g}, limit {c.limit:.3g}" for c in checks)
     else:
-        verdict = f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
+        verdict = f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
     if not kept:
         log.warning(
             "the solve's clocks %s registration's offsets, whose trajectories fit no better (%s): the solve's "

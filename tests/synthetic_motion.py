@@ -43,10 +43,10 @@ def share_within_10mm(points: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean(error[np.isfinite(error)] < 10.0))
 
 
-def simulated_phones(out: Path, rate: float = 120.0) -> Path:
+def simulated_phones(out: Path, rate: float = 120.0, noise_px: float = 0.0) -> Path:
     """`dynrecon simulate --mode phones` of 1.5 s of an 8-point smooth motion: three static phones at 30, 25 and
-    20 fps with known clocks (offsets 0-0.3 s). Returns the simulation folder (cameras.json, tracks.csv,
-    clocks_truth.json)."""
+    20 fps with known clocks (offsets 0-0.3 s), `noise_px` of pixel noise. Returns the simulation folder
+    (cameras.json, tracks.csv, clocks_truth.json)."""
     from dynrecon.cli import main
     from reconstruct.outputs.mocap import Mocap, write_trc
 
@@ -73,6 +73,8 @@ def simulated_phones(out: Path, rate: float = 120.0) -> Path:
                 "0,0.3",
                 "--seed",
                 "2",
+                "--noise",
+                str(noise_px),
             ]
         )
         != 0

@@ -1,0 +1,60 @@
+"""Leave one video out (reconstruct/heldout.py): a wrong clock predicts its video's rays from the other videos worse
+than the true clock does, also where it moves the video out of the others' time span and so fits every ray alone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_motion import simulated_phones
+
+from reconstruct.free_times import reprojection_px
+from reconstruct.heldout import heldout_px
+from reconstruct.stage import SolveOptions, solve
+from reconstruct.tracks_path import start_points
+from reconstruct.trajectory import RefineOptions, refine
+from sfm.cameras import read_cameras
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    sim = simulated_phones(tmp_path_factory.mktemp("phones"), noise_px=1.0)
+    return solve(read_cameras(Path(sim) / "cameras.json"), Path(sim) / "tracks.csv", SolveOptions(recording=None))
+
+
+def _shifted(times: np.ndarray, moved: np.ndarray, seconds: float) -> np.ndarray:
+    out = times.copy()
+    out[moved] += seconds
+    return out
+
+
+def test_a_wrong_clock_predicts_its_video_worse(solved) -> None:  # type: ignore[no-untyped-def]
+    problem, times = solved.problem, solved.temporal.times
+    moved = problem.video_index == 1
+    right = heldout_px(problem, times, RefineOptions())
+    wrong = heldout_px(problem, _shifted(times, moved, 0.2), RefineOptions())
+
+    assert np.isfinite(right.per_video_px).all()
+    assert wrong.per_video_px[1] > 2 * right.per_video_px[1]
+    assert wrong.median_px > 1.5 * right.median_px
+    # every observed ray of every video is predicted once
+    assert right.rays_px.size == int(problem.observed.sum())
+
+
+def test_a_clock_that_moves_a_video_out_of_the_others_span_is_caught(solved) -> None:  # type: ignore[no-untyped-def]
+    """Moved past the others' span its rays are met by a trajectory of their own (no residual), so the in-sample
+    residual cannot say it is wrong; held out, they are predicted by the others' trajectories and miss."""
+    problem, times = solved.problem, solved.temporal.times
+    moved = problem.video_index == 1
+    span = float(np.nanmax(times) - np.nanmin(times))
+    far = _shifted(times, moved, 0.8 * span)
+    in_sample = {
+        name: float(np.nanmedian(reprojection_px(problem, refine(problem, start_points(problem, t), t).points)))
+        for name, t in (("right", times), ("far", far))
+    }
+    assert in_sample["far"] < 1.5 * in_sample["right"]
+
+    right = heldout_px(problem, times, RefineOptions())
+    wrong = heldout_px(problem, far, RefineOptions())
+    assert wrong.median_px > 2 * right.median_px
