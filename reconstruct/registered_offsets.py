@@ -122,25 +122,9 @@ def prefer_registered_offsets(
         "limit": BETTER,
     }
     checks: list[Check] = []
-    mine = theirs = math.nan
+    verdict = ""
     if not seed_only:
-        solve_times = temporal.times
-        if not np.isfinite(solve_times).all():
-            # no time for some frame: nothing to hold the solve's answer to, which stays
-            kept = False
-            entry.update(criterion="none", reason="the solve's answer has frames without a time")
-        else:
-            held = {
-                "solve": heldout_px(problem, solve_times, options),
-                "registered": heldout_px(problem, on_clocks.clocks.global_time, options),
-            }
-            mine, theirs = held["solve"].median_px, held["registered"].median_px
-            kept = bool(theirs < BETTER * mine)
-            entry["heldout_px"] = {k: finite_or_none(h.median_px) for k, h in held.items()}
-            entry["heldout_per_video_px"] = {
-                name: {k: finite_or_none(float(h.per_video_px[v])) for k, h in held.items()}
-                for v, name in enumerate(problem.video_names)
-            }
+        kept, verdict = _predicts_better(problem, temporal, on_clocks.clocks.global_time, options, residual, entry)
     else:
         # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
         # for the videos the solve could not time, or the independent confirmation of the clocks it found but did
@@ -158,20 +142,16 @@ def prefer_registered_offsets(
         relation = "failed the solve's own checks but agree with"
     if checks:
         verdict = "; ".join(f"{c.meaning} {c.value:.3g}, limit {c.limit:.3g}" for c in checks)
-    else:
-        verdict = f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
     if not kept:
         log.warning(
-            "the solve's clocks %s registration's offsets, whose trajectories fit no better (%s): the solve's "
-            "clocks are kept",
+            "the solve's clocks %s registration's offsets, which do no better (%s): the solve's clocks are kept",
             relation,
             verdict,
         )
         temporal.report[PATH] = entry
         return temporal
     log.warning(
-        "the solve's clocks %s registration's offsets, whose trajectories fit their rays (%s): refined on "
-        "registration's offsets",
+        "the solve's clocks %s registration's offsets, which do better (%s): refined on registration's offsets",
         relation,
         verdict,
     )
@@ -201,6 +181,35 @@ def prefer_registered_offsets(
         report=report,
         trajectories=on_clocks.result,
     )
+
+
+def _predicts_better(
+    problem: Problem,
+    temporal: Temporal,
+    registered_times: np.ndarray,
+    options: RefineOptions,
+    residual: dict[str, float],
+    entry: dict[str, Any],
+) -> tuple[bool, str]:
+    """Whether registration's clocks (`registered_times`) predict each video's rays from the other videos' clearly
+    better than the solve's (`heldout_px`), with the sentence that says so; `entry` gets the measures. Where some
+    frame of the solve's answer has no time there is no held-out fit of it: the in-sample residual decides."""
+    if not np.isfinite(temporal.times).all():
+        mine, theirs = residual["solve"], residual["registered"]
+        entry["criterion"] = "residual_px"
+        return bool(theirs < BETTER * mine), f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
+    held = {
+        "solve": heldout_px(problem, temporal.times, options),
+        "registered": heldout_px(problem, registered_times, options),
+    }
+    mine, theirs = held["solve"].median_px, held["registered"].median_px
+    entry["heldout_px"] = {k: finite_or_none(h.median_px) for k, h in held.items()}
+    entry["heldout_per_video_px"] = {
+        name: {k: finite_or_none(float(h.per_video_px[v])) for k, h in held.items()}
+        for v, name in enumerate(problem.video_names)
+    }
+    sentence = f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
+    return bool(theirs < BETTER * mine), sentence
 
 
 def _median_px(problem: Problem, points: np.ndarray) -> float:

@@ -76,6 +76,27 @@ def test_right_offsets_replace_clocks_that_went_wrong(phones: Path) -> None:
     assert _error_mm(chosen.points, truth) < 2 * _error_mm(good.temporal.points, truth) + 1.0
 
 
+def test_where_some_frame_has_no_time_the_residual_decides(phones: Path) -> None:
+    """No held-out fit of an answer with untimed frames: the in-sample residual compares them, as before."""
+    cameras, options, good, truth = _right(phones)
+    problem = good.problem
+    wrong_clocks = copy.deepcopy(good.temporal.clocks)
+    wrong_clocks.global_time[problem.video_index == problem.video_names.index("cam2")] += 0.5
+    wrong_clocks.video("cam2").offset += 0.5
+    fitted = refine(problem, good.seed.points, wrong_clocks.global_time, options.temporal.refine)
+    times = wrong_clocks.global_time.copy()
+    times[np.flatnonzero(problem.video_index == 0)[:3]] = np.nan
+    wrong = Temporal(clocks=wrong_clocks, points=fitted.points, times=times, refined=True, report={})
+
+    chosen = prefer_registered_offsets(
+        problem, cameras, good.seed, wrong, check_registered_clocks(cameras, wrong_clocks), options.temporal.refine
+    )
+
+    entry = chosen.report[PATH]
+    assert entry["criterion"] == "residual_px" and "heldout_px" not in entry
+    assert entry["kept"] == "registered" and _error_mm(chosen.points, truth) < _error_mm(wrong.points, truth)
+
+
 def test_a_wrong_registered_offset_leaves_the_solve_as_it_was(phones: Path) -> None:
     options = SolveOptions(recording=None)
     plain = solve(read_cameras(phones / "cameras.json"), phones / "tracks.csv", options)
