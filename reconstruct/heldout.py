@@ -20,8 +20,11 @@ from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, refine
 
 # A clock error moves every point of its video alike: the most observed points show it, and the cost (one refinement
-# per video and hypothesis) grows with the points.
+# per video and hypothesis) grows with points x frames. At most MAX_POINTS points, fewer on long captures (within
+# POINT_FRAMES point-frames), never under MIN_POINTS.
 MAX_POINTS = 12
+MIN_POINTS = 3
+POINT_FRAMES = 24_000
 
 
 @dataclass(kw_only=True)
@@ -37,9 +40,9 @@ class HeldOut:
 
 def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> HeldOut:
     """For each video, the trajectories refined on the other videos' rays at global `times (F,)`, and its own rays'
-    reprojection errors at those trajectories' positions for its frames' times (on the MAX_POINTS most observed
-    points)."""
-    problem = most_observed(problem, MAX_POINTS)
+    reprojection errors at those trajectories' positions for its frames' times (on the most observed points:
+    `point_budget`)."""
+    problem = most_observed(problem, point_budget(problem.num_frames))
     N = len(problem.video_names)
     per_video = np.full(N, np.nan)
     errors: list[np.ndarray] = []
@@ -69,3 +72,8 @@ def most_observed(problem: Problem, count: int) -> Problem:
         return problem
     keep = np.sort(np.argsort(-problem.observed.sum(axis=0), kind="stable")[:count])
     return replace(problem, uv=problem.uv[:, keep], point_names=[problem.point_names[p] for p in keep])
+
+
+def point_budget(num_frames: int) -> int:
+    """How many points the held-out fits use for a capture of `num_frames` frames."""
+    return int(np.clip(POINT_FRAMES // max(num_frames, 1), MIN_POINTS, MAX_POINTS))
