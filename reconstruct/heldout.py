@@ -38,6 +38,12 @@ class HeldOut:
         return float(np.median(self.rays_px)) if self.rays_px.size else math.inf
 
 
+def holds_out(problem: Problem) -> bool:
+    """Whether leaving one video out leaves rays to fit: at least three videos observe the points (with two, the one
+    left cannot place a point in depth)."""
+    return len(np.unique(problem.video_index[problem.observed.any(axis=1)])) >= 3
+
+
 def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> HeldOut:
     """For each video, the trajectories refined on the other videos' rays at global `times (F,)`, and its own rays'
     reprojection errors at those trajectories' positions for its frames' times (on the most observed points:

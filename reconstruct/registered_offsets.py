@@ -30,7 +30,7 @@ from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.model import Clocks
 from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import reprojection_px
-from reconstruct.heldout import heldout_px
+from reconstruct.heldout import heldout_px, holds_out
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
@@ -193,23 +193,27 @@ def _predicts_better(
 ) -> tuple[bool, str]:
     """Whether registration's clocks (`registered_times`) predict each video's rays from the other videos' clearly
     better than the solve's (`heldout_px`), with the sentence that says so; `entry` gets the measures. Where some
-    frame of the solve's answer has no time there is no held-out fit of it: the in-sample residual decides."""
-    if not np.isfinite(temporal.times).all():
-        mine, theirs = residual["solve"], residual["registered"]
-        entry["criterion"] = "residual_px"
-        return bool(theirs < BETTER * mine), f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
-    held = {
-        "solve": heldout_px(problem, temporal.times, options),
-        "registered": heldout_px(problem, registered_times, options),
-    }
-    mine, theirs = held["solve"].median_px, held["registered"].median_px
-    entry["heldout_px"] = {k: finite_or_none(h.median_px) for k, h in held.items()}
-    entry["heldout_per_video_px"] = {
-        name: {k: finite_or_none(float(h.per_video_px[v])) for k, h in held.items()}
-        for v, name in enumerate(problem.video_names)
-    }
-    sentence = f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
-    return bool(theirs < BETTER * mine), sentence
+    frame of the solve's answer has no time, or fewer than three videos see the points, there is no held-out fit: the
+    in-sample residual decides."""
+    if np.isfinite(temporal.times).all() and holds_out(problem):
+        held = {
+            "solve": heldout_px(problem, temporal.times, options),
+            "registered": heldout_px(problem, registered_times, options),
+        }
+        mine, theirs = held["solve"].median_px, held["registered"].median_px
+        entry["heldout_px"] = {k: finite_or_none(h.median_px) for k, h in held.items()}
+        entry["heldout_per_video_px"] = {
+            name: {k: finite_or_none(float(h.per_video_px[v])) for k, h in held.items()}
+            for v, name in enumerate(problem.video_names)
+        }
+        if math.isfinite(mine) and math.isfinite(theirs):
+            sentence = (
+                f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
+            )
+            return bool(theirs < BETTER * mine), sentence
+    mine, theirs = residual["solve"], residual["registered"]
+    entry["criterion"] = "residual_px"
+    return bool(theirs < BETTER * mine), f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
 
 
 def _median_px(problem: Problem, points: np.ndarray) -> float:

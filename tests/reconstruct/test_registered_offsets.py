@@ -4,6 +4,7 @@ solve's clocks disagree with them and each video's rays are predicted clearly be
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from synthetic_motion import simulated_phones, truth_array
 
 from reconstruct.clocks.model import TimeSource
 from reconstruct.clocks.registered import check_registered_clocks
+from reconstruct.heldout import holds_out
 from reconstruct.outputs.points import read_points
 from reconstruct.registered_offsets import PATH, prefer_registered_offsets
 from reconstruct.stage import Reconstruction, SolveOptions, solve
@@ -95,6 +97,31 @@ def test_where_some_frame_has_no_time_the_residual_decides(phones: Path) -> None
     entry = chosen.report[PATH]
     assert entry["criterion"] == "residual_px" and "heldout_px" not in entry
     assert entry["kept"] == "registered" and _error_mm(chosen.points, truth) < _error_mm(wrong.points, truth)
+
+
+def test_with_two_videos_the_residual_decides(phones: Path) -> None:
+    """One video left out leaves one, which places no point in depth: no held-out fit, the residual compares."""
+    cameras, options, good, truth = _right(phones)
+    uv = good.problem.uv.copy()
+    uv[good.problem.video_index == good.problem.video_names.index("cam1")] = np.nan
+    problem = dataclasses.replace(good.problem, uv=uv)
+    assert not holds_out(problem) and holds_out(good.problem)
+    wrong_clocks = copy.deepcopy(good.temporal.clocks)
+    wrong_clocks.global_time[problem.video_index == problem.video_names.index("cam2")] += 0.5
+    wrong_clocks.video("cam2").offset += 0.5
+    fitted = refine(problem, good.seed.points, wrong_clocks.global_time, options.temporal.refine)
+    wrong = Temporal(
+        clocks=wrong_clocks, points=fitted.points, times=wrong_clocks.global_time.copy(), refined=True, report={}
+    )
+
+    chosen = prefer_registered_offsets(
+        problem, cameras, good.seed, wrong, check_registered_clocks(cameras, wrong_clocks), options.temporal.refine
+    )
+
+    entry = chosen.report[PATH]
+    assert entry["criterion"] == "residual_px" and "heldout_px" not in entry and entry["kept"] == "registered"
+    seen = problem.observed
+    assert _error_mm(chosen.points[seen], truth[seen]) < _error_mm(wrong.points[seen], truth[seen])
 
 
 def test_a_wrong_registered_offset_leaves_the_solve_as_it_was(phones: Path) -> None:
