@@ -63,7 +63,8 @@ def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> H
             continue
         fitted = refine(others, start_points(others, times), times, options)
         residual = reprojection_px(problem, fitted.points)[own]
-        # a ray whose point the others never saw has no prediction (NaN) and is left out
+        # a point fewer than two other videos see has no depth from them: no prediction, like one none sees (NaN)
+        residual[:, _videos_seeing(others) < 2] = np.nan
         residual = residual[np.isfinite(residual)]
         if residual.size:
             per_video[v] = float(np.median(residual))
@@ -83,3 +84,9 @@ def most_observed(problem: Problem, count: int) -> Problem:
 def point_budget(num_frames: int) -> int:
     """How many points the held-out fits use for a capture of `num_frames` frames."""
     return int(np.clip(POINT_FRAMES // max(num_frames, 1), MIN_POINTS, MAX_POINTS))
+
+
+def _videos_seeing(problem: Problem) -> np.ndarray:
+    """(P,) how many videos observe each point."""
+    N = len(problem.video_names)
+    return np.array([(problem.observed[problem.video_index == v]).any(axis=0) for v in range(N)]).sum(axis=0)

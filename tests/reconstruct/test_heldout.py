@@ -3,6 +3,7 @@ than the true clock does, also where it moves the video out of the others' time 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -69,3 +70,17 @@ def test_long_captures_use_fewer_of_the_most_observed_points(solved) -> None:  #
     assert fewer.num_points == 3 and fewer.num_frames == problem.num_frames
     assert sorted(fewer.observed.sum(axis=0)) == sorted(counts)[-3:]
     assert most_observed(problem, problem.num_points) is problem
+
+
+def test_a_point_only_one_other_video_sees_is_not_predicted(solved) -> None:  # type: ignore[no-untyped-def]
+    """Left out of one of the two videos that see it, a point has one view left: no depth, no prediction."""
+    problem, times = solved.problem, solved.temporal.times
+    uv = problem.uv.copy()
+    uv[problem.video_index == 2, 0] = np.nan  # point 0 seen by videos 0 and 1 only
+    two_views = replace(problem, uv=uv)
+
+    held = heldout_px(two_views, times, RefineOptions())
+
+    lost = int(two_views.observed[:, 0].sum())  # its rays in videos 0 and 1, each left out with one view left
+    assert held.rays_px.size == int(two_views.observed.sum()) - lost
+    assert held.median_px < 2 * heldout_px(problem, times, RefineOptions()).median_px
