@@ -8,6 +8,7 @@ or the report says that the units are arbitrary.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -170,6 +171,8 @@ def pose_from_subject(
         )
     log.info("subject path posed %s (anchors: %s)", ", ".join(posed) or "nothing", ", ".join(anchors) or "none")
     section = {**_report(result, stability, posed, anchors, metric), "board": board}
+    if claimed:
+        section["declared"] = _declared(result, claimed, {v.info.name: v for v in videos}, warnings, options)
     if not posed:
         reasons = {k: v for k, v in {**result.failed, **stability.unstable}.items() if k not in anchors}
         section["why"] = (
@@ -374,6 +377,52 @@ def _warn_uncertain(stability: Stability, posed: list[str], warnings: list[str])
             + ", ".join(f"{n} by {d:.1f} deg" for n, d in moved.items())
             + ": those poses are uncertain by about as much; track more points or a longer, more varied motion"
         )
+
+
+def _declared(
+    result: SubjectResult,
+    claimed: dict[str, float],
+    by_name: dict[str, VideoPlan],
+    warnings: list[str],
+    options: RegisterOptions,
+) -> dict[str, Any]:
+    """The fitted offsets against the declared ones (`--synchronized`, `--offsets`), per camera after the pairs are
+    chained and adjusted (each pair's claim is judged before: the other pairs can outvote one), in the declared
+    offsets' gauge (the median difference removed); a camera more than a frame period from its claim is warned."""
+    cameras = [c for c in result.cameras if c.name in claimed]
+    if not cameras:
+        return {"cameras": [], "agree": None}
+    shift = float(np.median([c.offset - claimed[c.name] for c in cameras]))
+    rows, far = [], []
+    for c in cameras:
+        difference = float(c.offset - claimed[c.name] - shift)
+        period = _frame_period(by_name[c.name])
+        agree = abs(difference) <= period
+        rows.append(
+            {
+                "name": c.name,
+                "declared_s": round(claimed[c.name], 6),
+                "fitted_s": round(float(c.offset) - shift, 6),
+                "difference_s": round(difference, 6),
+                "tolerance_s": round(period, 6),
+                "agree": agree,
+            }
+        )
+        if not agree:
+            far.append(f"{c.name} {difference:+.3f} s")
+    if far:
+        flag = "--synchronized" if options.synchronized else "--offsets"
+        warnings.append(f"{flag}: fitted clock offsets over a frame from the declared ones: {', '.join(far)}")
+    return {"cameras": rows, "agree": not far}
+
+
+def _frame_period(video: VideoPlan) -> float:
+    """One frame period of the video (s): from its nominal rate, else its decoder times."""
+    info = video.info
+    if info.fps:
+        return 1.0 / float(info.fps)
+    steps = np.diff(info.times)
+    return float(np.median(steps)) if steps.size else math.inf
 
 
 def _report(

@@ -120,3 +120,43 @@ def test_posed_cameras_the_folds_turn_by_degrees_are_said_to_be_uncertain() -> N
     )
     _warn_uncertain(Stability(rotation_deg={"a": 0.4}), ["a"], warnings)
     assert len(warnings) == 1
+
+
+def test_fitted_offsets_are_compared_with_the_declared(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each pair's claim is judged before the pairs are chained: the section also says, per camera after the
+    adjustment, how far its offset ended from the declared one (in the declared offsets' gauge), and warns past a
+    frame."""
+    import sfm.register_subject as register_subject
+
+    names = ["a", "b", "c"]
+    plans = [_plan(tmp_path, name, True) for name in names]
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    fitted = {"a": 2.0, "b": 2.5, "c": 2.01}  # any common origin; b half a second from the declared 0
+    cameras = [
+        SubjectCamera(
+            name=n, K=np.eye(3), dist=None, R=np.eye(3), t=np.full(3, k), offset=fitted[n], inliers=50, residual_px=1
+        )
+        for k, n in enumerate(names)
+    ]
+
+    def solved(*_: object) -> tuple[SubjectResult, Stability]:
+        return SubjectResult(cameras=cameras, pairs=[], failed={}, metric=False), Stability(checked=True)
+
+    monkeypatch.setattr(register_subject, "choose_noise", solved)
+    warnings: list[str] = []
+
+    section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(synchronized=True), warnings)
+
+    assert section is not None and section["declared"]["agree"] is False
+    rows = {row["name"]: row for row in section["declared"]["cameras"]}
+    assert rows["a"]["agree"] and rows["c"]["agree"] and not rows["b"]["agree"]
+    assert rows["b"]["difference_s"] == pytest.approx(0.49)
+    assert rows["b"]["tolerance_s"] == pytest.approx(1 / 30, abs=1e-6)
+    assert any("--synchronized: fitted clock offsets over a frame" in w and "b +0.490 s" in w for w in warnings)
+
+    warnings.clear()
+    cameras[1].offset = 2.02
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(synchronized=True), warnings)
+    assert section is not None and section["declared"]["agree"] is True
+    assert not any("over a frame" in w for w in warnings)
