@@ -18,7 +18,7 @@ from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from reconstruct import trajectory
 from reconstruct.block_inverse import BANDS
 from reconstruct.clocks.model import ClockCorrection
-from reconstruct.solver.problem import Problem
+from reconstruct.solver.problem import Problem, most_observed
 from reconstruct.solver.rays import camera_normalization, viewing_rays
 from reconstruct.spline_system import (
     LOWER,
@@ -271,9 +271,7 @@ def _polish_points(observed: np.ndarray, refined: np.ndarray) -> np.ndarray:
     allowed = max(POLISH_MIN_POINTS, POLISH_SIZE // max(len(observed), 1))
     if count <= allowed:
         return refined
-    seen = np.where(refined, observed.sum(axis=0), -1)
-    chosen = np.zeros_like(refined)
-    chosen[np.argsort(-seen, kind="stable")[:allowed]] = True
+    chosen = most_observed(observed, refined, allowed)
     log.info("clock polish on the %d most observed of %d points (%d frames)", allowed, count, len(observed))
     return chosen
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from reconstruct.free_times import reprojection_px
-from reconstruct.solver.problem import Problem
+from reconstruct.solver.problem import Problem, most_observed, reconstructable_points
 from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, refine
 
@@ -48,7 +48,7 @@ def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> H
     """For each video, the trajectories refined on the other videos' rays at global `times (F,)`, and its own rays'
     reprojection errors at those trajectories' positions for its frames' times (on the most observed points:
     `point_budget`)."""
-    problem = most_observed(problem, point_budget(problem.num_frames))
+    problem = on_most_observed(problem, point_budget(problem.num_frames))
     N = len(problem.video_names)
     per_video = np.full(N, np.nan)
     errors: list[np.ndarray] = []
@@ -64,7 +64,7 @@ def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> H
         fitted = refine(others, start_points(others, times), times, options)
         residual = reprojection_px(problem, fitted.points)[own]
         # a point fewer than two other videos see has no depth from them: no prediction, like one none sees (NaN)
-        residual[:, _videos_seeing(others) < 2] = np.nan
+        residual[:, ~reconstructable_points(others)] = np.nan
         residual = residual[np.isfinite(residual)]
         if residual.size:
             per_video[v] = float(np.median(residual))
@@ -73,20 +73,14 @@ def heldout_px(problem: Problem, times: np.ndarray, options: RefineOptions) -> H
     return HeldOut(per_video_px=per_video, rays_px=rays)
 
 
-def most_observed(problem: Problem, count: int) -> Problem:
+def on_most_observed(problem: Problem, count: int) -> Problem:
     """`problem` on its `count` most observed points (ties in point order), or itself when it has no more."""
     if problem.num_points <= count:
         return problem
-    keep = np.sort(np.argsort(-problem.observed.sum(axis=0), kind="stable")[:count])
+    keep = np.flatnonzero(most_observed(problem.observed, np.ones(problem.num_points, dtype=bool), count))
     return replace(problem, uv=problem.uv[:, keep], point_names=[problem.point_names[p] for p in keep])
 
 
 def point_budget(num_frames: int) -> int:
     """How many points the held-out fits use for a capture of `num_frames` frames."""
     return int(np.clip(POINT_FRAMES // max(num_frames, 1), MIN_POINTS, MAX_POINTS))
-
-
-def _videos_seeing(problem: Problem) -> np.ndarray:
-    """(P,) how many videos observe each point."""
-    N = len(problem.video_names)
-    return np.array([(problem.observed[problem.video_index == v]).any(axis=0) for v in range(N)]).sum(axis=0)

@@ -56,3 +56,12 @@ def reconstructable_points(problem: Problem) -> np.ndarray:
     for vi in range(len(problem.video_names)):
         counts += observed[problem.video_index == vi].any(axis=0)
     return counts >= 2
+
+
+def most_observed(observed: np.ndarray, among: np.ndarray, count: int) -> np.ndarray:
+    """(P,) bool: of the points `among (P,)`, the `count` with the most observations in `observed (F, P)` (ties in
+    point order)."""
+    seen = np.where(among, observed.sum(axis=0), -1)
+    chosen = np.zeros_like(among, dtype=bool)
+    chosen[np.argsort(-seen, kind="stable")[:count]] = True
+    return chosen & among

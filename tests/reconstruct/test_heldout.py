@@ -11,7 +11,7 @@ import pytest
 from synthetic_motion import simulated_phones
 
 from reconstruct.free_times import reprojection_px
-from reconstruct.heldout import MAX_POINTS, MIN_POINTS, heldout_px, most_observed, point_budget
+from reconstruct.heldout import MAX_POINTS, MIN_POINTS, heldout_px, on_most_observed, point_budget
 from reconstruct.stage import SolveOptions, solve
 from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, refine
@@ -61,15 +61,15 @@ def test_a_clock_that_moves_a_video_out_of_the_others_span_is_caught(solved) -> 
     assert wrong.median_px > 2 * right.median_px
 
 
-def test_long_captures_use_fewer_of_the_most_observed_points(solved) -> None:  # type: ignore[no-untyped-def]
+def test_long_captures_use_fewer_of_theon_most_observed_points(solved) -> None:  # type: ignore[no-untyped-def]
     problem = solved.problem
     assert point_budget(100) == MAX_POINTS and point_budget(10**6) == MIN_POINTS
     assert MIN_POINTS <= point_budget(4000) <= MAX_POINTS
     counts = problem.observed.sum(axis=0)
-    fewer = most_observed(problem, 3)
+    fewer = on_most_observed(problem, 3)
     assert fewer.num_points == 3 and fewer.num_frames == problem.num_frames
     assert sorted(fewer.observed.sum(axis=0)) == sorted(counts)[-3:]
-    assert most_observed(problem, problem.num_points) is problem
+    assert on_most_observed(problem, problem.num_points) is problem
 
 
 def test_a_point_only_one_other_video_sees_is_not_predicted(solved) -> None:  # type: ignore[no-untyped-def]
