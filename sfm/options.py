@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import enum
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,6 +134,18 @@ class RegisterOptions:
     min_inliers: int = 30  # PnP inliers needed to accept a localized frame
     init_min_inliers: int = 100  # two-view inliers the mapper needs for its initial pair (COLMAP default)
     num_threads: int = ALL_CORES
+
+    def declared(self, names: Iterable[str]) -> dict[str, float]:
+        """The clock offsets the user declared for those of the videos `names` that have one: 0 for all with
+        `synchronized`, else `offsets` (names were checked before any work: `declared_offsets`)."""
+        if self.synchronized:
+            return dict.fromkeys(names, 0.0)
+        return {name: self.offsets[name] for name in names if name in self.offsets}
+
+    @property
+    def declared_flag(self) -> str:
+        """The flag that declared the offsets, for messages."""
+        return "--synchronized" if self.synchronized else "--offsets"
 
     def check(self) -> None:
         """A one-line InputError naming the first flag whose value no registration can use (before any work)."""

@@ -118,11 +118,7 @@ def pose_from_subject(
         return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
     subject_tracks = tracks.of_videos(names)
     # a triggered rig (every static video on one clock) or known offsets: a claim each pair's tracks then test
-    claimed = (
-        dict.fromkeys(names, 0.0)
-        if options.synchronized
-        else {n: options.offsets[n] for n in names if n in options.offsets}
-    )
+    claimed = options.declared(names)
     subject_options = SubjectOptions(scale=scale, claimed_offsets=claimed or None)
     try:
         if by_posed:
@@ -159,8 +155,7 @@ def pose_from_subject(
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     for pair in result.pairs:
         if pair.claim not in (None, "held"):
-            flag = "--synchronized" if options.synchronized else "--offsets"
-            warnings.append(f"{flag}: pair {pair.a}-{pair.b}: {pair.claim}")
+            warnings.append(f"{options.declared_flag}: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
     _warn_uncertain(stability, posed, warnings)
     metric = result.metric or len(anchors) >= 2 or aligned is not None  # one anchor fixes the frame, not the scale
@@ -411,8 +406,9 @@ def _declared(
         if not agree:
             far.append(f"{c.name} {difference:+.3f} s")
     if far:
-        flag = "--synchronized" if options.synchronized else "--offsets"
-        warnings.append(f"{flag}: fitted clock offsets over a frame from the declared ones: {', '.join(far)}")
+        warnings.append(
+            f"{options.declared_flag}: fitted clock offsets over a frame from the declared ones: {', '.join(far)}"
+        )
     return {"cameras": rows, "agree": not far}
 
 

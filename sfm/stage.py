@@ -425,11 +425,7 @@ def finish_capture(
         refuted = set((summary.background_check or {}).get("refuted", {}))
         dropped = {name for p, v in zip(prepared, videos, strict=True) if v in refuted for name in p.images}
         # register, run (check_inputs) and batch (at read) refused unknown names before any work
-        declared = (
-            dict.fromkeys(videos, 0.0)
-            if options.synchronized
-            else {name: offset for name, offset in options.offsets.items() if name in videos}
-        )
+        declared = options.declared(videos)
         path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out, declared)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
     return path
