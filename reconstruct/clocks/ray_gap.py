@@ -14,6 +14,7 @@ import numpy as np
 
 from reconstruct.clocks.search import MAD_TO_SIGMA, gap_px, sampled_tracks
 from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import viewing_rays
 
 MIN_SCALE_PX = 0.1  # as the search's robust scale: rays that meet exactly still get a positive yardstick
 
@@ -21,9 +22,10 @@ MIN_SCALE_PX = 0.1  # as the search's robust scale: rays that meet exactly still
 def ray_gap_px(problem: Problem, times: np.ndarray) -> float:
     """Robust scale (px, MAD) of the gaps between every observed ray and the other videos' rays of the same point at
     the same global time `times (F,)`; NaN when no two videos' observations overlap in time."""
+    rays = viewing_rays(problem)  # once: each point's tracks below take theirs
     gaps: list[np.ndarray] = []
     for p in range(problem.num_points):
-        tracks = sampled_tracks(problem, times, np.array([p]))  # the search's rays, on this point's samples
+        tracks = sampled_tracks(problem, times, np.array([p]), rays)  # the search's rays, on this point's samples
         for u, tu in enumerate(tracks):
             for v, tv in enumerate(tracks):
                 if v == u or tv.own.size == 0:

@@ -128,12 +128,14 @@ class _VideoRays:
         return centers, rays, self.focal[k]
 
 
-def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool = False) -> list[_VideoRays]:
+def _tracks(
+    problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool = False, rays: np.ndarray | None = None
+) -> list[_VideoRays]:
     """Each video's rays of `points` at every frame, interpolated across at most MAX_GAP_PERIODS frame periods; or,
     `sampled`, at its frames with an observation of them only, across MAX_GAP_PERIODS of its sampling step (tracks of
-    every 4th frame: across the untracked frames between them)."""
+    every 4th frame: across the untracked frames between them). `rays`: the problem's `viewing_rays`, when known."""
     seen = problem.observed[:, points].any(axis=1) & np.isfinite(own) if sampled else np.ones(len(own), dtype=bool)
-    rays = viewing_rays(problem)[:, points]
+    rays = (viewing_rays(problem) if rays is None else rays)[:, points]
     centers = problem.centers
     focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
     periods = frame_periods(own, problem.video_index, len(problem.video_names))
@@ -156,9 +158,11 @@ def _tracks(problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool
     return tracks
 
 
-def sampled_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+def sampled_tracks(
+    problem: Problem, own: np.ndarray, points: np.ndarray, rays: np.ndarray | None = None
+) -> list[_VideoRays]:
     """`_tracks` on the tracked samples of `points` only."""
-    return _tracks(problem, own, points, sampled=True)
+    return _tracks(problem, own, points, sampled=True, rays=rays)
 
 
 def _median_step(times: np.ndarray) -> float:
