@@ -38,6 +38,9 @@ POINT_TOLERANCE = 1e-4  # ... and no point coordinate moved more than this (norm
 # On long captures a few points drift on while the rest has settled: the point test and the cost tests leave out the
 # (1 - POINT_QUANTILE) share of coordinates and frames that changed most (`settled_decrease`).
 POINT_QUANTILE = 0.999
+# ... unless the cost test has passed this many alternations in a row: the points still moving then move along
+# directions the objective hardly sees (a joint seen by two nearly parallel rays), and more alternations only drift.
+STALL_ALTERNATIONS = 20
 
 
 @dataclass(kw_only=True)
@@ -88,6 +91,7 @@ class StageLog:
     lambda2: float
     iterations: int = 0
     converged: bool = False
+    stalled: bool = False  # final stage: stopped by STALL_ALTERNATIONS flat alternations, points still moving
     cost: list[float] = field(default_factory=list)
     w_iterations: list[int] = field(default_factory=list)
     max_point_change: list[float] = field(default_factory=list)
@@ -279,15 +283,21 @@ def _alternate(
         stages.append(stage)
         points, W = _run_stage(stage, points, W, scene, options, w_options, timings)
         log.info(
-            "stage %s: %d iterations, cost %.4e, converged: %s",
+            "stage %s: %d iterations, cost %.4e, %s",
             name,
             stage.iterations,
             stage.cost[-1] if stage.cost else float("nan"),
-            stage.converged,
+            _ending(stage),
         )
     if W is None:
         raise ValueError("max_iterations must be at least 1")
     return stages, points, W
+
+
+def _ending(stage: StageLog) -> str:
+    if stage.stalled:
+        return f"stalled: the cost fell by less than {COST_TOLERANCE:g} in each of {STALL_ALTERNATIONS} alternations"
+    return "converged" if stage.converged else "not converged"
 
 
 def _run_stage(
@@ -304,6 +314,7 @@ def _run_stage(
     x_options = options.x_step_options(lambda2)
     previous_cost = np.inf
     previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
+    flat = 0  # consecutive alternations that passed the cost test
     mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
     candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
     bar = tqdm(
@@ -343,10 +354,13 @@ def _run_stage(
         stage.max_point_change.append(change)
         bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
         decrease = np.inf if previous_frames is None else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE)
+        flat = flat + 1 if decrease < COST_TOLERANCE else 0
         if lambda2 > 0:
             converged = decrease < SMOOTH_TOLERANCE
         else:
-            converged = decrease < COST_TOLERANCE and settled < POINT_TOLERANCE
+            converged = flat > 0 and settled < POINT_TOLERANCE
+            stage.stalled = not converged and flat >= STALL_ALTERNATIONS
+            converged = converged or stage.stalled
         previous_cost, previous_frames = cost, frames_cost
         if converged:
             stage.converged = True

@@ -159,3 +159,9 @@ def test_settled_decrease_leaves_out_the_few_frames_that_still_move():
         rtol=1e-12,
     )
     assert settled_decrease(previous, current, 1.0) == pytest.approx(plain, rel=1e-12)
+
+
+def test_a_converging_final_stage_is_not_reported_stalled():
+    problem, _ = synthetic_problem(frames=100, points=5)
+    final = solve(problem).stages[-1]
+    assert final.converged and not final.stalled and final.iterations < SolverOptions().max_iterations
