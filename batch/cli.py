@@ -12,6 +12,8 @@ import dataclasses
 import logging
 from pathlib import Path
 
+from dynrecon.arguments import out_path
+
 COMMANDS = {"batch": "many capture folders on Dask (this machine, or a cluster's scheduler): `run` for each"}
 
 
@@ -30,7 +32,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "rerun skips what is up to date.",
     )
     parser.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE_DIR")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="batch folder (one workspace each)")
+    parser.add_argument("--out", type=out_path, required=True, metavar="DIR", help="batch folder (one workspace each)")
     parser.add_argument(
         "--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786); default: this machine"
     )

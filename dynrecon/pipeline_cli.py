@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dynrecon.arguments import out_path
+
 if TYPE_CHECKING:
     from dynrecon.pipeline import PipelineOptions
     from sfm.options import ImportCalibrationOptions
@@ -41,7 +43,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         "points.c3d.",
     )
     parser.add_argument("videos", nargs="+", type=Path, metavar="VIDEO")
-    parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
+    parser.add_argument("--out", type=out_path, required=True, metavar="WS", help="workspace folder")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--labels", type=Path, help="labels.csv to track (default: WS/labels.csv if present)")
     source.add_argument("--tracks", type=Path, help="ready 2D tracks (tracks.csv); no tracking")
@@ -205,7 +207,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--out",
-        type=Path,
+        type=out_path,
         default=Path("dynrecon-demo"),
         help="folder for the results (a fresh one is made beside it if it has results)",
     )

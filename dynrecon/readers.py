@@ -20,7 +20,7 @@ MAX_FRAME = 2**31  # frame numbers are 0 <= frame < MAX_FRAME: they fit int32 in
 def read_text(path: Path, *, missing_fix: str | None = None) -> str:
     """The UTF-8 text of `path`; a missing file, a folder or unreadable bytes are InputErrors."""
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not content
     except FileNotFoundError:
         raise InputError(path, "file not found", fix=missing_fix) from None
     except IsADirectoryError:
@@ -39,8 +39,8 @@ def loads_json(text: str, path: Path, *, fix: str | None = None) -> Any:
         raise InputError(
             path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}", fix=fix or "fix the JSON syntax"
         ) from None
-    except ValueError as error:  # an integer literal of more than 4300 digits
-        raise InputError(path, f"invalid JSON: {error}", fix=fix) from None
+    except ValueError:  # an integer literal of more than 4300 digits
+        raise InputError(path, "invalid JSON: an integer of more than 4300 digits", fix=fix) from None
     except RecursionError:
         raise InputError(path, "invalid JSON: nested too deeply", fix=fix) from None
 
@@ -131,6 +131,28 @@ def csv_records(path: Path, *, missing_fix: str | None = None) -> Iterator[tuple
             raise InputError(path, "not UTF-8 text", where=f"near line {start}", fix="save the file as UTF-8") from None
         except OSError as error:
             raise InputError(path, f"cannot read: {error.strerror or error}") from None
+
+
+def header_error(path: Path, header: list[str], missing: list[str], where: str, fix: str) -> InputError:
+    """The error for a CSV header without the `missing` columns, with what most likely went wrong: another
+    separator, or the names' case."""
+    hint = ""
+    separator = next((sep for sep in (";", "\t", "|") if len(header) == 1 and sep in header[0]), None)
+    if separator is not None:
+        hint = f"; the file seems separated by {separator!r}: save it comma-separated"
+    else:
+        lower = {name.lower(): name for name in header}
+        cased = [lower[name] for name in missing if name in lower]
+        if cased:
+            hint = f"; column names are lower case: found {', '.join(repr(name) for name in cased)}"
+    return InputError(path, f"header lacks column(s) {', '.join(missing)}{hint}", where=where, fix=fix)
+
+
+def repeated_column(path: Path, header: list[str], where: str) -> None:
+    """Refuse a CSV header naming a column twice: which of the two holds the values is a guess."""
+    twice = next((name for i, name in enumerate(header) if name and name in header[:i]), None)
+    if twice is not None:
+        raise InputError(path, f"column {twice!r} appears twice in the header", where=where, fix="keep one of them")
 
 
 def finite_float(text: str) -> float | None:

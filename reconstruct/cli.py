@@ -10,6 +10,8 @@ import argparse
 import math
 from pathlib import Path
 
+from dynrecon.arguments import out_path
+
 COMMANDS = {"solve": "reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)"}
 
 
@@ -28,7 +30,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--cameras", type=Path, required=True, help="cameras.json (per-frame poses)")
     parser.add_argument("--tracks", type=Path, required=True, help="tracks.csv (2D observations)")
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--out", type=out_path, required=True, help="output folder")
     defaults = SolverOptions()
     parser.add_argument("--lambda1", type=float, default=defaults.lambda1, help="structural coherence weight")
     parser.add_argument(
@@ -93,6 +95,11 @@ def _solve(args: argparse.Namespace) -> int:
     for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
         if not (math.isfinite(value) and value >= 0):  # argparse's float() accepts nan, inf and negatives
             raise InputError(None, f"{flag} {value} must be a finite number >= 0")
+    if args.lambda3 == 0 and args.constraint == RayConstraint.SOFT.value:
+        raise InputError(  # with no pull to their rays the points are free: any shape fits
+            None,
+            "--lambda3 0 with --constraint soft ties the points to no ray: give --lambda3 > 0 or --constraint hard",
+        )
     solver = SolverOptions(
         lambda1=args.lambda1,
         lambda2=args.lambda2,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,10 +15,12 @@ import numpy as np
 from dynrecon.errors import InputError, NotEnoughDataError
 from reconstruct.screen import remove_spikes
 from reconstruct.solver.problem import Problem
-from sfm.cameras import CameraSet, FrameCamera
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
 log = logging.getLogger(__name__)
+
+BASELINE_TOLERANCE = 1e-9  # camera centres closer than this (relative to their magnitude) are one point
 
 
 @dataclass(kw_only=True)
@@ -47,18 +50,20 @@ def build_problem(cameras: CameraSet, tracks: Tracks, point_names: list[str] | N
 
 
 def build_problem_checked(
-    cameras: CameraSet, tracks: Tracks, point_names: list[str] | None = None
+    cameras: CameraSet, tracks: Tracks, point_names: list[str] | None = None, *, cameras_path: Path | None = None
 ) -> tuple[Problem, RejectedObservations]:
     """Join poses and observations. Unknown videos are errors; observations of unposed frames are dropped with a
     warning (registration may fail on some frames, and a pose is never invented); observations outside their
     video's image (with IMAGE_MARGIN) or not finite are rejected, counted and warned about once, and so are
-    isolated spikes off their own track (reconstruct/screen.py)."""
+    isolated spikes off their own track (reconstruct/screen.py). `cameras_path` names the cameras file in errors."""
     videos = [v for v in cameras.videos if v.frames]
+    source = cameras_path or "the cameras file"
     if len(videos) < 2:
         raise NotEnoughDataError(
-            f"{len(videos)} video(s) with posed frames in the cameras file: the solver needs at least 2 "
+            f"{source}: {len(videos)} video(s) with posed frames: the solver needs at least 2 "
             "(register more videos, or check that their frames got poses)"
         )
+    _check_baseline(videos, source)
     video_names = [v.name for v in videos]
     frame_lists = [sorted(v.frames, key=lambda f: f.frame) for v in videos]
     index: dict[tuple[str, int], int] = {}
@@ -89,6 +94,8 @@ def build_problem_checked(
     _warn_unposed(tracks, unposed)
     rejection = _rejection(cameras, tracks, rejected)
     rejection.unposed = len(unposed)
+    if not len(tracks.video):
+        raise NotEnoughDataError(f"{tracks.path or 'tracks'}: no observations, only a header (track or import some)")
     if not np.any(~np.isnan(uv[..., 0])):
         raise NotEnoughDataError(
             f"{tracks.path or 'tracks'}: no observation falls on a posed frame "
@@ -108,6 +115,32 @@ def build_problem_checked(
     )
     problem, rejection.spikes = remove_spikes(problem)
     return problem, rejection
+
+
+def _check_baseline(videos: list[VideoCameras], source: Path | str) -> None:
+    """Refuse cameras that all sit at one point: rays from one centre meet nowhere (one pose copied to every video
+    is the usual cause); warn about two static videos at one pose, whose rays of a point never cross."""
+    centers = [np.array([frame.center for frame in video.frames]) for video in videos]
+    every = np.concatenate(centers)
+    scale = max(1.0, float(np.abs(every).max()))
+    if float(np.ptp(every, axis=0).max()) <= BASELINE_TOLERANCE * scale:
+        raise NotEnoughDataError(
+            f"{source}: every posed frame of the {len(videos)} videos has its camera at the same point "
+            f"{np.round(every[0], 6).tolist()}: no baseline to triangulate from (each camera needs its own pose; "
+            "was one pose copied to every video?)"
+        )
+    fixed = [
+        (video.name, c[0]) for video, c in zip(videos, centers, strict=True) if np.ptp(c, axis=0).max() <= 1e-12 * scale
+    ]
+    for i, (name, center) in enumerate(fixed):
+        for other, center_other in fixed[i + 1 :]:
+            if np.abs(center - center_other).max() <= BASELINE_TOLERANCE * scale:
+                log.warning(
+                    "videos %r and %r have their camera at the same point: their rays of a point never cross, so "
+                    "they place nothing in depth together (one camera's pose given twice?)",
+                    name,
+                    other,
+                )
 
 
 def _frame_rows(video_names: list[str], frame_lists: list[list[FrameCamera]], tracks: Tracks) -> np.ndarray | None:

@@ -151,7 +151,8 @@ def solve(
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
     check_people_mapped(camera_set, track_set)
     track_set = renumber_people(track_set, people_maps(camera_set))
-    problem, rejected = build_problem_checked(camera_set, track_set)
+    cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
+    problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
     read_inputs = time.perf_counter() - started
     log.info(
         "solving %d frames of %d videos, %d points, %d observations",

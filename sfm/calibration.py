@@ -243,7 +243,7 @@ def _toml_sections(data: dict) -> list[tuple[str, dict, str | None]]:
             continue
         if key == "cameras" and all(isinstance(v, dict) for v in section.values()):  # caliscope camera_array
             sections += [(f"[cameras.{k}]", v, str(v.get("cam_id", k))) for k, v in section.items()]
-        elif "matrix" in section or "cam_id" in section:
+        elif "matrix" in section or "cam_id" in section or ("name" in section and CAMERA_KEYS.intersection(section)):
             cam_id = section.get("cam_id")
             sections.append((f"[{key}]", section, None if cam_id is None else str(cam_id)))
     return sections
@@ -266,6 +266,10 @@ def _spread(cameras: list[StaticCamera]) -> float:
     """The largest distance between two camera centres (0 with fewer than two posed cameras)."""
     centres = [camera.center for camera in cameras if camera.has_pose]
     return max((float(np.linalg.norm(a - b)) for i, a in enumerate(centres) for b in centres[i + 1 :]), default=0.0)
+
+
+# A table with a name and any of these is a camera, with or without its `matrix` (warned about when without).
+CAMERA_KEYS = frozenset({"size", "distortions", "rotation", "translation"})
 
 
 def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]:
@@ -430,7 +434,8 @@ def read_calibration(
             raise InputError(
                 path,
                 "cannot tell the calibration format from the name",
-                fix="pass --format qca, toml, json or dannce",
+                fix="name it .toml, .qca.txt, .xml, .json or .mat; import-calibration also takes --format qca, toml, "
+                "json or dannce",
             )
     if fmt is CalibrationFormat.CAMERAS_JSON:
         return read_cameras_json(path)  # read_cameras has checked it
@@ -449,6 +454,12 @@ def read_calibration(
         check_plausible(camera.K, camera.t, camera.dist, path, where)
         if camera.R is not None and not np.all(np.isfinite(camera.R)):
             raise InputError(path, "rotation contains NaN or infinity", where=where)
+    names = [camera.name for camera in cameras]
+    twice = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if twice is not None:  # videos are matched to cameras by name: two of one name match one video
+        raise InputError(
+            path, f"two cameras are named {shown(twice)}", fix="give every camera its own name (a copied table?)"
+        )
     return cameras
 
 

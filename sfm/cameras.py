@@ -8,6 +8,7 @@ absent.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,12 +20,19 @@ from dynrecon.atomic import atomic_write_text
 from dynrecon.errors import InputError
 from dynrecon.readers import check_frame, read_json
 
+log = logging.getLogger(__name__)
+
 ROTATION_TOLERANCE = 1e-5
 # Plausibility limits: finite values beyond them are typos or corrupt files that would silently spoil a solve.
 FOCAL_RANGE_PX = (1.0, 1e6)  # fx, fy: below 1 px is a field of view near 180 degrees at any image size
 MAX_PRINCIPAL_PX = 1e6  # |cx|, |cy| and the skew
 MAX_TRANSLATION = 1e9  # each |t| component, world units (1000 km in mm)
 MAX_DISTORTION = 1e3  # |k1|, |k2|, |p1|, |p2|, |k3|
+MAX_SECONDS = 1e10  # |time| and |clock_offset|: Unix epoch times fit (about 1.8e9 s today), 1e300 does not
+# Times per frame this many times off the video's fps: warned (a timelapse's real capture times, or frame numbers
+# given as times), and refused from FPS_REFUSED (milliseconds: 1000x).
+FPS_WARNED = 10.0
+FPS_REFUSED = 100.0
 
 
 @dataclass(kw_only=True)
@@ -255,7 +263,10 @@ def _frame_from_json(fdata: Any, path: Path | None, where: str) -> FrameCamera:
 
 
 def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
-    """Check the geometric sanity of every frame: proper rotations, usable intrinsics, unique names/frames."""
+    """Check the geometric sanity of every frame: proper rotations, usable intrinsics, unique names/frames; and
+    that decoder times increase with the frame number, in seconds."""
+    for video in cameras.videos:
+        check_times(video, path)
     if _clearly_valid(cameras):
         return
     seen_names: set[str] = set()
@@ -289,6 +300,60 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
             ):
                 raise InputError(path, '"K" must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0', where=where)
             check_plausible(frame.K, frame.t, frame.dist, path, where)
+
+
+def check_times(video: VideoCameras, path: Path | None = None) -> None:
+    """Refuse a video's decoder times that cannot be seconds from its start: not increasing with the frame number
+    (the solve would order its frames wrongly), beyond MAX_SECONDS, or stepping FPS_REFUSED times off its fps
+    (warned from FPS_WARNED)."""
+    where = f"video {video.name!r}"
+    if video.clock_offset is not None and abs(video.clock_offset) >= MAX_SECONDS:
+        raise InputError(
+            path,
+            f'"clock_offset" {video.clock_offset:.6g} s is implausible',
+            where=where,
+            fix=f"clock offsets are seconds below {MAX_SECONDS:g} in magnitude",
+        )
+    timed = sorted((f.frame, f.time) for f in video.frames if f.time is not None)
+    if not timed:
+        return
+    frames = np.array([frame for frame, _ in timed], dtype=float)
+    times = np.array([time for _, time in timed], dtype=float)
+    huge = np.flatnonzero(np.abs(times) >= MAX_SECONDS)
+    if huge.size:
+        raise InputError(
+            path,
+            f'"time" {times[huge[0]]:.6g} s is implausible',
+            where=f"{where} frame {int(frames[huge[0]])}",
+            fix=f"decoder times are seconds from the video's start, below {MAX_SECONDS:g}",
+        )
+    steps = np.diff(times)
+    back = np.flatnonzero(steps <= 0)
+    if back.size:
+        i = int(back[0])
+        raise InputError(
+            path,
+            f'"time" {times[i + 1]:.6g} s is not after frame {int(frames[i])}\'s {times[i]:.6g} s',
+            where=f"{where} frame {int(frames[i + 1])}",
+            fix='decoder times must increase with the frame number; remove the "time" fields of a video whose '
+            "times are unknown (its clock is then estimated)",
+        )
+    if video.fps is None or len(times) < 3:
+        return
+    per_frame = float(np.median(steps / np.maximum(np.diff(frames), 1.0)))
+    ratio = per_frame * video.fps
+    if 1.0 / FPS_WARNED < ratio < FPS_WARNED:
+        return
+    error = InputError(
+        path,
+        f'its "time"s step by {per_frame:.6g} s per frame (median), {ratio:.3g} times the {1.0 / video.fps:.6g} s '
+        f'of its "fps" {video.fps:g}',
+        where=where,
+        fix='decoder times are in seconds (not milliseconds or frames); or fix "fps" (null when unknown)',
+    )
+    if not 1.0 / FPS_REFUSED < ratio < FPS_REFUSED:
+        raise error
+    log.warning("%s; the times are used as given", error)
 
 
 def _clearly_valid(cameras: CameraSet) -> bool:

@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dynrecon.arguments import out_path
+
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Register this stage's subcommands on the main parser."""
@@ -34,7 +36,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session)",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
-    parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder for cameras.json")
+    parser.add_argument("--out", type=out_path, required=True, metavar="WS", help="workspace folder for cameras.json")
     parser.add_argument(
         "--format",
         choices=[f.value for f in CalibrationFormat],

@@ -10,6 +10,8 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dynrecon.arguments import out_path
+
 if TYPE_CHECKING:
     from sfm.options import RegisterOptions
 
@@ -30,7 +32,7 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
         "each video.",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO")
-    parser.add_argument("--out", type=Path, required=True, metavar="WS", help="workspace folder")
+    parser.add_argument("--out", type=out_path, required=True, metavar="WS", help="workspace folder")
     _add_frame_arguments(parser.add_argument_group("frames for SfM"), defaults)
     _add_sfm_arguments(parser.add_argument_group("features, matching, mapping"), defaults)
     _add_static_arguments(parser.add_argument_group("static cameras and the subject path"), defaults)

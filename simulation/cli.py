@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from dynrecon.arguments import out_path
 from dynrecon.errors import DynreconError
 
 if TYPE_CHECKING:  # the simulators load numpy and scipy: only the type checker imports them here
@@ -120,7 +121,7 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
 def _add_capture_arguments(sim: argparse.ArgumentParser, defaults: SimulationOptions, flight: FlightOptions) -> None:
     """Arguments every mode reads: input, output, mode and the paper-style capture settings."""
     sim.add_argument("mocap", type=Path, nargs="?", help="a .c3d or .trc motion-capture file (not for flight)")
-    sim.add_argument("--out", type=Path, required=True, help="output folder")
+    sim.add_argument("--out", type=out_path, required=True, help="output folder")
     sim.add_argument("--mode", choices=MODES, default="paper", help="capture model (default %(default)s)")
     sim.add_argument(
         "--cameras",
@@ -315,6 +316,8 @@ def _check_mode(args: argparse.Namespace) -> set[str]:
         raise DynreconError(f"--mode flight simulates its own scene: drop the MOCAP argument {args.mocap}")
     if args.mode != "flight" and args.mocap is None:
         raise DynreconError(f"--mode {args.mode} needs a MOCAP file (.c3d or .trc), or use --mode flight")
+    if args.seed < 0:  # numpy's generators take seeds >= 0 only
+        raise DynreconError(f"--seed {args.seed}: give a whole number >= 0")
     return given
 
 

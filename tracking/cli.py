@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dynrecon.arguments import out_path
+
 COMMANDS = {
     "track": "carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
     "import-tracks": "import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board "
@@ -34,7 +36,7 @@ def _add_track(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("workspace", type=Path, metavar="WS", help="workspace folder with labels.csv")
     parser.add_argument("--videos", type=Path, nargs="+", metavar="VIDEO", help="track only these videos")
-    parser.add_argument("--out", type=Path, help="output file (default WS/tracks.csv)")
+    parser.add_argument("--out", type=out_path, help="output file (default WS/tracks.csv)")
     parser.add_argument(
         "--method",
         choices=[m.value for m in Method],
@@ -108,7 +110,7 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         help="DLC .csv or .h5, SLEAP .slp or analysis .h5, OpenPose JSON file or folder, plain .csv, or a video "
         "(with --board)",
     )
-    parser.add_argument("--out", type=Path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
+    parser.add_argument("--out", type=out_path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument(
         "--format",
         choices=[f.value for f in Format],

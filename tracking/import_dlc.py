@@ -217,4 +217,11 @@ def _number(path: Path, number: int, row: list[str], col: int) -> float:
         value = float(cell)
     except ValueError:
         raise InputError(path, f"{cell!r} in column {col + 1} is not a number", where=f"line {number}") from None
-    return value if math.isfinite(value) else math.nan
+    if math.isinf(value):  # not an empty cell: a corrupt value, which would otherwise vanish unseen
+        raise InputError(
+            path,
+            f"{cell!r} in column {col + 1} is not a finite number",
+            where=f"line {number}",
+            fix="leave the cell empty where the point was not detected",
+        )
+    return value

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
-from dynrecon.readers import csv_records, parse_frame, shown
+from dynrecon.readers import csv_records, header_error, parse_frame, repeated_column, shown
 
 COLUMNS = ("video", "frame", "point", "x", "y", "source")
 
@@ -54,12 +54,10 @@ def read_labels(path: str | Path) -> dict[Key, Label]:
     header = [h.strip() for h in first[1]]
     missing = [c for c in COLUMNS[:5] if c not in header]
     if missing:
-        raise InputError(
-            path,
-            f"header lacks column(s) {', '.join(missing)}",
-            where=f"line {first[0]}",
-            fix="the header must be video,frame,point,x,y,source",
+        raise header_error(
+            path, header, missing, where=f"line {first[0]}", fix="the header must be video,frame,point,x,y,source"
         )
+    repeated_column(path, header, where=f"line {first[0]}")
     col = {name: header.index(name) for name in COLUMNS if name in header}
     first_line: dict[Key, int] = {}
     for number, row in records:

@@ -20,7 +20,7 @@ import numpy as np
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
 from dynrecon.names import spelled_alike
-from dynrecon.readers import MAX_FRAME, csv_records, parse_frame, shown
+from dynrecon.readers import MAX_FRAME, csv_records, header_error, parse_frame, repeated_column, shown
 
 log = logging.getLogger(__name__)
 
@@ -169,9 +169,11 @@ def _read_regular(path: Path) -> Tracks | None:
         return None
     header = [h.strip() for h in lines[0].split(",")]
     width = len(header)
-    if any(c not in header for c in REQUIRED_COLUMNS) or set(map(str.count, lines, itertools.repeat(","))) != {
-        width - 1
-    }:
+    if (
+        any(c not in header for c in REQUIRED_COLUMNS)
+        or len(set(header)) < width  # a repeated column (or two empty names): the checked reader says which
+        or set(map(str.count, lines, itertools.repeat(","))) != {width - 1}
+    ):
         return None
     cells = "\n".join(lines).replace("\n", ",").split(",")  # flat: strings, no per-row lists
     columns = [cells[width + k :: width] for k in range(width)]
@@ -247,12 +249,10 @@ def _read_checked(path: Path) -> Tracks:
     header = [h.strip() for h in first[1]]
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
-        raise InputError(
-            path,
-            f"header lacks column(s) {', '.join(missing)}",
-            where=f"line {first[0]}",
-            fix="the header must contain video,frame,point,x,y",
+        raise header_error(
+            path, header, missing, where=f"line {first[0]}", fix="the header must contain video,frame,point,x,y"
         )
+    repeated_column(path, header, where=f"line {first[0]}")
     index = {name: header.index(name) for name in REQUIRED_COLUMNS}
     extra_names = [h for h in header if h not in REQUIRED_COLUMNS and h]
     extra_index = {name: header.index(name) for name in extra_names}

@@ -498,7 +498,8 @@ def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions
         distinct = [p.distinctness for p in search.pairs if np.isfinite(p.distinctness)]
         diagnostics["track_distinctness"] = float(np.median(distinct)) if distinct else None
         track_rms = search.video_residual_px
-        precise = bool(link_fit.scale <= PRECISE_LINK_PERIODS * float(np.nanmin(periods)))
+        shortest = float(np.nanmin(periods)) if np.isfinite(periods).any() else np.nan  # NaN: one frame per video
+        precise = bool(link_fit.scale <= PRECISE_LINK_PERIODS * shortest)
         params, methods, fuse_notes, disagree = _combine(
             link_fit.params, search.params, periods, ref, problem.video_names, precise
         )

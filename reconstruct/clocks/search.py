@@ -304,7 +304,9 @@ def search_pair(
     """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
     tv, tu = tracks[v], tracks[u]
     qv, qu, need = _pair_queries(tracks, v, u, options)
-    step = COARSE_STEP_PERIODS * float(np.nanmax([periods[v], periods[u]]))
+    if not np.isfinite(periods[[v, u]]).any():
+        return None  # videos of one timed frame each have no frame period to step a search by
+    step = COARSE_STEP_PERIODS * float(np.nanmax(periods[[v, u]]))
     c2 = options.inlier_px**2
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
     best: PairHypothesis | None = None

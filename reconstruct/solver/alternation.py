@@ -242,7 +242,7 @@ class _Scene:
 def _reconstructable(problem: Problem) -> np.ndarray:
     """(P,) bool, the points seen in at least two videos; warns about the others."""
     keep = reconstructable_points(problem)
-    for name in np.asarray(problem.point_names)[~keep]:
+    for name in np.asarray(problem.point_names)[~keep].tolist():  # str, not np.str_, in the message
         log.warning("point %r is seen in fewer than two videos: it cannot be reconstructed (left empty)", name)
     if not keep.any():
         raise NotEnoughDataError(

@@ -1,0 +1,165 @@
+"""Hostile input found by a sweep of every command (2026-11-28): each case exits 2 with one line naming the file
+(and the line, frame or option) and what to do, where it used to raise a traceback or write a silently wrong result."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from synthetic_motion import simulated_phones
+
+from dynrecon.cli import main
+from dynrecon.errors import InputError
+from sfm.calibration import read_calibration
+
+
+@pytest.fixture(scope="module")
+def phones(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return simulated_phones(tmp_path_factory.mktemp("phones"))
+
+
+def _edited(phones: Path, folder: Path, edit) -> Path:
+    document = json.loads((phones / "cameras.json").read_text())
+    edit(document["videos"])
+    path = folder / "cameras.json"
+    path.write_text(json.dumps(document))
+    return path
+
+
+def _solve(cameras: Path, tracks: Path, out: Path, *extra: str) -> int:
+    return main(
+        ["solve", "--cameras", str(cameras), "--tracks", str(tracks), "--out", str(out), "--no-recording", *extra]
+    )
+
+
+def _one_line(capsys: pytest.CaptureFixture[str], status: int, *words: str) -> str:
+    err = capsys.readouterr().err
+    assert status == 2, err
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err and len(lines) == 1, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def _set_times(videos: list, name: str, times) -> None:
+    video = next(v for v in videos if v["name"] == name)
+    for frame, time in zip(video["frames"], times(len(video["frames"])), strict=True):
+        frame["time"] = time
+
+
+TIMES = {
+    "all equal": (lambda n: [0.0] * n, "is not after frame 0's"),
+    "reversed": (lambda n: [-i / 30 for i in range(n)], "is not after frame 0's"),
+    "milliseconds": (lambda n: [1000 * i / 30 for i in range(n)], "times the"),
+    "1e300": (lambda n: [i / 30 for i in range(n - 1)] + [1e300], "implausible"),
+}
+
+
+@pytest.mark.parametrize("case", list(TIMES), ids=list(TIMES))
+def test_decoder_times_that_are_not_seconds_from_the_start(
+    phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
+    times, words = TIMES[case]
+    first = json.loads((phones / "cameras.json").read_text())["videos"][0]["name"]
+    cameras = _edited(phones, tmp_path, lambda videos: _set_times(videos, first, times))
+    line = _one_line(capsys, _solve(cameras, phones / "tracks.csv", tmp_path / "out"), str(cameras), words)
+    assert f"video {first!r}" in line
+    assert not (tmp_path / "out" / "points3d.csv").exists()
+
+
+def test_a_huge_clock_offset(phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cameras = _edited(phones, tmp_path, lambda videos: videos[1].update(clock_offset=1e300))
+    _one_line(capsys, _solve(cameras, phones / "tracks.csv", tmp_path / "out"), str(cameras), '"clock_offset"')
+
+
+def test_one_pose_copied_to_every_video(phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def copy(videos: list) -> None:
+        pose = {key: videos[0]["frames"][0][key] for key in ("R", "t")}
+        for video in videos:
+            for frame in video["frames"]:
+                frame.update(pose)
+
+    cameras = _edited(phones, tmp_path, copy)
+    _one_line(capsys, _solve(cameras, phones / "tracks.csv", tmp_path / "out"), str(cameras), "no baseline")
+
+
+def test_one_posed_frame_per_video_solves(phones: Path, tmp_path: Path) -> None:
+    """Videos of one frame each have no frame period: the clock search skips them instead of failing."""
+    cameras = _edited(phones, tmp_path, lambda videos: [v.update(frames=v["frames"][:1]) for v in videos])
+    assert _solve(cameras, phones / "tracks.csv", tmp_path / "out") == 0
+
+
+def test_soft_rays_without_weight(phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status = _solve(phones / "cameras.json", phones / "tracks.csv", tmp_path / "out", "--lambda3", "0")
+    _one_line(capsys, status, "--lambda3 0", "--constraint hard")
+
+
+def test_an_empty_output_path(phones: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        _solve(phones / "cameras.json", phones / "tracks.csv", "")
+    assert exit_info.value.code == 2
+    assert "--out: must not be empty" in capsys.readouterr().err
+
+
+def test_a_negative_seed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    status = main(["simulate", "--mode", "flight", "--duration", "1", "--seed", "-1", "--out", str(tmp_path)])
+    _one_line(capsys, status, "--seed -1")
+
+
+TRACKS_HEADERS = {
+    "semicolons": ("video;frame;point;x;y\ncam0;0;m0;1;2\n", "separated by ';'"),
+    "tabs": ("video\tframe\tpoint\tx\ty\ncam0\t0\tm0\t1\t2\n", "separated by '\\t'"),
+    "upper case": ("Video,Frame,Point,X,Y\ncam0,0,m0,1,2\n", "lower case"),
+    "a column twice": ("video,frame,point,x,y,x\ncam0,0,m0,1,2,3\n", "column 'x' appears twice"),
+    "only a header": ("video,frame,point,x,y\n", "only a header"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRACKS_HEADERS), ids=list(TRACKS_HEADERS))
+def test_tracks_csv_headers(phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str) -> None:
+    text, words = TRACKS_HEADERS[case]
+    tracks = tmp_path / "tracks.csv"
+    tracks.write_text(text)
+    _one_line(capsys, _solve(phones / "cameras.json", tracks, tmp_path / "out"), str(tracks), words)
+
+
+def test_cameras_json_with_a_byte_order_mark_reads(phones: Path, tmp_path: Path) -> None:
+    cameras = tmp_path / "cameras.json"
+    cameras.write_bytes(b"\xef\xbb\xbf" + (phones / "cameras.json").read_bytes())
+    assert _solve(cameras, phones / "tracks.csv", tmp_path / "out") == 0
+
+
+def test_an_infinite_coordinate_in_deeplabcut_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    dlc = tmp_path / "camADLC_resnet50_demo.csv"
+    dlc.write_text("scorer,me,me,me\nbodyparts,snout,snout,snout\ncoords,x,y,likelihood\n0,10,20,0.9\n1,inf,21,0.9\n")
+    status = main(["import-tracks", str(dlc), "--out", str(tmp_path / "tracks.csv")])
+    _one_line(capsys, status, str(dlc), "line 5", "'inf'")
+
+
+def test_two_calibrated_cameras_of_one_name(tmp_path: Path) -> None:
+    table = (
+        '[{key}]\nname = "cam01"\nsize = [100, 100]\n'
+        "matrix = [[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]]\n"
+        "distortions = [0.0, 0.0, 0.0, 0.0]\nrotation = [0.0, 0.0, 0.0]\ntranslation = [{x}, 0.0, 0.0]\n"
+    )
+    path = tmp_path / "calib.toml"
+    path.write_text(table.format(key="cam_1", x=0.0) + table.format(key="cam_2", x=1.0))
+    with pytest.raises(InputError, match="two cameras are named 'cam01'"):
+        read_calibration(path)
+
+
+def test_times_off_the_fps_by_less_than_a_unit_are_warned_and_kept(
+    phones: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A timelapse's real capture times (1 s per frame in a 30 fps file) are not an error; milliseconds are."""
+    from sfm.cameras import read_cameras
+
+    def timelapse(videos: list) -> None:
+        videos[0]["fps"] = 30.0
+        _set_times(videos, videos[0]["name"], lambda n: [float(i) for i in range(n)])
+
+    cameras = read_cameras(_edited(phones, tmp_path, timelapse))
+    assert [f.time for f in cameras.videos[0].frames][:3] == [0.0, 1.0, 2.0]
+    assert any("times the" in r.getMessage() and "used as given" in r.getMessage() for r in caplog.records)
