@@ -138,9 +138,11 @@ def check_track_flags(args: argparse.Namespace) -> None:
     from dynrecon.errors import InputError
     from tracking.options import MAX_WINDOW
 
-    windows = (args.track_window, args.track_patch)
-    if not all(5 <= w <= MAX_WINDOW for w in windows) or args.max_frames < 2:
-        raise InputError(None, f"--track-window and --track-patch must be 5 to {MAX_WINDOW} px, --max-frames >= 2")
+    for flag, value in (("--track-window", args.track_window), ("--track-patch", args.track_patch)):
+        if not 5 <= value <= MAX_WINDOW:
+            raise InputError(None, f"{flag} {value}: must be 5 to {MAX_WINDOW} px")
+    if args.max_frames < 2:
+        raise InputError(None, f"--max-frames {args.max_frames}: must be 2 or more")
 
 
 def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:

@@ -80,6 +80,10 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=_solve)
 
 
+# Weights beyond this swamp every other term in double precision: the solve diverges, not the data's fault.
+MAX_WEIGHT = 1e6
+
+
 def _solve(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from labeling.skeleton import read_skeleton
@@ -93,8 +97,8 @@ def _solve(args: argparse.Namespace) -> int:
     if args.max_iterations < 1:
         raise InputError(None, f"--max-iterations {args.max_iterations} must be at least 1")
     for flag, value in (("--lambda1", args.lambda1), ("--lambda2", args.lambda2), ("--lambda3", args.lambda3)):
-        if not (math.isfinite(value) and value >= 0):  # argparse's float() accepts nan, inf and negatives
-            raise InputError(None, f"{flag} {value} must be a finite number >= 0")
+        if not (math.isfinite(value) and 0 <= value <= MAX_WEIGHT):  # argparse's float() takes nan, inf, negatives
+            raise InputError(None, f"{flag} {value} must be a number from 0 to {MAX_WEIGHT:g}")
     if args.lambda3 == 0 and args.constraint == RayConstraint.SOFT.value:
         raise InputError(  # with no pull to their rays the points are free: any shape fits
             None,

@@ -644,6 +644,8 @@ def run(
     out.mkdir(parents=True, exist_ok=True)
     path = write_cameras(out / "cameras.json", result)
     log.info("wrote %s: %d videos, %d frames", path, len(result.videos), result.num_frames)
+    if len(result.videos) < 2:
+        log.warning("%s holds one video: `dynrecon solve` needs two or more (give every camera's video)", path)
     return path
 
 

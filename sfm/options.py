@@ -182,6 +182,8 @@ class RegisterOptions:
                     f"{flag} {number}: must be above {low:g} and at most {high:g}",
                     fix=f"give {flag} in that range",
                 )
+        if self.num_threads != ALL_CORES and not 1 <= self.num_threads <= MAX_COUNT:
+            raise InputError(None, f"--threads {self.num_threads}: give 1 or more, or {ALL_CORES} for all cores")
         if self.time_step is not None and not (math.isfinite(self.time_step) and self.time_step > 0):
             raise InputError(
                 None, f"--time-step {self.time_step}: must be a positive number of seconds", fix="e.g. --time-step 0.5"
@@ -257,6 +259,8 @@ OFFSETS_HELP = (
 
 def parse_offsets(text: str) -> dict[str, float]:
     """NAME=SECONDS,... -> {name: seconds}; a one-line argparse error otherwise."""
+    from sfm.cameras import MAX_SECONDS  # numpy: not for the command list
+
     out: dict[str, float] = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
         name, sep, value = item.partition("=")
@@ -266,6 +270,8 @@ def parse_offsets(text: str) -> dict[str, float]:
             seconds = math.nan
         if not sep or not name.strip() or not math.isfinite(seconds) or name.strip() in out:
             raise argparse.ArgumentTypeError(f"{item!r}: give NAME=SECONDS once per video, e.g. cam2=0.033")
+        if abs(seconds) >= MAX_SECONDS:
+            raise argparse.ArgumentTypeError(f"{item!r}: clock offsets are seconds below {MAX_SECONDS:g} in magnitude")
         out[name.strip()] = seconds
     return out
 

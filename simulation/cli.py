@@ -316,6 +316,8 @@ def _check_mode(args: argparse.Namespace) -> set[str]:
         raise DynreconError(f"--mode flight simulates its own scene: drop the MOCAP argument {args.mocap}")
     if args.mode != "flight" and args.mocap is None:
         raise DynreconError(f"--mode {args.mode} needs a MOCAP file (.c3d or .trc), or use --mode flight")
+    if getattr(args, "distance", None) is not None and not (math.isfinite(args.distance) and args.distance > 0):
+        raise DynreconError(f"--distance {args.distance}: give the cameras' distance in mm, above 0")
     if args.seed < 0:  # numpy's generators take seeds >= 0 only
         raise DynreconError(f"--seed {args.seed}: give a whole number >= 0")
     return given

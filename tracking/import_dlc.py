@@ -196,11 +196,13 @@ def _frame_of(path: Path, where: str, index_cells: list[str]) -> int:
     text = " ".join(c.strip() for c in index_cells if c.strip())
     if _NUMBER.fullmatch(text):  # an index, not an image name: -7 or 2.0 are refused, not read as 7 or 0
         return parse_frame(text, path, where)
-    match = _LAST_NUMBER.search(text)
+    # The image's own name holds the frame: a number of its folder (a date) is not one.
+    image = re.split(r"[/\\]", [c.strip() for c in index_cells if c.strip()][-1])[-1] if text else ""
+    match = _LAST_NUMBER.search(image)
     if match is None:
         raise InputError(
             path,
-            f"cannot tell the frame number from {shown(text)}",
+            f"cannot tell the frame number from {shown(image or text)}",
             where=where,
             fix="the first column must be the frame index or an image name ending in a number",
         )

@@ -192,7 +192,7 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
                 raise InputError(
                     Path(path),
                     f"two detections of point {point!r} on frame {d.frame} of video {d.video!r}",
-                    where=d.where,
+                    where=d.where.removeprefix(f"{Path(path).name}:"),  # the error names the file already
                     fix="check --map (two names mapped to one) and the frame numbers (two rows or image names that "
                     "give the same frame)",
                 )
@@ -201,12 +201,20 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
             imported_videos.add(d.video)
             kept += 1
         log.info("%s: %d of %d detections imported", path, kept, len(detections))
-        if detections and not kept:
+        if not detections:
+            log.warning("%s: no detection in the file", path)
+        elif not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
     if options.board is not None and not rows and inputs:
         from tracking.charuco import board_not_found, read_charuco_board
 
         raise board_not_found(read_charuco_board(options.board), Path(inputs[0]))
+    if not rows and inputs:  # an empty tracks.csv would only fail later, far from its cause
+        raise InputError(
+            Path(inputs[0]) if len(inputs) == 1 else None,
+            "no detection to import" + ("" if len(inputs) == 1 else f" in any of the {len(inputs)} files"),
+            fix="check that the detector wrote its output there, and --min-score and --map",
+        )
     kept_extra: dict[str, dict[tuple[str, int, str], str]] = {}  # the user's own columns of the rows kept
     if out.is_file():
         old = read_tracks(out)

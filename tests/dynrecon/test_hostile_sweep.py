@@ -163,3 +163,55 @@ def test_times_off_the_fps_by_less_than_a_unit_are_warned_and_kept(
     cameras = read_cameras(_edited(phones, tmp_path, timelapse))
     assert [f.time for f in cameras.videos[0].frames][:3] == [0.0, 1.0, 2.0]
     assert any("times the" in r.getMessage() and "used as given" in r.getMessage() for r in caplog.records)
+
+
+def test_a_deeplabcut_image_name_without_a_number(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The frame comes from the image's name, never from a number in its folder's (a date)."""
+    dlc = tmp_path / "camADLC_resnet50_demo.csv"
+    dlc.write_text(
+        "scorer,,,me,me\nbodyparts,,,snout,snout\ncoords,,,x,y\nlabeled-data,PrL-19_11042020,imgABC.png,10,20\n"
+    )
+    status = main(["import-tracks", str(dlc), "--out", str(tmp_path / "tracks.csv")])
+    _one_line(capsys, status, str(dlc), "line 4", "'imgABC.png'")
+
+
+def test_importing_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    empty = tmp_path / "detections.csv"
+    empty.write_text("video,frame,point,x,y\n")
+    status = main(["import-tracks", str(empty), "--out", str(tmp_path / "tracks.csv")])
+    _one_line(capsys, status, str(empty), "no detection to import")
+    assert not (tmp_path / "tracks.csv").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["solve", "--lambda2", "1e300"], "--lambda2 1e+300 must be a number from 0 to"),
+        (["simulate", "--distance", "0"], "--distance 0.0"),
+        (["import-calibration", "--offsets", "cam01=1e300"], "clock offsets are seconds below"),
+        (["register", "--threads", "0"], "--threads 0"),
+        (["run", "--track-window", "3"], "--track-window 3: must be 5 to"),
+    ],
+    ids=["lambda", "distance", "offsets", "threads", "track-window"],
+)
+def test_options_out_of_range(
+    phones: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], words: str
+) -> None:
+    command, *flags = argv
+    video = tmp_path / "cam01.mp4"
+    video.write_bytes(b"")  # never opened: the options are checked first
+    rest = {
+        "solve": ["--cameras", str(phones / "cameras.json"), "--tracks", str(phones / "tracks.csv")],
+        "simulate": [str(phones.parent / "motion.trc"), "--mode", "phones"],
+        "import-calibration": [str(tmp_path / "calib.toml"), str(video)],
+        "register": [str(video), str(video)],
+        "run": [str(video), str(video)],
+    }[command]
+    try:
+        status = main([command, *rest, *flags, "--out", str(tmp_path / "out")])
+    except SystemExit as exit_info:  # argparse's own error: exit 2 with its usage line
+        status = int(exit_info.code or 0)
+        err = capsys.readouterr().err
+        assert status == 2 and words in err, err
+        return
+    _one_line(capsys, status, words)
