@@ -22,8 +22,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dynrecon", "sfm", "tracking", "labeling", "reconstruct", "simulation", "batch")
-# The shared ground: user errors, atomic writes, bounded readers, video opening and names, JSON numbers. Every
-# package may import it; it imports no package.
+# The shared ground: user errors, atomic writes, bounded readers, video opening and names, JSON numbers, argument
+# types. Every package may import it; it imports no package.
 GROUND = (
     "dynrecon.errors",
     "dynrecon.names",
@@ -33,6 +33,7 @@ GROUND = (
     "dynrecon.lazy",
     "dynrecon.beside",
     "dynrecon.jsonvalues",
+    "dynrecon.arguments",
 )
 GROUND_NODE = "ground"
 # Nodes of the package graph: a module belongs to the longest of these that prefixes it.

@@ -106,12 +106,16 @@ def _texts(values: np.ndarray) -> list[str]:
     return texts
 
 
+MAX_COORDINATE = 1e12  # |x|, |y|, |z| in the file's units: beyond it a corrupt value, not a position
+
+
 def read_points(path: str | Path) -> FramePoints:
     """Read `points3d.csv` or `truth.csv` back into arrays."""
     path = Path(path)
     frame_index: dict[tuple[str, int], int] = {}
     point_index: dict[str, int] = {}
     records: list[tuple[int, int, list[float], bool, list[float]]] = []
+    lines: dict[tuple[int, int], int] = {}
     rows = csv_records(path)
     first = next(rows, None)
     header = None if first is None else first[1]
@@ -130,8 +134,18 @@ def read_points(path: str | Path) -> FramePoints:
             extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
         except (ValueError, IndexError):
             raise InputError(path, "malformed row", where=where) from None
+        if not all(abs(v) < MAX_COORDINATE for v in values if not math.isnan(v)):
+            raise InputError(path, f"x, y, z {values} are not finite or implausible", where=where)
         fi = frame_index.setdefault(key, len(frame_index))
         pi = point_index.setdefault(row[col["point"]], len(point_index))
+        if (fi, pi) in lines:  # which of two positions is meant cannot be told
+            raise InputError(
+                path,
+                f"point {row[col['point']]!r} of frame {key[1]} of video {key[0]!r} is also on line {lines[fi, pi]}",
+                where=where,
+                fix="keep one row per video, frame and point",
+            )
+        lines[fi, pi] = number
         records.append((fi, pi, values, observed, extras))
     F, P = len(frame_index), len(point_index)
     xyz = np.full((F, P, 3), np.nan)

@@ -215,3 +215,21 @@ def test_options_out_of_range(
         assert status == 2 and words in err, err
         return
     _one_line(capsys, status, words)
+
+
+@pytest.mark.parametrize(
+    "rows, words",
+    [
+        ("cam0,0,p,1,2,3,1\ncam0,0,p,1,2,4,1\n", "also on line 2"),
+        ("cam0,0,p,inf,2,3,1\n", "not finite"),
+        ("cam0,0,p,1e300,2,3,1\n", "implausible"),
+    ],
+    ids=["a row twice", "inf", "1e300"],
+)
+def test_points_csv_rows_that_are_not_one_position(tmp_path: Path, rows: str, words: str) -> None:
+    from reconstruct.outputs.points import read_points
+
+    path = tmp_path / "points3d.csv"
+    path.write_text("video,frame,point,x,y,z,observed\n" + rows)
+    with pytest.raises(InputError, match=words):
+        read_points(path)
