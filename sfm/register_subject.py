@@ -387,12 +387,17 @@ def _declared(
     cameras = [c for c in result.cameras if c.name in claimed]
     if not cameras:
         return {"cameras": [], "agree": None}
-    shift = float(np.median([c.offset - claimed[c.name] for c in cameras]))
+    # Two cameras: the median would split one camera's error between both (each half off, both "agreeing"); the
+    # first is the gauge, the second carries the pair's whole difference, and both are judged by it.
+    pair = len(cameras) == 2
+    shift = float(np.median([c.offset - claimed[c.name] for c in (cameras[:1] if pair else cameras)]))
+    pair_difference = float(cameras[-1].offset - claimed[cameras[-1].name] - shift)
+    pair_period = max(_frame_period(by_name[c.name]) for c in cameras)
     rows, far = [], []
     for c in cameras:
         difference = float(c.offset - claimed[c.name] - shift)
-        period = _frame_period(by_name[c.name])
-        agree = abs(difference) <= period
+        period = pair_period if pair else _frame_period(by_name[c.name])
+        agree = abs(pair_difference if pair else difference) <= period
         rows.append(
             {
                 "name": c.name,
@@ -403,8 +408,13 @@ def _declared(
                 "agree": agree,
             }
         )
-        if not agree:
+        if not agree and not pair:
             far.append(f"{c.name} {difference:+.3f} s")
+    if pair and abs(pair_difference) > pair_period:
+        far.append(
+            f"{cameras[1].name} {pair_difference:+.3f} s from {cameras[0].name} (two cameras: which claim is wrong "
+            "cannot be told)"
+        )
     if far:
         warnings.append(
             f"{options.declared_flag}: fitted clock offsets over a frame from the declared ones: {', '.join(far)}"

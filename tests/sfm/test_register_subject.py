@@ -160,3 +160,28 @@ def test_fitted_offsets_are_compared_with_the_declared(tmp_path: Path, monkeypat
     section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(synchronized=True), warnings)
     assert section is not None and section["declared"]["agree"] is True
     assert not any("over a frame" in w for w in warnings)
+
+
+def test_two_declared_cameras_are_judged_as_a_pair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With two cameras the median gauge would put half of one camera's error on each (1.5 frames: 0.75 each, both
+    "agreeing"); the pair's whole difference is judged instead."""
+    import sfm.register_subject as register_subject
+
+    names = ["a", "b"]
+    plans = [_plan(tmp_path, name, True) for name in names]
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    cameras = [
+        SubjectCamera(name=n, K=np.eye(3), dist=None, R=np.eye(3), t=np.full(3, k), offset=o, inliers=50, residual_px=1)
+        for k, (n, o) in enumerate(zip(names, [2.0, 2.05], strict=True))
+    ]
+    monkeypatch.setattr(
+        register_subject,
+        "choose_noise",
+        lambda *_: (SubjectResult(cameras=cameras, pairs=[], failed={}, metric=False), Stability(checked=True)),
+    )
+    warnings: list[str] = []
+    section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(synchronized=True), warnings)
+    assert section is not None and section["declared"]["agree"] is False
+    rows = {row["name"]: row for row in section["declared"]["cameras"]}
+    assert rows["b"]["difference_s"] == pytest.approx(0.05) and not rows["a"]["agree"] and not rows["b"]["agree"]
+    assert any("b +0.050 s from a" in w and "cannot be told" in w for w in warnings)
