@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from dynrecon.errors import InputError
-from dynrecon.names import VIDEO_SUFFIXES
+from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 
 MANIFEST_NAME = "capture.json"
 LABELS_NAME = "labels.csv"
@@ -51,9 +51,9 @@ def read_capture(folder: str | Path) -> Capture:
     manifest = _manifest(folder)
     videos = _videos(folder, manifest)
     names = [p.stem for p in videos]
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise InputError(folder, f"two videos are named {twice[0]!r}", fix="video file names must differ")
+    twice = first_repeated(names)
+    if twice is not None:
+        raise InputError(folder, f"two videos are named {names[twice]!r}", fix="video file names must differ")
     capture = Capture(
         name=str(manifest.get("name") or folder.name),
         folder=folder,

@@ -19,6 +19,16 @@ def name_key(name: str) -> str:
     return "-".join(str(int(t)) if t.isdigit() else t for t in re.findall(r"[^\W\d_]+|\d+", name))
 
 
+def first_repeated(names: Iterable[str]) -> int | None:
+    """The index of the first name that an earlier one repeats, None when all differ."""
+    seen: set[str] = set()
+    for i, name in enumerate(names):
+        if name in seen:
+            return i
+        seen.add(name)
+    return None
+
+
 def spelled_alike(name: str, names: Iterable[str]) -> list[str]:
     """[`name`] when it is among `names`, else those of `names` with its key: one is a match, several ambiguous."""
     names = list(names)

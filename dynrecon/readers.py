@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from dynrecon.errors import InputError
+from dynrecon.names import first_repeated
 
 MAX_FRAME = 2**31  # frame numbers are 0 <= frame < MAX_FRAME: they fit int32 indices and int64 arithmetic
 
@@ -150,9 +151,12 @@ def header_error(path: Path, header: list[str], missing: list[str], where: str, 
 
 def repeated_column(path: Path, header: list[str], where: str) -> None:
     """Refuse a CSV header naming a column twice: which of the two holds the values is a guess."""
-    twice = next((name for i, name in enumerate(header) if name and name in header[:i]), None)
+    named = [name for name in header if name]  # empty names (trailing commas) are no columns
+    twice = first_repeated(named)
     if twice is not None:
-        raise InputError(path, f"column {twice!r} appears twice in the header", where=where, fix="keep one of them")
+        raise InputError(
+            path, f"column {named[twice]!r} appears twice in the header", where=where, fix="keep one of them"
+        )
 
 
 def finite_float(text: str) -> float | None:

@@ -130,7 +130,9 @@ def _check_baseline(videos: list[VideoCameras], source: Path | str) -> None:
             "was one pose copied to every video?)"
         )
     fixed = [
-        (video.name, c[0]) for video, c in zip(videos, centers, strict=True) if np.ptp(c, axis=0).max() <= 1e-12 * scale
+        (video.name, c[0])
+        for video, c in zip(videos, centers, strict=True)
+        if np.ptp(c, axis=0).max() <= BASELINE_TOLERANCE * scale
     ]
     for i, (name, center) in enumerate(fixed):
         for other, center_other in fixed[i + 1 :]:

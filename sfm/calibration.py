@@ -43,7 +43,7 @@ from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
-from dynrecon.names import spelled_alike
+from dynrecon.names import first_repeated, spelled_alike
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
@@ -454,11 +454,12 @@ def read_calibration(
         check_plausible(camera.K, camera.t, camera.dist, path, where)
         if camera.R is not None and not np.all(np.isfinite(camera.R)):
             raise InputError(path, "rotation contains NaN or infinity", where=where)
-    names = [camera.name for camera in cameras]
-    twice = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    twice = first_repeated(camera.name for camera in cameras)
     if twice is not None:  # videos are matched to cameras by name: two of one name match one video
         raise InputError(
-            path, f"two cameras are named {shown(twice)}", fix="give every camera its own name (a copied table?)"
+            path,
+            f"two cameras are named {shown(cameras[twice].name)}",
+            fix="give every camera its own name (a copied table?)",
         )
     return cameras
 
@@ -605,11 +606,11 @@ def run(
     require_writable(out_dir)
     infos = [probe_video(v) for v in tqdm(videos, desc="probing videos", unit="video", leave=False)]
     names = [info.name for info in infos]
-    duplicates = sorted({n for n in names if names.count(n) > 1})
-    if duplicates:
+    twice = first_repeated(names)
+    if twice is not None:
         raise InputError(
-            infos[names.index(duplicates[0])].path,
-            f"video name {duplicates[0]!r} is used twice",
+            infos[twice].path,
+            f"video name {names[twice]!r} is used twice",
             fix="video names (file names without extension) must be unique",
         )
     offsets = declared_offsets(options.synchronized, options.offsets, names)

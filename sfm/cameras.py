@@ -29,10 +29,10 @@ MAX_PRINCIPAL_PX = 1e6  # |cx|, |cy| and the skew
 MAX_TRANSLATION = 1e9  # each |t| component, world units (1000 km in mm)
 MAX_DISTORTION = 1e3  # |k1|, |k2|, |p1|, |p2|, |k3|
 MAX_SECONDS = 1e10  # |time| and |clock_offset|: Unix epoch times fit (about 1.8e9 s today), 1e300 does not
-# Times per frame this many times off the video's fps: warned (a timelapse's real capture times, or frame numbers
-# given as times), and refused from FPS_REFUSED (milliseconds: 1000x).
+# Times per frame this many times off the video's fps: warned (a timelapse's real capture times, frame numbers given
+# as times), and refused within MILLISECONDS of 1000x (times in milliseconds).
 FPS_WARNED = 10.0
-FPS_REFUSED = 100.0
+MILLISECONDS = (300.0, 3000.0)
 
 
 @dataclass(kw_only=True)
@@ -265,10 +265,14 @@ def _frame_from_json(fdata: Any, path: Path | None, where: str) -> FrameCamera:
 def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
     """Check the geometric sanity of every frame: proper rotations, usable intrinsics, unique names/frames; and
     that decoder times increase with the frame number, in seconds."""
-    for video in cameras.videos:
+    if not _clearly_valid(cameras):
+        _check_frames(cameras, path)
+    for video in cameras.videos:  # after the frames: a frame given twice is named as such
         check_times(video, path)
-    if _clearly_valid(cameras):
-        return
+
+
+def _check_frames(cameras: CameraSet, path: Path | None) -> None:
+    """Frame by frame: the first frame at fault is named."""
     seen_names: set[str] = set()
     for video in cameras.videos:
         if video.name in seen_names:
@@ -304,8 +308,8 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
 
 def check_times(video: VideoCameras, path: Path | None = None) -> None:
     """Refuse a video's decoder times that cannot be seconds from its start: not increasing with the frame number
-    (the solve would order its frames wrongly), beyond MAX_SECONDS, or stepping FPS_REFUSED times off its fps
-    (warned from FPS_WARNED)."""
+    (the solve would order its frames wrongly), beyond MAX_SECONDS, or about 1000 times its fps's period
+    (milliseconds; other ratios from FPS_WARNED are warned)."""
     where = f"video {video.name!r}"
     if video.clock_offset is not None and abs(video.clock_offset) >= MAX_SECONDS:
         raise InputError(
@@ -351,7 +355,7 @@ def check_times(video: VideoCameras, path: Path | None = None) -> None:
         where=where,
         fix='decoder times are in seconds (not milliseconds or frames); or fix "fps" (null when unknown)',
     )
-    if not 1.0 / FPS_REFUSED < ratio < FPS_REFUSED:
+    if MILLISECONDS[0] < ratio < MILLISECONDS[1]:
         raise error
     log.warning("%s; the times are used as given", error)
 

@@ -28,6 +28,7 @@ from tqdm import tqdm
 from dynrecon import video_io
 from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError, InputError
+from dynrecon.names import first_repeated
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
 from sfm.export import write_ply
@@ -181,13 +182,13 @@ def _check_videos(videos: list[Path]) -> None:
             fix="give every video of the scene",
         )
     names = [video_name(v) for v in videos]  # a name that cannot be a folder is the user's to fix, not left out
-    for video, name in zip(videos, names, strict=True):
-        if names.count(name) > 1:
-            raise InputError(
-                video,
-                f"video name {name!r} is used twice",
-                fix="video names (file names without extension) must be unique",
-            )
+    twice = first_repeated(names)
+    if twice is not None:
+        raise InputError(
+            videos[twice],
+            f"video name {names[twice]!r} is used twice",
+            fix="video names (file names without extension) must be unique",
+        )
 
 
 def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:

@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 
 # Relative spread of frame intervals above which a video counts as variable-frame-rate (a recorded warning).
 VFR_TOLERANCE = 0.05
+RATE_TOLERANCE = 0.05  # the nominal rate is kept when the decoder's median step is 1 / rate within this share
 
 
 @dataclass(kw_only=True)
@@ -46,9 +47,15 @@ class ProbedVideo:
 
     @property
     def fps(self) -> float | None:
-        """The container's nominal frame rate, None when unknown or when the decoder's timestamps are irregular
-        (the cameras.json contract; per-frame times carry the truth)."""
-        return None if self.variable_frame_rate else self.nominal_fps
+        """The container's nominal frame rate, None when unknown, when the decoder's timestamps are irregular or
+        when their step is not 1 / the rate (the cameras.json contract; per-frame times carry the truth)."""
+        if self.variable_frame_rate or not self.nominal_fps:
+            return None
+        if self.num_frames >= 3:  # containers report garbage rates (1000 for browser WebM, 90000 for IP cameras)
+            step = float(np.median(np.diff(self.times)))
+            if abs(step * self.nominal_fps - 1.0) > RATE_TOLERANCE:
+                return None
+        return self.nominal_fps
 
     @property
     def variable_frame_rate(self) -> bool:

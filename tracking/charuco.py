@@ -33,6 +33,7 @@ import numpy as np
 
 from dynrecon import video_io
 from dynrecon.errors import InputError
+from dynrecon.names import first_repeated
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -374,9 +375,9 @@ def charuco_tracks(
     board = _board(board)
     paths = [Path(v) for v in videos]
     names = [p.stem for p in paths]
-    for i, name in enumerate(names):
-        if name in names[:i]:
-            raise InputError(paths[i], f"two videos are named {name!r}", fix="video names must be unique")
+    twice = first_repeated(names)
+    if twice is not None:
+        raise InputError(paths[twice], f"two videos are named {names[twice]!r}", fix="video names must be unique")
     workers = workers or max(1, min(len(paths), os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:
         results = list(pool.map(lambda p: _detect_video(p, board, min_corners), paths))

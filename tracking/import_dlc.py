@@ -185,6 +185,15 @@ def _read_h5(path: Path) -> _Table:
             path, f"table {key!r} holds values that are not numbers", fix="give DeepLabCut's .h5"
         ) from None
     where = [f"row {r + 1}" for r in range(len(frame))]
+    infinite = np.argwhere(np.isinf(values))
+    if infinite.size:  # as in the CSV: a corrupt value, not an undetected point
+        r, c = (int(i) for i in infinite[0])
+        raise InputError(
+            path,
+            f"table {key!r} column {c + 1} holds {values[r, c]} (not a finite number)",
+            where=where[r],
+            fix="store NaN where the point was not detected",
+        )
     frames = []
     for r, label in enumerate(frame.index):
         cells = [str(c) for c in label] if isinstance(label, tuple) else [str(label)]

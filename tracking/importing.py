@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dynrecon.errors import InputError
-from dynrecon.names import VIDEO_SUFFIXES
+from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
@@ -172,7 +172,7 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     imported_videos: set[str] = set()
     if options.board is not None:  # videos: their names must differ (two phones' IMG_0001.MOV), checked first
         names = [Path(p).stem for p in inputs]
-        twice = next((i for i, name in enumerate(names) if name in names[:i]), None)
+        twice = first_repeated(names)
         if twice is not None:
             raise InputError(
                 Path(inputs[twice]),

@@ -20,7 +20,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_open, atomic_write_text
 from dynrecon.errors import InputError
-from dynrecon.readers import check_frame, csv_records, parse_frame, read_json, shown
+from dynrecon.readers import check_frame, csv_records, parse_frame, read_json, repeated_column, shown
 
 POINT_COLUMNS = ("video", "frame", "point", "x", "y", "z", "observed")
 
@@ -118,9 +118,10 @@ def read_points(path: str | Path) -> FramePoints:
     lines: dict[tuple[int, int], int] = {}
     rows = csv_records(path)
     first = next(rows, None)
-    header = None if first is None else first[1]
+    header = None if first is None else [cell.strip() for cell in first[1]]
     if header is None or any(c not in header for c in POINT_COLUMNS):
         raise InputError(path, "header must start with " + ",".join(POINT_COLUMNS), where="line 1")
+    repeated_column(path, header, where="line 1")
     col = {name: header.index(name) for name in header}
     extra_names = [h for h in header if h not in POINT_COLUMNS]
     for number, row in rows:
@@ -135,7 +136,12 @@ def read_points(path: str | Path) -> FramePoints:
         except (ValueError, IndexError):
             raise InputError(path, "malformed row", where=where) from None
         if not all(abs(v) < MAX_COORDINATE for v in values if not math.isnan(v)):
-            raise InputError(path, f"x, y, z {values} are not finite or implausible", where=where)
+            raise InputError(
+                path,
+                f"x, y, z {values} are not finite or implausible",
+                where=where,
+                fix=f"coordinates are below {MAX_COORDINATE:g} in magnitude; leave them empty where unknown",
+            )
         fi = frame_index.setdefault(key, len(frame_index))
         pi = point_index.setdefault(row[col["point"]], len(point_index))
         if (fi, pi) in lines:  # which of two positions is meant cannot be told

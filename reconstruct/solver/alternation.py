@@ -38,8 +38,9 @@ POINT_TOLERANCE = 1e-4  # ... and no point coordinate moved more than this (norm
 # On long captures a few points drift on while the rest has settled: the point test and the cost tests leave out the
 # (1 - POINT_QUANTILE) share of coordinates and frames that changed most (`settled_decrease`).
 POINT_QUANTILE = 0.999
-# ... unless the cost test has passed this many alternations in a row: the points still moving then move along
-# directions the objective hardly sees (a joint seen by two nearly parallel rays), and more alternations only drift.
+# ... unless the cost has changed by less than COST_TOLERANCE in this many alternations in a row: the points still
+# moving then move along directions the objective hardly sees (a joint seen by two nearly parallel rays), and more
+# alternations only drift.
 STALL_ALTERNATIONS = 20
 
 
@@ -296,7 +297,7 @@ def _alternate(
 
 def _ending(stage: StageLog) -> str:
     if stage.stalled:
-        return f"stalled: the cost fell by less than {COST_TOLERANCE:g} in each of {STALL_ALTERNATIONS} alternations"
+        return f"stalled: the cost changed by less than {COST_TOLERANCE:g} in each of {STALL_ALTERNATIONS} alternations"
     return "converged" if stage.converged else "not converged"
 
 
@@ -354,11 +355,11 @@ def _run_stage(
         stage.max_point_change.append(change)
         bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
         decrease = np.inf if previous_frames is None else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE)
-        flat = flat + 1 if decrease < COST_TOLERANCE else 0
+        flat = flat + 1 if abs(decrease) < COST_TOLERANCE else 0  # a rising cost is not flat: on to the cap
         if lambda2 > 0:
             converged = decrease < SMOOTH_TOLERANCE
         else:
-            converged = flat > 0 and settled < POINT_TOLERANCE
+            converged = decrease < COST_TOLERANCE and settled < POINT_TOLERANCE
             stage.stalled = not converged and flat >= STALL_ALTERNATIONS
             converged = converged or stage.stalled
         previous_cost, previous_frames = cost, frames_cost

@@ -150,7 +150,7 @@ def test_two_calibrated_cameras_of_one_name(tmp_path: Path) -> None:
         read_calibration(path)
 
 
-def test_times_off_the_fps_by_less_than_a_unit_are_warned_and_kept(
+def test_times_off_the_fps_but_not_milliseconds_are_warned_and_kept(
     phones: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A timelapse's real capture times (1 s per frame in a 30 fps file) are not an error; milliseconds are."""
@@ -233,3 +233,52 @@ def test_points_csv_rows_that_are_not_one_position(tmp_path: Path, rows: str, wo
     path.write_text("video,frame,point,x,y,z,observed\n" + rows)
     with pytest.raises(InputError, match=words):
         read_points(path)
+
+
+def test_two_static_videos_at_one_pose_are_warned(phones: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from reconstruct.inputs import build_problem_checked
+    from sfm.cameras import read_cameras
+    from tracking.tracks import read_tracks
+
+    cameras = read_cameras(phones / "cameras.json")
+    first, second = cameras.videos[:2]
+    for frame in second.frames:
+        frame.R, frame.t = first.frames[0].R.copy(), first.frames[0].t.copy()
+    build_problem_checked(cameras, read_tracks(phones / "tracks.csv"))
+    assert any(
+        f"videos {first.name!r} and {second.name!r} have their camera at the same point" in r.getMessage()
+        for r in caplog.records
+    )
+
+
+def test_a_calibration_table_without_its_matrix_is_warned(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "calib.toml"
+    path.write_text(
+        '[cam_1]\nname = "cam01"\nsize = [100, 100]\nmatrix = [[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, '
+        '1.0]]\nrotation = [0.0, 0.0, 0.0]\ntranslation = [0.0, 0.0, 0.0]\n\n[cam_2]\nname = "cam02"\nsize = [100, '
+        "100]\nrotation = [0.0, 0.0, 0.0]\ntranslation = [1.0, 0.0, 0.0]\n"
+    )
+    assert [camera.name for camera in read_calibration(path)] == ["cam01"]
+    assert any("[cam_2] has no intrinsics" in r.getMessage() for r in caplog.records)
+
+
+def test_a_frame_given_twice_is_named_before_its_time(phones: Path, tmp_path: Path) -> None:
+    from sfm.cameras import read_cameras
+
+    cameras = _edited(phones, tmp_path, lambda videos: videos[0]["frames"].append(videos[0]["frames"][1]))
+    with pytest.raises(InputError, match="frame appears twice"):
+        read_cameras(cameras)
+
+
+@pytest.mark.parametrize("nominal, expected", [(30.0, 30.0), (29.97, 29.97), (1000.0, None), (90000.0, None)])
+def test_a_container_rate_the_timestamps_contradict_is_not_written(nominal: float, expected: float | None) -> None:
+    """OpenCV reports 1000 fps for browser WebM and 90000 for some IP cameras whose frames are 1/30 s apart:
+    cameras.json's fps is then null (the times carry the truth), not a rate the solve would refuse."""
+    import numpy as np
+
+    from sfm.video import ProbedVideo
+
+    video = ProbedVideo(
+        path=Path("v.webm"), name="v", width=64, height=48, times=np.arange(30) / 30, nominal_fps=nominal
+    )
+    assert video.fps == expected

@@ -161,7 +161,19 @@ def test_settled_decrease_leaves_out_the_few_frames_that_still_move():
     assert settled_decrease(previous, current, 1.0) == pytest.approx(plain, rel=1e-12)
 
 
-def test_a_converging_final_stage_is_not_reported_stalled():
+def test_the_final_stage_stops_when_its_cost_stalls(monkeypatch):
+    """With a point test no movement passes, the stage still stops once the cost has changed by less than
+    COST_TOLERANCE in STALL_ALTERNATIONS alternations in a row, and says so; with the point test as it is, the
+    same problem converges without the rule."""
+    from reconstruct.solver import alternation
+
     problem, _ = synthetic_problem(frames=100, points=5)
     final = solve(problem).stages[-1]
     assert final.converged and not final.stalled and final.iterations < SolverOptions().max_iterations
+    monkeypatch.setattr(alternation, "POINT_TOLERANCE", 0.0)
+    stalled = solve(problem).stages[-1]
+    assert stalled.stalled and stalled.converged and stalled.iterations < SolverOptions().max_iterations
+    cost = np.array(stalled.cost)
+    changes = np.abs(np.diff(cost)) / cost[1:]
+    assert np.all(changes[-alternation.STALL_ALTERNATIONS :] < alternation.COST_TOLERANCE)
+    assert stalled.iterations > final.iterations
