@@ -8,13 +8,13 @@ Reading a folder checks only what is cheap (files exist, names are unique); deco
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
+from dynrecon.readers import read_json
 
 MANIFEST_NAME = "capture.json"
 LABELS_NAME = "labels.csv"
@@ -75,10 +75,7 @@ def _manifest(folder: Path) -> dict[str, Any]:
     path = folder / MANIFEST_NAME
     if not path.is_file():
         return {}
-    try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError) as error:  # ValueError: also undecodable bytes
-        raise InputError(path, f"not a readable JSON file ({type(error).__name__})") from None
+    document = read_json(path, fix=f"a JSON object with keys {', '.join(MANIFEST_KEYS)}")  # errors: line:column
     if not isinstance(document, dict):
         raise InputError(path, "is not a JSON object", fix=f"keys: {', '.join(MANIFEST_KEYS)}")
     unknown = sorted(set(document) - set(MANIFEST_KEYS))

@@ -296,6 +296,8 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         raise InputError(None, f"--units {options.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
     if options.register.board is not None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
+    if options.skeleton is not None:
+        read_skeleton(options.skeleton)  # ... and so does a bad skeleton, read only at the recording
 
 
 def _check_video_names(path: Path, used: list[str], videos: set[str]) -> None:

@@ -65,7 +65,12 @@ def parse_points(text: str) -> Skeleton:
 def read_skeleton(path: Path) -> Skeleton:
     """Skeleton JSON `{"points": [...], "connections": [["a", "b"], ...]}`; connections may add points."""
     data = read_json(path, missing_fix="give the path of a skeleton JSON file")
-    return skeleton_from_json(path, data)
+    skeleton = skeleton_from_json(path, data)
+    if not skeleton.points:  # a file of other keys would draw nothing, silently
+        raise InputError(
+            path, "no 'points' or 'connections'", fix='expected {"points": ["a", "b"], "connections": [["a", "b"]]}'
+        )
+    return skeleton
 
 
 def skeleton_from_json(path: Path, data: object) -> Skeleton:

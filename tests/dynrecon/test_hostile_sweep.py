@@ -282,3 +282,12 @@ def test_a_container_rate_the_timestamps_contradict_is_not_written(nominal: floa
         path=Path("v.webm"), name="v", width=64, height=48, times=np.arange(30) / 30, nominal_fps=nominal
     )
     assert video.fps == expected
+
+
+def test_a_skeleton_without_points_is_refused(tmp_path: Path) -> None:
+    from labeling.skeleton import read_skeleton
+
+    path = tmp_path / "skeleton.json"
+    path.write_text('{"bones": [["a", "b"]]}')
+    with pytest.raises(InputError, match="no 'points' or 'connections'"):
+        read_skeleton(path)
