@@ -14,7 +14,7 @@ import numpy as np
 
 from dynrecon.errors import InputError, NotEnoughDataError
 from reconstruct.screen import remove_spikes
-from reconstruct.solver.problem import Problem
+from reconstruct.solver.problem import Problem, reconstructable_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
@@ -114,6 +114,12 @@ def build_problem_checked(
         uv=uv,
     )
     problem, rejection.spikes = remove_spikes(problem)
+    if not reconstructable_points(problem).any():  # here, where the tracks file can be named
+        raise NotEnoughDataError(
+            f"{tracks.path or 'tracks'}: none of the {problem.num_points} point(s) is seen in two different videos: "
+            "nothing can be reconstructed (each point needs observations from at least two videos; check that the "
+            "point names are the same in every video)"
+        )
     return problem, rejection
 
 
