@@ -76,4 +76,7 @@ def _child(call: Path, result: Path, log_path: Path) -> None:
 
 
 if __name__ == "__main__":
-    _child(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]))
+    try:
+        _child(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]))
+    except KeyboardInterrupt:  # Ctrl+C reaches the whole process group: the parent says "interrupted", once
+        sys.exit(130)
