@@ -509,10 +509,18 @@ def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: 
 
 
 SAME_ASPECT = 0.002  # width and height scale alike within this fraction: the video is the calibrated image resized
+# The video's sides are the calibrated ones swapped within this fraction: turned, letterboxed or not (Pose2Sim's
+# 1080x1920 videos of a 1088x1920 calibration differ by 0.74 %), unless the calibrated image is nearly square.
+TURNED_ASPECT = 0.01
+NEAR_SQUARE = 0.05
 _SIZE_WARNINGS: set[tuple[str, str, int, int]] = set()
 
 
-class TurnedVideoError(InputError):
+class VideoSizeError(InputError):
+    """The calibrated intrinsics cannot be this video's: its size says it is not the calibrated image."""
+
+
+class TurnedVideoError(VideoSizeError):
     """The video is the calibrated image turned by 90 degrees (portrait against landscape)."""
 
 
@@ -540,7 +548,8 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
                 video.height,
             )
         return K
-    if width != height and abs(video.width / height - video.height / width) <= SAME_ASPECT * video.width / height:
+    turned = abs(video.width / height - video.height / width) <= TURNED_ASPECT * video.width / height
+    if abs(width / height - 1.0) > NEAR_SQUARE and turned:
         raise TurnedVideoError(
             video.path,
             f"is {video.width}x{video.height}, camera {name!r} was calibrated at {width}x{height}: the video is "
@@ -556,6 +565,14 @@ def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: Probed
         K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
         log.info("%s: its intrinsics are scaled by %.4g", sizes, sx)
         return K
+    cx, cy = K[0, 2], K[1, 2]
+    if not (0 <= cx < video.width and 0 <= cy < video.height):  # not a crop or a padding of the calibrated image
+        raise VideoSizeError(
+            video.path,
+            f"is {video.width}x{video.height}, camera {name!r} was calibrated at {width}x{height} and its principal "
+            f"point ({cx:.0f}, {cy:.0f}) lies outside this video: it is not the calibrated image",
+            fix="give the video the camera filmed at its calibrated size, or leave the camera out of the file",
+        )
     said = (str(video.path), name, width, height)
     if said in _SIZE_WARNINGS:  # registration reads the intrinsics in several steps: one warning per video
         return K
@@ -656,6 +673,7 @@ __all__ = [
     "StaticCamera",
     "TurnedVideoError",
     "Units",
+    "VideoSizeError",
     "intrinsics_at_video_size",
     "match_cameras",
     "read_calibration",

@@ -10,7 +10,7 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from dynrecon.names import spelled_alike
-from sfm.calibration import TurnedVideoError, intrinsics_at_video_size, match_cameras, read_calibration
+from sfm.calibration import VideoSizeError, intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
 
@@ -53,11 +53,11 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
 
 
 def _at_video_size(K: np.ndarray, size: tuple[int, int], info: ProbedVideo, name: str, path: Path) -> np.ndarray | None:
-    """K in the video's pixels, or None where the video is the calibrated image turned: its intrinsics are then
-    estimated from the data (a turned K is a guess: the turn's direction is unknown), said once."""
+    """K in the video's pixels, or None where the video is the calibrated image turned (a turned K is a guess: the
+    turn's direction is unknown) or cannot be it: its intrinsics are then estimated from the data, said once."""
     try:
         return intrinsics_at_video_size(K, size, info, name)
-    except TurnedVideoError as error:
+    except VideoSizeError as error:
         if (str(path), info.name) not in _TURNED:
             _TURNED.add((str(path), info.name))
             log.warning("%s: %s; its intrinsics are estimated from the data instead", error.path, error.what)

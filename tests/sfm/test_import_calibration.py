@@ -425,7 +425,8 @@ def test_a_video_resized_from_the_calibrated_size_gets_scaled_intrinsics(
     camera = StaticCamera(name="cam_1", width=128, height=96, K=K, dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))
     toml = write_toml(tmp_path / "calib.toml", [camera])
     half, other = tmp_path / "half" / "cam1.mp4", tmp_path / "other" / "cam1.mp4"
-    for path, size in ((half, (64, 48)), (other, (64, 40))):
+    foreign = tmp_path / "foreign" / "cam1.mp4"
+    for path, size in ((half, (64, 48)), (other, (112, 96)), (foreign, (64, 40))):
         path.parent.mkdir()
         _write_video(path, 3, size)
 
@@ -442,7 +443,12 @@ def test_a_video_resized_from_the_calibrated_size_gets_scaled_intrinsics(
     with caplog.at_level("WARNING"):
         kept, _ = known_intrinsics(toml, [probe_video(other)])["cam1"]
     np.testing.assert_array_equal(kept, K)
-    assert "another aspect ratio" in caplog.text and "cam1.mp4 is 64x40" in caplog.text
+    assert "another aspect ratio" in caplog.text and "cam1.mp4 is 112x96" in caplog.text
+
+    # another aspect ratio with the principal point outside the video: not the calibrated image; estimated instead
+    with caplog.at_level("WARNING"):
+        assert "cam1" not in known_intrinsics(toml, [probe_video(foreign)])
+    assert "lies outside this video" in caplog.text
 
 
 def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
@@ -522,3 +528,21 @@ def test_a_camera_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureF
     assert "cameras 'side' and 'top' have the same pose: one camera given twice" in err, err
     assert not (tmp_path / "ws" / "cameras.json").exists()
     np.testing.assert_allclose(known_intrinsics(toml, [probe_video(v) for v in videos])["top"][0], cameras[1].K)
+
+
+def test_a_turned_video_of_a_letterboxed_calibration_is_seen_as_turned() -> None:
+    """Pose2Sim's cam01 video is 1080x1920 of a 1088x1920 calibration (letterboxed by 0.74 %); turned by its
+    rotation flag it is 1920x1080, which is the calibrated image turned, not a crop to keep K for."""
+    from sfm.calibration import TurnedVideoError, intrinsics_at_video_size
+    from sfm.video import ProbedVideo
+
+    K = np.array([[1681.2, 0.0, 533.0], [0.0, 1681.1, 948.1], [0.0, 0.0, 1.0]])
+    turned = ProbedVideo(
+        path=Path("cam01.mp4"), name="cam01", width=1920, height=1080, times=np.arange(5) / 60, nominal_fps=60.0
+    )
+    with pytest.raises(TurnedVideoError, match="turned by 90 degrees"):
+        intrinsics_at_video_size(K, (1088, 1920), turned, "cam01")
+    upright = ProbedVideo(
+        path=Path("cam01.mp4"), name="cam01", width=1080, height=1920, times=np.arange(5) / 60, nominal_fps=60.0
+    )
+    np.testing.assert_array_equal(intrinsics_at_video_size(K, (1088, 1920), upright, "cam01"), K)
