@@ -16,6 +16,7 @@ from sfm.video import ProbedVideo
 
 log = logging.getLogger(__name__)
 _TURNED: set[tuple[str, str]] = set()  # registration reads the intrinsics in several steps: one warning per video
+_MISSING: set[tuple[str, ...]] = set()  # ... and per file's missing videos
 
 
 def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
@@ -41,6 +42,15 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
                 path,
                 f"none of the videos {[i.name for i in infos]} is in this file",
                 fix="video names must match the file's names",
+            )
+        missing = [info.name for info in infos if info.name not in result]
+        if missing and (str(path), *missing) not in _MISSING:
+            _MISSING.add((str(path), *missing))
+            log.warning(
+                "%s gives no intrinsics for %s: they are estimated from the data (name the videos as in the file to "
+                "use its intrinsics)",
+                path,
+                ", ".join(missing),
             )
         return result
     matched = match_cameras(read_calibration(path), infos, path)

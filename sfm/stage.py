@@ -325,8 +325,9 @@ def _map(
     returns model name -> registered images."""
     step = colmap_steps.map_global if options.mapper is Mapper.GLOBAL else colmap_steps.map_incremental
     fix_intrinsics = bool(intrinsics) and len(intrinsics) == count
-    if intrinsics and not fix_intrinsics:
+    if intrinsics and not fix_intrinsics:  # COLMAP fixes all intrinsics or none
         notes.warnings.append("known intrinsics for only some videos: all intrinsics are refined")
+        log.warning("known intrinsics for %d of %d videos: all intrinsics are refined", len(intrinsics), count)
     key = input_key(steps.steps.get("match", {}).get("key"), options.mapper, fix_intrinsics, options.init_min_inliers)
     done = steps.result("map", key)
     if done is not None and all((layout.model_dir / name).is_dir() for name in done):

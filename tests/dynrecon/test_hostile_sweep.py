@@ -291,3 +291,26 @@ def test_a_skeleton_without_points_is_refused(tmp_path: Path) -> None:
     path.write_text('{"bones": [["a", "b"]]}')
     with pytest.raises(InputError, match="no 'points' or 'connections'"):
         read_skeleton(path)
+
+
+def test_intrinsics_for_only_some_videos_name_the_others(phones: Path, caplog: pytest.LogCaptureFixture) -> None:
+    import numpy as np
+
+    from sfm.cameras import read_cameras
+    from sfm.intrinsics import known_intrinsics
+    from sfm.video import ProbedVideo
+
+    video = read_cameras(phones / "cameras.json").videos[0]
+    infos = [
+        ProbedVideo(
+            path=Path(f"{name}.mp4"),
+            name=name,
+            width=video.width,
+            height=video.height,
+            times=np.arange(5) / 30,
+            nominal_fps=30.0,
+        )
+        for name in (video.name, "elsewhere")
+    ]
+    assert list(known_intrinsics(phones / "cameras.json", infos)) == [video.name]
+    assert any("gives no intrinsics for elsewhere" in r.getMessage() for r in caplog.records)
