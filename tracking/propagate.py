@@ -62,8 +62,9 @@ def track_video(
     options: TrackOptions | None = None,
     *,
     progress: Callable[[int, int], None] | None = None,
+    name: str = "video",
 ) -> dict[str, dict[int, TrackedPoint]]:
-    """Propagate `labels` through `frames`.
+    """Propagate `labels` through `frames` (of the video `name`, for messages).
 
     Returns point -> frame -> `TrackedPoint`, with every visible label (`source="label"`, score 1) and the
     tracked positions (`source="track"`) whose score is at least `options.min_score`. Frames where a point is
@@ -73,15 +74,24 @@ def track_video(
     options = options or TrackOptions()
     num_frames = len(frames)
     clean: dict[str, dict[int, np.ndarray | None]] = {}
+    outside: list[int] = []
     for point, by_frame in labels.items():
         clean[point] = {}
         for frame, xy in by_frame.items():
             if not 0 <= int(frame) < num_frames:
-                log.warning(
-                    "label of %r on frame %d is outside the video's %d frames; ignored", point, frame, num_frames
-                )
+                outside.append(int(frame))
                 continue
             clean[point][int(frame)] = None if xy is None else np.asarray(xy, dtype=float).reshape(2)
+    if outside:  # one line, not one per label: a labels file of a longer video has hundreds
+        log.warning(
+            "%s: %d label(s) on frames %d-%d are outside the video's %d frames; ignored (labels of another or a "
+            "longer video?)",
+            name,
+            len(outside),
+            min(outside),
+            max(outside),
+            num_frames,
+        )
     total = 2 * num_frames
     done = [0]
 

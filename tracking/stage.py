@@ -60,7 +60,7 @@ def run(
             _check_inside(raw_labels, labels_path, name, frames.shape)
             with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False, disable=None) as bar:
                 results[name] = track_video(
-                    frames, marks, options, progress=lambda done, total: bar.update(done - bar.n)
+                    frames, marks, options, progress=lambda done, total: bar.update(done - bar.n), name=name
                 )
         finally:
             frames.close()
