@@ -48,6 +48,13 @@ def run(
     unknown = sorted(set(labels) - set(chosen)) if videos is None else []
     if unknown:
         log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked", ", ".join(unknown))
+    if not set(labels) & set(chosen):  # an empty tracks.csv would otherwise be written without a word
+        log.warning(
+            "%s has no labels for %s%s: nothing is tracked",
+            labels_path,
+            ", ".join(chosen),
+            f" (it labels {', '.join(sorted(labels))}: video names must match the file names)" if labels else "",
+        )
     results: dict[str, dict[str, dict[int, TrackedPoint]]] = {}
     for name, path in chosen.items():
         marks = labels.get(name, {})
