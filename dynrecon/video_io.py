@@ -37,8 +37,8 @@ GAP_FACTOR = 1.5
 LISTED_GAPS = 3
 
 CANNOT_OPEN_FIX = (
-    "if the file plays elsewhere it may lack its index because recording was cut off, or use an unsupported "
-    "codec (AV1): convert it with ffmpeg -i in -c:v libx264 out.mp4"
+    "it may hold no video stream (a sound recording); if it plays elsewhere it may lack its index because "
+    "recording was cut off, or use an unsupported codec (AV1): convert it with ffmpeg -i in -c:v libx264 out.mp4"
 )
 
 
