@@ -315,7 +315,7 @@ def _run_stage(
     x_options = options.x_step_options(lambda2)
     previous_cost = np.inf
     previous_frames: np.ndarray | None = None  # (F,) frame costs of the previous alternation
-    flat = 0  # consecutive alternations that passed the cost test
+    flat = 0  # consecutive alternations whose cost changed by less than COST_TOLERANCE, either way
     mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
     candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
     bar = tqdm(
@@ -355,7 +355,7 @@ def _run_stage(
         stage.max_point_change.append(change)
         bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
         decrease = np.inf if previous_frames is None else settled_decrease(previous_frames, frames_cost, POINT_QUANTILE)
-        flat = flat + 1 if abs(decrease) < COST_TOLERANCE else 0  # a rising cost is not flat: on to the cap
+        flat = flat + 1 if abs(decrease) < COST_TOLERANCE else 0  # a cost rising past it is not flat either
         if lambda2 > 0:
             converged = decrease < SMOOTH_TOLERANCE
         else:
