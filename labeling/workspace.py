@@ -71,6 +71,8 @@ def resolve_videos(workspace: Path, given: list[Path] | None, remembered: dict[s
         raise InputError(workspace, "no videos", fix="pass --videos V1 V2 ... or put them in WS/videos/")
     videos: dict[str, Path] = {}
     for path in files:
+        if path.is_dir():
+            raise InputError(path, "is a folder, not a video file", fix="give the video files themselves to --videos")
         if not path.is_file():
             raise InputError(path, "video file not found", fix="check the path given to --videos")
         name = path.stem
