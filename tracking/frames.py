@@ -150,7 +150,9 @@ class VideoFrames:
     def _scan(self) -> None:
         self._cap = self._open()
         self._next = 0
+        times: list[float] = []
         while (frame := video_io.read(self._cap)) is not None:
+            times.append(self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
             gray = to_gray(frame)
             self._fingerprints.append(_fingerprint(gray))
             self._shape = gray.shape[:2]
@@ -158,6 +160,10 @@ class VideoFrames:
             self._next += 1
         if not self._fingerprints:
             raise InputError(self.path, "no frame could be decoded", fix="convert it to H.264/HEVC/VP9 mp4")
+        # Frames lost in the middle shift every later frame number: labels made on an intact copy land elsewhere.
+        missing = video_io.missing_message(self.path, np.asarray(times), video_io.expected_frames(self._cap))
+        if missing:
+            log.warning("%s (labels are matched to the decoded frames' numbers)", missing)
         log.debug("%s: %d frames", self.path.name, len(self._fingerprints))
 
     def _store(self, index: int, gray: np.ndarray) -> None:
