@@ -8,7 +8,6 @@ or the report says that the units are arbitrary.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import replace
 from typing import Any
 
@@ -391,44 +390,38 @@ def _declared(
     # first is the gauge, the second carries the pair's whole difference, and both are judged by it.
     pair = len(cameras) == 2
     shift = float(np.median([c.offset - claimed[c.name] for c in (cameras[:1] if pair else cameras)]))
-    pair_difference = float(cameras[-1].offset - claimed[cameras[-1].name] - shift)
-    pair_period = max(_frame_period(by_name[c.name]) for c in cameras)
-    rows, far = [], []
-    for c in cameras:
-        difference = float(c.offset - claimed[c.name] - shift)
-        period = pair_period if pair else _frame_period(by_name[c.name])
-        agree = abs(pair_difference if pair else difference) <= period
-        rows.append(
-            {
-                "name": c.name,
-                "declared_s": round(claimed[c.name], 6),
-                "fitted_s": round(float(c.offset) - shift, 6),
-                "difference_s": round(difference, 6),
-                "tolerance_s": round(period, 6),
-                "agree": agree,
-            }
+    difference = {c.name: float(c.offset - claimed[c.name] - shift) for c in cameras}
+    tolerance = {c.name: by_name[c.name].info.frame_period for c in cameras}
+    judged = dict(difference)
+    if pair:
+        judged = dict.fromkeys(judged, difference[cameras[1].name])
+        tolerance = dict.fromkeys(tolerance, max(tolerance.values()))
+    agree = {name: abs(judged[name]) <= tolerance[name] for name in judged}
+    rows = [
+        {
+            "name": c.name,
+            "declared_s": round(claimed[c.name], 6),
+            "fitted_s": round(float(c.offset) - shift, 6),
+            "difference_s": round(difference[c.name], 6),
+            "tolerance_s": round(tolerance[c.name], 6),
+            "agree": agree[c.name],
+        }
+        for c in cameras
+    ]
+    if pair:
+        a, b = (c.name for c in cameras)
+        far = (
+            []
+            if agree[b]
+            else [f"{b} {difference[b]:+.3f} s from {a} (two cameras: which claim is wrong cannot be told)"]
         )
-        if not agree and not pair:
-            far.append(f"{c.name} {difference:+.3f} s")
-    if pair and abs(pair_difference) > pair_period:
-        far.append(
-            f"{cameras[1].name} {pair_difference:+.3f} s from {cameras[0].name} (two cameras: which claim is wrong "
-            "cannot be told)"
-        )
+    else:
+        far = [f"{name} {difference[name]:+.3f} s" for name in difference if not agree[name]]
     if far:
         warnings.append(
             f"{options.declared_flag}: fitted clock offsets over a frame from the declared ones: {', '.join(far)}"
         )
     return {"cameras": rows, "agree": not far}
-
-
-def _frame_period(video: VideoPlan) -> float:
-    """One frame period of the video (s): from its nominal rate, else its decoder times."""
-    info = video.info
-    if info.fps:
-        return 1.0 / float(info.fps)
-    steps = np.diff(info.times)
-    return float(np.median(steps)) if steps.size else math.inf
 
 
 def _report(

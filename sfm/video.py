@@ -8,6 +8,7 @@ Opening, orientation (upright) and skipping damaged packets are `dynrecon.video_
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,18 +52,26 @@ class ProbedVideo:
         when their step is not 1 / the rate (the cameras.json contract; per-frame times carry the truth)."""
         if self.variable_frame_rate or not self.nominal_fps:
             return None
-        if self.num_frames >= 3:  # containers report garbage rates (1000 for browser WebM, 90000 for IP cameras)
-            step = float(np.median(np.diff(self.times)))
-            if abs(step * self.nominal_fps - 1.0) > RATE_TOLERANCE:
-                return None
+        # containers report garbage rates (1000 for browser WebM, 90000 for IP cameras)
+        if self.num_frames >= 3 and abs(self.median_step * self.nominal_fps - 1.0) > RATE_TOLERANCE:
+            return None
         return self.nominal_fps
+
+    @property
+    def frame_period(self) -> float:
+        """Seconds per frame: 1 / `fps`, else the decoder's median step (inf for one frame)."""
+        return 1.0 / self.fps if self.fps else self.median_step
+
+    @property
+    def median_step(self) -> float:
+        """The median step between the decoder's timestamps (s); inf for one frame."""
+        return float(np.median(np.diff(self.times))) if self.num_frames > 1 else math.inf
 
     @property
     def variable_frame_rate(self) -> bool:
         if self.num_frames < 3:
             return False
-        steps = np.diff(self.times)
-        return bool(np.ptp(steps) > VFR_TOLERANCE * max(float(np.median(steps)), 1e-9))
+        return bool(np.ptp(np.diff(self.times)) > VFR_TOLERANCE * max(self.median_step, 1e-9))
 
 
 def video_name(path: Path) -> str:
