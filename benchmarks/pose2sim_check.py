@@ -22,7 +22,8 @@ With cameras from the subject path two more numbers say where the error comes fr
 similarity fitted on the compared points instead of on the cameras (the subject path's frame and scale are
 arbitrary; centre errors of a few cm move every point through the camera similarity), and the cameras alone: the
 synchronized triangulation of the same tracks with the solve's cameras against the reference, the floor any
-solve on those cameras reaches.
+solve on those cameras reaches. A third (`own sync`) leaves the cameras' error out: the sync-free solve against
+the synchronized triangulation on its own cameras, the lab case's comparison made on the subject path's rig.
 
 The videos are only roughly synchronized: the script also searches integer frame offsets per camera that minimize
 the reference's reprojection error, and reports the comparison against that offset-corrected reference.
@@ -106,6 +107,9 @@ class CheckResult:
     # similarity fitted on the points (empty with the lab's cameras: identical to the reference).
     floor: np.ndarray = field(default_factory=lambda: np.zeros(0))
     floor_similarity: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # The solve against the synchronized triangulation with its own cameras (empty with the lab's cameras: the
+    # main comparison): what the missing synchronization costs on those cameras, the camera error left out.
+    own_distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -366,6 +370,7 @@ def run_check(
     offsets = search_offsets(cameras, obs, points) if search else {v.name: 0 for v in cameras.videos}
     ref_off, ref_err_off = reference(cameras, obs, points, offsets)
     floor, floor_similarity = np.zeros(0), np.zeros(0)
+    own: dict[tuple[int, str], np.ndarray] = {}
     if cameras_from != "lab":
         own, _ = reference(solve_cameras, obs, points, {})
         common = [k for k in own if k in ref]
@@ -383,7 +388,7 @@ def run_check(
         floor=floor,
         floor_similarity=floor_similarity,
     )
-    dist, dist_off, observed = [], [], []
+    dist, dist_off, observed, own_dist = [], [], [], []
     pairs: list[tuple[np.ndarray, np.ndarray]] = []
     for i, (video, frame) in enumerate(zip(solved.videos, solved.frames, strict=True)):
         for p, name in enumerate(solved.point_names):
@@ -400,7 +405,10 @@ def run_check(
             dist.append(float(np.linalg.norm(X - ref[key])))
             pairs.append((X, ref[key]))
             dist_off.append(float(np.linalg.norm(X - ref_off[key_off])) if key_off in ref_off else np.nan)
+            if key in own:
+                own_dist.append(float(np.linalg.norm(X - own[key])))
     result.distance = np.array(dist)
+    result.own_distance = np.array(own_dist)
     result.distance_offset = np.array(dist_off)
     result.observed = np.array(observed, dtype=bool)
     result.distance_similarity = (
@@ -463,6 +471,10 @@ def table(result: CheckResult) -> str:
         lines.append(f"{'cameras':10} | {_stats(result.floor)} | synchronized triangulation, solve's cameras")
         lines.append(
             f"{'cam. sim.':10} | {_stats(result.floor_similarity)} | the same after a similarity on the points"
+        )
+        lines.append(
+            f"{'own sync':10} | {_stats(result.own_distance)} | sync-free vs synchronized triangulation, both on "
+            "the solve's cameras"
         )
     lines.append("")
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.seconds.items()))

@@ -5,7 +5,7 @@ handheld videos (30, 24 and 20 fps, different start times) of a figure walking o
 the points a user would have clicked, the true 3D joints and the true cameras. The demo runs `dynrecon run` on it
 (register -> track -> solve -> record -> export) into a fresh folder and scores the 3D points against the truth.
 The registered world has its own origin, orientation and scale, so the scoring first moves the points by the
-similarity that maps the registered cameras onto the true ones (`dynrecon.pipeline.similarity_to_truth`).
+similarity that maps the registered cameras onto the true ones (`dynrecon.truth.similarity_to_truth`).
 
 `--simulated`: the fast variant without videos: the procedural walker seen by 4 simulated
 unsynchronized cameras (30 Hz each, interleaved, never two at once), solved without any timing.

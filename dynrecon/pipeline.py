@@ -32,8 +32,6 @@ graph of one's own (the `batch` package builds its Dask graph from it; docs/scal
 from __future__ import annotations
 
 import dataclasses
-import enum
-import hashlib
 import json
 import logging
 import shutil
@@ -45,8 +43,10 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import atomic_write_text, require_writable
+from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
+from dynrecon.pipeline_state import STATE_NAME, State, file_hash, inputs_key
+from dynrecon.truth import Similarity, align_to_truth, score_points, similarity_to_truth
 from labeling.skeleton import read_skeleton
 from reconstruct.outputs.export import (
     OrderSource,
@@ -58,12 +58,12 @@ from reconstruct.outputs.export import (
     write_trc_export,
 )
 from reconstruct.outputs.mocap import UNIT_TO_MM
-from reconstruct.outputs.points import FramePoints, read_points, read_sequencing
+from reconstruct.outputs.points import read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
 from reconstruct.stage import SolveOptions, solve
 from sfm.board_hint import board_hint
 from sfm.calibration import run as import_calibration
-from sfm.cameras import CameraSet, FrameCamera, read_cameras
+from sfm.cameras import CameraSet, read_cameras
 from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.people import per_video_people
@@ -71,7 +71,7 @@ from sfm.register_check import refuted_in_folder
 from sfm.register_people import people_on_cameras
 from sfm.stage import Localize, RegisterOptions, RegistrationError, board_tracks, check_scale_points
 from sfm.stage import run as register_run
-from simulation.evaluate import ReconstructionAccuracy, evaluate
+from simulation.evaluate import ReconstructionAccuracy
 from tracking.charuco import read_charuco_board
 from tracking.labels import read_labels
 from tracking.options import TrackOptions
@@ -80,12 +80,10 @@ from tracking.tracks import Tracks, matched_to_videos, read_tracks
 
 log = logging.getLogger(__name__)
 
-STATE_NAME = "pipeline.json"
 REGISTER_DIR = "register"
 SUBJECT_DIR = "register_subject"
 # "subject" runs only when the background left a static video out and there are tracks (see run_stages).
 STAGES = ("register", "track", "subject", "solve", "record", "export")
-_HASH_CHUNK = 1 << 20
 Bones = tuple[tuple[str, str], ...]  # pairs of point names drawn as lines in the recording
 
 
@@ -165,98 +163,6 @@ class PipelineResult:
 
     def seconds(self, name: str) -> float:
         return next((s.seconds for s in self.stages if s.name == name), 0.0)
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Hashes and the state file
-
-
-def file_hash(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        while chunk := handle.read(_HASH_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def _plain(value: Any) -> Any:
-    """Options as JSON-able values (enums by value, paths as strings, dataclasses as dicts)."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, enum.Enum):
-        return value.value
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if callable(value):
-        return None  # monitors and callbacks do not change results
-    return value
-
-
-def inputs_key(files: dict[str, Path], settings: Any) -> str:
-    """Hash of the contents of `files` (by role) and of `settings`."""
-    document = {"files": {role: file_hash(path) for role, path in sorted(files.items())}, "settings": _plain(settings)}
-    return hashlib.sha256(json.dumps(document, sort_keys=True, default=str).encode()).hexdigest()
-
-
-class State:
-    """`WS/pipeline.json`: per stage, the inputs key, output hashes, seconds and when it ran."""
-
-    def __init__(self, workspace: Path) -> None:
-        self.path = workspace / STATE_NAME
-        self.stages: dict[str, dict[str, Any]] = {}
-        if self.path.is_file():
-            try:
-                document = json.loads(self.path.read_text(encoding="utf-8"))
-            except (OSError, ValueError, RecursionError):  # ValueError: also undecodable bytes, huge ints
-                log.warning("%s is not valid JSON; every stage runs again", self.path)
-                document = {}
-            stages = document.get("stages", {}) if isinstance(document, dict) else None
-            if not isinstance(stages, dict):
-                log.warning("%s has no 'stages' object; every stage runs again", self.path)
-                stages = {}
-            # An entry of the wrong shape only means that stage runs again; it must not crash up_to_date.
-            self.stages = {name: entry for name, entry in stages.items() if self._valid_entry(entry)}
-
-    @staticmethod
-    def _valid_entry(entry: Any) -> bool:
-        """A stage entry as `record` writes it: an inputs key and output paths -> hashes."""
-        outputs = entry.get("outputs", {}) if isinstance(entry, dict) else None
-        return (
-            isinstance(entry, dict)
-            and isinstance(entry.get("inputs"), str)
-            and isinstance(outputs, dict)
-            and all(isinstance(k, str) and isinstance(v, str) for k, v in outputs.items())
-        )
-
-    def up_to_date(self, name: str, key: str, workspace: Path) -> bool:
-        entry = self.stages.get(name)
-        if not entry or entry.get("inputs") != key:
-            return False
-        for relative, digest in entry.get("outputs", {}).items():
-            path = workspace / relative
-            if not path.is_file() or file_hash(path) != digest:
-                return False
-        return True
-
-    def record(self, name: str, key: str, outputs: list[Path], workspace: Path, seconds: float) -> None:
-        self.stages[name] = {
-            "inputs": key,
-            "outputs": {str(p.relative_to(workspace)): file_hash(p) for p in outputs},
-            "seconds": round(seconds, 3),
-            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        }
-        self.save()
-
-    def forget(self, name: str) -> None:
-        if self.stages.pop(name, None) is not None:
-            self.save()
-
-    def save(self) -> None:
-        atomic_write_text(self.path, json.dumps({"version": 1, "stages": self.stages}, indent=1) + "\n")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -837,89 +743,6 @@ def _export(ws: Path, cameras_path: Path, units: str) -> None:
         write_c3d_export(points, order, rate, ws / "points.c3d", units=units)
 
 
-# ----------------------------------------------------------------------------------------------------------
-# Scoring against a known truth (the video sample)
-
-
-@dataclass(kw_only=True)
-class Similarity:
-    """X_true = scale * rotation @ X + translation."""
-
-    scale: float
-    rotation: np.ndarray  # (3, 3)
-    translation: np.ndarray  # (3,)
-
-    def apply(self, xyz: np.ndarray) -> np.ndarray:
-        """xyz: (..., 3) -> (..., 3) in the target world."""
-        return self.scale * xyz @ self.rotation.T + self.translation
-
-    def camera(self, camera: FrameCamera) -> FrameCamera:
-        """`camera` (cam_from_world of the source world) as a camera of the target world (translation in target
-        units: the camera's own scale is the target's)."""
-        R = camera.R @ self.rotation.T
-        t = self.scale * camera.t - R @ self.translation
-        return dataclasses.replace(camera, R=R, t=t)
-
-
-def similarity_to_truth(cameras: CameraSet, truth_cameras: CameraSet) -> Similarity:
-    """The similarity that best maps the registered cameras of the frames both sets have onto the true ones (SfM
-    worlds have their own origin, rotation and scale).
-
-    The rotation comes from the camera orientations (R_true^T R_est, averaged), scale and translation from the camera
-    centres. Handheld cameras' centres lie close to a line, so a centres-only fit leaves the rotation about that line
-    loose (a visible tilt on the video sample); orientations fix it.
-    """
-    true_frames = {(v.name, f.frame): f for v in truth_cameras.videos for f in v.frames}
-    pairs = [
-        (f, true_frames[(v.name, f.frame)])
-        for v in cameras.videos
-        for f in v.frames
-        if (v.name, f.frame) in true_frames
-    ]
-    if len(pairs) < 3:
-        raise InputError(
-            None,
-            f"only {len(pairs)} registered frames have a true camera; need 3 to align",
-            fix="score against the truth of the same videos",
-        )
-    M = sum((true.R.T @ est.R for est, true in pairs), np.zeros((3, 3)))
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    source = np.array([est.center for est, _ in pairs]) @ R.T
-    target = np.array([true.center for _, true in pairs])
-    a, b = source - source.mean(axis=0), target - target.mean(axis=0)
-    s = float((a * b).sum() / (a * a).sum())
-    t = target.mean(axis=0) - s * source.mean(axis=0)
-    return Similarity(scale=s, rotation=R, translation=t)
-
-
-def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: CameraSet) -> FramePoints:
-    """`points` moved into the truth's world by `similarity_to_truth` of their cameras."""
-    return dataclasses.replace(points, xyz=similarity_to_truth(cameras, truth_cameras).apply(points.xyz))
-
-
 def score_against_truth(ws: Path, truth_path: Path, truth_cameras_path: Path) -> ReconstructionAccuracy:
-    """Accuracy of `WS/points3d.csv` after alignment to the true cameras, against `truth_path` (same layout as
-    points3d.csv). Truth rows of frames the registration lost are left out (the log says how many)."""
-    points = read_points(ws / "points3d.csv")
-    aligned = align_to_truth(points, read_cameras(ws / REGISTER_DIR / "cameras.json"), read_cameras(truth_cameras_path))
-    truth = read_points(truth_path)
-    keep = [
-        i
-        for i, key in enumerate(zip(truth.videos, truth.frames, strict=True))
-        if (key[0], int(key[1])) in points.index()
-    ]
-    if len(keep) < truth.num_frames:
-        log.warning(
-            "%d of %d truth frames have no registered camera; not scored",
-            truth.num_frames - len(keep),
-            truth.num_frames,
-        )
-    subset = FramePoints(
-        videos=[truth.videos[i] for i in keep],
-        frames=truth.frames[keep],
-        point_names=truth.point_names,
-        xyz=truth.xyz[keep],
-        observed=truth.observed[keep],
-    )
-    return evaluate(aligned, subset, estimate_path=ws / "points3d.csv", truth_path=truth_path)
+    """`dynrecon.truth.score_points` of a `dynrecon run` workspace: its points3d.csv on its registered cameras."""
+    return score_points(ws / "points3d.csv", ws / REGISTER_DIR / "cameras.json", truth_path, truth_cameras_path)

@@ -96,10 +96,14 @@ def count_message(path: Path, decoded: int, expected: int | None, where: str = "
     if expected is None or decoded >= expected:
         return None
     missing = f"{expected - decoded} missing" + (f" ({where})" if where else "")
-    return (
-        f"{path}: {decoded} of {expected} frames decoded, {missing}; the file is damaged or cut short, "
-        "the decoded frames are used"
+    # Where the container has no frame index (MKV, WebM) the count is its duration times the rate, and a sound
+    # track that runs on after the picture stops lengthens that duration: a shortfall at the end only may be that.
+    cause = (
+        "the file is cut short, or its sound runs on after the picture"
+        if where.startswith(f"{expected - decoded} after frame")
+        else "the file is damaged or cut short"
     )
+    return f"{path}: {decoded} of {expected} frames decoded, {missing}; {cause}, the decoded frames are used"
 
 
 def missing_message(path: Path, times: np.ndarray, expected: int | None) -> str | None:

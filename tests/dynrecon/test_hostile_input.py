@@ -21,7 +21,7 @@ import pytest
 
 from dynrecon.cli import main
 from dynrecon.errors import InputError
-from dynrecon.pipeline import State
+from dynrecon.pipeline_state import State
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import read_points, read_sequencing
 from sfm.calibration import read_calibration

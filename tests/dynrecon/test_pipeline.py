@@ -21,7 +21,6 @@ from dynrecon.pipeline import (
     PipelineOptions,
     Stages,
     default_register,
-    inputs_key,
     run_stages,
     score_against_truth,
 )
@@ -249,16 +248,6 @@ def test_cli_errors(tmp_path, monkeypatch, capsys):
         cli.main(["run", "a.mp4", "--out", "ws", "--labels", "l.csv", "--tracks", "t.csv"])
 
 
-def test_inputs_key_follows_contents_and_settings(tmp_path):
-    a = tmp_path / "a.csv"
-    a.write_text("1\n")
-    key = inputs_key({"a": a}, {"x": 1})
-    assert inputs_key({"a": a}, {"x": 1}) == key
-    assert inputs_key({"a": a}, {"x": 2}) != key
-    a.write_text("2\n")
-    assert inputs_key({"a": a}, {"x": 1}) != key
-
-
 def test_labels_and_tracks_together_are_refused(tmp_path):
     video = tmp_path / "v.mp4"
     video.write_bytes(b"")
@@ -267,34 +256,6 @@ def test_labels_and_tracks_together_are_refused(tmp_path):
     with pytest.raises(InputError, match="not both"):
         run_stages([video], tmp_path / "ws", PipelineOptions(labels=tmp_path / "l.csv", tracks=tmp_path / "t.csv"))
     assert not (tmp_path / "ws").exists()  # refused before anything was written
-
-
-def test_similarity_to_truth_recovers_a_known_similarity():
-    """Cameras of a world moved by a known similarity (as SfM's arbitrary frame is) align back exactly."""
-    from scipy.spatial.transform import Rotation
-
-    from dynrecon.pipeline import Similarity, similarity_to_truth
-
-    truth = read_cameras(SAMPLE / "truth_cameras.json")
-    rotation = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
-    # X_sfm = (R^T (X_true - t)) / s, i.e. truth = s R X_sfm + t
-    known = Similarity(scale=250.0, rotation=rotation, translation=np.array([900.0, -40.0, 1300.0]))
-    inverse = Similarity(
-        scale=1 / known.scale, rotation=rotation.T, translation=-(rotation.T @ known.translation) / known.scale
-    )
-    moved = read_cameras(SAMPLE / "truth_cameras.json")
-    for video in moved.videos:
-        video.frames = [inverse.camera(f) for f in video.frames]
-    found = similarity_to_truth(moved, truth)
-    assert found.scale == pytest.approx(known.scale, rel=1e-9)
-    assert np.allclose(found.rotation, rotation, atol=1e-9)
-    assert np.allclose(found.translation, known.translation, atol=1e-6)
-    back = found.camera(moved.videos[1].frames[5])
-    assert np.allclose(back.center, truth.videos[1].frames[5].center, atol=1e-6)
-    assert np.allclose(back.R, truth.videos[1].frames[5].R, atol=1e-9)
-    # A point seen by the moved cameras lands on the true point.
-    xyz = np.array([[4000.0, 3800.0, 900.0]])
-    assert np.allclose(found.apply(inverse.apply(xyz)), xyz, atol=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -107,6 +107,9 @@ def videos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         *LONG_SOURCE, *sine, *X264, "-g", "10", "-c:a", "aac", "-shortest", "-movflags", "+faststart", made["audio"]
     )
     made["cut_tail"] = _damage(made["audio"], folder / "cut_tail.mp4", keep=0.6)
+    # Sound that runs on after the picture, in a container without a frame index (the count is duration x rate).
+    made["long_sound"] = folder / "long_sound.mkv"
+    _ffmpeg(*SOURCE, "-f", "lavfi", "-i", "sine=frequency=440:duration=3", *X264, "-c:a", "aac", made["long_sound"])
     no_index = folder / "index_last.mp4"
     _ffmpeg(*LONG_SOURCE, *X264, "-g", "10", no_index)
     made["cut_no_index"] = _damage(no_index, folder / "cut_no_index.mp4", keep=0.6)
@@ -243,6 +246,17 @@ def test_audio_track_is_ignored(videos: dict[str, Path]) -> None:
     info = probe_video(videos["audio"])
     assert (info.num_frames, info.expected_frames, info.missing) == (2 * FPS, 2 * FPS, None)
     assert np.abs(_decoded(videos["audio"], 2 * FPS).astype(int) - _reference(videos["audio"])).max() <= 1
+
+
+def test_sound_longer_than_the_picture_is_not_called_damage(
+    videos: dict[str, Path], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING)
+    info = probe_video(videos["long_sound"])
+    assert info.num_frames == FPS and info.expected_frames is not None and info.expected_frames > FPS
+    message = _one_warning(caplog, videos["long_sound"])
+    assert "sound runs on after the picture" in message and "damaged" not in message
+    assert np.abs(_decoded(videos["long_sound"], FPS).astype(int) - _reference(videos["long_sound"])).max() <= 1
 
 
 def _one_warning(caplog: pytest.LogCaptureFixture, path: Path) -> str:

@@ -1,0 +1,38 @@
+"""`dynrecon.truth`: the similarity from registered to true cameras."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dynrecon.truth import Similarity, similarity_to_truth
+from sfm.cameras import read_cameras
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample"
+
+
+def test_similarity_to_truth_recovers_a_known_similarity():
+    """Cameras of a world moved by a known similarity (as SfM's arbitrary frame is) align back exactly."""
+    truth = read_cameras(SAMPLE / "truth_cameras.json")
+    rotation = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
+    # X_sfm = (R^T (X_true - t)) / s, i.e. truth = s R X_sfm + t
+    known = Similarity(scale=250.0, rotation=rotation, translation=np.array([900.0, -40.0, 1300.0]))
+    inverse = Similarity(
+        scale=1 / known.scale, rotation=rotation.T, translation=-(rotation.T @ known.translation) / known.scale
+    )
+    moved = read_cameras(SAMPLE / "truth_cameras.json")
+    for video in moved.videos:
+        video.frames = [inverse.camera(f) for f in video.frames]
+    found = similarity_to_truth(moved, truth)
+    assert found.scale == pytest.approx(known.scale, rel=1e-9)
+    assert np.allclose(found.rotation, rotation, atol=1e-9)
+    assert np.allclose(found.translation, known.translation, atol=1e-6)
+    back = found.camera(moved.videos[1].frames[5])
+    assert np.allclose(back.center, truth.videos[1].frames[5].center, atol=1e-6)
+    assert np.allclose(back.R, truth.videos[1].frames[5].R, atol=1e-9)
+    # A point seen by the moved cameras lands on the true point.
+    xyz = np.array([[4000.0, 3800.0, 900.0]])
+    assert np.allclose(found.apply(inverse.apply(xyz)), xyz, atol=1e-6)
