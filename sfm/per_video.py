@@ -125,16 +125,27 @@ def plan_video(
     choice is kept in `steps` (the video's own step log) for a later run."""
     motion = None
     with timed(notes, "motion_test"):
+        # the tracked subject: where it hides the background, the samples say nothing about the camera
+        subject = track_points(tracks, info.name) if tracks is not None else None
+        measured = measure_motion(info, subject, options.mask_radius)
         if options.camera_motion is CameraMotion.AUTO:
-            # the tracked subject: where it hides the background, the samples say nothing about the camera
-            subject = track_points(tracks, info.name) if tracks is not None else None
-            motion = measure_motion(info, subject, options.mask_radius)
+            motion = measured
             static = motion.static
             log.info("%s: %s", info.name, motion.reason)
             if motion.moved:
                 log.warning(motion.moved)
         else:
             static = options.camera_motion is CameraMotion.STATIC
+            if measured.static != static:  # the user's word is kept, but an assumption the data contradicts is said
+                log.warning(
+                    "%s: --camera-motion %s given, but the motion test says %s; %s",
+                    info.name,
+                    options.camera_motion.value,
+                    measured.reason,
+                    "all its frames take one pose: if the camera moved, register again with --camera-motion auto"
+                    if static
+                    else "its frames go to SfM one by one (slower; pairs of one position have no baseline)",
+                )
     resize = Resize.for_video(info, options.long_side)
     with timed(notes, "keyframes"):
         choice = None if static else _keyframes(info, options, steps, tracks)

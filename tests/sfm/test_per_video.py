@@ -184,3 +184,29 @@ def test_a_declared_clock_goes_into_cameras_json_when_the_subject_path_found_non
     ):
         path = _export([plan], results, points, subject, {}, tmp_path / str(n), declared)
         assert read_cameras(path).videos[0].clock_offset == expected
+
+
+def test_a_camera_motion_the_motion_test_contradicts_is_kept_and_warned(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`--camera-motion static` on a handheld video: the user's word is kept (one pose for every frame), and the
+    warning, which also goes into register_report.json's warnings, names the video and the measured motion."""
+    import logging
+
+    from sfm.options import CameraMotion
+    from sfm.per_video import collected, plan_video
+    from sfm.resume import StepLog
+
+    video = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample" / "cam0.mp4"  # handheld
+    info = probe_video(video)
+    caplog.set_level(logging.WARNING)
+    notes = StepNotes()
+    with collected(notes):
+        plan = plan_video(info, None, RegisterOptions(camera_motion=CameraMotion.STATIC), StepLog(tmp_path), notes)
+    assert plan.static and plan.motion is None and len(plan.sfm_frames) == 0
+    warned = [w for w in notes.warnings if "--camera-motion static given" in w]
+    assert len(warned) == 1 and warned[0].startswith("cam0: ") and "moving" in warned[0] and "auto" in warned[0]
+    notes = StepNotes()
+    with collected(notes):
+        plan_video(info, None, RegisterOptions(camera_motion=CameraMotion.MOVING), StepLog(tmp_path), notes)
+    assert not [w for w in notes.warnings if "--camera-motion" in w]  # the test agrees: nothing said
