@@ -13,6 +13,7 @@ pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP e
 from __future__ import annotations
 
 import dataclasses
+import filecmp
 import json
 import logging
 import shutil
@@ -189,6 +190,28 @@ def _check_videos(videos: list[Path]) -> None:
             f"video name {names[twice]!r} is used twice",
             fix="video names (file names without extension) must be unique",
         )
+    copy = _first_copy(videos)
+    if copy is not None:
+        raise InputError(
+            videos[copy[1]],
+            f"has the same contents as {videos[copy[0]]}: one camera's video given twice",
+            fix="give each camera's video once (two cameras at one place have no baseline between them)",
+        )
+
+
+def _first_copy(videos: list[Path]) -> tuple[int, int] | None:
+    """(i, j), i < j, of the first two paths with identical contents; files of different sizes are never read."""
+    sizes: dict[int, list[int]] = {}
+    for j, video in enumerate(videos):
+        try:
+            size = video.stat().st_size
+        except OSError:
+            continue  # a missing file is reported where it is opened
+        for i in sizes.get(size, []):
+            if filecmp.cmp(videos[i], video, shallow=False):  # stops at the first differing block
+                return i, j
+        sizes.setdefault(size, []).append(j)
+    return None
 
 
 def board_tracks(videos: Sequence[Path], board: Path, out: Path) -> Tracks:

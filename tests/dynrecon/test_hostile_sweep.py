@@ -314,3 +314,13 @@ def test_intrinsics_for_only_some_videos_name_the_others(phones: Path, caplog: p
     ]
     assert list(known_intrinsics(phones / "cameras.json", infos)) == [video.name]
     assert any("gives no intrinsics for elsewhere" in r.getMessage() for r in caplog.records)
+
+
+def test_one_video_under_two_names_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A copy (or a link) of one camera's video under another name would be a second camera with no baseline."""
+    sample = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample"
+    copy = tmp_path / "cam9.mp4"
+    copy.write_bytes((sample / "cam1.mp4").read_bytes())
+    args = ["register", str(sample / "cam0.mp4"), str(sample / "cam1.mp4"), str(copy), "--out", str(tmp_path / "ws")]
+    _one_line(capsys, main(args), str(copy), "same contents as", "cam1.mp4", "once")
+    assert not (tmp_path / "ws" / "cameras.json").exists()
