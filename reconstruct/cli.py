@@ -80,15 +80,11 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=_solve)
 
 
-# Weights beyond this swamp every other term in double precision: the solve diverges, not the data's fault.
-MAX_WEIGHT = 1e6
-
-
 def _solve(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from labeling.skeleton import read_skeleton
     from reconstruct.clocks.model import ClockModel
-    from reconstruct.solver.alternation import SolverOptions
+    from reconstruct.solver.alternation import MAX_WEIGHT, SolverOptions
     from reconstruct.solver.xstep import RayConstraint
     from reconstruct.stage import SolveOptions, run
     from reconstruct.temporal import Refinement, TemporalOptions

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -42,6 +43,8 @@ POINT_QUANTILE = 0.999
 # moving then move along directions the objective hardly sees (a joint seen by two nearly parallel rays), and more
 # alternations only drift.
 STALL_ALTERNATIONS = 20
+# Weights beyond this swamp every other term in double precision: the solve diverges, not the data's fault.
+MAX_WEIGHT = 1e6
 
 
 @dataclass(kw_only=True)
@@ -76,6 +79,18 @@ class SolverOptions:
     candidates: CandidateOptions = field(default_factory=CandidateOptions)
     workers: int = 2
     progress: bool = False
+
+    def __post_init__(self) -> None:
+        # Programming errors (`dynrecon solve` checks what users type, naming the flag): fail at construction, not
+        # after a diverged solve.
+        for name in ("lambda1", "lambda2", "lambda3"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value <= MAX_WEIGHT):
+                raise ValueError(f"{name} {value} must be a number from 0 to {MAX_WEIGHT:g}")
+        if self.lambda3 == 0 and self.constraint is RayConstraint.SOFT:
+            raise ValueError("lambda3 = 0 with the soft constraint ties the points to no ray: any shape fits")
+        if self.max_iterations < 1 or self.workers < 1 or self.anderson_memory < 0:
+            raise ValueError("max_iterations and workers must be at least 1, anderson_memory at least 0")
 
     def w_step_options(self) -> WStepOptions:
         """The W-step's options: `w_step` with this solve's lambda1 and threads."""

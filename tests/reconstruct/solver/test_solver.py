@@ -177,3 +177,23 @@ def test_the_final_stage_stops_when_its_cost_stalls(monkeypatch):
     changes = np.abs(np.diff(cost)) / cost[1:]
     assert np.all(changes[-alternation.STALL_ALTERNATIONS :] < alternation.COST_TOLERANCE)
     assert stalled.iterations > final.iterations
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"lambda1": 1e300},
+        {"lambda2": float("nan")},
+        {"lambda3": -1.0},
+        {"lambda3": 0.0},  # soft: the points tied to no ray
+        {"max_iterations": 0},
+        {"workers": 0},
+    ],
+    ids=["huge", "nan", "negative", "soft-without-weight", "no-iterations", "no-workers"],
+)
+def test_options_a_script_sets_out_of_range_fail_at_construction(options):
+    """The command line names the flag (tests/dynrecon/test_hostile_sweep.py); a script gets a ValueError at once,
+    not a diverged solve."""
+    with pytest.raises(ValueError):
+        SolverOptions(**options)
+    SolverOptions(lambda3=0.0, constraint=RayConstraint.HARD)  # the hard constraint needs no weight
