@@ -16,7 +16,7 @@ from sfm.calibration import StaticCamera, write_toml
 
 def _video(path: Path, frames: int) -> Path:
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (320, 240))
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(sum(path.stem.encode()))  # another picture per name: identical files are refused
     for _ in range(frames):
         writer.write(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8))
     writer.release()

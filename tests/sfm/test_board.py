@@ -156,7 +156,9 @@ def test_a_board_found_in_no_video_keeps_the_last_results(tmp_path: Path, capsys
     board = tmp_path / "charuco.toml"
     board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
     texture = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8), (5, 5), 1.0)
-    videos = [str(write_video(tmp_path / f"{name}.avi", [texture] * 3)) for name in ("a", "b")]
+    videos = [
+        str(write_video(tmp_path / f"{name}.avi", [np.roll(texture, k, axis=1)] * 3)) for k, name in enumerate("ab")
+    ]
     ws = tmp_path / "ws"
     ws.mkdir()
     kept = {name: f"last run's {name}" for name in ("cameras.json", "background.ply", "register_report.json")}
