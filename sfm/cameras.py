@@ -306,6 +306,10 @@ def _check_frames(cameras: CameraSet, path: Path | None) -> None:
             check_plausible(frame.K, frame.t, frame.dist, path, where)
 
 
+# Warnings about times already given in this process.
+_TIMES_WARNED: set[str] = set()
+
+
 def check_times(video: VideoCameras, path: Path | None = None) -> None:
     """Refuse a video's decoder times that cannot be seconds from its start: not increasing with the frame number
     (the solve would order its frames wrongly), beyond MAX_SECONDS, or about 1000 times its fps's period
@@ -357,7 +361,10 @@ def check_times(video: VideoCameras, path: Path | None = None) -> None:
     )
     if MILLISECONDS[0] < ratio < MILLISECONDS[1]:
         raise error
-    log.warning("%s; the times are used as given", error)
+    message = f"{error}; the times are used as given"
+    if message not in _TIMES_WARNED:  # one file is read by several steps of a run: said once
+        _TIMES_WARNED.add(message)
+        log.warning(message)
 
 
 def _clearly_valid(cameras: CameraSet) -> bool:
