@@ -33,7 +33,7 @@ import numpy as np
 
 from dynrecon import video_io
 from dynrecon.errors import InputError
-from dynrecon.names import first_repeated
+from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -90,6 +90,12 @@ def read_charuco_board(path: str | Path) -> CharucoBoard:
     `config.toml` (a `[calibration]` table with `board_type = "charuco"`) or sleap-anipose's `board.toml`
     (`board_x`, `board_y`, `square_length`, ...), their lengths in mm."""
     path = Path(path)
+    if path.suffix.lower() in VIDEO_SUFFIXES:  # the board option given a video (one of the videos, out of place)
+        raise InputError(
+            path,
+            "is a video, not a board description",
+            fix="--board takes the board's .toml (caliscope's charuco.toml or config.toml, anipose's config.toml)",
+        )
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

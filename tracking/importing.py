@@ -171,6 +171,13 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
     imported_videos: set[str] = set()
     if options.board is not None:  # videos: their names must differ (two phones' IMG_0001.MOV), checked first
+        folder = next((Path(p) for p in inputs if Path(p).is_dir()), None)
+        if folder is not None:
+            raise InputError(
+                folder,
+                "is a folder; --board finds the board's corners in video files",
+                fix=f"give the video files themselves (such as {folder / '*.mp4'})",
+            )
         names = [Path(p).stem for p in inputs]
         twice = first_repeated(names)
         if twice is not None:

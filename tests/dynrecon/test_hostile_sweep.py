@@ -327,3 +327,16 @@ def test_one_video_under_two_names_is_refused(tmp_path: Path, capsys: pytest.Cap
     args = ["register", str(sample / "cam0.mp4"), str(sample / "cam1.mp4"), str(copy), "--out", str(tmp_path / "ws")]
     _one_line(capsys, main(args), str(copy), "same contents as", "cam1.mp4", "once")
     assert not (tmp_path / "ws" / "cameras.json").exists()
+
+
+def test_board_options_given_the_wrong_kind_of_path(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder where --board wants videos, and a video where --board wants the board's description."""
+    sample = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample"
+    board = tmp_path / "charuco.toml"
+    board.write_text('columns = 4\nrows = 5\nsquare_size_override_cm = 5.4\ndictionary = "DICT_4X4_1000"\n')
+    status = main(["import-tracks", str(sample), "--board", str(board), "--out", str(tmp_path / "t.csv")])
+    _one_line(capsys, status, str(sample), "is a folder", "video files")
+    videos = [str(sample / "cam0.mp4"), str(sample / "cam1.mp4")]
+    status = main(["register", *videos, "--board", str(sample / "cam2.mp4"), "--out", str(tmp_path / "ws")])
+    _one_line(capsys, status, "cam2.mp4", "is a video, not a board description", "charuco.toml")
+    assert not (tmp_path / "t.csv").exists() and not (tmp_path / "ws" / "cameras.json").exists()
