@@ -77,7 +77,7 @@ def detect_format(path: Path) -> Format:
     if path.suffix.lower() in H5_SUFFIXES:
         return Format.SLEAP if is_sleap_analysis(path) else Format.DLC
     try:
-        with path.open(encoding="utf-8") as handle:
+        with path.open(encoding="utf-8-sig") as handle:  # a spreadsheet's byte-order mark is not a column name
             first = handle.readline()
     except FileNotFoundError:
         raise InputError(path, "file not found") from None

@@ -138,6 +138,18 @@ def test_an_infinite_coordinate_in_deeplabcut_output(tmp_path: Path, capsys: pyt
     _one_line(capsys, status, str(dlc), "line 5", "'inf'")
 
 
+def test_deeplabcut_output_saved_with_a_byte_order_mark_is_recognized(tmp_path: Path) -> None:
+    """A spreadsheet's byte-order mark before DLC's `scorer` row: still DeepLabCut, not a CSV lacking columns."""
+    from tracking.tracks import read_tracks
+
+    dlc = tmp_path / "camADLC_resnet50_demo.csv"
+    text = "scorer,me,me,me\nbodyparts,snout,snout,snout\ncoords,x,y,likelihood\n0,10,20,0.9\n1,11,21,0.8\n"
+    dlc.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert main(["import-tracks", str(dlc), "--video", "camA", "--out", str(tmp_path / "tracks.csv")]) == 0
+    tracks = read_tracks(tmp_path / "tracks.csv")
+    assert tracks.point_names() == ["snout"] and tracks.xy.tolist() == [[10.0, 20.0], [11.0, 21.0]]
+
+
 def test_two_calibrated_cameras_of_one_name(tmp_path: Path) -> None:
     table = (
         '[{key}]\nname = "cam01"\nsize = [100, 100]\n'
