@@ -20,7 +20,7 @@ import shutil
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,7 @@ from tracking.tracks import Tracks
 log = logging.getLogger(__name__)
 
 MIN_KEYPOINTS = 50  # fewer SIFT features in an image: warn that it is untextured or blurred
+LISTED_IMAGES = 3  # images a few-features warning names before it only counts the rest
 MIN_SETTLED = 5  # settled samples a static background image needs; fewer: the median of all samples
 EXTRACT_STEP = "extract"
 # The loggers whose warnings (variable frame rate, unmasked videos, a bumped camera, ...) go into the report.
@@ -376,13 +377,50 @@ def finish_extraction(out: Path, extraction: Extraction, seconds: float, reused:
     layout = Layout(out)
     keypoints = extraction.keypoints or {}
     notes = StepNotes(timings={"extract": seconds}, reused=[EXTRACT_STEP] if reused else [])
-    for name, count in keypoints.items():
-        if count < MIN_KEYPOINTS:
-            notes.warnings.append(f"{name}: only {count} SIFT features (untextured or blurred frame?)")
+    warning = _few_features(extraction.video, keypoints)
+    if warning is not None:
+        notes.warnings.append(warning)
     if not reused and extraction.kwargs is not None:
         StepLog(layout.video_dir(extraction.video)).record(EXTRACT_STEP, extraction.key, keypoints)
     document = {"key": extraction.key, "keypoints": keypoints, "images": len(keypoints), **notes.to_json()}
     atomic_write_text(layout.extraction(extraction.video), json.dumps(document, indent=1) + "\n")
+
+
+def _few_features(video: str, keypoints: dict[str, int]) -> str | None:
+    """One line for a video whose SfM images have under MIN_KEYPOINTS SIFT features (every image: the whole view is
+    dark, untextured, blurred or tiny; some: frames a hand or a blur covered), naming the first few."""
+    few = {name: count for name, count in keypoints.items() if count < MIN_KEYPOINTS}
+    if not few:
+        return None
+    low, high = min(few.values()), max(few.values())
+    counts = f"{low}-{high}" if low < high else str(low)
+    if len(few) == len(keypoints):
+        which = "its SfM image has" if len(few) == 1 else f"every one of its {len(few)} SfM images has"
+        return (
+            f"{video}: {which} under {MIN_KEYPOINTS} SIFT features ({counts}): a dark, untextured, blurred or tiny "
+            "view (a covered lens?) cannot be registered"
+        )
+    names = sorted(few)
+    listed = ", ".join(names[:LISTED_IMAGES]) + (
+        f" and {len(names) - LISTED_IMAGES} more" if len(names) > LISTED_IMAGES else ""
+    )
+    return (
+        f"{video}: {len(few)} of its {len(keypoints)} SfM images have under {MIN_KEYPOINTS} SIFT features ({counts}; "
+        f"untextured or blurred frames?): {listed}"
+    )
+
+
+def few_features_reason(out: Path, video: str) -> str | None:
+    """The failure reason of a video none of whose SfM images had MIN_KEYPOINTS SIFT features (None otherwise, or
+    before extraction)."""
+    path = Layout(out).extraction(video)
+    if not path.is_file():
+        return None
+    keypoints = json.loads(path.read_text(encoding="utf-8")).get("keypoints") or {}
+    if not keypoints or max(keypoints.values()) >= MIN_KEYPOINTS:
+        return None
+    most = max(keypoints.values())
+    return f"no SfM image of it has {MIN_KEYPOINTS} SIFT features (at most {most}): dark, untextured, blurred or tiny"
 
 
 Runner = Callable[[str, Callable[..., Any], dict[str, Any], Path], Any]  # sfm.isolated.run_isolated's signature
@@ -470,5 +508,9 @@ def localize_video(out: Path, video: str, options: RegisterOptions) -> dict[int,
                 num_threads=options.num_threads,
                 inbetween=options.inbetween,
             )
+    if poses and all(p.pose is None for p in poses.values()):
+        why = few_features_reason(out, video)  # the model lacks the video because its images had nothing to match
+        if why is not None:
+            poses = {f: replace(p, reason=f"{p.reason}: {why}") for f, p in poses.items()}
     write_poses(layout.poses(video), video, poses, notes)
     return poses

@@ -255,9 +255,12 @@ def _run_register(args: argparse.Namespace) -> int:
     path = run(args.videos, args.out, options)
     report = json.loads((Path(args.out) / "register_report.json").read_text(encoding="utf-8"))
     for video in report["videos"]:
+        # a video left unposed for one reason says it here; several reasons are the report's to list
+        reasons = {run["reason"] for run in video["failed"]} if not video["registered"] else set()
+        why = f"; {next(iter(reasons))}" if len(reasons) == 1 else ""
         print(  # noqa: T201
             f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered "
-            f"({video['camera']} camera; posed by {video['posed_by']})"
+            f"({video['camera']} camera; posed by {video['posed_by']}{why})"
         )
     print(path)  # noqa: T201
     return 0

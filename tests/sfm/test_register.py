@@ -103,6 +103,9 @@ def test_untextured_videos_fail_clearly(tmp_path: Path, capsys: pytest.CaptureFi
     assert "dynrecon register: error:" in err and "cameras.json not written" in err and "try more overlap" in err
     report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
     assert not report["ok"] and any("SIFT features" in w for w in report["warnings"])
+    assert all(
+        "no SfM image of it has 50 SIFT features" in run["reason"] for v in report["videos"] for run in v["failed"]
+    )
     assert not (tmp_path / "ws" / "cameras.json").exists()
 
 
@@ -213,7 +216,7 @@ def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_regi
     assert all(v["registered"] == v["frames_in_video"] for v in report["videos"] if v["name"] != "elsewhere")
     captured = capsys.readouterr()
     said = [line for line in (captured.out + captured.err).splitlines() if "elsewhere" in line and "%" not in line]
-    assert said == ["elsewhere: 0/6 frames registered (moving camera; posed by none)"]
+    assert said == ["elsewhere: 0/6 frames registered (moving camera; posed by none; video not in the kept model)"]
     assert alone["failed"][0]["reason"] == "video not in the kept model"
 
 
@@ -236,7 +239,8 @@ def test_frames_without_texture_are_reported_and_the_rest_register(tmp_path: Pat
     assert sum(run["frames"] for run in video["failed"]) == len(failed)  # the runs hold no posed frame
     posed = set(posed_frames(video))
     assert {7, 8, 9} <= set(failed) and all("SIFT: no features" in failed[f] for f in (7, 8, 9))
-    assert any(w.startswith("covered/") and "untextured or blurred" in w for w in report["warnings"])
+    few = [w for w in report["warnings"] if w.startswith("covered: ") and "untextured or blurred" in w]
+    assert len(few) == 1 and "covered/000007.jpg" in few[0]  # one line per video, naming the images
     assert set(range(7)) <= posed
     cameras = read_cameras(ws / "cameras.json")
     assert set(cameras.video("covered").frame_numbers().tolist()) == posed
