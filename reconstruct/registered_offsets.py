@@ -93,8 +93,9 @@ def prefer_registered_offsets(
     if clocks is None:
         temporal.report[PATH] = {"tried": False, "reason": "some videos have no registered clock offset"}
         return temporal
-    # first, the tracks must not clearly prefer other offsets (clocks/given.py)
-    given, verdicts = given_offsets_check(problem, clocks, search or SearchOptions())
+    # first, the tracks must not clearly prefer other offsets (clocks/given.py); where the held-out comparison judges
+    # next, a pair that no other pair with its videos agrees with is left to it
+    given, verdicts = given_offsets_check(problem, clocks, search or SearchOptions(), corroboration=not seed_only)
     if not given.passed:
         log.warning("registration's offsets were not used: %s", given.sentence())
         temporal.report[PATH] = {
@@ -120,6 +121,7 @@ def prefer_registered_offsets(
             "registered": finite_or_none(predicted[1] if predicted else None),
         },
         "limit": BETTER,
+        "given_offsets": given.to_json(),  # passed; its meaning names any refuting pair set aside uncorroborated
     }
     checks: list[Check] = []
     verdict = ""

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from reconstruct.clocks.given import PairVerdict, pair_verdicts
+from reconstruct.clocks.given import PairVerdict, corroborated, pair_verdicts
 from reconstruct.clocks.model import Clocks, TimeSource, frame_periods
 from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import FreeTimes, refine_free_times, reprojection_px
@@ -264,21 +264,32 @@ class RefinementJudge:
         return points, float(far[counted].mean()) if counted.any() else 0.0
 
 
-def given_offsets_check(problem: Problem, clocks: Clocks, options: SearchOptions) -> tuple[Check, list[PairVerdict]]:
-    """`given_offsets`: no pair of videos refutes the offsets of `clocks` (each video's global = own + offset)."""
+def given_offsets_check(
+    problem: Problem, clocks: Clocks, options: SearchOptions, *, corroboration: bool = False
+) -> tuple[Check, list[PairVerdict]]:
+    """`given_offsets`: no pair of videos refutes the offsets of `clocks` (each video's global = own + offset).
+    `corroboration`: a refuting pair counts only where another pair with one of its videos agrees
+    (`clocks.given.corroborated`); for callers that weigh the offsets by a measured criterion next, so that one
+    pair whose neighbours contradict it does not decide alone."""
     offsets = np.array([video.offset for video in clocks.videos])
     verdicts = pair_verdicts(problem, clocks.own_time, offsets, options)
     refuting = [v for v in verdicts if v.refutes]
+    aside = [v for v in refuting if corroboration and not corroborated(v, verdicts)]
+    refuting = [v for v in refuting if v not in aside]
     first = (
         f"{refuting[0].v}-{refuting[0].u} at {refuting[0].best_s:+.3f} s, not {refuting[0].given_s:+.3f}"
         if refuting
         else "none"
     )
+    note = ""
+    if aside:
+        note = f"; {len(aside)} set aside, no other pair agreeing (first: {aside[0].v}-{aside[0].u} at "
+        note += f"{aside[0].best_s:+.3f} s)"
     check = Check(
         name="given_offsets",
         value=float(len(refuting)),
         limit=0.0,
         passed=not refuting,
-        meaning=f"pairs of videos whose tracks clearly prefer another offset (first: {first})",
+        meaning=f"pairs of videos whose tracks clearly prefer another offset (first: {first}{note})",
     )
     return check, verdicts

@@ -65,6 +65,27 @@ class PairVerdict:
         }
 
 
+def corroborated(verdict: PairVerdict, verdicts: list[PairVerdict]) -> bool:
+    """Whether another pair of videos shares `verdict`'s evidence against the given offsets. Its best says one of
+    its two videos is off by d = best - given; another pair with that video agrees when its own best lies within
+    its basin of its given offset moved by that d (either video may be the one off). True where no other pair
+    shares a video (nothing to ask), so that two videos keep the single pair's word."""
+    d = verdict.best_s - verdict.given_s
+    others = [o for o in verdicts if o is not verdict and {o.v, o.u} & {verdict.v, verdict.u}]
+    if not others:
+        return True
+    for other in others:
+        # given = offset_v - offset_u: moving video u's offset by -d adds d where u is second and subtracts it where
+        # u is first; moving video v's by +d does the same for v.
+        for moved, shift in ((verdict.u, d), (verdict.v, -d)):
+            if moved not in (other.v, other.u):
+                continue
+            expected = other.given_s + (shift if other.u == moved else -shift)
+            if abs(other.best_s - expected) <= other.basin_s:
+                return True
+    return False
+
+
 def pair_verdicts(problem: Problem, own: np.ndarray, offsets: np.ndarray, options: SearchOptions) -> list[PairVerdict]:
     """Every pair's verdict on the offsets (N,) s (global = own + offset) of the videos' own times `own (F,)`."""
     N = len(problem.video_names)

@@ -14,7 +14,7 @@ import pytest
 from synthetic_motion import truth_array
 
 from dynrecon.cli import main
-from reconstruct.clocks.given import PairVerdict, pair_verdicts
+from reconstruct.clocks.given import PairVerdict, corroborated, pair_verdicts
 from reconstruct.clocks.model import own_times
 from reconstruct.clocks.ray_gap import ray_gap_px
 from reconstruct.clocks.search import SearchOptions
@@ -150,3 +150,43 @@ def test_a_pair_refutes_only_with_a_clearly_distinct_search_outside_the_basin() 
     assert not verdict(distinctness=10.0, given_cost=1.5).refutes  # the given offset about as good
     assert not verdict(distinctness=10.0, given_cost=60.0, given_s=0.05).refutes  # within the best's basin
     assert not verdict(distinctness=10.0, given_cost=math.inf).refutes  # no overlap there: no evidence
+
+
+def _verdict(v: str, u: str, given: float, best: float, distinctness: float = 10.0) -> PairVerdict:
+    return PairVerdict(
+        v=v, u=u, given_s=given, best_s=best, best_cost=1.0, given_cost=5.0, distinctness=distinctness, basin_s=0.133
+    )
+
+
+def test_a_refuting_pair_its_neighbours_contradict_is_not_corroborated() -> None:
+    """The Pose2Sim lab on the subject path's cameras (2026-11-29, five markers): cam02-cam03's search puts cam03
+    0.38 s from registration's offset, cam01-cam03's (not distinct) 0.23 s the other way, and the pairs with cam02
+    agree with the given offsets: nothing shares cam02-cam03's evidence."""
+    verdicts = [
+        _verdict("cam01", "cam02", 0.0009, -0.0167, 15.5),
+        _verdict("cam01", "cam03", 0.0004, -0.2333, 1.48),
+        _verdict("cam01", "cam04", 0.0000, -0.0167, 29.4),
+        _verdict("cam02", "cam03", -0.0005, 0.3833, 3.09),
+        _verdict("cam02", "cam04", -0.0010, 0.0667, 17.2),
+    ]
+    assert [v.refutes for v in verdicts] == [False, False, False, True, False]
+    assert not corroborated(verdicts[3], verdicts)
+
+
+@pytest.mark.parametrize("first", [True, False], ids=["off-video-second", "off-video-first"])
+def test_one_video_off_is_corroborated_by_its_other_pairs(first: bool) -> None:
+    """cam3's given offset 0.5 s wrong: every pair with cam3 prefers the same correction, whichever side of the
+    pair it stands on; with two videos the single pair's word stands."""
+    offsets = {"cam1": 0.0, "cam2": 0.1, "cam3": -0.2}  # true
+    given = {**offsets, "cam3": offsets["cam3"] + 0.5}
+    names = ["cam3", "cam1", "cam2"] if first else ["cam1", "cam2", "cam3"]
+    verdicts = [
+        _verdict(a, b, given[a] - given[b], offsets[a] - offsets[b])
+        for i, a in enumerate(names)
+        for b in names[i + 1 :]
+    ]
+    refuting = [v for v in verdicts if v.refutes]
+    assert len(refuting) == 2 and all("cam3" in (v.v, v.u) for v in refuting)
+    assert all(corroborated(v, verdicts) for v in refuting)
+    alone = [v for v in verdicts if {v.v, v.u} == {"cam1", "cam3"}]
+    assert corroborated(alone[0], alone)
