@@ -91,18 +91,18 @@ def rotation(capture: cv2.VideoCapture) -> int:
     return int(value) % 360 if value and value > 0 else 0
 
 
-def count_message(path: Path, decoded: int, expected: int | None, where: str = "") -> str | None:
+def count_message(
+    path: Path, decoded: int, expected: int | None, where: str = "", *, at_end: bool = False
+) -> str | None:
     """One line when fewer frames decoded than the container lists (`where`: the missing stretches), else None."""
     if expected is None or decoded >= expected:
         return None
     missing = f"{expected - decoded} missing" + (f" ({where})" if where else "")
     # Where the container has no frame index (MKV, WebM) the count is its duration times the rate, and a sound
     # track that runs on after the picture stops lengthens that duration: a shortfall at the end only may be that.
-    cause = (
-        "the file is cut short, or its sound runs on after the picture"
-        if where.startswith(f"{expected - decoded} after frame")
-        else "the file is damaged or cut short"
-    )
+    cause = "the file is damaged or cut short"
+    if at_end:
+        cause = "the file is cut short, or its sound runs on after the picture"
     return f"{path}: {decoded} of {expected} frames decoded, {missing}; {cause}, the decoded frames are used"
 
 
@@ -110,19 +110,19 @@ def missing_message(path: Path, times: np.ndarray, expected: int | None) -> str 
     """One line naming the file and where frames are missing (from the gaps in the decoder's timestamps)."""
     if expected is None or len(times) >= expected:
         return None
-    return count_message(
-        path, len(times), expected, ", ".join(_gaps(np.asarray(times, dtype=float), expected - len(times)))
-    )
+    parts, at_end = _gaps(np.asarray(times, dtype=float), expected - len(times))
+    return count_message(path, len(times), expected, ", ".join(parts), at_end=at_end)
 
 
-def _gaps(times: np.ndarray, missing: int) -> list[str]:
-    """Stretches of missing frames: inside the video from long steps between timestamps, the rest at the end."""
+def _gaps(times: np.ndarray, missing: int) -> tuple[list[str], bool]:
+    """Stretches of missing frames: inside the video from long steps between timestamps, the rest at the end; and
+    whether all of them are at the end."""
     if len(times) < 2:
-        return [f"{missing} after frame 0"] if len(times) else []
+        return ([f"{missing} after frame 0"], True) if len(times) else ([], False)
     steps = np.diff(times)
     typical = float(np.median(steps))
     if typical <= 0:
-        return []
+        return [], False
     found = []
     if times[0] > GAP_FACTOR * typical:
         found.append((round(times[0] / typical), f"before frame 0 at 0-{times[0]:.2f} s"))
@@ -136,4 +136,4 @@ def _gaps(times: np.ndarray, missing: int) -> list[str]:
     tail = missing - sum(count for count, _ in found)
     if tail > 0:
         parts.append(f"{tail} after frame {len(times) - 1} at {times[-1]:.2f} s")
-    return parts
+    return parts, not found and tail > 0
