@@ -38,7 +38,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dynrecon.demo import pipeline_options
-from dynrecon.pipeline import REGISTER_DIR, similarity_to_truth
+from dynrecon.pipeline import REGISTER_DIR
+from dynrecon.truth import similarity_to_truth, truth_of_frames
 from reconstruct.outputs.points import FramePoints, read_points
 from reconstruct.stage import run as solve_run
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
@@ -163,16 +164,7 @@ def solve_and_score(
     points = read_points(work / "points3d.csv")
     sim = similarity_to_truth(cameras, truth_cameras)
     aligned = dataclasses.replace(points, xyz=sim.apply(points.xyz))
-    index = aligned.index()
-    keep = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True)) if (v, int(f)) in index]
-    subset = FramePoints(
-        videos=[truth.videos[i] for i in keep],
-        frames=truth.frames[keep],
-        point_names=truth.point_names,
-        xyz=truth.xyz[keep],
-        observed=truth.observed[keep],
-    )
-    return evaluate(aligned, subset), seconds
+    return evaluate(aligned, truth_of_frames(truth, aligned)), seconds
 
 
 def screenshot(

@@ -20,7 +20,7 @@ from simulation.evaluate import ReconstructionAccuracy, evaluate
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Similarity", "align_to_truth", "score_points", "similarity_to_truth"]
+__all__ = ["Similarity", "align_to_truth", "score_points", "similarity_to_truth", "truth_of_frames"]
 
 
 @dataclass(kw_only=True)
@@ -80,6 +80,19 @@ def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: Camer
     return dataclasses.replace(points, xyz=similarity_to_truth(cameras, truth_cameras).apply(points.xyz))
 
 
+def truth_of_frames(truth: FramePoints, points: FramePoints) -> FramePoints:
+    """The rows of `truth` whose (video, frame) `points` has: frames the registration lost are not scored."""
+    index = points.index()
+    keep = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True)) if (v, int(f)) in index]
+    return FramePoints(
+        videos=[truth.videos[i] for i in keep],
+        frames=truth.frames[keep],
+        point_names=truth.point_names,
+        xyz=truth.xyz[keep],
+        observed=truth.observed[keep],
+    )
+
+
 def score_points(
     points_path: Path, cameras_path: Path, truth_path: Path, truth_cameras_path: Path
 ) -> ReconstructionAccuracy:
@@ -89,22 +102,11 @@ def score_points(
     points = read_points(points_path)
     aligned = align_to_truth(points, read_cameras(cameras_path), read_cameras(truth_cameras_path))
     truth = read_points(truth_path)
-    keep = [
-        i
-        for i, key in enumerate(zip(truth.videos, truth.frames, strict=True))
-        if (key[0], int(key[1])) in points.index()
-    ]
-    if len(keep) < truth.num_frames:
+    subset = truth_of_frames(truth, points)
+    if subset.num_frames < truth.num_frames:
         log.warning(
             "%d of %d truth frames have no registered camera; not scored",
-            truth.num_frames - len(keep),
+            truth.num_frames - subset.num_frames,
             truth.num_frames,
         )
-    subset = FramePoints(
-        videos=[truth.videos[i] for i in keep],
-        frames=truth.frames[keep],
-        point_names=truth.point_names,
-        xyz=truth.xyz[keep],
-        observed=truth.observed[keep],
-    )
     return evaluate(aligned, subset, estimate_path=points_path, truth_path=truth_path)

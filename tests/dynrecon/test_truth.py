@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dynrecon.truth import Similarity, similarity_to_truth
+from dynrecon.truth import Similarity, similarity_to_truth, truth_of_frames
+from reconstruct.outputs.points import read_points
 from sfm.cameras import read_cameras
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample"
@@ -36,3 +38,19 @@ def test_similarity_to_truth_recovers_a_known_similarity():
     # A point seen by the moved cameras lands on the true point.
     xyz = np.array([[4000.0, 3800.0, 900.0]])
     assert np.allclose(found.apply(inverse.apply(xyz)), xyz, atol=1e-6)
+
+
+def test_only_the_truth_of_frames_the_estimate_has_is_scored() -> None:
+    truth = read_points(SAMPLE / "truth.csv")
+    assert truth_of_frames(truth, truth).num_frames == truth.num_frames
+    keep = [i for i in range(truth.num_frames) if i not in (0, 3)]  # frames the registration lost
+    estimate = replace(
+        truth,
+        videos=[truth.videos[i] for i in keep],
+        frames=truth.frames[keep],
+        xyz=truth.xyz[keep],
+        observed=truth.observed[keep],
+    )
+    subset = truth_of_frames(truth, estimate)
+    assert subset.num_frames == len(keep) and subset.videos == estimate.videos
+    np.testing.assert_array_equal(subset.xyz, truth.xyz[keep])
