@@ -363,7 +363,7 @@ def _apply(
 
 
 def _warn_uncertain(stability: Stability, posed: list[str], warnings: list[str]) -> None:
-    """Posed cameras a fold moves by more than UNCERTAIN_DEG: kept (most folds within the garbage limit), but said."""
+    """Posed cameras whose folds move them by more than UNCERTAIN_DEG: kept (under the garbage limit), but said."""
     moved = {n: stability.rotation_deg[n] for n in posed if stability.rotation_deg.get(n, 0.0) > UNCERTAIN_DEG}
     if moved:
         warnings.append(

@@ -3,10 +3,8 @@
 The subject path has no ground truth to check against, and a poorly constrained problem (few distinct positions,
 little motion, a near-planar path) still returns poses with small residuals: its cameras are then set by noise.
 Each of the FOLDS folds leaves out every FOLDS-th block of time (alternating blocks, so every fold sees the same
-kind of motion); where a camera's pose in most folds differs from the whole-data pose by more than the tolerance,
-the pose is not determined by the data and is not trusted. One fold of three may miss: a fold's own solve can
-fall into another minimum for every camera at once, and on detector keypoints that refused cameras within 2 deg of
-the truth; the largest change is still reported, and the caller warns about it.
+kind of motion); where a camera's pose in a fold differs from the whole-data pose by more than the tolerance, the
+pose is not determined by the data and is not trusted.
 """
 
 from __future__ import annotations
@@ -142,26 +140,19 @@ def check_stability(
                 + "; track more points or a longer, more varied motion, or give --intrinsics"
             )
     for name, values in out.centre_folds.items():
-        if _agreed(values) > MAX_CENTRE and name not in out.unstable:
+        if max(values) > MAX_CENTRE and name not in out.unstable:
             out.unstable[name] = (
                 f"not determined by the tracks: its centre moves by {_listed([100 * v for v in values], ' %')} of the "
                 f"camera spread between folds of the data and the whole "
                 f"(> {100 * MAX_CENTRE:.0f} %{_most(values, MAX_CENTRE)})"
             )
     for name, values in out.rotation_folds.items():
-        if _agreed(values) > MAX_ROTATION_DEG and name not in out.unstable:
+        if max(values) > MAX_ROTATION_DEG and name not in out.unstable:
             out.unstable[name] = (
                 f"not determined by the tracks: its rotation moves by {_listed(values, ' deg')} between folds of the "
                 f"data and the whole (> {MAX_ROTATION_DEG:g} deg{_most(values, MAX_ROTATION_DEG)})"
             )
     return out
-
-
-def _agreed(values: list[float]) -> float:
-    """The change most folds reach: the second largest of three or more folds (one fold may miss), else the
-    largest."""
-    ordered = sorted(values)
-    return ordered[-2] if len(ordered) >= FOLDS else ordered[-1]
 
 
 def _most(values: list[float], limit: float) -> str:
