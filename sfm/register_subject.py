@@ -364,7 +364,8 @@ def _apply(
 
 def _warn_uncertain(stability: Stability, posed: list[str], warnings: list[str]) -> None:
     """Posed cameras whose folds move them by more than UNCERTAIN_DEG: kept (under the garbage limit), but said."""
-    moved = {n: stability.rotation_deg[n] for n in posed if stability.rotation_deg.get(n, 0.0) > UNCERTAIN_DEG}
+    largest = stability.rotation_deg
+    moved = {n: largest[n] for n in posed if largest.get(n, 0.0) > UNCERTAIN_DEG}
     if moved:
         warnings.append(
             "subject path: the folds of the tracks turn "

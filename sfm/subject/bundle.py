@@ -16,7 +16,7 @@ from scipy.optimize import OptimizeResult, least_squares
 from scipy.sparse import csr_matrix
 from threadpoolctl import threadpool_limits
 
-from sfm.subject.bundle_model import Bundle, jacobian, obs_arrays, pack, residuals, unpack
+from sfm.subject.bundle_model import Bundle, jacobian, obs_arrays, pack, residuals, stacked, unpack
 from sfm.subject.observations import VideoObs
 
 __all__ = ["Bundle", "adjust", "camera_residuals", "held_out_px", "residuals_px", "rotation", "supported"]
@@ -56,8 +56,7 @@ def _solve(b: Bundle, obs: list[VideoObs], inlier_px: float) -> None:
     x0 = pack(b, obs)
 
     def fun(x: np.ndarray) -> np.ndarray:
-        res, extra = residuals(b, obs, x, arrays)
-        return np.concatenate([*(r.ravel() for r in res), extra])
+        return stacked(b, obs, x, arrays)
 
     def jac(x: np.ndarray) -> csr_matrix:
         return jacobian(b, obs, x, arrays)

@@ -104,23 +104,11 @@ def pack(b: Bundle, obs: list[VideoObs]) -> np.ndarray:
 def residuals(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tuple[list[np.ndarray], np.ndarray]:
     """Reprojection residuals per camera (M, 2) in pixels and the smoothness residuals (flattened)."""
     rvec, t, focal, k1, k2, pp, off, X = unpack(b, obs, x)
-    T = len(X)
     R = rodrigues(rvec)  # (C, 3, 3)
     out = []
     for j, c in enumerate(b.cams):
-        times, p, target, _ = arrays[j]
-        u = (times + off[j] - b.knots.t0) / b.knots.h
-        k = np.clip(np.floor(u).astype(np.int64), 0, T - 2)
-        w = np.clip(u - k, 0.0, 1.0)[:, None]
-        P3 = (1 - w) * X[k, p] + w * X[k + 1, p]  # (M, 3)
-        if j in b.frame_poses:
-            frames = arrays[j][3]
-            Rf, tf = b.frame_poses[j]
-            Xc = np.einsum("mij,mj->mi", Rf[frames], P3) + tf[frames]
-        else:
-            Xc = P3 @ R[j].T + t[j]
-        z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
-        xy = Xc[:, :2] / z[:, None]
+        target = arrays[j][2]
+        xy = _seen(b, j, arrays[j], off[j], X, R[j], t[j]).xy
         o = obs[c]
         if o.known_K:
             res = (xy - target) * np.array([o.K[0, 0], o.K[1, 1]])
@@ -148,6 +136,43 @@ def residuals(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> tu
     return out, np.concatenate(extra)
 
 
+@dataclass(kw_only=True)
+class _Seen:
+    """Camera j's kept observations projected: where they sit between knots and in the camera."""
+
+    k: np.ndarray  # (M,) the knot before each observation's global time
+    w_raw: np.ndarray  # (M,) its fraction of the way to the next knot, unclipped
+    P3: np.ndarray  # (M, 3) the interpolated point
+    R: np.ndarray  # (M, 3, 3) cam_from_world rotation of each observation
+    z: np.ndarray  # (M,) depth (held away from 0)
+    xy: np.ndarray  # (M, 2) normalized image coordinates
+
+
+def _seen(b: Bundle, j: int, array: tuple, offset: float, X: np.ndarray, R: np.ndarray, t: np.ndarray) -> _Seen:
+    """`array`: camera j's entry of `obs_arrays`; `offset`, `R`, `t`: its current clock offset and pose."""
+    times, p, _, frames = array
+    u = (times + offset - b.knots.t0) / b.knots.h
+    k = np.clip(np.floor(u).astype(np.int64), 0, len(X) - 2)
+    w_raw = u - k
+    w = np.clip(w_raw, 0.0, 1.0)[:, None]
+    P3 = (1 - w) * X[k, p] + w * X[k + 1, p]  # (M, 3)
+    if j in b.frame_poses:
+        Rf, tf = b.frame_poses[j]
+        Rm = Rf[frames]
+        Xc = np.einsum("mij,mj->mi", Rm, P3) + tf[frames]
+    else:
+        Rm = np.broadcast_to(R, (len(p), 3, 3))
+        Xc = P3 @ R.T + t
+    z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
+    return _Seen(k=k, w_raw=w_raw, P3=P3, R=Rm, z=z, xy=Xc[:, :2] / z[:, None])
+
+
+def stacked(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> np.ndarray:
+    """`residuals` as one vector, in the rows of `jacobian`."""
+    res, extra = residuals(b, obs, x, arrays)
+    return np.concatenate([*(r.ravel() for r in res), extra])
+
+
 def jacobian(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> csr_matrix:
     """d `residuals` / d x, in the order of `residuals` (reprojections, acceleration, gauge, priors)."""
     free_pose, free_k, free_o, n = layout(b, obs)
@@ -156,6 +181,7 @@ def jacobian(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> csr
     col_k = {j: 6 * len(free_pose) + nk * i for i, j in enumerate(free_k)}
     col_o = {j: 6 * len(free_pose) + nk * len(free_k) + i for i, j in enumerate(free_o)}
     rvec, t, focal, k1, k2, _, off, X = unpack(b, obs, x)
+    R = rodrigues(rvec)  # (C, 3, 3)
     T, P, _ = X.shape
     rows: list[np.ndarray] = []
     cols: list[np.ndarray] = []
@@ -169,24 +195,12 @@ def jacobian(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> csr
 
     r0 = 0
     for j, c in enumerate(b.cams):
-        times, p, _, frames = arrays[j]
+        p = arrays[j][1]
         M = len(p)
         rr = r0 + 2 * np.arange(M)[:, None] + np.arange(2)  # (M, 2) rows of x and y
-        u = (times + off[j] - b.knots.t0) / b.knots.h
-        k = np.clip(np.floor(u).astype(np.int64), 0, T - 2)
-        w_raw = u - k
-        w = np.clip(w_raw, 0.0, 1.0)[:, None]
-        P3 = (1 - w) * X[k, p] + w * X[k + 1, p]  # (M, 3)
-        if j in b.frame_poses:
-            Rf, tf = b.frame_poses[j]
-            Rm = Rf[frames]  # (M, 3, 3)
-            Xc = np.einsum("mij,mj->mi", Rm, P3) + tf[frames]
-        else:
-            R = rodrigues(rvec[j])
-            Rm = np.broadcast_to(R, (M, 3, 3))
-            Xc = P3 @ R.T + t[j]
-        z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
-        xy = Xc[:, :2] / z[:, None]
+        seen = _seen(b, j, arrays[j], off[j], X, R[j], t[j])
+        k, P3, z, xy = seen.k, seen.P3, seen.z, seen.xy
+        w = np.clip(seen.w_raw, 0.0, 1.0)[:, None]
         dxy = np.zeros((M, 2, 3))  # d xy / d Xc
         dxy[:, 0, 0] = dxy[:, 1, 1] = 1 / z
         dxy[:, :, 2] = -xy / z[:, None]
@@ -207,12 +221,12 @@ def jacobian(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> csr
                 if nk == 5:
                     put(rr[:, 0], ck + 3, np.ones(M))
                     put(rr[:, 1], ck + 4, np.ones(M))
-        AR = A @ Rm  # (M, 2, 3) d res / d P3
+        AR = A @ seen.R  # (M, 2, 3) d res / d P3
         knot = n + (k * P + p) * 3  # (M,) first column of knot k of each observation's point
         for step, weight in ((0, 1 - w), (1, w)):
             put(rr[:, :, None], (knot + 3 * P * step)[:, None, None] + np.arange(3), AR * weight[:, :, None])
         if j in col_o:
-            inside = ((w_raw >= 0) & (w_raw < 1))[:, None]  # at a knot: the forward slope
+            inside = ((seen.w_raw >= 0) & (seen.w_raw < 1))[:, None]  # at a knot: the forward slope
             velocity = (X[k + 1, p] - X[k, p]) / b.knots.h * inside  # (M, 3) d P3 / d offset
             put(rr, col_o[j], np.einsum("mij,mj->mi", AR, velocity))
         if j in col_pose:
@@ -230,30 +244,29 @@ def jacobian(b: Bundle, obs: list[VideoObs], x: np.ndarray, arrays: list) -> csr
     r0 += len(idx)
     if b.gauge is not None:
         ja, jb, d = b.gauge
-        Ra, Rb = rodrigues(rvec[ja]), rodrigues(rvec[jb])
-        ca, cb = -Ra.T @ t[ja], -Rb.T @ t[jb]
+        ca, cb = -R[ja].T @ t[ja], -R[jb].T @ t[jb]
         length = float(np.linalg.norm(ca - cb))
         unit = 1e3 / d * (ca - cb) / max(length, 1e-12)
-        for pos, sign, Rp in ((ja, 1.0, Ra), (jb, -1.0, Rb)):
+        for pos, sign in ((ja, 1.0), (jb, -1.0)):
             if pos in col_pose:
                 dR = cv2.Rodrigues(np.asarray(rvec[pos], dtype=np.float64))[1].reshape(3, 3, 3)
                 dc_dr = -np.einsum("iba,b->ai", dR, t[pos])  # d (-R^T t) / d rvec
-                put(np.array(r0), col_pose[pos] + np.arange(3), sign * unit @ dc_dr)
-                put(np.array(r0), col_pose[pos] + 3 + np.arange(3), sign * unit @ -Rp.T)
+                put(r0, col_pose[pos] + np.arange(3), sign * unit @ dc_dr)
+                put(r0, col_pose[pos] + 3 + np.arange(3), sign * unit @ -R[pos].T)
         r0 += 1
     for step in (1, 2):  # k1, then k2, near 0
         for j in free_k:
-            put(np.array(r0), np.array(col_k[j] + step), np.array(1.0 / DIST_SIGMA))
+            put(r0, col_k[j] + step, 1.0 / DIST_SIGMA)
             r0 += 1
     n_obs = {j: np.sqrt(float(len(arrays[j][1]))) for j in free_k}
     if b.focal_prior is not None:
         for j in free_k:
             slope = n_obs[j] / (b.focal_sigma * focal[j]) if focal[j] > 1e-6 else 0.0
-            put(np.array(r0), np.array(col_k[j]), np.array(slope))
+            put(r0, col_k[j], slope)
             r0 += 1
     if b.pp_prior is not None:
         for j in free_k:
             for axis in (3, 4):
-                put(np.array(r0), np.array(col_k[j] + axis), np.array(n_obs[j] / b.pp_sigma))
+                put(r0, col_k[j] + axis, n_obs[j] / b.pp_sigma)
                 r0 += 1
     return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, n + X.size))

@@ -101,7 +101,8 @@ def _stable(result: SubjectResult, stability: Stability) -> list[str]:
 def _spread(stability: Stability, names: list[str]) -> float:
     """The median over `names` of each camera's largest rotation change (deg) between a fold and the whole (inf
     when none was compared): the median, since one camera's worst fold is a noisy statistic."""
-    values = [stability.rotation_deg[n] for n in names if n in stability.rotation_deg]
+    largest = stability.rotation_deg
+    values = [largest[n] for n in names if n in largest]
     return float(np.median(values)) if values else float("inf")
 
 

@@ -36,16 +36,24 @@ MAX_TRIPLES = 220  # camera triples tried for the fold's similarity (all of them
 
 @dataclass(kw_only=True)
 class Stability:
-    """Per camera: the largest difference between a fold's solution and the whole (after a similarity)."""
+    """Per camera: the difference between each fold's solution and the whole (after a similarity)."""
 
-    centre: dict[str, float] = field(default_factory=dict)  # fraction of the camera spread
-    rotation_deg: dict[str, float] = field(default_factory=dict)
-    # every compared fold's change, in fold order (the refusal's evidence)
+    # every compared fold's change, in fold order: centre as a fraction of the camera spread, rotation in degrees
     centre_folds: dict[str, list[float]] = field(default_factory=dict)
     rotation_folds: dict[str, list[float]] = field(default_factory=dict)
     unstable: dict[str, str] = field(default_factory=dict)  # camera -> one-line reason
     checked: bool = True  # False when no fold could be solved: the poses are unverified
     why_unchecked: str | None = None
+
+    @property
+    def centre(self) -> dict[str, float]:
+        """Per camera: the largest centre change over the folds."""
+        return {name: max(values) for name, values in self.centre_folds.items()}
+
+    @property
+    def rotation_deg(self) -> dict[str, float]:
+        """Per camera: the largest rotation change over the folds."""
+        return {name: max(values) for name, values in self.rotation_folds.items()}
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -123,8 +131,6 @@ def check_stability(
             for name in (a.name, b.name):
                 out.rotation_folds.setdefault(name, []).append(angle)
                 verified.add(name)
-    out.centre = {name: max(values) for name, values in out.centre_folds.items()}
-    out.rotation_deg = {name: max(values) for name, values in out.rotation_folds.items()}
     unverified = [c.name for c in result.cameras if c.name not in verified]
     if unverified:
         out.checked = False

@@ -112,13 +112,13 @@ def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeyp
 def test_posed_cameras_the_folds_turn_by_degrees_are_said_to_be_uncertain() -> None:
     from sfm.register_subject import UNCERTAIN_DEG, _warn_uncertain
 
-    stability = Stability(rotation_deg={"a": 0.4, "b": UNCERTAIN_DEG + 1.7, "c": 9.0})
+    stability = Stability(rotation_folds={"a": [0.4], "b": [UNCERTAIN_DEG + 1.7], "c": [9.0]})
     warnings: list[str] = []
     _warn_uncertain(stability, ["a", "b"], warnings)  # c was not posed (refused as unstable elsewhere)
     assert (
         len(warnings) == 1 and "b by 3.7 deg" in warnings[0] and "a by" not in warnings[0] and "c by" not in warnings[0]
     )
-    _warn_uncertain(Stability(rotation_deg={"a": 0.4}), ["a"], warnings)
+    _warn_uncertain(Stability(rotation_folds={"a": [0.4]}), ["a"], warnings)
     assert len(warnings) == 1
 
 

@@ -60,7 +60,7 @@ def _trial(
             name="a", K=np.eye(3), dist=None, R=np.eye(3), t=np.zeros(3), offset=0.0, inliers=50, residual_px=1.0
         )
         result = SubjectResult(cameras=[camera], pairs=[], failed={}, metric=False, inlier_px=options.inlier_px)
-        return result, Stability(rotation_deg={"a": 1.0}), None
+        return result, Stability(rotation_folds={"a": [1.0]}), None
 
     return trial
 
