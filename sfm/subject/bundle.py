@@ -23,6 +23,12 @@ __all__ = ["Bundle", "adjust", "camera_residuals", "held_out_px", "residuals_px"
 
 log = logging.getLogger(__name__)
 
+# lsmr's stopping tolerance for each Gauss-Newton step. With every camera's intrinsics known, a looser step costs
+# nothing measurable (TRF searches the plane of the step and the gradient) and lsmr's default spent most of the
+# bundle's time on its last digits; with focals to find, looser steps converged more slowly: the default is kept.
+LSMR_TOL_KNOWN_K = 1e-4
+LSMR_TOL_UNKNOWN_K = 1e-6
+
 
 def adjust(b: Bundle, obs: list[VideoObs], inlier_px: float, rounds: int = 2) -> None:
     for r in range(rounds):
@@ -91,6 +97,7 @@ def _least_squares(
         ftol=1e-5,
         method="trf",
         tr_solver="lsmr",
+        tr_options=dict.fromkeys(("atol", "btol"), LSMR_TOL_KNOWN_K if known else LSMR_TOL_UNKNOWN_K),
     )
 
 
