@@ -23,9 +23,10 @@ __all__ = ["Bundle", "adjust", "camera_residuals", "held_out_px", "residuals_px"
 
 log = logging.getLogger(__name__)
 
-# lsmr's stopping tolerance for each Gauss-Newton step. With every camera's intrinsics known, a looser step costs
-# nothing measurable (TRF searches the plane of the step and the gradient) and lsmr's default spent most of the
-# bundle's time on its last digits; with focals to find, looser steps converged more slowly: the default is kept.
+# lsmr's stopping tolerance for each Gauss-Newton step. With every camera's intrinsics known, looser steps moved the
+# cameras only within the RANSAC draw (TRF searches the plane of the step and the gradient), while lsmr's default
+# spent most of the bundle's time on the step's last digits; with focals to find, looser steps converged more
+# slowly, so the default stays there (docs/registration.md, "Speed of the subject path").
 LSMR_TOL_KNOWN_K = 1e-4
 LSMR_TOL_UNKNOWN_K = 1e-6
 
