@@ -3,13 +3,18 @@ on synthetic rigs with known truth and on the real rigs of ../shared with their 
 
 from __future__ import annotations
 
+import copy
+import hashlib
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
 
+import sfm.subject.agreement
 from sfm.frames import Resize
 from sfm.options import RegisterOptions
 from sfm.plan import FramePose, VideoPlan
@@ -17,9 +22,44 @@ from sfm.register_check import background_left, check_background
 from sfm.register_subject import pose_from_subject
 from sfm.subject import SubjectVideo
 from sfm.subject.agreement import check_agreement
+from sfm.subject.observations import VideoObs
+from sfm.subject.pairs import PairFit, fit_pair
 from sfm.subject.synthetic import Truth, make_rig
 from sfm.video import ProbedVideo
 from tracking.tracks import Tracks
+
+
+def _key(*parts: Any) -> str:
+    digest = hashlib.sha1()
+    for part in parts:
+        if isinstance(part, VideoObs):
+            arrays = (part.norm, part.times, part.K, part.xy)
+            digest.update(repr((part.name, part.period, part.known_K, part.video.width, part.video.height)).encode())
+            for array in arrays:
+                digest.update(np.ascontiguousarray(array).tobytes())
+        else:
+            digest.update(repr(part).encode())
+    return digest.hexdigest()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _tracks_fitted_once() -> Iterator[None]:
+    """The tracks' own pair geometry does not depend on the poses checked: this module checks many poses against
+    the same tracks, so each pair is fitted once (exactly: keyed on every input, the random state included, which
+    a hit advances as the fit would have)."""
+    memo: dict[str, tuple[PairFit, dict]] = {}
+
+    def fitted(oa: VideoObs, ob: VideoObs, a: int, b: int, max_offset: float, rng: np.random.Generator) -> PairFit:
+        key = _key(oa, ob, a, b, max_offset, rng.bit_generator.state)
+        if key not in memo:
+            memo[key] = (fit_pair(oa, ob, a, b, max_offset, rng), rng.bit_generator.state)
+        fit, state = memo[key]
+        rng.bit_generator.state = state
+        return copy.deepcopy(fit)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sfm.subject.agreement, "fit_pair", fitted)
+        yield
 
 
 @pytest.fixture(scope="module")
