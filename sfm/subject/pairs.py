@@ -205,8 +205,10 @@ def fit_pair(
                 shift += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * step
         candidates.append(shift)
     # the peaks compete on the full robust model's MSAC score (an E when both K are known: 5 dof discriminate best)
-    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, inlier_px) for shift in candidates]
+    # only the winner's degeneracy matters (the plane check's robust fit is not cheap)
+    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, inlier_px, judge=False) for shift in candidates]
     best = max(fits, key=lambda f: f.score)
+    _judge(best, oa, ob, inlier_px / f_mean)
     far = [f.score for f in fits if abs(f.shift - best.shift) > period]
     if far:  # best over the best elsewhere, with the same estimator: >= 1 by construction
         best.runner_up_ratio = float(best.score / max(far)) if max(far) > 0 else float("inf")
@@ -237,6 +239,7 @@ def _geometry(
     inlier_px: float,
     n_max: int = 0,
     iterations: int = 5000,
+    judge: bool = True,
 ) -> PairFit:
     """The pair's model, inliers and degeneracy at a shift, from its correspondences (an even subset of n_max)."""
     xa, xb = correspondences(oa, ob, shift)
@@ -290,18 +293,25 @@ def _geometry(
     if fit.inliers < max(8, MIN_SHARED):
         fit.reason = f"only {fit.inliers} epipolar inliers"
         return fit
-    if not n_max:
-        size_a, size_b = _size(oa), _size(ob)
-        cells = np.hstack(
-            [np.floor(fit.xa * oa.focal / (DISTINCT * size_a)), np.floor(fit.xb * ob.focal / (DISTINCT * size_b))]
-        )  # (M, 4) cell of each inlier in both images
-        fit.distinct = len(np.unique(cells, axis=0))
-        if fit.distinct < MIN_DISTINCT:
-            # a handful of places explain any epipolar geometry (and every time offset): nothing to trust
-            fit.degenerate = f"few distinct positions ({fit.distinct} < {MIN_DISTINCT})"
-        else:
-            fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
+    if not n_max and judge:
+        _judge(fit, oa, ob, thr)
     return fit
+
+
+def _judge(fit: PairFit, oa: VideoObs, ob: VideoObs, thr: float) -> None:
+    """Set the fit's distinct positions and its degeneracy (None, or why its inliers determine no geometry)."""
+    if fit.reason is not None:
+        return
+    size_a, size_b = _size(oa), _size(ob)
+    cells = np.hstack(
+        [np.floor(fit.xa * oa.focal / (DISTINCT * size_a)), np.floor(fit.xb * ob.focal / (DISTINCT * size_b))]
+    )  # (M, 4) cell of each inlier in both images
+    fit.distinct = len(np.unique(cells, axis=0))
+    if fit.distinct < MIN_DISTINCT:
+        # a handful of places explain any epipolar geometry (and every time offset): nothing to trust
+        fit.degenerate = f"few distinct positions ({fit.distinct} < {MIN_DISTINCT})"
+    else:
+        fit.degenerate = _degeneracy(fit.xa, fit.xb, thr)
 
 
 def _size(o: VideoObs) -> float:
