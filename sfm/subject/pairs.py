@@ -22,6 +22,8 @@ log = logging.getLogger(__name__)
 CHUNK = 24  # shifts scored at once (bounds the (D, H, N) Sampson tensor)
 DISTINCT = 0.02  # cell size (fraction of the image size) that clusters correspondences into distinct positions
 FINE_STEP = 0.25  # fine offset search step, in frame periods of the faster video
+FINE_CORRESPONDENCES = 1500  # at most, per robust fit of the fine grid (an even subset)
+FINE_ITERATIONS = 1000  # of each robust fit of the fine grid
 
 
 @dataclass(kw_only=True)
@@ -193,7 +195,12 @@ def fit_pair(
         f_grid = np.arange(peak - coarse, peak + coarse + step / 2, step)
         # the fine scores come from the full robust estimator (cv2 MAGSAC): the batched 8-point is too noisy here
         f_scores = np.array(
-            [_geometry(oa, ob, a, b, s, 1.0, essential, inlier_px, n_max=1500, iterations=1000).score for s in f_grid],
+            [
+                _geometry(
+                    oa, ob, a, b, s, 1.0, essential, inlier_px, n_max=FINE_CORRESPONDENCES, iterations=FINE_ITERATIONS
+                ).score
+                for s in f_grid
+            ],
             dtype=float,
         )
         i = int(np.argmax(f_scores))
