@@ -29,6 +29,7 @@ def test_ruff(command: tuple[str, ...]) -> None:
     )
 
 
+@pytest.mark.slow
 def test_mypy() -> None:
     pytest.importorskip("mypy", reason="mypy is not installed (pip install -e '.[test]')")
     result = _run("mypy")

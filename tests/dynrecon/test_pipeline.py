@@ -129,6 +129,7 @@ def first_run(tmp_path_factory):
     return base, videos, ws, result
 
 
+@pytest.mark.slow
 def test_first_run_runs_every_stage(first_run):
     _, _, ws, result = first_run
     assert [s.name for s in result.stages] == [s for s in STAGES if s != "subject"]  # no static video left out

@@ -130,6 +130,7 @@ OPENPOSE = LABELS.parent / "openpose_tracks.csv"
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_the_final_stage_stops_when_only_unseen_directions_move(
     shared_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

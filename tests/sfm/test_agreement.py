@@ -199,6 +199,7 @@ def _background(video: SubjectVideo, pose: tuple[np.ndarray, np.ndarray]) -> dic
     return dict.fromkeys(range(len(video.times)), frame_pose)
 
 
+@pytest.mark.slow
 def test_register_drops_a_refuted_background_pose_and_poses_it_from_the_subject(
     rig: tuple[Tracks, list[SubjectVideo], Truth],
 ) -> None:
@@ -268,6 +269,7 @@ def _check_real(tracks: Tracks, videos: list[SubjectVideo], degrees: float) -> N
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_pose2sim_lab_calibration_agrees_with_the_openpose_detections(shared_dir: Path) -> None:
     from benchmarks.background_check import rig
 
@@ -277,6 +279,7 @@ def test_pose2sim_lab_calibration_agrees_with_the_openpose_detections(shared_dir
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_caliscope_calibration_agrees_with_the_board_corners(shared_dir: Path) -> None:
     from benchmarks.background_check import rig
 

@@ -112,6 +112,7 @@ def test_renumbering_and_the_cameras_json_map(tmp_path: Path) -> None:
 DATA = Path(__file__).resolve().parents[1] / "data" / "pose2sim_multi" / "openpose_people.jsonl"
 
 
+@pytest.mark.slow
 def test_pose2sim_two_participants_are_matched_as_the_lab_calibration_matches_them(tmp_path: Path) -> None:
     """Pose2Sim's raw OpenPose output of its two-participant trial (4 static cameras, bystanders in two views), no
     calibration, no synchronization: the people are matched as Pose2Sim's own association, made with the lab's

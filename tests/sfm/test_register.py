@@ -190,6 +190,7 @@ def test_a_rotated_video_registers_as_the_same_video_stored_upright(tmp_path: Pa
             np.testing.assert_allclose(b.t, a.t, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_register(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -220,6 +221,7 @@ def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_regi
     assert alone["failed"][0]["reason"] == "video not in the kept model"
 
 
+@pytest.mark.slow
 def test_frames_without_texture_are_reported_and_the_rest_register(tmp_path: Path) -> None:
     # cam0's last 3 of 10 frames are a flat grey (a hand over the lens): those fail with a reason, the rest register
     videos = render_demo(tmp_path / "videos", three_cameras(480, 360, frames=(10, 8, 6)))

@@ -84,6 +84,7 @@ def test_anchors_fix_frame_and_scale() -> None:
         assert angle < 1.0
 
 
+@pytest.mark.slow
 def test_the_tracks_row_order_does_not_change_the_poses() -> None:
     tracks, videos, _ = make_rig(kind="skeleton", n_cameras=3, duration=6.0, noise_px=1.5, false_rate=0.03, seed=2)
     shuffled = tracks.take(np.random.default_rng(1).permutation(len(tracks)))

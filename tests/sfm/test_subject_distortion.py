@@ -35,6 +35,7 @@ def test_division_model_converts_to_the_opencv_coefficients_it_stands_for(k1: fl
     assert np.linalg.norm(redistorted.reshape(-1, 2) - pixels.reshape(-1, 2), axis=1).max() < 0.05 * displacement
 
 
+@pytest.mark.slow
 def test_wide_angle_identical_webcams_are_posed_with_their_distortion() -> None:
     """Four identical wide-angle cameras (k1 = -0.33), no intrinsics given: focal-only self-calibration is several
     per cent and degrees off; with radial distortion, within 2 % and 1 degree, and the lens is reported."""
@@ -52,6 +53,7 @@ def test_wide_angle_identical_webcams_are_posed_with_their_distortion() -> None:
         assert camera.dist[0] == pytest.approx(-0.33, abs=0.06)
 
 
+@pytest.mark.slow
 def test_cameras_without_distortion_keep_the_focal_only_model() -> None:
     """No distortion in the data: the simpler model is kept (no distortion found, or not better on held-out
     observations), and the poses stay as accurate as before."""

@@ -15,6 +15,7 @@ from sfm.subject.stability import Stability
 from sfm.subject.synthetic import compare, make_rig
 
 
+@pytest.mark.slow
 def test_detector_keypoints_get_the_wider_scale() -> None:
     # 5 px of noise and 3 % false detections: the wider scale's folds are steadier. The poses' error depends on the
     # RANSAC samples (seeds 2-5 of this rig: 0.24-0.68 deg, 0.35-1.26 %): held to the issue's 1 deg and 2 %
@@ -28,6 +29,7 @@ def test_detector_keypoints_get_the_wider_scale() -> None:
     assert first.stable < 4 or first.fold_rotation_deg > wide.fold_rotation_deg
 
 
+@pytest.mark.slow
 def test_marker_grade_tracks_stay_accurate_at_the_chosen_scale() -> None:
     # 0.7 px of noise: both scales' folds barely move (0.25 and 0.11 deg here), so which one is kept depends on the
     # RANSAC samples; either is accurate (3 px: 0.31 deg, 6 px: 0.15 deg on this rig)

@@ -120,6 +120,7 @@ def test_tracks_of_another_subject_are_refused(solved: SubjectResult) -> None:
         align_to_posed(solved, [video])
 
 
+@pytest.mark.slow
 def test_register_joins_static_cameras_to_a_handheld_phone(rig: tuple[Tracks, list, Truth]) -> None:
     """`pose_from_subject` when the background posed only the handheld phone: the static videos it left out are
     posed in the phone's world (metric), the report says which videos anchored it, and the phone keeps its poses.
@@ -157,6 +158,7 @@ def test_register_joins_static_cameras_to_a_handheld_phone(rig: tuple[Tracks, li
     assert results["phone"][5].pose is not None and results["phone"][5].source == "sfm"
 
 
+@pytest.mark.slow
 def test_one_static_anchor_and_a_phone(rig: tuple[Tracks, list, Truth]) -> None:
     """The background posed one static video and the phone: the static anchor keeps the background's pose, the
     phone fixes the scale, and the other static videos land in their world."""
