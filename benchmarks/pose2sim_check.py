@@ -58,6 +58,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -118,19 +119,24 @@ class CheckResult:
 
 def _project(camera: FrameCamera, X: np.ndarray) -> np.ndarray:
     """(N, 3) world -> (N, 2) pixels with distortion."""
-    uv, _ = cv2.projectPoints(
+    return _project_jacobian(camera, X)[0]
+
+
+def _project_jacobian(camera: FrameCamera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world -> (N, 2) pixels with distortion, and (2N, 3): row 2i + k is d(pixel k of point i)/d(point i)."""
+    uv, jac = cv2.projectPoints(
         X.reshape(-1, 3),
         cv2.Rodrigues(camera.R)[0],
         camera.t,
         camera.K,
         camera.dist if camera.dist is not None else np.zeros(4),
     )
-    return uv.reshape(-1, 2)
+    return uv.reshape(-1, 2), jac[:, 3:6] @ camera.R  # X enters as R X + t: d/dX = d/dt R
 
 
 def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """DLT on undistorted normalized rays, refined by least squares in pixels (Levenberg-Marquardt on the
-    analytic Jacobian). uv: (C, 2). Returns X (3,) and the per-camera reprojection error (C,) in pixels."""
+    """DLT on undistorted normalized rays, refined by least squares in pixels (with the projection's analytic
+    Jacobian). uv: (C, 2). Returns X (3,) and the per-camera reprojection error (C,) in pixels."""
     rows = []
     for camera, p in zip(cameras, uv, strict=True):
         n = cv2.undistortPoints(
@@ -140,37 +146,15 @@ def triangulate(cameras: list[FrameCamera], uv: np.ndarray) -> tuple[np.ndarray,
         rows += [n[0] * P[2] - P[0], n[1] * P[2] - P[1]]
     X = np.linalg.svd(np.array(rows))[2][-1]
     X = X[:3] / X[3]
-    rvecs = [cv2.Rodrigues(c.R)[0] for c in cameras]
 
-    def residual(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r, J = [], []
-        for camera, rvec, p in zip(cameras, rvecs, uv, strict=True):
-            dist = camera.dist if camera.dist is not None else np.zeros(4)
-            projected, jac = cv2.projectPoints(x.reshape(1, 3), rvec, camera.t, camera.K, dist)
-            r.append(projected.reshape(2) - p)
-            J.append(jac[:, 3:6] @ camera.R)  # d(uv)/dX = d(uv)/d(t) R: X enters as R X + t
-        return np.concatenate(r), np.vstack(J)
+    def residual(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([_project(c, x)[0] - p for c, p in zip(cameras, uv, strict=True)])
 
-    r, J = residual(X)
-    cost, damping = float(r @ r), 1e-3
-    for _ in range(100):
-        A, g = J.T @ J, J.T @ r
-        try:
-            step = np.linalg.solve(A + damping * np.diag(np.diag(A)), -g)
-        except np.linalg.LinAlgError:
-            break
-        r_new, J_new = residual(X + step)
-        cost_new = float(r_new @ r_new)
-        if cost_new < cost:
-            done = cost - cost_new <= 1e-8 * cost or np.linalg.norm(step) <= 1e-8 * (np.linalg.norm(X) + 1e-8)
-            X, r, J, cost, damping = X + step, r_new, J_new, cost_new, damping / 10
-            if done:
-                break
-        else:
-            damping *= 10
-            if damping > 1e12:
-                break
-    return X, np.linalg.norm(r.reshape(-1, 2), axis=1)
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return np.vstack([_project_jacobian(c, x)[1] for c in cameras])
+
+    X = least_squares(residual, X, jac=jacobian, method="lm").x
+    return X, np.linalg.norm(residual(X).reshape(-1, 2), axis=1)
 
 
 def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
