@@ -213,7 +213,7 @@ def fit_pair(
         candidates.append(shift)
     # the peaks compete on the full robust model's MSAC score (an E when both K are known: 5 dof discriminate best)
     # only the winner's degeneracy matters (the plane check's robust fit is not cheap)
-    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, inlier_px, judge=False) for shift in candidates]
+    fits = [_geometry(oa, ob, a, b, shift, 1.0, essential, inlier_px) for shift in candidates]
     best = max(fits, key=lambda f: f.score)
     _judge(best, oa, ob, inlier_px / f_mean)
     far = [f.score for f in fits if abs(f.shift - best.shift) > period]
@@ -232,7 +232,9 @@ def fit_pair(
 
 def fit_at(oa: VideoObs, ob: VideoObs, a: int, b: int, shift: float, inlier_px: float = INLIER_PX) -> PairFit:
     """The pair's model at a given shift (own_b = own_a + shift), e.g. the one the chained offsets imply."""
-    return _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K, inlier_px)
+    fit = _geometry(oa, ob, a, b, shift, float("nan"), oa.known_K and ob.known_K, inlier_px)
+    _judge(fit, oa, ob, inlier_px / float(np.sqrt(oa.focal * ob.focal)))
+    return fit
 
 
 def _geometry(
@@ -246,9 +248,9 @@ def _geometry(
     inlier_px: float,
     n_max: int = 0,
     iterations: int = 5000,
-    judge: bool = True,
 ) -> PairFit:
-    """The pair's model, inliers and degeneracy at a shift, from its correspondences (an even subset of n_max)."""
+    """The pair's model and inliers at a shift, from its correspondences (an even subset of n_max); `_judge` adds
+    its degeneracy."""
     xa, xb = correspondences(oa, ob, shift)
     if n_max and len(xa) > n_max:
         keep = np.linspace(0, len(xa) - 1, n_max).astype(np.int64)
@@ -299,9 +301,6 @@ def _geometry(
         fit.F_px = F
     if fit.inliers < max(8, MIN_SHARED):
         fit.reason = f"only {fit.inliers} epipolar inliers"
-        return fit
-    if not n_max and judge:
-        _judge(fit, oa, ob, thr)
     return fit
 
 
