@@ -7,10 +7,13 @@ next. A wider threshold lets marker-grade tracks' outliers in. The median residu
 narrower threshold always fits its own inliers closer), nor, measured on detector keypoints, can the held-out
 reprojection error (dominated by the keypoints' own scatter); the folds of `check_stability` can: the scale whose
 poses the folds of the data reproduce best is kept, the first (marker-grade) one unless a wider one is clearly better.
+The scales are solved side by side (`dynrecon.beside`: a forked process on another core where that is safe): each
+solve is self-contained (its own seeded random draws), so the result is the same as one after the other.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 from collections.abc import Callable
@@ -18,6 +21,7 @@ from typing import TypeVar
 
 import numpy as np
 
+from dynrecon.beside import beside
 from sfm.subject.calibrate import calibrate_from_subject
 from sfm.subject.model import (
     NOISE_SCALES_PX,
@@ -63,11 +67,18 @@ def choose_scale(
         return trial(options)
     tried: dict[float, tuple[SubjectResult, Stability, T]] = {}
     errors: dict[float, SubjectCalibrationError] = {}
-    for px in NOISE_SCALES_PX:
-        try:
-            tried[px] = trial(dataclasses.replace(options, inlier_px=px))
-        except SubjectCalibrationError as error:  # ScalePointsError too: another scale may triangulate the pair
-            errors[px] = error
+    first, *wider = NOISE_SCALES_PX
+    with contextlib.ExitStack() as stack:
+        running = [
+            stack.enter_context(beside(_attempt, trial, dataclasses.replace(options, inlier_px=px))) for px in wider
+        ]
+        outcomes = [_attempt(trial, dataclasses.replace(options, inlier_px=first))] + [r.result() for r in running]
+    log.info("noise scales solved side by side (%s)", "forked" if all(r.forked for r in running) else "threads")
+    for px, outcome in zip(NOISE_SCALES_PX, outcomes, strict=True):
+        if isinstance(outcome, SubjectCalibrationError):  # ScalePointsError too: another scale may triangulate the pair
+            errors[px] = outcome
+        else:
+            tried[px] = outcome
     if not tried:
         # a scale whose poses stood but not its scale pair first (the caller may solve again without the pair)
         main = next((e for e in errors.values() if isinstance(e, ScalePointsError)), errors[NOISE_SCALES_PX[0]])
@@ -92,6 +103,16 @@ def choose_scale(
     kept = tried[chosen]
     kept[0].noise_check = dict(sorted(check.items()))
     return kept
+
+
+def _attempt(
+    trial: Callable[[SubjectOptions], tuple[SubjectResult, Stability, T]], options: SubjectOptions
+) -> tuple[SubjectResult, Stability, T] | SubjectCalibrationError:
+    """The trial's outcome, its refusal included (a value, so that one scale's refusal leaves the others' solves)."""
+    try:
+        return trial(options)
+    except SubjectCalibrationError as error:
+        return error
 
 
 def _stable(result: SubjectResult, stability: Stability) -> list[str]:

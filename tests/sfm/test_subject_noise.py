@@ -8,7 +8,14 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from sfm.subject import SubjectCalibrationError, SubjectCamera, SubjectOptions, SubjectResult, choose_noise
+from sfm.subject import (
+    SubjectCalibrationError,
+    SubjectCamera,
+    SubjectOptions,
+    SubjectResult,
+    calibrate_from_subject,
+    choose_noise,
+)
 from sfm.subject.model import NOISE_SCALES_PX, ScalePointsError
 from sfm.subject.noise import choose_scale
 from sfm.subject.stability import Stability
@@ -27,6 +34,11 @@ def test_detector_keypoints_get_the_wider_scale() -> None:
     assert err.centre_pct < 2.0 and err.rotation_deg < 1.0
     first, wide = (result.noise_check[px] for px in NOISE_SCALES_PX)
     assert first.stable < 4 or first.fold_rotation_deg > wide.fold_rotation_deg
+    # the wider scale was solved beside the first (another process where it can fork): the same as solved alone
+    alone = calibrate_from_subject(tracks, videos, SubjectOptions(inlier_px=NOISE_SCALES_PX[1]))
+    for mine, its in zip(result.cameras, alone.cameras, strict=True):
+        assert mine.name == its.name and mine.offset == its.offset
+        assert np.array_equal(mine.R, its.R) and np.array_equal(mine.t, its.t) and np.array_equal(mine.K, its.K)
 
 
 @pytest.mark.slow
