@@ -25,13 +25,14 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+A = TypeVar("A")
 NO_FORK = "DYNRECON_NO_FORK"  # set to anything: always a thread
 STOP_GRACE_S = 5.0  # a child stopped early has this long to clean up after SIGTERM (a loaded machine delays it)
 _PR_SET_PDEATHSIG = 1
@@ -171,6 +172,29 @@ class Beside(Generic[T]):
 def beside(function: Callable[..., T], *args: Any) -> Beside[T]:
     """Start `function(*args)` beside the caller (a forked child where safe, else a thread); see the module."""
     return Beside(function, args)
+
+
+def map_beside(function: Callable[[A], T], items: Sequence[A], progress: str | None = None) -> list[T]:
+    """`[function(x) for x in items]`, every other item beside the caller (`beside`): the same list, in order,
+    where each call depends on its item alone. `progress`: a tqdm bar's label, over the caller's share."""
+    from tqdm import tqdm
+
+    def bar() -> Iterable[A]:  # made after the fork: tqdm's monitor thread, where it starts one, would prevent it
+        return tqdm(items[::2], desc=progress, leave=False, disable=progress is None)
+
+    if len(items) < 2:
+        return [function(x) for x in bar()]
+    with beside(_mapped, function, items[1::2]) as running:
+        mine = _mapped(function, bar())
+        theirs = running.result()
+    out: list[T] = []
+    for k in range(len(items)):
+        out.append(mine[k // 2] if k % 2 == 0 else theirs[k // 2])
+    return out
+
+
+def _mapped(function: Callable[[A], T], items: Iterable[A]) -> list[T]:
+    return [function(x) for x in items]
 
 
 def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> None:

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
+from dynrecon.beside import map_beside
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 MARGIN = 1.25  # a pairing's inliers over the best rival pairing of either person in that pair of videos
 MIN_SEEN = 0.2  # people seen in fewer of their video's tracked frames are not matched (detector fragments)
+
+Edge = tuple[int, tuple[str, int], tuple[str, int]]  # a kept pairing: its inliers, (video, person) of each side
 
 
 @dataclass(kw_only=True)
@@ -76,40 +78,59 @@ def associate_people(
             person[i], keypoint[i] = int(match.group(1)), match.group(2)
     video = np.array(tracks.video, dtype=object)
     people = {n: _matched_people(tracks, video == n, person) for n in names}
-    rng = np.random.default_rng(SEED)
-    edges: list[tuple[int, tuple[str, int], tuple[str, int]]] = []
-    tables = []
     pairs = [(a, b) for k, a in enumerate(videos) for b in videos[k + 1 :] if people[a.name] and people[b.name]]
-    for a, b in tqdm(pairs, desc="matching people across videos", unit="pair", leave=False):
-        shape = (len(people[a.name]), len(people[b.name]))
-        obs: dict[tuple[int, int], list[VideoObs]] = {}
-        fits: dict[tuple[int, int], PairFit] = {}
-        for r, c in np.ndindex(*shape):
-            rows = ((video == a.name) & (person == people[a.name][r])) | (
-                (video == b.name) & (person == people[b.name][c])
-            )
-            obs[r, c] = _observations(tracks, rows, keypoint, a, b)
-            fits[r, c] = fit_pair(obs[r, c][0], obs[r, c][1], 0, 1, max_offset, rng, inlier_px)
-        table, source = _shared_geometry(obs, fits, shape, inlier_px)
-        tables.append(
-            {
-                "videos": [a.name, b.name],
-                "people": [people[a.name], people[b.name]],
-                "inliers": table.tolist(),
-                "geometry_of": None if source is None else [people[a.name][source[0]], people[b.name][source[1]]],
-            }
-        )
-        log.info("people of %s (rows) and %s (columns), inliers of one geometry:\n%s", a.name, b.name, table)
-        for r, c in zip(*np.nonzero(table >= MIN_INLIERS), strict=True):
-            rivals = max(np.delete(table[r], c).max(initial=0), np.delete(table[:, c], r).max(initial=0))
-            if table[r, c] >= MARGIN * rivals:
-                edges.append((int(table[r, c]), (a.name, people[a.name][r]), (b.name, people[b.name][c])))
+
+    def one_pair(item: tuple[int, tuple[SubjectVideo, SubjectVideo]]) -> tuple[dict[str, Any], list[Edge]]:
+        k, (a, b) = item
+        rng = np.random.default_rng([SEED, k])  # per pair of videos: the same draws wherever it runs
+        return _match_pair(tracks, video, person, keypoint, a, b, people, rng, max_offset, inlier_px)
+
+    matched_pairs = map_beside(one_pair, list(enumerate(pairs)), "matching people across videos")
+    tables = [table for table, _ in matched_pairs]
+    edges = [edge for _, pair_edges in matched_pairs for edge in pair_edges]
     groups = _join(edges)
     matched = {(v, own) for group in groups for v, own in group.items()}
     everyone = {n: _all_people(video == n, person) for n in names}
     left_out = {n: [p for p in own if (n, p) not in matched] for n, own in everyone.items()}
     with_people = [n for n, own in everyone.items() if own]
     return PeopleAssociation(groups=groups, left_out=left_out, tables=tables, videos=with_people)
+
+
+def _match_pair(
+    tracks: Tracks,
+    video: np.ndarray,
+    person: np.ndarray,
+    keypoint: list[str],
+    a: SubjectVideo,
+    b: SubjectVideo,
+    people: dict[str, list[int]],
+    rng: np.random.Generator,
+    max_offset: float,
+    inlier_px: float,
+) -> tuple[dict[str, Any], list[Edge]]:
+    """One pair of videos: its people's inlier table under one geometry (the report's entry) and the pairings it
+    keeps (inliers, one video's person, the other's)."""
+    shape = (len(people[a.name]), len(people[b.name]))
+    obs: dict[tuple[int, int], list[VideoObs]] = {}
+    fits: dict[tuple[int, int], PairFit] = {}
+    for r, c in np.ndindex(*shape):
+        rows = ((video == a.name) & (person == people[a.name][r])) | ((video == b.name) & (person == people[b.name][c]))
+        obs[r, c] = _observations(tracks, rows, keypoint, a, b)
+        fits[r, c] = fit_pair(obs[r, c][0], obs[r, c][1], 0, 1, max_offset, rng, inlier_px)
+    table, source = _shared_geometry(obs, fits, shape, inlier_px)
+    log.info("people of %s (rows) and %s (columns), inliers of one geometry:\n%s", a.name, b.name, table)
+    edges: list[Edge] = []
+    for r, c in zip(*np.nonzero(table >= MIN_INLIERS), strict=True):
+        rivals = max(np.delete(table[r], c).max(initial=0), np.delete(table[:, c], r).max(initial=0))
+        if table[r, c] >= MARGIN * rivals:
+            edges.append((int(table[r, c]), (a.name, people[a.name][r]), (b.name, people[b.name][c])))
+    entry = {
+        "videos": [a.name, b.name],
+        "people": [people[a.name], people[b.name]],
+        "inliers": table.tolist(),
+        "geometry_of": None if source is None else [people[a.name][source[0]], people[b.name][source[1]]],
+    }
+    return entry, edges
 
 
 def _all_people(rows: np.ndarray, person: np.ndarray) -> list[int]:
@@ -174,7 +195,7 @@ def _count(obs: list[VideoObs], fit: PairFit, inlier_px: float) -> int:
     return int((sampson(fit.E[None], xa, xb)[0] < threshold**2).sum())
 
 
-def _join(edges: list[tuple[int, tuple[str, int], tuple[str, int]]]) -> list[dict[str, int]]:
+def _join(edges: list[Edge]) -> list[dict[str, int]]:
     """Pairings joined into people, most inliers first; a pairing that would put two people of one video in one
     person is skipped. People are numbered by their pairings' inliers (most first)."""
     group_of: dict[tuple[str, int], int] = {}

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from dynrecon import beside as beside_module
-from dynrecon.beside import beside, fork_is_safe
+from dynrecon.beside import beside, fork_is_safe, map_beside
 from dynrecon.errors import InputError
 
 PARENT = os.getpid()
@@ -147,6 +147,25 @@ def test_without_fork_it_runs_in_a_thread(monkeypatch: pytest.MonkeyPatch) -> No
         assert running.result() == (os.getpid(), values.sum())
     with beside(fails) as running, pytest.raises(ValueError):
         running.result()
+
+
+def where_and_square(value: int) -> tuple[int, int]:
+    return os.getpid(), value * value
+
+
+def test_a_map_beside_gives_the_list_in_order_half_of_it_from_a_child(single_threaded: None) -> None:
+    out = map_beside(where_and_square, list(range(7)), "squares")
+    assert [square for _, square in out] == [k * k for k in range(7)]
+    assert {pid for pid, _ in out[::2]} == {os.getpid()}
+    assert {pid for pid, _ in out[1::2]} != {os.getpid()} and len({pid for pid, _ in out[1::2]}) == 1
+    assert map_beside(where_and_square, [3]) == [(os.getpid(), 9)] and map_beside(where_and_square, []) == []
+
+
+def test_a_map_beside_without_fork_gives_the_same_list(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(beside_module.NO_FORK, "1")
+    assert map_beside(where_and_square, list(range(5))) == [(os.getpid(), k * k) for k in range(5)]
+    with pytest.raises(ValueError, match="the function's own error"):
+        map_beside(lambda _: fails(), [1, 2])
 
 
 def test_the_fork_tests_run_somewhere() -> None:
