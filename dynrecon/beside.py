@@ -187,10 +187,7 @@ def map_beside(function: Callable[[A], T], items: Sequence[A], progress: str | N
     with beside(_mapped, function, items[1::2]) as running:
         mine = _mapped(function, bar())
         theirs = running.result()
-    out: list[T] = []
-    for k in range(len(items)):
-        out.append(mine[k // 2] if k % 2 == 0 else theirs[k // 2])
-    return out
+    return [mine[k // 2] if k % 2 == 0 else theirs[k // 2] for k in range(len(items))]
 
 
 def _mapped(function: Callable[[A], T], items: Iterable[A]) -> list[T]:

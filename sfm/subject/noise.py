@@ -73,7 +73,8 @@ def choose_scale(
             stack.enter_context(beside(_attempt, trial, dataclasses.replace(options, inlier_px=px))) for px in wider
         ]
         outcomes = [_attempt(trial, dataclasses.replace(options, inlier_px=first))] + [r.result() for r in running]
-    log.info("noise scales solved side by side (%s)", "forked" if all(r.forked for r in running) else "threads")
+    if running:
+        log.info("noise scales solved side by side (%s)", "forked" if all(r.forked for r in running) else "threads")
     for px, outcome in zip(NOISE_SCALES_PX, outcomes, strict=True):
         if isinstance(outcome, SubjectCalibrationError):  # ScalePointsError too: another scale may triangulate the pair
             errors[px] = outcome
