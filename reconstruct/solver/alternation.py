@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from tqdm import tqdm
 
 from dynrecon.errors import DynreconError, NotEnoughDataError
+from reconstruct.solver import unseen_frames
 from reconstruct.solver.anderson import AndersonMixer
 from reconstruct.solver.blas import one_blas_thread, outer_blas_threads
 from reconstruct.solver.candidates import CandidateOptions, MovingWindows, coarse_to_fine_init
@@ -210,9 +211,26 @@ def solve(problem: Problem, options: SolverOptions | None = None) -> SolveResult
 
 
 def _solve(problem: Problem, options: SolverOptions) -> SolveResult:
+    keep = _reconstructable(problem)
+    seen = unseen_frames.seen_frames(problem, keep)
+    if seen.all():
+        return _solve_seen(problem, keep, options)
+    log.info("%d of %d frames observe no point: solved without them, then interpolated", int((~seen).sum()), len(seen))
+    part = _solve_seen(unseen_frames.take_frames(problem, seen), keep, options)
+    return dataclasses.replace(
+        part,
+        points=unseen_frames.put_back(part.points, seen, problem.video_index, keep),
+        W=unseen_frames.put_back_w(part.W, seen),
+        init=unseen_frames.put_back_init(part.init, seen),
+        residual=unseen_frames.along(part.residual, seen),
+        init_points=unseen_frames.along(part.init_points, seen),
+    )
+
+
+def _solve_seen(problem: Problem, keep: np.ndarray, options: SolverOptions) -> SolveResult:
+    """The alternation on `problem`, every frame of which observes one of the `keep` points or more."""
     timings: dict[str, float] = {}
     started = time.perf_counter()
-    keep = _reconstructable(problem)
     normalization = camera_normalization(problem.centers, problem.video_index)
     scene = _Scene(
         centers=normalization.apply(problem.centers),

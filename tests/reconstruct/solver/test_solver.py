@@ -197,3 +197,23 @@ def test_options_a_script_sets_out_of_range_fail_at_construction(options):
     with pytest.raises(ValueError):
         SolverOptions(**options)
     SolverOptions(lambda3=0.0, constraint=RayConstraint.HARD)  # the hard constraint needs no weight
+
+
+def test_frames_that_observe_nothing_are_solved_without_and_interpolated() -> None:
+    # detections every 3rd frame of each video: two frames in three carry no ray, and their shapes are free
+    problem, truth = synthetic_problem(frames=160, points=6)
+    empty = np.zeros(problem.num_frames, dtype=bool)
+    for v in range(len(problem.video_names)):
+        members = np.flatnonzero(problem.video_index == v)
+        empty[members[np.arange(len(members)) % 3 != 0]] = True
+    problem.uv[empty] = np.nan
+    result = solve(problem)
+    error = np.linalg.norm(result.points - truth_array(problem, truth), axis=-1)
+    assert np.median(error[~empty]) < 2.0 and np.mean(error[~empty] < 10.0) > 0.95  # mm, cameras ~2 m away
+    # the others: their video's neighbouring shapes interpolated (160 frames of smooth motion: close, not exact)
+    assert np.all(np.isfinite(result.points[empty])) and np.median(error[empty]) < 20.0
+    assert np.all(np.isnan(result.residual[empty])) and np.all(np.isfinite(result.residual[~empty]))
+    W = result.W.to_csc()
+    assert W.shape == (problem.num_frames,) * 2 and W[:, empty].nnz == 0 and W[empty].nnz == 0
+    assert np.all(result.init.partner[empty] == -1)
+    assert np.all(~empty[result.init.partner[result.init.partner >= 0]])
