@@ -22,6 +22,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_write_text, remove_temp_files, require_writable
 from dynrecon.beside import beside
+from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
@@ -377,7 +378,7 @@ def build_report(
             "unit": "input units, RMS over points of S_f - sum_j W_jf S_j",
             "median": float(np.nanmedian(result.residual)),
             "per_frame": [
-                {"video": v, "frame": int(f), "residual": float(r)}
+                {"video": v, "frame": int(f), "residual": finite_or_none(r)}  # null: a frame that observes nothing
                 for v, f, r in zip(problem.frame_videos, problem.frames, result.residual, strict=True)
             ],
         }

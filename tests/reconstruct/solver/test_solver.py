@@ -1,4 +1,5 @@
 import itertools
+import json
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ from dynrecon.errors import NotEnoughDataError
 from reconstruct.inputs import build_problem
 from reconstruct.solver.alternation import SolverOptions, solve
 from reconstruct.solver.xstep import RayConstraint
+from reconstruct.stage import SolveOptions, build_report
 from tracking.tracks import Tracks
 
 
@@ -217,3 +219,8 @@ def test_frames_that_observe_nothing_are_solved_without_and_interpolated() -> No
     assert W.shape == (problem.num_frames,) * 2 and W[:, empty].nnz == 0 and W[empty].nnz == 0
     assert np.all(result.init.partner[empty] == -1)
     assert np.all(~empty[result.init.partner[result.init.partner >= 0]])
+    # report.json stays strict JSON: those frames' residuals are null, not NaN
+    report = build_report(problem, result, SolveOptions(), {"cameras": None, "tracks": None})
+    frames = report["residual"]["per_frame"]
+    assert json.loads(json.dumps(report, allow_nan=False, default=str))["residual"]["per_frame"] == frames
+    assert [entry["residual"] is None for entry in frames] == empty.tolist()
