@@ -649,7 +649,10 @@ def _residual(ws: Path, keys: list[tuple[str, int]]) -> np.ndarray | None:
         per_frame = json.loads((ws / "report.json").read_text(encoding="utf-8"))["residual"]["per_frame"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    by_key = {(e["video"], int(e["frame"])): float(e["residual"]) for e in per_frame}
+    # null: a frame that observes no point (the solver leaves it out): a gap in the plot
+    by_key = {
+        (e["video"], int(e["frame"])): np.nan if e["residual"] is None else float(e["residual"]) for e in per_frame
+    }
     values = [by_key.get(key) for key in keys]
     return None if any(v is None for v in values) else np.array(values, dtype=float)
 
