@@ -1,10 +1,11 @@
-"""Numbers for JSON reports: JSON has no NaN or infinity, so a value that is not finite is written as null."""
+"""Numbers for JSON reports: JSON has no NaN or infinity, so a value that is not finite is written as null (and read
+back as NaN)."""
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["finite_or_none"]
+__all__ = ["finite_or_none", "float_or_nan"]
 
 
 def finite_or_none(value: float | None, digits: int | None = None) -> float | None:
@@ -12,3 +13,8 @@ def finite_or_none(value: float | None, digits: int | None = None) -> float | No
     if value is None or not math.isfinite(value):
         return None
     return float(value) if digits is None else round(float(value), digits)
+
+
+def float_or_nan(value: float | str | None) -> float:
+    """A report's number read back: null (None) as NaN, anything else as `float()` reads it."""
+    return math.nan if value is None else float(value)

@@ -45,6 +45,7 @@ import numpy as np
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
+from dynrecon.jsonvalues import float_or_nan
 from dynrecon.pipeline_state import STATE_NAME, State, file_hash, inputs_key
 from dynrecon.truth import Similarity, align_to_truth, score_points, similarity_to_truth
 from labeling.skeleton import read_skeleton
@@ -650,9 +651,7 @@ def _residual(ws: Path, keys: list[tuple[str, int]]) -> np.ndarray | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     # null: a frame that observes no point (the solver leaves it out): a gap in the plot
-    by_key = {
-        (e["video"], int(e["frame"])): np.nan if e["residual"] is None else float(e["residual"]) for e in per_frame
-    }
+    by_key = {(e["video"], int(e["frame"])): float_or_nan(e["residual"]) for e in per_frame}
     values = [by_key.get(key) for key in keys]
     return None if any(v is None for v in values) else np.array(values, dtype=float)
 

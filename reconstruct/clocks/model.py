@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
-from dynrecon.jsonvalues import finite_or_none
+from dynrecon.jsonvalues import finite_or_none, float_or_nan
 from reconstruct.solver.problem import Problem
 
 DEFAULT_FPS = 30.0  # own time of a video without decoder times or a known frame rate (its rate absorbs the error)
@@ -306,15 +306,15 @@ class VideoClockReport:
             time_source=TimeSource(v["time_source"]),
             method=str(v["method"]),
             identified=bool(v["identified"]),
-            offset=_float(v["offset"]),
-            offset_std=_float(v["offset_std"]),
-            rate=_float(v["rate"]),
-            rate_std=_float(v["rate_std"]),
-            drift=_float(v["drift"]),
-            drift_std=_float(v["drift_std"]),
+            offset=float_or_nan(v["offset"]),
+            offset_std=float_or_nan(v["offset_std"]),
+            rate=float_or_nan(v["rate"]),
+            rate_std=float_or_nan(v["rate_std"]),
+            drift=float_or_nan(v["drift"]),
+            drift_std=float_or_nan(v["drift_std"]),
             links=int(v.get("links", 0)),
-            track_residual_px=_float(v.get("track_residual_px")),
-            frame_scatter=_float(v.get("frame_scatter")),
+            track_residual_px=float_or_nan(v.get("track_residual_px")),
+            frame_scatter=float_or_nan(v.get("frame_scatter")),
         )
 
 
@@ -390,9 +390,9 @@ class Clocks:
                 videos=videos,
                 frame_videos=[str(e["video"]) for e in entries],
                 frames=np.array([int(e["frame"]) for e in entries], dtype=np.int64),
-                own_time=np.array([_float(e["own_time"]) for e in entries]),
-                global_time=np.array([_float(e["time"]) for e in entries]),
-                global_std=np.array([_float(e["time_std"]) for e in entries]),
+                own_time=np.array([float_or_nan(e["own_time"]) for e in entries]),
+                global_time=np.array([float_or_nan(e["time"]) for e in entries]),
+                global_std=np.array([float_or_nan(e["time_std"]) for e in entries]),
                 warnings=[str(w) for w in document.get("warnings", [])],
                 diagnostics=dict(document.get("diagnostics", {})),
             )
@@ -402,10 +402,6 @@ class Clocks:
                 f"invalid 'clocks' entry: {repr(error)[:200]}",
                 fix="rewrite it with `dynrecon solve`, or remove the key",
             ) from None
-
-
-def _float(value: Any) -> float:
-    return math.nan if value is None else float(value)
 
 
 def _plain(value: Any) -> Any:
