@@ -46,8 +46,7 @@ def take_frames(problem: Problem, frames: np.ndarray) -> Problem:
 def put_back(points: np.ndarray, frames: np.ndarray, video_index: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """(F, P, 3) from the solved frames' (F', P, 3): the other frames interpolated within their video over frame
     order (edges held; a video without a solved frame gets each point's mean), the `keep` points only."""
-    out = np.full((len(frames), *points.shape[1:]), np.nan)
-    out[frames] = points
+    out = along(points, frames)
     out[:, keep] = fill_missing_points(out[:, keep], video_index)
     return out
 
@@ -66,11 +65,7 @@ def put_back_init(init: PairInit, frames: np.ndarray) -> PairInit:
     index = np.flatnonzero(frames)
     partner = np.full(len(frames), -1, dtype=init.partner.dtype)
     partner[index] = np.where(init.partner >= 0, index[np.maximum(init.partner, 0)], -1)
-    cost = np.full(len(frames), np.nan)
-    cost[index] = init.cost
-    depth = np.full((len(frames), init.depth.shape[1]), np.nan)
-    depth[index] = init.depth
-    return PairInit(partner=partner, cost=cost, depth=depth)
+    return PairInit(partner=partner, cost=along(init.cost, frames), depth=along(init.depth, frames))
 
 
 def along(values: np.ndarray, frames: np.ndarray) -> np.ndarray:
