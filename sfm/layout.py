@@ -14,6 +14,12 @@ class Layout:
     out: Path  # the register folder: cameras.json, background.ply, register_report.json, frames/, sfm/
 
     @property
+    def previous_dir(self) -> Path:
+        """The last successful run's cameras.json, background.ply and register_report.json while a new run has not
+        yet replaced them (kept there when it fails)."""
+        return self.out / "previous"
+
+    @property
     def frames_dir(self) -> Path:
         return self.out / "frames"
 

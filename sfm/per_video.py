@@ -14,6 +14,7 @@ Each step's warnings and seconds go into its file and from there into register_r
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -92,11 +93,23 @@ def timed(notes: StepNotes, step: str) -> Iterator[None]:
     notes.timings[step] = notes.timings.get(step, 0.0) + time.perf_counter() - started
 
 
+# cameras.json last: a parallel task that no longer finds it knows the others are already moved
+OUTPUTS = ("background.ply", "register_report.json", "cameras.json")
+
+
 def clear_outputs(out: Path) -> None:
-    """Remove a previous run's results, so that a failing run never leaves them beside its report."""
+    """Move a previous successful run's results into `Layout.previous_dir` (a failing run never leaves them beside
+    its report, nor loses them; `finish_capture` removes them once the new ones are written); a failed run's report
+    is removed. Safe to call from several of a capture's tasks at once."""
     out.mkdir(parents=True, exist_ok=True)
-    for stale in ("cameras.json", "background.ply", "register_report.json"):
-        (out / stale).unlink(missing_ok=True)
+    previous = Layout(out).previous_dir
+    if not (out / "cameras.json").is_file():
+        (out / "register_report.json").unlink(missing_ok=True)  # a failed run's, or nothing
+        return
+    previous.mkdir(exist_ok=True)
+    for name in OUTPUTS:
+        with contextlib.suppress(FileNotFoundError):  # another task of the capture moved it first
+            (out / name).replace(previous / name)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -453,6 +453,7 @@ def finish_capture(
         declared = options.declared(videos)
         path = _export(registered_videos, results, _points(kept, dropped), subject_report, people, out, declared)
     _write_report(out, options, notes, unreadable, plans, results, summary, subject_report, error=None)
+    shutil.rmtree(layout.previous_dir, ignore_errors=True)  # replaced by this run's
     return path
 
 
@@ -636,6 +637,9 @@ def _fail(
         )
     if moving_hint:
         hint += f"; {moving_hint}"
+    previous = Layout(out).previous_dir
+    if (previous / "cameras.json").is_file():
+        hint += f"; the last successful run's cameras.json is kept in {previous}"
     error = RegistrationError.of(what, hint, out / "register_report.json")
     _write_report(out, options, notes, unreadable, videos, results, summary, subject, error=str(error))
     raise error

@@ -109,6 +109,21 @@ def test_untextured_videos_fail_clearly(tmp_path: Path, capsys: pytest.CaptureFi
     assert not (tmp_path / "ws" / "cameras.json").exists()
 
 
+def test_a_failed_run_keeps_the_last_results(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    last = {"cameras.json": '{"videos": []}', "background.ply": "ply", "register_report.json": '{"ok": true}'}
+    for name, text in last.items():
+        (ws / name).write_text(text)
+    videos = [str(_flat_video(tmp_path / f"flat{i}.mp4")) for i in range(2)]
+    for _ in range(2):  # a second failure keeps them too
+        assert main(["register", *videos, "--out", str(ws), "--max-frames", "3"]) == 2
+        err = capsys.readouterr().err
+        assert f"the last successful run's cameras.json is kept in {ws / 'previous'}" in err
+        assert {name: (ws / "previous" / name).read_text() for name in last} == last
+        assert not (ws / "cameras.json").exists() and not json.loads((ws / "register_report.json").read_text())["ok"]
+
+
 def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     video = _flat_video(tmp_path / "a.mp4", frames=2)
     (tmp_path / "b").mkdir()
