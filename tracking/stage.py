@@ -48,12 +48,17 @@ def run(
     unknown = sorted(set(labels) - set(chosen)) if videos is None else []
     if unknown:
         log.warning("labels.csv names video(s) %s that the workspace does not list; not tracked", ", ".join(unknown))
-    if not set(labels) & set(chosen):  # an empty tracks.csv would otherwise be written without a word
-        log.warning(
-            "%s has no labels for %s%s: nothing is tracked",
+    if not set(labels) & set(chosen):  # refused: writing would replace out's rows with none
+        found = labels_path.exists() or labels_path.is_symlink()
+        raise InputError(
             labels_path,
-            ", ".join(chosen),
-            f" (it labels {', '.join(sorted(labels))}: video names must match the file names)" if labels else "",
+            ("has no labels for " if found else "not found: no labels for ")
+            + ", ".join(chosen)
+            + (f" (it labels {', '.join(sorted(labels))})" if labels else "")
+            + f"; nothing to track, {out} left as it was",
+            fix="video names must match the file names; label points with `dynrecon label WS`"
+            if labels
+            else "label points with `dynrecon label WS`, or import tracks with `dynrecon import-tracks`",
         )
     results: dict[str, dict[str, dict[int, TrackedPoint]]] = {}
     for name, path in chosen.items():

@@ -106,13 +106,26 @@ def test_track_command_errors_are_one_line(
     assert main(["track", str(ws), "--min-score", "2"]) == 2
 
 
-def test_track_without_labels_writes_an_empty_file(tmp_path: Path, small_video: SyntheticVideo) -> None:
+def test_track_without_labels_is_refused_and_keeps_the_tracks(
+    tmp_path: Path, small_video: SyntheticVideo, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert small_video.path is not None
     ws = tmp_path / "ws"
     (ws / "videos").mkdir(parents=True)
     (ws / "videos" / "cam9.avi").symlink_to(small_video.path)
-    assert main(["track", str(ws)]) == 0
-    assert len(read_tracks(ws / "tracks.csv")) == 0
+    assert main(["track", str(ws)]) == 2
+    err = capsys.readouterr().err
+    assert "labels.csv: not found: no labels for cam9" in err and "dynrecon label" in err and err.count("\n") == 1
+    assert not (ws / "tracks.csv").exists()
+    kept = "video,frame,point,x,y,source\ncam9,0,m0,1,2,imported\n"  # e.g. imported detections
+    (ws / "tracks.csv").write_text(kept)
+    for labels in ("", "video,frame,point,x,y,source\n", "video,frame,point,x,y,source\ncamQ,0,m0,1,2,label\n"):
+        (ws / "labels.csv").write_text(labels)
+        assert main(["track", str(ws)]) == 2
+        err = capsys.readouterr().err
+        assert "labels.csv: has no labels for cam9" in err and "tracks.csv left as it was" in err
+        assert ("(it labels camQ)" in err) == ("camQ" in labels)
+        assert (ws / "tracks.csv").read_text() == kept
 
 
 def test_import_tracks_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
