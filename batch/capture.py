@@ -14,7 +14,7 @@ from typing import Any
 
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
-from dynrecon.readers import read_json
+from dynrecon.readers import check_folder_name, read_json
 
 MANIFEST_NAME = "capture.json"
 LABELS_NAME = "labels.csv"
@@ -54,8 +54,14 @@ def read_capture(folder: str | Path) -> Capture:
     twice = first_repeated(names)
     if twice is not None:
         raise InputError(folder, f"two videos are named {names[twice]!r}", fix="video file names must differ")
+    name = check_folder_name(
+        str(manifest.get("name") or folder.name),
+        folder / MANIFEST_NAME if manifest.get("name") else folder,
+        what="capture name",
+        fix="\"name\" names the capture's workspace folder under the batch's --out: give a plain folder name",
+    )
     capture = Capture(
-        name=str(manifest.get("name") or folder.name),
+        name=name,
         folder=folder,
         videos=videos,
         labels=_optional(folder, manifest, "labels", (LABELS_NAME,)),

@@ -173,6 +173,16 @@ def check_video_name(name: str, path: Path | None = None) -> str:
 
     Video names become folders (`frames/<video>/`) and file names, so `..` (from `...mp4`) would write elsewhere.
     """
+    return check_folder_name(
+        name,
+        path,
+        what="video name",
+        fix="rename the video file: its name without extension names the video everywhere",
+    )
+
+
+def check_folder_name(name: str, path: Path | None, *, what: str, fix: str) -> str:
+    """`name` if it is safe as one folder or file name (see check_video_name), else an InputError naming `what`."""
     bad = None
     if not name or not name.strip():
         bad = "is empty"
@@ -183,9 +193,5 @@ def check_video_name(name: str, path: Path | None = None) -> str:
     elif any(ord(c) < 32 or ord(c) == 127 for c in name):
         bad = "contains a control character"
     if bad is not None:
-        raise InputError(
-            path,
-            f"video name {shown(name)} {bad}",
-            fix="rename the video file: its name without extension names the video everywhere",
-        )
+        raise InputError(path, f"{what} {shown(name)} {bad}", fix=fix)
     return name

@@ -1,0 +1,34 @@
+"""A capture folder's manifest: its name becomes a folder under the batch's --out, so it must be one plain name."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from batch import read_capture
+from dynrecon.errors import InputError
+
+
+def _capture(tmp_path: Path, manifest: dict | None) -> Path:
+    folder = tmp_path / "cap"
+    folder.mkdir(parents=True)
+    for name in ("cam0.mp4", "cam1.mp4"):
+        (folder / name).write_bytes(b"")  # read_capture lists the videos; nothing reads them yet
+    if manifest is not None:
+        (folder / "capture.json").write_text(json.dumps(manifest))
+    return folder
+
+
+@pytest.mark.parametrize("name", ["../escaped", ".", "..", "a/b", "a\\b", " "])
+def test_a_name_that_is_not_one_plain_folder_name_is_refused(tmp_path: Path, name: str) -> None:
+    folder = _capture(tmp_path, {"name": name})
+    with pytest.raises(InputError, match="capture name") as error:
+        read_capture(folder)
+    assert str(folder / "capture.json") in str(error.value) and "plain folder name" in str(error.value)
+
+
+def test_the_folder_name_or_a_plain_name_is_kept(tmp_path: Path) -> None:
+    assert read_capture(_capture(tmp_path / "a", None)).name == "cap"
+    assert read_capture(_capture(tmp_path / "b", {"name": "day 1"})).name == "day 1"
