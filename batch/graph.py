@@ -135,7 +135,7 @@ def run_batch(captures: Sequence[str | Path], out: str | Path, options: BatchOpt
 def _read_captures(
     folders: Sequence[str | Path], state: BatchState, out: Path, echo: bool, pipeline: PipelineOptions
 ) -> list[Capture]:
-    good: list[Capture] = []
+    read: list[tuple[Path, Capture | DynreconError]] = []
     seen: dict[str, Path] = {}
     for folder in folders:
         path = Path(folder).resolve()
@@ -146,18 +146,25 @@ def _read_captures(
             # --offsets name the videos of every capture: one without them fails here, before any work
             declared_offsets(pipeline.register.synchronized, pipeline.register.offsets, capture.video_names)
         except DynreconError as error:
-            status = state.start(path.name, path, None)
-            status.fail("read", one_line(error))
-            _echo(echo, f"{path.name}: failed (read): {status.error}")
+            read.append((path, error))
             continue
         seen[capture.name] = path
-        state.start(capture.name, path, out / capture.name)
-        good.append(capture)
+        read.append((path, capture))
+    good: list[Capture] = []
+    for path, outcome in read:
+        if isinstance(outcome, Capture):
+            state.start(outcome.name, path, out / outcome.name)
+            good.append(outcome)
+            continue
+        # keyed by its folder's name, or by its path where a capture that runs has that name (its entry stays)
+        status = state.start(str(path) if path.name in seen else path.name, path, None)
+        status.fail("read", one_line(outcome))
+        _echo(echo, f"{path.name}: failed (read): {status.error}")
     return good
 
 
 def _unread(state: BatchState, folders: Sequence[str | Path]) -> dict[str, CaptureStatus]:
-    names = {Path(f).resolve().name for f in folders}
+    names = {Path(f).resolve().name for f in folders} | {str(Path(f).resolve()) for f in folders}
     return {n: s for n, s in state.captures.items() if n in names and s.workspace is None}
 
 

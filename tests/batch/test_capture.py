@@ -32,3 +32,17 @@ def test_a_name_that_is_not_one_plain_folder_name_is_refused(tmp_path: Path, nam
 def test_the_folder_name_or_a_plain_name_is_kept(tmp_path: Path) -> None:
     assert read_capture(_capture(tmp_path / "a", None)).name == "cap"
     assert read_capture(_capture(tmp_path / "b", {"name": "day 1"})).name == "day 1"
+
+
+def test_two_captures_of_one_name_keep_both_entries(tmp_path: Path) -> None:
+    from batch.graph import _read_captures
+    from batch.state import BatchState
+    from dynrecon.pipeline import PipelineOptions
+
+    first, second = _capture(tmp_path / "day1", None), _capture(tmp_path / "day2", None)
+    state = BatchState(tmp_path / "out")
+    good = _read_captures([first, second], state, tmp_path / "out", False, PipelineOptions())
+    assert [c.folder for c in good] == [first]
+    assert state.captures["cap"].workspace == str(tmp_path / "out" / "cap") and state.captures["cap"].status != "failed"
+    clash = state.captures[str(second)]
+    assert clash.status == "failed" and clash.stage == "read" and f"is also {first}" in (clash.error or "")
