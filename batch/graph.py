@@ -39,6 +39,7 @@ from batch.tasks import (
     solve_task,
     track_video_task,
 )
+from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError, InputError
 from dynrecon.pipeline import PipelineOptions
 from sfm.options import declared_offsets
@@ -120,7 +121,7 @@ def run_batch(captures: Sequence[str | Path], out: str | Path, options: BatchOpt
     """Reconstruct every capture folder into `out/<name>/` on Dask; `out/batch.json` says how each went. Folders
     that cannot be read fail at once, with their one-line reason; the others run."""
     options = options or BatchOptions()
-    out = Path(out).resolve()
+    out = require_writable(Path(out).resolve())  # one line where it cannot be made
     out.mkdir(parents=True, exist_ok=True)
     state = BatchState(out)
     good = _read_captures(captures, state, out, options.progress, options.pipeline)

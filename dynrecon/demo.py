@@ -18,8 +18,8 @@ import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from dynrecon.atomic import atomic_write_text
-from dynrecon.errors import DynreconError
+from dynrecon.atomic import atomic_write_text, require_writable
+from dynrecon.errors import DynreconError, InputError
 from dynrecon.pipeline import PipelineOptions, PipelineResult, default_register, run_stages, score_against_truth
 from labeling.skeleton import read_skeleton
 from reconstruct.clocks.estimate import ClockModel, ClockOptions, SearchMode
@@ -63,9 +63,10 @@ class DemoResult:
 def fresh_folder(base: Path) -> Path:
     """`base`, or `base-2`, `base-3`, ... : never write into a folder that already has results."""
     candidate, number = base, 1
-    while candidate.exists() and any(candidate.iterdir()):
+    while candidate.exists() and (not candidate.is_dir() or any(candidate.iterdir())):  # a file is taken too
         number += 1
         candidate = base.with_name(f"{base.name}-{number}")
+    require_writable(candidate)  # one line, not a traceback, where it cannot be made
     candidate.mkdir(parents=True, exist_ok=True)
     return candidate
 
@@ -74,6 +75,8 @@ def _sample_files(sample: Path) -> list[Path]:
     wanted = [sample / f"{name}.mp4" for name in VIDEO_NAMES]
     wanted += [sample / name for name in ("labels.csv", "truth.csv", "truth_cameras.json", "walker_skeleton.json")]
     missing = [path for path in wanted if not path.is_file()]
+    if missing and sample.resolve() != VIDEO_SAMPLE.resolve():
+        raise InputError(missing[0], "not found", fix="--sample names a folder laid out like data_samples/video_sample")
     if missing:
         raise DynreconError(
             f"{missing[0]}: the embedded video sample is incomplete "

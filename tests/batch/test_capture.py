@@ -46,3 +46,11 @@ def test_two_captures_of_one_name_keep_both_entries(tmp_path: Path) -> None:
     assert state.captures["cap"].workspace == str(tmp_path / "out" / "cap") and state.captures["cap"].status != "failed"
     clash = state.captures[str(second)]
     assert clash.status == "failed" and clash.stage == "read" and f"is also {first}" in (clash.error or "")
+
+
+def test_a_batch_out_that_is_a_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from dynrecon.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    assert main(["batch", str(_capture(tmp_path, None)), "--out", str(tmp_path / "afile")]) == 2
+    assert "afile: cannot write here: it is a file, not a folder" in capsys.readouterr().err

@@ -76,6 +76,14 @@ def test_fresh_folder_never_reuses_results(tmp_path):
     (first / "points3d.csv").write_text("x")
     second = fresh_folder(tmp_path / "demo")
     assert second != first and second.name == "demo-2"
+    (tmp_path / "afile").write_text("x")  # a file where the folder would be: the next free name, no traceback
+    assert fresh_folder(tmp_path / "afile") == tmp_path / "afile-2" and (tmp_path / "afile-2").is_dir()
+
+
+def test_a_sample_folder_without_the_files_is_named(tmp_path, capsys):
+    assert main(["demo", "--sample", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'cam0.mp4'}: not found" in err and "--sample names a folder" in err
 
 
 def test_sample_is_what_its_generator_makes(tmp_path, monkeypatch):
