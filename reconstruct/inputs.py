@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError, NotEnoughDataError
+from reconstruct.facing import check_facing
 from reconstruct.screen import remove_spikes
 from reconstruct.solver.problem import Problem, reconstructable_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
@@ -120,6 +121,7 @@ def build_problem_checked(
             "nothing can be reconstructed (each point needs observations from at least two videos; check that the "
             "point names are the same in every video)"
         )
+    check_facing(problem, source)
     return problem, rejection
 
 

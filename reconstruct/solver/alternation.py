@@ -244,6 +244,11 @@ def _solve_seen(problem: Problem, keep: np.ndarray, options: SolverOptions) -> S
     init = _initialize(problem, scene, options)
     init_points = scene.centers[:, None, :] + init.depth[..., None] * scene.rays
     unmatched = int(np.sum(init.partner < 0))
+    if unmatched == scene.num_frames:  # nothing to start from: every start value would be NaN
+        raise NotEnoughDataError(
+            "no frame's rays meet another video's rays of the same points in front of both cameras: nothing to start "
+            "the solve from (check the cameras against the tracks: video and point names, poses as cam_from_world)"
+        )
     if unmatched:
         log.info("%d frame(s) found no partner bundle in another video; their start values are interpolated", unmatched)
     points = fill_missing_points(init_points, scene.video_index)
