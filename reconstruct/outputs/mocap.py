@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -122,6 +123,14 @@ def _read_c3d(path: Path) -> Mocap:
     points = np.asarray(c3d["data"]["points"], dtype=float)  # (4, M, T)
     if points.ndim != 3 or points.shape[1] == 0:
         raise InputError(path, "the file has no markers", fix="give a file with 3D marker trajectories")
+    declared = _c3d_header_frames(path)
+    if declared is not None and points.shape[2] < declared:  # ezc3d reads what is there and says nothing
+        raise InputError(
+            path,
+            f"its header declares {declared} frames but only {points.shape[2]} could be read (the file may be "
+            "truncated)",
+            fix="check that the file is complete",
+        )
     xyz = np.ascontiguousarray(points[:3].transpose(2, 1, 0))  # (T, M, 3)
     residuals = c3d["data"].get("meta_points", {}).get("residuals")
     if residuals is not None and np.shape(residuals)[1:] == (xyz.shape[1], xyz.shape[0]):
@@ -145,6 +154,23 @@ def _read_c3d(path: Path) -> Mocap:
     first = int(c3d["header"]["points"].get("first_frame", 0))
     times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
     return Mocap(xyz=xyz, rate=rate, marker_names=names, times=times, path=path)
+
+
+def _c3d_header_frames(path: Path) -> int | None:
+    """The frame count of the file's own header (words 4 and 5: first and last frame), as written: ezc3d rewrites
+    its parsed header to the frames it could read. None where the header does not tell (a count past its 16 bits)."""
+    with path.open("rb") as handle:
+        head = handle.read(512)
+        parameters = head[0] if head else 0
+        handle.seek(max(parameters - 1, 0) * 512 + 3)
+        processor = handle.read(1)
+    if len(head) < 10 or not processor:
+        return None
+    order = ">" if processor[0] == 86 else "<"  # 84 Intel and 85 DEC store little-endian integers, 86 MIPS big
+    first, last = struct.unpack(order + "HH", head[6:10])
+    if last == 0xFFFF or last < first:
+        return None
+    return last - first + 1
 
 
 def _c3d_value(group: dict, key: str, default: object) -> object:

@@ -130,6 +130,9 @@ def test_truncated_c3d(tmp_path: Path, shared_dir: Path) -> None:
     path.write_bytes(data[:600])
     with pytest.raises(InputError, match=r"cut\.c3d"):
         read_mocap(path)
+    path.write_bytes(data[: len(data) // 2])  # whole frames missing: ezc3d reads the rest without a word
+    with pytest.raises(InputError, match=r"cut\.c3d: its header declares 202 frames but only \d+ could be read"):
+        read_mocap(path)
 
 
 def test_select_window_keeps_times() -> None:
