@@ -21,6 +21,7 @@ from dynrecon.errors import InputError
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".c3d", ".trc")
+MAX_MM = 1e9  # a marker this far from the origin (1000 km) is a corrupt value, not a motion
 UNIT_TO_MM = {
     "mm": 1.0,
     "millimeters": 1.0,
@@ -143,6 +144,10 @@ def _read_c3d(path: Path) -> Mocap:
     if scale is None:
         raise InputError(path, f"unknown POINT:UNITS {units!r}", fix="expected mm, cm or m")
     xyz *= scale
+    far = np.argwhere(np.abs(xyz) > MAX_MM)
+    if len(far):
+        t, m, k = far[0]
+        raise InputError(path, _implausible(float(xyz[t, m, k]) / scale, str(units)), where=f"frame {t} marker {m}")
 
     rate = float(str(_c3d_value(point, "RATE", c3d["header"]["points"].get("frame_rate", 0.0))))
     labels: list[str] = []
@@ -154,6 +159,10 @@ def _read_c3d(path: Path) -> Mocap:
     first = int(c3d["header"]["points"].get("first_frame", 0))
     times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
     return Mocap(xyz=xyz, rate=rate, marker_names=names, times=times, path=path)
+
+
+def _implausible(value: float, units: str) -> str:
+    return f"coordinate {value:.6g} {units.strip()} is implausible (over {MAX_MM / 1e6:g} km from the origin)"
 
 
 def _c3d_header_frames(path: Path) -> int | None:
@@ -247,6 +256,8 @@ def _read_trc(path: Path) -> Mocap:
                 first_time = float(fields[1]) if fields[1].strip() else math.nan
         except ValueError:
             raise InputError(path, "a coordinate is not a number", where=f"line {number}") from None
+        if any(abs(v) * scale > MAX_MM for v in values_row):  # NaN compares False
+            raise InputError(path, _implausible(max(values_row, key=abs), units), where=f"line {number}")
         rows.append(values_row)
     if not rows:
         raise InputError(path, "the file has no frames", fix="data rows start on line 6")

@@ -112,6 +112,17 @@ def test_bad_files_are_one_line_errors(tmp_path: Path, name: str, content: str, 
     assert "\n" not in str(error.value) and str(path) in str(error.value)
 
 
+def test_an_absurd_coordinate_names_its_line(tmp_path: Path) -> None:
+    path = write_trc(tmp_path / "t.trc", _synthetic())
+    lines = path.read_text().splitlines()
+    fields = lines[7].split("\t")
+    fields[3] = "1e300"
+    lines[7] = "\t".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"t\.trc:line 8: coordinate 1e\+300 mm is implausible"):
+        read_mocap(path)
+
+
 def test_truncated_trc_names_the_line(tmp_path: Path) -> None:
     path = write_trc(tmp_path / "t.trc", _synthetic())
     text = path.read_text()
