@@ -49,6 +49,20 @@ def track_points(tracks: Tracks, video: str) -> dict[int, np.ndarray]:
     return {int(f): xy[frames == f] for f in np.unique(frames)}
 
 
+MASK_LAYOUT = "<folder>/<video>/<frame:06d>.png for one frame or <folder>/<video>.png for all of a video's frames"
+ASPECT_TOLERANCE = 0.02  # a mask whose width / height differs more is of another image
+
+
+def check_mask_folder(mask_dir: Path, videos: list[str]) -> None:
+    """The `--masks` folder exists and holds a mask of at least one of `videos` (else a name or path is wrong)."""
+    if not mask_dir.is_dir():
+        raise InputError(mask_dir, "masks folder not found", fix=f"give a folder with {MASK_LAYOUT}")
+    if not any((mask_dir / video).is_dir() or (mask_dir / f"{video}.png").is_file() for video in videos):
+        raise InputError(
+            mask_dir, f"holds no mask of the videos {', '.join(videos)}", fix=f"name the masks {MASK_LAYOUT}"
+        )
+
+
 def user_mask(mask_dir: Path, video: str, frame: int, resize: Resize) -> np.ndarray | None:
     """The user's mask for this frame (resized to SfM pixels), or None when there is none."""
     for path in (mask_dir / video / f"{frame:06d}.png", mask_dir / f"{video}.png"):
@@ -56,6 +70,14 @@ def user_mask(mask_dir: Path, video: str, frame: int, resize: Resize) -> np.ndar
             image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             if image is None:
                 raise InputError(path, "cannot read the mask image", fix="masks must be PNG images")
+            height, width = image.shape
+            if abs(width * resize.height / (height * resize.width) - 1) > ASPECT_TOLERANCE:
+                raise InputError(
+                    path,
+                    f"the mask is {width}x{height}, another shape than its video's {resize.width}x{resize.height} "
+                    "SfM images",
+                    fix="masks have the video's size (black: the moving subject)",
+                )
             if resize.scale != 1.0 or image.shape != (resize.height, resize.width):
                 image = cv2.resize(image, (resize.width, resize.height), interpolation=cv2.INTER_NEAREST)
             return np.where(image > 0, 255, 0).astype(np.uint8)

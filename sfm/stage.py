@@ -36,6 +36,7 @@ from sfm.export import write_ply
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
 from sfm.layout import Layout
+from sfm.masks import check_mask_folder
 from sfm.options import ALL_CORES, CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath, declared_offsets
 from sfm.pairs import build_pairs, word_vectors
 from sfm.per_video import (
@@ -133,6 +134,8 @@ def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tra
     """The inputs registration reads late (`--intrinsics`, `--scale`, `--offsets`), checked before any work or any
     removal."""
     declared_offsets(options.synchronized, options.offsets, [info.name for info in infos])
+    if options.masks is not None:
+        check_mask_folder(options.masks, [info.name for info in infos])
     if options.intrinsics is not None:
         known_intrinsics(options.intrinsics, infos)
     if options.scale is not None:

@@ -8,16 +8,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
 
+from dynrecon.errors import InputError
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from sfm.evaluate import compare
 from sfm.export import colmap_params, opencv_intrinsics, read_ply, write_ply
 from sfm.frames import Resize, image_name, select_frames, sfm_folder
 from sfm.isolated import ColmapCrashError, run_isolated
-from sfm.masks import mask_from_points
+from sfm.masks import check_mask_folder, mask_from_points, user_mask
 from sfm.pairs import build_pairs
 from sfm.video import ProbedVideo
 
@@ -77,6 +79,23 @@ def test_intrinsics_conversion_round_trip() -> None:
     K3, dist3 = opencv_intrinsics(simple, resize)
     np.testing.assert_allclose(K3, [[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]])
     np.testing.assert_allclose(dist3, [0.01, 0, 0, 0])
+
+
+def test_user_masks_are_checked(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="masks folder not found"):
+        check_mask_folder(tmp_path / "nonexist", ["cam0"])
+    (tmp_path / "masks").mkdir()
+    cv2.imwrite(str(tmp_path / "masks" / "camX.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(InputError, match="holds no mask of the videos cam0, cam1"):
+        check_mask_folder(tmp_path / "masks", ["cam0", "cam1"])
+    cv2.imwrite(str(tmp_path / "masks" / "cam0.png"), np.zeros((10, 10), np.uint8))
+    check_mask_folder(tmp_path / "masks", ["cam0", "cam1"])
+    resize = Resize(scale=0.5, width=200, height=100)
+    with pytest.raises(InputError, match=r"cam0\.png: the mask is 10x10, another shape than its video's 200x100"):
+        user_mask(tmp_path / "masks", "cam0", 3, resize)
+    cv2.imwrite(str(tmp_path / "masks" / "cam0.png"), np.full((200, 400), 255, np.uint8))
+    assert user_mask(tmp_path / "masks", "cam0", 3, resize).shape == (100, 200)
+    assert user_mask(tmp_path / "masks", "cam1", 3, resize) is None
 
 
 def test_mask_from_points() -> None:
