@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
+from sfm.cameras import ROTATION_TOLERANCE
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,17 @@ def _camera(name: str, struct: dict[str, Any], path: Path, unit: float) -> Dannc
             f"K {K.shape}, r {R.shape}, RDistort {radial.size} and TDistort {tangential.size} values: expected "
             "3x3, 3x3, 2 or 3, and 2",
             where=where,
+        )
+    if not all(np.isfinite(a).all() for a in (K, R, t, radial, tangential)):
+        raise InputError(path, "K, r, t, RDistort or TDistort holds a value that is not finite", where=where)
+    with np.errstate(over="ignore", invalid="ignore"):
+        orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
+    if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        raise InputError(
+            path,
+            f"r is not a rotation (|r r^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})",
+            where=where,
+            fix="r must be the orthonormal rotation of DANNCE's [X 1] [r; t] K convention",
         )
     if not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise InputError(path, "K is not MATLAB's [fx 0 0; s fy 0; cx cy 1]", where=where)

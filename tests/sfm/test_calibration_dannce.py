@@ -111,3 +111,16 @@ def test_bad_dannce_files_say_what_to_do(tmp_path: Path) -> None:
     empty.mkdir()
     with pytest.raises(InputError, match="no DANNCE camera files"):
         read_calibration(empty, CalibrationFormat.DANNCE)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [({"r": np.ones((3, 3))}, "r is not a rotation"), ({"t": np.array([[0.0, np.nan, 1.0]])}, "not finite")],
+)
+def test_a_bad_camera_is_named_in_its_own_file(tmp_path: Path, change: dict, message: str) -> None:
+    rng = np.random.default_rng(4)
+    scipy.io.savemat(tmp_path / "cam1_params.mat", {**_matlab_camera(rng), **change})
+    scipy.io.savemat(tmp_path / "cam2_params.mat", _matlab_camera(rng))
+    with pytest.raises(InputError, match=message) as error:
+        read_calibration(tmp_path, CalibrationFormat.DANNCE)
+    assert str(error.value).startswith(f"{tmp_path / 'cam1_params.mat'}:camera 'cam1': ")
