@@ -25,10 +25,12 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
         # a cameras.json may hold more or fewer videos than this capture: those named alike are taken
         videos = read_cameras(path).videos
         result: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+        named: set[str] = set()
         for info in infos:
             found = spelled_alike(info.name, [v.name for v in videos])
             if len(found) != 1:
                 continue
+            named.add(info.name)
             video = next(v for v in videos if v.name == found[0])
             if not video.frames:
                 log.warning("%s: video %r has no posed frame to take intrinsics from", path, video.name)
@@ -37,13 +39,13 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
             K = _at_video_size(first.K, (video.width, video.height), info, info.name, path)
             if K is not None:
                 result[info.name] = (K, first.dist)
-        if not result:
+        if not named:  # (named videos whose image does not fit were warned about, and are estimated)
             raise InputError(
                 path,
                 f"none of the videos {[i.name for i in infos]} is in this file",
                 fix="video names must match the file's names",
             )
-        missing = [info.name for info in infos if info.name not in result]
+        missing = [info.name for info in infos if info.name not in named]  # (the others were warned about)
         if missing and (str(path), *missing) not in _MISSING:
             _MISSING.add((str(path), *missing))
             log.warning(

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -193,6 +194,12 @@ def test_known_intrinsics_from_toml_and_cameras_json(tmp_path: Path) -> None:
     write_cameras(tmp_path / "cameras.json", cameras)
     from_json = known_intrinsics(tmp_path / "cameras.json", infos)
     assert list(from_json) == ["cam_2"] and np.allclose(from_json["cam_2"][0], K)
+    # a named camera calibrated on another image (its principal point outside the video) is estimated instead,
+    # as the warning says, not "none of the videos is in this file"
+    small = [replace(info, width=480, height=360) for info in infos]
+    assert known_intrinsics(tmp_path / "cameras.json", small) == {}
+    with pytest.raises(InputError, match="none of the videos"):
+        known_intrinsics(tmp_path / "cameras.json", [replace(infos[0], name="other")])
 
 
 def test_wanted_frames_follow_tracks() -> None:
