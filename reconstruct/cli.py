@@ -7,10 +7,13 @@ Its defaults come from the solver's options, which load numpy and scipy: `dynrec
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 
 from dynrecon.arguments import out_path
+
+log = logging.getLogger(__name__)
 
 COMMANDS = {"solve": "reconstruct 3D points from cameras.json + tracks.csv (no synchronization needed)"}
 
@@ -123,6 +126,10 @@ def _solve(args: argparse.Namespace) -> int:
             skeleton=skeleton,
         ),
     )
+    stale = args.out / "recording.rrd"
+    if args.no_recording and stale.is_file():  # an earlier solve's, which would pass for this one's
+        stale.unlink()
+        log.info("removed the earlier solve's %s (--no-recording)", stale)
     print(  # noqa: T201
         f"wrote {points} (+ sequencing.json, report.json"
         + ("" if args.no_recording else ", recording.rrd: open with `rerun " + str(args.out / "recording.rrd") + "`")

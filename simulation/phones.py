@@ -55,7 +55,14 @@ from reconstruct.clocks.model import Clock
 from reconstruct.outputs.mocap import Mocap, drop_incomplete, read_mocap, select_window
 from reconstruct.outputs.points import FramePoints, write_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
-from simulation.simulate import MIN_DEPTH_FRACTION, Rig, SimulatedCapture, SimulationOptions, place_cameras
+from simulation.simulate import (
+    MIN_DEPTH_FRACTION,
+    Rig,
+    SimulatedCapture,
+    SimulationOptions,
+    clear_solve_outputs,
+    place_cameras,
+)
 from tracking.tracks import Tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -605,6 +612,7 @@ def write_capture(
 ) -> Path:
     """cameras.json, tracks.csv, truth.csv, clocks_truth.json and simulation.json into `out`."""
     out.mkdir(parents=True, exist_ok=True)
+    clear_solve_outputs(out)
     write_cameras(out / "cameras.json", capture.cameras)
     write_tracks(out / "tracks.csv", capture.tracks)
     write_points(out / "truth.csv", capture.truth)

@@ -340,6 +340,21 @@ def simulate_capture(
     return simulate_mocap(mocap, options or SimulationOptions())[0]
 
 
+# A solve's files in a simulation folder: made from the capture that a new simulation replaces
+SOLVE_OUTPUTS = ("points3d.csv", "sequencing.json", "report.json", "recording.rrd")
+
+
+def clear_solve_outputs(out: Path) -> None:
+    """Remove an earlier solve's files from `out` (`evaluate` would score them against the new truth), saying so."""
+    removed = [name for name in SOLVE_OUTPUTS if (out / name).is_file()]
+    for name in removed:
+        (out / name).unlink()
+    if removed:
+        log.warning(
+            "%s: removed %s of an earlier solve (of the capture this simulation replaces)", out, ", ".join(removed)
+        )
+
+
 def run(mocap_path: str | Path, out_dir: str | Path, options: SimulationOptions | None = None) -> Path:
     """Simulate from a mocap file into `out_dir`: cameras.json, tracks.csv, truth.csv, simulation.json."""
     options = options or SimulationOptions()
@@ -347,6 +362,7 @@ def run(mocap_path: str | Path, out_dir: str | Path, options: SimulationOptions 
     mocap = read_mocap(mocap_path)
     capture, rig = simulate_mocap(mocap, options)
     out.mkdir(parents=True, exist_ok=True)
+    clear_solve_outputs(out)
     write_cameras(out / "cameras.json", capture.cameras)
     write_tracks(out / "tracks.csv", capture.tracks)
     write_points(out / "truth.csv", capture.truth)

@@ -50,6 +50,23 @@ def test_solve_writes_every_output(tmp_path, capsys):
     assert len(report["residual"]["per_frame"]) == points.num_frames
     assert "/world/points" in entities(out / "recording.rrd")
     verify(out / "recording.rrd")
+    # a second solve without a recording: the first one's would pass for its own
+    assert (
+        main(
+            [
+                "solve",
+                "--cameras",
+                str(tmp_path / "cameras.json"),
+                "--tracks",
+                str(tmp_path / "tracks.csv"),
+                "--out",
+                str(out),
+                "--no-recording",
+            ]
+        )
+        == 0
+    )
+    assert not (out / "recording.rrd").exists()
 
 
 def test_few_points_with_times_take_the_tracks_path(tmp_path, capsys):

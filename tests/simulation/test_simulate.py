@@ -261,3 +261,13 @@ def test_cli_mode_paper_is_the_default(tmp_path: Path) -> None:
         assert (tmp_path / "default" / name).read_bytes() == (tmp_path / "paper" / name).read_bytes()
     assert not (tmp_path / "paper" / "clocks_truth.json").exists()
     assert read_cameras(tmp_path / "paper" / "cameras.json").videos[0].fps is None
+
+
+def test_a_new_simulation_removes_an_earlier_solve(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from simulation.simulate import SOLVE_OUTPUTS, clear_solve_outputs
+
+    for name in (*SOLVE_OUTPUTS, "cameras.json"):
+        (tmp_path / name).write_text("x")
+    clear_solve_outputs(tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["cameras.json"]
+    assert "removed points3d.csv, sequencing.json, report.json, recording.rrd of an earlier solve" in caplog.text
