@@ -16,6 +16,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from dynrecon import __version__
 from dynrecon.beside import quiet_tqdm_monitor
@@ -35,10 +36,17 @@ COMMAND_MODULES = (
 log = logging.getLogger("dynrecon")
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """Option errors on one line, as every other user error: the subcommands' usage runs to 20 lines and more."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The full parser of `command` (all of them when None); the others' parsers are placeholders with their help
     line where their module lists them in `COMMANDS`."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="dynrecon",
         description="3D trajectories of moving points from several unsynchronized videos.",
     )

@@ -65,6 +65,22 @@ def test_a_user_error_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     assert error.startswith("dynrecon solve: error: ") and error.count("\n") == 1
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["register", "a.mp4", "b.mp4", "--out", "o", "--offsets", "cam0"], "argument --offsets: 'cam0'"),
+        (["solve", "--cameras"], "argument --cameras: expected one argument"),
+        (["nosuch"], "invalid choice: 'nosuch'"),
+    ],
+)
+def test_an_option_error_is_one_line(capsys: pytest.CaptureFixture[str], argv: list[str], message: str) -> None:
+    with pytest.raises(SystemExit) as stop:
+        cli.main(argv)
+    assert stop.value.code == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and message in error and "--help)" in error and "usage:" not in error
+
+
 def test_run_passes_known_offsets_to_register_or_to_the_calibration_import() -> None:
     from dynrecon.pipeline_cli import pipeline_options
 
