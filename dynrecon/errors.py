@@ -36,10 +36,10 @@ class InputError(DynreconError):
         super().__init__(self._format())
 
     def _format(self) -> str:
-        location = str(self.path) if self.path is not None else "input"
+        location = str(self.path) if self.path is not None else None  # None: an option's value, named in `what`
         if self.where:
-            location = f"{location}:{self.where}"
-        message = f"{location}: {self.what}"
+            location = f"{location or 'input'}:{self.where}"
+        message = f"{location}: {self.what}" if location else self.what
         if self.fix:
             message = f"{message} ({self.fix})"
         return message

@@ -168,6 +168,8 @@ def _run_import(args: argparse.Namespace) -> int:
             f"--video {args.video} names one video, but {len(args.inputs)} inputs were given",
             fix="import each video's file with its own --video, or leave --video out (names from the file names)",
         )
+    if not 0.0 <= args.min_score <= 1.0:  # NaN too
+        raise InputError(None, f"--min-score {args.min_score} is outside 0..1")
     options = ImportOptions(
         format=Format(args.format),
         video=_video_name(args.video),

@@ -104,6 +104,9 @@ def test_track_command_errors_are_one_line(
     assert main(["track", str(ws)]) == 2
     assert "nowhere.mp4 not found" in capsys.readouterr().err
     assert main(["track", str(ws), "--min-score", "2"]) == 2
+    assert capsys.readouterr().err == "dynrecon track: error: --min-score 2.0 is outside 0..1\n"
+    assert main(["import-tracks", str(tmp_path / "x.csv"), "--out", str(tmp_path / "y.csv"), "--min-score", "nan"]) == 2
+    assert capsys.readouterr().err == "dynrecon import-tracks: error: --min-score nan is outside 0..1\n"
 
 
 def test_track_without_labels_is_refused_and_keeps_the_tracks(
