@@ -154,6 +154,9 @@ def solve(
     track_set = renumber_people(track_set, people_maps(camera_set))
     cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
     problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
+    unknown = sorted({n for bone in options.skeleton for n in bone} - set(problem.point_names))
+    if unknown:  # a typo in the skeleton file: its bones are not drawn, which the recording alone would not say
+        log.warning("skeleton: point(s) %s not in the tracks: their bones are not drawn", ", ".join(unknown))
     read_inputs = time.perf_counter() - started
     log.info(
         "solving %d frames of %d videos, %d points, %d observations",

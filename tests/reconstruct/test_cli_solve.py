@@ -183,3 +183,13 @@ def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path)
         == 0
     )
     assert json.loads((plain / "report.json").read_text())["temporal"]["refined"] is False
+
+
+def test_a_skeleton_naming_unknown_points_is_warned_about(tmp_path, caplog):
+    from reconstruct.stage import SolveOptions, solve
+
+    capture = _capture(tmp_path)
+    known = capture.truth.point_names[0]
+    options = SolveOptions(recording=None, skeleton=((known, "no_such_point"),))
+    solve(tmp_path / "cameras.json", tmp_path / "tracks.csv", options)
+    assert "skeleton: point(s) no_such_point not in the tracks: their bones are not drawn" in caplog.text
