@@ -544,7 +544,7 @@ def simulate_phones(mocap: Mocap, options: PhoneCaptureOptions | None = None) ->
     options = options or PhoneCaptureOptions()
     _check_capture_options(options)
     window = select_window(mocap, start=options.start, length=options.length)
-    window = drop_incomplete(window, max_missing=options.max_marker_missing)
+    window = drop_incomplete(window, max_missing=options.max_marker_missing, whole=mocap)
     position, valid = mocap_truth(window)
     rng = np.random.default_rng(options.seed)
     rig = place_cameras(

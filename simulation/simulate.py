@@ -288,7 +288,7 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
     """Window, clean and simulate one capture; returns the capture and where the cameras were."""
     _check_options(options)
     window = select_window(mocap, start=options.start, length=options.length, step=options.step)
-    window = drop_incomplete(window, max_missing=options.max_marker_missing)
+    window = drop_incomplete(window, max_missing=options.max_marker_missing, whole=mocap)
     xyz = window.xyz  # (T, M, 3) complete
     T, M = xyz.shape[:2]
     rng = np.random.default_rng(options.seed)

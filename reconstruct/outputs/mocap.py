@@ -335,28 +335,46 @@ def select_window(mocap: Mocap, start: int = 0, length: int | None = None, step:
     )
 
 
-def drop_incomplete(mocap: Mocap, max_missing: float = 0.1) -> Mocap:
+SPAN_SHARE = 0.9  # a frame of `complete_span` has at least this share of the most markers any frame has
+
+
+def complete_span(mocap: Mocap) -> tuple[int, int] | None:
+    """The first and last frame (0-based) of the longest run of frames that each hold at least SPAN_SHARE of the
+    most markers present in any one frame; None when no frame holds a marker."""
+    present = (~mocap.missing()).sum(axis=1)
+    if not present.any():
+        return None
+    good = np.concatenate([[False], present >= SPAN_SHARE * present.max(), [False]])
+    edges = np.flatnonzero(np.diff(good.astype(np.int8)))
+    starts, stops = edges[0::2], edges[1::2]  # runs [start, stop)
+    longest = int(np.argmax(stops - starts))
+    return int(starts[longest]), int(stops[longest] - 1)
+
+
+def drop_incomplete(mocap: Mocap, max_missing: float = 0.1, whole: Mocap | None = None) -> Mocap:
     """Keep only fully known samples, so a simulation never needs ground truth it does not have.
 
     1. Drop every marker missing in more than `max_missing` (a fraction) of the frames.
     2. Drop every frame where one of the kept markers is still missing. Capture times stay in `times`, so the
        remaining frames keep their true timing (a dropped frame shows up as a longer gap).
-    Raises InputError when nothing is left.
+    Raises InputError when nothing is left; with `whole` (the file `mocap` is a window of) its fix names the
+    file's longest stretch of frames where the markers are present together.
     """
     missing = mocap.missing()
     keep_markers = missing.mean(axis=0) <= max_missing
+    fix = "choose another window or file"
+    span = complete_span(whole) if whole is not None else None
+    if span is not None:
+        fix = f"the markers are present together in frames {span[0]}..{span[1]} of the file: --start {span[0]} "
+        fix += f"--length {span[1] - span[0] + 1}"
     if not keep_markers.any():
-        raise InputError(
-            mocap.path,
-            f"every marker is missing in more than {max_missing:.0%} of the frames",
-            fix="choose another window or file",
-        )
+        raise InputError(mocap.path, f"every marker is missing in more than {max_missing:.0%} of the frames", fix=fix)
     keep_frames = ~missing[:, keep_markers].any(axis=1)
     if not keep_frames.any():
-        raise InputError(mocap.path, "no frame has all the usable markers", fix="choose another window or file")
+        raise InputError(mocap.path, "no frame has all the usable markers", fix=fix)
     dropped_markers = [n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if not k]
-    if dropped_markers:
-        log.info(
+    if dropped_markers:  # a warning: the simulation's truth then lacks them, which -q would hide
+        log.warning(
             "%s: dropped %d marker(s) missing in more than %.0f%% of the frames: %s",
             mocap.path,
             len(dropped_markers),
@@ -364,7 +382,7 @@ def drop_incomplete(mocap: Mocap, max_missing: float = 0.1) -> Mocap:
             ", ".join(dropped_markers),
         )
     if not keep_frames.all():
-        log.info(
+        log.warning(
             "%s: dropped %d of %d frames with a missing marker", mocap.path, int((~keep_frames).sum()), mocap.num_frames
         )
     return replace(

@@ -170,3 +170,14 @@ def test_drop_incomplete() -> None:
     mocap.xyz[np.arange(4), np.arange(4)] = np.nan  # now every marker misses at least one frame
     with pytest.raises(InputError, match="every marker"):
         drop_incomplete(mocap, max_missing=0.0)
+
+
+def test_a_file_complete_only_in_its_middle_names_that_stretch() -> None:
+    from reconstruct.outputs.mocap import complete_span
+
+    mocap = _synthetic(frames=30)
+    mocap.xyz[:12, 1:] = np.nan  # markers 1 and 2 only from frame 12 to 25
+    mocap.xyz[26:, 1:] = np.nan
+    assert complete_span(mocap) == (12, 25)
+    with pytest.raises(InputError, match=r"present together in frames 12\.\.25 of the file: --start 12 --length 14"):
+        drop_incomplete(mocap, max_missing=0.1, whole=mocap)
