@@ -178,6 +178,7 @@ def test_a_file_complete_only_in_its_middle_names_that_stretch() -> None:
     mocap = _synthetic(frames=30)
     mocap.xyz[:12, 1:] = np.nan  # markers 1 and 2 only from frame 12 to 25
     mocap.xyz[26:, 1:] = np.nan
+    mocap.xyz[:6, 0] = np.nan  # every marker missing in over 10 % of the frames
     assert complete_span(mocap) == (12, 25)
     with pytest.raises(InputError, match=r"present together in frames 12\.\.25 of the file: --start 12 --length 14"):
         drop_incomplete(mocap, max_missing=0.1, whole=mocap)
