@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
-from sfm.cameras import ROTATION_TOLERANCE
+from sfm.cameras import not_a_rotation
 
 log = logging.getLogger(__name__)
 
@@ -146,12 +146,11 @@ def _camera(name: str, struct: dict[str, Any], path: Path, unit: float) -> Dannc
         )
     if not all(np.isfinite(a).all() for a in (K, R, t, radial, tangential)):
         raise InputError(path, "K, r, t, RDistort or TDistort holds a value that is not finite", where=where)
-    with np.errstate(over="ignore", invalid="ignore"):
-        orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
-    if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+    wrong = not_a_rotation(R)
+    if wrong is not None:
         raise InputError(
             path,
-            f"r is not a rotation (|r r^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})",
+            f"r is not a rotation ({wrong})",
             where=where,
             fix="r must be the orthonormal rotation of DANNCE's [X 1] [r; t] K convention",
         )

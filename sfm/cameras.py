@@ -271,6 +271,15 @@ def validate_cameras(cameras: CameraSet, path: Path | None = None) -> None:
         check_times(video, path)
 
 
+def not_a_rotation(R: np.ndarray) -> str | None:
+    """None for a rotation (orthonormal within ROTATION_TOLERANCE, det +1), else how far it is from one."""
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows to inf: refused
+        orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
+    if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        return f"|R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g}"
+    return None
+
+
 def _check_frames(cameras: CameraSet, path: Path | None) -> None:
     """Frame by frame: the first frame at fault is named."""
     seen_names: set[str] = set()
@@ -284,13 +293,11 @@ def _check_frames(cameras: CameraSet, path: Path | None) -> None:
             if frame.frame in seen_frames:
                 raise InputError(path, "frame appears twice", where=where, fix="keep one pose per frame")
             seen_frames.add(frame.frame)
-            R = frame.R
-            with np.errstate(over="ignore", invalid="ignore"):  # a huge R overflows to inf: refused below
-                orthogonality = float(np.abs(R @ R.T - np.eye(3)).max())
-            if orthogonality > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+            wrong = not_a_rotation(frame.R)
+            if wrong is not None:
                 raise InputError(
                     path,
-                    f'"R" is not a rotation (|R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(R):.3g})',
+                    f'"R" is not a rotation ({wrong})',
                     where=where,
                     fix="R must be the orthonormal cam_from_world rotation with det +1",
                 )

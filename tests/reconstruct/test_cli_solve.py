@@ -11,6 +11,12 @@ from simulation.simulate import SimulationOptions, simulate_capture
 from tracking.tracks import write_tracks
 
 
+def _solve(folder, out, *options):
+    """`dynrecon solve` on folder's cameras.json and tracks.csv into `out`; its exit code."""
+    args = ["--cameras", str(folder / "cameras.json"), "--tracks", str(folder / "tracks.csv"), "--out", str(out)]
+    return main(["solve", *args, *options])
+
+
 def _capture(tmp_path, frames=80, points=4):
     capture = simulate_capture(smooth_motion(frames, points), 120.0, SimulationOptions(seed=3))
     write_cameras(tmp_path / "cameras.json", capture.cameras)
@@ -51,21 +57,7 @@ def test_solve_writes_every_output(tmp_path, capsys):
     assert "/world/points" in entities(out / "recording.rrd")
     verify(out / "recording.rrd")
     # a second solve without a recording: the first one's would pass for its own
-    assert (
-        main(
-            [
-                "solve",
-                "--cameras",
-                str(tmp_path / "cameras.json"),
-                "--tracks",
-                str(tmp_path / "tracks.csv"),
-                "--out",
-                str(out),
-                "--no-recording",
-            ]
-        )
-        == 0
-    )
+    assert _solve(tmp_path, out, "--no-recording") == 0
     assert not (out / "recording.rrd").exists()
 
 
@@ -135,21 +127,7 @@ def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
 def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path):
     capture = _capture(tmp_path)
     out = tmp_path / "out"
-    assert (
-        main(
-            [
-                "solve",
-                "--cameras",
-                str(tmp_path / "cameras.json"),
-                "--tracks",
-                str(tmp_path / "tracks.csv"),
-                "--out",
-                str(out),
-                "--no-recording",
-            ]
-        )
-        == 0
-    )
+    assert _solve(tmp_path, out, "--no-recording") == 0
     points = read_points(out / "points3d.csv")
     assert {"time", "condition", "residual_px", "flag"} <= set(points.extra)
     index = capture.truth.index()
