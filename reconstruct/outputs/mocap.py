@@ -257,7 +257,8 @@ def _read_trc(path: Path) -> Mocap:
         except ValueError:
             raise InputError(path, "a coordinate is not a number", where=f"line {number}") from None
         if any(abs(v) * scale > MAX_MM for v in values_row):  # NaN compares False
-            raise InputError(path, _implausible(max(values_row, key=abs), units), where=f"line {number}")
+            largest = max(values_row, key=lambda v: -1.0 if math.isnan(v) else abs(v))  # a gap (NaN) is no value
+            raise InputError(path, _implausible(largest, units), where=f"line {number}")
         rows.append(values_row)
     if not rows:
         raise InputError(path, "the file has no frames", fix="data rows start on line 6")

@@ -116,7 +116,7 @@ def test_an_absurd_coordinate_names_its_line(tmp_path: Path) -> None:
     path = write_trc(tmp_path / "t.trc", _synthetic())
     lines = path.read_text().splitlines()
     fields = lines[7].split("\t")
-    fields[3] = "1e300"
+    fields[2], fields[3] = "", "1e300"  # after a gap in the same row
     lines[7] = "\t".join(fields)
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=r"t\.trc:line 8: coordinate 1e\+300 mm is implausible"):
