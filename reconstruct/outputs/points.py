@@ -109,6 +109,16 @@ def _texts(values: np.ndarray) -> list[str]:
 MAX_COORDINATE = 1e12  # |x|, |y|, |z| in the file's units: beyond it a corrupt value, not a position
 
 
+def _number(text: str, column: str, path: Path, where: str) -> float:
+    """A cell as a float; empty is NaN."""
+    if text.strip() == "":
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(path, f"{column} {text.strip()[:40]!r} is not a number", where=where) from None
+
+
 def read_points(path: str | Path) -> FramePoints:
     """Read `points3d.csv` or `truth.csv` back into arrays."""
     path = Path(path)
@@ -128,13 +138,17 @@ def read_points(path: str | Path) -> FramePoints:
         if not row:
             continue
         where = f"line {number}"
-        try:
-            key = (row[col["video"]], parse_frame(row[col["frame"]], path, where))
-            values = [float(row[col[c]]) if row[col[c]] != "" else math.nan for c in ("x", "y", "z")]
-            observed = row[col["observed"]].strip() == "1"
-            extras = [float(row[col[e]]) if row[col[e]] != "" else math.nan for e in extra_names]
-        except (ValueError, IndexError):
-            raise InputError(path, "malformed row", where=where) from None
+        if len(row) < len(header):
+            raise InputError(path, f"expected {len(header)} fields, found {len(row)}", where=where)
+        key = (row[col["video"]], parse_frame(row[col["frame"]], path, where))
+        values = [_number(row[col[c]], c, path, where) for c in ("x", "y", "z")]
+        if len({math.isnan(v) for v in values}) > 1:
+            raise InputError(path, "x, y, z are partly empty", where=where, fix="give all three, or none where unknown")
+        flag = row[col["observed"]].strip()
+        if flag not in ("0", "1", ""):
+            raise InputError(path, f"observed is {flag!r}", where=where, fix="observed is 1 (seen) or 0")
+        observed = flag == "1"
+        extras = [_number(row[col[e]], e, path, where) for e in extra_names]
         if not all(abs(v) < MAX_COORDINATE for v in values if not math.isnan(v)):
             raise InputError(
                 path,

@@ -238,8 +238,12 @@ def test_options_out_of_range(
         ("cam0,0,p,1,2,3,1\ncam0,0,p,1,2,4,1\n", "also on line 2"),
         ("cam0,0,p,inf,2,3,1\n", "not finite"),
         ("cam0,0,p,1e300,2,3,1\n", "implausible"),
+        ("cam0,0,p,1,2\n", "line 2: expected 7 fields, found 5"),
+        ("cam0,0,p,abc,2,3,1\n", "line 2: x 'abc' is not a number"),
+        ("cam0,0,p,1,,,1\n", "line 2: x, y, z are partly empty"),
+        ("cam0,0,p,1,2,3,yes\n", "line 2: observed is 'yes'"),
     ],
-    ids=["a row twice", "inf", "1e300"],
+    ids=["a row twice", "inf", "1e300", "short", "not a number", "partly empty", "observed yes"],
 )
 def test_points_csv_rows_that_are_not_one_position(tmp_path: Path, rows: str, words: str) -> None:
     from reconstruct.outputs.points import read_points
