@@ -392,11 +392,12 @@ def _simulate(args: argparse.Namespace) -> int:
         out = flight_module.run(args.out, flight_module.FlightOptions(**fields))
     record = json.loads((out / "simulation.json").read_text(encoding="utf-8"))
     cameras = record["options"]["cameras"]
-    if args.mode == "paper":
-        where = f"at {record['camera_distance_mm'] / 1000:.2f} m"
-    elif args.mode == "phones":
-        rates = ", ".join(f"{c['fps']:g}" for c in _clocks(out))
-        where = f"at {record['camera_distance_mm'] / 1000:.2f} m, {rates} fps"
+    if args.mode in ("paper", "phones"):
+        distance = record["camera_distance_mm"]
+        # what a pixel of noise means there: at 15 m, 1 px is 15 mm and "within 10 mm" is out of reach
+        where = f"at {distance / 1000:.2f} m (1 px ~ {distance / _focal_px(out):.2g} mm there)"
+        if args.mode == "phones":
+            where += ", " + ", ".join(f"{c['fps']:g}" for c in _clocks(out)) + " fps"
     else:
         rates = ", ".join(f"{c['fps']:g}" for c in _clocks(out))
         where = f"{rates} fps, {record['false_detections']} false detections"
@@ -406,6 +407,14 @@ def _simulate(args: argparse.Namespace) -> int:
     )
     print(summary)  # noqa: T201
     return 0
+
+
+def _focal_px(out: Path) -> float:
+    """The first camera's focal length (px) in the simulated cameras.json."""
+    from sfm.cameras import read_cameras
+
+    first = next(video for video in read_cameras(out / "cameras.json").videos if video.frames).frames[0]
+    return float(first.K[0, 0])
 
 
 def _clocks(out: Path) -> list[dict[str, Any]]:

@@ -12,6 +12,7 @@ import dynrecon.cli
 from dynrecon.errors import InputError
 from reconstruct.outputs.mocap import Mocap, write_trc
 from reconstruct.outputs.points import FramePoints, read_points, write_points
+from sfm.cameras import read_cameras
 from simulation.cli import add_commands
 from simulation.evaluate import evaluate, run
 from tracking.tracks import read_tracks
@@ -202,7 +203,11 @@ def test_cli_simulate_then_evaluate_truth_against_itself(
         )
         == 0
     )
-    assert "50 captures of 10 points in 3 cameras" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "50 captures of 10 points in 3 cameras" in printed
+    cameras = read_cameras(out / "cameras.json")
+    distance = json.loads((out / "simulation.json").read_text())["camera_distance_mm"]
+    assert f"(1 px ~ {distance / cameras.videos[0].frames[0].K[0, 0]:.2g} mm there)" in printed
     truth = read_points(out / "truth.csv")
     tracks = read_tracks(out / "tracks.csv")
     assert truth.num_frames == 50 and len(tracks) == 400
