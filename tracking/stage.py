@@ -42,6 +42,7 @@ def run(
         chosen = {name: Path(p) for name, p in videos.items()}
     else:
         chosen = workspace_videos(workspace, [Path(p) for p in videos] if videos else None)
+    old = _existing(out)  # before any tracking: a file that is no tracks.csv fails at once
     labels_path = workspace / LABELS_NAME
     raw_labels = labels_csv.read_labels(labels_path)
     labels = _grouped(raw_labels)
@@ -79,7 +80,7 @@ def run(
         tracked = sum(1 for pts in results[name].values() for p in pts.values() if p.source != SOURCE_LABEL)
         log.info("%s: %d labels, %d tracked positions", name, sum(len(v) for v in marks.values()), tracked)
     rows = _rows(results)
-    rows += _kept_rows(out, set(results), labels)
+    rows += _kept_rows(old, set(results), labels)
     return write_tracks(out, _to_tracks(rows))
 
 
@@ -118,12 +119,26 @@ def _rows(results: dict[str, dict[str, dict[int, TrackedPoint]]]) -> list[Row]:
     ]
 
 
-def _kept_rows(out: Path, replaced: set[str], labels: AllLabels) -> list[Row]:
-    """Rows of videos not tracked this time: the current labels, plus old tracked rows the labels don't
+def _existing(out: Path) -> Tracks:
+    """The tracks already in `out` (none when it does not exist), whose rows of videos not tracked now are kept."""
+    if not out.is_file():
+        return Tracks()
+    try:
+        return read_tracks(out)
+    except InputError as error:
+        raise InputError(
+            error.path,
+            error.what,
+            where=error.where,
+            fix="it is the existing tracks file this run adds its videos to: give another --out, or remove it",
+        ) from None
+
+
+def _kept_rows(old: Tracks, replaced: set[str], labels: AllLabels) -> list[Row]:
+    """Rows of videos not tracked this time: the current labels, plus `old` tracked rows the labels don't
     override."""
     rows: list[Row] = []
     others = set(labels) - replaced
-    old = read_tracks(out) if out.is_file() else Tracks()
     sources = old.extra.get("source", [""] * len(old))
     scores = old.extra.get("score", [""] * len(old))
     for i in range(len(old)):

@@ -105,6 +105,13 @@ def test_track_command_errors_are_one_line(
     assert "nowhere.mp4 not found" in capsys.readouterr().err
     assert main(["track", str(ws), "--min-score", "2"]) == 2
     assert capsys.readouterr().err == "dynrecon track: error: --min-score 2.0 is outside 0..1\n"
+    (tmp_path / "notes.txt").write_text("my notes\n")  # an --out that exists and is no tracks file
+    (tmp_path / "second").mkdir()
+    ws = _workspace(tmp_path / "second", small_video)
+    assert main(["track", str(ws), "--out", str(tmp_path / "notes.txt")]) == 2
+    err = capsys.readouterr().err
+    assert "notes.txt" in err and "the existing tracks file this run adds its videos to" in err
+    assert (tmp_path / "notes.txt").read_text() == "my notes\n"
     assert main(["import-tracks", str(tmp_path / "x.csv"), "--out", str(tmp_path / "y.csv"), "--min-score", "nan"]) == 2
     assert capsys.readouterr().err == "dynrecon import-tracks: error: --min-score nan is outside 0..1\n"
 
