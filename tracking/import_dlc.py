@@ -142,6 +142,17 @@ def _read_csv(path: Path) -> _Table:
     )
 
 
+def _opens_as_hdf5(path: Path) -> bool:
+    """Whether HDF5 itself can open `path` (whatever the file holds)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r"):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
 def _read_h5(path: Path) -> _Table:
     """DLC's .h5: a pandas table (PyTables), read with pandas."""
     try:
@@ -168,6 +179,12 @@ def _read_h5(path: Path) -> _Table:
     except ImportError:
         raise InputError(path, "reading DeepLabCut .h5 needs the tables package", fix="pip install tables") from None
     except Exception as error:  # HDF5 and PyTables raise many types for a damaged or foreign file
+        if not _opens_as_hdf5(path):  # not DLC's nor SLEAP's: damaged, most likely cut short
+            raise InputError(
+                path,
+                f"not a readable HDF5 file ({type(error).__name__}): damaged or truncated",
+                fix="export it again (DeepLabCut's .h5 or CSV, or SLEAP's analysis HDF5)",
+            ) from None
         raise InputError(
             path, f"not a readable pandas HDF5 file ({type(error).__name__})", fix="give DeepLabCut's .h5 or its CSV"
         ) from None

@@ -141,10 +141,25 @@ def test_the_cli_reads_h5_with_person_all(tmp_path: Path) -> None:
     assert {(v, p) for v, _, p in rows(out)} == {("cam3", "person0_snout"), ("cam3", "person1_snout"), ("cam3", "ball")}
 
 
+def _plain_hdf5(path: Path) -> None:
+    import h5py
+
+    with h5py.File(path, "w") as f:
+        f.create_dataset("x", data=[1.0])
+
+
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda p: p.write_bytes(b"not hdf5 at all"), r"not a readable pandas HDF5 file"),
+        (lambda p: p.write_bytes(b"not hdf5 at all"), r"not a readable HDF5 file .*damaged or truncated"),
+        (  # a SLEAP analysis file cut short: no longer named a bad DeepLabCut file
+            lambda p: p.write_bytes((Path(__file__).parents[1] / "data/sleap/cam1.analysis.h5").read_bytes()[:3000]),
+            r"damaged or truncated \(export it again \(DeepLabCut's \.h5 or CSV, or SLEAP's analysis HDF5\)\)",
+        ),
+        (  # an HDF5 file that is not pandas': named as such
+            lambda p: _plain_hdf5(p),
+            r"not a readable pandas HDF5 file|no DeepLabCut table",
+        ),
         (
             lambda p: pd.DataFrame({"a": [1.0]}).to_hdf(p, key="other", format="table"),
             r"table 'other' has column levels \[''\], not DeepLabCut's",
