@@ -16,11 +16,13 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NoReturn
 
 from dynrecon import __version__
 from dynrecon.beside import quiet_tqdm_monitor
 from dynrecon.errors import DynreconError
+from dynrecon.lock import OutputLock
 
 # Modules whose `add_commands` registers subcommands, in the order they appear in `--help`.
 COMMAND_MODULES = (
@@ -34,6 +36,8 @@ COMMAND_MODULES = (
 )
 
 log = logging.getLogger("dynrecon")
+
+WRITERS = ("run", "register", "solve", "batch")  # commands that hold OUT/.dynrecon.lock while they write
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -89,6 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     configure_logging(args.verbose, args.quiet)
     try:
+        if args.command in WRITERS:  # two writers of one folder would mix their files, each told it succeeded
+            with OutputLock(Path(args.out)):
+                return int(args.func(args) or 0)
         return int(args.func(args) or 0)
     except DynreconError as error:
         print(f"dynrecon {args.command}: error: {error}", file=sys.stderr)  # noqa: T201

@@ -38,9 +38,9 @@ from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
 from dynrecon.errors import DynreconError, InputError
+from dynrecon.lock import LOCK_NAME
 from labeling.frames import FrameCache, VideoInfo
 from labeling.labels import Change, LabelStore, SaveError, StoreClosedError
-from labeling.lock import LOCK_NAME
 from labeling.skeleton import Skeleton, valid_point_name
 from labeling.tracker import TrackFunction, TrackJob
 from labeling.workspace import WorkspaceConfig, save_config

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from dynrecon.atomic import remove_temp_files
 from dynrecon.errors import InputError
+from dynrecon.lock import WorkspaceLock
 from labeling.frames import probe_video
-from labeling.lock import WorkspaceLock
 from labeling.server import LabelingApp, make_server
 from labeling.skeleton import Skeleton
 from labeling.tracker import TrackFunction, track_with_tracking_stage

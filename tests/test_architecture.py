@@ -22,12 +22,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dynrecon", "sfm", "tracking", "labeling", "reconstruct", "simulation", "batch")
-# The shared ground: user errors, atomic writes, bounded readers, video opening and names, JSON numbers, argument
-# types. Every package may import it; it imports no package.
+# The shared ground: user errors, atomic writes, folder locks, bounded readers, video opening and names, JSON
+# numbers, argument types. Every package may import it; it imports no package.
 GROUND = (
     "dynrecon.errors",
     "dynrecon.names",
     "dynrecon.atomic",
+    "dynrecon.lock",
     "dynrecon.readers",
     "dynrecon.video_io",
     "dynrecon.lazy",

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
+import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -91,3 +94,28 @@ def test_run_passes_known_offsets_to_register_or_to_the_calibration_import() -> 
     # with a lab calibration the import writes them and registration (not run) never sees them
     calibrated = pipeline_options(cli.build_parser().parse_args([*base, "--calibration", "lab.toml"]))
     assert calibrated.register.offsets == {} and calibrated.calibration_options.offsets == {"cam1": 0.0, "cam2": 0.1}
+
+
+def test_a_second_writer_of_one_folder_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two processes writing one --out mixed their files, each told it succeeded: the second is refused."""
+    from dynrecon.lock import OUTPUT_LOCK_NAME, OutputLock
+
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live pid not ours
+    try:
+        out.mkdir()
+        (out / OUTPUT_LOCK_NAME).write_text(json.dumps({"pid": holder.pid, "host": socket.gethostname(), "token": "x"}))
+        args = ["solve", "--cameras", str(tmp_path / "c.json"), "--tracks", str(tmp_path / "t.csv"), "--out", str(out)]
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err
+        assert f"another dynrecon command (pid {holder.pid}) is using this folder" in err and err.count("\n") == 1
+        assert (out / OUTPUT_LOCK_NAME).exists()  # not ours: left alone
+    finally:
+        holder.kill()
+        holder.wait()
+    # its owner gone, the lock is taken over; and released, with the folder made for it, when the command ends
+    assert cli.main(args) == 2 and "c.json" in capsys.readouterr().err
+    assert not (out / OUTPUT_LOCK_NAME).exists()
+    with OutputLock(tmp_path / "fresh"):
+        assert (tmp_path / "fresh" / OUTPUT_LOCK_NAME).exists()
+    assert not (tmp_path / "fresh").exists()

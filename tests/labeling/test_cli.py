@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from dynrecon.cli import main
-from labeling.lock import LOCK_NAME
+from dynrecon.lock import LOCK_NAME
 
 REPO = Path(__file__).resolve().parents[2]
 

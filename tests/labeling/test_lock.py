@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from labeling.lock import LOCK_NAME, WorkspaceLock, WorkspaceLockedError
+from dynrecon.lock import LOCK_NAME, WorkspaceLock, WorkspaceLockedError
 
 
 def test_live_owner_refuses_and_release_removes(tmp_path: Path) -> None:

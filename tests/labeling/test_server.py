@@ -21,7 +21,7 @@ import pytest
 from labeling_videos import FRAMES, HEIGHT, WIDTH
 
 from dynrecon import atomic
-from labeling.lock import LOCK_NAME, WorkspaceLockedError
+from dynrecon.lock import LOCK_NAME, WorkspaceLockedError
 from labeling.server import READ_TIMEOUT, Handler
 from labeling.skeleton import Skeleton
 from labeling.stage import LabelOptions, LabelServer

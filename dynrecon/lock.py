@@ -1,11 +1,14 @@
-"""A lock file that keeps a second labeling server off the same workspace.
+"""Lock files that keep a second process off a folder it would write into at the same time.
 
-`WS/.labeling.lock` holds the owner's pid and URL. A lock whose pid no longer runs (a crashed server) is taken
-over.
+`WS/.labeling.lock` (`WorkspaceLock`) keeps a second labeling server off a workspace; `OUT/.dynrecon.lock`
+(`OutputLock`) keeps a second `run`, `register`, `solve` or `batch` off an output folder, whose files two writers
+would mix (each told it succeeded). A lock holds its owner's pid (and the server's URL); one whose pid no longer runs
+(a crashed or killed process) is taken over.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -13,15 +16,17 @@ import socket
 import time
 from pathlib import Path
 
+from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError
 
 log = logging.getLogger(__name__)
 
 LOCK_NAME = ".labeling.lock"
+OUTPUT_LOCK_NAME = ".dynrecon.lock"
 
 
 class WorkspaceLockedError(DynreconError):
-    """Another live labeling server holds this workspace."""
+    """Another live process holds this folder."""
 
 
 def _pid_alive(pid: int) -> bool:
@@ -37,12 +42,23 @@ def _pid_alive(pid: int) -> bool:
 
 
 class WorkspaceLock:
-    """Create with `acquire()`; `release()` removes the file only if it is still ours."""
+    """Create with `acquire()`; `release()` removes the file only if it is still ours. `holder` and `advice` word
+    the refusal of a second process."""
 
-    def __init__(self, workspace: Path):
-        self.path = workspace / LOCK_NAME
+    holder = "labeling server"
+    advice = "use that one, or stop it; delete the lock file only if no server is running"
+
+    def __init__(self, workspace: Path, name: str = LOCK_NAME):
+        self.path = workspace / name
         self.token = f"{os.getpid()}-{id(self)}"
         self.held = False
+
+    def __enter__(self) -> WorkspaceLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
 
     def acquire(self, url: str = "") -> None:
         body = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token})
@@ -61,14 +77,13 @@ class WorkspaceLock:
                 where = f" at {owner['url']}" if owner and owner.get("url") else ""
                 pid = owner.get("pid") if owner else "?"
                 raise WorkspaceLockedError(  # noqa: B904 (not raised from an exception)
-                    f"{self.path}: another labeling server (pid {pid}){where} is using this workspace "
-                    f"(use that one, or stop it; delete the lock file only if no server is running)"
+                    f"{self.path}: another {self.holder} (pid {pid}){where} is using this folder ({self.advice})"
                 )
             with os.fdopen(fd, "w", encoding="utf-8") as handle:
                 handle.write(body)
             self.held = True
             return
-        raise WorkspaceLockedError(f"{self.path}: could not take the lock (a server keeps recreating it)")
+        raise WorkspaceLockedError(f"{self.path}: could not take the lock (a process keeps recreating it)")
 
     def update_url(self, url: str) -> None:
         """Record the final URL (known only after binding) for the refusal message of a second server."""
@@ -107,3 +122,27 @@ class WorkspaceLock:
             if owner is not None and owner.get("token") == self.token:
                 self.path.unlink(missing_ok=True)
             self.held = False
+
+
+class OutputLock(WorkspaceLock):
+    """`OUT/.dynrecon.lock`: one writing command per output folder (made when missing)."""
+
+    holder = "dynrecon command"
+    advice = "wait for it to finish, or give another --out; delete the lock file only if no dynrecon runs"
+
+    def __init__(self, folder: Path):
+        super().__init__(folder, OUTPUT_LOCK_NAME)
+        self.made = False
+
+    def acquire(self, url: str = "") -> None:
+        folder = self.path.parent
+        require_writable(folder)  # one line for a file in the way or a folder without permission
+        self.made = not folder.exists()
+        folder.mkdir(parents=True, exist_ok=True)
+        super().acquire(url)
+
+    def release(self) -> None:
+        super().release()
+        if self.made:  # a command refused before writing anything leaves no empty folder behind
+            with contextlib.suppress(OSError):
+                self.path.parent.rmdir()
