@@ -95,7 +95,8 @@ def read_sleap_analysis(
             if name is None:
                 continue
             xy = tracks[:, k, n, :]
-            for frame in np.flatnonzero(np.isfinite(xy).all(axis=1)):
+            # NaN is SLEAP's "not found"; an infinite coordinate is no position (refused at import, not skipped)
+            for frame in np.flatnonzero(~np.isnan(xy).any(axis=1)):
                 score = None if scores is None or math.isnan(scores[frame, k, n]) else float(scores[frame, k, n])
                 detections.append(
                     Detection(

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
+from dynrecon.readers import check_video_name
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_openpose import read_openpose, video_name_from_openpose
@@ -166,6 +168,27 @@ def _read_plain(path: Path, video: str | None) -> list[Detection]:
     return detections
 
 
+MAX_PIXEL = 1e7  # |x|, |y| beyond this is a corrupt value, not a position in any video
+
+
+def _check_detection(d: Detection, path: Path) -> None:
+    """Refuse what no detector writes: a position that is not finite or absurdly far out, a confidence that is
+    infinite or negative, a video name that is no plain file name."""
+    where = d.where.removeprefix(f"{path.name}:")
+    if not (math.isfinite(d.x) and math.isfinite(d.y)) or max(abs(d.x), abs(d.y)) > MAX_PIXEL:
+        raise InputError(
+            path,
+            f"point {d.point!r} at x, y = {d.x:.6g}, {d.y:.6g} is not a position in an image",
+            where=where,
+            fix="leave a point that was not found empty (NaN), not infinite or huge",
+        )
+    if d.score is not None and (math.isinf(d.score) or d.score < 0):  # NaN: no confidence (dropped by --min-score)
+        raise InputError(
+            path, f"point {d.point!r} has confidence {d.score:.6g}", where=where, fix="confidences are 0 or more"
+        )
+    check_video_name(d.video, path)
+
+
 def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
     rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
@@ -190,6 +213,7 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         fmt, detections = read_detections(Path(path), options)
         kept = 0
         for d in detections:
+            _check_detection(d, Path(path))
             point = options.mapping.get(d.point, None if options.drop_unmapped and options.mapping else d.point)
             # a NaN score is no confidence: left out whenever a minimum is asked for
             if point is None or (d.score is not None and options.min_score > 0 and not d.score >= options.min_score):

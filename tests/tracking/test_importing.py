@@ -129,6 +129,10 @@ def test_plain_csv_with_score_column_and_merge_keeps_labels_and_other_videos(tmp
         ("frame.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\nabc,1,2\n", r"frame.csv:line 4: cannot tell the frame"),
         ("plain.csv", "video,frame,point,x\na,0,p,1\n", r"plain.csv:line 1: header lacks column\(s\) y"),
         ("plain2.csv", "video,frame,point,x,y,score\na,0,p,1,2,high\n", r"plain2.csv:line 2: score 'high'"),
+        ("plain3.csv", "video,frame,point,x,y,score\na,0,p,1,2,inf\n", r"plain3.csv:line 2: .*confidence inf"),
+        ("plain4.csv", "video,frame,point,x,y,score\na,0,p,1,2,-1\n", r"plain4.csv:line 2: .*confidence -1"),
+        ("plain5.csv", "video,frame,point,x,y\na,0,p,1e300,2\n", r"plain5.csv:line 2: .*not a position"),
+        ("plain6.csv", "video,frame,point,x,y\n../x,0,p,1,2\n", r"plain6.csv: video name '\.\./x' contains a path"),
     ],
 )
 def test_malformed_files_give_one_line_errors(tmp_path: Path, name: str, text: str, message: str) -> None:
