@@ -128,8 +128,14 @@ def run_batch(captures: Sequence[str | Path], out: str | Path, options: BatchOpt
     state.save()
     graphs = build_graph(good, out, options)
     if graphs:
-        with connect(options) as client:
-            _compute(client, graphs, state, options)
+        try:
+            with connect(options) as client:
+                _compute(client, graphs, state, options)
+        except KeyboardInterrupt:  # batch.json must not say "running" for captures nothing runs any more
+            for capture in good:
+                state.captures[capture.name].interrupt()
+            state.save()
+            raise
     return BatchReport(out=out, captures={c.name: state.captures[c.name] for c in good} | _unread(state, captures))
 
 

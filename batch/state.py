@@ -27,7 +27,7 @@ class CaptureStatus:
     name: str
     folder: str
     workspace: str | None = None  # None when the folder could not be read
-    status: str = "pending"  # pending, running, done, failed
+    status: str = "pending"  # pending, running, done, failed, interrupted (stopped with the batch; a rerun resumes)
     stage: str | None = None  # the last stage that finished, or the one that failed
     error: str | None = None  # one line
     seconds: dict[str, float] = field(default_factory=dict)  # batch stage -> task seconds (summed over videos)
@@ -60,6 +60,11 @@ class CaptureStatus:
 
     def done(self) -> None:
         self.status, self.stage, self.finished = "done", STAGES[-1], _now()
+
+    def interrupt(self) -> None:
+        """Stopped with the batch (Ctrl+C) while pending or running: `stage` stays the last one that finished."""
+        if self.status in ("pending", "running"):
+            self.status, self.finished = "interrupted", _now()
 
 
 class BatchState:

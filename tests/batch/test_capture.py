@@ -54,3 +54,17 @@ def test_a_batch_out_that_is_a_file_is_one_line(tmp_path: Path, capsys: pytest.C
     (tmp_path / "afile").write_text("x")
     assert main(["batch", str(_capture(tmp_path, None)), "--out", str(tmp_path / "afile")]) == 2
     assert "afile: cannot write here: it is a file, not a folder" in capsys.readouterr().err
+
+
+def test_an_interrupted_capture_is_not_left_running(tmp_path: Path) -> None:
+    from batch.state import BatchState
+
+    state = BatchState(tmp_path)
+    running, done = state.start("a", tmp_path / "a", tmp_path / "out" / "a"), state.start("b", tmp_path, None)
+    running.status, running.stage = "running", "register"
+    done.done()
+    for status in (running, done):
+        status.interrupt()
+    state.save()
+    again = BatchState(tmp_path).captures
+    assert again["a"].status == "interrupted" and again["a"].stage == "register" and again["b"].status == "done"
