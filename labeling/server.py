@@ -38,7 +38,7 @@ from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
 from dynrecon.errors import DynreconError, InputError
-from dynrecon.lock import LOCK_NAME
+from dynrecon.lock import LOCK_NAME, OUTPUT_LOCK_NAME
 from labeling.frames import FrameCache, VideoInfo
 from labeling.labels import Change, LabelStore, SaveError, StoreClosedError
 from labeling.skeleton import Skeleton, valid_point_name
@@ -511,7 +511,7 @@ class Handler(BaseHTTPRequestHandler):
     def _workspace_file(self, parts: list[str]) -> None:
         root = self.app.workspace
         bad = any(p in ("", ".", "..") or "/" in p or "\\" in p or "\0" in p for p in parts)
-        if bad or parts[-1] == LOCK_NAME:
+        if bad or parts[-1] in (LOCK_NAME, OUTPUT_LOCK_NAME):  # a pid and a host name: not the page's
             return self._not_found()
         try:
             target = root.joinpath(*parts).resolve()

@@ -21,7 +21,7 @@ import pytest
 from labeling_videos import FRAMES, HEIGHT, WIDTH
 
 from dynrecon import atomic
-from dynrecon.lock import LOCK_NAME, WorkspaceLockedError
+from dynrecon.lock import LOCK_NAME, OUTPUT_LOCK_NAME, WorkspaceLockedError
 from labeling.server import READ_TIMEOUT, Handler
 from labeling.skeleton import Skeleton
 from labeling.stage import LabelOptions, LabelServer
@@ -231,6 +231,7 @@ def test_tracker_failure_is_reported_not_fatal(workspace: Path, video: Path) -> 
         "/ws/%2fetc%2fpasswd",
         "/ws//etc/passwd",
         "/ws/" + LOCK_NAME,
+        "/ws/" + OUTPUT_LOCK_NAME,
         "/frame/..%2fcam1/0.jpg",
         "/frame/cam1/../../etc/passwd",
         "/frame/cam1/999.jpg",
@@ -243,6 +244,7 @@ def test_tracker_failure_is_reported_not_fatal(workspace: Path, video: Path) -> 
 )
 def test_path_traversal_and_unknown_paths_are_404(server: LabelServer, workspace: Path, path: str) -> None:
     (workspace.parent / "secret.txt").write_text("secret")
+    (workspace / OUTPUT_LOCK_NAME).write_text('{"pid": 1, "host": "secret"}')  # a `dynrecon run` into the workspace
     status, data = request(server, "GET", path)
     assert status == 404, path
     assert b"secret" not in data and b"root:" not in data
