@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -23,7 +25,7 @@ from typing import Any
 
 import dask
 from dask.delayed import Delayed
-from distributed import Client, Future, LocalCluster, wait
+from distributed import Client, Future, LocalCluster, WorkerPlugin, wait
 from tqdm import tqdm
 
 from batch.capture import Capture, read_capture
@@ -263,7 +265,23 @@ def connect(options: BatchOptions) -> Iterator[Client]:
     # Processes, one thread each: the stages hold the GIL in Python loops, and COLMAP and OpenCV bring their own
     # threads.
     with local_cluster(workers) as cluster, Client(cluster) as client:
-        yield client
+        client.register_plugin(LeaveCtrlCToTheBatch())
+        try:
+            yield client
+        except KeyboardInterrupt:  # the workers are stopped mid-task: Dask's warnings that they were are expected
+            logging.getLogger("distributed").setLevel(logging.ERROR)
+            raise
+
+
+class LeaveCtrlCToTheBatch(WorkerPlugin):
+    """A local worker ignores SIGINT. Ctrl+C reaches the terminal's whole process group: the workers and their stages
+    would each print a traceback and report the stage as failed, while the batch stops them itself (its cluster
+    shuts them down, and a stage's child process ends with its worker). Only local workers: a `dask worker` the user
+    started keeps its Ctrl+C."""
+
+    def setup(self, worker: Any) -> None:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def local_cluster(workers: int) -> LocalCluster:

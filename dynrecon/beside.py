@@ -50,6 +50,13 @@ def fork_is_safe() -> bool:
     )
 
 
+def end_with_parent(signum: int) -> None:
+    """Have Linux send `signum` to this process when the thread that started it ends (elsewhere: nothing), so that a
+    child never runs on, orphaned, after its caller was killed."""
+    with contextlib.suppress(Exception):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signum)
+
+
 def quiet_tqdm_monitor() -> None:
     """Keep tqdm from starting its monitor thread (it only adjusts refresh intervals), so that `beside` can fork."""
     with contextlib.suppress(ImportError):
@@ -202,8 +209,7 @@ def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> N
         # ends with the caller, whatever ended that
         signal.signal(signal.SIGTERM, _exit_on_signal)
         signal.signal(signal.SIGINT, signal.SIG_DFL)
-        with contextlib.suppress(Exception):
-            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        end_with_parent(signal.SIGTERM)
         try:
             payload: tuple[bool, Any] = (False, function(*args))
         except BaseException as error:  # the caller re-raises it

@@ -12,10 +12,13 @@ and their one-line help in `COMMANDS`; its `add_commands` then runs only when on
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NoReturn
 
@@ -38,6 +41,32 @@ COMMAND_MODULES = (
 log = logging.getLogger("dynrecon")
 
 WRITERS = ("run", "register", "solve", "batch")  # commands that hold OUT/.dynrecon.lock while they write
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (`kill`, `timeout`, a scheduler), raised where Python next runs: it unwinds like Ctrl+C, so locks are
+    released, a child process is stopped and earlier results are kept; a subclass so every Ctrl+C path handles it."""
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def sigterm_as_stop() -> Iterator[None]:
+    """Handle SIGTERM as a stop request while the command runs. pycolmap's crash handler claims SIGTERM when it loads
+    and prints a native stack trace for it, so pycolmap is loaded first and its handler replaced (a later import does
+    not install it again); the previous handler is back afterwards, for a caller of `main` in Python."""
+    import pycolmap  # noqa: F401
+
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -84,6 +113,14 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
 
 
+def _say(message: str, *, stopped: bool = False) -> None:
+    """The last line on stderr. `tqdm.write` clears this process's progress bars first; a stop also starts a line of
+    its own, since it may cut a bar short (a child process's, sfm/isolated.py, too), which has no line end then."""
+    from tqdm import tqdm
+
+    tqdm.write("\n" + message if stopped else message, file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(chosen_command(argv))
@@ -93,13 +130,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     configure_logging(args.verbose, args.quiet)
     try:
-        if args.command in WRITERS:  # two writers of one folder would mix their files, each told it succeeded
-            with OutputLock(Path(args.out)):
-                return int(args.func(args) or 0)
-        return int(args.func(args) or 0)
+        with sigterm_as_stop():
+            if args.command in WRITERS:  # two writers of one folder would mix their files, each told it succeeded
+                with OutputLock(Path(args.out)):
+                    return int(args.func(args) or 0)
+            return int(args.func(args) or 0)
     except DynreconError as error:
-        print(f"dynrecon {args.command}: error: {error}", file=sys.stderr)  # noqa: T201
+        _say(f"dynrecon {args.command}: error: {error}")
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)  # noqa: T201
-        return 130
+    except KeyboardInterrupt as stop:
+        terminated = isinstance(stop, Terminated)
+        _say("stopped (SIGTERM)" if terminated else "interrupted", stopped=True)
+        return 128 + (signal.SIGTERM if terminated else signal.SIGINT)

@@ -1,10 +1,9 @@
-"""Run a pycolmap stage in a child Python process, so that a fatal COLMAP error (SIGABRT from a failed CHECK
-in
+"""Run a pycolmap stage in a child Python process, so that a fatal COLMAP error (SIGABRT from a failed CHECK in
 a worker thread) becomes a clear DynreconError instead of killing the CLI.
 
-The child (`python -m sfm.isolated CALL RESULT LOG`) writes glog output (COLMAP's own log) to LOG; its
-progress bars
-go to the parent's stderr. Arguments and results cross as pickles of plain values.
+The child (`python -m sfm.isolated CALL RESULT LOG PARENT_PID`) writes glog output (COLMAP's own log) to LOG; its
+progress bars go to the parent's stderr; it ends when its parent does. Arguments and results cross as pickles of
+plain values.
 """
 
 from __future__ import annotations
@@ -22,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dynrecon.beside import end_with_parent
 from dynrecon.errors import DynreconError
 
 log = logging.getLogger(__name__)
@@ -42,7 +42,7 @@ def run_isolated(stage: str, func: Callable[..., Any], kwargs: dict[str, Any], l
         root = str(Path(__file__).resolve().parents[1])
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
         process = subprocess.run(
-            [sys.executable, "-m", "sfm.isolated", str(call), str(result), str(log_path)],
+            [sys.executable, "-m", "sfm.isolated", str(call), str(result), str(log_path), str(os.getpid())],
             env=env,
             check=False,
         )
@@ -57,13 +57,19 @@ def run_isolated(stage: str, func: Callable[..., Any], kwargs: dict[str, Any], l
     return value
 
 
-def _child(call: Path, result: Path, log_path: Path) -> None:
+def _child(call: Path, result: Path, log_path: Path, parent: int) -> None:
+    # A parent killed outright (SIGKILL, or a Dask nanny ending its worker) would leave this stage running,
+    # writing into the workspace after the command has ended.
+    end_with_parent(signal.SIGKILL)
+    if os.getppid() != parent:  # the parent ended before the line above
+        sys.exit(1)
     progress = os.dup(2)
     with open(log_path, "a", encoding="utf-8") as handle:
         os.dup2(handle.fileno(), 2)  # glog (COLMAP's log) writes to fd 2
     sys.stderr = os.fdopen(progress, "w", buffering=1)  # tqdm writes to sys.stderr: the user's terminal
     import pycolmap
 
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a stop, not a crash: no native stack trace in the log
     pycolmap.logging.logtostderr = True
     pycolmap.logging.minloglevel = 0
     module, name, kwargs = pickle.loads(call.read_bytes())
@@ -77,6 +83,6 @@ def _child(call: Path, result: Path, log_path: Path) -> None:
 
 if __name__ == "__main__":
     try:
-        _child(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]))
+        _child(Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]))
     except KeyboardInterrupt:  # Ctrl+C reaches the whole process group: the parent says "interrupted", once
         sys.exit(130)

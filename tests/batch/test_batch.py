@@ -14,6 +14,7 @@ import contextlib
 import io
 import json
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -26,6 +27,7 @@ from pathlib import Path
 import pytest
 
 from batch import read_capture, run_capture
+from batch.graph import BatchOptions, connect
 from batch.synthetic import Inputs, SimulatedCaptureOptions, simulated_capture
 from dynrecon import cli
 
@@ -284,3 +286,11 @@ def test_offsets_naming_a_video_a_capture_lacks_fail_it_before_any_work(
     assert "--offsets names video 'cam9', which is not among the videos" in entry["error"]
     code, screen = _batch([str(captures["walk"]), "--out", str(tmp_path), "--offsets", "cam0=0", "--synchronized"])
     assert code == 2 and "--synchronized and --offsets both given" in screen
+
+
+def test_local_workers_leave_ctrl_c_to_the_batch() -> None:
+    """Ctrl+C reaches the whole process group: the local workers ignore it (the batch stops them), a remote
+    scheduler's workers are not touched."""
+    with connect(BatchOptions(workers=1)) as client:
+        handlers = client.run(lambda: signal.getsignal(signal.SIGINT))
+    assert list(handlers.values()) == [signal.SIG_IGN]

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -128,6 +129,35 @@ def test_isolated_stage_turns_abort_into_error(tmp_path: Path) -> None:
     with pytest.raises(ColmapCrashError, match="JSONDecodeError"):
         run_isolated("bad", json.loads, {"s": "nope"}, log)
     assert "===== dynrecon stage: abort =====" in log.read_text()
+
+
+def test_an_isolated_stage_ends_with_its_caller(tmp_path: Path) -> None:
+    """A caller killed outright (SIGKILL, a Dask nanny ending its worker) takes the stage's process with it."""
+    code = "import signal, sys; from pathlib import Path; from sfm.isolated import run_isolated; "
+    code += "run_isolated('pause', signal.pause, {}, Path(sys.argv[1]))"
+    repo = Path(__file__).resolve().parents[2]
+    caller = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "colmap.log")], cwd=repo)
+    children = Path(f"/proc/{caller.pid}/task/{caller.pid}/children")
+    deadline = time.monotonic() + 60
+    while not children.read_text().split() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    stage = int(children.read_text().split()[0])
+    time.sleep(1.0)  # the stage has imported what it needs and waits
+    assert Path(f"/proc/{stage}").exists()
+    caller.kill()
+    caller.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while _alive(stage) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(stage)
+
+
+def _alive(pid: int) -> bool:
+    """Running, not a zombie (an orphan is reaped by init, a zombie of ours by nobody until the test ends)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
 
 
 def test_compare_recovers_similarity() -> None:
