@@ -79,8 +79,23 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         help='JSON {"connections": [["a", "b"], ...]}: bones drawn in the '
         "recording (the labeling page's skeleton file)",
     )
+    parser.add_argument(
+        "--videos",
+        type=_names,
+        default=(),
+        metavar="NAME,NAME,...",
+        help="solve only these videos of the cameras file (default: all); e.g. one of the groups of videos that "
+        "share no tracked point",
+    )
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
     parser.set_defaults(func=_solve)
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(name.strip() for name in text.split(","))
+    if not all(names) or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a list of distinct video names separated by commas")
+    return names
 
 
 def _solve(args: argparse.Namespace) -> int:
@@ -124,6 +139,7 @@ def _solve(args: argparse.Namespace) -> int:
             trust=preset_options(TrustPreset(args.trust)),
             recording=None if args.no_recording else SolveOptions().recording,
             skeleton=skeleton,
+            videos=args.videos,
         ),
     )
     stale = args.out / "recording.rrd"

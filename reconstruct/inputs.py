@@ -16,6 +16,7 @@ from dynrecon.errors import InputError, NotEnoughDataError
 from reconstruct.facing import check_facing
 from reconstruct.screen import remove_spikes
 from reconstruct.solver.problem import Problem, reconstructable_points
+from reconstruct.solver.unseen_frames import take_frames
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
 from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
@@ -115,6 +116,8 @@ def build_problem_checked(
         uv=uv,
     )
     problem, rejection.spikes = remove_spikes(problem)
+    problem = _without_unseen_videos(problem, tracks.path)
+    _check_linked(problem, tracks.path)
     if not reconstructable_points(problem).any():  # here, where the tracks file can be named
         raise NotEnoughDataError(
             f"{tracks.path or 'tracks'}: none of the {problem.num_points} point(s) is seen in two different videos: "
@@ -123,6 +126,63 @@ def build_problem_checked(
         )
     check_facing(problem, source)
     return problem, rejection
+
+
+def _without_unseen_videos(problem: Problem, tracks_path: Path | None) -> Problem:
+    """The problem without the videos that observe nothing: their frames carry no data and their clocks link to
+    nothing, so they would only fail the clock model of the videos that do observe the points."""
+    seen = np.array([problem.observed[problem.video_index == v].any() for v in range(len(problem.video_names))])
+    if seen.all() or not seen.any():
+        return problem
+    unseen = [name for name, ok in zip(problem.video_names, seen, strict=True) if not ok]
+    log.warning(
+        "%s: no observation of video(s) %s on a posed frame: left out of the solve (no rows in points3d.csv)",
+        tracks_path or "tracks",
+        ", ".join(unseen),
+    )
+    return take_frames(problem, seen[problem.video_index])
+
+
+def video_groups(problem: Problem) -> list[list[int]]:
+    """The videos in groups linked by shared points (a point seen in two videos links them), largest first."""
+    N = len(problem.video_names)
+    seen = np.stack([problem.observed[problem.video_index == v].any(axis=0) for v in range(N)])  # (N, P)
+    parent = list(range(N))
+
+    def root(v: int) -> int:
+        while parent[v] != v:
+            v = parent[v]
+        return v
+
+    for p in range(problem.num_points):
+        videos = np.flatnonzero(seen[:, p]).tolist()
+        for v in videos[1:]:
+            parent[root(v)] = root(videos[0])
+    groups: dict[int, list[int]] = {}
+    for v in range(N):
+        groups.setdefault(root(v), []).append(v)
+    return sorted(groups.values(), key=lambda group: (-len(group), group[0]))
+
+
+def _check_linked(problem: Problem, tracks_path: Path | None) -> None:
+    """Refuse videos in two or more groups that share no point: nothing ties their clocks or their depths together,
+    and a joint solve places one group's points anywhere along their rays (at a camera's centre, measured)."""
+    groups = [group for group in video_groups(problem) if len(group) > 1]
+    if len(groups) < 2:
+        return
+    described = []
+    for group in groups:
+        seen = np.asarray(problem.observed[np.isin(problem.video_index, group)].any(axis=0))
+        names = [name for name, ok in zip(problem.point_names, seen.tolist(), strict=True) if ok]
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        described.append(f"{', '.join(problem.video_names[v] for v in group)} (points {shown})")
+    first = ",".join(problem.video_names[v] for v in groups[0])
+    raise InputError(
+        tracks_path,
+        f"the videos form {len(groups)} groups that share no tracked point: " + "; ".join(described),
+        fix=f"no point links their clocks or depths: solve each group on its own (`dynrecon solve --videos {first}` "
+        "and so on), or track a point that both groups see",
+    )
 
 
 def _check_baseline(videos: list[VideoCameras], source: Path | str) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 
 from dynrecon.atomic import atomic_write_text, remove_temp_files, require_writable
 from dynrecon.beside import beside
+from dynrecon.errors import InputError
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.inputs import build_problem_checked
@@ -58,6 +59,7 @@ class SolveOptions:
     and misses fewer large errors than the balanced one (`reconstruct.trust.preset_options`).
     recording: how to draw recording.rrd (`RecordingOptions`); None writes no recording.
     skeleton: pairs of point names drawn as bones in the recording (pairs naming unknown points are left out).
+    videos: solve only these videos of the cameras file (and their tracks); empty: all of them.
     """
 
     solver: SolverOptions = dataclasses.field(default_factory=SolverOptions)
@@ -65,6 +67,7 @@ class SolveOptions:
     trust: TrustOptions = dataclasses.field(default_factory=lambda: preset_options(TrustPreset.SENSITIVE))
     recording: RecordingOptions | None = dataclasses.field(default_factory=RecordingOptions)
     skeleton: tuple[tuple[str, str], ...] = ()
+    videos: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(kw_only=True)
@@ -148,6 +151,8 @@ def solve(
     started = time.perf_counter()
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
+    if options.videos:
+        camera_set, track_set = _only_videos(camera_set, track_set, options.videos, cameras)
     track_set = matched_to_videos(track_set, [video.name for video in camera_set.videos])
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
     check_people_mapped(camera_set, track_set)
@@ -213,6 +218,22 @@ def solve(
         options=options,
         started=started,
     )
+
+
+def _only_videos(
+    cameras: CameraSet, tracks: Tracks, names: tuple[str, ...], source: object
+) -> tuple[CameraSet, Tracks]:
+    """The cameras and tracks of the videos `names` (`SolveOptions.videos`)."""
+    known = [video.name for video in cameras.videos]
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise InputError(
+            source if isinstance(source, (str, Path)) else None,
+            f"--videos names {', '.join(unknown)}, not in the cameras file",
+            fix=f"its videos: {', '.join(known)}",
+        )
+    chosen = dataclasses.replace(cameras, videos=[video for video in cameras.videos if video.name in names])
+    return chosen, tracks.of_videos(names)
 
 
 def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSet) -> tuple[SolveResult, Temporal]:

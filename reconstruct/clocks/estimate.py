@@ -452,10 +452,12 @@ def choose_reference(problem: Problem, sources: list[TimeSource], requested: str
                 fix=f"choose one of: {', '.join(problem.video_names)}",
             )
         return problem.video_names.index(requested)
+    # a video without one observation links to nothing: every clock would be "not linked to the reference"
+    seen = [bool(problem.observed[problem.video_index == v].any()) for v in range(len(problem.video_names))]
     for v, source in enumerate(sources):
-        if source is TimeSource.DECODER:
+        if source is TimeSource.DECODER and seen[v]:
             return v
-    return 0
+    return seen.index(True) if any(seen) else 0
 
 
 def estimate_clocks(problem: Problem, result: SolveResult, options: ClockOptions | None = None) -> Clocks:

@@ -1,0 +1,57 @@
+"""Videos the tracks do not link: two groups that share no point are refused (each is solved on its own with
+`--videos`), and a video with no observation is left out of the solve instead of failing every other's clock."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+from synthetic_motion import smooth_motion
+
+import reconstruct
+from dynrecon.errors import InputError
+from simulation.simulate import SimulatedCapture, SimulationOptions, simulate_capture
+from tracking.tracks import Tracks
+
+
+@pytest.fixture(scope="module")
+def capture() -> SimulatedCapture:
+    return simulate_capture(smooth_motion(120, 6), 120.0, SimulationOptions(seed=5, cameras=4))
+
+
+def _renamed(tracks: Tracks, videos: set[str]) -> Tracks:
+    """The points of `videos` under other names: those videos then share no point with the rest."""
+    points = [f"other_{p}" if v in videos else p for v, p in zip(tracks.video, tracks.point, strict=True)]
+    return dataclasses.replace(tracks, point=points)
+
+
+def test_two_groups_that_share_no_point_are_refused_and_each_solves_alone(capture: SimulatedCapture) -> None:
+    tracks = _renamed(capture.tracks, {"cam2", "cam3"})
+    options = reconstruct.SolveOptions(recording=None)
+    with pytest.raises(InputError, match="2 groups that share no tracked point") as refused:
+        reconstruct.solve(capture.cameras, tracks, options)
+    assert "cam0, cam1 (points" in str(refused.value) and "--videos cam0,cam1" in str(refused.value)
+
+    alone = reconstruct.solve(capture.cameras, tracks, dataclasses.replace(options, videos=("cam0", "cam1")))
+    assert sorted(set(alone.points.videos)) == ["cam0", "cam1"]
+    truth = capture.truth.xyz[np.isin(np.asarray(capture.truth.videos), ["cam0", "cam1"])]
+    error = np.linalg.norm(alone.points.xyz - truth, axis=-1)
+    assert np.nanmedian(error) < 1.0  # mm: the group's own solve is exact
+
+
+def test_videos_names_an_unknown_video(capture: SimulatedCapture) -> None:
+    with pytest.raises(InputError, match="--videos names cam9, not in the cameras file"):
+        reconstruct.solve(capture.cameras, capture.tracks, reconstruct.SolveOptions(recording=None, videos=("cam9",)))
+
+
+def test_a_video_without_observations_is_left_out(capture: SimulatedCapture, caplog: pytest.LogCaptureFixture) -> None:
+    tracks = capture.tracks.of_videos(["cam1", "cam2", "cam3"])  # cam0, the first video, has none
+    with caplog.at_level(logging.WARNING):
+        result = reconstruct.solve(capture.cameras, tracks, reconstruct.SolveOptions(recording=None))
+    assert "no observation of video(s) cam0" in caplog.text
+    assert "cam0" not in set(result.points.videos)
+    clocks = result.temporal.clocks
+    assert clocks.reference == "cam1" and len(clocks.videos) == 3
+    assert all(clock.identified for clock in clocks.videos)  # before: none linked to cam0, the reference
