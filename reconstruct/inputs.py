@@ -117,7 +117,8 @@ def build_problem_checked(
     )
     problem, rejection.spikes = remove_spikes(problem)
     problem = _without_unseen_videos(problem, tracks.path)
-    _check_linked(problem, tracks.path)
+    offsets = {video.name: video.clock_offset for video in cameras.videos}
+    _check_linked(problem, tracks.path, all(offsets.get(name) is not None for name in problem.video_names))
     if not reconstructable_points(problem).any():  # here, where the tracks file can be named
         raise NotEnoughDataError(
             f"{tracks.path or 'tracks'}: none of the {problem.num_points} point(s) is seen in two different videos: "
@@ -164,9 +165,11 @@ def video_groups(problem: Problem) -> list[list[int]]:
     return sorted(groups.values(), key=lambda group: (-len(group), group[0]))
 
 
-def _check_linked(problem: Problem, tracks_path: Path | None) -> None:
-    """Refuse videos in two or more groups that share no point: nothing ties their clocks or their depths together,
-    and a joint solve places one group's points anywhere along their rays (at a camera's centre, measured)."""
+def _check_linked(problem: Problem, tracks_path: Path | None, clocks_given: bool) -> None:
+    """Refuse videos in two or more groups that share no point, unless cameras.json gives every video's clock
+    offset: nothing else ties the groups' clocks together, and the solve then placed one group's points anywhere
+    along their rays (at a camera's centre, measured). With the offsets given, the trajectories are fitted on
+    them (reconstruct/registered_offsets.py), each group's points by its own videos."""
     groups = [group for group in video_groups(problem) if len(group) > 1]
     if len(groups) < 2:
         return
@@ -177,6 +180,14 @@ def _check_linked(problem: Problem, tracks_path: Path | None) -> None:
         shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
         described.append(f"{', '.join(problem.video_names[v] for v in group)} (points {shown})")
     first = ",".join(problem.video_names[v] for v in groups[0])
+    if clocks_given:
+        log.warning(
+            "the videos form %d groups that share no tracked point: %s; the cameras file gives every clock offset, "
+            "which alone ties them (each group's points are placed by its own videos)",
+            len(groups),
+            "; ".join(described),
+        )
+        return
     raise InputError(
         tracks_path,
         f"the videos form {len(groups)} groups that share no tracked point: " + "; ".join(described),

@@ -191,9 +191,12 @@ def solve(
             result = clocks_seed(problem, result.points, temporal.points, temporal.times, result.timings)
         result.timings["registered_offsets"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    # without a seed solve (the tracks path) the trust measures describe the refined points against the clocks' W
+    # without a seed solve (the tracks path) the trust measures describe the refined points against the clocks' W;
+    # so they do where registration's offsets replaced the seed's clocks: those points are not the seed's refined
     judged = result if result.stages else dataclasses.replace(result, points=temporal.points)
-    trust = measure_trust(problem, judged, options.trust)
+    if result.stages and temporal.report.get("path") == REGISTERED_PATH:
+        judged = clocks_seed(problem, temporal.points, temporal.points, temporal.times, result.timings)
+    trust = measure_trust(problem, judged, options.trust, temporal.times)
     result.timings["trust"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     inputs = {"cameras": _input_name(cameras, None), "tracks": _input_name(tracks, track_set.path)}

@@ -46,6 +46,7 @@ from dynrecon.jsonvalues import finite_or_none
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.solver.rays import viewing_rays
+from reconstruct.views import SINGLE_VIEW, views_near
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +85,8 @@ class TrustOptions:
     video_relative: ... or its video's median residual_px exceeds max(`residual_px`, this x the median of the other
     videos' medians), with 3 videos or more (0: not used; `off_videos`): a whole video that the others' shapes do
     not explain follows another subject, or its camera or clock is wrong, and every point of it is suspect.
+    min_views: ... or fewer videos than this observe the point near the frame's time (`views`, reconstruct/views.py;
+    0: not used): its position lies along one camera's rays, at a depth no second view measured.
     """
 
     residual_px: float = 5.0
@@ -98,6 +101,7 @@ class TrustOptions:
     min_support: float = 0.0
     end_step_relative: float = 0.0
     video_relative: float = 3.0
+    min_views: int = SINGLE_VIEW
 
 
 class TrustPreset(enum.Enum):
@@ -140,6 +144,7 @@ class Trust:
     step_px: np.ndarray  # (F, P) pixels, the larger move to the previous / next frame of its video (`video_step`)
     video_end: np.ndarray  # (F, P) bool, per frame: the first or last frame of its video (`video_ends`)
     videos: np.ndarray  # (F, P) distinct videos among the frame's neighbours
+    views: np.ndarray  # (F, P) videos observing the point near the frame's time (reconstruct/views.py)
     flag: np.ndarray  # (F, P) bool, error likely large (False where not reconstructed)
     limits: dict[str, float]  # the rule's effective limits in this solve: residual_px, bound_px
     reconstructed: np.ndarray  # (F, P) bool
@@ -164,6 +169,7 @@ class Trust:
             "component": _blank(self.component, empty),
             "smoothness_px": _blank(self.smoothness_px, empty),
             "step_px": _blank(self.step_px, empty),
+            "views": _blank(self.views, empty),
             "flag": np.where(empty, np.nan, self.flag.astype(float)),
         }
 
@@ -184,6 +190,7 @@ class Trust:
             ("smoothness", self.smoothness),
             ("smoothness_px", self.smoothness_px),
             ("step_px", self.step_px),
+            ("views", self.views),
         ):
             v = values[done & np.isfinite(values)]
             measures[name] = {
@@ -214,11 +221,13 @@ class Trust:
                 "smoothness": "input units",
                 "smoothness_px": "pixels",
                 "step_px": "pixels",
+                "views": "videos",
             },
             "measures": measures,
             "flagged": flagged,
             "reconstructed": total,
             "flagged_share": flagged / total if total else None,
+            "single_view": int(np.sum(done & (self.views < SINGLE_VIEW))),
             "per_video": per_video,
             "off_videos": self.off_videos,
             "rule": flag_rule(self.options),
@@ -258,6 +267,7 @@ def flag_rule(options: TrustOptions) -> str:
             if options.smoothness_px > 0
             else ""
         )
+        + (f" or views < {options.min_views}" if options.min_views > 0 else "")
         + "; medians over the solve's observed points"
     )
 
@@ -451,8 +461,12 @@ def video_ends(video_names: list[str] | np.ndarray, frames: np.ndarray) -> np.nd
     return out
 
 
-def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions | None = None) -> Trust:
-    """All measures for every (frame, point) of a solve, and the flag."""
+def trust_measures(
+    problem: Problem, result: SolveResult, options: TrustOptions | None = None, times: np.ndarray | None = None
+) -> Trust:
+    """All measures for every (frame, point) of a solve, and the flag. `times` (F,): the frames' global times (the
+    recovered clocks), which place the other videos' observations near a frame (`views`); None or NaN: the frame's
+    self-expression neighbours do."""
     options = options or TrustOptions()
     F, P = problem.num_frames, problem.num_points
     points = result.points  # (F, P, 3) input units
@@ -478,6 +492,8 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
     smoothness_px = focal[:, None] * smoothness / np.maximum(depth, 1e-300)
     step_px = focal[:, None] * video_step(points, problem.video_index, problem.frames) / np.maximum(depth, 1e-300)
     end = np.broadcast_to(video_ends(problem.video_index, problem.frames)[:, None], (F, P))
+    at = np.full(F, np.nan) if times is None else np.asarray(times, dtype=float)
+    views = views_near(problem.video_index, at, problem.observed, hood)
     flag, limits = flag_points(
         options,
         reconstructed,
@@ -491,6 +507,7 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
             "observed": problem.observed,
             "step_px": step_px,
             "video_end": end,
+            "views": views,
         },
     )
     off = flag_off_videos(options, flag, reconstructed, problem.observed, residual_px, problem.video_index)
@@ -525,6 +542,7 @@ def trust_measures(problem: Problem, result: SolveResult, options: TrustOptions 
         step_px=np.where(nan, np.nan, step_px),
         video_end=end & reconstructed,
         videos=np.broadcast_to(videos[:, None], (F, P)).astype(float),
+        views=np.where(nan, np.nan, views),
         flag=flag,
         limits=limits,
         reconstructed=reconstructed,
@@ -602,12 +620,12 @@ def flag_points(
     """The flag rule's verdict (shape of `reconstructed`) and its effective limits in this solve.
 
     measures: the rule's inputs by their points3d.csv column names (residual_px, bound_px, sequence_jump, component,
-    smoothness_px, support, step_px), `observed` and `video_end` (bool, `video_ends`), each of the shape of
-    `reconstructed`; so
-    the rule can be re-run on a written points3d.csv (benchmarks/trust_real.py). Every limit is the larger of a
-    floor and a multiple of the measure's median over the solve's observed points (all reconstructed points where
-    none is): the median is the capture's own noise level, which lives in the observations (unobserved points
-    follow their neighbours; where they are most of a solve, their median would set the limit below the noise)."""
+    smoothness_px, support, step_px; views where present), `observed` and `video_end` (bool, `video_ends`), each
+    of the shape of `reconstructed`; so the rule can be re-run on a written points3d.csv (benchmarks/trust_real.py).
+    Every limit is the larger of a floor and a multiple of the measure's median over the solve's observed points
+    (all reconstructed points where none is): the median is the capture's own noise level, which lives in the
+    observations (unobserved points follow their neighbours; where they are most of a solve, their median would set
+    the limit below the noise)."""
     residual_px, bound_px = measures["residual_px"], measures["bound_px"]
     jump, component, smoothness_px = measures["sequence_jump"], measures["component"], measures["smoothness_px"]
 
@@ -635,6 +653,8 @@ def flag_points(
     if options.min_support > 0:
         missing = reconstructed & ~measures["observed"].astype(bool)
         flag |= missing & (np.nan_to_num(measures["support"], nan=1.0) < options.min_support)
+    if options.min_views > 0 and "views" in measures:  # a points3d.csv written before the column had none
+        flag |= reconstructed & (np.nan_to_num(measures["views"], nan=np.inf) < options.min_views)
     if options.end_step_relative > 0:
         step_px = measures["step_px"]
         limits["step_px"] = options.end_step_relative * median(step_px)

@@ -13,6 +13,7 @@ import numpy as np
 import pycolmap
 
 from dynrecon.atomic import atomic_write_text
+from dynrecon.jsonvalues import json_safe
 from sfm.localize_frames import ADDED_KEYFRAME
 from sfm.plan import FramePose, VideoPlan
 
@@ -68,7 +69,7 @@ def write_report(
         "people": people,
         "subject": subject,
     }
-    atomic_write_text(path, json.dumps(report, indent=1) + "\n")
+    atomic_write_text(path, json.dumps(json_safe(report), indent=1, allow_nan=False) + "\n")  # JSON has no NaN
 
 
 def _video_entry(video: VideoPlan, per_frame: dict[int, FramePose]) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import enum
 import logging
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,7 @@ from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
 from reconstruct.outputs.mocap import UNIT_TO_MM, Mocap, write_trc
 from reconstruct.outputs.points import FramePoints, Sequencing
+from reconstruct.views import SINGLE_VIEW
 from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)
@@ -207,6 +209,27 @@ def _ordered(points: FramePoints, order: np.ndarray | None) -> np.ndarray:
     return points.xyz[order]
 
 
+def measured_only(points: FramePoints) -> FramePoints:
+    """`points` without the positions fewer than two videos saw near their instant (points3d.csv `views`, where
+    present): an export carries no flag, and such a position lies along one camera's rays at a depth nothing
+    measured (reconstruct/views.py). They are gaps in the export, as a triangulation's would be."""
+    views = points.extra.get("views")
+    if views is None:
+        return points
+    single = (views < SINGLE_VIEW) & np.isfinite(points.xyz).all(axis=-1)
+    if not single.any():
+        return points
+    counts = single.sum(axis=0)
+    worst = ", ".join(f"{points.point_names[p]} {counts[p]}" for p in np.argsort(-counts)[:3] if counts[p])
+    log.warning(
+        "export: %d position(s) seen by fewer than %d videos near their instant are left out (gaps; most: %s)",
+        int(single.sum()),
+        SINGLE_VIEW,
+        worst,
+    )
+    return replace(points, xyz=np.where(single[..., None], np.nan, points.xyz))
+
+
 def _check_rate_units(rate_hz: float, units: str) -> None:
     if not (rate_hz > 0 and np.isfinite(rate_hz)):
         raise InputError(None, f"export rate must be a positive number of Hz, got {rate_hz}")
@@ -226,6 +249,7 @@ def write_trc_export(
     """OpenSim TRC: row k = frame order[k] at time k / rate_hz; positions as stored (in `units`), empty = NaN.
     With `times` (F,) global seconds (`clock_times`), rows are instead the uniform resampling on that clock."""
     _check_rate_units(rate_hz, units)
+    points = measured_only(points)
     xyz = _ordered(points, order) if times is None else resample_on_clock(points, times, rate_hz)[0]
     mocap = Mocap(
         xyz=xyz * UNIT_TO_MM[units],
@@ -252,6 +276,7 @@ def write_c3d_export(
     import ezc3d  # compiled; imported here so the rest of the package works without it
 
     _check_rate_units(rate_hz, units)
+    points = measured_only(points)
     if times is None:
         xyz = _ordered(points, order)
         rows = np.arange(points.num_frames) if order is None else np.asarray(order)

@@ -190,7 +190,8 @@ def _fit_pairs(
             else:
                 fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng, inlier_px)
                 if obs[a].name in claimed and obs[b].name in claimed:
-                    fit = _tested_claim(obs, fit, claimed[obs[a].name] - claimed[obs[b].name], inlier_px)
+                    shift = claimed[obs[a].name] - claimed[obs[b].name]
+                    fit = _tested_claim(obs, fit, shift, inlier_px, options.max_offset)
             log.info(
                 "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
                 obs[a].name,
@@ -206,15 +207,16 @@ def _fit_pairs(
     return fits
 
 
-def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_px: float) -> PairFit:
-    """The pair at its declared shift, unless its tracks contradict it: the searched shift lies over a frame away
+def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_px: float, max_offset: float) -> PairFit:
+    """The pair at its declared shift, unless its tracks contradict it: the searched shift lies over a frame away,
+    not at the end of the search range (`max_offset`: a best score there is the range's, not the tracks' minimum),
     and scores CLAIM_RATIO better (then the searched fit, ambiguous or not, its `claim` saying why), or the
     declared shift gives no usable geometry where the searched one does. Elsewhere the declaration decides the
     pair's offset (a triggered rig's clocks agree to far under a frame)."""
     a, b = searched.a, searched.b
     period = max(obs[a].period, obs[b].period)
     declared = fit_at(obs[a], obs[b], a, b, shift, inlier_px)
-    apart = abs(searched.shift - shift) > period
+    apart = abs(searched.shift - shift) > period and abs(searched.shift) < max_offset - period
     if apart and searched.E is not None and searched.score > CLAIM_RATIO * declared.score:
         searched.claim = (
             f"contradicted: the tracks put the offset at {-searched.shift + 0.0:.3f} s, not {-shift + 0.0:.3f} s "
@@ -400,7 +402,9 @@ def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: f
         median = float(np.median(res)) if len(res) else float("inf")
         cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
         distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
-        if median > limit:
+        if not len(res):
+            why = "none of its observations is of a point the other cameras place (no shared point at its times)"
+        elif median > limit:
             why = f"median reprojection error {median:.1f} px after the bundle adjustment (> {limit:g})"
         elif int(good.sum()) < MIN_INLIERS:
             why = f"only {int(good.sum())} observations agree with the others' trajectory (< {MIN_INLIERS})"
@@ -448,8 +452,13 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
     mine = [f for f in fits if i in (f.a, f.b)]
     if all(f.shared < 8 or (f.reason or "").startswith(("the videos never", "at most")) for f in mine):
         return "its tracks never overlap in time with another video's (within max_offset)"
-    reasons = sorted({f.degenerate or f.reason or "inconsistent offset" for f in mine})
-    return "no usable pair: " + "; ".join(r for r in reasons if r)
+    # the pairs that share observations say why; the others only that they share none
+    sharing = [f for f in mine if f.shared >= 8 and not (f.reason or "").startswith(("the videos never", "at most"))]
+    reasons = [
+        f"with {obs[f.b if f.a == i else f.a].name}: {f.degenerate or f.reason or 'inconsistent offset'}"
+        for f in sharing
+    ]
+    return "no usable pair: " + "; ".join(reasons)
 
 
 def _refit_to_offsets(

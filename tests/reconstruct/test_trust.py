@@ -203,6 +203,7 @@ def test_summary_and_columns_are_json_ready(solved):
         "component",
         "smoothness_px",
         "step_px",
+        "views",
         "flag",
     }
     assert set(np.unique(columns["flag"])) == {1.0}

@@ -205,6 +205,7 @@ def test_declared_synchronization_is_tested_per_pair() -> None:
         ((2.0, 10.0, True, True), (0.0, 9.0, True), "held"),  # far, but not clearly better
         ((0.01, 10.0, True, True), (0.0, 3.0, True), "held"),  # within a frame
         ((2.0, 10.0, True, True), (0.0, 9.0, False), "not used"),  # the declared offset gives nothing usable
+        ((10.0, 10.0, True, True), (0.0, 3.0, True), "held"),  # better, but at the end of the search range
     ],
 )
 def test_the_declared_clock_decision(
@@ -240,6 +241,6 @@ def test_the_declared_clock_decision(
         period = 1 / 30
         name = "v"
 
-    kept = calibrate._tested_claim([Video(), Video()], fit(*searched), 0.0, 3.0)  # type: ignore[list-item]
+    kept = calibrate._tested_claim([Video(), Video()], fit(*searched), 0.0, 3.0, 10.0)  # type: ignore[list-item]
     assert kept.claim is not None and kept.claim.startswith(claim), kept.claim
     assert kept.shift == (-declared[0] if claim == "held" else -searched[0])

@@ -1,0 +1,63 @@
+"""How many videos see a point near each instant: a position along one camera's rays alone has no depth.
+
+The solver gives every (frame, point) a position, also where a single video saw the point around that instant:
+there the depth comes from the motion model alone, and on real captures such positions were metres off (a ball one
+camera saw in one frame, the other in all of them), some behind or on the camera that saw them. `views_near`
+counts, for every (frame, point), the distinct videos that observe the point within `WINDOW_PERIODS` frame periods
+of the frame's global time (the frame's own video included); fewer than two is `SINGLE_VIEW`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WINDOW_PERIODS = 2.0  # the window, in frame periods of the slower of the two videos compared
+SINGLE_VIEW = 2  # fewer videos than this near an instant: the point's depth there is not measured
+
+
+def views_near(
+    video_index: np.ndarray, times: np.ndarray, observed: np.ndarray, hood: np.ndarray | None = None
+) -> np.ndarray:
+    """(F, P) the distinct videos observing each point within `WINDOW_PERIODS` frame periods of each frame's time.
+
+    video_index: (F,) each frame's video; times: (F,) global times in s (NaN where a video's clock is unknown);
+    observed: (F, P) bool; hood: (F, n) frame indices (-1 padded) of each frame and its self-expression
+    neighbours (`trust.neighbourhoods`), which stand in for the window where a frame has no time (None: such
+    frames count their own video only)."""
+    observed = np.asarray(observed, dtype=bool)
+    F, P = observed.shape
+    N = int(video_index.max()) + 1 if F else 0
+    periods = np.full(N, np.nan)
+    for u in range(N):
+        own = np.sort(times[video_index == u])
+        gaps = np.diff(own[np.isfinite(own)])
+        periods[u] = float(np.median(gaps)) if gaps.size else np.nan
+    timed = np.isfinite(times)
+    count = np.zeros((F, P), dtype=np.int64)
+    for u in range(N):
+        rows = np.flatnonzero((video_index == u) & timed)
+        window = WINDOW_PERIODS * np.fmax(periods[u], periods[video_index])  # NaN only for videos without times
+        for p in range(P):
+            seen = np.sort(times[rows[observed[rows, p]]])
+            if seen.size:
+                count[:, p] += _nearest_gap(seen, times) <= window
+    untimed = np.flatnonzero(~timed)
+    if untimed.size:
+        count[untimed] = observed[untimed]  # a frame without a time: its own observation ...
+        if hood is not None:  # ... and the videos of its neighbours in the solve that observe the point
+            for f in untimed:
+                near = hood[f][hood[f] >= 0]
+                for p in range(P):
+                    count[f, p] = len(set(video_index[near[observed[near, p]]].tolist()))
+    return count
+
+
+def _nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(F,) the distance from each time to the nearest of the sorted `seen` times (NaN for a NaN time)."""
+    at = np.clip(np.searchsorted(seen, times), 1, max(seen.size - 1, 1))
+    if seen.size == 1:
+        return np.abs(times - seen[0])
+    return np.minimum(np.abs(times - seen[at - 1]), np.abs(seen[at] - times))
+
+
+__all__ = ["SINGLE_VIEW", "WINDOW_PERIODS", "views_near"]
