@@ -45,11 +45,19 @@ def views_near(
     if untimed.size:
         count[untimed] = observed[untimed]  # a frame without a time: its own observation ...
         if hood is not None:  # ... and the videos of its neighbours in the solve that observe the point
-            for f in untimed:
-                near = hood[f][hood[f] >= 0]
-                for p in range(P):
-                    count[f, p] = len(set(video_index[near[observed[near, p]]].tolist()))
+            count[untimed] = _hood_views(video_index, observed, hood[untimed], N)
     return count
+
+
+def _hood_views(video_index: np.ndarray, observed: np.ndarray, hood: np.ndarray, N: int) -> np.ndarray:
+    """(M, P) distinct videos among the frames of `hood` (M, n; -1 padded) that observe each point."""
+    seen = np.zeros((hood.shape[0], observed.shape[1], N), dtype=bool)
+    rows = np.arange(hood.shape[0])
+    for k in range(hood.shape[1]):
+        valid = hood[:, k] >= 0
+        frames = hood[valid, k]
+        seen[rows[valid], :, video_index[frames]] |= observed[frames]
+    return seen.sum(axis=-1)
 
 
 def _nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
