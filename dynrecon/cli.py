@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import importlib
 import logging
+import os
 import signal
 import sys
 import threading
@@ -111,6 +112,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
         for noisy in ("PIL", "matplotlib", "urllib3"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
     quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
+    if not sys.stderr.isatty():  # a log file keeps every redraw of a bar: one every 10 s is a record enough
+        os.environ.setdefault("TQDM_MININTERVAL", "10")
 
 
 def _say(message: str, *, stopped: bool = False) -> None:

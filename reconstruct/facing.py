@@ -16,6 +16,7 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from reconstruct.solver.problem import Problem
+from reconstruct.solver.rays import closest_depths
 
 SAMPLES = 8  # observations of a point per pair of videos
 MIN_PAIRS = 20  # ray pairs a video needs before it is judged
@@ -88,15 +89,8 @@ def _in_front(problem: Problem, first: np.ndarray, second: np.ndarray) -> tuple[
     nearly parallel, both rays finite)."""
     centers = problem.centers
     r1, r2 = _rays(problem, first), _rays(problem, second)
-    w = centers[first[:, 0]] - centers[second[:, 0]]
-    b = np.einsum("mk,mk->m", r1, r2)
-    d = np.einsum("mk,mk->m", r1, w)
-    e = np.einsum("mk,mk->m", r2, w)
-    denom = 1.0 - b * b
+    d1, d2, denom = closest_depths(r1, r2, centers[first[:, 0]] - centers[second[:, 0]])
     usable = denom >= math.sin(math.radians(MIN_ANGLE_DEG)) ** 2  # False for NaN too
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d1 = (b * e - d) / denom
-        d2 = (e - b * d) / denom
     return (d1 > 0) & (d2 > 0), usable
 
 

@@ -34,7 +34,7 @@ from reconstruct.clocks.model import (
     video_centers,
 )
 from reconstruct.solver.problem import Problem
-from reconstruct.solver.rays import viewing_rays
+from reconstruct.solver.rays import closest_depths, viewing_rays
 
 log = logging.getLogger(__name__)
 
@@ -207,13 +207,8 @@ def gap_px(
     a depth is negative; without it, depths count by magnitude (continuous, for the refinement). `vector`: the
     (m, P, 3) segment between the rays' closest points at the same pixel scale instead of its length."""
     w = np.broadcast_to((c1 - c2)[:, None, :], r1.shape)
-    b = np.einsum("mpk,mpk->mp", r1, r2)
-    d = np.einsum("mpk,mpk->mp", r1, w)
-    e = np.einsum("mpk,mpk->mp", r2, w)
-    denom = 1.0 - b * b
+    d1, d2, denom = closest_depths(r1, r2, w)
     with np.errstate(invalid="ignore", divide="ignore"):
-        d1 = (b * e - d) / denom
-        d2 = (e - b * d) / denom
         between = w + d1[..., None] * r1 - d2[..., None] * r2
         gap = np.sqrt(np.einsum("mpk,mpk->mp", between, between))
         px = 0.5 * gap * np.sqrt((f1[:, None] / d1) ** 2 + (f2[:, None] / d2) ** 2) / math.sqrt(2.0)

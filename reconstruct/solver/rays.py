@@ -25,6 +25,18 @@ def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | No
     return np.linalg.solve(K, homogeneous.T).T[:, :2]
 
 
+def closest_depths(r1: np.ndarray, r2: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depths d1, d2 along unit rays r1, r2 (..., 3) of their closest points, the rays leaving centres c1 and c2
+    with w = c1 - c2 (broadcast to the rays); and 1 - cos^2 of their angle (0: parallel, where d1, d2 are not
+    finite). The closest points are c1 + d1 r1 and c2 + d2 r2."""
+    b = np.einsum("...k,...k->...", r1, r2)
+    d = np.einsum("...k,...k->...", r1, w)
+    e = np.einsum("...k,...k->...", r2, w)
+    denom = 1.0 - b * b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (b * e - d) / denom, (e - b * d) / denom, denom
+
+
 def viewing_rays(problem: Problem) -> np.ndarray:
     """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved.
     All frames at once (a loop over frames is slow on long captures); only frames with lens distortion go through
