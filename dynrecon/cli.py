@@ -57,12 +57,14 @@ def _terminated(signum: int, frame: object) -> None:
 def sigterm_as_stop() -> Iterator[None]:
     """Handle SIGTERM as a stop request while the command runs. pycolmap's crash handler claims SIGTERM when it loads
     and prints a native stack trace for it, so pycolmap is loaded first and its handler replaced (a later import does
-    not install it again); the previous handler is back afterwards, for a caller of `main` in Python."""
-    import pycolmap  # noqa: F401
-
-    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+    not install it again); the Python handler of before is set again afterwards, for a caller of `main` in Python.
+    Off the main thread nothing is touched: only the main thread may set handlers, and loading pycolmap there would
+    replace the caller's own handler for good."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
+    import pycolmap  # noqa: F401
+
     previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         yield
@@ -141,7 +143,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except DynreconError as error:
         _say(f"dynrecon {args.command}: error: {error}")
         return 2
-    except KeyboardInterrupt as stop:
-        terminated = isinstance(stop, Terminated)
-        _say("stopped (SIGTERM)" if terminated else "interrupted", stopped=True)
-        return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
+    except Terminated:
+        _say("stopped (SIGTERM)", stopped=True)
+        raise SystemExit(128 + signal.SIGTERM) from None  # a request to end the process, also one calling `main`
+    except KeyboardInterrupt:
+        _say("interrupted", stopped=True)
+        return 128 + signal.SIGINT

@@ -55,6 +55,7 @@ from reconstruct.outputs.export import (
     clock_times,
     frame_times,
     global_order,
+    measured_only,
     write_c3d_export,
     write_trc_export,
 )
@@ -726,7 +727,7 @@ def _world_units(options: PipelineOptions, registration: Registration) -> str:
 
 
 def _export(ws: Path, cameras_path: Path, units: str) -> None:
-    points = read_points(ws / "points3d.csv")
+    points = measured_only(read_points(ws / "points3d.csv"))  # once here: the writers then find nothing to say
     cameras = read_cameras(cameras_path)
     sequencing = read_sequencing(ws / "sequencing.json")
     order, source = global_order(points, cameras, sequencing)

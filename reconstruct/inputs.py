@@ -22,6 +22,7 @@ from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
 log = logging.getLogger(__name__)
 
+MIN_LINK = 5  # observations of a point in each of two videos that link them (a stray detection does not)
 BASELINE_TOLERANCE = 1e-9  # camera centres closer than this (relative to their magnitude) are one point
 
 
@@ -118,7 +119,7 @@ def build_problem_checked(
     problem, rejection.spikes = remove_spikes(problem)
     problem = _without_unseen_videos(problem, tracks.path)
     offsets = {video.name: video.clock_offset for video in cameras.videos}
-    _check_linked(problem, tracks.path, all(offsets.get(name) is not None for name in problem.video_names))
+    problem = _linked(problem, tracks.path, all(offsets.get(name) is not None for name in problem.video_names))
     if not reconstructable_points(problem).any():  # here, where the tracks file can be named
         raise NotEnoughDataError(
             f"{tracks.path or 'tracks'}: none of the {problem.num_points} point(s) is seen in two different videos: "
@@ -144,10 +145,13 @@ def _without_unseen_videos(problem: Problem, tracks_path: Path | None) -> Proble
     return take_frames(problem, seen[problem.video_index])
 
 
-def video_groups(problem: Problem) -> list[list[int]]:
-    """The videos in groups linked by shared points (a point seen in two videos links them), largest first."""
+def video_groups(problem: Problem, min_link: int = MIN_LINK) -> list[list[int]]:
+    """The videos in groups linked by shared points (a point each of two videos observes `min_link` times or more,
+    or in half its frames when it has fewer, links them: a stray detection or two does not), largest first."""
     N = len(problem.video_names)
-    seen = np.stack([problem.observed[problem.video_index == v].any(axis=0) for v in range(N)])  # (N, P)
+    rows = [problem.video_index == v for v in range(N)]
+    need = [min(min_link, max(1, int(np.ceil(0.5 * own.sum())))) for own in rows]
+    seen = np.stack([problem.observed[own].sum(axis=0) >= n for own, n in zip(rows, need, strict=True)])  # (N, P)
     parent = list(range(N))
 
     def root(v: int) -> int:
@@ -165,35 +169,53 @@ def video_groups(problem: Problem) -> list[list[int]]:
     return sorted(groups.values(), key=lambda group: (-len(group), group[0]))
 
 
-def _check_linked(problem: Problem, tracks_path: Path | None, clocks_given: bool) -> None:
-    """Refuse videos in two or more groups that share no point, unless cameras.json gives every video's clock
-    offset: nothing else ties the groups' clocks together, and the solve then placed one group's points anywhere
-    along their rays (at a camera's centre, measured). With the offsets given, the trajectories are fitted on
-    them (reconstruct/registered_offsets.py), each group's points by its own videos."""
-    groups = [group for group in video_groups(problem) if len(group) > 1]
-    if len(groups) < 2:
-        return
-    described = []
-    for group in groups:
-        seen = np.asarray(problem.observed[np.isin(problem.video_index, group)].any(axis=0))
-        names = [name for name, ok in zip(problem.point_names, seen.tolist(), strict=True) if ok]
-        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-        described.append(f"{', '.join(problem.video_names[v] for v in group)} (points {shown})")
-    first = ",".join(problem.video_names[v] for v in groups[0])
+def _linked(problem: Problem, tracks_path: Path | None, clocks_given: bool) -> Problem:
+    """The problem on videos the tracks link. Unless cameras.json gives every video's clock offset (which alone ties
+    the videos: each group's points are then placed by its own videos, reconstruct/registered_offsets.py), a video
+    that shares no point with the others is left out (its clock links to nothing, as an unseen video's), and videos
+    in two or more groups that share no point are refused: the joint solve placed one group's points anywhere along
+    their rays (at a camera's centre, measured)."""
+    groups = video_groups(problem)
+    linked = [group for group in groups if len(group) > 1]
+    if not linked:  # nothing links any two videos: the later checks say what is missing
+        return problem
+    described = [_described(problem, group) for group in linked]
     if clocks_given:
-        log.warning(
-            "the videos form %d groups that share no tracked point: %s; the cameras file gives every clock offset, "
-            "which alone ties them (each group's points are placed by its own videos)",
-            len(groups),
-            "; ".join(described),
+        if len(linked) > 1:
+            log.warning(
+                "the videos form %d groups that share no tracked point: %s; the cameras file gives every clock "
+                "offset, which alone ties them (each group's points are placed by its own videos)",
+                len(linked),
+                "; ".join(described),
+            )
+        return problem
+    if len(linked) > 1:
+        first = ",".join(problem.video_names[v] for v in linked[0])
+        raise InputError(
+            tracks_path,
+            f"the videos form {len(linked)} groups that share no tracked point: " + "; ".join(described),
+            fix=f"no point links their clocks or depths: solve each group on its own (`dynrecon solve --videos "
+            f"{first}` and so on), or track a point that both groups see",
         )
-        return
-    raise InputError(
-        tracks_path,
-        f"the videos form {len(groups)} groups that share no tracked point: " + "; ".join(described),
-        fix=f"no point links their clocks or depths: solve each group on its own (`dynrecon solve --videos {first}` "
-        "and so on), or track a point that both groups see",
+    lone = [v for group in groups if len(group) == 1 for v in group]
+    if not lone:
+        return problem
+    log.warning(
+        "%s: video(s) %s share no tracked point (%d observations or more) with the others: left out of the solve "
+        "(nothing links their clocks; no rows in points3d.csv)",
+        tracks_path or "tracks",
+        ", ".join(problem.video_names[v] for v in lone),
+        MIN_LINK,
     )
+    return take_frames(problem, ~np.isin(problem.video_index, lone))
+
+
+def _described(problem: Problem, group: list[int]) -> str:
+    """'cam0, cam1 (points a, b, c and 4 more)': a group's videos and the points they see."""
+    seen = np.asarray(problem.observed[np.isin(problem.video_index, group)].any(axis=0))
+    names = [name for name, ok in zip(problem.point_names, seen.tolist(), strict=True) if ok]
+    shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    return f"{', '.join(problem.video_names[v] for v in group)} (points {shown})"
 
 
 def _check_baseline(videos: list[VideoCameras], source: Path | str) -> None:

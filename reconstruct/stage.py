@@ -151,9 +151,9 @@ def solve(
     started = time.perf_counter()
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
-    if options.videos:
-        camera_set, track_set = _only_videos(camera_set, track_set, options.videos, cameras)
     track_set = matched_to_videos(track_set, [video.name for video in camera_set.videos])
+    if options.videos:  # after the names are matched: `--videos` names the cameras file's videos
+        camera_set, track_set = _only_videos(camera_set, track_set, options.videos, cameras)
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
     check_people_mapped(camera_set, track_set)
     track_set = renumber_people(track_set, people_maps(camera_set))
@@ -228,6 +228,8 @@ def _only_videos(
 ) -> tuple[CameraSet, Tracks]:
     """The cameras and tracks of the videos `names` (`SolveOptions.videos`)."""
     known = [video.name for video in cameras.videos]
+    if len(set(names)) < 2:
+        raise InputError(None, f"--videos names {len(set(names))} video: a solve needs at least two")
     unknown = [name for name in names if name not in known]
     if unknown:
         raise InputError(

@@ -36,7 +36,8 @@ def views_near(
     count = np.zeros((F, P), dtype=np.int64)
     for u in range(N):
         rows = np.flatnonzero((video_index == u) & timed)
-        window = WINDOW_PERIODS * np.fmax(periods[u], periods[video_index])  # NaN only for videos without times
+        # a video of one timed frame has no period: 0, so that its own observation (and one at its instant) counts
+        window = WINDOW_PERIODS * np.maximum(np.nan_to_num(periods[u]), np.nan_to_num(periods[video_index]))
         for p in range(P):
             seen = np.sort(times[rows[observed[rows, p]]])
             if seen.size:

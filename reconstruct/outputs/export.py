@@ -227,7 +227,16 @@ def measured_only(points: FramePoints) -> FramePoints:
         SINGLE_VIEW,
         worst,
     )
-    return replace(points, xyz=np.where(single[..., None], np.nan, points.xyz))
+    kept = replace(points, xyz=np.where(single[..., None], np.nan, points.xyz))
+    emptied = np.isfinite(points.xyz).all(axis=-1).any(axis=0) & ~np.isfinite(kept.xyz).all(axis=-1).any(axis=0)
+    if emptied.any():  # a whole trajectory gone: say so apart from the count
+        log.warning(
+            "export: no two videos ever saw %s near the same instant: %s empty in the export (points3d.csv keeps "
+            "the solve's positions, flagged)",
+            ", ".join(name for name, gone in zip(points.point_names, emptied.tolist(), strict=True) if gone),
+            "it is" if emptied.sum() == 1 else "they are",
+        )
+    return kept
 
 
 def _check_rate_units(rate_hz: float, units: str) -> None:

@@ -30,7 +30,7 @@ from sfm.subject.model import (
 )
 from sfm.subject.observations import VideoObs, build_observations, normalize
 from sfm.subject.offsets import solve_offsets
-from sfm.subject.pairs import DISTINCT, PairFit, fit_at, fit_pair
+from sfm.subject.pairs import DISTINCT, PairFit, fit_at, fit_pair, search_range
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -216,7 +216,9 @@ def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_p
     a, b = searched.a, searched.b
     period = max(obs[a].period, obs[b].period)
     declared = fit_at(obs[a], obs[b], a, b, shift, inlier_px)
-    apart = abs(searched.shift - shift) > period and abs(searched.shift) < max_offset - period
+    lo, hi = search_range(obs[a], obs[b], max_offset)
+    inside = lo + period < searched.shift < hi - period  # a best score at the range's end is the range's
+    apart = abs(searched.shift - shift) > period and inside
     if apart and searched.E is not None and searched.score > CLAIM_RATIO * declared.score:
         searched.claim = (
             f"contradicted: the tracks put the offset at {-searched.shift + 0.0:.3f} s, not {-shift + 0.0:.3f} s "

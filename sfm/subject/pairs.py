@@ -145,6 +145,11 @@ def _peaks(shifts: np.ndarray, scores: np.ndarray, separation: float, count: int
     return out
 
 
+def search_range(oa: VideoObs, ob: VideoObs, max_offset: float) -> tuple[float, float]:
+    """The shifts a pair's search tries: within `max_offset` each way and where the two videos' times overlap."""
+    return max(-max_offset, ob.times[0] - oa.times[-1]), min(max_offset, ob.times[-1] - oa.times[0])
+
+
 def fit_pair(
     oa: VideoObs,
     ob: VideoObs,
@@ -163,8 +168,7 @@ def fit_pair(
     speed = max(_image_speed(oa), _image_speed(ob))
     # a coarse step whose motion blur stays near the inlier threshold, between the fine step and 3 frames
     coarse = float(np.clip(4 * inlier_px / max(speed, 1e-9), fine, 3 * period))
-    lo = max(-max_offset, ob.times[0] - oa.times[-1])
-    hi = min(max_offset, ob.times[-1] - oa.times[0])
+    lo, hi = search_range(oa, ob, max_offset)
     empty = PairFit(
         a=a,
         b=b,

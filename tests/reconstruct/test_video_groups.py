@@ -13,7 +13,7 @@ from synthetic_motion import smooth_motion
 import reconstruct
 from dynrecon.errors import InputError
 from simulation.simulate import SimulatedCapture, SimulationOptions, simulate_capture
-from tracking.tracks import Tracks
+from tracking.tracks import Tracks, join_tracks
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,9 @@ def test_two_groups_that_share_no_point_are_refused_and_each_solves_alone(captur
 
 def test_videos_names_an_unknown_video(capture: SimulatedCapture) -> None:
     with pytest.raises(InputError, match="--videos names cam9, not in the cameras file"):
-        reconstruct.solve(capture.cameras, capture.tracks, reconstruct.SolveOptions(recording=None, videos=("cam9",)))
+        reconstruct.solve(
+            capture.cameras, capture.tracks, reconstruct.SolveOptions(recording=None, videos=("cam0", "cam9"))
+        )
 
 
 def test_a_video_without_observations_is_left_out(capture: SimulatedCapture, caplog: pytest.LogCaptureFixture) -> None:
@@ -71,3 +73,29 @@ def test_groups_are_solved_together_where_the_cameras_file_gives_every_clock(
     truth = capture.truth.xyz[:, [int(name.split("p")[-1]) for name in names]]
     error = np.linalg.norm(result.points.xyz - truth, axis=-1)
     assert np.nanmedian(error) < 1.0  # mm
+
+
+def test_videos_selects_by_the_cameras_names_whatever_the_tracks_call_them(capture: SimulatedCapture) -> None:
+    tracks = _renamed(capture.tracks, {"cam2", "cam3"})
+    tracks = dataclasses.replace(tracks, video=[f"{name}.mp4" for name in tracks.video])  # matched to cam0, ...
+    options = reconstruct.SolveOptions(recording=None, videos=("cam0", "cam1"))
+    assert sorted(set(reconstruct.solve(capture.cameras, tracks, options).points.videos)) == ["cam0", "cam1"]
+    with pytest.raises(InputError, match="--videos names 1 video: a solve needs at least two"):
+        reconstruct.solve(capture.cameras, tracks, dataclasses.replace(options, videos=("cam0",)))
+
+
+def test_a_stray_detection_does_not_link_two_groups(capture: SimulatedCapture) -> None:
+    tracks = _renamed(capture.tracks, {"cam2", "cam3"})
+    stray = Tracks.from_rows([("cam0", int(capture.tracks.frame[0]), "other_p0", 500.0, 500.0)])
+    tracks = join_tracks(tracks, stray)  # one false detection of the other group's point
+    with pytest.raises(InputError, match="2 groups that share no tracked point"):
+        reconstruct.solve(capture.cameras, tracks, reconstruct.SolveOptions(recording=None))
+
+
+def test_a_video_that_shares_no_point_is_left_out(capture: SimulatedCapture, caplog: pytest.LogCaptureFixture) -> None:
+    tracks = _renamed(capture.tracks, {"cam3"})
+    with caplog.at_level(logging.WARNING):
+        result = reconstruct.solve(capture.cameras, tracks, reconstruct.SolveOptions(recording=None))
+    assert "video(s) cam3 share no tracked point" in caplog.text
+    assert sorted(set(result.points.videos)) == ["cam0", "cam1", "cam2"]
+    assert all(clock.identified for clock in result.temporal.clocks.videos)

@@ -28,6 +28,13 @@ def test_views_count_the_videos_within_two_frame_periods() -> None:
     assert (views[near & clear, 1] == 2).all() and (views[~near & clear, 1] == 1).all()
 
 
+def test_a_video_of_one_frame_counts_its_own_observation() -> None:
+    views = views_near(np.array([0, 0, 0, 1]), np.array([0.0, 0.1, 0.2, 0.1]), np.ones((4, 1), dtype=bool))
+    assert views[:, 0].tolist() == [2, 2, 2, 2]
+    alone = views_near(np.array([0, 1]), np.array([0.5, 0.5]), np.ones((2, 1), dtype=bool))  # one frame each
+    assert alone[:, 0].tolist() == [2, 2]
+
+
 def test_frames_without_a_time_use_their_neighbours_in_the_solve() -> None:
     video = np.array([0, 0, 1, 1])
     observed = np.array([[True], [True], [False], [True]])
@@ -71,3 +78,24 @@ def test_exports_leave_single_view_positions_out(one_view_point, caplog: pytest.
     assert np.isnan(exported.xyz[single, p0]).all() and np.isfinite(exported.xyz[~single, p0]).all()
     assert np.array_equal(np.delete(exported.xyz, p0, axis=1), np.delete(points.xyz, p0, axis=1))
     assert "left out" in caplog.text and "p0" in caplog.text
+
+
+def test_an_export_that_loses_a_whole_point_says_so(caplog: pytest.LogCaptureFixture) -> None:
+    from reconstruct.outputs.points import FramePoints
+
+    xyz = np.ones((4, 2, 3))
+    views = np.array([[2.0, 1.0]] * 4)  # point b: never a second view
+    points = FramePoints(
+        videos=["a", "a", "b", "b"],
+        frames=np.array([0, 1, 0, 1]),
+        point_names=["a", "b"],
+        xyz=xyz,
+        observed=np.ones((4, 2), dtype=bool),
+        extra={"views": views},
+    )
+    kept = measured_only(points)
+    assert np.isnan(kept.xyz[:, 1]).all() and np.isfinite(kept.xyz[:, 0]).all()
+    assert "no two videos ever saw b near the same instant: it is empty in the export" in caplog.text
+    caplog.clear()
+    measured_only(kept)  # a second pass (the TRC after the C3D) has nothing to say
+    assert not caplog.text

@@ -240,6 +240,7 @@ def test_the_declared_clock_decision(
     class Video:
         period = 1 / 30
         name = "v"
+        times = np.arange(0.0, 60.0, 1 / 30)  # a search range of +-10 s (max_offset) inside the overlap
 
     kept = calibrate._tested_claim([Video(), Video()], fit(*searched), 0.0, 3.0, 10.0)  # type: ignore[list-item]
     assert kept.claim is not None and kept.claim.startswith(claim), kept.claim
