@@ -25,6 +25,7 @@ from dynrecon.beside import beside
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.registered import check_registered_clocks
+from reconstruct.fit import check_fit
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
@@ -205,6 +206,8 @@ def solve(
     report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
+    refined = temporal.report.get("path") not in (None, "seed")
+    report["fit"] = check_fit(problem, temporal.points, trust, refined)
     report["rejected_observations"] = rejected.to_json()
     points, frames_sequencing = frame_points(problem, result, temporal, trust), sequencing(problem, result, temporal)
     report["timings"]["outputs"] = time.perf_counter() - t0

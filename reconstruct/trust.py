@@ -477,7 +477,7 @@ def trust_measures(
     offset = points - problem.centers[:, None, :]
     depth = np.linalg.norm(offset, axis=-1)
     residual, residual_px = _self_expression(points, W, focal, depth)
-    ray_distance, reprojection_px = _ray_distances(offset, rays, problem.observed, focal)
+    ray_distance, reprojection_px = ray_distances(offset, rays, problem.observed, focal)
     # Support: W weight on neighbours observing the point.
     support = np.asarray(W.T @ problem.observed.astype(float))
     support = np.clip(support / np.maximum(np.asarray(W.sum(axis=0)).reshape(-1, 1), 1e-300), 0.0, 1.0)
@@ -567,7 +567,7 @@ def _self_expression(
     return residual, focal[:, None] * residual / np.maximum(depth, 1e-300)
 
 
-def _ray_distances(
+def ray_distances(
     offset: np.ndarray, rays: np.ndarray, observed: np.ndarray, focal: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(F, P) distance from the viewing ray (input units) and that angle in pixels; NaN where unobserved."""

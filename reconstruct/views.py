@@ -22,8 +22,9 @@ def views_near(
 
     video_index: (F,) each frame's video; times: (F,) global times in s (NaN where a video's clock is unknown);
     observed: (F, P) bool; hood: (F, n) frame indices (-1 padded) of each frame and its self-expression
-    neighbours (`trust.neighbourhoods`), which stand in for the window where a frame has no time (None: such
-    frames count their own video only)."""
+    neighbours (`trust.neighbourhoods`), which stand in for the window where a video has no clock: then every
+    frame takes the larger of its count by time and the videos among its neighbours that observe the point
+    (None: a frame without a time counts its own video only)."""
     observed = np.asarray(observed, dtype=bool)
     F, P = observed.shape
     N = int(video_index.max()) + 1 if F else 0
@@ -42,11 +43,13 @@ def views_near(
             seen = np.sort(times[rows[observed[rows, p]]])
             if seen.size:
                 count[:, p] += _nearest_gap(seen, times) <= window
-    untimed = np.flatnonzero(~timed)
-    if untimed.size:
-        count[untimed] = observed[untimed]  # a frame without a time: its own observation ...
-        if hood is not None:  # ... and the videos of its neighbours in the solve that observe the point
-            count[untimed] = _hood_views(video_index, observed, hood[untimed], N)
+    if timed.all():
+        return count
+    # A video without a clock has no observation at a known time: every frame, timed or not, also counts the videos
+    # of its neighbours in the solve that observe the point (a timed frame would otherwise never see that video).
+    count[~timed] = observed[~timed]
+    if hood is not None:
+        count = np.maximum(count, _hood_views(video_index, observed, hood, N))
     return count
 
 

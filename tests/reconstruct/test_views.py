@@ -99,3 +99,13 @@ def test_an_export_that_loses_a_whole_point_says_so(caplog: pytest.LogCaptureFix
     caplog.clear()
     measured_only(kept)  # a second pass (the TRC after the C3D) has nothing to say
     assert not caplog.text
+
+
+def test_a_video_without_a_clock_counts_for_the_timed_frames_through_their_neighbours() -> None:
+    # video 1's clock is unknown: the timed frames of video 0 see it through W, as video 1's frames see video 0
+    video = np.array([0, 0, 1, 1])
+    times = np.array([0.0, 0.1, np.nan, np.nan])
+    observed = np.ones((4, 1), dtype=bool)
+    hood = np.array([[0, 2], [1, 3], [2, 0], [3, 1]])
+    assert views_near(video, times, observed, hood)[:, 0].tolist() == [2, 2, 2, 2]
+    assert views_near(video, times, observed)[:, 0].tolist() == [1, 1, 1, 1]  # without W: each its own

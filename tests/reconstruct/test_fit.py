@@ -1,0 +1,47 @@
+"""report.json `fit`: cameras that are not the capture's (here: two videos' focal lengths 15 % off) are said to miss
+the tracks, which the trust flag, relative to the capture's own medians, does not show."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+from synthetic_motion import smooth_motion
+
+import reconstruct
+from sfm.cameras import CameraSet
+from simulation.simulate import SimulatedCapture, SimulationOptions, simulate_capture
+
+
+@pytest.fixture(scope="module")
+def capture() -> SimulatedCapture:
+    return simulate_capture(smooth_motion(60, 6), 120.0, SimulationOptions(seed=4, cameras=3, noise_px=0.5))
+
+
+def _wrong_focal(capture: SimulatedCapture, videos: set[str], factor: float) -> CameraSet:
+    videos_out = []
+    for video in capture.cameras.videos:
+        if video.name in videos:
+            K = np.diag([factor, factor, 1.0])
+            frames = [dataclasses.replace(f, K=K @ f.K) for f in video.frames]
+            video = dataclasses.replace(video, frames=frames)
+        videos_out.append(video)
+    return dataclasses.replace(capture.cameras, videos=videos_out)
+
+
+def test_the_capture_s_own_cameras_fit(capture: SimulatedCapture) -> None:
+    fit = reconstruct.solve(capture.cameras, capture.tracks, reconstruct.SolveOptions(recording=None)).report["fit"]
+    assert fit["fits"] and fit["median_px"] < 2.0 and set(fit["per_video_px"]) == {"cam0", "cam1", "cam2"}
+
+
+def test_cameras_of_another_session_are_said_to_miss(
+    capture: SimulatedCapture, caplog: pytest.LogCaptureFixture
+) -> None:
+    cameras = _wrong_focal(capture, {"cam1", "cam2"}, 1.15)
+    with caplog.at_level(logging.WARNING):
+        result = reconstruct.solve(cameras, capture.tracks, reconstruct.SolveOptions(recording=None))
+    fit = result.report["fit"]
+    assert not fit["fits"] and fit["median_px"] > fit["limit_px"]
+    assert "the written points miss the tracks by a median of" in caplog.text
