@@ -63,6 +63,7 @@ from reconstruct.outputs.mocap import UNIT_TO_MM
 from reconstruct.outputs.points import read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
 from reconstruct.stage import SolveOptions, solve
+from reconstruct.views import nearest_gap
 from sfm.board_hint import board_hint
 from sfm.calibration import run as import_calibration
 from sfm.cameras import CameraSet, read_cameras
@@ -113,6 +114,7 @@ __all__ = [
     "run_stages",
     "score_against_truth",
     "similarity_to_truth",
+    "triggered_rate",
 ]
 
 
@@ -663,6 +665,24 @@ def _order(ws: Path, cameras_path: Path) -> tuple[np.ndarray, OrderSource]:
     return global_order(points, cameras, read_sequencing(ws / "sequencing.json"))
 
 
+def triggered_rate(times: np.ndarray, videos: list[str]) -> float | None:
+    """The fastest video's rate where the videos' frames coincide in global time (`times` (F,)): a triggered rig,
+    whose interleaved export would repeat each instant (a 120 Hz rig exported at 240 Hz); None where they interleave.
+    Coincide: nine frames in ten have another video's frame within a tenth of the fastest video's frame gap."""
+    names = np.asarray(videos)
+    known = np.isfinite(times)
+    own = {v: np.sort(times[known & (names == v)]) for v in sorted(set(videos)) if np.any(known & (names == v))}
+    periods = [float(np.median(np.diff(t))) for t in own.values() if t.size > 1 and np.median(np.diff(t)) > 0]
+    if len(own) < 2 or not periods:
+        return None
+    tolerance = 0.1 * min(periods)
+    together = 0
+    for v, mine in own.items():
+        others = np.sort(np.concatenate([t for u, t in own.items() if u != v]))
+        together += int(np.sum(nearest_gap(others, mine) <= tolerance))
+    return 1.0 / min(periods) if together >= 0.9 * int(known.sum()) else None
+
+
 def export_rate(cameras: CameraSet, frames: int) -> float:
     """Rows per second of an interleaved export: the sum of the videos' frame rates (nominal, or measured from
     decoder times); 30 Hz per video when neither is known."""
@@ -733,6 +753,8 @@ def _export(ws: Path, cameras_path: Path, units: str) -> None:
     order, source = global_order(points, cameras, sequencing)
     rate = export_rate(cameras, points.num_frames)
     times = clock_times(points, sequencing) if source is OrderSource.CLOCKS else None
+    if times is not None:
+        rate = triggered_rate(times, points.videos) or rate
     log.info(
         "export: %s at %.1f Hz, ordered by %s",
         "resampled on the recovered clock" if times is not None else f"{len(order)} rows",

@@ -42,7 +42,7 @@ def views_near(
         for p in range(P):
             seen = np.sort(times[rows[observed[rows, p]]])
             if seen.size:
-                count[:, p] += _nearest_gap(seen, times) <= window
+                count[:, p] += nearest_gap(seen, times) <= window
     if timed.all():
         return count
     # A video without a clock has no observation at a known time: every frame, timed or not, also counts the videos
@@ -64,7 +64,7 @@ def _hood_views(video_index: np.ndarray, observed: np.ndarray, hood: np.ndarray,
     return seen.sum(axis=-1)
 
 
-def _nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
+def nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
     """(F,) the distance from each time to the nearest of the sorted `seen` times (NaN for a NaN time)."""
     at = np.clip(np.searchsorted(seen, times), 1, max(seen.size - 1, 1))
     if seen.size == 1:
@@ -72,4 +72,4 @@ def _nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
     return np.minimum(np.abs(times - seen[at - 1]), np.abs(seen[at] - times))
 
 
-__all__ = ["SINGLE_VIEW", "WINDOW_PERIODS", "views_near"]
+__all__ = ["SINGLE_VIEW", "WINDOW_PERIODS", "nearest_gap", "views_near"]

@@ -383,7 +383,10 @@ def _map(
 def _largest_model(models: dict[str, int], notes: StepNotes) -> str | None:
     """The name of the model with the most images (None without a model); the others are named in a warning."""
     if not models:
-        notes.warnings.append("background SfM found no model: no two images could be matched and triangulated")
+        notes.warnings.append(
+            "background SfM found no model: no pair of images gave an initial model (too few matches, too narrow "
+            "a triangulation angle, or matches on one plane; register_report.json `matching` has the matches)"
+        )
         return None
     best = max(models, key=lambda k: models[k])
     if len(models) > 1:
@@ -617,6 +620,26 @@ def _moving_hint(
     )
 
 
+def _background_hints(options: RegisterOptions, videos: list[VideoPlan]) -> list[str]:
+    """What could help the background path here: more frames only where a video moves (a static one sends one
+    image), known intrinsics only where none were given, the subject's tracks where every video stands still."""
+    hints = ["more overlap between the videos' views"]
+    if any(not video.static for video in videos):
+        hints.append("more frames (--max-frames, --step)")
+    if options.intrinsics is None:
+        hints.append("known intrinsics (--intrinsics)")
+    hints.append(
+        "--max-features higher" if all(video.static for video in videos) else "--keyframes / --max-features higher"
+    )
+    if videos and all(video.static for video in videos):
+        hints.append(
+            "or the subject's tracks (dynrecon track / import-tracks into the workspace): they pose static cameras"
+        )
+    elif len(hints) > 1:
+        hints[-1] = "or " + hints[-1]
+    return hints
+
+
 def _fail(
     out: Path,
     options: RegisterOptions,
@@ -634,10 +657,7 @@ def _fail(
             f"the static videos share too little background, and the subject path could not pose them: {subject['why']}"
         )
     else:
-        hint = (
-            "try more overlap between the videos' views, more frames (--max-frames, --step), known intrinsics "
-            "(--intrinsics), or --keyframes / --max-features higher"
-        )
+        hint = "try " + ", ".join(_background_hints(options, videos))
     if moving_hint:
         hint += f"; {moving_hint}"
     previous = Layout(out).previous_dir

@@ -29,7 +29,7 @@ from dynrecon.jsonvalues import finite_or_none
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_SHARED, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
-from sfm.subject.pairs import correspondences, fit_pair, pair_correspondences
+from sfm.subject.pairs import correspondences, fit_pair, pair_correspondences, search_range
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -179,8 +179,7 @@ def _poses_best(
     instants). A coarse scan a frame period apart on at most `COARSE_CORRESPONDENCES`, then the best few and the
     tracks' own offset `near` in steps of `SHIFT_STEP` periods."""
     period = min(oa.period, ob.period)
-    lo = max(-max_offset, ob.times[0] - oa.times[-1])
-    hi = min(max_offset, ob.times[-1] - oa.times[0])
+    lo, hi = search_range(oa, ob, max_offset)
     coarse = np.arange(lo, hi + period / 2, period)
     stride = max(1, oa.count() // COARSE_CORRESPONDENCES)
     starts = [near]

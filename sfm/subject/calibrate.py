@@ -261,7 +261,7 @@ def _no_usable_pair(fits: list[PairFit], options: SubjectOptions) -> NoReturn:
     raise SubjectCalibrationError(
         f"no pair of videos shares {MIN_SHARED} observations at any time offset "
         f"within ±{options.max_offset:g} s (best {most}); record longer overlapping "
-        "motion, track more points or raise max_offset"
+        "motion or track more points"
     )
 
 

@@ -57,3 +57,18 @@ def test_the_export_label_is_the_worlds_unit(
             calibration_options=ImportCalibrationOptions(scale=calibration_scale),
         )
     assert _world_units(options, Registration.in_folder(tmp_path)) == label
+
+
+def test_a_triggered_rig_is_exported_at_its_own_rate() -> None:
+    """Frames that coincide in global time (a triggered 120 Hz rig) are one instant: 120 Hz, not the 240 Hz of two
+    interleaved videos; videos that interleave (or run at 30 and 25 fps) keep the summed rate (None here)."""
+    import numpy as np
+
+    from dynrecon.pipeline import triggered_rate
+
+    two = ["a"] * 120 + ["b"] * 120
+    assert triggered_rate(np.concatenate([np.arange(120) / 120] * 2), two) == pytest.approx(120.0)
+    assert triggered_rate(np.concatenate([np.arange(120) / 120, np.arange(120) / 120 + 0.004]), two) is None
+    mixed = np.concatenate([np.arange(120) / 30, np.arange(100) / 25 + 0.013])
+    assert triggered_rate(mixed, ["a"] * 120 + ["b"] * 100) is None
+    assert triggered_rate(np.arange(5) / 30, ["a"] * 5) is None  # one video
