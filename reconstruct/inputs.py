@@ -22,7 +22,7 @@ from tracking.tracks import IMAGE_MARGIN, Tracks, inside_image
 
 log = logging.getLogger(__name__)
 
-MIN_LINK = 5  # observations of a point in each of two videos that link them (a stray detection does not)
+MIN_LINK = 3  # observations of a point in each of two videos that link them (a stray detection does not)
 BASELINE_TOLERANCE = 1e-9  # camera centres closer than this (relative to their magnitude) are one point
 
 
