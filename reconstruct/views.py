@@ -13,6 +13,7 @@ import numpy as np
 
 WINDOW_PERIODS = 2.0  # the window, in frame periods of the slower of the two videos compared
 SINGLE_VIEW = 2  # fewer videos than this near an instant: the point's depth there is not measured
+HOOD_CELLS = 2**24  # booleans per pass of the neighbourhood count (memory)
 
 
 def views_near(
@@ -55,13 +56,18 @@ def views_near(
 
 def _hood_views(video_index: np.ndarray, observed: np.ndarray, hood: np.ndarray, N: int) -> np.ndarray:
     """(M, P) distinct videos among the frames of `hood` (M, n; -1 padded) that observe each point."""
-    seen = np.zeros((hood.shape[0], observed.shape[1], N), dtype=bool)
-    rows = np.arange(hood.shape[0])
-    for k in range(hood.shape[1]):
-        valid = hood[:, k] >= 0
-        frames = hood[valid, k]
-        seen[rows[valid], :, video_index[frames]] |= observed[frames]
-    return seen.sum(axis=-1)
+    out = np.zeros((hood.shape[0], observed.shape[1]), dtype=np.int64)
+    chunk = max(1, HOOD_CELLS // max(1, observed.shape[1] * N))  # rows per pass: (rows, P, N) booleans at a time
+    for start in range(0, hood.shape[0], chunk):
+        part = hood[start : start + chunk]
+        seen = np.zeros((part.shape[0], observed.shape[1], N), dtype=bool)
+        rows = np.arange(part.shape[0])
+        for k in range(part.shape[1]):
+            valid = part[:, k] >= 0
+            frames = part[valid, k]
+            seen[rows[valid], :, video_index[frames]] |= observed[frames]
+        out[start : start + chunk] = seen.sum(axis=-1)
+    return out
 
 
 def nearest_gap(seen: np.ndarray, times: np.ndarray) -> np.ndarray:
