@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from reconstruct.outputs.points import SINGLE_VIEW  # fewer videos near an instant: the depth there is not measured
+
 WINDOW_PERIODS = 2.0  # the window, in frame periods of the slower of the two videos compared
-SINGLE_VIEW = 2  # fewer videos than this near an instant: the point's depth there is not measured
 HOOD_CELLS = 2**24  # booleans per pass of the neighbourhood count (memory)
 
 

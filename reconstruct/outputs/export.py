@@ -26,8 +26,7 @@ from scipy.sparse.csgraph import connected_components, laplacian
 from dynrecon.atomic import atomic_open
 from dynrecon.errors import InputError
 from reconstruct.outputs.mocap import UNIT_TO_MM, Mocap, write_trc
-from reconstruct.outputs.points import FramePoints, Sequencing
-from reconstruct.views import SINGLE_VIEW
+from reconstruct.outputs.points import SINGLE_VIEW, FramePoints, Sequencing
 from sfm.cameras import CameraSet
 
 log = logging.getLogger(__name__)

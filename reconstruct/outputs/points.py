@@ -23,6 +23,9 @@ from dynrecon.errors import InputError
 from dynrecon.readers import check_frame, csv_records, parse_frame, read_json, repeated_column, shown
 
 POINT_COLUMNS = ("video", "frame", "point", "x", "y", "z", "observed")
+# points3d.csv `views` below this: the row's depth no second video measured (reconstruct/views.py), flagged in the
+# file and left out of the exports
+SINGLE_VIEW = 2
 
 
 @dataclass(kw_only=True)

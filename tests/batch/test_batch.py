@@ -14,7 +14,6 @@ import contextlib
 import io
 import json
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -27,7 +26,6 @@ from pathlib import Path
 import pytest
 
 from batch import read_capture, run_capture
-from batch.graph import BatchOptions, connect
 from batch.synthetic import Inputs, SimulatedCaptureOptions, simulated_capture
 from dynrecon import cli
 
@@ -290,7 +288,13 @@ def test_offsets_naming_a_video_a_capture_lacks_fail_it_before_any_work(
 
 def test_local_workers_leave_ctrl_c_to_the_batch() -> None:
     """Ctrl+C reaches the whole process group: the local workers ignore it (the batch stops them), a remote
-    scheduler's workers are not touched."""
-    with connect(BatchOptions(workers=1)) as client:
-        handlers = client.run(lambda: signal.getsignal(signal.SIGINT))
-    assert list(handlers.values()) == [signal.SIG_IGN]
+    scheduler's workers are not touched. In a child process: a client leaves Dask's threads running, which keep
+    this worker's later tests from forking."""
+    code = (
+        "import signal; from batch.graph import BatchOptions, connect\n"
+        "with connect(BatchOptions(workers=1)) as client:\n"
+        "    print(list(client.run(lambda: signal.getsignal(signal.SIGINT)).values()))\n"
+    )
+    repo = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[<Handlers.SIG_IGN: 1>]"
