@@ -296,5 +296,6 @@ def test_local_workers_leave_ctrl_c_to_the_batch() -> None:
         "    print(list(client.run(lambda: signal.getsignal(signal.SIGINT)).values()))\n"
     )
     repo = Path(__file__).resolve().parents[2]
-    out = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120, check=True)
+    command = [sys.executable, "-c", code]
+    out = subprocess.run(command, cwd=repo, capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip().splitlines()[-1] == "[<Handlers.SIG_IGN: 1>]"
