@@ -62,6 +62,7 @@ MM_KEYS = (FREEMOCAP_MM_KEY, "square_length")
 MM_SPREAD = 100.0
 UNSURE_SPREAD = 10.0  # between this and MM_SPREAD units: metres, but said (a close-up rig in mm is as likely)
 MOVING_FIX = "register those videos together with this recording's, or leave that camera's video out"
+_UNIT_WARNINGS: set[tuple[str, float]] = set()
 SAME_POSE = 1e-6  # a static camera's frames share one pose: rotation and translation equal to this (relative)
 
 
@@ -338,14 +339,17 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
     if units is Units.AUTO and metres == 1.0 and spread > UNSURE_SPREAD:  # no unit given, and metres are unsure
         in_mm = spread > MM_SPREAD
         read, other = ("millimetres", "metres") if in_mm else ("metres", "millimetres")
-        log.warning(
-            "%s: the cameras are up to %.0f units apart: translations read in %s (--units %s if they are %s)",
-            path,
-            spread,
-            read,
-            "m" if in_mm else "mm",
-            other,
-        )
+        said = (str(path), round(spread, 6))
+        if said not in _UNIT_WARNINGS:  # registration reads the file in several steps: one warning per file
+            _UNIT_WARNINGS.add(said)
+            log.warning(
+                "%s: the cameras are up to %.0f units apart: translations read in %s (--units %s if they are %s)",
+                path,
+                spread,
+                read,
+                "m" if in_mm else "mm",
+                other,
+            )
         if in_mm:
             for camera in cameras:
                 camera.t = None if camera.t is None else camera.t * 0.001

@@ -314,6 +314,10 @@ def test_anipose_millimetres(tmp_path: Path, caplog: pytest.LogCaptureFixture) -
         read = read_calibration(path)
     np.testing.assert_allclose(read[1].t, cameras[1].t / 1000.0)
     assert "translations read in millimetres (--units m if they are metres)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        read_calibration(path)  # registration reads the file in several steps: said once
+    assert "translations read in" not in caplog.text
     np.testing.assert_allclose(read_calibration(path, units=Units.M)[1].t, cameras[1].t)
     text = path.read_text(encoding="utf-8").replace("adjusted = false", "square_length = 0.024")
     path.write_text(text, encoding="utf-8")  # a board in metres: the translations too
