@@ -49,6 +49,7 @@ from dynrecon.jsonvalues import float_or_nan
 from dynrecon.pipeline_state import STATE_NAME, State, file_hash, inputs_key
 from dynrecon.truth import Similarity, align_to_truth, score_points, similarity_to_truth
 from labeling.skeleton import read_skeleton
+from reconstruct.clocks.model import frame_periods
 from reconstruct.outputs.export import (
     OrderSource,
     clock_note,
@@ -669,18 +670,18 @@ def triggered_rate(times: np.ndarray, videos: list[str]) -> float | None:
     """The fastest video's rate where the videos' frames coincide in global time (`times` (F,)): a triggered rig,
     whose interleaved export would repeat each instant (a 120 Hz rig exported at 240 Hz); None where they interleave.
     Coincide: nine frames in ten have another video's frame within a tenth of the fastest video's frame gap."""
-    names = np.asarray(videos)
+    names, index = np.unique(np.asarray(videos), return_inverse=True)
     known = np.isfinite(times)
-    own = {v: np.sort(times[known & (names == v)]) for v in sorted(set(videos)) if np.any(known & (names == v))}
-    periods = [float(np.median(np.diff(t))) for t in own.values() if t.size > 1 and np.median(np.diff(t)) > 0]
-    if len(own) < 2 or not periods:
+    own = {v: np.sort(times[known & (index == v)]) for v in range(len(names)) if np.any(known & (index == v))}
+    periods = frame_periods(times, index, len(names))
+    if len(own) < 2 or not np.isfinite(periods).any():
         return None
-    tolerance = 0.1 * min(periods)
+    tolerance = 0.1 * float(np.nanmin(periods))
     together = 0
     for v, mine in own.items():
         others = np.sort(np.concatenate([t for u, t in own.items() if u != v]))
         together += int(np.sum(nearest_gap(others, mine) <= tolerance))
-    return 1.0 / min(periods) if together >= 0.9 * int(known.sum()) else None
+    return 1.0 / float(np.nanmin(periods)) if together >= 0.9 * int(known.sum()) else None
 
 
 def export_rate(cameras: CameraSet, frames: int) -> float:

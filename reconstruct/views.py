@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from reconstruct.clocks.model import frame_periods
 from reconstruct.outputs.points import SINGLE_VIEW  # fewer videos near an instant: the depth there is not measured
 
 WINDOW_PERIODS = 2.0  # the window, in frame periods of the slower of the two videos compared
@@ -30,11 +31,7 @@ def views_near(
     observed = np.asarray(observed, dtype=bool)
     F, P = observed.shape
     N = int(video_index.max()) + 1 if F else 0
-    periods = np.full(N, np.nan)
-    for u in range(N):
-        own = np.sort(times[video_index == u])
-        gaps = np.diff(own[np.isfinite(own)])
-        periods[u] = float(np.median(gaps)) if gaps.size else np.nan
+    periods = frame_periods(times, video_index, N)
     timed = np.isfinite(times)
     count = np.zeros((F, P), dtype=np.int64)
     for u in range(N):
