@@ -77,6 +77,7 @@ class LabelServer:
         if options.host not in ("127.0.0.1", "localhost", "::1"):
             log.warning("serving on %s: anyone who can reach this address can read and change the labels", options.host)
         self._thread: threading.Thread | None = None
+        self.stopped = False
 
     def start(self) -> LabelServer:
         self._thread = threading.Thread(target=self.httpd.serve_forever, name="label-server", daemon=True)
@@ -90,6 +91,9 @@ class LabelServer:
             self.stop()
 
     def stop(self) -> None:
+        if self.stopped:  # `run` stops it on every way out, `serve_forever` too
+            return
+        self.stopped = True
         if self._thread is not None:
             self.httpd.shutdown()
             self._thread.join()
@@ -111,15 +115,18 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def run(workspace: Path, options: LabelOptions, on_ready: Callable[[str], None] | None = None) -> Path:
     """Serve until Ctrl+C; `on_ready(url)` is called once the port is bound. Returns the labels file."""
-    server = LabelServer(workspace, options)
-    log.info("serving %s at %s", workspace, server.url)
-    if on_ready is not None:
-        on_ready(server.url)
     if threading.current_thread() is threading.main_thread():
-        # `kill` (SIGTERM) stops like Ctrl+C: the lock file is removed and the port released.
+        # `kill` (SIGTERM) stops like Ctrl+C: the lock file is removed and the port released. Set before the server
+        # starts: a stop that came between its start and the loop left its threads running (the process hung).
         signal.signal(signal.SIGTERM, _interrupt)
+    server = LabelServer(workspace, options)
     try:
+        log.info("serving %s at %s", workspace, server.url)
+        if on_ready is not None:
+            on_ready(server.url)
         server.serve_forever()
     except KeyboardInterrupt:
         log.info("stopped")
+    finally:
+        server.stop()
     return workspace / "labels.csv"
