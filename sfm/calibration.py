@@ -20,6 +20,8 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
 - `rotation` may be a Rodrigues 3-vector or a 3x3 matrix (9 numbers) in every TOML layout.
 - DANNCE / Label3D `.mat` files (`sfm/calibration_dannce.py`): no image size, so width = height = 0 (the
   video's own size is taken).
+- DLT coefficients (DLTdv / easyWand `*_dltCoefs.csv`, Argus `*-dlt-coefficients.csv`, `sfm/calibration_dlt.py`):
+  no image size and no distortion; translations in the calibration object's units (the spread rule below).
 - FreeMoCap's `*_camera_calibration.toml` is anipose's layout with translations in millimetres (its charuco
   square size is given in mm). Units rule (`Units.AUTO`): millimetres when the `[metadata]` table has
   `charuco_square_size` (FreeMoCap) or `square_length` (sleap-anipose), or when the cameras are over MM_SPREAD
@@ -46,8 +48,9 @@ from dynrecon.errors import InputError
 from dynrecon.names import first_repeated, spelled_alike
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
+from sfm.calibration_dlt import dlt_cameras, is_dlt
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
-from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units, declared_offsets
+from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units, declared_offsets
 from sfm.video import ProbedVideo, probe_video
 
 log = logging.getLogger(__name__)
@@ -79,6 +82,9 @@ class StaticCamera:
     R: np.ndarray | None  # (3, 3)
     t: np.ndarray | None  # (3,)
     no_pose: str | None = None  # why R and t are None, where the file says (default: intrinsics only)
+    # K[1, 2] still lacks the image height (a DLT whose rows count up from the bottom: the file gives no height);
+    # intrinsics_at_video_size adds the video's
+    cy_plus_height: bool = False
 
     @property
     def has_pose(self) -> bool:
@@ -335,8 +341,16 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
             "no camera table (with a `matrix`) found",
             fix="expected [cam_1] (or caliscope's [cameras.0]) with size, matrix, distortions, rotation, translation",
         )
+    if metres == 1.0:
+        _units_by_spread(cameras, path, units)
+    return cameras
+
+
+def _units_by_spread(cameras: list[StaticCamera], path: Path, units: Units) -> None:
+    """With no unit given (AUTO): translations in mm where the cameras are over MM_SPREAD units apart (a lab rig
+    in mm; turned into metres here), said when the reading is unsure."""
     spread = _spread(cameras)
-    if units is Units.AUTO and metres == 1.0 and spread > UNSURE_SPREAD:  # no unit given, and metres are unsure
+    if units is Units.AUTO and spread > UNSURE_SPREAD:  # no unit given, and metres are unsure
         in_mm = spread > MM_SPREAD
         read, other = ("millimetres", "metres") if in_mm else ("metres", "millimetres")
         said = (str(path), round(spread, 6))
@@ -353,7 +367,6 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
         if in_mm:
             for camera in cameras:
                 camera.t = None if camera.t is None else camera.t * 0.001
-    return cameras
 
 
 def write_toml(path: str | Path, cameras: list[StaticCamera]) -> Path:
@@ -419,15 +432,20 @@ def read_cameras_json(path: str | Path) -> list[StaticCamera]:
 
 
 def read_calibration(
-    path: str | Path, fmt: CalibrationFormat = CalibrationFormat.AUTO, units: Units = Units.AUTO
+    path: str | Path,
+    fmt: CalibrationFormat = CalibrationFormat.AUTO,
+    units: Units = Units.AUTO,
+    pixels: DltPixels = DltPixels.AUTO,
 ) -> list[StaticCamera]:
-    """Cameras of a QCA, TOML, cameras.json or DANNCE file; TOML cameras may lack a pose (R = t = None): see
-    StaticCamera.pose."""
+    """Cameras of a QCA, TOML, cameras.json, DANNCE or DLT file; TOML cameras may lack a pose (R = t = None): see
+    StaticCamera.pose. `pixels`: a DLT file's pixel convention."""
     path = Path(path)
     if fmt is CalibrationFormat.AUTO:
         lower = path.name.lower()
         if is_dannce(path):
             fmt = CalibrationFormat.DANNCE
+        elif is_dlt(path):
+            fmt = CalibrationFormat.DLT
         elif lower.endswith(".toml"):
             fmt = CalibrationFormat.TOML
         elif lower.endswith(".json"):
@@ -438,8 +456,8 @@ def read_calibration(
             raise InputError(
                 path,
                 "cannot tell the calibration format from the name",
-                fix="name it .toml, .qca.txt, .xml, .json or .mat; import-calibration also takes --format qca, toml, "
-                "json or dannce",
+                fix="name it .toml, .qca.txt, .xml, .json, .mat or *_dltCoefs.csv; import-calibration also takes "
+                "--format qca, toml, json, dannce or dlt",
             )
     if fmt is CalibrationFormat.CAMERAS_JSON:
         return read_cameras_json(path)  # read_cameras has checked it
@@ -448,11 +466,21 @@ def read_calibration(
             StaticCamera(name=c.name, width=0, height=0, K=c.K, dist=c.dist, R=c.R, t=c.t)
             for c in read_dannce(path, mm=units is not Units.M)
         ]
+    elif fmt is CalibrationFormat.DLT:
+        cameras = [
+            StaticCamera(name=name, width=0, height=0, K=K, dist=np.zeros(4), R=R, t=t, cy_plus_height=up)
+            for name, K, R, t, up in dlt_cameras(path, pixels)
+        ]
+        if units is Units.MM:
+            for camera in cameras:
+                camera.t = camera.pose()[1] * 0.001
+        elif units is Units.AUTO:
+            _units_by_spread(cameras, path, units)
     else:
         cameras = read_qca(path) if fmt is CalibrationFormat.QCA else read_toml(path, units)
     for camera in cameras:
         where = f"camera {shown(camera.name)}"
-        sizeless = fmt is CalibrationFormat.DANNCE and camera.width == camera.height == 0
+        sizeless = fmt in (CalibrationFormat.DANNCE, CalibrationFormat.DLT) and camera.width == camera.height == 0
         if not sizeless and not (0 < camera.width < 2**31 and 0 < camera.height < 2**31):
             raise InputError(path, f"image size {camera.width}x{camera.height} is not positive", where=where)
         check_plausible(camera.K, camera.t, camera.dist, path, where)
@@ -528,14 +556,20 @@ class TurnedVideoError(VideoSizeError):
     """The video is the calibrated image turned by 90 degrees (portrait against landscape)."""
 
 
-def intrinsics_at_video_size(K: np.ndarray, size: tuple[int, int], video: ProbedVideo, name: str) -> np.ndarray:
+def intrinsics_at_video_size(
+    K: np.ndarray, size: tuple[int, int], video: ProbedVideo, name: str, cy_plus_height: bool = False
+) -> np.ndarray:
     """K (3, 3) of camera `name`, calibrated at `size` (width, height), in `video`'s pixels: unchanged at the
     calibrated size; scaled where the video is the calibrated image resized (one scale for both axes: a phone
     calibrated at 4K filming at 1080p); otherwise unchanged, with a warning, since a crop or a padding cannot be
     told from the sizes alone. TurnedVideoError where the video is the calibrated image turned by 90 degrees
     (or resized and turned): the turn's direction is not in the sizes, and K unchanged would be wrong. A size of
-    (0, 0) (the file gives none) takes the video's, if the principal point lies in it."""
+    (0, 0) (the file gives none) takes the video's, if the principal point lies in it; `cy_plus_height`: K's
+    principal point row still lacks the image height (StaticCamera.cy_plus_height), the video's is added."""
     width, height = size
+    if cy_plus_height:
+        K = K.astype(float).copy()
+        K[1, 2] += video.height
     if (video.width, video.height) == (width, height):
         return K
     if (width, height) == (0, 0):  # the file gives no size: the video is taken as the calibrated image
@@ -635,12 +669,14 @@ def run(
             fix="video names (file names without extension) must be unique",
         )
     offsets = declared_offsets(options.synchronized, options.offsets, names)
-    cameras = match_cameras(read_calibration(calibration, options.format, options.units), infos, calibration)
+    cameras = match_cameras(
+        read_calibration(calibration, options.format, options.units, options.pixels), infos, calibration
+    )
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     _refuse_repeated_poses(cameras, poses, calibration)
     result = CameraSet()
     for info, camera, (R, t) in zip(infos, cameras, poses, strict=True):
-        K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name)
+        K = intrinsics_at_video_size(camera.K, (camera.width, camera.height), info, camera.name, camera.cy_plus_height)
         frames = [
             FrameCamera(
                 frame=i,
@@ -673,6 +709,7 @@ def run(
 
 __all__ = [
     "CalibrationFormat",
+    "DltPixels",
     "ImportCalibrationOptions",
     "StaticCamera",
     "TurnedVideoError",

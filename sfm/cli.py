@@ -18,7 +18,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_import(subparsers: argparse._SubParsersAction) -> None:
-    from sfm.options import OFFSETS_HELP, CalibrationFormat, Units, parse_offsets
+    from sfm.options import OFFSETS_HELP, CalibrationFormat, DltPixels, Units, parse_offsets
 
     parser = subparsers.add_parser(
         "import-calibration",
@@ -33,7 +33,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         help="calibration file (.qca.txt / .qca / .xml, or .toml: Pose2Sim/anipose/FreeMoCap [cam_N], "
         "caliscope [cameras.N] or [cam_N]; DANNCE/Label3D: a *_dannce.mat, or a folder of cam*_params.mat; or "
-        "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session)",
+        "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session; "
+        "or DLT coefficients: DLTdv/easyWand *_dltCoefs.csv, Argus *-dlt-coefficients.csv)",
     )
     parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
     parser.add_argument("--out", type=out_path, required=True, metavar="WS", help="workspace folder for cameras.json")
@@ -47,8 +48,16 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "--units",
         choices=[u.value for u in Units],
         default="auto",
-        help="unit of TOML translations (default auto: mm when [metadata] gives the board's square in mm, as "
-        "FreeMoCap's and sleap-anipose's do, or the cameras are over 100 units apart; else m; DANNCE's: mm)",
+        help="unit of TOML and DLT translations (default auto: mm when [metadata] gives the board's square in mm, "
+        "as FreeMoCap's and sleap-anipose's do, or the cameras are over 100 units apart; else m; DANNCE's: mm)",
+    )
+    parser.add_argument(
+        "--pixels",
+        choices=[p.value for p in DltPixels],
+        default="auto",
+        help="a DLT file's pixels: dltdv7 (DLTdv 5-7 and easyWand: rows up from the bottom), dltdv8, argus, or "
+        "opencv (default auto: argus for Argus's file names, else DLTdv's; rows up from the bottom where that "
+        "makes the world right-handed)",
     )
     parser.add_argument(
         "--scale",
@@ -75,7 +84,7 @@ SYNCHRONIZED_HELP = (
 
 def _run_import(args: argparse.Namespace) -> int:
     from sfm.calibration import run
-    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+    from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units
 
     path = run(
         args.calibration,
@@ -84,6 +93,7 @@ def _run_import(args: argparse.Namespace) -> int:
         ImportCalibrationOptions(
             format=CalibrationFormat(args.format),
             units=Units(args.units),
+            pixels=DltPixels(args.pixels),
             scale=args.scale,
             synchronized=args.synchronized,
             offsets=args.offsets,

@@ -58,17 +58,19 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
     matched = match_cameras(read_calibration(path), infos, path)
     result = {}
     for info, camera in zip(infos, matched, strict=True):
-        K = _at_video_size(camera.K, (camera.width, camera.height), info, camera.name, path)
+        K = _at_video_size(camera.K, (camera.width, camera.height), info, camera.name, path, camera.cy_plus_height)
         if K is not None:
             result[info.name] = (K, camera.dist)
     return result
 
 
-def _at_video_size(K: np.ndarray, size: tuple[int, int], info: ProbedVideo, name: str, path: Path) -> np.ndarray | None:
+def _at_video_size(
+    K: np.ndarray, size: tuple[int, int], info: ProbedVideo, name: str, path: Path, cy_plus_height: bool = False
+) -> np.ndarray | None:
     """K in the video's pixels, or None where the video is the calibrated image turned (a turned K is a guess: the
     turn's direction is unknown) or cannot be it: its intrinsics are then estimated from the data, said once."""
     try:
-        return intrinsics_at_video_size(K, size, info, name)
+        return intrinsics_at_video_size(K, size, info, name, cy_plus_height)
     except VideoSizeError as error:
         if (str(path), info.name) not in _TURNED:
             _TURNED.add((str(path), info.name))

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dynrecon.errors import InputError
+from tracking.pixels import DltPixels
 
 ALL_CORES = -1  # COLMAP's num_threads for one thread per core
 MAX_COUNT = 10**7  # no count flag of registration is sensibly larger
@@ -202,6 +203,7 @@ class CalibrationFormat(enum.Enum):
     TOML = "toml"  # every TOML layout: Pose2Sim/anipose/FreeMoCap [cam_N], caliscope [cameras.N] and [cam_N]
     CAMERAS_JSON = "json"  # dynrecon's own cameras.json of another recording by the same static cameras
     DANNCE = "dannce"  # DANNCE / Label3D MATLAB files: a *_dannce.mat, or a folder of cam*_params.mat
+    DLT = "dlt"  # 11 DLT coefficients per camera: DLTdv / easyWand *_dltCoefs.csv, Argus *-dlt-coefficients.csv
 
 
 class Units(enum.Enum):
@@ -220,6 +222,7 @@ class ImportCalibrationOptions:
 
     format: CalibrationFormat = CalibrationFormat.AUTO
     units: Units = Units.AUTO  # TOML translations' unit (see Units)
+    pixels: DltPixels = DltPixels.AUTO  # a DLT file's pixel convention (the tool that wrote it)
     scale: float = 1.0  # multiplies the world coordinates (after conversion to metres)
     # The videos were recorded on one clock (a triggered rig): every video's clock_offset is 0, which the solve
     # then tests against its own clocks (it keeps whichever fits better)

@@ -95,6 +95,7 @@ def _run_track(args: argparse.Namespace) -> int:
 
 def _add_import(subparsers: argparse._SubParsersAction) -> None:
     from tracking.importing import Format
+    from tracking.pixels import DltPixels
 
     parser = subparsers.add_parser(
         "import-tracks",
@@ -107,8 +108,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         nargs="+",
         metavar="INPUT",
-        help="DLC .csv or .h5, SLEAP .slp or analysis .h5, OpenPose JSON file or folder, plain .csv, or a video "
-        "(with --board)",
+        help="DLC .csv or .h5, SLEAP .slp or analysis .h5, OpenPose JSON file or folder, DLTdv / Argus "
+        "*xypts.csv, plain .csv, or a video (with --board)",
     )
     parser.add_argument("--out", type=out_path, required=True, help="tracks.csv to write (e.g. WS/tracks.csv)")
     parser.add_argument(
@@ -121,6 +122,22 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "--video",
         help="the video the input's detections belong to: its name or file (cam1 or videos/cam1.mp4 both name "
         "cam1; default: from the input's file name)",
+    )
+    parser.add_argument(
+        "--videos",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="VIDEO",
+        help="DLTdv / Argus points: the videos of cam1, cam2, ... in order (they name the videos, and their heights "
+        "turn rows counted from the bottom into image rows; default names cam1, cam2, ...)",
+    )
+    parser.add_argument(
+        "--pixels",
+        choices=[p.value for p in DltPixels],
+        default="auto",
+        help="DLTdv / Argus points: the tool's pixels, dltdv7 (DLTdv 5-7: rows up from the bottom), dltdv8, argus "
+        "or opencv (default: argus for Argus's columns, dltdv8 for DLTdv 8.4's _U/_V; DLTdv's _X/_Y need it)",
     )
     parser.add_argument("--map", default="", metavar="OLD=NEW,...", help="rename points, e.g. nose=head,Neck=neck")
     parser.add_argument("--drop-unmapped", action="store_true", help="with --map, keep only the mapped points")
@@ -158,6 +175,7 @@ def _video_name(value: str | None) -> str | None:
 def _run_import(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from tracking.importing import Format, ImportOptions, parse_mapping, run_import
+    from tracking.pixels import DltPixels
 
     every_person = args.person is not None and args.person.strip().lower() == "all"
     if args.person is not None and not every_person and not (args.person.strip().isdigit() and args.person.isascii()):
@@ -179,6 +197,8 @@ def _run_import(args: argparse.Namespace) -> int:
         person=None if every_person or args.person is None else int(args.person),
         every_person=every_person,
         board=args.board,
+        videos=args.videos,
+        pixels=DltPixels(args.pixels),
     )
     path = run_import(args.inputs, args.out, options)
     print(path)  # noqa: T201

@@ -1,12 +1,11 @@
 """`dynrecon import-tracks`: other tools' 2D points into `tracks.csv`, with renaming and a confidence
 threshold.
 
-Formats: DeepLabCut CSV and .h5, SLEAP .slp and analysis HDF5, OpenPose JSON per frame, plain
-`video,frame,point,x,y[,score]` CSV, and videos of a ChArUco board (`--board charuco.toml`: its corners, see
-tracking/charuco.py). Imported rows
-get `source` = the format name and `score` = the tool's confidence. When the output exists, its rows for other
-videos and its manual labels (`source=label`) are kept; the labels win over imported rows on the same frame
-and point.
+Formats: DeepLabCut CSV and .h5, SLEAP .slp and analysis HDF5, OpenPose JSON per frame, DLTdv's and Argus's
+`*xypts.csv` (tracking/import_dltdv.py), plain `video,frame,point,x,y[,score]` CSV, and videos of a ChArUco board
+(`--board charuco.toml`: its corners, see tracking/charuco.py). Imported rows get `source` = the format name and
+`score` = the tool's confidence. When the output exists, its rows for other videos and its manual labels
+(`source=label`) are kept; the labels win over imported rows on the same frame and point.
 """
 
 from __future__ import annotations
@@ -22,8 +21,10 @@ from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 from dynrecon.readers import check_video_name
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
+from tracking.import_dltdv import is_dltdv_points, read_dltdv_points
 from tracking.import_openpose import read_openpose, video_name_from_openpose
 from tracking.import_sleap import is_sleap_analysis, read_sleap_analysis, read_sleap_slp, video_name_from_sleap
+from tracking.pixels import DltPixels
 from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -37,6 +38,7 @@ class Format(enum.Enum):
     SLEAP = "sleap"  # SLEAP's .slp or analysis HDF5
     OPENPOSE = "openpose"
     CSV = "csv"
+    DLTDV = "dltdv"  # DLTdv's or Argus's *xypts.csv: every camera in one file
     CHARUCO = "charuco"  # the inputs are videos; corners of the board given by ImportOptions.board
 
 
@@ -52,6 +54,9 @@ class ImportOptions:
     person: int | None = None
     every_person: bool = False  # every person / individual, points named person<N>_<keypoint>
     board: Path | None = None  # ChArUco: caliscope's charuco.toml (or config.toml with a [charuco] table)
+    # DLTdv / Argus: the videos of cam1, cam2... in order (their names, and their heights for bottom-up rows)
+    videos: list[Path] = field(default_factory=list)
+    pixels: DltPixels = DltPixels.AUTO  # DLTdv / Argus: the tool's pixel convention
 
 
 def parse_mapping(text: str) -> dict[str, str]:
@@ -90,6 +95,8 @@ def detect_format(path: Path) -> Format:
     head = first.split(",")[0].strip().lower()
     if head in ("scorer", "individuals", "bodyparts"):
         return Format.DLC
+    if is_dltdv_points(first):
+        return Format.DLTDV
     return Format.CSV
 
 
@@ -116,6 +123,12 @@ def read_detections(path: Path, options: ImportOptions) -> tuple[Format, list[De
             0 if options.person is None else options.person,
             options.every_person,
         )
+    if options.videos and fmt is not Format.DLTDV:
+        raise InputError(
+            path, f"--videos applies to DLTdv / Argus points, not to {fmt.value} input", fix="use --video NAME"
+        )
+    if fmt is Format.DLTDV:
+        return fmt, read_dltdv_points(path, options.videos, options.pixels)
     if fmt is Format.CHARUCO:
         return fmt, _read_charuco(path, options)
     return fmt, _read_plain(path, options.video)

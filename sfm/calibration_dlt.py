@@ -1,0 +1,218 @@
+"""DLT coefficient files as static cameras: DLTdv's and easyWand's `*_dltCoefs.csv`, Argus's
+`*-dlt-coefficients.csv` (11 rows, one column per camera), or one camera per row of 11 numbers (a course's `.cal`).
+
+The 11 coefficients L1..L11 map world X, Y, Z to the file's pixels u, v:
+    u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)
+    v = (L5 X + L6 Y + L7 Z + L8) / (L9 X + L10 Y + L11 Z + 1)
+a projection matrix with P[2, 3] = 1: a pinhole camera with skew and two focal lengths, for undistorted pixels
+(the tools keep lens distortion apart, in a camera profile). Decomposed here (RQ) into K, R, t.
+
+The file's pixels (`DltPixels`, from the tools' source; docs/formats.md), against OpenCV's (x, y), H the image
+height: DLTdv 5-7 (and easyWand fed from it): u = x + 1, v = H - y (rows counted up from the bottom); Argus:
+u = x, v = H - y; DLTdv 8: u = x + 1, v = y + 1; OPENCV: u = x, v = y. Rows counted from the bottom mirror the
+image, so a camera's handedness tells the two apart (AUTO): with the file's pixels taken as counted from the top,
+a right-handed world gives every camera a rotation, a world seen through bottom-up rows a mirror. The height is
+not in the file: a bottom-up camera's principal point row is kept relative to the bottom edge
+(`StaticCamera.cy_plus_height`) until the video's height is known.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+
+from dynrecon.errors import InputError
+from dynrecon.readers import read_text
+from tracking.pixels import DltPixels
+
+log = logging.getLogger(__name__)
+
+COEFFICIENTS = 11
+PLANAR_COEFFICIENTS = 8  # DLTdv 8.4's 2D DLT: a plane, not a camera
+ARGUS_NAME = "-dlt-coefficients"  # Argus's file names end so; DLTdv's and easyWand's in _dltCoefs
+MIRROR_X = np.diag([-1.0, 1.0, 1.0])
+
+
+def is_dlt(path: Path) -> bool:
+    """A DLT coefficient file by its name: DLTdv / easyWand `*dltCoefs*`, Argus `*-dlt-coefficients*`, `.cal`."""
+    lower = path.name.lower()
+    return "dltcoefs" in lower or ARGUS_NAME in lower or lower.endswith(".cal")
+
+
+def read_dlt_coefficients(path: str | Path) -> np.ndarray:
+    """(N, 11): one row of L1..L11 per camera, from either layout (a column per camera, or a row per camera)."""
+    path = Path(path)
+    rows = []
+    header = False
+    for number, line in enumerate(read_text(path).splitlines(), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = [f for f in re.split(r"[,;\s]+", text) if f]
+        try:
+            rows.append([float(f) for f in fields])
+        except ValueError:
+            if not rows and not header and any(c.isalpha() for c in text):  # an old Argus's L_1, ..., rmse
+                header = True
+                continue
+            raise InputError(path, f"{text[:40]!r} is not a row of numbers", where=f"line {number}") from None
+        if len(rows[-1]) != len(rows[0]):
+            raise InputError(
+                path,
+                f"{len(rows[-1])} numbers where line 1 has {len(rows[0])}",
+                where=f"line {number}",
+                fix="every row of a DLT file has the same number of values",
+            )
+    table = np.asarray(rows, dtype=float)
+    if table.ndim != 2 or not table.size:
+        raise InputError(path, "no DLT coefficients in the file", fix="give a *_dltCoefs.csv (11 rows, a camera each)")
+    if table.shape[0] == PLANAR_COEFFICIENTS and table.shape[1] != COEFFICIENTS:
+        raise InputError(path, "holds 8 coefficients per camera: a 2D (planar) DLT, which poses no camera in 3D")
+    # a row per camera: 11 values, or an old Argus's 12 (an rmse column, under a header)
+    by_row = (header and table.shape[1] in (COEFFICIENTS, COEFFICIENTS + 1)) or (
+        table.shape[1] == COEFFICIENTS and table.shape[0] != COEFFICIENTS
+    )
+    if by_row:
+        coefficients = table[:, :COEFFICIENTS]
+    elif table.shape[0] == COEFFICIENTS and table.shape[1] != COEFFICIENTS:
+        coefficients = table.T
+    elif table.shape == (COEFFICIENTS, COEFFICIENTS):
+        raise InputError(path, "11 rows of 11 values: a camera per column or per row cannot be told apart")
+    else:
+        raise InputError(
+            path,
+            f"a table of {table.shape[0]} x {table.shape[1]} values is no DLT file",
+            fix="expected 11 rows with one column per camera (DLTdv, easyWand, Argus) or a row of 11 per camera",
+        )
+    if not np.all(np.isfinite(coefficients)):
+        raise InputError(path, "a coefficient is NaN or infinite", fix="calibrate that camera again")
+    return coefficients
+
+
+def dlt_matrix(coefficients: np.ndarray) -> np.ndarray:
+    """The 3x4 projection matrix of L1..L11 (11,)."""
+    c = np.asarray(coefficients, dtype=float)
+    return np.array([c[0:4], c[4:8], [c[8], c[9], c[10], 1.0]])
+
+
+def to_opencv_matrix(P: np.ndarray, pixels: DltPixels) -> np.ndarray:
+    """P (3, 4) in the file's pixels -> OpenCV's, with a bottom-up file's rows taken as counted down from row 0:
+    the image height is then added to K's principal point row alone (`cy_plus_height`)."""
+    # file (u, v, 1) = A (x, y, 1): OpenCV's pixels are A^-1 file's, with the height's term left out
+    a_inverse = np.eye(3)
+    a_inverse[0, 2] = -pixels.column_origin
+    if pixels.from_bottom:
+        a_inverse[1, 1] = -1.0
+    elif pixels is DltPixels.DLTDV8:
+        a_inverse[1, 2] = -1.0
+    return a_inverse @ P
+
+
+def decompose(P: np.ndarray, scene: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K (3, 3), R (3, 3), t (3,) with P ~ K [R | t], K's diagonal positive and `scene` (3,) in front of the
+    camera; R is a mirror (det -1) where the world is seen mirrored (left-handed axes, or rows read the wrong
+    way)."""
+    K, R = scipy.linalg.rq(P[:, :3])
+    signs = np.diag(np.sign(np.diag(K)))
+    K, R = K @ signs, signs @ R
+    scale = K[2, 2]
+    K = K / scale
+    t = np.linalg.solve(K, P[:, 3]) / scale
+    if R[2] @ scene + t[2] < 0:  # P and -P are one DLT; the scene lies in front
+        R, t = -R, -t
+    return K, R, t
+
+
+def scene_point(matrices: list[np.ndarray]) -> np.ndarray:
+    """A world point every camera looks at: the point nearest to all optical axes (least squares), or the world
+    origin (the calibration object's, in view) where the axes do not cross (one camera, parallel axes)."""
+    if len(matrices) < 2:
+        return np.zeros(3)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for P in matrices:
+        M = P[:, :3]
+        centre = -np.linalg.solve(M, P[:, 3])
+        axis = M[2] / np.linalg.norm(M[2])
+        projector = np.eye(3) - np.outer(axis, axis)
+        A += projector
+        b += projector @ centre
+    if np.linalg.cond(A) > 1e8:
+        return np.zeros(3)
+    return np.linalg.solve(A, b)
+
+
+def mirrored(P: np.ndarray, scene: np.ndarray) -> bool:
+    """Whether P (OpenCV's rows direction assumed) sees a mirrored world."""
+    return bool(np.linalg.det(decompose(P, scene)[1]) < 0)
+
+
+def choose_pixels(path: Path, coefficients: np.ndarray, pixels: DltPixels) -> DltPixels:
+    """`pixels`, or for AUTO the convention of the tool that wrote the file: Argus by its file name, else DLTdv's;
+    rows up from the bottom where the file's rows read downwards give every camera a mirror (a right-handed
+    world assumed)."""
+    if pixels is not DltPixels.AUTO:
+        return pixels
+    top_down = [to_opencv_matrix(dlt_matrix(c), DltPixels.OPENCV) for c in coefficients]
+    scene = scene_point(top_down)
+    mirrors = [mirrored(P, scene) for P in top_down]
+    if any(mirrors) != all(mirrors):
+        raise InputError(
+            path,
+            "its cameras disagree on which way the image rows run (some see the world mirrored): the coefficients "
+            "are not of one calibration",
+            fix="calibrate the cameras together again, or give --pixels for the convention of all of them",
+        )
+    argus = ARGUS_NAME in path.name.lower()
+    if all(mirrors):
+        chosen = DltPixels.ARGUS if argus else DltPixels.DLTDV7
+    else:
+        chosen = DltPixels.OPENCV if argus else DltPixels.DLTDV8
+    log.info(
+        "%s: pixels read as %s's (%s; --pixels to say otherwise)",
+        path,
+        chosen.value,
+        "rows up from the bottom: the reading in which the world is right-handed"
+        if chosen.from_bottom
+        else "rows down from the top: the world is right-handed so",
+    )
+    return chosen
+
+
+def dlt_cameras(
+    path: str | Path, pixels: DltPixels = DltPixels.AUTO
+) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, bool]]:
+    """(name, K, R, t, cy_plus_height) per camera of a DLT file, in OpenCV's conventions, t in the file's units
+    (its world's); cameras are named cam1, cam2... in the file's order. A mirrored world (left-handed axes) is
+    turned into a right-handed one by negating its x axis, with a warning."""
+    path = Path(path)
+    coefficients = read_dlt_coefficients(path)
+    pixels = choose_pixels(path, coefficients, pixels)
+    matrices = [to_opencv_matrix(dlt_matrix(c), pixels) for c in coefficients]
+    scene = scene_point(matrices)
+    decomposed = [decompose(P, scene) for P in matrices]
+    mirrors = [bool(np.linalg.det(R) < 0) for _, R, _ in decomposed]
+    if any(mirrors) != all(mirrors):
+        raise InputError(
+            path,
+            f"with {pixels.value}'s pixels, cameras {', '.join(f'cam{i + 1}' for i, m in enumerate(mirrors) if m)} "
+            "see the world mirrored and the others do not: the coefficients are not of one calibration",
+            fix="calibrate the cameras together again",
+        )
+    if all(mirrors):
+        log.warning(
+            "%s: with %s's pixels the DLT's world axes are left-handed (a mirror image): dynrecon's world is the "
+            "file's with x negated (negate the outputs' x to return to the file's axes; --pixels if the rows run "
+            "the other way)",
+            path,
+            pixels.value,
+        )
+        decomposed = [(K, R @ MIRROR_X, t) for K, R, t in decomposed]
+    return [(f"cam{i + 1}", K, R, t, pixels.from_bottom) for i, (K, R, t) in enumerate(decomposed)]
+
+
+__all__ = ["DltPixels", "decompose", "dlt_cameras", "dlt_matrix", "is_dlt", "read_dlt_coefficients"]

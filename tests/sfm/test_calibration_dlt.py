@@ -1,0 +1,141 @@
+"""DLT coefficient files (DLTdv / easyWand / Argus): cameras we control written in each tool's pixels, read back
+through `import-calibration`; the pixel convention told from the cameras' handedness; bad files. The real
+DLTdv 7 + easyWand recordings: benchmarks/dltdv_real.py."""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from dynrecon.errors import InputError
+from sfm.calibration import DltPixels, read_calibration
+from sfm.calibration_dlt import read_dlt_coefficients
+from sfm.cameras import read_cameras
+
+from ..dlt_files import coefficients, write_dlt_columns
+from .test_import_calibration import _write_video
+
+WIDTH, HEIGHT = 64, 48
+
+
+def _rig() -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Three cameras 4 m from a right-handed world's origin, looking at it, with skew and fx != fy (a DLT's)."""
+    Ks, Rs, ts = [], [], []
+    for i, angle in enumerate((0.3, 1.6, 2.9)):
+        centre = np.array([4 * np.cos(angle), 4 * np.sin(angle), 1.2 + 0.2 * i])
+        forward = -centre / np.linalg.norm(centre)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R = np.stack([right, down, forward])
+        Ks.append(np.array([[70.0 + 3 * i, 0.4 * i, 31.0 + i], [0.0, 72.0, 22.0 - i], [0.0, 0.0, 1.0]]))
+        Rs.append(R)
+        ts.append(-R @ centre)
+    return Ks, Rs, ts
+
+
+def _videos(folder: Path, count: int = 3) -> list[Path]:
+    videos = []
+    for i in range(count):
+        videos.append(folder / f"cam{i + 1}.mp4")
+        _write_video(videos[-1], 2, (WIDTH, HEIGHT))
+    return videos
+
+
+def _project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+    x = (K @ (X @ R.T + t).T).T
+    return x[:, :2] / x[:, 2:]
+
+
+@pytest.mark.parametrize("pixels", [DltPixels.DLTDV7, DltPixels.DLTDV8, DltPixels.ARGUS])
+def test_each_tools_pixels_read_back_exactly(tmp_path: Path, pixels: DltPixels) -> None:
+    """The file's cameras project the world as the true cameras do, in OpenCV's pixels; AUTO tells the rows'
+    direction from the handedness (Argus by its file name)."""
+    Ks, Rs, ts = _rig()
+    table = np.stack([coefficients(K, R, t, pixels, HEIGHT) for K, R, t in zip(Ks, Rs, ts, strict=True)])
+    name = "wand-dlt-coefficients.csv" if pixels is DltPixels.ARGUS else "wand_dltCoefs.csv"
+    path = write_dlt_columns(tmp_path / name, table)
+    assert main(["import-calibration", str(path), *map(str, _videos(tmp_path)), "--out", str(tmp_path / "ws")]) == 0
+    X = np.random.default_rng(1).normal(0, 0.5, (20, 3))
+    for video, K, R, t in zip(read_cameras(tmp_path / "ws" / "cameras.json").videos, Ks, Rs, ts, strict=True):
+        frame = video.frames[0]
+        assert np.linalg.det(frame.R) == pytest.approx(1.0)
+        np.testing.assert_allclose(_project(frame.K, frame.R, frame.t, X), _project(K, R, t, X), atol=1e-6)
+        np.testing.assert_allclose(frame.K, K, atol=1e-6)
+        np.testing.assert_allclose(frame.R, R, atol=1e-9)
+        np.testing.assert_allclose(frame.t, t, atol=1e-9)
+
+
+def test_a_row_per_camera_and_a_left_handed_world(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A course's .cal (11 numbers a row, OpenCV's pixels) whose world is left-handed: x is negated, and said."""
+    Ks, Rs, ts = _rig()
+    mirror = np.diag([-1.0, 1.0, 1.0])  # the file's world is ours with x negated
+    table = np.stack(
+        [coefficients(K, R @ mirror, t, DltPixels.OPENCV, HEIGHT) for K, R, t in zip(Ks, Rs, ts, strict=True)]
+    )
+    path = tmp_path / "dlt_all_cams.cal"
+    path.write_text("\n".join(" ".join(f"{v:.12f}" for v in row) for row in table) + "\n", encoding="utf-8")
+    with caplog.at_level(logging.WARNING):
+        cameras = read_calibration(path, pixels=DltPixels.OPENCV)
+    assert "left-handed" in caplog.text and "x negated" in caplog.text
+    X = np.random.default_rng(2).normal(0, 0.5, (20, 3))
+    for camera, K, R, t in zip(cameras, Ks, Rs, ts, strict=True):
+        assert camera.R is not None and camera.t is not None and not camera.cy_plus_height
+        # the file's point X is dynrecon's mirror @ X, seen where the file's camera sees X
+        np.testing.assert_allclose(
+            _project(camera.K, camera.R, camera.t, X @ mirror), _project(K, R @ mirror, t, X), atol=1e-6
+        )
+
+
+def test_millimetres_and_height_free_reading(tmp_path: Path) -> None:
+    """A calibration frame in mm (cameras 4,000 units apart) is read in metres; without a video the bottom-up
+    principal point row waits for the height."""
+    Ks, Rs, ts = _rig()
+    table = np.stack(
+        [coefficients(K, R, 1000 * t, DltPixels.DLTDV7, HEIGHT) for K, R, t in zip(Ks, Rs, ts, strict=True)]
+    )
+    path = write_dlt_columns(tmp_path / "frame_dltCoefs.csv", table)
+    cameras = read_calibration(path)
+    assert [c.name for c in cameras] == ["cam1", "cam2", "cam3"]
+    for camera, K, t in zip(cameras, Ks, ts, strict=True):
+        assert camera.cy_plus_height and camera.width == camera.height == 0
+        np.testing.assert_allclose(camera.t, t, atol=1e-9)
+        assert camera.K[1, 2] + HEIGHT == pytest.approx(K[1, 2])
+
+
+@pytest.mark.parametrize(
+    ("text", "what"),
+    [
+        ("1,2\n" * 8, "2D (planar) DLT"),
+        ("1,2,3\n" * 10 + "1,2\n", "line 11"),
+        ("1,2,3\n" * 10 + "1,x,3\n", "not a row of numbers"),
+        ("1,2,3\n" * 10 + "1,nan,3\n", "NaN or infinite"),
+        ("1\n" * 11 * 11, "no DLT file"),
+        ((",".join(["1"] * 11) + "\n") * 11, "cannot be told apart"),
+        ("", "no DLT coefficients"),
+    ],
+)
+def test_bad_files(tmp_path: Path, text: str, what: str) -> None:
+    path = tmp_path / "x_dltCoefs.csv"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(InputError, match=re.escape(what)):
+        read_dlt_coefficients(path)
+
+
+def test_cameras_that_disagree_on_the_rows_direction(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    Ks, Rs, ts = _rig()
+    table = np.stack(
+        [
+            coefficients(K, R, t, DltPixels.DLTDV7 if i else DltPixels.DLTDV8, HEIGHT)
+            for i, (K, R, t) in enumerate(zip(Ks, Rs, ts, strict=True))
+        ]
+    )
+    path = write_dlt_columns(tmp_path / "mixed_dltCoefs.csv", table)
+    assert main(["import-calibration", str(path), *map(str, _videos(tmp_path)), "--out", str(tmp_path / "ws")]) == 2
+    error = capsys.readouterr().err
+    assert "not of one calibration" in error and error.count("\n") == 1
