@@ -64,6 +64,9 @@ GCV_WINDOW = 1000
 # A point with fewer observations in that window is chosen on all of its own (exactly as below the window).
 GCV_WINDOW_MIN_OBSERVATIONS = 50
 OUTLIER_FACTOR = 3.0  # residual > factor x scale marks an observation as an outlier in the result
+# Anchors (shares of the system's largest entry) tried in turn where a point's system is numerically singular: a
+# double-precision Cholesky holds a condition number up to about 1e15
+SINGULAR_ANCHOR = (1e-12, 1e-10, 1e-8)
 # Threads for independent points (their banded solves and GCV traces; bit-identical for any count). One:
 # on an idle 2-core machine a second thread gave no wall time back and cost CPU (docs/measurements.md).
 WORKERS = 1
@@ -114,10 +117,20 @@ def _fit(
     try:
         factor = cholesky_banded(system, lower=True)
     except LinAlgError:
-        # Numerically singular (a point with hardly any rays): a stronger anchor keeps the input position.
-        system = add_blocks(system, np.broadcast_to(1e-6 * np.eye(3), (n, 3, 3)))
-        b = (rhs + (eps + 1e-6) * anchor).reshape(-1)
-        factor = cholesky_banded(system, lower=True)
+        # Numerically singular (a point with hardly any rays, or one video's rays alone under a strong prior, whose
+        # null space of straight motions they do not pin): a stronger anchor keeps the input position there. It
+        # is relative to the system's largest entry, as is the precision the factorization loses.
+        for share in SINGULAR_ANCHOR:
+            ridge = max(1e-6, share * float(np.abs(system[0]).max()))
+            anchored = add_blocks(system, np.broadcast_to(ridge * np.eye(3), (n, 3, 3)))
+            try:
+                factor = cholesky_banded(anchored, lower=True)
+            except LinAlgError:
+                continue
+            b = (rhs + (eps + ridge) * anchor).reshape(-1)
+            break
+        else:
+            raise
     return cho_solve_banded((factor, True), b).reshape(n, 3), factor
 
 

@@ -245,3 +245,22 @@ def test_the_predicted_error_is_the_noise_and_compares_only_points_both_refined(
     interpolating = trajectory.RefineResult(**{**vars(result), "gcv_px2": np.full_like(result.gcv_px2, np.inf)})
     assert predicted_pair(interpolating, interpolating) is None  # nothing to compare: the caller uses residuals
     assert predicted_pair(result, interpolating) == (pytest.approx(predicted_px(result)), np.inf)
+
+
+def test_one_videos_rays_under_a_strong_prior_are_solved() -> None:
+    """A point seen on a few frames by one video alone (the held-out fit of a two-camera point, on a real bat
+    recording), under GCV's strongest smoothness: straight motions along the rays are pinned by nothing but the
+    anchor, and the system's condition passes what a Cholesky holds. The anchor then keeps those directions."""
+    n = 1128
+    prior = prior_bands(time_nodes(np.arange(n) / 25.0))
+    ray = np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    blocks = np.zeros((n, 3, 3))
+    blocks[500:520] = 2.6e7 * (np.eye(3) - np.outer(ray, ray))  # 20 frames' rays, one direction
+    anchor = np.random.default_rng(0).normal(size=(n, 3))
+    rhs = np.einsum("nij,nj->ni", blocks, anchor)
+    positions, _ = trajectory._fit(prior, 1.0, 1e13, blocks, rhs, anchor)
+    assert np.isfinite(positions).all()
+    # across the rays the positions meet them (a straight line through the seen frames' anchors, nearly)
+    seen = positions[500:520] - anchor[500:520]
+    across = seen - np.outer(seen @ ray, ray)
+    assert np.abs(across).max() < 2.0
