@@ -436,9 +436,10 @@ def read_calibration(
     fmt: CalibrationFormat = CalibrationFormat.AUTO,
     units: Units = Units.AUTO,
     pixels: DltPixels = DltPixels.AUTO,
+    profile: str | Path | None = None,
 ) -> list[StaticCamera]:
     """Cameras of a QCA, TOML, cameras.json, DANNCE or DLT file; TOML cameras may lack a pose (R = t = None): see
-    StaticCamera.pose. `pixels`: a DLT file's pixel convention."""
+    StaticCamera.pose. `pixels`: a DLT file's pixel convention; `profile`: its camera profile (the lenses)."""
     path = Path(path)
     if fmt is CalibrationFormat.AUTO:
         lower = path.name.lower()
@@ -459,6 +460,8 @@ def read_calibration(
                 fix="name it .toml, .qca.txt, .xml, .json, .mat or *_dltCoefs.csv; import-calibration also takes "
                 "--format qca, toml, json, dannce or dlt",
             )
+    if profile is not None and fmt is not CalibrationFormat.DLT:
+        raise InputError(Path(profile), f"--profile is a DLT file's camera profile; {path.name} is a {fmt.value} file")
     if fmt is CalibrationFormat.CAMERAS_JSON:
         return read_cameras_json(path)  # read_cameras has checked it
     if fmt is CalibrationFormat.DANNCE:
@@ -468,8 +471,8 @@ def read_calibration(
         ]
     elif fmt is CalibrationFormat.DLT:
         cameras = [
-            StaticCamera(name=name, width=0, height=0, K=K, dist=np.zeros(4), R=R, t=t, cy_plus_height=up)
-            for name, K, R, t, up in dlt_cameras(path, pixels)
+            StaticCamera(name=name, width=0, height=0, K=K, dist=dist, R=R, t=t, cy_plus_height=up)
+            for name, K, R, t, up, dist in dlt_cameras(path, pixels, profile)
         ]
         if units is Units.MM:
             for camera in cameras:
@@ -670,7 +673,9 @@ def run(
         )
     offsets = declared_offsets(options.synchronized, options.offsets, names)
     cameras = match_cameras(
-        read_calibration(calibration, options.format, options.units, options.pixels), infos, calibration
+        read_calibration(calibration, options.format, options.units, options.pixels, options.profile),
+        infos,
+        calibration,
     )
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     _refuse_repeated_poses(cameras, poses, calibration)

@@ -5,7 +5,9 @@ The 11 coefficients L1..L11 map world X, Y, Z to the file's pixels u, v:
     u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)
     v = (L5 X + L6 Y + L7 Z + L8) / (L9 X + L10 Y + L11 Z + 1)
 a projection matrix with P[2, 3] = 1: a pinhole camera with skew and two focal lengths, for undistorted pixels
-(the tools keep lens distortion apart, in a camera profile). Decomposed here (RQ) into K, R, t.
+(the tools keep lens distortion apart, in a camera profile, read with `--profile`: the tools' coefficients about
+the profile's own principal point and focal length, taken here about the DLT's, which the calibration fitted to the
+same undistorted points). Decomposed here (RQ) into K, R, t.
 
 The file's pixels (`DltPixels`, from the tools' source; docs/formats.md), against OpenCV's (x, y), H the image
 height: DLTdv 5-7 (and easyWand fed from it): u = x + 1, v = H - y (rows counted up from the bottom); Argus:
@@ -183,12 +185,58 @@ def choose_pixels(path: Path, coefficients: np.ndarray, pixels: DltPixels) -> Dl
     return chosen
 
 
+PROFILE_COLUMNS = 12  # cam# f W H cx cy aspect k1 k2 t1 t2 k3
+
+
+def read_profile(path: str | Path, cameras: int, pixels: DltPixels) -> list[np.ndarray]:
+    """OpenCV distortion (k1, k2, p1, p2, k3) per camera from an easyWand / Argus / DLTdv camera profile (a row
+    `cam# f W H cx cy aspect k1 k2 t1 t2 k3` per camera, space-separated): the coefficients the tools undistort the
+    points with before their DLT. In pixels counted up from the bottom the image's y is negated, and so is p1."""
+    path = Path(path)
+    rows: dict[int, np.ndarray] = {}
+    for number, line in enumerate(read_text(path).splitlines(), start=1):
+        fields = [f for f in re.split(r"[,;\s]+", line.strip()) if f]
+        if not fields or fields[0].startswith("#"):
+            continue
+        try:
+            values = np.array([float(f) for f in fields])
+        except ValueError:
+            if not rows and any(c.isalpha() for c in line):  # Argus's calibration CSVs have a header
+                continue
+            raise InputError(path, f"{line.strip()[:40]!r} is not a row of numbers", where=f"line {number}") from None
+        if len(values) != PROFILE_COLUMNS or not np.all(np.isfinite(values)):
+            raise InputError(
+                path,
+                f"{len(values)} values where a camera profile has {PROFILE_COLUMNS} finite ones",
+                where=f"line {number}",
+                fix="a row per camera: cam# f width height cx cy aspect k1 k2 t1 t2 k3 (omnidirectional profiles "
+                "are not read)",
+            )
+        rows[round(values[0])] = values
+    missing = [c + 1 for c in range(cameras) if c + 1 not in rows]
+    if missing:
+        raise InputError(
+            path,
+            f"no row for camera {', '.join(map(str, missing))} of the DLT file's {cameras}",
+            fix="give the profile written with these coefficients (a row per camera, numbered from 1)",
+        )
+    flip = -1.0 if pixels.from_bottom else 1.0
+    return [np.array([r[7], r[8], flip * r[9], r[10], r[11]]) for r in (rows[c + 1] for c in range(cameras))]
+
+
+def _profile_beside(path: Path) -> Path | None:
+    """A camera profile next to a DLT file (easyWand's `*_profile.txt`, Argus's `*-profile.txt`), if any."""
+    found = sorted(path.parent.glob("*profile*.txt"))
+    return found[0] if found else None
+
+
 def dlt_cameras(
-    path: str | Path, pixels: DltPixels = DltPixels.AUTO
-) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, bool]]:
-    """(name, K, R, t, cy_plus_height) per camera of a DLT file, in OpenCV's conventions, t in the file's units
-    (its world's); cameras are named cam1, cam2... in the file's order. A mirrored world (left-handed axes) is
-    turned into a right-handed one by negating its x axis, with a warning."""
+    path: str | Path, pixels: DltPixels = DltPixels.AUTO, profile: str | Path | None = None
+) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray]]:
+    """(name, K, R, t, cy_plus_height, dist) per camera of a DLT file, in OpenCV's conventions, t in the file's
+    units (its world's), dist from the camera `profile` (none without one); cameras are named cam1, cam2... in the
+    file's order. A mirrored world (left-handed axes) is turned into a right-handed one by negating its x axis,
+    with a warning."""
     path = Path(path)
     coefficients = read_dlt_coefficients(path)
     pixels = choose_pixels(path, coefficients, pixels)
@@ -212,7 +260,23 @@ def dlt_cameras(
             pixels.value,
         )
         decomposed = [(K, R @ MIRROR_X, t) for K, R, t in decomposed]
-    return [(f"cam{i + 1}", K, R, t, pixels.from_bottom) for i, (K, R, t) in enumerate(decomposed)]
+    if profile is not None:
+        distortion = read_profile(profile, len(decomposed), pixels)
+    else:
+        distortion = [np.zeros(5)] * len(decomposed)
+        beside = _profile_beside(path)
+        if beside is not None:
+            log.warning(
+                "%s: a camera profile lies beside it (%s): DLT coefficients are for undistorted pixels, and the "
+                "points are not; give --profile %s to model the lenses",
+                path,
+                beside.name,
+                beside,
+            )
+    return [
+        (f"cam{i + 1}", K, R, t, pixels.from_bottom, dist)
+        for i, ((K, R, t), dist) in enumerate(zip(decomposed, distortion, strict=True))
+    ]
 
 
-__all__ = ["DltPixels", "decompose", "dlt_cameras", "dlt_matrix", "is_dlt", "read_dlt_coefficients"]
+__all__ = ["DltPixels", "decompose", "dlt_cameras", "dlt_matrix", "is_dlt", "read_dlt_coefficients", "read_profile"]

@@ -60,6 +60,13 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "makes the world right-handed)",
     )
     parser.add_argument(
+        "--profile",
+        type=Path,
+        metavar="TXT",
+        help="a DLT file's camera profile (easyWand / Argus / DLTdv: a row 'cam# f W H cx cy aspect k1 k2 t1 t2 k3' "
+        "per camera): the lenses' distortion, which the DLT coefficients leave out",
+    )
+    parser.add_argument(
         "--scale",
         type=float,
         default=1.0,
@@ -94,6 +101,7 @@ def _run_import(args: argparse.Namespace) -> int:
             format=CalibrationFormat(args.format),
             units=Units(args.units),
             pixels=DltPixels(args.pixels),
+            profile=args.profile,
             scale=args.scale,
             synchronized=args.synchronized,
             offsets=args.offsets,

@@ -223,6 +223,7 @@ class ImportCalibrationOptions:
     format: CalibrationFormat = CalibrationFormat.AUTO
     units: Units = Units.AUTO  # TOML translations' unit (see Units)
     pixels: DltPixels = DltPixels.AUTO  # a DLT file's pixel convention (the tool that wrote it)
+    profile: Path | None = None  # a DLT file's camera profile (easyWand / Argus / DLTdv: the lenses' distortion)
     scale: float = 1.0  # multiplies the world coordinates (after conversion to metres)
     # The videos were recorded on one clock (a triggered rig): every video's clock_offset is 0, which the solve
     # then tests against its own clocks (it keeps whichever fits better)

@@ -8,6 +8,7 @@ import logging
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,7 +18,7 @@ from sfm.calibration import DltPixels, read_calibration
 from sfm.calibration_dlt import read_dlt_coefficients
 from sfm.cameras import read_cameras
 
-from ..dlt_files import coefficients, write_dlt_columns
+from ..dlt_files import coefficients, opencv_to_tool, write_dlt_columns
 from .test_import_calibration import _write_video
 
 WIDTH, HEIGHT = 64, 48
@@ -139,3 +140,43 @@ def test_cameras_that_disagree_on_the_rows_direction(tmp_path: Path, capsys: pyt
     assert main(["import-calibration", str(path), *map(str, _videos(tmp_path)), "--out", str(tmp_path / "ws")]) == 2
     error = capsys.readouterr().err
     assert "not of one calibration" in error and error.count("\n") == 1
+
+
+def _tool_distort(uv: np.ndarray, f: float, c: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The tools' lens model (Bouguet's k1 k2 t1 t2 k3) applied in their own pixels about the profile's centre."""
+    x, y = ((uv - c) / f).T
+    r2 = x * x + y * y
+    radial = 1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3
+    xd = x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+    yd = y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+    return np.stack([xd, yd], axis=1) * f + c
+
+
+@pytest.mark.parametrize("pixels", [DltPixels.DLTDV7, DltPixels.DLTDV8])
+def test_a_camera_profile_gives_the_lenses(tmp_path: Path, pixels: DltPixels, caplog: pytest.LogCaptureFixture) -> None:
+    """easyWand's profile (its distortion in the tool's pixels, y up for DLTdv 7) read with the coefficients: the
+    imported cameras put the points where the tool's own lens model does. Without --profile, a profile beside the
+    file is pointed out."""
+    Ks, Rs, ts = _rig()
+    Ks = [np.array([[70.0, 0.0, 31.5], [0.0, 70.0, 23.5], [0.0, 0.0, 1.0]])] * 3  # a profile's pinhole
+    table = np.stack([coefficients(K, R, t, pixels, HEIGHT) for K, R, t in zip(Ks, Rs, ts, strict=True)])
+    path = write_dlt_columns(tmp_path / "round3_dltCoefs.csv", table)
+    lens = np.array([-0.3, 0.11, 0.004, -0.003, 0.0])
+    centre = (opencv_to_tool(pixels, HEIGHT) @ [31.5, 23.5, 1.0])[:2]
+    profile = tmp_path / "round3_profile.txt"
+    rows = [f"{c + 1} 70 {WIDTH} {HEIGHT} {centre[0]} {centre[1]} 1 " + " ".join(map(str, lens)) for c in range(3)]
+    profile.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    videos = _videos(tmp_path)
+    args = ["import-calibration", str(path), *map(str, videos), "--pixels", pixels.value]
+    assert main([*args, "--out", str(tmp_path / "ws"), "--profile", str(profile)]) == 0
+    X = np.random.default_rng(4).normal(0, 0.5, (30, 3))
+    A = opencv_to_tool(pixels, HEIGHT)
+    for video, K, R, t in zip(read_cameras(tmp_path / "ws" / "cameras.json").videos, Ks, Rs, ts, strict=True):
+        frame = video.frames[0]
+        found, _ = cv2.projectPoints(X, cv2.Rodrigues(frame.R)[0], frame.t, frame.K, frame.dist)
+        tool = _tool_distort(_project(K, R, t, X) @ A[:2, :2].T + A[:2, 2], 70.0, centre, lens)
+        expected = np.linalg.solve(A, np.c_[tool, np.ones(len(tool))].T).T[:, :2]
+        np.testing.assert_allclose(found.reshape(-1, 2), expected, atol=1e-6)
+    caplog.clear()
+    assert main([*args, "--out", str(tmp_path / "plain")]) == 0
+    assert "give --profile" in caplog.text
