@@ -154,11 +154,20 @@ def mirrored(P: np.ndarray, scene: np.ndarray) -> bool:
 
 
 def choose_pixels(path: Path, coefficients: np.ndarray, pixels: DltPixels) -> DltPixels:
-    """`pixels`, or for AUTO the convention of the tool that wrote the file: Argus by its file name, else DLTdv's;
-    rows up from the bottom where the file's rows read downwards give every camera a mirror (a right-handed
-    world assumed)."""
+    """`pixels`, or for AUTO the convention of the tool that wrote the file: for DLTdv's, easyWand's and Argus's
+    files (told by their names) rows up from the bottom where the file's rows read downwards give every camera a
+    mirror (easyWand 6 and Argus make their worlds right-handed), Argus's columns from 0; for other files OpenCV's
+    (their world may be left-handed: a course's L-frame, then mirrored with a warning)."""
     if pixels is not DltPixels.AUTO:
         return pixels
+    lower = path.name.lower()
+    if "dltcoefs" not in lower and ARGUS_NAME not in lower:
+        log.info(
+            "%s: pixels read as OpenCV's (rows down from the top, from 0): no DLTdv / easyWand / Argus file name; "
+            "--pixels to say otherwise",
+            path,
+        )
+        return DltPixels.OPENCV
     top_down = [to_opencv_matrix(dlt_matrix(c), DltPixels.OPENCV) for c in coefficients]
     scene = scene_point(top_down)
     mirrors = [mirrored(P, scene) for P in top_down]
@@ -169,7 +178,7 @@ def choose_pixels(path: Path, coefficients: np.ndarray, pixels: DltPixels) -> Dl
             "are not of one calibration",
             fix="calibrate the cameras together again, or give --pixels for the convention of all of them",
         )
-    argus = ARGUS_NAME in path.name.lower()
+    argus = ARGUS_NAME in lower
     if all(mirrors):
         chosen = DltPixels.ARGUS if argus else DltPixels.DLTDV7
     else:

@@ -82,7 +82,7 @@ def test_a_row_per_camera_and_a_left_handed_world(tmp_path: Path, caplog: pytest
     path = tmp_path / "dlt_all_cams.cal"
     path.write_text("\n".join(" ".join(f"{v:.12f}" for v in row) for row in table) + "\n", encoding="utf-8")
     with caplog.at_level(logging.WARNING):
-        cameras = read_calibration(path, pixels=DltPixels.OPENCV)
+        cameras = read_calibration(path)  # not a DLTdv / Argus name: OpenCV's pixels
     assert "left-handed" in caplog.text and "x negated" in caplog.text
     X = np.random.default_rng(2).normal(0, 0.5, (20, 3))
     for camera, K, R, t in zip(cameras, Ks, Rs, ts, strict=True):
