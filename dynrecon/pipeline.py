@@ -67,6 +67,7 @@ from reconstruct.stage import SolveOptions, solve
 from reconstruct.views import nearest_gap
 from sfm.board_hint import board_hint
 from sfm.calibration import run as import_calibration
+from sfm.calibration_dlt import is_dlt
 from sfm.cameras import CameraSet, read_cameras
 from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
@@ -232,7 +233,7 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
     replaces: checked before any stage runs."""
     fix = (
         "give a calibration that `dynrecon import-calibration` reads (.toml, .qca.txt, .qca, .xml, cameras.json, "
-        "a Label3D/DANNCE .mat)"
+        "a Label3D/DANNCE .mat, DLTdv/easyWand/Argus DLT coefficients)"
     )
     if not calibration.exists():
         raise InputError(calibration, "calibration file not found", fix=fix)
@@ -258,14 +259,16 @@ def _check_calibration(calibration: Path, imported: ImportCalibrationOptions, re
         )
     lower = calibration.name.lower()
     # sfm.calibration's own rule for the format; its message would name import-calibration's --format.
-    known = lower.endswith((".toml", ".xml", ".json", ".mat")) or ".qca" in lower
+    known = lower.endswith((".toml", ".xml", ".json", ".mat")) or ".qca" in lower or is_dlt(calibration)
     if imported.format is CalibrationFormat.AUTO and not known:
         raise InputError(
             calibration,
             "cannot tell the calibration format from the name",
-            fix="pass --calibration-format qca, toml, json or dannce, or name the file .toml / .qca.txt / .qca / .xml "
-            "/ .json / .mat",
+            fix="pass --calibration-format qca, toml, json, dannce or dlt, or name the file .toml / .qca.txt / .qca / "
+            ".xml / .json / .mat / *_dltCoefs.csv",
         )
+    if imported.profile is not None and not imported.profile.is_file():
+        raise InputError(imported.profile, "camera profile not found", fix="give the DLT calibration's *_profile.txt")
 
 
 def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, options: SolveOptions) -> None:
@@ -448,7 +451,10 @@ class Stages:
         names = [p.stem for p in self.videos]
         if options.calibration is not None:
             settings = {"calibration": options.calibration.name, "import": options.calibration_options, "videos": names}
-            return {**self.video_files, "calibration": options.calibration}, settings, outputs
+            files = {**self.video_files, "calibration": options.calibration}
+            if options.calibration_options.profile is not None:  # its contents, not only its name
+                files["profile"] = options.calibration_options.profile
+            return files, settings, outputs
         return self.video_files, {"register": options.background_register(), "videos": names}, outputs
 
     def track(self, tracker: Tracker | None = None) -> Path | None:

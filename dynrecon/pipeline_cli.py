@@ -88,7 +88,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
     add_calibration_arguments(
         parser,
         "a lab calibration of static cameras (what `dynrecon import-calibration` reads: .toml, .qca.txt, .qca, "
-        ".xml): imported instead of the SfM registration",
+        ".xml, .mat, DLT coefficients, cameras.json): imported instead of the SfM registration",
     )
     add_units_argument(parser)
     parser.add_argument("--force", action="store_true", help="redo every stage")
@@ -109,7 +109,7 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
     """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
     `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
     from sfm.cli import SYNCHRONIZED_HELP
-    from sfm.options import OFFSETS_HELP, CalibrationFormat, Units, parse_offsets
+    from sfm.options import OFFSETS_HELP, CalibrationFormat, DltPixels, Units, parse_offsets
 
     parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
     parser.add_argument(
@@ -122,7 +122,19 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         "--calibration-units",
         choices=[u.value for u in Units],
         default="auto",
-        help="unit of the calibration's TOML translations, as import-calibration's --units (default auto)",
+        help="unit of the calibration's TOML and DLT translations, as import-calibration's --units (default auto)",
+    )
+    parser.add_argument(
+        "--calibration-pixels",
+        choices=[p.value for p in DltPixels],
+        default="auto",
+        help="a DLT calibration's pixels, as import-calibration's --pixels (default auto)",
+    )
+    parser.add_argument(
+        "--calibration-profile",
+        type=Path,
+        metavar="TXT",
+        help="a DLT calibration's camera profile (the lenses), as import-calibration's --profile",
     )
     parser.add_argument(
         "--synchronized",
@@ -147,11 +159,13 @@ def check_track_flags(args: argparse.Namespace) -> None:
 
 def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
     """The import options `add_calibration_arguments` parsed."""
-    from sfm.options import CalibrationFormat, ImportCalibrationOptions, Units
+    from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units
 
     return ImportCalibrationOptions(
         format=CalibrationFormat(args.calibration_format),
         units=Units(args.calibration_units),
+        pixels=DltPixels(args.calibration_pixels),
+        profile=args.calibration_profile,
         synchronized=args.synchronized,
         offsets=args.offsets,
     )

@@ -40,9 +40,11 @@ MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 
 def is_dlt(path: Path) -> bool:
-    """A DLT coefficient file by its name: DLTdv / easyWand `*dltCoefs*`, Argus `*-dlt-coefficients*`, `.cal`."""
+    """A DLT coefficient file by its name: DLTdv / easyWand `*dltCoefs*`, Argus `*-dlt-coefficients*`, or a text
+    file with `dlt` in its name (a course's `dlt_all_cams.cal`)."""
     lower = path.name.lower()
-    return "dltcoefs" in lower or ARGUS_NAME in lower or lower.endswith(".cal")
+    texts = (".cal", ".csv", ".txt", ".dat")
+    return "dltcoefs" in lower or ARGUS_NAME in lower or ("dlt" in lower and lower.endswith(texts))
 
 
 def read_dlt_coefficients(path: str | Path) -> np.ndarray:

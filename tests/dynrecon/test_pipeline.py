@@ -368,7 +368,7 @@ def test_run_takes_another_recordings_cameras_json_and_tracks_named_by_file(cali
         ("missing", "calibration file not found"),
         ("folder", "is not a file: a calibration file was expected"),
         ("garbage", "lab.toml"),
-        ("unknown format", "pass --calibration-format qca, toml, json or dannce"),
+        ("unknown format", "pass --calibration-format qca, toml, json, dannce or dlt"),
         ("other cameras", "match no camera name"),
         ("with intrinsics", "--intrinsics, --scale and --board (registration options) do not apply"),
         ("with a board", "--intrinsics, --scale and --board (registration options) do not apply"),
