@@ -250,6 +250,15 @@ def dlt_cameras(
     with a warning."""
     path = Path(path)
     coefficients = read_dlt_coefficients(path)
+    for number, row in enumerate(coefficients, start=1):
+        M = dlt_matrix(row)[:, :3]
+        if abs(np.linalg.det(M)) <= 1e-12 * np.linalg.norm(M) ** 3:  # no centre, no viewing direction
+            raise InputError(
+                path,
+                f"camera {number}'s coefficients describe no camera (their 3x3 part is singular)",
+                where=f"camera {number}",
+                fix="calibrate that camera again",
+            )
     pixels = choose_pixels(path, coefficients, pixels)
     matrices = [to_opencv_matrix(dlt_matrix(c), pixels) for c in coefficients]
     scene = scene_point(matrices)

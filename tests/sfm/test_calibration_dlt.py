@@ -128,6 +128,15 @@ def test_bad_files(tmp_path: Path, text: str, what: str) -> None:
         read_dlt_coefficients(path)
 
 
+def test_a_singular_camera(tmp_path: Path) -> None:
+    table = np.zeros((2, 11))
+    table[0] = coefficients(*[m[0] for m in _rig()], DltPixels.DLTDV7, HEIGHT)
+    table[1, [0, 4, 8]] = 1.0  # rows of the 3x3 part all alike
+    path = write_dlt_columns(tmp_path / "bad_dltCoefs.csv", table)
+    with pytest.raises(InputError, match="camera 2's coefficients describe no camera"):
+        read_calibration(path)
+
+
 def test_cameras_that_disagree_on_the_rows_direction(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     Ks, Rs, ts = _rig()
     table = np.stack(
