@@ -51,8 +51,9 @@ def check_fit(problem: Problem, points: np.ndarray, trust: Trust, refined: bool)
     if median > limit:
         log.warning(
             "the written points miss the tracks by a median of %.1f px (over %.0f px; %s): the cameras may not be this "
-            "capture's (another session's calibration, another image size, a mirrored world) or the tracks follow "
-            "another subject; the trust flag, relative to the capture's own medians, does not show this",
+            "capture's (another session's calibration, another image size, a mirrored world, or given to the wrong "
+            "videos: import-calibration matches cameras to videos by order where their names differ) or the tracks "
+            "follow another subject; the trust flag, relative to the capture's own medians, does not show this",
             median,
             limit,
             ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),

@@ -381,7 +381,9 @@ def _distance_block(lines: _Lines, rows: np.ndarray, cols: np.ndarray, *, both: 
 
 def fill_missing_points(points: np.ndarray, video_index: np.ndarray) -> np.ndarray:
     """Fill NaN 3D points (F, P, 3) for a start value: interpolate within the same video over frame order, else use
-    the point's mean over all frames. Only a starting point for the solver, which re-estimates them."""
+    the point's mean over all frames; a point with no start on any frame (its rays never met another video's in
+    front of both cameras: cameras that do not fit the tracks) the other points' mean on each frame. Only a
+    starting point for the solver, which re-estimates them."""
     filled = points.copy()
     P = points.shape[1]
     for vi in np.unique(video_index):
@@ -399,4 +401,10 @@ def fill_missing_points(points: np.ndarray, video_index: np.ndarray) -> np.ndarr
         missing = np.isnan(filled[:, p, 0])
         if missing.any() and not missing.all():
             filled[missing, p] = np.nanmean(filled[:, p], axis=0)
+    empty = np.isnan(filled[:, :, 0]).all(axis=0)
+    if empty.any() and not empty.all():
+        with np.errstate(invalid="ignore"):
+            others = np.nanmean(filled[:, ~empty], axis=1)  # (F, 3): NaN on frames where every point is empty
+        others[np.isnan(others[:, 0])] = np.nanmean(others, axis=0)
+        filled[:, empty] = others[:, None, :]
     return filled

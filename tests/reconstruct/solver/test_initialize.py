@@ -171,3 +171,15 @@ def test_fill_missing_points_interpolates_within_a_video():
     points[4, 0] = [4, 8, 0]
     filled = fill_missing_points(points, np.zeros(5, dtype=int))
     np.testing.assert_allclose(filled[2, 0], [2, 4, 0])
+
+
+def test_a_point_without_any_start_starts_at_the_others_mean():
+    """A point whose rays never met another video's in front of both cameras (cameras given to the wrong videos, a
+    helper's real hand recording): the other points' mean on each frame, not NaN (the W-step's Gram matrices of NaN
+    shapes raised LinAlgError)."""
+    points = np.full((4, 3, 3), np.nan)
+    points[:, 0] = [[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]
+    points[:, 1] = [[0, 2, 0], [1, 2, 0], [2, 2, 0], [3, 2, 0]]
+    filled = fill_missing_points(points, np.array([0, 0, 1, 1]))
+    assert np.isfinite(filled).all()
+    np.testing.assert_allclose(filled[:, 2], [[0, 1, 0], [1, 1, 0], [2, 1, 0], [3, 1, 0]])
