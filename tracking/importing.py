@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 from dynrecon.readers import check_video_name
@@ -202,6 +204,29 @@ def _check_detection(d: Detection, path: Path) -> None:
     check_video_name(d.video, path)
 
 
+LOW_SCORE = 0.5  # a detector's confidence below which its point is more often a guess (occluded) than found
+LOW_SHARE = 0.2  # share of an input's detections under LOW_SCORE from which the import says so
+
+
+def _say_low_scores(path: Path, detections: list[Detection], min_score: float) -> None:
+    """A warning where many of the detections kept are the detector's guesses (DeepLabCut writes every body part on
+    every frame, occluded or not): they derail the solve's clock search and leave it the slow way."""
+    scores = np.array([d.score for d in detections if d.score is not None and d.score >= min_score], dtype=float)
+    scores = scores[np.isfinite(scores)]
+    if not scores.size or min_score >= LOW_SCORE:
+        return
+    share = float(np.mean(scores < LOW_SCORE))
+    if share >= LOW_SHARE:
+        log.warning(
+            "%s: %.0f %% of the detections kept have a confidence under %g, mostly the detector's guesses at hidden "
+            "points; they can derail the solve's clock search and slow it down: --min-score 0.6 (DeepLabCut's "
+            "pcutoff) or higher leaves them out",
+            path,
+            100 * share,
+            LOW_SCORE,
+        )
+
+
 def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
     rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
@@ -245,6 +270,7 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
             imported_videos.add(d.video)
             kept += 1
         log.info("%s: %d of %d detections imported", path, kept, len(detections))
+        _say_low_scores(Path(path), detections, options.min_score)
         if not detections:
             log.warning("%s: no detection in the file", path)
         elif not kept:

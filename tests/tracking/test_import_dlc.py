@@ -196,3 +196,18 @@ def test_a_real_multi_animal_labels_file(tmp_path: Path, caplog) -> None:
     assert sum(p.startswith("person0_") for _, _, p in every) == 8
     assert sum(p.startswith("person1_") for _, _, p in every) == 2
     assert len(every) == len(named) == 28
+
+
+def test_many_guesses_are_pointed_out(tmp_path: Path, caplog) -> None:
+    """DeepLabCut writes every body part on every frame: where many are low-confidence guesses the import says so,
+    and names --min-score; with it, nothing is said."""
+    rng = np.random.default_rng(2)
+    values = rng.uniform(0, 100, (40, 6))
+    values[:, 2::3] = np.where(np.arange(40)[:, None] < 15, 0.05, 0.95)  # 15 of 40 frames are guesses
+    csv = tmp_path / "cam1DLC_resnet50.csv"
+    dlc_frame(None, ["nose", "tail"], values).to_csv(csv)
+    run_import([csv], tmp_path / "tracks.csv", ImportOptions())
+    assert "under 0.5" in caplog.text and "--min-score 0.6" in caplog.text
+    caplog.clear()
+    run_import([csv], tmp_path / "tracks2.csv", ImportOptions(min_score=0.6))
+    assert "under 0.5" not in caplog.text
