@@ -449,3 +449,18 @@ def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
     (own / "tracks.csv").write_text("video,frame,point,x,y\ncam_a,0,nose,1,2\n")
     Stages(videos, own, options).track()
     assert (own / "tracks.csv").read_text() == "video,frame,point,x,y\ncam_a,0,nose,1,2\n"
+
+
+def test_run_takes_dlt_calibrations_and_their_profiles(tmp_path: Path) -> None:
+    """A DLTdv / easyWand calibration is told by its name; a --calibration-profile that is not there is refused
+    before any stage runs."""
+    from dynrecon.pipeline import _check_calibration
+    from sfm.options import ImportCalibrationOptions
+    from sfm.stage import RegisterOptions
+
+    dlt = tmp_path / "wand_dltCoefs.csv"
+    dlt.write_text("1,2\n" * 11, encoding="utf-8")
+    _check_calibration(dlt, ImportCalibrationOptions(), RegisterOptions())
+    missing = ImportCalibrationOptions(profile=tmp_path / "wand_profile.txt")
+    with pytest.raises(InputError, match="camera profile not found"):
+        _check_calibration(dlt, missing, RegisterOptions())
