@@ -113,9 +113,12 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     if verbose < 2:
         for noisy in ("PIL", "matplotlib", "urllib3"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
-    quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
+    # tqdm reads its TQDM_* settings when it is imported: set before quiet_tqdm_monitor imports it
+    if quiet:  # -q: only warnings and errors, no progress bars either
+        os.environ.setdefault("TQDM_DISABLE", "1")
     if not sys.stderr.isatty():  # a log file keeps every redraw of a bar: one every 10 s is a record enough
         os.environ.setdefault("TQDM_MININTERVAL", "10")
+    quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
 
 
 def _say(message: str, *, stopped: bool = False) -> None:
