@@ -9,8 +9,10 @@ bottom too but columns from 0: u = x, v = H - y; DLTdv 8 uses MATLAB's pixels as
 from __future__ import annotations
 
 import enum
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:  # the command line's option parsers import this module: numpy is not loaded for --help
+    import numpy as np
 
 
 class DltPixels(enum.Enum):
