@@ -21,7 +21,8 @@ Conventions (checked on ../shared/data/videos/pose2sim_demo, see tests/sfm/test_
 - DANNCE / Label3D `.mat` files (`sfm/calibration_dannce.py`): no image size, so width = height = 0 (the
   video's own size is taken).
 - DLT coefficients (DLTdv / easyWand `*_dltCoefs.csv`, Argus `*-dlt-coefficients.csv`, `sfm/calibration_dlt.py`):
-  no image size and no distortion; translations in the calibration object's units (the spread rule below).
+  no image size, distortion only from a camera profile (`--profile`); translations in the calibration object's
+  units (the spread rule below).
 - FreeMoCap's `*_camera_calibration.toml` is anipose's layout with translations in millimetres (its charuco
   square size is given in mm). Units rule (`Units.AUTO`): millimetres when the `[metadata]` table has
   `charuco_square_size` (FreeMoCap) or `square_length` (sleap-anipose), or when the cameras are over MM_SPREAD
