@@ -39,6 +39,9 @@ PP_SIGMA = 0.0  # principal point prior around the image centre (fraction of the
 HELD_OUT_GAIN = 0.95  # radial distortion is kept where it predicts held-out observations this much better
 BLOCK_S = 0.5  # seconds of a camera's own time per held-out block
 FOCAL_SIGMA = 0.1  # relative prior on the self-calibrated focal (weighted like all of a camera's observations)
+# the same prior loosened: kept where the focals it lets the bundle move predict held-out observations HELD_OUT_GAIN
+# better (self-calibration can be 10 % off where the bundle itself fixes the focal)
+LOOSE_FOCAL_SIGMA = 0.5
 
 
 def calibrate_from_subject(
@@ -91,6 +94,7 @@ def calibrate_from_subject(
         lens=lens,
         lens_check=lens_check,
         inlier_px=inlier_px,
+        focal_sigma=bundle.focal_sigma if bundle.focal_sigma != FOCAL_SIGMA else None,
     )
 
 
@@ -129,8 +133,12 @@ def _choose_lens(
     unknown = any(not o.known_K for o in obs)
     if options.lens is not Lens.AUTO or not unknown:
         fixed = options.lens if unknown and options.lens is not Lens.AUTO else Lens.FOCAL
-        _estimate_focals(obs, fits, fixed is Lens.RADIAL)
-        return fixed, obs, _adjusted(obs, fits, offsets, n_points, reference, failed, inlier_px), {}
+        _estimate_focals(obs, fits, fixed is Lens.RADIAL, options.focals)
+        bundle = _adjusted(obs, fits, offsets, n_points, reference, failed, inlier_px)
+        if options.focal_sigma is not None and unknown:
+            bundle.focal_sigma = options.focal_sigma
+            adjust(bundle, obs, inlier_px, rounds=1)
+        return fixed, obs, bundle, {}
     tried: dict[Lens, tuple[list[VideoObs], Bundle, dict[str, str]]] = {}
     error: SubjectCalibrationError | None = None
     for lens in (Lens.FOCAL, Lens.RADIAL):
@@ -162,9 +170,32 @@ def _choose_lens(
         ", ".join(f"{k} {v:.3f} px" for k, v in check.items()) or "one model tried",
     )
     mine, bundle, mine_failed = tried[chosen]
+    if options.focal_sigma is None:
+        mine, bundle = _loosened_focal(mine, bundle, inlier_px, check)
     failed.clear()
     failed.update(mine_failed)
     return chosen, mine, bundle, check
+
+
+def _loosened_focal(
+    obs: list[VideoObs], bundle: Bundle, inlier_px: float, check: dict[str, float]
+) -> tuple[list[VideoObs], Bundle]:
+    """The bundle adjusted again with the focal prior loosened to LOOSE_FOCAL_SIGMA, where its focals predict
+    held-out observations HELD_OUT_GAIN better than the self-calibrated prior's (`check` gets both errors)."""
+    loose_obs, loose = copy.deepcopy(obs), copy.deepcopy(bundle)
+    loose.focal_sigma = LOOSE_FOCAL_SIGMA
+    try:
+        adjust(loose, loose_obs, inlier_px, rounds=1)
+    except SubjectCalibrationError:
+        return obs, bundle
+    test = [_thinned(obs[c]) for c in bundle.cams]
+    held = held_out_px(bundle, obs, inlier_px, BLOCK_S, test)
+    free = held_out_px(loose, loose_obs, inlier_px, BLOCK_S, test)
+    check["focal_prior"], check["focal_loose"] = held, free
+    log.info("focal prior: held-out %.3f px, loosened %.3f px (focals %s)", held, free, np.round(loose.focal))
+    if free < HELD_OUT_GAIN * held:
+        return loose_obs, loose
+    return obs, bundle
 
 
 def _check_scale_points(points: list[str], options: SubjectOptions) -> None:
@@ -491,17 +522,19 @@ def _refit_to_offsets(
     return out
 
 
-def _estimate_focals(obs: list[VideoObs], fits: list[PairFit], radial: bool) -> bool:
+def _estimate_focals(
+    obs: list[VideoObs], fits: list[PairFit], radial: bool, given: dict[str, float] | None = None
+) -> bool:
     """Unknown K: focals that make every pair's fundamental matrix most essential (self-calibration), after the
-    radial distortion (when `radial`) that makes the pairs' epipolar geometry fit best. Returns whether any
-    distortion was found."""
+    radial distortion (when `radial`) that makes the pairs' epipolar geometry fit best; `given` (per video name)
+    replaces the self-calibrated focal. Returns whether any distortion was found."""
     unknown = [i for i, o in enumerate(obs) if not o.known_K]
     if not unknown:
         return False
     lam = estimate_distortion(obs, fits) if radial else {}
     focals = self_calibrate(obs, fits)
     for i in unknown:
-        new = focals.get(i)
+        new = (given or {}).get(obs[i].name, focals.get(i))
         if new is None:
             continue
         o = obs[i]

@@ -70,6 +70,12 @@ class SubjectOptions:
     # The tracks' noise scale in pixels (RANSAC threshold; outliers and refusals scale with it). None: INLIER_PX
     # in `calibrate_from_subject`; `choose_noise` measures which of NOISE_SCALES_PX the tracks support.
     inlier_px: float | None = None
+    # Relative focal prior of a bundle already adjusted at the self-calibrated focals, adjusted again with it (the
+    # stability folds reuse the solution's); None: AUTO loosens it where held-out observations say so
+    focal_sigma: float | None = None
+    # Per video: the focal (px) to start from and pull the bundle's towards instead of the self-calibrated one (the
+    # stability folds of a loosened solution get its focals: they test the poses at the solution's intrinsics)
+    focals: dict[str, float] | None = None
 
 
 @dataclass(kw_only=True)
@@ -136,6 +142,7 @@ class SubjectResult:
     # held-out median reprojection error (pixels) of each lens model tried, when AUTO compared them
     lens_check: dict[str, float] = field(default_factory=dict)
     inlier_px: float = INLIER_PX  # the noise scale used
+    focal_sigma: float | None = None  # the loosened focal prior kept, None = the self-calibrated focals' prior
     noise_check: dict[float, NoiseTrial] = field(default_factory=dict)  # per scale `choose_noise` tried
 
     def camera(self, name: str) -> SubjectCamera | None:

@@ -102,12 +102,17 @@ def check_stability(
     verified: set[str] = set()
     failures = []
     # The folds keep the whole solution's clock offsets: they test the geometry, and skip the offset search.
-    # ... and its lens model and noise scale: the folds test the poses, not the model choice.
+    # ... and its lens model and noise scale: the folds test the poses, not the model choice. Where the solution
+    # loosened its focal prior, the folds start from its focals and keep them as the prior's centre (with the
+    # loosened sigma): a fold's own self-calibrated focal, from a third less data, can be far off, and under the
+    # loose prior the fold then settles on another focal and scale (docs/registration.md, step 4).
     fold_options = dataclasses.replace(
         options or SubjectOptions(),
         offsets={c.name: c.offset for c in result.cameras},
         lens=result.lens,
         inlier_px=result.inlier_px,
+        focal_sigma=result.focal_sigma,
+        focals={c.name: float(c.K[0, 0]) for c in result.cameras} if result.focal_sigma is not None else None,
     )
     for fold in range(FOLDS):
         try:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.subject import SubjectCamera
-from sfm.subject.stability import MAX_CENTRE, MAX_ROTATION_DEG, _robust_errors
+from sfm.subject import SubjectCamera, SubjectOptions, SubjectResult
+from sfm.subject.stability import MAX_CENTRE, MAX_ROTATION_DEG, _robust_errors, check_stability
 from sfm.subject.synthetic import make_rig
 
 
@@ -78,3 +78,25 @@ def test_every_fold_change_is_reported_and_one_fold_past_the_limit_refuses() -> 
     assert abs(stability.rotation_deg["cam1"] - 8.0) < 0.1
     assert stability.to_json()["rotation_folds_deg"]["cam3"][:2] == [8.0, 8.0]
     assert all(v < 0.1 for v in stability.rotation_folds["cam0"])
+
+
+def test_folds_of_a_loosened_solution_start_from_its_focals() -> None:
+    """A solution whose focal prior was loosened has its folds solved at its focals, with the same loose prior;
+    one solved at the self-calibrated prior leaves the folds to self-calibrate (their options say neither)."""
+    tracks, videos, truth = make_rig(kind="skeleton", n_cameras=3, duration=6.0, seed=1)
+    seen: list[SubjectOptions] = []
+
+    def solve(fold_tracks: object, options: SubjectOptions) -> SubjectResult:
+        seen.append(options)
+        return SubjectResult(cameras=_cameras(truth.R, truth.t), pairs=[], failed={}, metric=False)
+
+    for sigma in (0.5, None):
+        whole = SubjectResult(cameras=_cameras(truth.R, truth.t), pairs=[], failed={}, metric=False, focal_sigma=sigma)
+        seen.clear()
+        assert not check_stability(tracks, videos, whole, SubjectOptions(), solve=solve).unstable
+        assert len(seen) == 3
+        if sigma is None:
+            assert all(o.focals is None and o.focal_sigma is None for o in seen)
+        else:
+            assert all(o.focal_sigma == sigma for o in seen)
+            assert all(o.focals == {f"cam{i}": 1000.0 for i in range(3)} for o in seen)
