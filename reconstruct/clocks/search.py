@@ -624,6 +624,12 @@ def _parameter_steps(period: float, own: np.ndarray, k: int) -> np.ndarray:
     return np.array([0.1 * period, 0.1 * period / half, 0.1 * period / half**2])[:k]
 
 
+# Every pair's best truncated cost at or over this share of its cap (inlier_px^2) says that the cameras do not fit
+# the tracks, early, before a slow solve (docs/clocks.md, "Cameras that do not fit")
+MISFIT_SHARE = 0.4
+_MISFITS_SAID: set[tuple[str | float, ...]] = set()
+
+
 def search_clocks(
     problem: Problem,
     own: np.ndarray,
@@ -682,6 +688,17 @@ def _pairs_and_chain(
             p.beta,
             p.cost,
             p.distinctness,
+        )
+    said: tuple[str | float, ...] = (*names, *(round(p.cost, 3) for p in pairs))  # searched again later: said once
+    if pairs and all(p.cost >= MISFIT_SHARE * options.inlier_px**2 for p in pairs) and said not in _MISFITS_SAID:
+        _MISFITS_SAID.add(said)
+        log.warning(
+            "clock search: at its best offset no pair of videos brings its rays together (truncated mean squared "
+            "gaps %s px^2, of at most %.0f): the cameras may not fit these tracks (another session's calibration, "
+            "cameras given to the wrong videos, a mirrored world) or the tracks follow other points; the solve goes "
+            "on, the slow way where no clock is found",
+            ", ".join(f"{p.cost:.0f}" for p in pairs),
+            options.inlier_px**2,
         )
     coef, reached = _chain(pairs, ref, N, centers)
     return pairs, coef, reached

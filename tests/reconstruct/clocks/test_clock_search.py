@@ -116,3 +116,20 @@ def test_estimate_clocks_fuses_agreeing_sources() -> None:
     clocks = estimate_clocks(problem, _FakeResult(W, 1), ClockOptions())  # type: ignore[arg-type]
     assert [v.method for v in clocks.videos] == ["reference", "combined", "combined", "combined"]
     assert np.median(np.abs(clocks.global_time - g)) < 0.25 / 60.0
+
+
+def test_cameras_given_to_the_wrong_videos_are_said_at_once(caplog: pytest.LogCaptureFixture) -> None:
+    """Three static cameras, two of them swapped between their videos (a calibration matched to the videos by order):
+    no offset brings any pair's rays together, which the search says before the solve goes the slow way; with the
+    right cameras it says nothing."""
+    clocks = [ClockTruth(fps=30.0, frames=150), ClockTruth(fps=30.0, frames=150, offset=0.3)]
+    clocks.append(ClockTruth(fps=30.0, frames=150, offset=-0.2))
+    problem, _, _ = scenes.make_capture(clocks, points=6, distance=8.0, noise_px=0.5, seed=4)
+    own, _ = own_times(problem)
+    search_clocks(problem, own, 0)
+    assert "may not fit these tracks" not in caplog.text
+    first, second = problem.video_index == 0, problem.video_index == 1
+    R0, t0, R1, t1 = problem.R[first][0], problem.t[first][0], problem.R[second][0], problem.t[second][0]
+    problem.R[first], problem.t[first], problem.R[second], problem.t[second] = R1, t1, R0, t0
+    search_clocks(problem, own, 0)
+    assert "may not fit these tracks" in caplog.text
