@@ -47,27 +47,37 @@ def is_dlt(path: Path) -> bool:
     return "dltcoefs" in lower or ARGUS_NAME in lower or ("dlt" in lower and lower.endswith(texts))
 
 
-def read_dlt_coefficients(path: str | Path) -> np.ndarray:
-    """(N, 11): one row of L1..L11 per camera, from either layout (a column per camera, or a row per camera)."""
-    path = Path(path)
-    rows = []
-    header = False
+def _number_rows(path: Path, *, headers: int | None) -> tuple[list[tuple[int, list[float]]], int]:
+    """(line number, values) of every row of numbers in a text file (separated by commas, semicolons or spaces;
+    blank lines and # comments skipped), and the number of header lines (with letters) before the first row: at
+    most `headers` of them (None: any); any other line is a one-line error naming it."""
+    rows: list[tuple[int, list[float]]] = []
+    header = 0
     for number, line in enumerate(read_text(path).splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
-        fields = [f for f in re.split(r"[,;\s]+", text) if f]
         try:
-            rows.append([float(f) for f in fields])
+            rows.append((number, [float(f) for f in re.split(r"[,;\s]+", text) if f]))
         except ValueError:
-            if not rows and not header and any(c.isalpha() for c in text):  # an old Argus's L_1, ..., rmse
-                header = True
+            if not rows and (headers is None or header < headers) and any(c.isalpha() for c in text):
+                header += 1
                 continue
             raise InputError(path, f"{text[:40]!r} is not a row of numbers", where=f"line {number}") from None
-        if len(rows[-1]) != len(rows[0]):
+    return rows, header
+
+
+def read_dlt_coefficients(path: str | Path) -> np.ndarray:
+    """(N, 11): one row of L1..L11 per camera, from either layout (a column per camera, or a row per camera)."""
+    path = Path(path)
+    numbered, headers = _number_rows(path, headers=1)  # an old Argus's L_1, ..., rmse
+    header = headers > 0
+    rows = [values for _, values in numbered]
+    for number, values in numbered:
+        if len(values) != len(rows[0]):
             raise InputError(
                 path,
-                f"{len(rows[-1])} numbers where line 1 has {len(rows[0])}",
+                f"{len(values)} numbers where line 1 has {len(rows[0])}",
                 where=f"line {number}",
                 fix="every row of a DLT file has the same number of values",
             )
@@ -205,16 +215,10 @@ def read_profile(path: str | Path, cameras: int, pixels: DltPixels) -> list[np.n
     points with before their DLT. In pixels counted up from the bottom the image's y is negated, and so is p1."""
     path = Path(path)
     rows: dict[int, np.ndarray] = {}
-    for number, line in enumerate(read_text(path).splitlines(), start=1):
-        fields = [f for f in re.split(r"[,;\s]+", line.strip()) if f]
-        if not fields or fields[0].startswith("#"):
+    for number, numbers in _number_rows(path, headers=None)[0]:  # Argus's calibration CSVs have a header
+        if not numbers:  # a line of separators only
             continue
-        try:
-            values = np.array([float(f) for f in fields])
-        except ValueError:
-            if not rows and any(c.isalpha() for c in line):  # Argus's calibration CSVs have a header
-                continue
-            raise InputError(path, f"{line.strip()[:40]!r} is not a row of numbers", where=f"line {number}") from None
+        values = np.array(numbers)
         if len(values) != PROFILE_COLUMNS or not np.all(np.isfinite(values)):
             raise InputError(
                 path,
