@@ -24,6 +24,7 @@ from dynrecon.atomic import atomic_write_text, remove_temp_files, require_writab
 from dynrecon.beside import beside
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import finite_or_none
+from reconstruct.camera_order import check_camera_order
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.fit import check_fit
 from reconstruct.inputs import build_problem_checked
@@ -160,6 +161,8 @@ def solve(
     track_set = renumber_people(track_set, people_maps(camera_set))
     cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
     problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
+    clock_options = options.temporal.clocks
+    check_camera_order(problem, cameras_path, clock_options.fps, clock_options.track_search)
     unknown = sorted({n for bone in options.skeleton for n in bone} - set(problem.point_names))
     if unknown:  # a typo in the skeleton file: its bones are not drawn, which the recording alone would not say
         log.warning("skeleton: point(s) %s not in the tracks: their bones are not drawn", ", ".join(unknown))

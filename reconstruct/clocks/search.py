@@ -97,7 +97,7 @@ class SearchResult:
 
 
 @dataclass
-class _VideoRays:
+class VideoRays:
     """One video's observations in own-time order."""
 
     own: np.ndarray  # (n,) increasing
@@ -130,7 +130,7 @@ class _VideoRays:
 
 def _tracks(
     problem: Problem, own: np.ndarray, points: np.ndarray, sampled: bool = False, rays: np.ndarray | None = None
-) -> list[_VideoRays]:
+) -> list[VideoRays]:
     """Each video's rays of `points` at every frame, interpolated across at most MAX_GAP_PERIODS frame periods; or,
     `sampled`, at its frames with an observation of them only, across MAX_GAP_PERIODS of its sampling step (tracks of
     every 4th frame: across the untracked frames between them). `rays`: the problem's `viewing_rays`, when known."""
@@ -147,7 +147,7 @@ def _tracks(
         if sampled:
             step = max(float(np.nan_to_num(periods[v])), _median_step(own[rows]))
         tracks.append(
-            _VideoRays(
+            VideoRays(
                 own=own[rows],
                 centers=centers[rows],
                 rays=rays[rows],
@@ -160,7 +160,7 @@ def _tracks(
 
 def sampled_tracks(
     problem: Problem, own: np.ndarray, points: np.ndarray, rays: np.ndarray | None = None
-) -> list[_VideoRays]:
+) -> list[VideoRays]:
     """`_tracks` on the tracked samples of `points` only."""
     return _tracks(problem, own, points, sampled=True, rays=rays)
 
@@ -187,7 +187,7 @@ def sparse_tracks(problem: Problem, own: np.ndarray) -> bool:
     )
 
 
-def video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[_VideoRays]:
+def video_tracks(problem: Problem, own: np.ndarray, points: np.ndarray) -> list[VideoRays]:
     """Every frame's rays, or for sparse tracks of few points the tracked samples' (`sparse_tracks`)."""
     return sampled_tracks(problem, own, points) if sparse_tracks(problem, own) else _tracks(problem, own, points)
 
@@ -223,7 +223,7 @@ def gap_px(
 
 
 def _query(
-    tracks: list[_VideoRays], v: int, u: int, own_u: np.ndarray, rows: np.ndarray, smooth: bool = False
+    tracks: list[VideoRays], v: int, u: int, own_u: np.ndarray, rows: np.ndarray, smooth: bool = False
 ) -> np.ndarray:
     """(m, P) gaps between video v's frames `rows` and video u's track interpolated at own_u (m,); `smooth`:
     continuous in own_u (clamped interpolation, unsigned depths)."""
@@ -244,7 +244,7 @@ def _rate_scales(source: TimeSource) -> np.ndarray:
 
 
 def _grid_cost(
-    tracks: list[_VideoRays],
+    tracks: list[VideoRays],
     v: int,
     u: int,
     qv: np.ndarray,
@@ -277,7 +277,7 @@ def _grid_cost(
 
 
 def _pair_queries(
-    tracks: list[_VideoRays], v: int, u: int, options: SearchOptions
+    tracks: list[VideoRays], v: int, u: int, options: SearchOptions
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """The pair's query rows of v and u (subsampled) and the interpolated samples a hypothesis needs."""
     qv = _subsample(len(tracks[v].own), options.max_queries)
@@ -287,14 +287,14 @@ def _pair_queries(
     return qv, qu, max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
 
 
-def pair_cost(tracks: list[_VideoRays], v: int, u: int, alpha: float, beta: float, options: SearchOptions) -> float:
+def pair_cost(tracks: list[VideoRays], v: int, u: int, alpha: float, beta: float, options: SearchOptions) -> float:
     """The pair search's cost (px^2) of one hypothesis own_u = alpha + beta own_v (inf: too little overlap)."""
     qv, qu, need = _pair_queries(tracks, v, u, options)
     return float(_grid_cost(tracks, v, u, qv, qu, np.array([alpha]), beta, need, options.inlier_px**2)[0])
 
 
 def search_pair(
-    tracks: list[_VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray, sources: list[TimeSource]
+    tracks: list[VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray, sources: list[TimeSource]
 ) -> PairHypothesis | None:
     """Coarse grid over own_u = alpha + beta own_v; cost = mean truncated squared gap over both directions."""
     tv, tu = tracks[v], tracks[u]
@@ -363,7 +363,7 @@ class _Joint:
 
     def __init__(
         self,
-        tracks: list[_VideoRays],
+        tracks: list[VideoRays],
         centers: np.ndarray,
         ref_coef: np.ndarray,
         ref: int,
@@ -454,7 +454,7 @@ class _Joint:
             dropped += int(bad.sum())
             rays = track.rays.copy()
             rays[bad] = np.nan
-            cleaned[v] = _VideoRays(
+            cleaned[v] = VideoRays(
                 own=track.own, centers=track.centers, rays=rays, focal=track.focal, max_gap=track.max_gap
             )
         self.tracks = cleaned
@@ -706,7 +706,7 @@ def _pairs_and_chain(
 
 def _best_start(
     starts: list[tuple[str, np.ndarray, np.ndarray]],
-    full_tracks: list[_VideoRays],
+    full_tracks: list[VideoRays],
     centers: np.ndarray,
     ref: int,
     model: ClockModel,
