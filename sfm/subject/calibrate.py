@@ -171,17 +171,18 @@ def _choose_lens(
     )
     mine, bundle, mine_failed = tried[chosen]
     if options.focal_sigma is None:
-        mine, bundle = _loosened_focal(mine, bundle, inlier_px, check)
+        mine, bundle = _loosened_focal(mine, bundle, inlier_px, check, check.get(chosen.value))
     failed.clear()
     failed.update(mine_failed)
     return chosen, mine, bundle, check
 
 
 def _loosened_focal(
-    obs: list[VideoObs], bundle: Bundle, inlier_px: float, check: dict[str, float]
+    obs: list[VideoObs], bundle: Bundle, inlier_px: float, check: dict[str, float], held: float | None = None
 ) -> tuple[list[VideoObs], Bundle]:
     """The bundle adjusted again with the focal prior loosened to LOOSE_FOCAL_SIGMA, where its focals predict
-    held-out observations HELD_OUT_GAIN better than the self-calibrated prior's (`check` gets both errors)."""
+    held-out observations HELD_OUT_GAIN better than the self-calibrated prior's (`check` gets both errors; `held`:
+    the bundle's own held-out error, where the lens choice measured it already)."""
     loose_obs, loose = copy.deepcopy(obs), copy.deepcopy(bundle)
     loose.focal_sigma = LOOSE_FOCAL_SIGMA
     try:
@@ -189,7 +190,8 @@ def _loosened_focal(
     except SubjectCalibrationError:
         return obs, bundle
     test = [_thinned(obs[c]) for c in bundle.cams]
-    held = held_out_px(bundle, obs, inlier_px, BLOCK_S, test)
+    if held is None:
+        held = held_out_px(bundle, obs, inlier_px, BLOCK_S, test)
     free = held_out_px(loose, loose_obs, inlier_px, BLOCK_S, test)
     check["focal_prior"], check["focal_loose"] = held, free
     log.info("focal prior: held-out %.3f px, loosened %.3f px (focals %s)", held, free, np.round(loose.focal))
