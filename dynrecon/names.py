@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable
+from pathlib import Path
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
+
+
+def video_name(value: str | Path) -> str:
+    """The video a command-line value names: a video file by its stem, as the videos' own names are; else the
+    value's last part (a name such as cam0)."""
+    path = Path(value)
+    return path.stem if path.suffix.lower() in VIDEO_SUFFIXES else path.name
 
 
 def name_key(name: str) -> str:

@@ -163,13 +163,10 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _video_name(value: str | None) -> str | None:
-    """--video's name: a video file given there names its video by its stem, as the videos' own names are."""
-    from dynrecon.names import VIDEO_SUFFIXES
+    """--video's name (dynrecon.names.video_name)."""
+    from dynrecon.names import video_name
 
-    if value is None:
-        return None
-    path = Path(value)
-    return path.stem if path.suffix.lower() in VIDEO_SUFFIXES else path.name
+    return None if value is None else video_name(value)
 
 
 def _run_import(args: argparse.Namespace) -> int:

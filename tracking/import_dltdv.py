@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from dynrecon.errors import InputError
-from dynrecon.names import VIDEO_SUFFIXES
+from dynrecon.names import VIDEO_SUFFIXES, video_name
 from dynrecon.readers import csv_records, finite_float
 from dynrecon.video_io import open_video
 from tracking.detections import Detection
@@ -148,9 +148,7 @@ def read_dltdv_points(
         raise InputError(path, f"its cameras are numbered {numbers}, not 1 to {len(numbers)}", where="line 1")
     pixels = _pixels(path, header, pixels)
     heights = _heights(path, videos, len(numbers), pixels)
-    names = [Path(v).stem if Path(v).suffix.lower() in VIDEO_SUFFIXES else str(v) for v in videos] or [
-        f"cam{n}" for n in numbers
-    ]
+    names = [video_name(v) for v in videos] or [f"cam{n}" for n in numbers]
     offsets = _offsets(path, len(numbers))
     found = []
     for (point, camera), (x_index, y_index) in columns.items():
