@@ -53,6 +53,7 @@ from sfm.calibration_dlt import dlt_cameras, is_dlt
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units, declared_offsets
 from sfm.video import ProbedVideo, probe_video
+from sfm.video_standin import stand_in_videos, with_size
 
 log = logging.getLogger(__name__)
 
@@ -663,7 +664,14 @@ def run(
     if not videos:
         raise InputError(calibration, "no videos given", fix="list the videos the calibration belongs to")
     require_writable(out_dir)
-    infos = [probe_video(v) for v in tqdm(videos, desc="probing videos", unit="video", leave=False)]
+    tracks = options.tracks or (Path(out_dir) / "tracks.csv")
+    stand_ins = stand_in_videos(videos, tracks, options.fps)
+    infos = [
+        stand_in or probe_video(v)
+        for v, stand_in in tqdm(
+            zip(videos, stand_ins, strict=True), total=len(videos), desc="probing videos", unit="video", leave=False
+        )
+    ]
     names = [info.name for info in infos]
     twice = first_repeated(names)
     if twice is not None:
@@ -678,6 +686,9 @@ def run(
         infos,
         calibration,
     )
+    for info, stand_in, camera in zip(infos, stand_ins, cameras, strict=True):
+        if stand_in is not None:
+            with_size(info, (camera.width, camera.height), options.size, calibration)
     poses = [camera.pose(calibration) for camera in cameras]  # refuses intrinsics-only cameras, naming them
     _refuse_repeated_poses(cameras, poses, calibration)
     result = CameraSet()

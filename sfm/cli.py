@@ -36,7 +36,13 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session; "
         "or DLT coefficients: DLTdv/easyWand *_dltCoefs.csv, Argus *-dlt-coefficients.csv)",
     )
-    parser.add_argument("videos", type=Path, nargs="+", metavar="VIDEO", help="the videos, one per camera")
+    parser.add_argument(
+        "videos",
+        type=Path,
+        nargs="+",
+        metavar="VIDEO",
+        help="the videos, one per camera; with --fps, a video that is not here may be given by its name",
+    )
     parser.add_argument("--out", type=out_path, required=True, metavar="WS", help="workspace folder for cameras.json")
     parser.add_argument(
         "--format",
@@ -80,7 +86,34 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME=S,...",
         help=OFFSETS_HELP,
     )
+    parser.add_argument(
+        "--fps",
+        type=float,
+        help="the frame rate of videos that are not here (a calibration and 2D tracks shared without them): each "
+        "VIDEO that is no file is a name, its frames those of the tracks (--tracks) of that name",
+    )
+    parser.add_argument(
+        "--tracks",
+        type=Path,
+        metavar="CSV",
+        help="with --fps: the tracks.csv whose frames stand for the missing videos' (default: WS/tracks.csv)",
+    )
+    parser.add_argument(
+        "--size",
+        type=_size,
+        metavar="WxH",
+        help="with --fps: the missing videos' image size (default: their cameras' calibrated size)",
+    )
     parser.set_defaults(func=_run_import)
+
+
+def _size(value: str) -> tuple[int, int]:
+    from sfm.video_standin import parse_size
+
+    try:
+        return parse_size(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 SYNCHRONIZED_HELP = (
@@ -105,6 +138,9 @@ def _run_import(args: argparse.Namespace) -> int:
             scale=args.scale,
             synchronized=args.synchronized,
             offsets=args.offsets,
+            fps=args.fps,
+            tracks=args.tracks,
+            size=args.size,
         ),
     )
     print(path)  # noqa: T201

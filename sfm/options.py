@@ -231,6 +231,12 @@ class ImportCalibrationOptions:
     # Known clock offsets per video name (s, global time = own time + offset: a clap, a timecode), written as
     # cameras.json clock_offset and tested by the solve like registration's; videos left out get none
     offsets: dict[str, float] = field(default_factory=dict)
+    # Videos that are not here (a lab's calibration and tracks shared without them): a VIDEO that is no file is a
+    # name, with frames 0 to its last tracked frame in `tracks` (default: the workspace's tracks.csv) at `fps`, and
+    # its camera's calibrated image size or `size` (width, height)
+    fps: float | None = None
+    tracks: Path | None = None
+    size: tuple[int, int] | None = None
 
 
 def declared_offsets(synchronized: bool, offsets: dict[str, float], names: list[str]) -> dict[str, float]:
