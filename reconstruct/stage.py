@@ -36,6 +36,7 @@ from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
+from reconstruct.time_checks import TimePath
 from reconstruct.tracks_path import FEW_POINTS, TracksAttempt, clocks_seed, solve_on_given_clocks, solve_on_tracks
 from reconstruct.tracks_path import applies as tracks_path_applies
 from reconstruct.tracks_path import refereed as tracks_path_refereed
@@ -207,6 +208,7 @@ def solve(
     report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
     report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
+    _say_unused_clocks(report["clocks"], temporal.report)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
     refined = temporal.report.get("path") not in (None, "seed")
@@ -227,6 +229,25 @@ def solve(
         options=options,
         started=started,
     )
+
+
+def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None:
+    """report.json `clocks.used`: false where the points are the seed solve's because the clocks failed a check
+    (their offsets are then the search's best guess, which a reader would otherwise take for a result)."""
+    clocks["used"] = temporal.get("path") != TimePath.SEED.value
+    failed = next((c for c in temporal.get("checks", []) if not c.get("passed", True)), None)
+    if clocks["used"] or failed is None:
+        return
+    clocks["warnings"] = [
+        *clocks.get("warnings", []),
+        f"not used: the clocks failed the check {failed['name']!r} ({failed['meaning']} {_number(failed['value'])}, "
+        f"limit {_number(failed['limit'])}) and the points are the self-expressive solve's; the offsets are the "
+        "search's best guess, not supported by the tracks",
+    ]
+
+
+def _number(value: object) -> str:
+    return f"{value:.3g}" if isinstance(value, (int, float)) else "none"
 
 
 def _only_videos(

@@ -1,0 +1,36 @@
+"""report.json `clocks.used`: the clocks a solve did not rest its points on are said to be unused, with the check
+they failed, so that their offsets are not read as a result."""
+
+from __future__ import annotations
+
+from reconstruct.stage import _say_unused_clocks
+
+
+def _checks(distinctness: float) -> list[dict[str, object]]:
+    return [
+        {"name": "identified", "value": 0.0, "limit": 0.0, "passed": True, "meaning": "videos unclocked"},
+        {
+            "name": "track_distinctness",
+            "value": distinctness,
+            "limit": 1.05,
+            "passed": distinctness >= 1.05,
+            "meaning": "track search's runner-up cost over its best",
+        },
+    ]
+
+
+def test_clocks_that_failed_their_check_are_said_unused() -> None:
+    clocks: dict[str, object] = {"warnings": ["cam2: few links"]}
+    _say_unused_clocks(clocks, {"path": "seed", "checks": _checks(1.015)})
+    assert clocks["used"] is False
+    assert clocks["warnings"][0] == "cam2: few links"  # type: ignore[index]
+    said = clocks["warnings"][1]  # type: ignore[index]
+    assert said.startswith("not used: the clocks failed the check 'track_distinctness' (")
+    assert "1.01, limit 1.05" in said and "not supported by the tracks" in said
+
+
+def test_clocks_the_points_rest_on_are_used() -> None:
+    for path in ("clocks", "free_times", "tracks"):
+        clocks: dict[str, object] = {"warnings": []}
+        _say_unused_clocks(clocks, {"path": path, "checks": _checks(4.0)})
+        assert clocks == {"warnings": [], "used": True}
