@@ -62,6 +62,19 @@ def test_both_presets_import_every_point_with_its_score(tmp_path: Path, name: st
     assert "2 tracks seen (mouseA, mouseB)" in caplog.text and "--person all" in caplog.text
 
 
+def test_low_point_scores_are_not_called_guesses(tmp_path: Path, caplog) -> None:
+    """SLEAP's point scores are confidence-map peaks of visible points, lower than DeepLabCut's likelihoods: no
+    advice to leave them out (DeepLabCut's, tests/tracking/test_import_dlc.py)."""
+    low = tmp_path / "cam1.analysis.h5"
+    shutil.copy(DATA / "cam1.analysis.h5", low)
+    with h5py.File(low, "r+") as f:
+        f["point_scores"][...] = 0.3
+    with caplog.at_level(logging.WARNING):
+        got = imported(low, tmp_path / "t.csv")
+    assert {round(v[2], 3) for v in got.values()} == {0.3}
+    assert "confidence under" not in caplog.text and "--min-score" not in caplog.text
+
+
 def test_sleaps_own_layouts_without_dims(tmp_path: Path) -> None:
     # SLEAP's export (before sleap-io's dims attribute): track, xy, node, frame
     legacy = tmp_path / "cam1.analysis.h5"
