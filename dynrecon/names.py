@@ -41,3 +41,15 @@ def spelled_alike(name: str, names: Iterable[str]) -> list[str]:
     """[`name`] when it is among `names`, else those of `names` with its key: one is a match, several ambiguous."""
     names = list(names)
     return [name] if name in names else [n for n in names if name_key(n) == name_key(name)]
+
+
+def within_name(name: str, names: Iterable[str]) -> list[str]:
+    """Those of `names` whose key's words and numbers begin or end `name`'s: a session's prefix or a take's suffix
+    around a camera's name ('minimal_back' holds 'back', 'cam01_take2' holds 'cam_1'); one is a match."""
+    words = name_key(name).split("-")
+    found = []
+    for other in names:
+        own = name_key(other).split("-")
+        if own != [""] and len(own) < len(words) and (words[: len(own)] == own or words[-len(own) :] == own):
+            found.append(other)
+    return found

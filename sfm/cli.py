@@ -25,7 +25,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         help="write cameras.json from a Qualisys .qca, Pose2Sim/anipose/FreeMoCap .toml or caliscope "
         "camera_array.toml / config.toml calibration (static cameras)",
         description="Every decoded frame of each video gets its calibrated camera's static pose. Cameras are "
-        "matched to videos by name (cam01.mp4 <-> cam_01; caliscope's cam_id 0 is cam_0), else in the given order. "
+        "matched to videos by name (cam01.mp4 <-> cam_01, minimal_back.mp4 <-> back; caliscope's cam_id 0 is cam_0), "
+        "else in the given order. "
         "TOML rotations may be Rodrigues vectors or 3x3 matrices (cam_from_world, OpenCV).",
     )
     parser.add_argument(

@@ -550,3 +550,29 @@ def test_a_turned_video_of_a_letterboxed_calibration_is_seen_as_turned() -> None
         path=Path("cam01.mp4"), name="cam01", width=1080, height=1920, times=np.arange(5) / 60, nominal_fps=60.0
     )
     np.testing.assert_array_equal(intrinsics_at_video_size(K, (1088, 1920), upright, "cam01"), K)
+
+
+def test_a_session_prefix_or_take_suffix_around_the_camera_name_matches(tmp_path: Path) -> None:
+    """sleap-anipose's videos are minimal_back.mp4 ... for cameras back, mid, side, top; three of the four videos
+    given (side's table is a copy): each matched to its camera by the name it ends with, side left out."""
+    cameras = _random_cameras(["back", "mid", "side", "top"])
+    toml = write_toml(tmp_path / "calibration.toml", cameras)
+    videos = []
+    for name in ("minimal_top", "minimal_back", "mid_take2"):
+        videos.append(tmp_path / f"{name}.mp4")
+        _write_video(videos[-1], 2, (64, 48))
+    assert main(["import-calibration", str(toml), *map(str, videos), "--out", str(tmp_path / "ws")]) == 0
+    got = read_cameras(tmp_path / "ws" / "cameras.json").videos
+    for video, camera in zip(got, (cameras[3], cameras[0], cameras[1]), strict=True):
+        np.testing.assert_allclose(video.frames[0].R, camera.R, atol=1e-9)
+
+
+def test_within_name_wants_one_whole_run_of_words() -> None:
+    from dynrecon.names import within_name
+
+    assert within_name("minimal_back", ["back", "mid"]) == ["back"]
+    assert within_name("cam01_take2", ["cam_1", "cam_11"]) == ["cam_1"]
+    assert within_name("trial_cam11", ["cam_1", "cam_11"]) == ["cam_11"]
+    assert within_name("cam1", ["1", "2"]) == ["1"]
+    assert within_name("background", ["back"]) == []  # words, not letters
+    assert within_name("back", ["back"]) == []  # the same name is spelled_alike's
