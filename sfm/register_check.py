@@ -32,6 +32,30 @@ def _background_pose(frames: dict[int, FramePose]) -> FramePose | None:
     )
 
 
+TWO_VIEWS_WHY = (
+    "the background's model holds two images, and two views of unknown focal lengths do not fix them (two-view "
+    "self-calibration is unstable): give --intrinsics, or track a moving subject for the subject path"
+)
+
+
+def refuse_two_view_focals(
+    model_images: int | None, focal_known: bool, results: dict[str, dict[int, FramePose]]
+) -> list[str]:
+    """A background model of two images whose focal lengths were estimated: every pose it gave is dropped (every
+    frame says why), as the subject's refutation drops one. Returns the videos that lost their poses."""
+    if model_images != 2 or focal_known:
+        return []
+    dropped = []
+    for name, frames in results.items():
+        if any(r.pose is not None and r.source != "subject" for r in frames.values()):
+            results[name] = {
+                f: r if r.source == "subject" else FramePose(pose=None, reason=f"background SfM: {TWO_VIEWS_WHY}")
+                for f, r in frames.items()
+            }
+            dropped.append(name)
+    return dropped
+
+
 def check_background(
     videos: list[VideoPlan],
     results: dict[str, dict[int, FramePose]],

@@ -52,7 +52,7 @@ from sfm.per_video import (
 )
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
-from sfm.register_check import background_left, check_background
+from sfm.register_check import TWO_VIEWS_WHY, background_left, check_background, refuse_two_view_focals
 from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
@@ -428,6 +428,12 @@ def finish_capture(
     with collected(notes), timed(notes, "people"):
         tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
+        summary.two_views = refuse_two_view_focals(
+            rec.num_reg_images() if rec is not None else None, bool(options.intrinsics), results
+        )
+        if summary.two_views:
+            names = ", ".join(summary.two_views)
+            notes.warnings.append(f"{names}: the background's poses are not used: {TWO_VIEWS_WHY}")
         summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
@@ -492,6 +498,7 @@ class _Summary:
     rec: pycolmap.Reconstruction | None
     background_check: dict[str, Any] | None = None  # its static poses against the subject's tracks
     people: dict[str, Any] | None = None  # people numbered per video, matched across videos (sfm/register_people.py)
+    two_views: list[str] = dataclasses.field(default_factory=list)  # videos a two-image model of unknown focals posed
 
 
 def _points(rec: pycolmap.Reconstruction | None, dropped: set[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -653,9 +660,13 @@ def _fail(
     moving_hint: str | None = None,
 ) -> NoReturn:
     if subject is not None and subject.get("why"):
-        hint = (
-            f"the static videos share too little background, and the subject path could not pose them: {subject['why']}"
+        background = (
+            f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
+            "--intrinsics)"
+            if summary.two_views
+            else "the static videos share too little background"
         )
+        hint = f"{background}, and the subject path could not pose them: {subject['why']}"
     else:
         hint = "try " + ", ".join(_background_hints(options, videos))
     if moving_hint:

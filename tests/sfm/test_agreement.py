@@ -18,7 +18,7 @@ import sfm.subject.agreement
 from sfm.frames import Resize
 from sfm.options import RegisterOptions
 from sfm.plan import FramePose, VideoPlan
-from sfm.register_check import background_left, check_background
+from sfm.register_check import TWO_VIEWS_WHY, background_left, check_background, refuse_two_view_focals
 from sfm.register_subject import pose_from_subject
 from sfm.subject import SubjectVideo
 from sfm.subject.agreement import check_agreement
@@ -326,3 +326,21 @@ def test_a_registration_folder_is_checked_once_tracks_exist(
     assert list(refuted_in_folder(wrong, tracks, paths)) == ["cam0"]
     # where register had the tracks, its own check ran: not again
     assert refuted_in_folder(_folder(tmp_path / "done", videos, poses, True), tracks, paths) == {}
+
+
+def test_a_two_image_model_of_unknown_focals_poses_nothing(rig: tuple[Tracks, list[SubjectVideo], Truth]) -> None:
+    """Two views do not fix two unknown focal lengths (sleap-anipose's mouse: a two-image model's focals came out
+    1.6 and 2.6 x the lab's, its baseline 28.7 deg off, and the subject too still to refute it): its poses are
+    dropped, every frame saying why; with known intrinsics, or a third image, they stay."""
+    _, videos, truth = rig
+
+    def fresh() -> dict[str, dict[int, FramePose]]:
+        return {v.name: _background(v, (truth.R[i], truth.t[i])) for i, v in enumerate(videos[:2])}
+
+    results = fresh()
+    assert refuse_two_view_focals(2, False, results) == ["cam0", "cam1"]
+    assert all(r.pose is None and TWO_VIEWS_WHY in (r.reason or "") for f in results.values() for r in f.values())
+    for images, known in ((2, True), (3, False), (None, False)):
+        kept = fresh()
+        assert refuse_two_view_focals(images, known, kept) == []
+        assert all(r.pose is not None for f in kept.values() for r in f.values())
