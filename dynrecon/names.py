@@ -45,11 +45,14 @@ def spelled_alike(name: str, names: Iterable[str]) -> list[str]:
 
 def within_name(name: str, names: Iterable[str]) -> list[str]:
     """Those of `names` whose key's words and numbers begin or end `name`'s: a session's prefix or a take's suffix
-    around a camera's name ('minimal_back' holds 'back', 'cam01_take2' holds 'cam_1'); one is a match."""
+    around a camera's name ('minimal_back' holds 'back', 'cam01_take2' holds 'cam_1'); one is a match. A name of
+    numbers only matches nothing this way ('cam1_take2' must not be camera '2')."""
     words = name_key(name).split("-")
     found = []
     for other in names:
         own = name_key(other).split("-")
-        if own != [""] and len(own) < len(words) and (words[: len(own)] == own or words[-len(own) :] == own):
+        if all(w.isdigit() or not w for w in own) or len(own) >= len(words):
+            continue
+        if words[: len(own)] == own or words[-len(own) :] == own:
             found.append(other)
     return found

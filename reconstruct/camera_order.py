@@ -27,7 +27,7 @@ __all__ = ["CameraOrder", "check_camera_order", "score_camera_order"]
 
 log = logging.getLogger(__name__)
 
-MAX_VIDEOS = 6  # 6! orders and 450 pair searches (about a minute); beyond, the test is skipped with a note
+MAX_VIDEOS = 6  # 6! orders from 450 pair searches; beyond, the test is skipped with a note
 BETTER_SHARE = 0.5  # the order found: summed pair cost under this share of the given order's and the next best's
 _STATIC_TOL = 1e-9
 
@@ -90,12 +90,16 @@ def score_camera_order(
     fps: Mapping[str, float] | None = None,
     options: SearchOptions | None = None,
 ) -> CameraOrder | None:
-    """Score the cameras as given and, where some pair of videos misfits, every other order of them; None where the
-    test does not apply (a moving camera, one video, more than MAX_VIDEOS videos, no pair with enough overlap)."""
+    """Score the cameras as given and, where some pair of videos misfits, every other order of the cameras of the
+    videos with tracks (the others keep theirs: nothing tells them apart); None where the test does not apply (a
+    moving camera, one video, more than MAX_VIDEOS videos, no tracked point)."""
     options = options or SearchOptions()
     N = len(problem.video_names)
     rows = _static_cameras(problem)
     if rows is None or N < 2:
+        return None
+    if N > MAX_VIDEOS:
+        log.info("camera order: %d videos, over %d: the orders of their cameras are not tested", N, MAX_VIDEOS)
         return None
     own, sources = own_times(problem, fps)
     periods = frame_periods(own, problem.video_index, N)
@@ -113,29 +117,39 @@ def score_camera_order(
     finite = [c for c in given_costs if np.isfinite(c)]
     if not finite or max(finite) < MISFIT_SHARE * cap:
         return CameraOrder(order=identity, given_costs=given_costs, best_costs=given_costs, cap=cap)
-    if N > MAX_VIDEOS:
-        log.info("camera order: %d videos, over %d: the other orders are not tried", N, MAX_VIDEOS)
-        return None
+    seen = np.asarray(problem.observed[:, points].any(axis=1))
+    movable = [v for v in range(N) if seen[problem.video_index == v].any()]
     # tracks[c][v]: video v's rays through video c's camera
-    tracks = [video_tracks(_with_camera(problem, rows, c), own, points) for c in range(N)]
+    tracks = {c: video_tracks(_with_camera(problem, rows, c), own, points) for c in movable}
     costs: dict[tuple[int, int, int, int], float] = {}
     for v, u in pairs:
-        for a, b in itertools.permutations(range(N), 2):
+        if v not in tracks or u not in tracks:
+            continue  # an untracked video's pairs cost the cap in every order
+        for a, b in itertools.permutations(movable, 2):
             mixed = list(given_tracks)
             mixed[v], mixed[u] = tracks[a][v], tracks[b][u]
             costs[v, u, a, b] = given[v, u] if (a, b) == (v, u) else _cost(mixed, (v, u), options, periods, sources)
-    totals = sorted(
-        (_total([costs[v, u, order[v], order[u]] for v, u in pairs], cap), order)
-        for order in itertools.permutations(range(N))
-    )
+    orders = []
+    for cameras in itertools.permutations(movable):
+        order = list(identity)
+        for v, c in zip(movable, cameras, strict=True):
+            order[v] = c
+        orders.append(tuple(order))
+
+    def pair_costs(order: tuple[int, ...]) -> list[float]:
+        return [costs.get((v, u, order[v], order[u]), given[v, u]) for v, u in pairs]
+
+    totals = sorted((_total(pair_costs(order), cap), order) for order in orders)
+    if len(totals) < 2:
+        return CameraOrder(order=identity, given_costs=given_costs, best_costs=given_costs, cap=cap)
     (_, best), (_, second) = totals[0], totals[1]
     return CameraOrder(
         order=best,
         given_costs=given_costs,
-        best_costs=[costs[v, u, best[v], best[u]] for v, u in pairs],
+        best_costs=pair_costs(best),
         cap=cap,
         runner_up=second,
-        runner_up_costs=[costs[v, u, second[v], second[u]] for v, u in pairs],
+        runner_up_costs=pair_costs(second),
     )
 
 
@@ -161,18 +175,25 @@ def check_camera_order(
     cameras_path: Path | None,
     fps: Mapping[str, float] | None = None,
     options: SearchOptions | None = None,
+    every_video: list[str] | None = None,
 ) -> CameraOrder | None:
     """Raise InputError where the tracks fit one other order of the cameras far better than the given one: its
     summed pair cost under BETTER_SHARE of the given order's and of the next best order's; warn where two orders
-    fit about as well (a rig whose swap is nearly a rotation or mirror of it)."""
+    fit about as well (a rig whose swap is nearly a rotation or mirror of it). `every_video`: the cameras file's
+    videos, where the solve takes some of them (the order to import in is then not named)."""
     found = score_camera_order(problem, fps, options)
     if found is None or not found.swapped:
         return found
-    best = _total(found.best_costs, found.cap)
-    if best >= BETTER_SHARE * _total(found.given_costs, found.cap):
+    # pairs without overlap in every order (an untracked video's) say nothing either way
+    lists = [found.given_costs, found.best_costs, found.runner_up_costs or found.given_costs]
+    informative = [any(np.isfinite(c[i]) for c in lists) for i in range(len(found.given_costs))]
+    given, best, second = (
+        _total([c for c, keep in zip(costs, informative, strict=True) if keep], found.cap) for costs in lists
+    )
+    if best >= BETTER_SHARE * given:
         return found
     names = problem.video_names
-    runner_up = _total(found.runner_up_costs, found.cap) if found.runner_up_costs is not None else np.inf
+    runner_up = second if found.runner_up_costs is not None else np.inf
     if found.runner_up is not None and best >= BETTER_SHARE * runner_up:
         log.warning(
             "%s: the cameras fit these tracks better in other orders than the one given, two about as well "
@@ -182,15 +203,20 @@ def check_camera_order(
             _moved(names, found.runner_up),
         )
         return found
-    # import-calibration gave the k-th camera to the k-th video: the camera of video c goes to the video fitting it
-    wanted = [names[found.order.index(c)] for c in range(len(names))]
+    fix = "give each video its own camera (import-calibration matches them by order where the names differ)"
+    if every_video is None or list(every_video) == names:
+        # import-calibration gave the k-th camera to the k-th video: the camera of video c goes to the video fitting it
+        wanted = [names[found.order.index(c)] for c in range(len(names))]
+        fix = (
+            "where import-calibration matched the calibration's cameras to the videos by order, run it again with "
+            f"the videos in the order {' '.join(wanted)}"
+        )
     raise InputError(
         cameras_path,
         f"the cameras fit these tracks in another order: {_moved(names, found.order)} (the pairs of videos' rays, "
         f"each at its best offset, meet within truncated mean squared gaps of {_listed(found.best_costs)} px^2 so, "
         f"against {_listed(found.given_costs)} as given, of at most {found.cap:.0f})",
-        fix="where import-calibration matched the calibration's cameras to the videos by order, run it again with "
-        f"the videos in the order {' '.join(wanted)}",
+        fix=fix,
     )
 
 

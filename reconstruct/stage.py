@@ -153,6 +153,7 @@ def solve(
     options = options or SolveOptions()
     started = time.perf_counter()
     camera_set = cameras if isinstance(cameras, CameraSet) else read_cameras(cameras)
+    every_video = [video.name for video in camera_set.videos]  # before --videos takes some
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
     track_set = matched_to_videos(track_set, [video.name for video in camera_set.videos])
     if options.videos:  # after the names are matched: `--videos` names the cameras file's videos
@@ -163,7 +164,7 @@ def solve(
     cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
     problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
     clock_options = options.temporal.clocks
-    check_camera_order(problem, cameras_path, clock_options.fps, clock_options.track_search)
+    check_camera_order(problem, cameras_path, clock_options.fps, clock_options.track_search, every_video)
     unknown = sorted({n for bone in options.skeleton for n in bone} - set(problem.point_names))
     if unknown:  # a typo in the skeleton file: its bones are not drawn, which the recording alone would not say
         log.warning("skeleton: point(s) %s not in the tracks: their bones are not drawn", ", ".join(unknown))
@@ -232,17 +233,25 @@ def solve(
 
 
 def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None:
-    """report.json `clocks.used`: false where the points are the seed solve's because the clocks failed a check
-    (their offsets are then the search's best guess, which a reader would otherwise take for a result)."""
+    """report.json `clocks.used`: false where the points are the seed solve's, with why in `clocks.warnings` (a
+    failed check, or the refinement turned off), so that the clocks' offsets are not read as a result."""
     clocks["used"] = temporal.get("path") != TimePath.SEED.value
-    failed = next((c for c in temporal.get("checks", []) if not c.get("passed", True)), None)
-    if clocks["used"] or failed is None:
+    if clocks["used"]:
         return
+    failed = next((c for c in temporal.get("checks", []) if not c.get("passed", True)), None)
+    if failed is not None:
+        why = (
+            f"the clocks failed the check {failed['name']!r} ({failed['meaning']} {_number(failed['value'])}, "
+            f"limit {_number(failed['limit'])})"
+        )
+    elif temporal.get("refinement") == Refinement.NONE.value:
+        why = "the refinement was off (--refinement none)"
+    else:
+        why = str(temporal.get("reason") or "the solve kept its seed")
     clocks["warnings"] = [
         *clocks.get("warnings", []),
-        f"not used: the clocks failed the check {failed['name']!r} ({failed['meaning']} {_number(failed['value'])}, "
-        f"limit {_number(failed['limit'])}) and the points are the self-expressive solve's; the offsets are the "
-        "search's best guess, not supported by the tracks",
+        f"not used: {why}, and the points are the self-expressive solve's; the offsets are the clock estimate's "
+        "best guess, not a result the points rest on",
     ]
 
 

@@ -667,7 +667,8 @@ def run(
         raise InputError(calibration, "no videos given", fix="list the videos the calibration belongs to")
     require_writable(out_dir)
     tracks = options.tracks or (Path(out_dir) / "tracks.csv")
-    stand_ins = stand_in_videos(videos, tracks, options.fps)
+    given = options.tracks is not None or options.size is not None
+    stand_ins = stand_in_videos(videos, tracks, options.fps, given)
     infos = [
         stand_in or probe_video(v)
         for v, stand_in in tqdm(

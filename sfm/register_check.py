@@ -39,21 +39,20 @@ TWO_VIEWS_WHY = (
 
 
 def refuse_two_view_focals(
-    model_images: int | None, focal_known: bool, results: dict[str, dict[int, FramePose]]
+    model_images: int | None, known: set[str], results: dict[str, dict[int, FramePose]]
 ) -> list[str]:
-    """A background model of two images whose focal lengths were estimated: every pose it gave is dropped (every
-    frame says why), as the subject's refutation drops one. Returns the videos that lost their poses."""
-    if model_images != 2 or focal_known:
+    """A background model of two images, some of whose videos' intrinsics are not `known` (their focal lengths
+    estimated): every pose it gave is dropped (every frame says why), as the subject's refutation drops one.
+    Returns the videos that lost their poses."""
+    posed = [n for n, f in results.items() if any(r.pose is not None and r.source != "subject" for r in f.values())]
+    if model_images != 2 or set(posed) <= known:
         return []
-    dropped = []
-    for name, frames in results.items():
-        if any(r.pose is not None and r.source != "subject" for r in frames.values()):
-            results[name] = {
-                f: r if r.source == "subject" else FramePose(pose=None, reason=f"background SfM: {TWO_VIEWS_WHY}")
-                for f, r in frames.items()
-            }
-            dropped.append(name)
-    return dropped
+    for name in posed:
+        results[name] = {
+            f: r if r.source == "subject" else FramePose(pose=None, reason=f"background SfM: {TWO_VIEWS_WHY}")
+            for f, r in results[name].items()
+        }
+    return posed
 
 
 def check_background(

@@ -428,15 +428,14 @@ def finish_capture(
     with collected(notes), timed(notes, "people"):
         tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
-        summary.two_views = refuse_two_view_focals(
-            rec.num_reg_images() if rec is not None else None, bool(options.intrinsics), results
-        )
+        intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
+        images = rec.num_reg_images() if rec is not None else None
+        summary.two_views = refuse_two_view_focals(images, set(intrinsics), results)
         if summary.two_views:
             names = ", ".join(summary.two_views)
             notes.warnings.append(f"{names}: the background's poses are not used: {TWO_VIEWS_WHY}")
         summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
-        intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
     moving_hint = _moving_hint(plans, registered_videos, tracks, options)

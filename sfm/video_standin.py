@@ -7,6 +7,7 @@ tracks, at frame / fps (a constant-rate decoder's times), and its camera's calib
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,6 +19,8 @@ from dynrecon.names import VIDEO_SUFFIXES, video_name
 from sfm.video import ProbedVideo
 
 __all__ = ["parse_size", "stand_in_videos", "with_size"]
+
+log = logging.getLogger(__name__)
 
 
 def parse_size(value: str) -> tuple[int, int]:
@@ -32,10 +35,15 @@ def parse_size(value: str) -> tuple[int, int]:
     return width, height
 
 
-def stand_in_videos(values: Sequence[str | Path], tracks: Path | None, fps: float | None) -> list[ProbedVideo | None]:
+def stand_in_videos(
+    values: Sequence[str | Path], tracks: Path | None, fps: float | None, tracks_given: bool = False
+) -> list[ProbedVideo | None]:
     """For each VIDEO value: None where it is a file (probed as usual), else a stand-in of that name with its
-    frames from `tracks` at `fps` (width and height 0 until `with_size`). One-line errors name what is missing."""
+    frames from `tracks` at `fps` (width and height 0 until `with_size`). One-line errors name what is missing;
+    `tracks_given`: --tracks or --size was given, which without `fps` serve nothing (a warning)."""
     if fps is None:
+        if tracks_given:
+            log.warning("--tracks and --size only serve videos that are not here, given with --fps: ignored")
         for value in values:
             path = Path(value)
             if not path.exists() and path.suffix.lower() not in VIDEO_SUFFIXES:  # a name, not a file's path
@@ -78,6 +86,7 @@ def stand_in_videos(values: Sequence[str | Path], tracks: Path | None, fps: floa
                 fix=f"name the videos as the tracks do: {', '.join(sorted(last)) or 'none'}",
             )
         frames = last[name] + 1
+        log.info("%s: not here; %d frames at %g fps from %s", name, frames, fps, tracks)
         out.append(ProbedVideo(path=path, name=name, width=0, height=0, times=np.arange(frames) / fps, nominal_fps=fps))
     return out
 

@@ -211,8 +211,8 @@ LOW_SHARE = 0.2  # share of an input's detections under LOW_SCORE from which the
 def _say_low_scores(path: Path, fmt: Format, detections: list[Detection], min_score: float) -> None:
     """A warning where many of the detections kept are the detector's guesses: DeepLabCut writes every body part on
     every frame, occluded or not, and they derail the solve's clock search and leave it the slow way. Not for the
-    other formats: SLEAP writes visible points only, with confidence-map peaks that run lower (a proofread mouse
-    with 65 % of its points under 0.5 reconstructs to 3-5 mm), and OpenPose leaves undetected joints at 0."""
+    other formats: SLEAP writes visible points only, with confidence-map peaks that run lower (docs/formats.md),
+    and OpenPose leaves undetected joints at 0."""
     if fmt is not Format.DLC:
         return
     scores = np.array([d.score for d in detections if d.score is not None and d.score >= min_score], dtype=float)

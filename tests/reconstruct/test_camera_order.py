@@ -88,6 +88,21 @@ def test_the_order_that_fits_is_named(order: list[int]) -> None:
     assert f"in the order {' '.join(wanted)})" in message
 
 
+def test_videos_without_tracks_keep_their_cameras() -> None:
+    """Two of four videos without tracks: nothing tells their cameras apart, so only the tracked videos' cameras are
+    reordered, and their swap is named (not a tie with a swap of the untracked ones); a solve of some of the
+    cameras file's videos is not told an order to import in."""
+    problem = _moved(_capture(), [1, 0, 2, 3])
+    problem.uv[problem.video_index >= 2] = np.nan
+    found = score_camera_order(problem)
+    assert found is not None and found.order == (1, 0, 2, 3)
+    with pytest.raises(InputError) as raised:
+        check_camera_order(problem, None, every_video=[*problem.video_names, "cam4"])
+    message = str(raised.value)
+    assert "cam0 fits cam1's camera, cam1 fits cam0's camera (" in message
+    assert "in the order" not in message and "give each video its own camera" in message
+
+
 def test_two_orders_fitting_alike_are_warned_about_not_refused(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -26,7 +26,17 @@ def test_clocks_that_failed_their_check_are_said_unused() -> None:
     assert clocks["warnings"][0] == "cam2: few links"  # type: ignore[index]
     said = clocks["warnings"][1]  # type: ignore[index]
     assert said.startswith("not used: the clocks failed the check 'track_distinctness' (")
-    assert "1.01, limit 1.05" in said and "not supported by the tracks" in said
+    assert "1.01, limit 1.05" in said and "not a result the points rest on" in said
+
+
+def test_clocks_of_a_solve_without_refinement_are_said_unused() -> None:
+    clocks: dict[str, object] = {"warnings": []}
+    _say_unused_clocks(clocks, {"path": "seed", "refinement": "none"})
+    assert clocks["used"] is False
+    assert clocks["warnings"] == [  # type: ignore[comparison-overlap]
+        "not used: the refinement was off (--refinement none), and the points are the self-expressive solve's; the "
+        "offsets are the clock estimate's best guess, not a result the points rest on"
+    ]
 
 
 def test_clocks_the_points_rest_on_are_used() -> None:

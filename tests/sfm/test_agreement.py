@@ -338,9 +338,9 @@ def test_a_two_image_model_of_unknown_focals_poses_nothing(rig: tuple[Tracks, li
         return {v.name: _background(v, (truth.R[i], truth.t[i])) for i, v in enumerate(videos[:2])}
 
     results = fresh()
-    assert refuse_two_view_focals(2, False, results) == ["cam0", "cam1"]
+    assert refuse_two_view_focals(2, {"cam0"}, results) == ["cam0", "cam1"]  # one camera's K known: not enough
     assert all(r.pose is None and TWO_VIEWS_WHY in (r.reason or "") for f in results.values() for r in f.values())
-    for images, known in ((2, True), (3, False), (None, False)):
+    for images, known in ((2, {"cam0", "cam1"}), (3, set()), (None, set())):
         kept = fresh()
         assert refuse_two_view_focals(images, known, kept) == []
         assert all(r.pose is not None for f in kept.values() for r in f.values())

@@ -102,3 +102,23 @@ def test_a_size_that_is_not_one_is_refused_by_the_parser(tmp_path: Path, capsys:
         main(["import-calibration", "c.toml", "cam0", "--out", str(tmp_path), "--fps", "30", "--size", "64by48"])
     assert raised.value.code == 2
     assert "'64by48' is not WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def test_a_size_other_than_the_calibrated_one_scales_k(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """--size 128x96 for cameras calibrated at 64x48: the videos are the calibrated images at twice the size, and K
+    is scaled like a probed video's; --tracks without --fps serves nothing and says so."""
+    cameras = _random_cameras(["cam_0", "cam_1"])
+    toml = write_toml(tmp_path / "calibration.toml", cameras)
+    tracks = _tracks(tmp_path / "tracks.csv", {"cam0": 4, "cam1": 4})
+    args = ["import-calibration", str(toml), "cam0", "cam1", "--fps", "25", "--tracks", str(tracks)]
+    assert main([*args, "--size", "128x96", "--out", str(tmp_path / "ws")]) == 0
+    K = read_cameras(tmp_path / "ws" / "cameras.json").videos[0].frames[0].K
+    expected = cameras[0].K.copy()
+    expected[:2, :2] *= 2
+    expected[:2, 2] = (expected[:2, 2] + 0.5) * 2 - 0.5
+    np.testing.assert_allclose(K, expected)
+    for name in ("cam0", "cam1"):
+        _write_video(tmp_path / f"{name}.mp4", 5, (64, 48), fps=25.0)
+    files = [str(tmp_path / "cam0.mp4"), str(tmp_path / "cam1.mp4")]
+    assert main(["import-calibration", str(toml), *files, "--tracks", str(tracks), "--out", str(tmp_path / "w2")]) == 0
+    assert "--tracks and --size only serve videos that are not here" in caplog.text
