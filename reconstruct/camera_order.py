@@ -28,6 +28,7 @@ __all__ = ["CameraOrder", "check_camera_order", "score_camera_order"]
 log = logging.getLogger(__name__)
 
 MAX_VIDEOS = 6  # 6! orders from 450 pair searches; beyond, the test is skipped with a note
+ORDER_QUERIES = 50  # frames per video and direction of each pair search here: a third of the clock search's
 BETTER_SHARE = 0.5  # the order found: summed pair cost under this share of the given order's and the next best's
 _STATIC_TOL = 1e-9
 
@@ -93,7 +94,7 @@ def score_camera_order(
     """Score the cameras as given and, where some pair of videos misfits, every other order of the cameras of the
     videos with tracks (the others keep theirs: nothing tells them apart); None where the test does not apply (a
     moving camera, one video, more than MAX_VIDEOS videos, no tracked point)."""
-    options = options or SearchOptions()
+    options = dataclasses.replace(options or SearchOptions(), max_queries=ORDER_QUERIES)  # orders differ grossly
     N = len(problem.video_names)
     rows = _static_cameras(problem)
     if rows is None or N < 2:
