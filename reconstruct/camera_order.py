@@ -4,8 +4,9 @@ A calibration file names its cameras by serial number or `cam_N`; where the name
 `import-calibration` matches them in the order given, and a wrong order is not an error the files can show. The
 tracks can: with the right cameras some offset brings every pair of videos' rays together, with a swapped one no
 offset does. Where some pair of videos misfits at its best offset, every other order of the static cameras is
-scored by the same pair search; an order whose pairs fit at under half the given order's summed cost is the
-user's mistake, said in one line with the order that fits (docs/clocks.md, "Cameras that do not fit").
+scored by the same pair search; an order whose pairs fit at under half the summed cost of the given order and of
+the next best is the user's mistake, said in one line with the order that fits (docs/clocks.md, "Which camera
+filmed which video").
 """
 
 from __future__ import annotations
