@@ -143,18 +143,18 @@ def test_pose2sim_openpose_detections_pose_the_lab(shared_dir: Path, tmp_path: P
     assert all(abs(c["offset_s"]) < 1.5 / 60 for c in report["subject"]["cameras"]), report["subject"]["cameras"]
 
 
-def test_caliscope_false_background_model_is_refuted_by_the_board(
+def test_caliscope_false_two_image_model_is_dropped_and_the_board_poses_the_rig(
     caliscope: tuple[list[Path], Path], tmp_path: Path
 ) -> None:
     """With the mapper's initial pair allowed 8 inliers, the office backgrounds give a two-image model from false
-    matches; the board's corners refute both of its poses, and the subject path poses all four webcams."""
+    matches. Without intrinsics a two-image model fixes no focal length, so its poses are dropped before the
+    board's check (which refuted both before, 169 px against 1.9: tests/sfm/test_agreement.py covers that check),
+    and the subject path poses all four webcams."""
     videos, tracks = caliscope
     report = _register(videos, tmp_path / "ws", tracks, "--init-min-inliers", "8")
-    assert report["model"] is not None and report["model"]["images"] >= 2, report["model"]
-    check = report["background_check"]
-    assert check["checked"] and len(check["refuted"]) >= 2, check
-    for pair in check["pairs"]:
-        assert pair["contradicted"] and pair["poses_px"] > 20 * pair["tracks_px"], pair
+    assert report["model"] is not None and report["model"]["images"] == 2, report["model"]
+    assert any("two views of unknown focal lengths do not fix them" in w for w in report["warnings"]), report
+    assert report["background_check"] is None  # nothing the background posed is left to check
     assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
     from sfm.export import read_ply
 
