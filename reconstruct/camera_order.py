@@ -4,9 +4,9 @@ A calibration file names its cameras by serial number or `cam_N`; where the name
 `import-calibration` matches them in the order given, and a wrong order is not an error the files can show. The
 tracks can: with the right cameras some offset brings every pair of videos' rays together, with a swapped one no
 offset does. Where some pair of videos misfits at its best offset, every other order of the static cameras is
-scored by the same pair search; an order whose pairs fit at under half the summed cost of the given order and of
-the next best is the user's mistake, said in one line with the order that fits (docs/clocks.md, "Which camera
-filmed which video").
+scored by the same pair search; an order whose pairs fit at under BETTER_SHARE of the summed cost of the given
+order and of the next best is the user's mistake, said in one line with the order that fits (docs/clocks.md,
+"Which camera filmed which video").
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 MAX_VIDEOS = 6  # 6! orders from 450 pair searches; beyond, the test is skipped with a note
 ORDER_QUERIES = 50  # frames per video and direction of each pair search here: a third of the clock search's
-BETTER_SHARE = 0.5  # the order found: summed pair cost under this share of the given order's and the next best's
+BETTER_SHARE = 0.75  # the order found: summed pair cost under this share of the given order's and the next best's
 _STATIC_TOL = 1e-9
 
 

@@ -115,7 +115,7 @@ def test_two_orders_fitting_alike_are_warned_about_not_refused(
         best_costs=[2.0] * 6,
         cap=64.0,
         runner_up=(2, 3, 0, 1),
-        runner_up_costs=[3.0] * 6,
+        runner_up_costs=[2.5] * 6,
     )
     monkeypatch.setattr(camera_order, "score_camera_order", lambda *_: scored)
     assert check_camera_order(problem, Path("cameras.json")) is scored
