@@ -533,7 +533,8 @@ def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: 
         )
     if len(cameras) == len(videos):
         log.warning(
-            "%s: camera names %s do not match video names %s; matching them in the given order",
+            "%s: camera names %s do not match video names %s; matching them in the given order (`dynrecon solve` "
+            "checks that order against the tracks)",
             path,
             [c.name for c in cameras],
             [v.name for v in videos],
