@@ -36,7 +36,7 @@ from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
-from reconstruct.time_checks import TimePath
+from reconstruct.time_checks import Check, TimePath
 from reconstruct.tracks_path import FEW_POINTS, TracksAttempt, clocks_seed, solve_on_given_clocks, solve_on_tracks
 from reconstruct.tracks_path import applies as tracks_path_applies
 from reconstruct.tracks_path import refereed as tracks_path_refereed
@@ -240,10 +240,7 @@ def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None
         return
     failed = next((c for c in temporal.get("checks", []) if not c.get("passed", True)), None)
     if failed is not None:
-        why = (
-            f"the clocks failed the check {failed['name']!r} ({failed['meaning']} {_number(failed['value'])}, "
-            f"limit {_number(failed['limit'])})"
-        )
+        why = f"the clocks' {Check.from_json(failed).sentence()}"
     elif temporal.get("refinement") == Refinement.NONE.value:
         why = "the refinement was off (--refinement none)"
     else:
@@ -253,10 +250,6 @@ def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None
         f"not used: {why}, and the points are the self-expressive solve's; the offsets are the clock estimate's "
         "best guess, not a result the points rest on",
     ]
-
-
-def _number(value: object) -> str:
-    return f"{value:.3g}" if isinstance(value, (int, float)) else "none"
 
 
 def _only_videos(

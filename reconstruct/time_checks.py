@@ -55,6 +55,18 @@ class Check:
         relation = ">=" if self.name == "track_distinctness" else "<="
         return f"check {self.name!r} failed: {self.meaning} {self.value:.3g} (limit {relation} {self.limit:.3g})"
 
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Check:
+        """The check `to_json` wrote (None: a value or limit that was not finite)."""
+        value, limit = data.get("value"), data.get("limit")
+        return cls(
+            name=str(data["name"]),
+            value=math.nan if value is None else float(value),
+            limit=math.inf if limit is None else float(limit),
+            passed=bool(data["passed"]),
+            meaning=str(data["meaning"]),
+        )
+
     def to_json(self) -> dict[str, Any]:
         value = self.value if math.isfinite(self.value) else None
         limit = self.limit if math.isfinite(self.limit) else None

@@ -25,8 +25,8 @@ def test_clocks_that_failed_their_check_are_said_unused() -> None:
     assert clocks["used"] is False
     assert clocks["warnings"][0] == "cam2: few links"  # type: ignore[index]
     said = clocks["warnings"][1]  # type: ignore[index]
-    assert said.startswith("not used: the clocks failed the check 'track_distinctness' (")
-    assert "1.01, limit 1.05" in said and "not a result the points rest on" in said
+    assert said.startswith("not used: the clocks' check 'track_distinctness' failed: ")
+    assert "1.01 (limit >= 1.05)" in said and "not a result the points rest on" in said
 
 
 def test_clocks_of_a_solve_without_refinement_are_said_unused() -> None:
