@@ -25,11 +25,13 @@ from tracking.tracks import Tracks
 log = logging.getLogger(__name__)
 
 
+def _from_background(frame: FramePose) -> bool:
+    """A frame posed by the background's model (not by the subject path)."""
+    return frame.pose is not None and frame.source != "subject"
+
+
 def _background_pose(frames: dict[int, FramePose]) -> FramePose | None:
-    return next(
-        (r for r in frames.values() if r.pose is not None and r.intrinsics is not None and r.source != "subject"),
-        None,
-    )
+    return next((r for r in frames.values() if _from_background(r) and r.intrinsics is not None), None)
 
 
 TWO_VIEWS_WHY = (
@@ -44,7 +46,7 @@ def refuse_two_view_focals(
     """A background model of two images, some of whose videos' intrinsics are not `known` (their focal lengths
     estimated): every pose it gave is dropped (every frame says why), as the subject's refutation drops one.
     Returns the videos that lost their poses."""
-    posed = [n for n, f in results.items() if any(r.pose is not None and r.source != "subject" for r in f.values())]
+    posed = [name for name, frames in results.items() if any(map(_from_background, frames.values()))]
     if model_images != 2 or set(posed) <= known:
         return []
     for name in posed:
@@ -107,7 +109,7 @@ def check_background(
 
 def background_left(videos: list[VideoPlan], results: dict[str, dict[int, FramePose]]) -> bool:
     """Whether any video still has a pose from the background (its model's points are then in the cameras' world)."""
-    return any(r.pose is not None and r.source != "subject" for v in videos for r in results[v.info.name].values())
+    return any(_from_background(r) for v in videos for r in results[v.info.name].values())
 
 
 def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[str, str]:
