@@ -195,8 +195,7 @@ def check_camera_order(
     if best >= BETTER_SHARE * given:
         return found
     names = problem.video_names
-    runner_up = second if found.runner_up_costs is not None else np.inf
-    if found.runner_up is not None and best >= BETTER_SHARE * runner_up:
+    if found.runner_up is not None and best >= BETTER_SHARE * second:
         log.warning(
             "%s: the cameras fit these tracks better in other orders than the one given, two about as well "
             "(%s; %s): check which camera filmed which video",
