@@ -82,19 +82,32 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--videos",
         type=_names,
-        default=(),
-        metavar="NAME,NAME,...",
-        help="solve only these videos of the cameras file (default: all); e.g. one of the groups of videos that "
-        "share no tracked point",
+        nargs="+",
+        default=[],
+        metavar="NAME",
+        help="solve only these videos of the cameras file, by name, separated by spaces or commas (default: all); "
+        "e.g. one of the groups of videos that share no tracked point",
     )
     parser.add_argument("--no-recording", action="store_true", help="skip recording.rrd")
     parser.set_defaults(func=_solve)
 
 
 def _names(text: str) -> tuple[str, ...]:
+    """One `--videos` value: a name or names separated by commas (the other commands' `--videos` take several
+    values, so `--videos cam0 cam1` and `--videos cam0,cam1` both work)."""
     names = tuple(name.strip() for name in text.split(","))
-    if not all(names) or len(set(names)) != len(names):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a list of distinct video names separated by commas")
+    if not any(names):
+        raise argparse.ArgumentTypeError(f"{text!r} names no video")
+    return tuple(name for name in names if name)
+
+
+def _distinct_videos(values: list[tuple[str, ...]]) -> tuple[str, ...]:
+    from dynrecon.errors import InputError
+
+    names = tuple(name for value in values for name in value)
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise InputError(None, f"--videos names {', '.join(twice)} twice: give each video once")
     return names
 
 
@@ -139,7 +152,7 @@ def _solve(args: argparse.Namespace) -> int:
             trust=preset_options(TrustPreset(args.trust)),
             recording=None if args.no_recording else SolveOptions().recording,
             skeleton=skeleton,
-            videos=args.videos,
+            videos=_distinct_videos(args.videos),
         ),
     )
     stale = args.out / "recording.rrd"

@@ -171,3 +171,19 @@ def test_a_skeleton_naming_unknown_points_is_warned_about(tmp_path, caplog):
     options = SolveOptions(recording=None, skeleton=((known, "no_such_point"),))
     solve(tmp_path / "cameras.json", tmp_path / "tracks.csv", options)
     assert "skeleton: point(s) no_such_point not in the tracks: their bones are not drawn" in caplog.text
+
+
+def test_videos_takes_names_separated_by_spaces_or_commas(tmp_path, capsys):
+    """`solve --videos cam0 cam1` (as `track` and `label` take their videos) and `--videos cam0,cam1` alike."""
+    from dynrecon.cli import build_parser
+    from reconstruct.cli import _distinct_videos
+
+    parser = build_parser("solve")
+    common = ["solve", "--cameras", "c.json", "--tracks", "t.csv", "--out", str(tmp_path / "out")]
+    spaced = parser.parse_args([*common, "--videos", "cam0", "cam1"])
+    commas = parser.parse_args([*common, "--videos", "cam0,cam1,"])
+    assert _distinct_videos(spaced.videos) == _distinct_videos(commas.videos) == ("cam0", "cam1")
+    assert _distinct_videos(parser.parse_args(common).videos) == ()
+
+    assert main([*common, "--videos", "cam0", "cam1,cam0"]) == 2
+    assert "--videos names cam0 twice: give each video once" in capsys.readouterr().err
