@@ -142,14 +142,25 @@ def _read_csv(path: Path) -> _Table:
     )
 
 
+_EXPORT_AGAIN = "export it again (DeepLabCut's .h5 or CSV, or SLEAP's analysis HDF5)"
+
+
 def _opens_as_hdf5(path: Path) -> bool:
-    """Whether HDF5 itself can open `path` (whatever the file holds)."""
+    """Whether HDF5 itself can open `path` and read every object's attributes (whatever the file holds). PyTables
+    reads a damaged attribute natively and can crash the process (a cut or overwritten string attribute: a
+    segmentation fault), where h5py raises."""
     import h5py
 
+    def attributes(_name: str, item: h5py.HLObject) -> None:
+        for key in item.attrs:
+            item.attrs[key]  # read, to find a damaged one
+
     try:
-        with h5py.File(path, "r"):
+        with h5py.File(path, "r") as f:
+            attributes("/", f)
+            f.visititems(attributes)
             return True
-    except (OSError, ValueError):
+    except Exception:  # h5py raises OSError, RuntimeError, KeyError, ... for a damaged file
         return False
 
 
@@ -163,6 +174,8 @@ def _read_h5(path: Path) -> _Table:
         ) from None
     if not path.is_file():
         raise InputError(path, "file not found" if not path.exists() else "not a file")
+    if not _opens_as_hdf5(path):  # before PyTables, which may crash on it
+        raise InputError(path, "not a readable HDF5 file: damaged or truncated", fix=_EXPORT_AGAIN)
     try:
         with pd.HDFStore(path, mode="r") as store:
             keys = [k.lstrip("/") for k in store.keys()]  # noqa: SIM118 (an HDFStore)
@@ -178,13 +191,7 @@ def _read_h5(path: Path) -> _Table:
         raise
     except ImportError:
         raise InputError(path, "reading DeepLabCut .h5 needs the tables package", fix="pip install tables") from None
-    except Exception as error:  # HDF5 and PyTables raise many types for a damaged or foreign file
-        if not _opens_as_hdf5(path):  # not DLC's nor SLEAP's: damaged, most likely cut short
-            raise InputError(
-                path,
-                f"not a readable HDF5 file ({type(error).__name__}): damaged or truncated",
-                fix="export it again (DeepLabCut's .h5 or CSV, or SLEAP's analysis HDF5)",
-            ) from None
+    except Exception as error:  # PyTables raises many types for an HDF5 file that is not pandas'
         raise InputError(
             path, f"not a readable pandas HDF5 file ({type(error).__name__})", fix="give DeepLabCut's .h5 or its CSV"
         ) from None

@@ -46,7 +46,7 @@ def is_sleap_analysis(path: Path) -> bool:
     try:
         with h5py.File(path, "r") as f:
             return "tracks" in f and "node_names" in f and isinstance(f["tracks"], h5py.Dataset)
-    except (OSError, ValueError):
+    except (OSError, ValueError, RuntimeError):  # h5py raises RuntimeError for a damaged file's structures
         return False
 
 
@@ -67,7 +67,7 @@ def read_sleap_analysis(
                 scores = _ordered(path, np.asarray(f["point_scores"][()], dtype=float), score_dims, CANONICAL[:3])
     except InputError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as error:
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as error:
         raise InputError(path, f"not a readable SLEAP analysis HDF5 file ({error})", fix=EXPORT_FIX) from None
     _, n_tracks, n_nodes, _ = tracks.shape
     if n_nodes != len(nodes):
@@ -137,7 +137,7 @@ def read_sleap_slp(
             points = {USER: f["points"][()], PREDICTED: f["pred_points"][()]}
     except InputError:
         raise
-    except (OSError, KeyError, ValueError, TypeError, IndexError) as error:
+    except (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeError) as error:
         raise InputError(path, f"not a readable SLEAP .slp file ({error})", fix=EXPORT_FIX) from None
     try:
         names = [str(n["name"]) for n in metadata["nodes"]]
@@ -273,7 +273,7 @@ def video_name_from_sleap(path: Path) -> str:
     try:
         with h5py.File(path, "r") as f:
             source = _text(f["video_path"][()]) if "video_path" in f else ""
-    except (OSError, KeyError, ValueError, TypeError):
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
         source = ""
     if source.strip():
         return _stem(source)

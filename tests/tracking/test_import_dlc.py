@@ -4,6 +4,8 @@ multi-animal individuals (`--person`)."""
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,7 +153,7 @@ def _plain_hdf5(path: Path) -> None:
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda p: p.write_bytes(b"not hdf5 at all"), r"not a readable HDF5 file .*damaged or truncated"),
+        (lambda p: p.write_bytes(b"not hdf5 at all"), r"not a readable HDF5 file: damaged or truncated"),
         (  # a SLEAP analysis file cut short: no longer named a bad DeepLabCut file
             lambda p: p.write_bytes((Path(__file__).parents[1] / "data/sleap/cam1.analysis.h5").read_bytes()[:3000]),
             r"damaged or truncated \(export it again \(DeepLabCut's \.h5 or CSV, or SLEAP's analysis HDF5\)\)",
@@ -180,6 +182,28 @@ def test_foreign_h5_files_give_one_line_errors(tmp_path: Path, make, message: st
         run_import([path], tmp_path / "out.csv", ImportOptions())
     assert "\n" not in str(info.value) and "bad.h5" in str(info.value)
     assert not (tmp_path / "out.csv").exists()
+
+
+def test_a_damaged_attribute_is_refused_before_pytables_reads_it(tmp_path: Path) -> None:
+    """A SLEAP analysis file with one chunk of bytes repeated (found by a mutation sweep, 2026-11-30): h5py raised
+    RuntimeError (a traceback), and PyTables, reading it as DeepLabCut's, crashed the process (a segmentation fault).
+    Run in a child process so that a crash fails the test instead of killing it."""
+    chunks = (Path(__file__).parents[1] / "data/sleap/cam1.analysis.h5").read_bytes().split(b"\n")
+    damaged = tmp_path / "cam1.analysis.h5"
+    damaged.write_bytes(b"\n".join(chunks[:5] + chunks[4:]))
+    out = tmp_path / "tracks.csv"
+    done = subprocess.run(
+        [sys.executable, "-m", "dynrecon", "-q", "import-tracks", str(damaged), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        f"dynrecon import-tracks: error: {damaged}: not a readable HDF5 file: damaged or truncated (export it again "
+        "(DeepLabCut's .h5 or CSV, or SLEAP's analysis HDF5))"
+    ]
+    assert not out.exists()
 
 
 def test_a_real_multi_animal_labels_file(tmp_path: Path, caplog) -> None:

@@ -244,3 +244,15 @@ def test_broken_analysis_files_give_one_line_errors(tmp_path: Path) -> None:
         run_import([bad], tmp_path / "o.csv", ImportOptions())
     assert "\n" not in str(info.value)
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_a_damaged_slp_gives_one_line(tmp_path: Path) -> None:
+    """Three bytes written over one inside the file's structures (a mutation sweep, 2026-11-30): h5py raises
+    RuntimeError there, which was a traceback."""
+    data = (DATA / "two_cameras.slp").read_bytes()
+    bad = tmp_path / "two_cameras.slp"
+    bad.write_bytes(data[:18578] + b"abc" + data[18579:])
+    with pytest.raises(InputError, match=r"not a readable SLEAP \.slp file \(.*bad symbol table") as info:
+        run_import([bad], tmp_path / "o.csv", ImportOptions())
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "o.csv").exists()
