@@ -578,9 +578,7 @@ def intrinsics_at_video_size(
     if cy_plus_height:
         K = K.astype(float).copy()
         K[1, 2] += video.height
-    if (video.width, video.height) == (width, height):
-        return K
-    if (width, height) == (0, 0):  # the file gives no size: the video is taken as the calibrated image
+    if (width, height) in ((0, 0), (video.width, video.height)):  # the video is the calibrated image
         cx, cy = K[0, 2], K[1, 2]
         if not (0 <= cx < video.width and 0 <= cy < video.height):  # a loose calibration's, used as the lab does
             log.warning(

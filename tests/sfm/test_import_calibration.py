@@ -455,6 +455,22 @@ def test_a_video_resized_from_the_calibrated_size_gets_scaled_intrinsics(
     assert "lies outside this video" in caplog.text
 
 
+def test_a_principal_point_outside_its_own_calibrated_image_is_warned_about(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """cx = -1 at the calibrated size (a typo or another camera's table: a mutation sweep, 2026-11-30) was used
+    without a word; a file without sizes was already warned about."""
+    K = np.array([[200.0, 0.0, -1.0], [0.0, 202.0, 45.5], [0.0, 0.0, 1.0]])
+    camera = StaticCamera(name="cam_1", width=128, height=96, K=K, dist=np.zeros(4), R=np.eye(3), t=np.zeros(3))
+    toml = write_toml(tmp_path / "calib.toml", [camera])
+    video = tmp_path / "cam1.mp4"
+    _write_video(video, 3, (128, 96))
+    with caplog.at_level("WARNING"):
+        assert main(["import-calibration", str(toml), str(video), "--out", str(tmp_path / "ws")]) == 0
+    assert "camera cam_1: principal point (-1.0, 45.5) outside this 128x96 video" in caplog.text
+    np.testing.assert_array_equal(read_cameras(tmp_path / "ws" / "cameras.json").videos[0].frames[0].K, K)
+
+
 def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A portrait video of a camera calibrated in landscape (or the reverse): `register --intrinsics` estimates
     that video's intrinsics instead of using a K that does not fit it, and `import-calibration`, whose poses would
