@@ -22,8 +22,9 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser(
         "import-calibration",
-        help="write cameras.json from a Qualisys .qca, Pose2Sim/anipose/FreeMoCap .toml or caliscope "
-        "camera_array.toml / config.toml calibration (static cameras)",
+        help="write cameras.json from a lab calibration of static cameras: Qualisys .qca, Pose2Sim / anipose / "
+        "FreeMoCap / caliscope .toml, DANNCE .mat, DLTdv / easyWand / Argus DLT coefficients, or another "
+        "recording's cameras.json",
         description="Every decoded frame of each video gets its calibrated camera's static pose. Cameras are "
         "matched to videos by name (cam01.mp4 <-> cam_01, minimal_back.mp4 <-> back; caliscope's cam_id 0 is cam_0), "
         "else in the given order. "

@@ -13,8 +13,8 @@ from dynrecon.arguments import out_path
 
 COMMANDS = {
     "track": "carry the labels of WS/labels.csv through every frame of the videos into WS/tracks.csv",
-    "import-tracks": "import DeepLabCut CSV, OpenPose JSON, plain video,frame,point,x,y CSV, or ChArUco board "
-    "corners found in videos into tracks.csv",
+    "import-tracks": "import 2D points into tracks.csv: DeepLabCut, SLEAP, OpenPose, DLTdv / Argus, a plain "
+    "video,frame,point,x,y CSV, or ChArUco board corners found in videos",
 }
 
 
