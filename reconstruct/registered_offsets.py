@@ -13,6 +13,9 @@ their rays: no residual to compare), registration's offsets are its only clocks 
 solve's own clocks meet (`clock_fit`).
 The same where the solve found every clock but its own checks judged them too ambiguous to refine on (the seed
 kept), and registration's offsets, found independently from the epipolar geometry, agree with them.
+Offsets the user declared (`clock_declared`: --synchronized, --offsets) are exact where the declaration is true:
+where the solve's refined clocks agree with them, they are tried too and kept unless the solve's clocks predict
+clearly better (the burden reversed).
 report.json `temporal.registered_offsets` gives the measures and the choice.
 """
 
@@ -28,6 +31,7 @@ import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.clocks.model import Clocks
+from reconstruct.clocks.registered import all_declared, offsets_source
 from reconstruct.clocks.search import SearchOptions
 from reconstruct.free_times import reprojection_px
 from reconstruct.heldout import heldout_px, holds_out
@@ -87,8 +91,12 @@ def prefer_registered_offsets(
     registered = any(v.clock_offset is not None for v in cameras.videos)
     # a free-times refinement (also "unidentified") fits its rays better than any clock: nothing to try there
     seed_only = (bool(unidentified) or confirmed) and registered and not temporal.refined
-    if not disagree and not seed_only:
+    # declared offsets (a trigger, a timecode) the solve's refined clocks agree with: exact where true, an estimate
+    # is not (a real triggered rig: one camera's recovered clock 0.36 frame off, within the agreement's tolerance)
+    declared = confirmed and temporal.refined and all_declared(cameras)
+    if not disagree and not seed_only and not declared:
         return temporal
+    source = offsets_source(cameras)
     clocks = registered_clocks(problem, cameras, temporal.clocks)
     if clocks is None:
         temporal.report[PATH] = {"tried": False, "reason": "some videos have no registered clock offset"}
@@ -97,7 +105,7 @@ def prefer_registered_offsets(
     # next, a pair that no other pair with its videos agrees with is left to it
     given, verdicts = given_offsets_check(problem, clocks, search or SearchOptions(), corroboration=not seed_only)
     if not given.passed:
-        log.warning("registration's offsets were not used: %s", given.sentence())
+        log.warning("%s were not used: %s", source, given.sentence())
         temporal.report[PATH] = {
             "tried": True,
             "criterion": "given_offsets",
@@ -121,12 +129,16 @@ def prefer_registered_offsets(
             "registered": finite_or_none(predicted[1] if predicted else None),
         },
         "limit": BETTER,
+        "declared": all_declared(cameras),
         "given_offsets": given.to_json(),  # passed; its meaning names any refuting pair set aside uncorroborated
     }
     checks: list[Check] = []
     verdict = ""
     if not seed_only:
-        kept, verdict = _predicts_better(problem, temporal, on_clocks.clocks.global_time, options, residual, entry)
+        theirs, mine, verdict = _compared(problem, temporal, on_clocks.clocks.global_time, options, residual, entry)
+        # disagreeing offsets must predict clearly better to replace the solve's clocks; declared ones that agree
+        # are kept unless the solve's clocks predict clearly better
+        kept = not mine < BETTER * theirs if declared else bool(theirs < BETTER * mine)
     else:
         # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
         # for the videos the solve could not time, or the independent confirmation of the clocks it found but did
@@ -140,21 +152,31 @@ def prefer_registered_offsets(
         relation = "disagree with"
     elif unidentified:
         relation = f"leave {', '.join(unidentified)} unidentified, unlike"
+    elif declared:
+        relation = "agree with"
     else:
         relation = "failed the solve's own checks but agree with"
     if checks:
         verdict = "; ".join(f"{c.meaning} {c.value:.3g}, limit {c.limit:.3g}" for c in checks)
     if not kept:
         log.warning(
-            "the solve's clocks %s registration's offsets, which do no better (%s): the solve's clocks are kept",
+            "the solve's clocks %s %s, %s (%s): the solve's clocks are kept",
             relation,
+            source,
+            f"but predict clearly better, under {BETTER:g} x theirs"
+            if declared
+            else f"which do not predict clearly better, under {BETTER:g} x the solve's"
+            if not seed_only
+            else "which fail the clock checks",
             verdict,
         )
         temporal.report[PATH] = entry
         return temporal
-    log.warning(
-        "the solve's clocks %s registration's offsets, which do better (%s): refined on registration's offsets",
+    (log.info if declared else log.warning)(
+        "the solve's clocks %s %s, which %s (%s): refined on them",
         relation,
+        source,
+        "predict as well" if declared else "do better",
         verdict,
     )
     report = dict(temporal.report)
@@ -166,11 +188,13 @@ def prefer_registered_offsets(
             "refined": True,
             "reason": f"the solve's clocks ({temporal.report.get('path')}) "
             + (
-                "disagreed with registration's offsets"
+                f"disagreed with {source}"
                 if disagree
-                else f"left {', '.join(unidentified)} unidentified; registration's offsets identify them"
+                else f"left {', '.join(unidentified)} unidentified; {source} identify them"
                 if unidentified
-                else "failed the solve's own checks; registration's offsets, found independently, agree with them"
+                else f"agree with {source}, which predict as well and are exact where the declaration is true"
+                if declared
+                else f"failed the solve's own checks; {source}, found independently, agree with them"
             ),
         }
     )
@@ -185,18 +209,18 @@ def prefer_registered_offsets(
     )
 
 
-def _predicts_better(
+def _compared(
     problem: Problem,
     temporal: Temporal,
     registered_times: np.ndarray,
     options: RefineOptions,
     residual: dict[str, float],
     entry: dict[str, Any],
-) -> tuple[bool, str]:
-    """Whether registration's clocks (`registered_times`) predict each video's rays from the other videos' clearly
-    better than the solve's (`heldout_px`), with the sentence that says so; `entry` gets the measures. Where some
-    frame of the solve's answer has no time, or fewer than three videos see the points, there is no held-out fit: the
-    in-sample residual decides."""
+) -> tuple[float, float, str]:
+    """How well registration's clocks (`registered_times`) and the solve's predict each video's rays from the other
+    videos' (`heldout_px`, median px: theirs, the solve's), with the sentence that says so; `entry` gets the
+    measures. Where some frame of the solve's answer has no time, or fewer than three videos see the points, there
+    is no held-out fit: the in-sample residual is compared."""
     if np.isfinite(temporal.times).all() and holds_out(problem):
         held = {
             "solve": heldout_px(problem, temporal.times, options),
@@ -212,10 +236,10 @@ def _predicts_better(
             sentence = (
                 f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
             )
-            return bool(theirs < BETTER * mine), sentence
+            return theirs, mine, sentence
     mine, theirs = residual["solve"], residual["registered"]
     entry["criterion"] = "residual_px"
-    return bool(theirs < BETTER * mine), f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
+    return theirs, mine, f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"
 
 
 def _median_px(problem: Problem, points: np.ndarray) -> float:

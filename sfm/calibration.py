@@ -715,6 +715,7 @@ def run(
                 fps=info.fps,
                 frames=frames,
                 clock_offset=offsets.get(info.name),
+                clock_declared=info.name in offsets,
             )
         )
     out = Path(out_dir)

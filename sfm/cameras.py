@@ -61,6 +61,9 @@ class VideoCameras:
     frames: list[FrameCamera] = field(default_factory=list)
     # Seconds, global time = own time + clock_offset: the clock the subject path of `register` found (None: unknown).
     clock_offset: float | None = None
+    # The user declared clock_offset (--synchronized, --offsets: a trigger, a clap, a timecode), not an estimate:
+    # where the solve's own clocks agree with it, it is used (docs/refinement.md).
+    clock_declared: bool = False
     # The video's own person numbers (points person<N>_<keypoint>) -> the number of that person across videos
     # (`register` matched them: sfm/subject/people.py); None: the tracks' names are used as they are.
     people: dict[int, int] | None = None
@@ -111,6 +114,7 @@ def cameras_to_json(cameras: CameraSet) -> dict[str, Any]:
                 "frames": [_frame_to_json(f) for f in sorted(video.frames, key=lambda f: f.frame)],
             }
             | ({} if video.clock_offset is None else {"clock_offset": float(video.clock_offset)})
+            | ({"clock_declared": True} if video.clock_declared and video.clock_offset is not None else {})
             | ({} if video.people is None else {"people": {str(k): int(v) for k, v in sorted(video.people.items())}})
             for video in cameras.videos
         ]
@@ -173,6 +177,9 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
             raise InputError(
                 path, f'"clock_offset" must be a finite number or absent, got {repr(clock_offset)[:40]}', where=where
             )
+        declared = vdata.get("clock_declared", False)
+        if not isinstance(declared, bool):
+            raise InputError(path, f'"clock_declared" must be true or false, got {repr(declared)[:40]}', where=where)
         people = _people_from_json(vdata.get("people"), path, where)
         frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]") for fi, fdata in enumerate(vdata["frames"])]
         videos.append(
@@ -183,6 +190,7 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
                 height=height,
                 frames=frames,
                 clock_offset=None if clock_offset is None else float(clock_offset),
+                clock_declared=declared and clock_offset is not None,
                 people=people,
             )
         )

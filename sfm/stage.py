@@ -536,12 +536,15 @@ def _export(
         v["name"]: v["offset_s"] for v in subject.get("posed_videos", {}).get("videos", []) if v["reason"] is None
     }
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
-    if declared and not clock_offsets:
+    written_declared = bool(declared) and not clock_offsets
+    if declared and written_declared:
         clock_offsets = dict(declared)
         log.info("the declared clock offsets are written to cameras.json (the solve tests them)")
     for video in registered_videos:
         name = video.info.name
-        cameras.videos.append(_video_cameras(video, results[name], clock_offsets.get(name), people.get(name)))
+        posed = _video_cameras(video, results[name], clock_offsets.get(name), people.get(name))
+        posed.clock_declared = written_declared and posed.clock_offset is not None
+        cameras.videos.append(posed)
     write_ply(out / "background.ply", *points)
     return write_cameras(out / "cameras.json", cameras)
 

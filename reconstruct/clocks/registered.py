@@ -58,9 +58,20 @@ def check_registered_clocks(cameras: CameraSet, clocks: Clocks) -> dict[str, Any
     disagree = [str(v["video"]) for v in videos if not v["agree"]]
     if disagree:
         log.warning(
-            "recovered clocks of %s disagree with the offsets registration found (relative to %s); see "
-            "report.json clocks.registration_check",
+            "recovered clocks of %s disagree with %s (relative to %s); see report.json clocks.registration_check",
             ", ".join(disagree),
+            offsets_source(cameras),
             reference,
         )
     return {"reference": reference, "videos": videos, "agree": not disagree}
+
+
+def all_declared(cameras: CameraSet) -> bool:
+    """Whether every video's clock_offset was declared by the user (--synchronized, --offsets), none estimated."""
+    offsets = [v for v in cameras.videos if v.clock_offset is not None]
+    return bool(offsets) and all(v.clock_declared for v in offsets)
+
+
+def offsets_source(cameras: CameraSet) -> str:
+    """How the log names cameras.json's clock offsets: the user's, or registration's estimates."""
+    return "the declared clock offsets" if all_declared(cameras) else "registration's offsets"

@@ -146,6 +146,47 @@ def test_offsets_that_agree_are_not_tried(phones: Path) -> None:
     assert PATH not in checked.temporal.report
 
 
+def test_declared_offsets_that_agree_are_used(phones: Path) -> None:
+    """Offsets the user declared (--synchronized, --offsets) are exact where the declaration is true: where the
+    solve's clocks agree with them and predict no better, the trajectories are refined on them (a real triggered bat
+    rig: one camera's recovered clock was 0.36 frame off, within the agreement's tolerance, and kept before)."""
+    cameras = _cameras(phones, {})
+    for video in cameras.videos:
+        video.clock_declared = True
+    estimated = solve(_cameras(phones, {}), phones / "tracks.csv", SolveOptions(recording=None))
+    declared = solve(cameras, phones / "tracks.csv", SolveOptions(recording=None))
+    assert declared.report["clocks"]["registration_check"]["agree"]
+    entry = declared.temporal.report[PATH]
+    assert entry["declared"] and entry["kept"] == "registered" and entry["criterion"] == "heldout_px"
+    assert (
+        declared.temporal.report["path"] == PATH
+        and "agree with the declared clock offsets" in (declared.temporal.report["reason"])
+    )
+    truth = json.loads((phones / "clocks_truth.json").read_text())
+    true_offsets = {v["name"]: v["offset_s"] for v in truth["videos"]}
+    reference = declared.temporal.clocks.reference
+    for clock in declared.temporal.clocks.videos:  # exactly the declared offsets, in the clocks' gauge
+        assert clock.offset == pytest.approx(true_offsets[clock.name] - true_offsets[reference], abs=1e-12)
+    truth_points = truth_array(declared.problem, read_points(phones / "truth.csv"))
+    assert _error_mm(declared.temporal.points, truth_points) <= _error_mm(estimated.temporal.points, truth_points)
+
+
+def test_declared_offsets_that_predict_clearly_worse_leave_the_solve(
+    phones: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import reconstruct.registered_offsets as module
+
+    cameras = _cameras(phones, {})
+    for video in cameras.videos:
+        video.clock_declared = True
+    # the solve's clocks predicting every video's rays at half the declared offsets' error
+    monkeypatch.setattr(module, "_compared", lambda *args: (2.0, 1.0, "declared 2 px against the solve's 1 px"))
+    checked = solve(cameras, phones / "tracks.csv", SolveOptions(recording=None))
+    entry = checked.temporal.report[PATH]
+    assert entry["declared"] and entry["kept"] == "solve"
+    assert checked.temporal.report["path"] != PATH
+
+
 def test_kept_offsets_rebuild_the_tracks_paths_w(phones: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """On the tracks path W comes from the clocks, so the trust measures need W from the clocks that were kept."""
     import reconstruct.stage as stage

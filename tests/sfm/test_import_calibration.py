@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -85,8 +86,15 @@ def test_known_clock_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, -0.25]
     assert main([*args, "--offsets", "cam2=0.5"]) == 0  # a video left out gets none
     assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [None, 0.5]
+    assert [v.clock_declared for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [False, True]
     assert main([*args, "--synchronized"]) == 0
     assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, 0.0]
+    assert all(v.clock_declared for v in read_cameras(tmp_path / "ws" / "cameras.json").videos)
+    document = json.loads((tmp_path / "ws" / "cameras.json").read_text())
+    document["videos"][0]["clock_declared"] = "yes"
+    (tmp_path / "ws" / "cameras.json").write_text(json.dumps(document))
+    with pytest.raises(InputError, match='"clock_declared" must be true or false'):
+        read_cameras(tmp_path / "ws" / "cameras.json")
     capsys.readouterr()
     assert main([*args, "--offsets", "cam3=0.1"]) == 2
     assert "--offsets names video 'cam3', which is not among the videos (cam1, cam2)" in capsys.readouterr().err

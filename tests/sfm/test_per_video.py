@@ -174,16 +174,17 @@ def test_a_declared_clock_goes_into_cameras_json_when_the_subject_path_found_non
     pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0, 0, 1])), np.zeros(3))
     results = {"cam0": {f: FramePose(pose=pose, source="static", intrinsics=(K, None)) for f in range(7)}}
     points = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-    for n, (declared, subject, expected) in enumerate(
+    for n, (declared, subject, expected, as_declared) in enumerate(
         (
-            ({"cam0": 0.0}, None, 0.0),
-            ({"cam0": -0.125}, None, -0.125),
-            (None, None, None),
-            ({"cam0": 0.0}, {"cameras": [{"name": "cam0", "offset_s": 0.25}]}, 0.25),
+            ({"cam0": 0.0}, None, 0.0, True),
+            ({"cam0": -0.125}, None, -0.125, True),
+            (None, None, None, False),
+            ({"cam0": 0.0}, {"cameras": [{"name": "cam0", "offset_s": 0.25}]}, 0.25, False),  # an estimate
         )
     ):
         path = _export([plan], results, points, subject, {}, tmp_path / str(n), declared)
         assert read_cameras(path).videos[0].clock_offset == expected
+        assert read_cameras(path).videos[0].clock_declared is as_declared
 
 
 def test_a_camera_motion_the_motion_test_contradicts_is_kept_and_warned(

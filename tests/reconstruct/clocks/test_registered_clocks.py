@@ -55,4 +55,4 @@ def test_a_wrong_registered_offset_is_named(phones: Path, tmp_path: Path, caplog
     assert not check["agree"]
     by_video = {v["video"]: v for v in check["videos"]}
     assert not by_video["cam2"]["agree"] and abs(abs(by_video["cam2"]["difference_s"]) - 0.5) < 0.05
-    assert "disagree with the offsets registration found" in caplog.text
+    assert "disagree with registration's offsets" in caplog.text
