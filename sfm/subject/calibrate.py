@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 from typing import NoReturn
 
 import numpy as np
@@ -225,19 +226,21 @@ def _fit_pairs(
                 if obs[a].name in claimed and obs[b].name in claimed:
                     shift = claimed[obs[a].name] - claimed[obs[b].name]
                     fit = _tested_claim(obs, fit, shift, inlier_px, options.max_offset)
-            log.info(
-                "pair %s-%s: offset %.3f s, %d/%d inliers, ratio %.2f, %s %s",
-                obs[a].name,
-                obs[b].name,
-                -fit.shift,
-                fit.inliers,
-                fit.shared,
-                fit.runner_up_ratio,
-                fit.degenerate,
-                fit.reason or "",
-            )
+            log.info("pair %s-%s: %s", obs[a].name, obs[b].name, _pair_words(fit))
             fits.append(fit)
     return fits
+
+
+def _pair_words(fit: PairFit) -> str:
+    """One pair's fit for the log: offset, inliers, and the runner-up ratio and degeneracy only where they apply."""
+    words = [f"offset {-fit.shift:.3f} s", f"{fit.inliers}/{fit.shared} inliers"]
+    if math.isfinite(fit.runner_up_ratio):
+        words.append(f"runner-up ratio {fit.runner_up_ratio:.2f}")
+    if fit.degenerate:
+        words.append(f"degenerate: {fit.degenerate}")
+    if fit.reason:
+        words.append(fit.reason)
+    return ", ".join(words)
 
 
 def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_px: float, max_offset: float) -> PairFit:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 
@@ -245,3 +248,29 @@ def test_the_declared_clock_decision(
     kept = calibrate._tested_claim([Video(), Video()], fit(*searched), 0.0, 3.0, 10.0)  # type: ignore[list-item]
     assert kept.claim is not None and kept.claim.startswith(claim), kept.claim
     assert kept.shift == (-declared[0] if claim == "held" else -searched[0])
+
+
+def test_a_pair_logs_only_the_measures_that_apply() -> None:
+    """A pair at a known offset has no runner-up: its log line said 'ratio nan, None' (a user's report, 2026-11-30)."""
+    from sfm.subject.calibrate import _pair_words
+    from sfm.subject.pairs import PairFit
+
+    empty = np.zeros((0, 2))
+    known = PairFit(
+        a=0,
+        b=1,
+        shift=-0.25,
+        inliers=727,
+        shared=735,
+        runner_up_ratio=math.nan,
+        degenerate=None,
+        xa=empty,
+        xb=empty,
+        E=None,
+        focals=(math.nan, math.nan),
+    )
+    assert _pair_words(known) == "offset 0.250 s, 727/735 inliers"
+    searched = dataclasses.replace(known, runner_up_ratio=2.345, degenerate="line", reason="too few inliers")
+    assert _pair_words(searched) == (
+        "offset 0.250 s, 727/735 inliers, runner-up ratio 2.35, degenerate: line, too few inliers"
+    )
