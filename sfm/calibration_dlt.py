@@ -32,6 +32,7 @@ from dynrecon.readers import read_text
 from tracking.pixels import DltPixels
 
 log = logging.getLogger(__name__)
+_PROFILE_SAID: set[str] = set()  # files whose profile beside them was pointed out
 
 COEFFICIENTS = 11
 PLANAR_COEFFICIENTS = 8  # DLTdv 8.4's 2D DLT: a plane, not a camera
@@ -289,10 +290,12 @@ def dlt_cameras(
     else:
         distortion = [np.zeros(5)] * len(decomposed)
         beside = _profile_beside(path)
-        if beside is not None:
+        if beside is not None and str(path) not in _PROFILE_SAID:  # registration reads the file in several steps
+            _PROFILE_SAID.add(str(path))
             log.warning(
                 "%s: a camera profile lies beside it (%s): DLT coefficients are for undistorted pixels, and the "
-                "points are not; give --profile %s to model the lenses",
+                "points are not; give import-calibration --profile %s (run: --calibration-profile) to model the "
+                "lenses (for --intrinsics, give the cameras.json that import writes)",
                 path,
                 beside.name,
                 beside,

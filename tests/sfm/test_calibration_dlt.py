@@ -188,4 +188,7 @@ def test_a_camera_profile_gives_the_lenses(tmp_path: Path, pixels: DltPixels, ca
         np.testing.assert_allclose(found.reshape(-1, 2), expected, atol=1e-6)
     caplog.clear()
     assert main([*args, "--out", str(tmp_path / "plain")]) == 0
-    assert "give --profile" in caplog.text
+    assert "give import-calibration --profile" in caplog.text and "(run: --calibration-profile)" in caplog.text
+    caplog.clear()  # once per file: registration reads it in several steps (it was said 8 times in one run)
+    assert main([*args, "--out", str(tmp_path / "again")]) == 0
+    assert "profile lies beside it" not in caplog.text
