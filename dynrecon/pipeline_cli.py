@@ -32,6 +32,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
     from dynrecon.pipeline import default_register
+    from sfm.options import CameraMotion
     from tracking.options import TrackOptions
 
     parser = subparsers.add_parser(
@@ -84,6 +85,12 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="ChArUco board file (charuco.toml) seen in the videos: intrinsics and scale of the static videos "
         "posed from the subject; without --tracks or labels its corners found in the videos are the tracks",
+    )
+    parser.add_argument(
+        "--camera-motion",
+        choices=[m.value for m in CameraMotion],
+        default=CameraMotion.AUTO.value,
+        help="registration: auto (measured per video), or static / moving for every video",
     )
     add_calibration_arguments(
         parser,
@@ -186,6 +193,7 @@ def _run(args: argparse.Namespace) -> int:
 def pipeline_options(args: argparse.Namespace) -> PipelineOptions:
     """`dynrecon run`'s parsed flags as the pipeline's options (a lab calibration replaces register's clock flags)."""
     from dynrecon.pipeline import PipelineOptions, default_register
+    from sfm.options import CameraMotion
     from sfm.register_cli import parse_scale
     from tracking.options import TrackOptions
 
@@ -199,6 +207,7 @@ def pipeline_options(args: argparse.Namespace) -> PipelineOptions:
         board=args.board,
         synchronized=args.synchronized and args.calibration is None,
         offsets=args.offsets if args.calibration is None else {},
+        camera_motion=CameraMotion(args.camera_motion),
     )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)
     options = PipelineOptions(

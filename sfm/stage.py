@@ -625,7 +625,7 @@ def _moving_hint(
     reasons = "; ".join(f"{v.info.name}: {v.motion.reason}" for v in lost if v.motion is not None)
     return (
         f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and not posed; the subject path "
-        "poses static cameras only: if they stood still, register again with --camera-motion static"
+        "poses static cameras only: if they stood still, register (or run) again with --camera-motion static"
     )
 
 

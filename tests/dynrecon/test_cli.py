@@ -97,6 +97,17 @@ def test_run_passes_known_offsets_to_register_or_to_the_calibration_import() -> 
     assert calibrated.register.offsets == {} and calibrated.calibration_options.offsets == {"cam1": 0.0, "cam2": 0.1}
 
 
+def test_run_takes_registers_camera_motion() -> None:
+    """register's hint for a tripod measured as moving names --camera-motion static, which run lacked."""
+    from dynrecon.pipeline_cli import pipeline_options
+    from sfm.options import CameraMotion
+
+    base = ["run", "cam1.mp4", "cam2.mp4", "--out", "ws"]
+    assert pipeline_options(cli.build_parser().parse_args(base)).register.camera_motion is CameraMotion.AUTO
+    static = cli.build_parser().parse_args([*base, "--camera-motion", "static"])
+    assert pipeline_options(static).register.camera_motion is CameraMotion.STATIC
+
+
 def test_a_second_writer_of_one_folder_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two processes writing one --out mixed their files, each told it succeeded: the second is refused."""
     from dynrecon.lock import OUTPUT_LOCK_NAME, OutputLock

@@ -156,7 +156,7 @@ def test_a_tracked_video_found_moving_and_left_unposed_is_named_with_the_way_out
     tracks = Tracks.from_rows([("cam0", 0, "corner_0", 1.0, 2.0)])
     hint = _moving_hint([plan], [], tracks, RegisterOptions())
     assert hint is not None and hint.startswith("cam0 measured as moving (cam0: moved)")
-    assert hint.endswith("register again with --camera-motion static")
+    assert hint.endswith("register (or run) again with --camera-motion static")
     assert _moving_hint([plan], [], tracks, RegisterOptions(camera_motion=CameraMotion.MOVING)) is None
     assert _moving_hint([plan], [plan], tracks, RegisterOptions()) is None
     assert _moving_hint([plan], [], Tracks.from_rows([("cam1", 0, "a", 1.0, 2.0)]), RegisterOptions()) is None
