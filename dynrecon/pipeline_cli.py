@@ -180,13 +180,19 @@ def calibration_options(args: argparse.Namespace) -> ImportCalibrationOptions:
 
 def _run(args: argparse.Namespace) -> int:
     from dynrecon.pipeline import run_stages
+    from dynrecon.warnings_seen import warnings_seen
 
     options = pipeline_options(args)
-    result = run_stages(args.videos, args.out, options)
+    with warnings_seen() as seen:
+        result = run_stages(args.videos, args.out, options)
     for stage in result.stages:
         print(f"{stage.name:9s} {'skipped (up to date)' if stage.skipped else f'{stage.seconds:.1f} s'}")  # noqa: T201
     if (result.workspace / "recording.rrd").is_file():
         print(f"open the recording with: rerun {result.workspace / 'recording.rrd'}")  # noqa: T201
+    if seen.messages and not args.quiet:  # with -q the warnings were all there was to read
+        print(f"{len(seen.messages)} warning(s) in the log above, once each:")  # noqa: T201
+        for message in seen.messages:
+            print(f"  - {message}")  # noqa: T201
     return 0
 
 
