@@ -5,13 +5,17 @@ object: 26 px median, 94 % of the points unflagged).
 
 The measure: the written points' median reprojection error over the observed points; where the self-expressive
 solve is the output (its points lie on their rays by construction), its median self-expression residual in pixels
-instead. Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and
-report.json `fit` says which measure and how far.
+instead. Refined trajectories may bend through every ray (one point seen by one video per instant: a flight with
+two cameras of another session fits its rays to 0.007 px), so there the larger of that and the trajectories' error
+predicted for an unseen ray (GCV, `trajectory.predicted_px`: 21 px on that flight) is judged. Above `WARN_PX` (or
+`WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and report.json `fit` says which measure
+and how far.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -26,9 +30,12 @@ WARN_PX = 10.0  # real captures with their own cameras fit within 0.3-3.2 px (do
 WARN_DIAGONAL = 0.005  # ... or this share of the image diagonal, if larger
 
 
-def check_fit(problem: Problem, points: np.ndarray, trust: Trust, refined: bool) -> dict[str, Any]:
-    """report.json `fit`: the median miss of the written `points (F, P, 3)` against the observations (`refined`),
-    or the seed solve's median self-expression residual (not refined), and whether it exceeds the limit."""
+def check_fit(
+    problem: Problem, points: np.ndarray, trust: Trust, refined: bool, predicted: float | None = None
+) -> dict[str, Any]:
+    """report.json `fit`: the median miss of the written `points (F, P, 3)` against the observations (`refined`;
+    where `predicted`, the refined trajectories' error predicted for an unseen ray, is larger, that), or the seed
+    solve's median self-expression residual (not refined), and whether it exceeds the limit."""
     observed = problem.observed & np.isfinite(points).all(axis=-1)
     if refined:
         focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -42,7 +49,11 @@ def check_fit(problem: Problem, points: np.ndarray, trust: Trust, refined: bool)
         return {"measure": measure, "median_px": None, "limit_px": None, "fits": None}
     diagonal = float(np.median(2.0 * np.hypot(problem.K[:, 0, 2], problem.K[:, 1, 2])))  # principal points ~ centre
     limit = max(WARN_PX, WARN_DIAGONAL * diagonal)
-    median = float(np.median(values))
+    median = reprojection = float(np.median(values))
+    bent = refined and predicted is not None and math.isfinite(predicted) and predicted > reprojection
+    if bent:
+        median = float(predicted)  # type: ignore[arg-type]
+        measure = "error the trajectories predict for an unseen ray (GCV, median over points), above their reprojection"
     per_video = {
         name: float(np.median(px[(problem.video_index == v)[:, None] & observed & np.isfinite(px)]))
         for v, name in enumerate(problem.video_names)
@@ -50,18 +61,21 @@ def check_fit(problem: Problem, points: np.ndarray, trust: Trust, refined: bool)
     }
     if median > limit:
         log.warning(
-            "the written points miss the tracks by a median of %.1f px (over %.0f px; %s): the cameras may not be this "
+            "the %s miss the tracks by a median of %.1f px (over %.0f px%s): the cameras may not be this "
             "capture's (another session's calibration, another image size, a mirrored world, or given to the wrong "
             "videos: import-calibration matches cameras to videos by order where their names differ) or the tracks "
             "follow another subject; the trust flag, relative to the capture's own medians, does not show this",
+            "trajectories predicted for an unseen ray" if bent else "written points",
             median,
             limit,
-            ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),
+            "" if bent else "; " + ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),
         )
     return {
         "measure": measure,
         "median_px": median,
-        "p90_px": float(np.percentile(values, 90)),
+        "reprojection_px": reprojection if refined else None,
+        "predicted_px": float(predicted) if refined and predicted is not None and math.isfinite(predicted) else None,
+        "p90_px": None if bent else float(np.percentile(values, 90)),  # GCV gives no distribution over rays
         "per_video_px": per_video,
         "limit_px": limit,
         "fits": median <= limit,

@@ -40,6 +40,7 @@ from reconstruct.time_checks import Check, TimePath
 from reconstruct.tracks_path import FEW_POINTS, TracksAttempt, clocks_seed, solve_on_given_clocks, solve_on_tracks
 from reconstruct.tracks_path import applies as tracks_path_applies
 from reconstruct.tracks_path import refereed as tracks_path_refereed
+from reconstruct.trajectory import predicted_px
 from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
@@ -213,7 +214,8 @@ def solve(
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()
     refined = temporal.report.get("path") not in (None, "seed")
-    report["fit"] = check_fit(problem, temporal.points, trust, refined)
+    predicted = predicted_px(temporal.trajectories) if temporal.trajectories is not None else None
+    report["fit"] = check_fit(problem, temporal.points, trust, refined, predicted)
     report["rejected_observations"] = rejected.to_json()
     points, frames_sequencing = frame_points(problem, result, temporal, trust), sequencing(problem, result, temporal)
     report["timings"]["outputs"] = time.perf_counter() - t0
