@@ -50,7 +50,16 @@ from dynrecon.names import first_repeated, spelled_alike, within_name
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.calibration_dlt import dlt_cameras, is_dlt
-from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
+from sfm.cameras import (
+    DIST_FORMS,
+    DIST_SHAPES,
+    CameraSet,
+    FrameCamera,
+    VideoCameras,
+    check_plausible,
+    read_cameras,
+    write_cameras,
+)
 from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units, declared_offsets
 from sfm.video import ProbedVideo, probe_video
 from sfm.video_standin import stand_in_videos, with_size
@@ -326,9 +335,15 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
         try:
             dist = np.asarray(section.get("distortions", [0.0, 0.0, 0.0, 0.0]), dtype=float).ravel()
         except (TypeError, ValueError, OverflowError):
-            raise InputError(path, '"distortions" must be 4 or 5 numbers', where=where) from None
-        if dist.shape not in ((4,), (5,)):
-            raise InputError(path, f'"distortions" has {dist.size} values, expected 4 or 5', where=where)
+            raise InputError(path, '"distortions" must be 4, 5 or 8 numbers', where=where) from None
+        if dist.shape not in DIST_SHAPES:
+            raise InputError(
+                path,
+                f'"distortions" has {dist.size} values, expected 4, 5 or 8 (OpenCV\'s {DIST_FORMS})',
+                where=where,
+                fix="undistort the tracks first and give zero distortion, or calibrate with OpenCV's 4, 5 or 8 "
+                "coefficients",
+            )
         R: np.ndarray | None = None
         t: np.ndarray | None = None
         if "rotation" in section or "translation" in section:

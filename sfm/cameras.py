@@ -27,7 +27,10 @@ ROTATION_TOLERANCE = 1e-5
 FOCAL_RANGE_PX = (1.0, 1e6)  # fx, fy: below 1 px is a field of view near 180 degrees at any image size
 MAX_PRINCIPAL_PX = 1e6  # |cx|, |cy| and the skew
 MAX_TRANSLATION = 1e9  # each |t| component, world units (1000 km in mm)
-MAX_DISTORTION = 1e3  # |k1|, |k2|, |p1|, |p2|, |k3|
+MAX_DISTORTION = 1e3  # |k1|, |k2|, |p1|, |p2|, |k3|, ...
+# OpenCV's distortion vectors read: 4 or 5 coefficients, or 8 of its rational model (CALIB_RATIONAL_MODEL)
+DIST_SHAPES = ((4,), (5,), (8,))
+DIST_FORMS = "[k1, k2, p1, p2], [k1, k2, p1, p2, k3] or [k1, k2, p1, p2, k3, k4, k5, k6]"
 MAX_SECONDS = 1e10  # |time| and |clock_offset|: Unix epoch times fit (about 1.8e9 s today), 1e300 does not
 # Times per frame this many times off the video's fps: warned (a timelapse's real capture times, frame numbers given
 # as times), and refused within MILLISECONDS of 1000x (times in milliseconds).
@@ -257,8 +260,8 @@ def _frame_from_json(fdata: Any, path: Path | None, where: str) -> FrameCamera:
             dist_array = np.asarray(dist, dtype=float) if isinstance(dist, list) else None
         except (TypeError, ValueError, OverflowError):
             dist_array = None
-        if dist_array is None or dist_array.shape not in ((4,), (5,)) or not np.all(np.isfinite(dist_array)):
-            raise InputError(path, '"dist" must be [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]', where=where)
+        if dist_array is None or dist_array.shape not in DIST_SHAPES or not np.all(np.isfinite(dist_array)):
+            raise InputError(path, f'"dist" must be {DIST_FORMS}', where=where)
         dist = dist_array
     return FrameCamera(
         frame=number,

@@ -11,12 +11,12 @@ import pycolmap
 from dynrecon.atomic import atomic_open
 from sfm.frames import Resize
 
-# COLMAP model name -> how its params map to OpenCV (fx, fy, cx, cy) and dist [k1, k2, p1, p2(, k3)].
+# COLMAP model name -> how its params map to OpenCV (fx, fy, cx, cy) and dist [k1, k2, p1, p2(, k3(, k4, k5, k6))].
 SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 
 def opencv_intrinsics(camera: pycolmap.Camera, resize: Resize) -> tuple[np.ndarray, np.ndarray | None]:
-    """(K (3, 3), dist (4,)/(5,) or None) in the original video's pixels, OpenCV pixel convention.
+    """(K (3, 3), dist (4,)/(5,)/(8,) or None) in the original video's pixels, OpenCV pixel convention.
 
     COLMAP puts the centre of the top-left pixel at (0.5, 0.5), OpenCV at (0, 0); and SfM ran on frames
     resized
@@ -40,11 +40,9 @@ def opencv_intrinsics(camera: pycolmap.Camera, resize: Resize) -> tuple[np.ndarr
     elif model == "OPENCV":
         fx, fy, cx, cy = p[:4]
         dist = p[4:8].copy()
-    elif model == "FULL_OPENCV":
+    elif model == "FULL_OPENCV":  # k1, k2, p1, p2, k3, k4, k5, k6: OpenCV's rational model, in its order
         fx, fy, cx, cy = p[:4]
-        if np.any(p[9:12] != 0):
-            raise ValueError("FULL_OPENCV with k4..k6 != 0 does not fit cameras.json's 5 coefficients")
-        dist = p[[4, 5, 6, 7, 8]].copy()
+        dist = p[4:12].copy() if np.any(p[9:12] != 0) else p[4:9].copy()
     else:
         raise ValueError(f"camera model {model} is not supported; use one of {', '.join(SUPPORTED_MODELS)}")
     s = resize.scale
@@ -58,9 +56,9 @@ def colmap_params(K: np.ndarray, dist: np.ndarray | None, resize: Resize) -> tup
     s = resize.scale
     fx, fy = K[0, 0] * s, K[1, 1] * s
     cx, cy = (K[0, 2] + 0.5) * s, (K[1, 2] + 0.5) * s
-    d = np.zeros(5) if dist is None else np.concatenate([np.asarray(dist, float), np.zeros(5)])[:5]
-    if d[4] != 0:
-        return "FULL_OPENCV", [fx, fy, cx, cy, *d[:5], 0.0, 0.0, 0.0]
+    d = np.zeros(8) if dist is None else np.concatenate([np.asarray(dist, float), np.zeros(8)])[:8]
+    if np.any(d[4:] != 0):
+        return "FULL_OPENCV", [fx, fy, cx, cy, *d]
     return "OPENCV", [fx, fy, cx, cy, *d[:4]]
 
 

@@ -97,7 +97,8 @@ def project(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Project world points with OpenCV's model (and distortion) in pixels.
 
-    X: (F, P, 3); K, R: (F, 3, 3); t: (F, 3); dist: (F, 5) k1, k2, p1, p2, k3 or None.
+    X: (F, P, 3); K, R: (F, 3, 3); t: (F, 3); dist: (F, 4), (F, 5) or (F, 8): k1, k2, p1, p2, k3, k4, k5, k6
+    (OpenCV's rational model), or None.
     Returns uv (F, P, 2) and in_front (F, P) bool (depth > 0 and finite).
     """
     Xc = np.einsum("fij,fpj->fpi", R, X) + t[:, None, :]
@@ -107,9 +108,10 @@ def project(
         x = Xc[..., 0] / z
         y = Xc[..., 1] / z
     if dist is not None:
-        k1, k2, p1, p2, k3 = (dist[:, i, None] for i in range(5))
+        dist = np.pad(dist, ((0, 0), (0, 8 - dist.shape[1])))  # 4 or 5 coefficients: the rest are 0
+        k1, k2, p1, p2, k3, k4, k5, k6 = (dist[:, i, None] for i in range(8))
         r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
         x, y = (
             x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
             y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
@@ -259,7 +261,7 @@ def log_reprojection(
         t = np.array([c.t for c in frame_cams], dtype=float)
         dist = None
         if any(c.dist is not None for c in frame_cams):
-            dist = np.zeros((len(rows), 5))
+            dist = np.zeros((len(rows), 8))
             for j, c in enumerate(frame_cams):
                 if c.dist is not None:
                     dist[j, : len(c.dist)] = c.dist

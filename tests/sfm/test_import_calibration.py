@@ -479,6 +479,23 @@ def test_a_principal_point_outside_its_own_calibrated_image_is_warned_about(
     np.testing.assert_array_equal(read_cameras(tmp_path / "ws" / "cameras.json").videos[0].frames[0].K, K)
 
 
+def test_opencvs_rational_lens_model_is_read(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Eight distortion coefficients (OpenCV's CALIB_RATIONAL_MODEL; multiview_calib's drone rig) were refused; they
+    go into cameras.json as they are. Six are no OpenCV model: refused, saying what to do."""
+    K = np.array([[200.0, 0.0, 63.5], [0.0, 202.0, 47.5], [0.0, 0.0, 1.0]])
+    rational = np.array([0.9, 0.2, 0.001, -0.002, 0.01, 1.1, 0.3, 0.02])
+    camera = StaticCamera(name="cam_1", width=128, height=96, K=K, dist=rational, R=np.eye(3), t=np.zeros(3))
+    toml = write_toml(tmp_path / "calib.toml", [camera])
+    video = tmp_path / "cam1.mp4"
+    _write_video(video, 3, (128, 96))
+    assert main(["import-calibration", str(toml), str(video), "--out", str(tmp_path / "ws")]) == 0
+    np.testing.assert_allclose(read_cameras(tmp_path / "ws" / "cameras.json").videos[0].frames[0].dist, rational)
+    toml.write_text(toml.read_text().replace("0.02,", "").replace("0.3,", ""))  # six coefficients left
+    assert main(["import-calibration", str(toml), str(video), "--out", str(tmp_path / "ws6")]) == 2
+    err = capsys.readouterr().err
+    assert '"distortions" has 6 values, expected 4, 5 or 8' in err and "undistort the tracks first" in err
+
+
 def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A portrait video of a camera calibrated in landscape (or the reverse): `register --intrinsics` estimates
     that video's intrinsics instead of using a K that does not fit it, and `import-calibration`, whose poses would

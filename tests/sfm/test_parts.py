@@ -84,6 +84,32 @@ def test_intrinsics_conversion_round_trip() -> None:
     np.testing.assert_allclose(dist3, [0.01, 0, 0, 0])
 
 
+def test_opencvs_rational_model_converts_both_ways_and_projects_alike() -> None:
+    """Eight coefficients (OpenCV's CALIB_RATIONAL_MODEL, which multiview_calib writes) are COLMAP's FULL_OPENCV in
+    the same order; dynrecon's own projection (the recording's) and its rays agree with OpenCV's."""
+    import cv2
+
+    from reconstruct.outputs.recording_parts import project
+    from reconstruct.solver.rays import normalized_image_points
+
+    resize = Resize(scale=0.5, width=960, height=540)
+    K = np.array([[1500.0, 0.0, 955.3], [0.0, 1490.0, 541.2], [0.0, 0.0, 1.0]])
+    dist = np.array([2.1, 1.3, 0.001, -0.002, 0.05, 2.3, 1.9, 0.2])  # rational: large k1 and k4 cancel
+    model, params = colmap_params(K, dist, resize)
+    assert model == "FULL_OPENCV"
+    camera = pycolmap.Camera(model=model, width=960, height=540, params=params)
+    K2, dist2 = opencv_intrinsics(camera, resize)
+    np.testing.assert_allclose(K2, K, atol=1e-9)
+    np.testing.assert_allclose(dist2, dist)
+    points = np.array([[0.3, -0.2, 2.0], [-0.5, 0.25, 1.5], [0.05, 0.02, 3.0]])
+    opencv_px = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    np.testing.assert_allclose(camera.img_from_cam(points), (opencv_px + 0.5) * 0.5, atol=1e-7)
+    ours, in_front = project(points[None], K[None], np.eye(3)[None], np.zeros((1, 3)), dist[None])
+    assert in_front.all()
+    np.testing.assert_allclose(ours[0], opencv_px, atol=1e-7)
+    np.testing.assert_allclose(normalized_image_points(opencv_px, K, dist), points[:, :2] / points[:, 2:], atol=1e-6)
+
+
 def test_user_masks_are_checked(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="masks folder not found"):
         check_mask_folder(tmp_path / "nonexist", ["cam0"])
