@@ -108,6 +108,7 @@ __all__ = [
     "Tracker",
     "align_to_truth",
     "default_register",
+    "export_points",
     "export_rate",
     "file_hash",
     "import_registration",
@@ -594,7 +595,7 @@ class Stages:
             files,
             {"units": units},
             [ws / "points.trc", ws / "points.c3d"],
-            lambda: _export(ws, registration.cameras, units),
+            lambda: export_points(ws, registration.cameras, units),
         )
 
     def finish(
@@ -687,7 +688,8 @@ def triggered_rate(times: np.ndarray, videos: list[str]) -> float | None:
     for v, mine in own.items():
         others = np.sort(np.concatenate([t for u, t in own.items() if u != v]))
         together += int(np.sum(nearest_gap(others, mine) <= tolerance))
-    return 1.0 / float(np.nanmin(periods)) if together >= 0.9 * int(known.sum()) else None
+    # rounded: a rate from decoder times (799.9999999999993 Hz) is written into the exports' headers
+    return round(1.0 / float(np.nanmin(periods)), 6) if together >= 0.9 * int(known.sum()) else None
 
 
 def export_rate(cameras: CameraSet, frames: int) -> float:
@@ -753,7 +755,10 @@ def _world_units(options: PipelineOptions, registration: Registration) -> str:
     return "m" if subject.get("units") == "m" else "mm"
 
 
-def _export(ws: Path, cameras_path: Path, units: str) -> None:
+def export_points(ws: Path, cameras_path: Path, units: str) -> None:
+    """WS/points.trc and points.c3d from a solve's WS/points3d.csv and sequencing.json on `cameras_path`: the
+    `export` stage, and `dynrecon export` (a solve without videos, e.g. a calibration and tracks shared without
+    them). `units`: the cameras' world unit, the exports' label."""
     points = measured_only(read_points(ws / "points3d.csv"))  # once here: the writers then find nothing to say
     cameras = read_cameras(cameras_path)
     sequencing = read_sequencing(ws / "sequencing.json")

@@ -22,12 +22,48 @@ if TYPE_CHECKING:
 COMMANDS = {
     "demo": "run the whole job on the embedded video sample and score it",
     "run": "videos in, 3D motion out: register, track, solve, record, export",
+    "export": "a solve's points3d.csv as TRC and C3D files (what run exports), e.g. after a solve without videos",
 }
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     _add_demo(subparsers)
     _add_run(subparsers)
+    _add_export(subparsers)
+
+
+def _add_export(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "export",
+        help=COMMANDS["export"],
+        description="Write SOLVED/points.trc and SOLVED/points.c3d from the points3d.csv and sequencing.json that "
+        "`dynrecon solve --out SOLVED` wrote, ordered and timed as `dynrecon run` exports them.",
+    )
+    parser.add_argument("solved", type=Path, metavar="SOLVED", help="the folder `dynrecon solve` wrote")
+    parser.add_argument("--cameras", type=Path, required=True, help="the cameras.json the solve used")
+    parser.add_argument(
+        "--units",
+        required=True,
+        help="the cameras' world unit, written as the exports' unit: m after import-calibration (times its "
+        "--scale) or register with --scale / --board; an SfM world without them has an arbitrary scale",
+    )
+    parser.set_defaults(func=_export_command)
+
+
+def _export_command(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
+    from dynrecon.pipeline import export_points
+
+    for path in (args.solved / "points3d.csv", args.solved / "sequencing.json", args.cameras):
+        if not path.is_file():
+            raise InputError(
+                path, "file not found", fix="give the folder `dynrecon solve --out` wrote, and its cameras"
+            )
+    if not args.units.strip():
+        raise InputError(None, "--units is empty: give the cameras' world unit, e.g. m")
+    export_points(args.solved, args.cameras, args.units.strip())
+    print(f"wrote {args.solved / 'points.trc'} and {args.solved / 'points.c3d'}")  # noqa: T201
+    return 0
 
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
