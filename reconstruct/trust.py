@@ -87,6 +87,10 @@ class TrustOptions:
     not explain follows another subject, or its camera or clock is wrong, and every point of it is suspect.
     min_views: ... or fewer videos than this observe the point near the frame's time (`views`, reconstruct/views.py;
     0: not used): its position lies along one camera's rays, at a depth no second view measured.
+    reprojection_px, reprojection_relative: ... or the written point of an observed frame misses its own observation
+    by more than max(reprojection_px, reprojection_relative x median) pixels (reprojection_px 0: not used): refined
+    trajectories smooth through the rays, and where they cut a fast motion short (a bat's wing tips) the written
+    point leaves its ray, which the other measures, computed on the trajectories, do not see.
     """
 
     residual_px: float = 5.0
@@ -102,6 +106,8 @@ class TrustOptions:
     end_step_relative: float = 0.0
     video_relative: float = 3.0
     min_views: int = SINGLE_VIEW
+    reprojection_px: float = 0.0
+    reprojection_relative: float = 5.0
 
 
 class TrustPreset(enum.Enum):
@@ -268,6 +274,12 @@ def flag_rule(options: TrustOptions) -> str:
             else ""
         )
         + (f" or views < {options.min_views}" if options.min_views > 0 else "")
+        + (
+            f" or (observed and reprojection_px > max({options.reprojection_px:g}, {options.reprojection_relative:g} x "
+            "median reprojection_px))"
+            if options.reprojection_px > 0
+            else ""
+        )
         + "; medians over the solve's observed points"
     )
 
@@ -508,6 +520,7 @@ def trust_measures(
             "step_px": step_px,
             "video_end": end,
             "views": views,
+            "reprojection_px": reprojection_px,
         },
     )
     off = flag_off_videos(options, flag, reconstructed, problem.observed, residual_px, problem.video_index)
@@ -655,6 +668,10 @@ def flag_points(
         flag |= missing & (np.nan_to_num(measures["support"], nan=1.0) < options.min_support)
     if options.min_views > 0 and "views" in measures:  # a points3d.csv written before the column had none
         flag |= reconstructed & (np.nan_to_num(measures["views"], nan=np.inf) < options.min_views)
+    if options.reprojection_px > 0 and "reprojection_px" in measures:
+        reprojection = measures["reprojection_px"]
+        limits["reprojection_px"] = max(options.reprojection_px, options.reprojection_relative * median(reprojection))
+        flag |= observed & (np.nan_to_num(reprojection) > limits["reprojection_px"])
     if options.end_step_relative > 0:
         step_px = measures["step_px"]
         limits["step_px"] = options.end_step_relative * median(step_px)

@@ -49,7 +49,7 @@ from dynrecon.errors import InputError
 from dynrecon.names import first_repeated, spelled_alike, within_name
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
-from sfm.calibration_dlt import dlt_cameras, is_dlt
+from sfm.calibration_dlt import dlt_cameras, dlt_sizes, is_dlt
 from sfm.cameras import (
     DIST_FORMS,
     DIST_SHAPES,
@@ -460,10 +460,10 @@ def read_calibration(
     path = Path(path)
     if fmt is CalibrationFormat.AUTO:
         lower = path.name.lower()
-        if is_dannce(path):
-            fmt = CalibrationFormat.DANNCE
-        elif is_dlt(path):
+        if is_dlt(path):  # before DANNCE's .mat: easyWand's *_easyWandData.mat holds DLT coefficients
             fmt = CalibrationFormat.DLT
+        elif is_dannce(path):
+            fmt = CalibrationFormat.DANNCE
         elif lower.endswith(".toml"):
             fmt = CalibrationFormat.TOML
         elif lower.endswith(".json"):
@@ -487,9 +487,11 @@ def read_calibration(
             for c in read_dannce(path, mm=units is not Units.M)
         ]
     elif fmt is CalibrationFormat.DLT:
+        decomposed = dlt_cameras(path, pixels, profile)
+        sizes = dlt_sizes(path) or [(0, 0)] * len(decomposed)  # DLT text files give no size
         cameras = [
-            StaticCamera(name=name, width=0, height=0, K=K, dist=dist, R=R, t=t, cy_plus_height=up)
-            for name, K, R, t, up, dist in dlt_cameras(path, pixels, profile)
+            StaticCamera(name=name, width=w, height=h, K=K, dist=dist, R=R, t=t, cy_plus_height=up)
+            for (name, K, R, t, up, dist), (w, h) in zip(decomposed, sizes, strict=True)
         ]
         if units is Units.MM:
             for camera in cameras:

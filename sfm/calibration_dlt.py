@@ -29,6 +29,7 @@ import scipy.linalg
 
 from dynrecon.errors import InputError
 from dynrecon.readers import read_text
+from sfm.calibration_easywand import is_easywand, read_easywand
 from tracking.pixels import DltPixels
 
 log = logging.getLogger(__name__)
@@ -42,10 +43,16 @@ MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 def is_dlt(path: Path) -> bool:
     """A DLT coefficient file by its name: DLTdv / easyWand `*dltCoefs*`, Argus `*-dlt-coefficients*`, or a text
-    file with `dlt` in its name (a course's `dlt_all_cams.cal`)."""
+    file with `dlt` in its name (a course's `dlt_all_cams.cal`); or easyWand's own `*_easyWandData.mat`."""
     lower = path.name.lower()
     texts = (".cal", ".csv", ".txt", ".dat")
-    return "dltcoefs" in lower or ARGUS_NAME in lower or ("dlt" in lower and lower.endswith(texts))
+    named = "dltcoefs" in lower or ARGUS_NAME in lower or ("dlt" in lower and lower.endswith(texts))
+    return named or is_easywand(path)
+
+
+def dlt_sizes(path: Path) -> list[tuple[int, int]] | None:
+    """The image size (width, height) per camera where the file gives it (easyWand's .mat), else None."""
+    return read_easywand(path).sizes if is_easywand(path) else None
 
 
 def _number_rows(path: Path, *, headers: int | None) -> tuple[list[tuple[int, list[float]]], int]:
@@ -174,7 +181,7 @@ def choose_pixels(path: Path, coefficients: np.ndarray, pixels: DltPixels) -> Dl
     if pixels is not DltPixels.AUTO:
         return pixels
     lower = path.name.lower()
-    if "dltcoefs" not in lower and ARGUS_NAME not in lower:
+    if "dltcoefs" not in lower and ARGUS_NAME not in lower and not is_easywand(path):
         log.info(
             "%s: pixels read as OpenCV's (rows down from the top, from 0): no DLTdv / easyWand / Argus file name; "
             "--pixels to say otherwise",
@@ -254,7 +261,8 @@ def dlt_cameras(
     file's order. A mirrored world (left-handed axes) is turned into a right-handed one by negating its x axis,
     with a warning."""
     path = Path(path)
-    coefficients = read_dlt_coefficients(path)
+    wand = read_easywand(path) if is_easywand(path) else None
+    coefficients = wand.coefficients if wand is not None else read_dlt_coefficients(path)
     for number, row in enumerate(coefficients, start=1):
         M = dlt_matrix(row)[:, :3]
         if abs(np.linalg.det(M)) <= 1e-12 * np.linalg.norm(M) ** 3:  # no centre, no viewing direction
@@ -287,6 +295,9 @@ def dlt_cameras(
         decomposed = [(K, R @ MIRROR_X, t) for K, R, t in decomposed]
     if profile is not None:
         distortion = read_profile(profile, len(decomposed), pixels)
+    elif wand is not None and wand.lenses is not None:  # the lenses easyWand optimised, in its profile's columns
+        flip = -1.0 if pixels.from_bottom else 1.0
+        distortion = [np.array([k1, k2, flip * t1, t2, k3]) for k1, k2, t1, t2, k3 in wand.lenses]
     else:
         distortion = [np.zeros(5)] * len(decomposed)
         beside = _profile_beside(path)

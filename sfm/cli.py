@@ -36,7 +36,8 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
         help="calibration file (.qca.txt / .qca / .xml, or .toml: Pose2Sim/anipose/FreeMoCap [cam_N], "
         "caliscope [cameras.N] or [cam_N]; DANNCE/Label3D: a *_dannce.mat, or a folder of cam*_params.mat; or "
         "the cameras.json of another recording by the same static cameras, e.g. a board filmed before the session; "
-        "or DLT coefficients: DLTdv/easyWand *_dltCoefs.csv, Argus *-dlt-coefficients.csv)",
+        "or DLT coefficients: DLTdv/easyWand *_dltCoefs.csv, easyWand's *_easyWandData.mat, Argus "
+        "*-dlt-coefficients.csv)",
     )
     parser.add_argument(
         "videos",

@@ -192,3 +192,46 @@ def test_a_camera_profile_gives_the_lenses(tmp_path: Path, pixels: DltPixels, ca
     caplog.clear()  # once per file: registration reads it in several steps (it was said 8 times in one run)
     assert main([*args, "--out", str(tmp_path / "again")]) == 0
     assert "profile lies beside it" not in caplog.text
+
+
+@pytest.mark.parametrize("pixels", [DltPixels.DLTDV7, DltPixels.DLTDV8])
+def test_easywands_own_mat_file_reads_as_its_exported_coefficients_and_profile(
+    tmp_path: Path, pixels: DltPixels
+) -> None:
+    """easyWand's `*_easyWandData.mat` (the only calibration a real lab's repository held, 2026-11-30): its `coefs`,
+    its optimised lenses `nlin` and its image sizes give the cameras that its exported *_dltCoefs.csv and profile
+    give, without --size or --profile; a file without the coefficients is a one-line error."""
+    import scipy.io
+
+    Ks, Rs, ts = _rig()
+    table = np.stack([coefficients(K, R, t, pixels, HEIGHT) for K, R, t in zip(Ks, Rs, ts, strict=True)])
+    lens = np.array([[-0.3, 0.11, 0.004, -0.003, 0.0], [-0.2, 0.05, 0.0, 0.001, 0.01], [0.1, 0.0, 0.0, 0.0, 0.0]])
+    exported = write_dlt_columns(tmp_path / "wand_dltCoefs.csv", table)
+    profile = tmp_path / "wand_profile.txt"
+    rows = [f"{c + 1} 70 {WIDTH} {HEIGHT} 31.5 23.5 1 " + " ".join(map(str, lens[c])) for c in range(3)]
+    profile.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    mat = tmp_path / "wand_easyWandData.mat"
+    struct = {
+        "coefs": table.T,
+        "nlin": lens.ravel(),
+        "nlin_est": np.zeros(15),
+        "imageWidth": np.full(3, WIDTH, dtype=np.uint16),
+        "imageHeight": np.full(3, HEIGHT, dtype=np.uint16),
+        "nCams": 3,
+    }
+    scipy.io.savemat(mat, {"easyWandData": struct})
+    from_mat = read_calibration(mat)
+    from_csv = read_calibration(exported, profile=profile)
+    assert [(c.width, c.height) for c in from_mat] == [(WIDTH, HEIGHT)] * 3
+    for a, b in zip(from_mat, from_csv, strict=True):
+        np.testing.assert_allclose(a.K, b.K, atol=1e-9)
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-9)  # the CSV's 12 digits
+        np.testing.assert_allclose(a.dist, b.dist, atol=1e-15)
+        assert a.cy_plus_height == b.cy_plus_height
+    renamed = tmp_path / "session.mat"  # told by its variable, whatever its name
+    renamed.write_bytes(mat.read_bytes())
+    np.testing.assert_allclose(read_calibration(renamed)[1].K, from_mat[1].K)
+    scipy.io.savemat(tmp_path / "other_easyWandData.mat", {"easyWandData": {"wandLen": 0.8}})
+    with pytest.raises(InputError, match=r"easyWandData\.coefs is missing, not 11 x cameras"):
+        read_calibration(tmp_path / "other_easyWandData.mat")
