@@ -79,14 +79,8 @@ MIN_BOARD_CORNERS = 4  # caliscope truth: corners triangulated in a frame before
 PRESETS: dict[str, TrustOptions] = {
     "balanced": preset_options(TrustPreset.BALANCED),
     "sensitive (default)": preset_options(TrustPreset.SENSITIVE),
-    "sensitive + reprojection 5, 5x": dataclasses.replace(
-        preset_options(TrustPreset.SENSITIVE), reprojection_px=5.0, reprojection_relative=5.0
-    ),
-    "sensitive + reprojection 5, 4x": dataclasses.replace(
-        preset_options(TrustPreset.SENSITIVE), reprojection_px=5.0, reprojection_relative=4.0
-    ),
-    "sensitive + reprojection 8, 4x": dataclasses.replace(
-        preset_options(TrustPreset.SENSITIVE), reprojection_px=8.0, reprojection_relative=4.0
+    "sensitive without the reprojection test (before 2026-11-30)": dataclasses.replace(
+        preset_options(TrustPreset.SENSITIVE), reprojection_px=0.0
     ),
     "sensitive before issue 17": TrustOptions(
         residual_px=3.0, bound_px=15.0, relative=2.0, sequence_jump=12.0, smoothness_px=30.0, smoothness_relative=5.0

@@ -130,6 +130,8 @@ def preset_options(preset: TrustPreset) -> TrustOptions:
             smoothness_relative=5.0,
             min_support=0.1,
             end_step_relative=2.0,
+            reprojection_px=5.0,
+            reprojection_relative=5.0,
         )
     return TrustOptions()
 
