@@ -432,6 +432,13 @@ def check_plausible(
     for name, value in (("K", K), ("t", t), ("dist", dist)):
         if value is not None and not np.all(np.isfinite(value)):
             raise InputError(path, f'"{name}" contains NaN or infinity', where=where)
+    if abs(K[2, 2] - 1) > 1e-9 or np.any(np.abs(K[2, :2]) > 1e-12) or abs(K[1, 0]) > 1e-12:
+        raise InputError(
+            path,
+            f'"K" {np.asarray(K).tolist()} is not a camera matrix',
+            where=where,
+            fix="it must read [[fx, s, cx], [0, fy, cy], [0, 0, 1]]",
+        )
     low, high = FOCAL_RANGE_PX
     for name, focal in (("fx", K[0, 0]), ("fy", K[1, 1])):
         if not low <= focal < high:

@@ -429,15 +429,21 @@ def test_plausible_cameras_json_reads(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    "matrix", ["[[1e308, 0, 50], [0, 100, 50], [0, 0, 1]]", "[[0.5, 0, 50], [0, 0.5, 50], [0, 0, 1]]"]
+    ("matrix", "message"),
+    [
+        ("[[1e308, 0, 50], [0, 100, 50], [0, 0, 1]]", r"\"K\" fx"),
+        ("[[0.5, 0, 50], [0, 0.5, 50], [0, 0, 1]]", r"\"K\" fx"),
+        # a mutation sweep (2026-11-30): written to cameras.json, then refused naming that file, not the user's
+        ("[[100, 0, 50], [0, 100, 50], [0, 0, 1e30]]", r"\"K\" .* is not a camera matrix \(it must read"),
+    ],
 )
-def test_absurd_calibration_toml(tmp_path: Path, matrix: str) -> None:
+def test_absurd_calibration_toml(tmp_path: Path, matrix: str, message: str) -> None:
     path = tmp_path / "calib.toml"
     path.write_text(
         f'[cam_1]\nname = "a"\nsize = [100, 100]\nmatrix = {matrix}\ndistortions = [0, 0, 0, 0]\n'
         "rotation = [0, 0, 0]\ntranslation = [0, 0, 1]\n"
     )
-    with pytest.raises(InputError, match=r"calib\.toml:camera 'a': \"K\" fx"):
+    with pytest.raises(InputError, match=r"calib\.toml:camera 'a': " + message):
         read_calibration(path)
 
 
