@@ -6,10 +6,10 @@ object: 26 px median, 94 % of the points unflagged).
 The measure: the written points' median reprojection error over the observed points; where the self-expressive
 solve is the output (its points lie on their rays by construction), its median self-expression residual in pixels
 instead. Refined trajectories may bend through every ray (one point seen by one video per instant: a flight with
-two cameras of another session fits its rays to 0.007 px), so there the larger of that and the trajectories' error
-predicted for an unseen ray (GCV, `trajectory.predicted_px`: 21 px on that flight) is judged. Above `WARN_PX` (or
-`WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and report.json `fit` says which measure
-and how far.
+two cameras of another session fits its rays to a thousandth of a pixel), so there the larger of that and the
+trajectories' error predicted for an unseen ray (GCV, `trajectory.predicted_px`) is judged (docs/formats.md).
+Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and report.json `fit`
+says which measure and how far.
 """
 
 from __future__ import annotations

@@ -92,7 +92,7 @@ def prefer_registered_offsets(
     # a free-times refinement (also "unidentified") fits its rays better than any clock: nothing to try there
     seed_only = (bool(unidentified) or confirmed) and registered and not temporal.refined
     # declared offsets (a trigger, a timecode) the solve's refined clocks agree with: exact where true, an estimate
-    # is not (a real triggered rig: one camera's recovered clock 0.36 frame off, within the agreement's tolerance)
+    # is not (a real triggered rig's recovered clock was off within the agreement's tolerance: docs/refinement.md)
     declared = confirmed and temporal.refined and all_declared(cameras)
     if not disagree and not seed_only and not declared:
         return temporal

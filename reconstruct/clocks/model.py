@@ -347,7 +347,7 @@ class Clocks:
         the per-frame global times. `times` must be in the clocks' gauge (the reference video's global time = its
         own time). The uncertainties are widened by the move: two estimates of one clock (the tracks' or the links',
         and the trajectories' polish) that differ by more than the first one's standard deviation show it too small
-        (real rigs: a polish moved clocks 0.2-1 frame from estimates stated to 0.01-0.03 frame)."""
+        (measured on real rigs: docs/clocks.md)."""
         degree = self.model.refit_degree
         times = np.asarray(times, dtype=float)
         for v, clock in enumerate(self.videos):
