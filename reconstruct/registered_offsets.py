@@ -57,6 +57,8 @@ def registered_clocks(problem: Problem, cameras: CameraSet, clocks: Clocks) -> C
     if any(o is None or not math.isfinite(o) for o in offsets):
         return None
     reference = float(registered[clocks.reference])  # type: ignore[arg-type]
+    # declared offsets are exact as declared; registration's estimates carry no uncertainty of their own here
+    std = 0.0 if all_declared(cameras) else math.nan
     out = copy.deepcopy(clocks)
     for v, offset in enumerate(offsets):
         own = problem.video_index == v
@@ -65,6 +67,7 @@ def registered_clocks(problem: Problem, cameras: CameraSet, clocks: Clocks) -> C
         out.global_std[own] = 0.0
         report = out.videos[v]
         report.offset, report.rate, report.drift = shift, 1.0, 0.0
+        report.offset_std = report.estimate_std = 0.0 if v == problem.video_names.index(clocks.reference) else std
         report.method, report.identified = "registered", True
     return out
 
@@ -137,8 +140,9 @@ def prefer_registered_offsets(
     if not seed_only:
         theirs, mine, verdict = _compared(problem, temporal, on_clocks.clocks.global_time, options, residual, entry)
         # disagreeing offsets must predict clearly better to replace the solve's clocks; declared ones that agree
-        # are kept unless the solve's clocks predict clearly better
-        kept = not mine < BETTER * theirs if declared else bool(theirs < BETTER * mine)
+        # are kept unless the solve's clocks predict clearly better; what cannot be compared keeps the solve's
+        comparable = math.isfinite(theirs) and math.isfinite(mine)
+        kept = comparable and (not (mine < BETTER * theirs) if declared else theirs < BETTER * mine)
     else:
         # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
         # for the videos the solve could not time, or the independent confirmation of the clocks it found but did

@@ -273,6 +273,9 @@ class VideoClockReport:
     links: int = 0  # inlier W links touching this video
     track_residual_px: float = math.nan  # robust RMS triangulation residual of its tracks (track search)
     frame_scatter: float = math.nan  # s, per-frame timing spread around the clock (jitter or floor), in time_std
+    # offset_std as estimated, before a refit widened it by its move (`Clocks.refit`); NaN: offset_std is it. The
+    # agreement with registered or declared offsets is judged on it, so that a moved clock is not looser there.
+    estimate_std: float = math.nan
 
     def refit(self, own: np.ndarray, times: np.ndarray, model: ClockModel) -> None:
         """Offset, rate (and drift) fitted to global `times (n,)` at own times (n,) by least squares."""
@@ -346,8 +349,8 @@ class Clocks:
         """These clocks with each identified video's offset/rate(/drift) refitted to `times (F,)` and those times as
         the per-frame global times. `times` must be in the clocks' gauge (the reference video's global time = its
         own time). The uncertainties are widened by the move: two estimates of one clock (the tracks' or the links',
-        and the trajectories' polish) that differ by more than the first one's standard deviation show it too small
-        (measured on real rigs: docs/clocks.md)."""
+        and the trajectories' polish or free times) that differ by more than the first one's standard deviation show
+        it too small (measured on real rigs: docs/clocks.md); `estimate_std` keeps the first."""
         degree = self.model.refit_degree
         times = np.asarray(times, dtype=float)
         for v, clock in enumerate(self.videos):
@@ -356,6 +359,8 @@ class Clocks:
                 continue
             before = clock.offset
             clock.refit(self.own_time[own], times[own], self.model)
+            if not math.isfinite(clock.estimate_std):
+                clock.estimate_std = clock.offset_std
             if math.isfinite(before) and math.isfinite(clock.offset_std):
                 clock.offset_std = math.hypot(clock.offset_std, clock.offset - before)
         moved = np.abs(times - self.global_time)

@@ -402,3 +402,17 @@ def test_a_refit_widens_the_uncertainty_by_its_move() -> None:
     assert clocks.video("a").offset_std == pytest.approx(0.0, abs=1e-15)  # the reference did not move
     np.testing.assert_allclose(clocks.global_std[index == 1], math.hypot(0.0001, 0.004))
     np.testing.assert_allclose(clocks.global_std[index == 0], 0.0001)
+    # the agreement with registered or declared offsets is judged on the estimate's own std: b's 4 ms move must
+    # not let an offset 4 ms from the solve's agree (3 x the widened std would)
+    from reconstruct.clocks.registered import check_registered_clocks
+    from sfm.cameras import CameraSet, VideoCameras
+
+    assert clocks.video("b").estimate_std == 0.0001
+    cameras = CameraSet(
+        videos=[
+            VideoCameras(name=name, width=10, height=10, fps=1000.0, clock_offset=offset)
+            for name, offset in (("a", 0.0), ("b", 0.5))
+        ]
+    )
+    check = check_registered_clocks(cameras, clocks)
+    assert check is not None and not check["agree"] and check["videos"][0]["tolerance_s"] == pytest.approx(0.001)
