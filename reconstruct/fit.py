@@ -6,8 +6,9 @@ object: 26 px median, 94 % of the points unflagged).
 The measure: the written points' median reprojection error over the observed points; where the self-expressive
 solve is the output (its points lie on their rays by construction), its median self-expression residual in pixels
 instead. Refined trajectories may bend through every ray (one point seen by one video per instant: a flight with
-two cameras of another session fits its rays to a thousandth of a pixel), so there the larger of that and the
-trajectories' error predicted for an unseen ray (GCV, `trajectory.predicted_px`) is judged (docs/formats.md).
+two cameras of another session fits its rays to a thousandth of a pixel): where their reprojection is a small share
+(`BENT_SHARE`) of their error predicted for an unseen ray (GCV, `trajectory.predicted_px`), that prediction is
+judged instead (docs/formats.md).
 Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and report.json `fit`
 says which measure and how far.
 """
@@ -28,14 +29,15 @@ log = logging.getLogger(__name__)
 
 WARN_PX = 10.0  # real captures with their own cameras fit within 0.3-3.2 px (docs/measurements.md)
 WARN_DIAGONAL = 0.005  # ... or this share of the image diagonal, if larger
+BENT_SHARE = 0.1  # refined points whose reprojection is under this share of GCV's predicted error sit on their rays
 
 
 def check_fit(
     problem: Problem, points: np.ndarray, trust: Trust, refined: bool, predicted: float | None = None
 ) -> dict[str, Any]:
     """report.json `fit`: the median miss of the written `points (F, P, 3)` against the observations (`refined`;
-    where `predicted`, the refined trajectories' error predicted for an unseen ray, is larger, that), or the seed
-    solve's median self-expression residual (not refined), and whether it exceeds the limit."""
+    where they pass through their rays, `predicted`, their error predicted for an unseen ray), or the seed solve's
+    median self-expression residual (not refined), and whether it exceeds the limit."""
     observed = problem.observed & np.isfinite(points).all(axis=-1)
     if refined:
         focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -50,10 +52,24 @@ def check_fit(
     diagonal = float(np.median(2.0 * np.hypot(problem.K[:, 0, 2], problem.K[:, 1, 2])))  # principal points ~ centre
     limit = max(WARN_PX, WARN_DIAGONAL * diagonal)
     median = reprojection = float(np.median(values))
-    bent = refined and predicted is not None and math.isfinite(predicted) and predicted > reprojection
+    # the trajectories pass through their rays (the reprojection a small share of the predicted error, or every
+    # smoothness fitting them exactly: inf): the reprojection says nothing there, the prediction does
+    bent = refined and predicted is not None and not math.isnan(predicted) and reprojection < BENT_SHARE * predicted
+    if bent and predicted is not None and math.isinf(predicted):
+        log.info("fit: the trajectories pass through every ray at every smoothness; no measure of fit is left")
+        return {
+            "measure": "none: the trajectories pass through every ray at every smoothness",
+            "median_px": None,
+            "reprojection_px": reprojection,
+            "predicted_px": None,
+            "limit_px": None,
+            "fits": None,
+        }
     if bent:
         median = float(predicted)  # type: ignore[arg-type]
-        measure = "error the trajectories predict for an unseen ray (GCV, median over points), above their reprojection"
+        measure = (
+            "error the trajectories predict for an unseen ray (GCV, median over points): they pass through their rays"
+        )
     per_video = {
         name: float(np.median(px[(problem.video_index == v)[:, None] & observed & np.isfinite(px)]))
         for v, name in enumerate(problem.video_names)
@@ -82,4 +98,4 @@ def check_fit(
     }
 
 
-__all__ = ["WARN_DIAGONAL", "WARN_PX", "check_fit"]
+__all__ = ["BENT_SHARE", "WARN_DIAGONAL", "WARN_PX", "check_fit"]
