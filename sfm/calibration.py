@@ -489,10 +489,13 @@ def read_calibration(
     elif fmt is CalibrationFormat.DLT:
         decomposed = dlt_cameras(path, pixels, profile)
         sizes = dlt_sizes(path) or [(0, 0)] * len(decomposed)  # DLT text files give no size
-        cameras = [
-            StaticCamera(name=name, width=w, height=h, K=K, dist=dist, R=R, t=t, cy_plus_height=up)
-            for (name, K, R, t, up, dist), (w, h) in zip(decomposed, sizes, strict=True)
-        ]
+        cameras = []
+        for (name, K, R, t, up, dist), (w, h) in zip(decomposed, sizes, strict=True):
+            if up and h > 0:  # rows up from the bottom of a known height: the row of K is known now
+                K = K.copy()
+                K[1, 2] += h
+                up = False
+            cameras.append(StaticCamera(name=name, width=w, height=h, K=K, dist=dist, R=R, t=t, cy_plus_height=up))
         if units is Units.MM:
             for camera in cameras:
                 camera.t = camera.pose()[1] * 0.001
@@ -597,7 +600,10 @@ def intrinsics_at_video_size(
         K[1, 2] += video.height
     if (width, height) in ((0, 0), (video.width, video.height)):  # the video is the calibrated image
         cx, cy = K[0, 2], K[1, 2]
-        if not (0 <= cx < video.width and 0 <= cy < video.height):  # a loose calibration's, used as the lab does
+        outside = not (0 <= cx < video.width and 0 <= cy < video.height)  # a loose calibration's, used as it is
+        said = (str(video.path), name, -1, -1)
+        if outside and said not in _SIZE_WARNINGS:  # registration reads the intrinsics in several steps
+            _SIZE_WARNINGS.add(said)
             log.warning(
                 "%s: camera %s: principal point (%.1f, %.1f) outside this %dx%d video; used as the file gives "
                 "it (check that each video is given with its own camera)",

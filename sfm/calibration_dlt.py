@@ -220,7 +220,7 @@ PROFILE_COLUMNS = 12  # cam# f W H cx cy aspect k1 k2 t1 t2 k3
 def read_profile(path: str | Path, cameras: int, pixels: DltPixels) -> list[np.ndarray]:
     """OpenCV distortion (k1, k2, p1, p2, k3) per camera from an easyWand / Argus / DLTdv camera profile (a row
     `cam# f W H cx cy aspect k1 k2 t1 t2 k3` per camera, space-separated): the coefficients the tools undistort the
-    points with before their DLT. In pixels counted up from the bottom the image's y is negated, and so is p1."""
+    points with before their DLT (`opencv_lens`)."""
     path = Path(path)
     rows: dict[int, np.ndarray] = {}
     for number, numbers in _number_rows(path, headers=None)[0]:  # Argus's calibration CSVs have a header
@@ -243,8 +243,14 @@ def read_profile(path: str | Path, cameras: int, pixels: DltPixels) -> list[np.n
             f"no row for camera {', '.join(map(str, missing))} of the DLT file's {cameras}",
             fix="give the profile written with these coefficients (a row per camera, numbered from 1)",
         )
-    flip = -1.0 if pixels.from_bottom else 1.0
-    return [np.array([r[7], r[8], flip * r[9], r[10], r[11]]) for r in (rows[c + 1] for c in range(cameras))]
+    return [opencv_lens(rows[c + 1][7:12], pixels) for c in range(cameras)]
+
+
+def opencv_lens(tool: np.ndarray, pixels: DltPixels) -> np.ndarray:
+    """OpenCV's (k1, k2, p1, p2, k3) of a tool's k1 k2 t1 t2 k3 (a profile's columns, easyWand's `nlin`): in pixels
+    counted up from the bottom the image's y is negated, and so is the first tangential term."""
+    k1, k2, t1, t2, k3 = (float(v) for v in tool)
+    return np.array([k1, k2, (-1.0 if pixels.from_bottom else 1.0) * t1, t2, k3])
 
 
 def _profile_beside(path: Path) -> Path | None:
@@ -296,8 +302,7 @@ def dlt_cameras(
     if profile is not None:
         distortion = read_profile(profile, len(decomposed), pixels)
     elif wand is not None and wand.lenses is not None:  # the lenses easyWand optimised, in its profile's columns
-        flip = -1.0 if pixels.from_bottom else 1.0
-        distortion = [np.array([k1, k2, flip * t1, t2, k3]) for k1, k2, t1, t2, k3 in wand.lenses]
+        distortion = [opencv_lens(lens, pixels) for lens in wand.lenses]
     else:
         distortion = [np.zeros(5)] * len(decomposed)
         beside = _profile_beside(path)
@@ -317,4 +322,14 @@ def dlt_cameras(
     ]
 
 
-__all__ = ["DltPixels", "decompose", "dlt_cameras", "dlt_matrix", "is_dlt", "read_dlt_coefficients", "read_profile"]
+__all__ = [
+    "DltPixels",
+    "decompose",
+    "dlt_cameras",
+    "dlt_matrix",
+    "dlt_sizes",
+    "is_dlt",
+    "opencv_lens",
+    "read_dlt_coefficients",
+    "read_profile",
+]

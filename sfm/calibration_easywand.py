@@ -7,6 +7,8 @@ absent) and the image sizes (`imageWidth`, `imageHeight`). The coefficients go t
 
 from __future__ import annotations
 
+import functools
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,6 +16,8 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
+
+log = logging.getLogger(__name__)
 
 VARIABLE = "easyWandData"
 LENS_COLUMNS = 5  # k1 k2 t1 t2 k3, per camera
@@ -44,7 +48,16 @@ def is_easywand(path: Path) -> bool:
 
 
 def read_easywand(path: Path) -> EasyWand:
+    """The file's cameras (read once per file version: import reads the coefficients and the sizes apart)."""
+    stat = path.stat()
+    return _read(str(path), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _read(name: str, mtime_ns: int, size: int) -> EasyWand:
     import scipy.io
+
+    path = Path(name)
 
     try:
         data = scipy.io.loadmat(str(path), squeeze_me=True, struct_as_record=False, variable_names=[VARIABLE])
@@ -66,15 +79,39 @@ def read_easywand(path: Path) -> EasyWand:
     lenses = None
     for name in ("nlin", "nlin_est"):
         values = _numbers(path, _field(wand, name), name)
-        if values is not None and values.size == LENS_COLUMNS * cameras:
-            lenses = values.reshape(cameras, LENS_COLUMNS)
+        if values is None:
+            continue
+        lenses = _lens_table(values, cameras)
+        if lenses is not None:
             break
+        log.warning(
+            "%s: %s.%s holds %s values, not %d per camera of %d: the lenses are not read from it (give --profile)",
+            path,
+            VARIABLE,
+            name,
+            "x".join(map(str, values.shape)),
+            LENS_COLUMNS,
+            cameras,
+        )
     widths = _numbers(path, _field(wand, "imageWidth"), "imageWidth")
     heights = _numbers(path, _field(wand, "imageHeight"), "imageHeight")
     sizes = None
     if widths is not None and heights is not None and widths.size == heights.size == cameras:
         sizes = [(int(w), int(h)) for w, h in zip(widths.ravel(), heights.ravel(), strict=True)]
     return EasyWand(coefficients=table.T.copy(), lenses=lenses, sizes=sizes)
+
+
+def _lens_table(values: np.ndarray, cameras: int) -> np.ndarray | None:
+    """(N, 5) k1 k2 t1 t2 k3 per camera from easyWand's vector (camera after camera) or a table of a row or a column
+    per camera; None where the shape fits neither or cannot tell them apart (5 x 5)."""
+    if values.ndim == 1 and values.size == LENS_COLUMNS * cameras:
+        return values.reshape(cameras, LENS_COLUMNS)
+    if values.ndim == 2 and values.shape != (LENS_COLUMNS, LENS_COLUMNS):
+        if values.shape == (cameras, LENS_COLUMNS):
+            return values
+        if values.shape == (LENS_COLUMNS, cameras):
+            return values.T.copy()
+    return None
 
 
 def _field(struct: Any, name: str) -> Any:

@@ -196,7 +196,7 @@ def test_a_camera_profile_gives_the_lenses(tmp_path: Path, pixels: DltPixels, ca
 
 @pytest.mark.parametrize("pixels", [DltPixels.DLTDV7, DltPixels.DLTDV8])
 def test_easywands_own_mat_file_reads_as_its_exported_coefficients_and_profile(
-    tmp_path: Path, pixels: DltPixels
+    tmp_path: Path, pixels: DltPixels, caplog: pytest.LogCaptureFixture
 ) -> None:
     """easyWand's `*_easyWandData.mat` (the only calibration a real lab's repository held, 2026-11-30): its `coefs`,
     its optimised lenses `nlin` and its image sizes give the cameras that its exported *_dltCoefs.csv and profile
@@ -224,11 +224,32 @@ def test_easywands_own_mat_file_reads_as_its_exported_coefficients_and_profile(
     from_csv = read_calibration(exported, profile=profile)
     assert [(c.width, c.height) for c in from_mat] == [(WIDTH, HEIGHT)] * 3
     for a, b in zip(from_mat, from_csv, strict=True):
-        np.testing.assert_allclose(a.K, b.K, atol=1e-9)
+        K = b.K.copy()
+        if b.cy_plus_height:  # the CSV gives no height; the .mat does, so its row is resolved
+            K[1, 2] += HEIGHT
+        assert not a.cy_plus_height
+        np.testing.assert_allclose(a.K, K, atol=1e-9)
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)  # the CSV's 12 digits
         np.testing.assert_allclose(a.dist, b.dist, atol=1e-15)
-        assert a.cy_plus_height == b.cy_plus_height
+    # a video at half the calibrated size gets the calibrated K scaled, rows counted from the bottom included
+    half = tmp_path / "half" / "cam1.mp4"
+    half.parent.mkdir()
+    _write_video(half, 2, (WIDTH // 2, HEIGHT // 2))
+    assert main(["import-calibration", str(mat), str(half), "--out", str(tmp_path / "ws_half")]) == 0
+    K_half = read_cameras(tmp_path / "ws_half" / "cameras.json").videos[0].frames[0].K
+    K_full = from_csv[0].K.copy()
+    if from_csv[0].cy_plus_height:
+        K_full[1, 2] += HEIGHT
+    np.testing.assert_allclose(K_half[:2, 2], (K_full[:2, 2] + 0.5) / 2 - 0.5, atol=1e-9)
+    column = tmp_path / "column_easyWandData.mat"  # a table of a column per camera reads the same
+    scipy.io.savemat(column, {"easyWandData": {**struct, "nlin": lens.T}})
+    np.testing.assert_allclose([c.dist for c in read_calibration(column)], [c.dist for c in from_mat])
+    odd = tmp_path / "odd_easyWandData.mat"  # lenses of the wrong size: said, and none used
+    scipy.io.savemat(odd, {"easyWandData": {**struct, "nlin": np.zeros(7), "nlin_est": np.zeros(4)}})
+    with caplog.at_level(logging.WARNING):
+        assert all(not np.any(c.dist) for c in read_calibration(odd))
+    assert "easyWandData.nlin holds 7 values, not 5 per camera of 3" in caplog.text
     renamed = tmp_path / "session.mat"  # told by its variable, whatever its name
     renamed.write_bytes(mat.read_bytes())
     np.testing.assert_allclose(read_calibration(renamed)[1].K, from_mat[1].K)
