@@ -53,15 +53,16 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
 def _export_command(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from dynrecon.pipeline import export_points
+    from reconstruct.outputs.mocap import UNIT_TO_MM
 
+    if args.units not in UNIT_TO_MM:  # before anything is read
+        raise InputError(None, f"--units {args.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
     for path in (args.solved / "points3d.csv", args.solved / "sequencing.json", args.cameras):
         if not path.is_file():
             raise InputError(
                 path, "file not found", fix="give the folder `dynrecon solve --out` wrote, and its cameras"
             )
-    if not args.units.strip():
-        raise InputError(None, "--units is empty: give the cameras' world unit, e.g. m")
-    export_points(args.solved, args.cameras, args.units.strip())
+    export_points(args.solved, args.cameras, args.units)
     print(f"wrote {args.solved / 'points.trc'} and {args.solved / 'points.c3d'}")  # noqa: T201
     return 0
 

@@ -89,7 +89,7 @@ class StaticCamera:
     width: int
     height: int
     K: np.ndarray  # (3, 3)
-    dist: np.ndarray  # (4,) or (5,)
+    dist: np.ndarray  # (4,), (5,) or (8,): OpenCV's
     R: np.ndarray | None  # (3, 3)
     t: np.ndarray | None  # (3,)
     no_pose: str | None = None  # why R and t are None, where the file says (default: intrinsics only)

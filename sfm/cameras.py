@@ -47,7 +47,7 @@ class FrameCamera:
     R: np.ndarray  # (3, 3) rotation cam_from_world
     t: np.ndarray  # (3,) translation cam_from_world
     time: float | None = None  # seconds from the video's start, as the decoder reports it
-    dist: np.ndarray | None = None  # (4,) or (5,) OpenCV k1, k2, p1, p2[, k3]
+    dist: np.ndarray | None = None  # (4,), (5,) or (8,): OpenCV k1, k2, p1, p2[, k3[, k4, k5, k6]]
 
     @property
     def center(self) -> np.ndarray:
@@ -183,6 +183,10 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
         declared = vdata.get("clock_declared", False)
         if not isinstance(declared, bool):
             raise InputError(path, f'"clock_declared" must be true or false, got {repr(declared)[:40]}', where=where)
+        if declared and clock_offset is None:
+            raise InputError(
+                path, '"clock_declared" is true but there is no "clock_offset"', where=where, fix="give the offset"
+            )
         people = _people_from_json(vdata.get("people"), path, where)
         frames = [_frame_from_json(fdata, path, f"{where} frames[{fi}]") for fi, fdata in enumerate(vdata["frames"])]
         videos.append(
@@ -193,7 +197,7 @@ def cameras_from_json(data: Any, path: Path | None = None) -> CameraSet:
                 height=height,
                 frames=frames,
                 clock_offset=None if clock_offset is None else float(clock_offset),
-                clock_declared=declared and clock_offset is not None,
+                clock_declared=declared,
                 people=people,
             )
         )

@@ -537,8 +537,8 @@ def _export(
     }
     clock_offsets.update({c["name"]: c["offset_s"] for c in subject.get("cameras", [])})
     written_declared = bool(declared) and not clock_offsets
-    if declared and written_declared:
-        clock_offsets = dict(declared)
+    if written_declared:
+        clock_offsets = dict(declared or {})
         log.info("the declared clock offsets are written to cameras.json (the solve tests them)")
     for video in registered_videos:
         name = video.info.name

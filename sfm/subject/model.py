@@ -82,7 +82,7 @@ class SubjectOptions:
 class SubjectCamera:
     name: str
     K: np.ndarray  # (3, 3)
-    dist: np.ndarray | None  # (5,) or None
+    dist: np.ndarray | None  # OpenCV's (4,), (5,) or (8,), or None
     R: np.ndarray  # (3, 3) cam_from_world, OpenCV
     t: np.ndarray  # (3,)
     offset: float  # seconds: global_time = own_time + offset

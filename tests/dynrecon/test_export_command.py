@@ -32,3 +32,6 @@ def test_export_names_what_is_missing(tmp_path: Path, capsys: pytest.CaptureFixt
     assert err.endswith("points3d.csv: file not found (give the folder `dynrecon solve --out` wrote, and its cameras)")
     with pytest.raises(SystemExit):  # --units is required: the exports' unit label is the user's to say
         main(["export", str(tmp_path), "--cameras", str(tmp_path / "cameras.json")])
+    capsys.readouterr()
+    assert main(["export", str(tmp_path), "--cameras", str(tmp_path / "cameras.json"), "--units", "feet"]) == 2
+    assert "--units 'feet' is not a unit (use one of" in capsys.readouterr().err

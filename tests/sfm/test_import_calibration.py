@@ -95,6 +95,11 @@ def test_known_clock_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     (tmp_path / "ws" / "cameras.json").write_text(json.dumps(document))
     with pytest.raises(InputError, match='"clock_declared" must be true or false'):
         read_cameras(tmp_path / "ws" / "cameras.json")
+    document["videos"][0]["clock_declared"] = True
+    del document["videos"][0]["clock_offset"]
+    (tmp_path / "ws" / "cameras.json").write_text(json.dumps(document))
+    with pytest.raises(InputError, match='"clock_declared" is true but there is no "clock_offset"'):
+        read_cameras(tmp_path / "ws" / "cameras.json")
     capsys.readouterr()
     assert main([*args, "--offsets", "cam3=0.1"]) == 2
     assert "--offsets names video 'cam3', which is not among the videos (cam1, cam2)" in capsys.readouterr().err
