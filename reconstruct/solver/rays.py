@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dynrecon.lens import undistorted
 from reconstruct.solver.problem import Problem
 
 
@@ -17,10 +18,7 @@ def has_distortion(dist: np.ndarray | None) -> bool:
 def normalized_image_points(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     """Pixels (N, 2) of one camera -> normalized image coordinates (N, 2), undistorted when `dist` is given."""
     if has_distortion(dist):
-        import cv2  # only distorted cameras need OpenCV, which is slow to import
-
-        pts = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-        return cv2.undistortPoints(pts, K, np.asarray(dist, dtype=np.float64)).reshape(-1, 2)
+        return undistorted(uv, K, dist)
     homogeneous = np.column_stack([uv, np.ones(len(uv))])
     return np.linalg.solve(K, homogeneous.T).T[:, :2]
 
