@@ -10,7 +10,7 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from dynrecon.names import spelled_alike
-from sfm.calibration import VideoSizeError, intrinsics_at_video_size, match_cameras, read_calibration
+from sfm.calibration import Units, VideoSizeError, intrinsics_at_video_size, match_cameras, read_calibration
 from sfm.cameras import read_cameras
 from sfm.video import ProbedVideo
 
@@ -55,7 +55,8 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
                 ", ".join(missing),
             )
         return result
-    matched = match_cameras(read_calibration(path), infos, path)
+    # only the intrinsics are taken: the translations' unit does not matter (no guess, no warning about it)
+    matched = match_cameras(read_calibration(path, units=Units.M), infos, path)
     result = {}
     for info, camera in zip(infos, matched, strict=True):
         K = _at_video_size(camera.K, (camera.width, camera.height), info, camera.name, path, camera.cy_plus_height)

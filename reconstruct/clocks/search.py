@@ -692,13 +692,20 @@ def _pairs_and_chain(
     said: tuple[str | float, ...] = (*names, *(round(p.cost, 3) for p in pairs))  # searched again later: said once
     if pairs and all(p.cost >= MISFIT_SHARE * options.inlier_px**2 for p in pairs) and said not in _MISFITS_SAID:
         _MISFITS_SAID.add(said)
+        best = min(pairs, key=lambda p: p.cost)
         log.warning(
             "clock search: at its best offset no pair of videos brings its rays together (truncated mean squared "
             "gaps %s px^2, of at most %.0f): the cameras may not fit these tracks (another session's calibration, "
-            "cameras given to the wrong videos, a mirrored world) or the tracks follow other points; the solve goes "
-            "on, the slow way where no clock is found",
+            "cameras given to the wrong videos, a mirrored world) or the tracks follow other points (in some videos "
+            "another subject: a detector that picked another person); the solve goes on, the slow way where no "
+            "clock is found. The pair that fits best, %s and %s (%.0f px^2), can be solved alone with --videos %s,%s",
             ", ".join(f"{p.cost:.0f}" for p in pairs),
             options.inlier_px**2,
+            names[best.v],
+            names[best.u],
+            best.cost,
+            names[best.v],
+            names[best.u],
         )
     coef, reached = _chain(pairs, ref, N, centers)
     return pairs, coef, reached

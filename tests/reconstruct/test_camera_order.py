@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -157,3 +158,28 @@ def test_solve_refuses_swapped_cameras_in_one_line(tmp_path: Path, capsys: pytes
     assert error.count("\n") == 1 and "cam0 fits cam2's camera, cam2 fits cam0's camera" in error, error
     assert "in the order cam2 cam1 cam0 cam3" in error
     assert not (tmp_path / "out").exists()
+
+
+def test_the_misfit_warning_names_the_pair_that_fits_best(caplog: pytest.LogCaptureFixture) -> None:
+    """Where no pair of videos brings its rays together (every camera given to another video here; on a real
+    four-camera lab, a detector that picked another person in two videos, 2026-11-30), the clock search's warning
+    names the pair that fits best and how to solve it alone."""
+    import logging
+
+    from reconstruct.clocks import search
+    from reconstruct.clocks.model import own_times
+
+    problem = _moved(_capture(), [1, 2, 3, 0])
+    own, _ = own_times(problem)
+    search._MISFITS_SAID.clear()  # said once per process and costs
+    with caplog.at_level(logging.WARNING):
+        search.search_clocks(problem, own, 0)
+    costs = re.search(r"truncated mean squared gaps ([\d, ]+) px\^2", caplog.text)
+    assert costs is not None, caplog.text
+    best = min(int(c) for c in costs.group(1).split(", "))
+    named = re.search(
+        r"The pair that fits best, (cam\d) and (cam\d) \((\d+) px\^2\), can be solved alone with "
+        r"--videos (cam\d),(cam\d)",
+        caplog.text,
+    )
+    assert named is not None and int(named.group(3)) == best and named.group(1, 2) == named.group(4, 5)

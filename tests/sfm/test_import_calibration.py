@@ -501,6 +501,27 @@ def test_opencvs_rational_lens_model_is_read(tmp_path: Path, capsys: pytest.Capt
     assert '"distortions" has 6 values, expected 4, 5 or 8' in err and "undistort the tracks first" in err
 
 
+def test_intrinsics_alone_make_no_guess_about_units(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """--intrinsics takes no translation, so the unit guess of a rig 50 units across (and its warning: a real lab's
+    calibration, 2026-11-30) has no place there; import-calibration still says it."""
+    K = np.array([[200.0, 0.0, 63.5], [0.0, 202.0, 47.5], [0.0, 0.0, 1.0]])
+    cameras = [
+        StaticCamera(name=f"cam_{i}", width=128, height=96, K=K, dist=np.zeros(4), R=np.eye(3), t=np.array(t))
+        for i, t in ((1, [0.0, 0.0, 1.0]), (2, [50.0, 0.0, 1.0]))
+    ]
+    toml = write_toml(tmp_path / "calib.toml", cameras)
+    videos = []
+    for i in (1, 2):
+        _write_video(tmp_path / f"cam{i}.mp4", 3, (128, 96))
+        videos.append(probe_video(tmp_path / f"cam{i}.mp4"))
+    with caplog.at_level("WARNING"):
+        assert set(known_intrinsics(toml, videos)) == {"cam1", "cam2"}
+    assert "units apart" not in caplog.text
+    with caplog.at_level("WARNING"):
+        read_calibration(toml)
+    assert "the cameras are up to 50 units apart" in caplog.text
+
+
 def test_a_video_turned_from_the_calibrated_image(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A portrait video of a camera calibrated in landscape (or the reverse): `register --intrinsics` estimates
     that video's intrinsics instead of using a K that does not fit it, and `import-calibration`, whose poses would
