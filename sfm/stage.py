@@ -666,7 +666,8 @@ def _fail(
             f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
             "--intrinsics)"
             if summary.two_views
-            else "the static videos share too little background"
+            else "the static videos' backgrounds gave no model (too few matches between their views: little shared "
+            "background, or views too far apart)"
         )
         hint = f"{background}, and the subject path could not pose them: {subject['why']}"
     else:
