@@ -2,7 +2,8 @@
 
 `cv2.undistortPoints` stops after 5 fixed-point iterations unless given criteria: on the caliscope webcams (k1 =
 -0.33) that leaves up to 0.3 px at the image's edges, on wide 4K lenses of OpenCV's rational model tens of pixels in
-the corners (docs/measurements.md). Iterated to convergence, every reader of a distorted camera gets the same rays.
+the corners (docs/measurements.md). Iterated to convergence, per point unless the default lands nearer its pixel
+(beyond a lens model's fold the iteration may not converge).
 """
 
 from __future__ import annotations
@@ -21,7 +22,24 @@ def undistorted(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.nd
     points = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
     coefficients = None if dist is None else np.asarray(dist, dtype=np.float64)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ITERATIONS, TOLERANCE)
-    return cv2.undistortPoints(points, K, coefficients, None, None, None, criteria).reshape(-1, 2)
+    iterated = cv2.undistortPoints(points, K, coefficients, None, None, None, criteria).reshape(-1, 2)
+    default = cv2.undistortPoints(points, K, coefficients).reshape(-1, 2)
+    # per point the one that lands back on its pixel: beyond a lens model's fold the iteration may not converge
+    miss = [_round_trip(candidate, points.reshape(-1, 2), K, coefficients) for candidate in (iterated, default)]
+    return np.where((miss[0] <= miss[1])[:, None], iterated, default)
+
+
+def _round_trip(rays: np.ndarray, uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """(N,) pixels between `uv` and its `rays` projected back through the lens (inf where not finite)."""
+    import cv2
+
+    finite = np.isfinite(rays).all(axis=1)
+    miss = np.full(len(rays), np.inf)
+    if finite.any():
+        homogeneous = np.c_[rays[finite], np.ones(int(finite.sum()))]
+        back = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+        miss[finite] = np.linalg.norm(back - uv[finite], axis=1)
+    return miss
 
 
 __all__ = ["undistorted"]

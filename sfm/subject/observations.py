@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from dynrecon.lens import undistorted
 from sfm.subject.model import SubjectVideo
 from tracking.tracks import Tracks
 
@@ -54,7 +54,10 @@ def normalize(xy: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndar
     out = np.full_like(flat, np.nan)
     ok = np.isfinite(flat[:, 0])
     if ok.any():
-        out[ok] = undistorted(flat[ok], K, dist)
+        # OpenCV's default iterations, not dynrecon.lens: the path's self-calibrated polynomial lenses can fold
+        # beyond the tracked region, and iterated to convergence they moved its noise choice (docs/measurements.md)
+        d = None if dist is None else np.asarray(dist, dtype=float)
+        out[ok] = cv2.undistortPoints(flat[ok].reshape(-1, 1, 2).astype(np.float64), K, d).reshape(-1, 2)
     return out.reshape(xy.shape)
 
 
