@@ -52,6 +52,7 @@ from labeling.skeleton import read_skeleton
 from reconstruct.clocks.model import frame_periods
 from reconstruct.outputs.export import (
     OrderSource,
+    check_units,
     clock_note,
     clock_times,
     frame_times,
@@ -60,7 +61,6 @@ from reconstruct.outputs.export import (
     write_c3d_export,
     write_trc_export,
 )
-from reconstruct.outputs.mocap import UNIT_TO_MM
 from reconstruct.outputs.points import read_points, read_sequencing
 from reconstruct.outputs.recording import BackgroundCloud, write_recording
 from reconstruct.stage import SolveOptions, solve
@@ -205,8 +205,8 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()
-    if options.units is not None and options.units not in UNIT_TO_MM:  # before the solve, not at its export
-        raise InputError(None, f"--units {options.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
+    if options.units is not None:  # before the solve, not at its export
+        check_units(options.units)
     if options.register.board is not None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
     if options.skeleton is not None:

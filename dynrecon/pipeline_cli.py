@@ -39,7 +39,8 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
         description="Write SOLVED/points.trc and SOLVED/points.c3d from the points3d.csv and sequencing.json that "
         "`dynrecon solve --out SOLVED` wrote, ordered and timed as `dynrecon run` exports them.",
     )
-    parser.add_argument("solved", type=Path, metavar="SOLVED", help="the folder `dynrecon solve` wrote")
+    # `out`, as every writing command names its folder: dynrecon/cli.py locks it
+    parser.add_argument("out", type=Path, metavar="SOLVED", help="the folder `dynrecon solve` wrote")
     parser.add_argument("--cameras", type=Path, required=True, help="the cameras.json the solve used")
     parser.add_argument(
         "--units",
@@ -53,17 +54,16 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
 def _export_command(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
     from dynrecon.pipeline import export_points
-    from reconstruct.outputs.mocap import UNIT_TO_MM
+    from reconstruct.outputs.export import check_units
 
-    if args.units not in UNIT_TO_MM:  # before anything is read
-        raise InputError(None, f"--units {args.units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
-    for path in (args.solved / "points3d.csv", args.solved / "sequencing.json", args.cameras):
+    check_units(args.units)  # before anything is read
+    for path in (args.out / "points3d.csv", args.out / "sequencing.json", args.cameras):
         if not path.is_file():
             raise InputError(
                 path, "file not found", fix="give the folder `dynrecon solve --out` wrote, and its cameras"
             )
-    export_points(args.solved, args.cameras, args.units)
-    print(f"wrote {args.solved / 'points.trc'} and {args.solved / 'points.c3d'}")  # noqa: T201
+    export_points(args.out, args.cameras, args.units)
+    print(f"wrote {args.out / 'points.trc'} and {args.out / 'points.c3d'}")  # noqa: T201
     return 0
 
 

@@ -238,6 +238,12 @@ def measured_only(points: FramePoints) -> FramePoints:
     return kept
 
 
+def check_units(units: str) -> None:
+    """`--units` of run, batch and export, checked before any work: one of UNIT_TO_MM, else a one-line error."""
+    if units not in UNIT_TO_MM:
+        raise InputError(None, f"--units {units!r} is not a unit", fix=f"use one of {', '.join(UNIT_TO_MM)}")
+
+
 def _check_rate_units(rate_hz: float, units: str) -> None:
     if not (rate_hz > 0 and np.isfinite(rate_hz)):
         raise InputError(None, f"export rate must be a positive number of Hz, got {rate_hz}")
