@@ -53,9 +53,9 @@ def read_dannce(path: str | Path, mm: bool = True) -> list[DannceCamera]:
         files = sorted(path.glob(PARAM_FILES), key=_natural)
         if not files:
             raise InputError(path, f"no DANNCE camera files ({PARAM_FILES}) in this folder")
-        structs = [(f.name.removesuffix("_params.mat"), _load(f), f) for f in files]
+        structs = [(f.name.removesuffix("_params.mat"), load_mat(f), f) for f in files]
     else:
-        data = _load(path)
+        data = load_mat(path)
         if "params" in data:
             structs = [(name, s, path) for name, s in zip(_camnames(data, path), _cells(data["params"]), strict=True)]
         elif all(k in data for k in FIELDS):
@@ -79,13 +79,15 @@ def _natural(path: Path) -> list[Any]:
     return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", path.name)]
 
 
-def _load(path: Path) -> dict[str, Any]:
+def load_mat(path: Path, v73_fix: str = V73_FIX, **options: Any) -> dict[str, Any]:
+    """`scipy.io.loadmat(path, **options)` with a user's unreadable file as a one-line error (`v73_fix`: what to do
+    with a MATLAB v7.3 file, which scipy does not read); DANNCE's files and easyWand's."""
     import scipy.io
 
     try:
-        return scipy.io.loadmat(str(path))
+        return scipy.io.loadmat(str(path), **options)
     except NotImplementedError:  # scipy's message for MATLAB v7.3 (HDF5) files
-        raise InputError(path, "is a MATLAB v7.3 file, which is not read here", fix=V73_FIX) from None
+        raise InputError(path, "is a MATLAB v7.3 file, which is not read here", fix=v73_fix) from None
     except MemoryError:
         raise
     except Exception as error:  # a third-party parser of the user's file: any failure means unreadable

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.errors import InputError
+from sfm.calibration_dannce import load_mat
 
 log = logging.getLogger(__name__)
 
@@ -55,22 +56,12 @@ def read_easywand(path: Path) -> EasyWand:
 
 @functools.lru_cache(maxsize=8)
 def _read(name: str, mtime_ns: int, size: int) -> EasyWand:
-    import scipy.io
-
     path = Path(name)
-
-    try:
-        data = scipy.io.loadmat(str(path), squeeze_me=True, struct_as_record=False, variable_names=[VARIABLE])
-    except NotImplementedError:  # scipy's message for MATLAB v7.3 (HDF5) files
-        raise InputError(path, "is a MATLAB v7.3 file, which is not read here", fix=V73_FIX) from None
-    except MemoryError:
-        raise
-    except Exception as error:  # a third-party parser of the user's file: any failure means unreadable
-        raise InputError(path, f"not a readable MATLAB file: {error}") from None
+    data = load_mat(path, V73_FIX, squeeze_me=True, struct_as_record=False, variable_names=[VARIABLE])
     if VARIABLE not in data:
         raise InputError(path, f"holds no {VARIABLE} struct", fix="give easyWand's *_easyWandData.mat")
     wand = data[VARIABLE]
-    coefs = _field(wand, "coefs")
+    coefs = getattr(wand, "coefs", None)
     table = _numbers(path, coefs, "coefs")
     if table is None or table.ndim != 2 or table.shape[0] != 11 or table.shape[1] < 1:
         shape = "missing" if table is None else "x".join(map(str, table.shape))
@@ -78,7 +69,7 @@ def _read(name: str, mtime_ns: int, size: int) -> EasyWand:
     cameras = table.shape[1]
     lenses = None
     for name in ("nlin", "nlin_est"):
-        values = _numbers(path, _field(wand, name), name)
+        values = _numbers(path, getattr(wand, name, None), name)
         if values is None:
             continue
         lenses = _lens_table(values, cameras)
@@ -93,8 +84,8 @@ def _read(name: str, mtime_ns: int, size: int) -> EasyWand:
             LENS_COLUMNS,
             cameras,
         )
-    widths = _numbers(path, _field(wand, "imageWidth"), "imageWidth")
-    heights = _numbers(path, _field(wand, "imageHeight"), "imageHeight")
+    widths = _numbers(path, getattr(wand, "imageWidth", None), "imageWidth")
+    heights = _numbers(path, getattr(wand, "imageHeight", None), "imageHeight")
     sizes = None
     if widths is not None and heights is not None and widths.size == heights.size == cameras:
         sizes = [(int(w), int(h)) for w, h in zip(widths.ravel(), heights.ravel(), strict=True)]
@@ -112,10 +103,6 @@ def _lens_table(values: np.ndarray, cameras: int) -> np.ndarray | None:
         if values.shape == (LENS_COLUMNS, cameras):
             return values.T.copy()
     return None
-
-
-def _field(struct: Any, name: str) -> Any:
-    return getattr(struct, name, None)
 
 
 def _numbers(path: Path, value: Any, name: str) -> np.ndarray | None:
