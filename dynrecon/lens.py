@@ -12,6 +12,7 @@ import numpy as np
 
 ITERATIONS = 100  # at most; the tolerance below ends it in a few on mild lenses
 TOLERANCE = 1e-12
+LANDED_PX = 1e-6  # a ray projecting back within this of its pixel is the model's inverse there: nothing to compare
 
 
 def undistorted(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
@@ -22,11 +23,16 @@ def undistorted(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.nd
     points = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
     coefficients = None if dist is None else np.asarray(dist, dtype=np.float64)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ITERATIONS, TOLERANCE)
-    iterated = cv2.undistortPoints(points, K, coefficients, None, None, None, criteria).reshape(-1, 2)
-    default = cv2.undistortPoints(points, K, coefficients).reshape(-1, 2)
-    # per point the one that lands back on its pixel: beyond a lens model's fold the iteration may not converge
-    miss = [_round_trip(candidate, points.reshape(-1, 2), K, coefficients) for candidate in (iterated, default)]
-    return np.where((miss[0] <= miss[1])[:, None], iterated, default)
+    rays = cv2.undistortPoints(points, K, coefficients, None, None, None, criteria).reshape(-1, 2)
+    pixels = points.reshape(-1, 2)
+    # beyond a lens model's fold the iteration may not converge: there, the default where it lands nearer the pixel
+    miss = _round_trip(rays, pixels, K, coefficients)
+    off = np.flatnonzero(miss > LANDED_PX)
+    if off.size:
+        default = cv2.undistortPoints(points[off], K, coefficients).reshape(-1, 2)
+        nearer = _round_trip(default, pixels[off], K, coefficients) < miss[off]
+        rays[off[nearer]] = default[nearer]
+    return rays
 
 
 def _round_trip(rays: np.ndarray, uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
