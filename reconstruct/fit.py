@@ -8,9 +8,8 @@ solve is the output (its points lie on their rays by construction), its median s
 instead. Refined trajectories may bend through every ray (one point seen by one video per instant: a flight with
 two cameras of another session fits its rays to a thousandth of a pixel): where their reprojection is a small share
 (`BENT_SHARE`) of their error predicted for an unseen ray (GCV, `trajectory.predicted_px`), that prediction is
-judged instead (docs/formats.md).
-Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images) the solve warns, and report.json `fit`
-says which measure and how far.
+judged instead (docs/formats.md). Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images)
+the solve warns, and report.json `fit` says which measure and how far.
 """
 
 from __future__ import annotations

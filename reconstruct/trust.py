@@ -636,8 +636,8 @@ def flag_points(
 
     measures: the rule's inputs by their points3d.csv column names (residual_px, bound_px, sequence_jump, component,
     smoothness_px, support, step_px; views and reprojection_px where present), `observed` and `video_end` (bool,
-    `video_ends`), each
-    of the shape of `reconstructed`; so the rule can be re-run on a written points3d.csv (benchmarks/trust_real.py).
+    `video_ends`), each of the shape of `reconstructed`; so the rule can be re-run on a written points3d.csv
+    (benchmarks/trust_real.py).
     Every limit is the larger of a floor and a multiple of the measure's median over the solve's observed points
     (all reconstructed points where none is): the median is the capture's own noise level, which lives in the
     observations (unobserved points follow their neighbours; where they are most of a solve, their median would set
