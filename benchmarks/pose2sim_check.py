@@ -248,7 +248,7 @@ def desynchronize(
         frames = [f for f in video.frames if f.frame % stride == k % stride and window[0] <= f.frame <= window[1]]
         keep[video.name] = {f.frame for f in frames}
         out.videos.append(dataclasses.replace(video, frames=frames))  # keeps the registered clock_offset
-    rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep[v]]
+    rows = [i for i, (v, f) in enumerate(zip(tracks.video, tracks.frame, strict=True)) if int(f) in keep.get(v, ())]
     return out, tracks.take(rows)
 
 

@@ -24,6 +24,7 @@ from sfm.subject.model import ScalePointsError
 from sfm.subject.noise import choose_scale
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
+from sfm.subject.set_aside import largest_determined
 from sfm.subject.stability import Stability, check_stability
 from tracking.charuco import board_corner_positions, read_charuco_board
 from tracking.tracks import Tracks
@@ -130,13 +131,23 @@ def pose_from_subject(
                 if board is not None and board.get("scale"):
                     board.update(scale=None, scale_why="the videos the background posed set the scale")
                 subject_options = replace(subject_options, scale=None)
-            result, aligned, stability = _solve_with_posed(
-                subject_tracks, inputs, posed_tracked, videos, results, tracks, subject_options
+            result, stability, aligned = largest_determined(
+                lambda some: _solve_with_posed(
+                    subject_tracks.of_videos(v.name for v in some),
+                    some,
+                    posed_tracked,
+                    videos,
+                    results,
+                    tracks,
+                    subject_options,
+                ),
+                inputs,
+                keep=anchors,
             )
         else:
             aligned = None
             try:
-                result, stability = choose_noise(subject_tracks, inputs, subject_options)
+                result, stability = _determined(subject_tracks, inputs, anchors, subject_options)
             except ScalePointsError as error:
                 if board is None or board.get("scale") is None:
                     raise
@@ -144,7 +155,7 @@ def pose_from_subject(
                 warnings.append(f"--board: no scale from the board ({error}); the units are arbitrary")
                 board.update(scale=None, scale_why=str(error))
                 subject_options = replace(subject_options, scale=None)
-                result, stability = choose_noise(subject_tracks, inputs, subject_options)
+                result, stability = _determined(subject_tracks, inputs, anchors, subject_options)
     except SubjectCalibrationError as error:
         warnings.append(f"subject path: {error}")
         return _refuse(
@@ -183,6 +194,18 @@ def pose_from_subject(
     return section
 
 
+def _determined(
+    tracks: Tracks, inputs: list[SubjectVideo], anchors: list[str], options: SubjectOptions
+) -> tuple[SubjectResult, Stability]:
+    """`choose_noise` on the largest group of the videos whose tracks determine their cameras."""
+
+    def trial(some: list[SubjectVideo]) -> tuple[SubjectResult, Stability, None]:
+        return (*choose_noise(tracks.of_videos(v.name for v in some), some, options), None)
+
+    result, stability, _ = largest_determined(trial, inputs, keep=anchors)
+    return result, stability
+
+
 def _solve_with_posed(
     subject_tracks: Tracks,
     inputs: list[SubjectVideo],
@@ -191,7 +214,7 @@ def _solve_with_posed(
     results: dict[str, dict[int, FramePose]],
     tracks: Tracks,
     options: SubjectOptions,
-) -> tuple[SubjectResult, Alignment, Stability]:
+) -> tuple[SubjectResult, Stability, Alignment]:
     """The static videos posed in the world of the tracked videos the background posed (`solve_with_posed`),
     and the folds' check of the same solve (the posed videos kept whole, at their fitted offsets)."""
     points = subject_tracks.point_names()
@@ -207,8 +230,7 @@ def _solve_with_posed(
 
         return result, check_stability(subject_tracks, inputs, result, scaled, solve=fold), aligned
 
-    result, stability, aligned = choose_scale(trial, options)
-    return result, aligned, stability
+    return choose_scale(trial, options)
 
 
 def _refuse(
@@ -456,6 +478,7 @@ def _report(
             for p in result.pairs
         ],
         "failed": result.failed,
+        "set_aside": result.set_aside,
         "lens": result.lens.value,
         "lens_check": result.lens_check,
         "inlier_px": result.inlier_px,

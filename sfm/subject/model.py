@@ -144,6 +144,7 @@ class SubjectResult:
     inlier_px: float = INLIER_PX  # the noise scale used
     focal_sigma: float | None = None  # the loosened focal prior kept, None = the self-calibrated focals' prior
     noise_check: dict[float, NoiseTrial] = field(default_factory=dict)  # per scale `choose_noise` tried
+    set_aside: list[str] = field(default_factory=list)  # videos left out so that the others are determined
 
     def camera(self, name: str) -> SubjectCamera | None:
         return next((c for c in self.cameras if c.name == name), None)

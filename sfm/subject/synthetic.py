@@ -39,16 +39,30 @@ def _look_at(centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def skeleton_motion(t: np.ndarray, n_points: int = 12) -> np.ndarray:
     """(T,) global seconds -> (T, P, 3): a body-like cloud walking a curved path in a ~4 m room, limbs swinging."""
-    rng = np.random.default_rng(7)
+    return _walker(t, n_points, path=(0.31, 0.23, 1.7, 0.7), limbs=(0.9, 0.7), seed=7)
+
+
+def other_walker(t: np.ndarray, n_points: int = 12) -> np.ndarray:
+    """(T,) -> (T, P, 3): another person in `skeleton_motion`'s room: another body, path and pace."""
+    return _walker(t, n_points, path=(0.43, 0.17, 1.3, 2.1), limbs=(1.3, 0.55), seed=11)
+
+
+def _walker(
+    t: np.ndarray, n_points: int, path: tuple[float, float, float, float], limbs: tuple[float, float], seed: int
+) -> np.ndarray:
+    """A body of `n_points` on a curved walk (`path`: the x, y and bounce frequencies and the y phase), limbs
+    swinging at `limbs` Hz."""
+    rng = np.random.default_rng(seed)
     body = np.column_stack(
         [rng.uniform(-0.25, 0.25, n_points), rng.uniform(-0.15, 0.15, n_points), np.linspace(0.05, 1.8, n_points)]
     )  # (P, 3) body frame, z up
-    centre = np.column_stack([1.5 * np.sin(0.31 * t), 1.2 * np.sin(0.23 * t + 0.7), 0.1 * np.sin(1.7 * t)])
-    heading = 0.31 * t + 0.6 * np.sin(0.5 * t)
+    fx, fy, fz, phase = path
+    centre = np.column_stack([1.5 * np.sin(fx * t), 1.2 * np.sin(fy * t + phase), 0.1 * np.sin(fz * t)])
+    heading = fx * t + 0.6 * np.sin(0.5 * t)
     c, s = np.cos(heading), np.sin(heading)
-    swing = 0.25 * np.sin(2 * np.pi * 0.9 * t[:, None] + np.arange(n_points)[None, :])  # (T, P) limb motion
+    swing = 0.25 * np.sin(2 * np.pi * limbs[0] * t[:, None] + np.arange(n_points)[None, :])  # (T, P) limb motion
     bx = body[None, :, 0] + swing * (body[None, :, 2] < 1.0)
-    by = body[None, :, 1] + 0.1 * np.cos(2 * np.pi * 0.7 * t[:, None] + 2 * np.arange(n_points)[None, :])
+    by = body[None, :, 1] + 0.1 * np.cos(2 * np.pi * limbs[1] * t[:, None] + 2 * np.arange(n_points)[None, :])
     bz = body[None, :, 2] + 0.05 * swing
     x = c[:, None] * bx - s[:, None] * by + centre[:, None, 0]
     y = s[:, None] * bx + c[:, None] * by + centre[:, None, 1]
@@ -93,15 +107,17 @@ def make_rig(
     k1: float | None = None,
     pp_sigma: float = 5.0,
     seed: int = 0,
+    motion: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[Tracks, list[SubjectVideo], Truth]:
     """Cameras around the scene, looking at its middle; video v's own clock starts at global time offsets[v].
 
     `focal` (in units of the image width) and `k1` (with k2 = 0.01) make every camera the same lens (identical
     webcams; a wide-angle one with a small focal and a strong k1); `pp_sigma`: pixels of principal point scatter;
     `bias_px`: scatter of a constant shift per camera and point, as a pose detector's keypoint (a joint's centre
-    seen from another side) has on top of its `noise_px`."""
+    seen from another side) has on top of its `noise_px`; `motion` replaces the kind's subject (the same cameras:
+    another person in the same room)."""
     rng = np.random.default_rng(seed)
-    motion: Callable[[np.ndarray], np.ndarray]
+    chosen = motion
     if kind in ("skeleton", "sway"):
         motion = skeleton_motion if kind == "skeleton" else sway_motion
         target, radius, height = np.array([0.0, 0.0, 1.0]), 5.0, 2.6
@@ -110,6 +126,7 @@ def make_rig(
         motion = flight_motion if kind == "flight" else line_motion
         target, radius, height = np.array([0.0, 0.0, 12.0]), 60.0, 1.7
         width, hgt = 1920, 1080
+    motion = chosen or motion
     names, Ks, dists, Rs, ts, periods = [], [], [], [], [], []
     rows: list[tuple[str, int, str, float, float]] = []
     videos: list[SubjectVideo] = []
