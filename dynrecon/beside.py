@@ -11,7 +11,8 @@ DYNRECON_NO_FORK set, the function runs in a thread.
 The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory), or
 whose result cannot be brought back, is not trusted for anything, and the function is run again in the caller
 (`redone`). A child stopped early (the caller failed first) gets SIGTERM, which its function sees as SystemExit,
-so that its own cleanup (temporary files) runs; SIGKILL follows if it does not end.
+so that its own cleanup (temporary files) runs; SIGKILL follows if it does not end. The warnings a child logs
+reach the caller's `warnings_seen` collectors with its result.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
+
+from dynrecon.warnings_seen import WarningsSeen
 
 log = logging.getLogger(__name__)
 
@@ -111,13 +114,17 @@ class Beside(Generic[T]):
             log.warning("a worker process ended without a usable result; running its work here instead")
             self.redone = True
             return self._function(*self._args)
-        failed, value = payload
+        failed, value, warned = payload
+        for handler in _collectors():
+            for message in warned:
+                if message not in handler.messages:
+                    handler.messages.append(message)
         if failed:
             raise value
         return value
 
-    def _collect(self) -> tuple[bool, Any] | None:
-        """The child's (failed, value), or None when it gave none. Reaps it."""
+    def _collect(self) -> tuple[bool, Any, list[str]] | None:
+        """The child's (failed, value, warnings it logged), or None when it gave none. Reaps it."""
         assert self._read is not None
         chunks = []
         with os.fdopen(self._read, "rb") as pipe:
@@ -210,11 +217,15 @@ def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> N
         signal.signal(signal.SIGTERM, _exit_on_signal)
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         end_with_parent(signal.SIGTERM)
+        # the warnings it logs go back to the caller's collectors (`dynrecon run` repeats them at its end)
+        collectors = _collectors()
+        before = [len(h.messages) for h in collectors]
         try:
-            payload: tuple[bool, Any] = (False, function(*args))
+            outcome: tuple[bool, Any] = (False, function(*args))
         except BaseException as error:  # the caller re-raises it
-            payload = (True, error)
-        data = pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+            outcome = (True, error)
+        warned = list(dict.fromkeys(m for h, n in zip(collectors, before, strict=True) for m in h.messages[n:]))
+        data = pickle.dumps((*outcome, warned), protocol=pickle.HIGHEST_PROTOCOL)
         pickle.loads(data)  # what cannot be brought back is sent as nothing: the caller runs the function itself
         with os.fdopen(write, "wb") as pipe:
             pipe.write(data)
@@ -223,6 +234,10 @@ def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> N
         code = 1
     finally:
         os._exit(code)
+
+
+def _collectors() -> list[WarningsSeen]:
+    return [h for h in logging.getLogger().handlers if isinstance(h, WarningsSeen)]
 
 
 def _exit_on_signal(signum: int, frame: object) -> None:

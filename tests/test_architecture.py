@@ -36,6 +36,7 @@ GROUND = (
     "dynrecon.jsonvalues",
     "dynrecon.arguments",
     "dynrecon.lens",
+    "dynrecon.warnings_seen",
 )
 GROUND_NODE = "ground"
 # Nodes of the package graph: a module belongs to the longest of these that prefixes it.

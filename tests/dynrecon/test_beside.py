@@ -4,6 +4,7 @@ raises its exception, survives the child's death and never leaves a child behind
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import pytest
 from dynrecon import beside as beside_module
 from dynrecon.beside import beside, fork_is_safe, map_beside
 from dynrecon.errors import InputError
+from dynrecon.warnings_seen import warnings_seen
 
 PARENT = os.getpid()
 ROOT = Path(__file__).resolve().parents[2]
@@ -116,6 +118,20 @@ def test_a_child_stopped_early_runs_its_cleanup(single_threaded: None, tmp_path)
             time.sleep(0.01)
         assert marker.exists()
     assert not marker.exists()  # SIGTERM became SystemExit in the child: its finally ran
+
+
+def warns(text: str) -> int:
+    logging.getLogger("dynrecon.test").warning("a warning from %s", text)
+    return os.getpid()
+
+
+def test_a_child_s_warnings_reach_the_caller_s_collector(single_threaded: None) -> None:
+    with warnings_seen() as seen:
+        logging.getLogger("dynrecon.test").warning("the caller's own")
+        with beside(warns, "the child") as running:
+            pid = running.result()
+    assert running.forked and pid != os.getpid()
+    assert seen.messages == ["the caller's own", "a warning from the child"]
 
 
 def test_when_fork_fails_a_thread_does_the_work(single_threaded: None, monkeypatch: pytest.MonkeyPatch) -> None:
