@@ -30,9 +30,9 @@ def largest_determined(
     keep: Collection[str] = (),
 ) -> tuple[SubjectResult, Stability, T]:
     """`trial` (the subject path on some of `videos`, with its folds) on all of them, then without its least
-        determined video while some camera is not determined and at least three videos would remain (two with known
-    intrinsics); `keep` (videos
-        the background posed) are never set aside. A video set aside is in the returned result's `failed`, with why."""
+    determined video while some camera is not determined and at least three videos would remain (two with known
+    intrinsics); `keep` (videos the background posed) are never set aside. A video set aside is in the returned
+    result's `failed`, with why, and in its `set_aside`."""
     best = trial(videos)
     if _settled(best[0], best[1]):
         return best
