@@ -125,12 +125,13 @@ def stand_in_videos(work: Path) -> list[Path]:
     return paths
 
 
-def lab_reference(tracks: Tracks, cameras: list[Any]) -> dict[tuple[int, str], np.ndarray]:
-    """(frame, point) -> the synchronized triangulation of the tracks seen by 3+ cameras with `cameras` (in NAMES
-    order), where it reprojects within 30 px in every view."""
-    views: dict[tuple[int, str], dict[int, np.ndarray]] = {}
+def lab_reference(tracks: Tracks, cameras: dict[str, Any]) -> dict[tuple[int, str], np.ndarray]:
+    """(frame, point) -> the synchronized triangulation of the tracks seen by 3+ of `cameras` (video -> camera),
+    where it reprojects within 30 px in every view."""
+    views: dict[tuple[int, str], dict[str, np.ndarray]] = {}
     for video, frame, point, xy in zip(tracks.video, tracks.frame, tracks.point, tracks.xy, strict=True):
-        views.setdefault((int(frame), point), {})[NAMES.index(video)] = xy
+        if video in cameras:
+            views.setdefault((int(frame), point), {})[video] = xy
     out = {}
     for key, seen in views.items():
         if len(seen) < 3:
@@ -179,7 +180,7 @@ def run_case(case: str, work: Path, videos: list[Path]) -> dict[str, Any]:
     dynrecon(["solve", *inputs, "--out", str(ws / "solve"), "--no-recording"])
     row["solve_s"] = round(time.perf_counter() - started, 1)
     row["temporal_path"] = json.loads((ws / "solve" / "report.json").read_text())["temporal"]["path"]
-    reference = lab_reference(tracks, read_calibration(CALIBRATION))
+    reference = lab_reference(tracks, {c.name: c for c in read_calibration(CALIBRATION)})
     points = read_points(ws / "solve" / "points3d.csv")
     found, true = [], []
     for i, frame in enumerate(points.frames):
@@ -190,8 +191,7 @@ def run_case(case: str, work: Path, videos: list[Path]) -> dict[str, Any]:
                 true.append(reference[int(frame), point])
     distances = 1000 * similarity_distances(np.array(found), np.array(true))
     row["sync_free_mm"] = (round(float(np.median(distances)), 1), round(float(np.percentile(distances, 90)), 1))
-    registered = [c.frames[0] for c in sorted(cameras.videos, key=lambda v: NAMES.index(v.name))]
-    alone = lab_reference(tracks, registered)
+    alone = lab_reference(tracks, {v.name: v.frames[0] for v in cameras.videos if v.frames})
     keys = sorted(set(alone) & set(reference))
     floor = 1000 * similarity_distances(np.array([alone[k] for k in keys]), np.array([reference[k] for k in keys]))
     row["cameras_alone_mm"] = (round(float(np.median(floor)), 1), round(float(np.percentile(floor, 90)), 1))
