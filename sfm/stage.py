@@ -608,6 +608,18 @@ def _write_report(
         subject=subject,
         error=error,
     )
+    _repeat(notes.warnings)
+
+
+def _repeat(warnings: list[str]) -> None:
+    """The report's warnings logged once more at the end: many were only written to the report (the subject path's
+    uncertain poses, a board's intrinsics not taken), and the others are lost among the steps' lines; `run`
+    collects them from here."""
+    unique = list(dict.fromkeys(warnings))
+    if unique:
+        log.info("register: %d warning(s) (register_report.json `warnings`), once each:", len(unique))
+    for message in unique:
+        log.warning("%s", message)
 
 
 def _moving_hint(

@@ -144,7 +144,7 @@ def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 
 def test_an_unreadable_video_is_left_out_and_the_others_go_on(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     videos = [str(_flat_video(tmp_path / f"flat{i}.mp4")) for i in range(2)]
     broken = tmp_path / "broken.mp4"
@@ -158,6 +158,9 @@ def test_an_unreadable_video_is_left_out_and_the_others_go_on(
     assert [v["name"] for v in report["videos"]] == ["flat0", "flat1"]
     assert [u["path"] for u in report["unreadable_videos"]] == [str(broken)]
     assert "cannot open" in report["unreadable_videos"][0]["reason"]
+    # every warning of the report is on the console too (several are only written there), once more at the end
+    logged = [r.getMessage() for r in caplog.records if r.name == "sfm.stage"]
+    assert len(report["warnings"]) == 4 and logged[-4:] == report["warnings"]
     # with one readable video left there is nothing to register: the unreadable one's reason is the error
     assert main(["register", videos[0], str(broken), "--out", str(tmp_path / "ws2")]) == 2
     assert "broken.mp4" in capsys.readouterr().err
