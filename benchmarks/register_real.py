@@ -25,8 +25,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-mediapipe-intrinsics, pose2sim-mediapipe-intrinsics: another detector on both rigs: MediaPipe Pose's 33
   keypoints of the person (committed tests/data/*/mediapipe_tracks.csv, made by benchmarks/mediapipe_tracks.py) on
   the original videos, with the rig's intrinsics, `--subject always`;
-- `--caliscope SESSION`: the caliscope cases on another caliscope session folder (its camera_array.toml,
-  charuco.toml, calibration/extrinsic/cam_*.mp4 and timestamps.csv, with or without a frame_index column), such as
+- `--caliscope SESSION`: the caliscope cases on another four-camera caliscope session folder (its
+  camera_array.toml, charuco.toml, calibration/extrinsic/cam_0.mp4 ... cam_3.mp4 and timestamps.csv, with or without a frame_index column), such as
   the other recordings of the same office in caliscope's repository (tests/sessions/post_optimization,
   tests/sessions/4_cam_recording): recordings this project was not built on.
 - caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
@@ -441,6 +441,13 @@ def main(argv: list[str] | None = None) -> int:
     CALISCOPE = args.caliscope.resolve()
     if not CALISCOPE.exists() or not POSE2SIM.exists():
         print(f"needs the real videos in {SHARED} (and {CALISCOPE})")
+        return 1
+    needed = [CALISCOPE / "calibration" / "extrinsic" / f"{n}.mp4" for n in DROPPED]
+    needed.append(CALISCOPE / "calibration" / "extrinsic" / "timestamps.csv")
+    missing = [str(p) for p in needed if not p.is_file()]
+    if missing and any(case.startswith("caliscope") for case in args.cases.split(",")):
+        # the cases desynchronize cam_0-cam_3 by DROPPED and score the offsets with the capture times
+        print(f"the caliscope cases need a four-camera session with its capture times; missing: {', '.join(missing)}")
         return 1
     rows = [run_case(case, args.work) for case in args.cases.split(",")]
     print("\n| case | posed | centre err % spread | rotation err deg | offsets err (frames) | board mm | register s |")
