@@ -27,8 +27,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
   the original videos, with the rig's intrinsics, `--subject always`;
 - `--caliscope SESSION`: the caliscope cases on another four-camera caliscope session folder (its
   camera_array.toml, charuco.toml, calibration/extrinsic/cam_0.mp4 ... cam_3.mp4 and timestamps.csv, with or
-  without a frame_index column), such as the other recordings of the same office in caliscope's repository (tests/sessions/post_optimization,
-  tests/sessions/4_cam_recording): recordings this project was not built on.
+  without a frame_index column), such as the other recordings of the same office in caliscope's repository
+  (tests/sessions/post_optimization, tests/sessions/4_cam_recording): recordings this project was not built on.
 - caliscope-plain: not dynrecon: plain pycolmap defaults (5 frames per video, exhaustive matching, incremental
   mapping), the simpler method a user would try first; its models are scored pair by pair (relative rotation,
   and the direction of the baseline seen from the first camera), since it splits the videos over models.
