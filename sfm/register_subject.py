@@ -168,6 +168,14 @@ def pose_from_subject(
             warnings.append(f"{options.declared_flag}: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
     _warn_uncertain(stability, posed, warnings)
+    guessed = [v.name for v in inputs if v.K is None and v.name in posed]
+    if guessed:
+        # the folds measure the poses' scatter, not this bias: on real webcams it is several times their change
+        warnings.append(
+            f"subject path: {', '.join(guessed)}: intrinsics self-calibrated, with the principal point held at the "
+            "image centre: real lenses' principal points lie tens of pixels off it, which turns the poses by a few "
+            "degrees; give --intrinsics (or --board with a calibration board's corners) for sub-degree poses"
+        )
     metric = result.metric or len(anchors) >= 2 or aligned is not None  # one anchor fixes the frame, not the scale
     if not metric:
         warnings.append(
