@@ -37,17 +37,24 @@ def closest_depths(r1: np.ndarray, r2: np.ndarray, w: np.ndarray) -> tuple[np.nd
 
 def viewing_rays(problem: Problem) -> np.ndarray:
     """Unit ray directions in world coordinates r = normalize(R^T K^-1 [u v 1]^T), (F, P, 3); NaN where unobserved.
-    All frames at once (a loop over frames is slow on long captures); only frames with lens distortion go through
-    OpenCV one by one."""
+    All frames at once (a loop over frames is slow on long captures); frames with lens distortion go through OpenCV,
+    one call per lens."""
     F, P = problem.num_frames, problem.num_points
     observed = problem.observed
     pixels = np.concatenate([np.where(observed[..., None], problem.uv, 0.0), np.ones((F, P, 1))], axis=2)
     normalized = np.linalg.solve(problem.K, pixels.transpose(0, 2, 1)).transpose(0, 2, 1)  # (F, P, 3)
     normalized[..., 2] = 1.0
+    # one OpenCV call per lens (a static camera's frames share one), not one per frame
+    lenses: dict[bytes, list[int]] = {}
     for f, dist in enumerate(problem.dist):
         if has_distortion(dist) and observed[f].any():
-            seen = observed[f]
-            normalized[f, seen, :2] = normalized_image_points(problem.uv[f, seen], problem.K[f], dist)
+            key = np.ascontiguousarray(problem.K[f]).tobytes() + np.asarray(dist, dtype=np.float64).tobytes()
+            lenses.setdefault(key, []).append(f)
+    for frames in lenses.values():
+        seen = np.zeros_like(observed)
+        seen[frames] = observed[frames]
+        first = frames[0]
+        normalized[seen, :2] = normalized_image_points(problem.uv[seen], problem.K[first], problem.dist[first])
     directions = np.matmul(normalized, problem.R)  # rows: R^T d
     rays = directions / np.linalg.norm(directions, axis=2, keepdims=True)
     rays[~observed] = np.nan
