@@ -170,7 +170,8 @@ def run_case(case: str, work: Path, videos: list[Path]) -> dict[str, Any]:
     truth = truth_cameras(CALIBRATION, NAMES)
     row.update(score(read_cameras(ws / "cameras.json"), truth))
     offsets = {c["name"]: c["offset_s"] for c in (report.get("subject") or {}).get("cameras", [])}
-    row["offset_frames"] = max(abs(o - offsets[NAMES[0]]) * 60 for o in offsets.values()) if offsets else None
+    first = next((offsets[n] for n in NAMES if n in offsets), None)  # the synchronized videos' common offset
+    row["offset_frames"] = max(abs(o - first) * 60 for o in offsets.values()) if first is not None else None
     cameras = read_cameras(ws / "cameras.json")
     tracks = renumber_people(read_tracks(ws / "tracks.csv"), people_maps(cameras))
     # camera k keeps frames k, k+4, k+8, ...: no two cameras share an instant

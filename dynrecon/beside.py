@@ -117,8 +117,7 @@ class Beside(Generic[T]):
         failed, value, warned = payload
         for handler in _collectors():
             for message in warned:
-                if message not in handler.messages:
-                    handler.messages.append(message)
+                handler.add(message)
         if failed:
             raise value
         return value
@@ -209,7 +208,8 @@ def _mapped(function: Callable[[A], T], items: Iterable[A]) -> list[T]:
 
 
 def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> None:
-    """Run the function, send (failed, value) through `write`, and leave without running the caller's exit code."""
+    """Run the function, send (failed, value, the warnings it logged) through `write`, and leave without running the
+    caller's exit code."""
     code = 1
     try:
         # SIGTERM (the caller stopping it) becomes SystemExit, so that the function's cleanup runs; and the child

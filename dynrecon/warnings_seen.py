@@ -16,7 +16,10 @@ class WarningsSeen(logging.Handler):
         self.messages: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
-        message = record.getMessage()
+        self.add(record.getMessage())
+
+    def add(self, message: str) -> None:
+        """Keep `message` unless it is kept already (a forked worker's, `dynrecon.beside`)."""
         if message not in self.messages:
             self.messages.append(message)
 

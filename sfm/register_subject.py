@@ -387,8 +387,11 @@ def _apply(
         results[camera.name] = {int(f): frame_pose for f in by_name[camera.name].wanted}
         posed.append(camera.name)
     for name, reason in result.failed.items():
-        if name in results and _posed(results[name]) is None:
+        # a background pose kept beside the subject path's (--subject always) would be in another world frame
+        if name in results and name not in anchors:
             results[name] = {f: FramePose(pose=None, reason=f"subject path: {reason}") for f in results[name]}
+            if name in result.set_aside:
+                warnings.append(f"{name}: subject path: {reason}")
     return posed
 
 

@@ -67,10 +67,12 @@ def largest_determined(
         determined = stable_cameras(best[0], best[1])
         log.info("subject path: set aside %s; the others pose %s", ", ".join(kept_aside), ", ".join(determined))
         best[0].set_aside = list(kept_aside)
+        without = ", ".join(kept_aside)
         for name, why in kept_aside.items():
             best[0].failed[name] = (
-                f"set aside: its tracks do not fit the other videos' (with it, the poses are {why}; without it, "
-                f"{', '.join(determined)} are determined); check that its tracks follow the same subject"
+                f"set aside: solved with the other videos, its camera was {why.split('; ')[0]}; without {without}, "
+                f"{len(determined)} camera(s) are determined ({', '.join(determined)}): check that its tracks follow "
+                "the same subject as the other videos', and that it sees enough of the subject"
             )
     return best
 
@@ -88,8 +90,11 @@ def _change(stability: Stability, name: str) -> float:
 
 
 def _better(new: tuple[SubjectResult, Stability, object], old: tuple[SubjectResult, Stability, object]) -> bool:
-    """More cameras determined (as many: the whole group's poses are kept, its every video's evidence in them)."""
-    return len(stable_cameras(new[0], new[1])) > len(stable_cameras(old[0], old[1]))
+    """More cameras determined, among them every one the larger group determined (as many: the larger group's
+    poses are kept, its every video's evidence in them)."""
+    stable_new, stable_old = stable_cameras(new[0], new[1]), stable_cameras(old[0], old[1])
+    kept = {c.name for c in new[0].cameras} | set(new[0].failed)
+    return len(stable_new) > len(stable_old) and set(stable_old) & kept <= set(stable_new)
 
 
 __all__ = ["MAX_ROUNDS", "largest_determined"]

@@ -31,9 +31,13 @@ FOLDS = 3  # fold k leaves out the blocks whose index is k modulo FOLDS
 # A garbage detector, not an accuracy bound: a fold holds 2/3 of the data, so valid poses move too.
 MAX_CENTRE = 0.1  # largest centre change between a fold and the whole, fraction of the camera spread
 MAX_ROTATION_DEG = 5.0
-# two cameras whose focals are self-calibrated: their folds compare the relative rotation only, and a focal the
-# pair does not determine (axes aimed at one subject) moves it consistently, so the folds understate the error
-MAX_ROTATION_TWO_SELF_DEG = 2.0
+# Two cameras of which one has a self-calibrated focal are not trusted at all: one pair aimed at one subject does
+# not determine its focals (the axes nearly meet: the two-view degeneracy), and the folds, which compare only the
+# relative rotation, move with the wrong focal instead of exposing it.
+TWO_SELF_CALIBRATED = (
+    "two cameras with self-calibrated focal lengths: one pair of views aimed at one subject does not determine them, "
+    "and a wrong focal turns the pair by degrees to tens of degrees; give --intrinsics, --board, or a third video"
+)
 MAX_TRIPLES = 220  # camera triples tried for the fold's similarity (all of them up to 12 cameras)
 
 
@@ -99,6 +103,9 @@ def check_stability(
 
     `solve` (fold's tracks, options) -> solution: how `result` was found (default `calibrate_from_subject` on
     `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared."""
+    self_calibrated = {v.name for v in videos if v.K is None}
+    if len(result.cameras) == 2 and any(c.name in self_calibrated for c in result.cameras):
+        return Stability(unstable={c.name: f"not determined: {TWO_SELF_CALIBRATED}" for c in result.cameras})
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
     out = Stability()
@@ -160,15 +167,11 @@ def check_stability(
                 f"camera spread between folds of the data and the whole "
                 f"(> {100 * MAX_CENTRE:.0f} %{_most(values, MAX_CENTRE)})"
             )
-    self_calibrated = {v.name for v in videos if v.K is None}
-    two_self = len(result.cameras) == 2 and any(c.name in self_calibrated for c in result.cameras)
-    limit = MAX_ROTATION_TWO_SELF_DEG if two_self else MAX_ROTATION_DEG
     for name, values in out.rotation_folds.items():
-        if max(values) > limit and name not in out.unstable:
+        if max(values) > MAX_ROTATION_DEG and name not in out.unstable:
             out.unstable[name] = (
                 f"not determined by the tracks: its rotation moves by {_listed(values, ' deg')} between folds of the "
-                f"data and the whole (> {limit:g} deg{_most(values, limit)}"
-                + ("; two cameras without intrinsics: give --intrinsics)" if two_self else ")")
+                f"data and the whole (> {MAX_ROTATION_DEG:g} deg{_most(values, MAX_ROTATION_DEG)})"
             )
     return out
 

@@ -109,6 +109,50 @@ def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeyp
     assert all(r.pose is None for name in names for r in results[name].values())
 
 
+def test_a_video_set_aside_is_unposed_and_said(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Solved together no camera is determined; without d the other three are: d is set aside, its background pose
+    (--subject always: not an anchor, and in another world frame than the subject path's) is not kept, and a
+    warning and the section say so."""
+    import sfm.register_subject as register_subject
+    from sfm.options import SubjectPath
+
+    names = ["a", "b", "c", "d"]
+    plans = [_plan(tmp_path, name, True) for name in names]
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    results["d"] = {f: FramePose(pose=pycolmap.Rigid3d(), source="sfm") for f in range(30)}
+
+    def solved(tracks: Tracks, videos: list, options: object) -> tuple[SubjectResult, Stability]:
+        group = [v.name for v in videos]
+        cameras = [
+            SubjectCamera(
+                name=n,
+                K=np.eye(3),
+                dist=None,
+                R=np.eye(3),
+                t=np.full(3, float(i)),
+                offset=0.0,
+                inliers=50,
+                residual_px=1,
+            )
+            for i, n in enumerate(group)
+        ]
+        moves = {n: [(0.9 if n == "d" else 0.4) if "d" in group else 0.01] for n in group}
+        unstable = {n: "not determined by the tracks: its centre moves by 40 %" for n in group if "d" in group}
+        stability = Stability(centre_folds=moves, rotation_folds={n: [0.5] for n in group}, unstable=unstable)
+        return SubjectResult(cameras=cameras, pairs=[], failed={}, metric=False), stability
+
+    monkeypatch.setattr(register_subject, "choose_noise", solved)
+    warnings: list[str] = []
+    known = {n: (np.diag([500.0, 500.0, 1.0]), None) for n in names}
+
+    options = RegisterOptions(subject=SubjectPath.ALWAYS)
+    section = pose_from_subject(plans, results, _tracks(names), known, options, warnings)
+
+    assert section is not None and section["posed"] == ["a", "b", "c"] and section["set_aside"] == ["d"]
+    assert all(r.pose is None and "set aside" in (r.reason or "") for r in results["d"].values())
+    assert any(w.startswith("d: subject path: set aside: solved with the other videos") for w in warnings)
+
+
 def test_posed_cameras_the_folds_turn_by_degrees_are_said_to_be_uncertain() -> None:
     from sfm.register_subject import UNCERTAIN_DEG, _warn_uncertain
 
