@@ -81,15 +81,39 @@ def keypoint_names(count: int) -> tuple[str, ...]:
 
 
 def openpose_files(path: Path) -> list[Path]:
-    """The JSON files of a folder (sorted by name), or the one file given."""
+    """The JSON files of a folder (sorted by name) that follow its main naming pattern, or the one file given."""
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".json")
         if not files:
             raise InputError(path, "no .json files in this folder", fix="give OpenPose's --write_json folder")
-        return files
+        return _main_pattern(path, files)
     if not path.is_file():
         raise InputError(path, "file or folder not found")
     return [path]
+
+
+def _main_pattern(folder: Path, files: list[Path]) -> list[Path]:
+    """The files named like most of them (`cam03.0012.json` beside a stray `del_000000_0.json`: Pose2Sim's demo);
+    the others are left out with a warning. Patterns as common as the main one are kept: frames numbered twice
+    are then refused by name."""
+    groups: dict[str, list[Path]] = {}
+    for file in files:
+        groups.setdefault(_FRAME.sub("#", file.stem), []).append(file)
+    if len(groups) == 1:
+        return files
+    ranked = sorted(groups.values(), key=len, reverse=True)
+    if len(ranked[0]) == len(ranked[1]):
+        return files
+    others = [f.name for group in ranked[1:] for f in group]
+    log.warning(
+        "%s: %d of its %d JSON files are named unlike the others and left out (%s%s)",
+        folder,
+        len(others),
+        len(files),
+        ", ".join(others[:4]),
+        ", ..." if len(others) > 4 else "",
+    )
+    return ranked[0]
 
 
 def video_name_from_openpose(path: Path) -> str:

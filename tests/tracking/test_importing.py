@@ -145,6 +145,25 @@ def test_malformed_files_give_one_line_errors(tmp_path: Path, name: str, text: s
     assert not (tmp_path / "out.csv").exists()
 
 
+def test_stray_json_files_of_another_name_are_left_out(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Pose2Sim's demo folder cam03_json holds cam03.0000.json ... and two del_000000_0.json-like leftovers, whose
+    frame numbers repeat the main files': the main pattern is read, the strays named in a warning."""
+    folder = tmp_path / "cam03_json"
+    folder.mkdir()
+    flat = [v for k in range(25) for v in (100.0 + k, 200.0 + k, 0.9)]
+    for frame in range(4):
+        (folder / f"cam03.{frame:04d}.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": flat}]}))
+    for name in ("del_000000_0.json", "del_000001_0.json"):
+        (folder / name).write_text(json.dumps({"people": [{"pose_keypoints_2d": [0.0] * 75}]}))
+
+    out = run_import([folder], tmp_path / "tracks.csv", ImportOptions())
+
+    assert sorted(set(read_tracks(out).frame)) == [0, 1, 2, 3]
+    assert any(
+        "2 of its 6 JSON files are named unlike the others" in m and "del_000000_0.json" in m for m in caplog.messages
+    )
+
+
 def test_malformed_openpose(tmp_path: Path) -> None:
     bad = tmp_path / "x_000000000004_keypoints.json"
     bad.write_text("{not json")
