@@ -781,7 +781,8 @@ def _search_result(
         spread = joint.timing_spread(refined.theta, periods, refined.scale)
     warnings = [
         f"video {names[v]!r}: the track search found no distinct offset to the other videos (too little "
-        "overlap, or motion that every offset explains): its clock is not identified by the tracks"
+        "overlap, or motion that every offset explains), so the search leaves its clock to the solve's later "
+        "stages (report.json's clocks say what was used)"
         for v in range(N)
         if not params.identified[v]
     ]
