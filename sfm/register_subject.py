@@ -236,7 +236,7 @@ def _solve_with_posed(
         def fold(part: Tracks, fold_options: SubjectOptions) -> SubjectResult:
             return solve_with_posed(part, inputs, known, fold_options)[0]
 
-        return result, check_stability(subject_tracks, inputs, result, scaled, solve=fold), aligned
+        return result, check_stability(subject_tracks, inputs, result, scaled, solve=fold, alone=False), aligned
 
     return choose_scale(trial, options)
 

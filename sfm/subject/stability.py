@@ -98,13 +98,15 @@ def check_stability(
     result: SubjectResult,
     options: SubjectOptions | None = None,
     solve: Callable[[Tracks, SubjectOptions], SubjectResult] | None = None,
+    alone: bool = True,
 ) -> Stability:
     """Solve each fold of `tracks` and compare its cameras with `result` (the solution on all of them).
 
     `solve` (fold's tracks, options) -> solution: how `result` was found (default `calibrate_from_subject` on
-    `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared."""
+    `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared. `alone`: the cameras
+    are posed from their own tracks (False: beside videos the background posed, which constrain their focals)."""
     self_calibrated = {v.name for v in videos if v.K is None}
-    if len(result.cameras) == 2 and any(c.name in self_calibrated for c in result.cameras):
+    if alone and len(result.cameras) == 2 and any(c.name in self_calibrated for c in result.cameras):
         return Stability(unstable={c.name: f"not determined: {TWO_SELF_CALIBRATED}" for c in result.cameras})
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0

@@ -126,3 +126,6 @@ def test_two_cameras_without_intrinsics_are_not_trusted() -> None:
     assert len(calls) == 3  # no fold solved: nothing they show would be trusted
     assert sorted(self_calibrated.unstable) == ["cam0", "cam1"]
     assert "two cameras with self-calibrated focal lengths" in self_calibrated.unstable["cam0"]
+    # beside videos the background posed (a handheld phone), whose poses constrain the focals, the folds decide
+    beside_posed = check_stability(tracks, one_unknown, whole, SubjectOptions(), solve=solve, alone=False)
+    assert not beside_posed.unstable and len(calls) == 6
