@@ -129,8 +129,24 @@ def _recover_and_refine(
         "refinement without a clock model not used either: %s; the self-expressive solve is kept",
         free_checks[-1].sentence(),
     )
+    _warn_no_clock(clocks)
     report.update({"path": TimePath.SEED.value, "checks": [c.to_json() for c in checks], **judge.free_report()})
     return Temporal(clocks=clocks, points=result.points, times=times, refined=False, report=report)
+
+
+def _warn_no_clock(clocks: Clocks) -> None:
+    """Where no video's clock was recovered against the reference, the seed solve alone placed every video's
+    frames: say so, and the usual cause (the videos' tracks follow different subjects)."""
+    others = [c.name for c in clocks.videos if c.name != clocks.reference]
+    if not others or any(c.identified for c in clocks.videos if c.name != clocks.reference):
+        return
+    clocks.warnings.append(
+        f"no video's clock was recovered against {clocks.reference!r} ({', '.join(others)}): the points rest on the "
+        "seed solve alone and may be far off; most often the videos' tracks follow different subjects (a detector's "
+        "person numbers are each video's own: `register` with `import-tracks --person all` matches people across "
+        "videos), or the subject moves too little"
+    )
+    log.warning("%s", clocks.warnings[-1])
 
 
 def _tracks_or_links(

@@ -44,3 +44,37 @@ def test_clocks_the_points_rest_on_are_used() -> None:
         clocks: dict[str, object] = {"warnings": []}
         _say_unused_clocks(clocks, {"path": path, "checks": _checks(4.0)})
         assert clocks == {"warnings": [], "used": True}
+
+
+def test_a_solve_without_a_single_recovered_clock_names_the_usual_cause() -> None:
+    """Every video but the reference unclocked and the seed solve kept (Pose2Sim's two-person trial imported with
+    `--person 1`, another person in some views): one warning says the points may be far off and why, where the
+    per-video clock lines did not."""
+    import numpy as np
+
+    from reconstruct.clocks.model import ClockModel, Clocks, TimeSource, VideoClockReport
+    from reconstruct.temporal import _warn_no_clock
+
+    def clocks(identified: bool) -> Clocks:
+        videos = [VideoClockReport(name="cam01", time_source=TimeSource.FPS, method="reference", identified=True)]
+        videos += [
+            VideoClockReport(name=n, time_source=TimeSource.FPS, identified=identified) for n in ("cam02", "cam03")
+        ]
+        empty = np.zeros(0)
+        return Clocks(
+            model=ClockModel.OFFSET,
+            reference="cam01",
+            videos=videos,
+            frame_videos=[],
+            frames=empty,
+            own_time=empty,
+            global_time=empty,
+            global_std=empty,
+        )
+
+    none, some = clocks(False), clocks(True)
+    _warn_no_clock(none)
+    _warn_no_clock(some)
+    assert len(none.warnings) == 1 and not some.warnings
+    assert none.warnings[0].startswith("no video's clock was recovered against 'cam01' (cam02, cam03)")
+    assert "--person all" in none.warnings[0]
