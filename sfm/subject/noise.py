@@ -93,7 +93,7 @@ def choose_scale(
     for px, (result, stability, _) in tried.items():
         stable = stable_cameras(result, stability)
         check[px] = NoiseTrial(
-            posed=len(result.cameras), stable=len(stable), fold_rotation_deg=fold_spread(stability, stable)
+            posed=len(result.cameras), stable=len(stable), fold_rotation_deg=_spread(stability, stable)
         )
     log.info(
         "noise scale: %g px of %s (%s)",
@@ -120,7 +120,7 @@ def stable_cameras(result: SubjectResult, stability: Stability) -> list[str]:
     return [c.name for c in result.cameras if c.name not in stability.unstable]
 
 
-def fold_spread(stability: Stability, names: list[str]) -> float:
+def _spread(stability: Stability, names: list[str]) -> float:
     """The median over `names` of each camera's largest rotation change (deg) between a fold and the whole (inf
     when none was compared): the median, since one camera's worst fold is a noisy statistic."""
     largest = stability.rotation_deg
@@ -133,4 +133,4 @@ def _better(wide: tuple[SubjectResult, Stability], first: tuple[SubjectResult, S
     stable_wide, stable_first = stable_cameras(*wide), stable_cameras(*first)
     if len(stable_wide) != len(stable_first):
         return len(stable_wide) > len(stable_first)
-    return fold_spread(wide[1], stable_wide) < SPREAD_GAIN * fold_spread(first[1], stable_first)
+    return _spread(wide[1], stable_wide) < SPREAD_GAIN * _spread(first[1], stable_first)

@@ -16,7 +16,7 @@ from typing import TypeVar
 
 from sfm.subject.model import SubjectCalibrationError, SubjectResult, SubjectVideo
 from sfm.subject.noise import stable_cameras
-from sfm.subject.stability import MAX_CENTRE, MAX_ROTATION_DEG, Stability
+from sfm.subject.stability import MAX_CENTRE, MAX_ROTATION_DEG, Stability, pair_without_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ def largest_determined(
     best = trial(videos)
     if _settled(best[0], best[1]):
         return best
-    names = [v.name for v in videos]
+    group = list(videos)
     aside: dict[str, str] = {}
     kept_aside: dict[str, str] = {}
     current = best
@@ -44,18 +44,16 @@ def largest_determined(
         result, stability = current[0], current[1]
         candidates = [c.name for c in result.cameras if c.name in stability.unstable and c.name not in keep]
         # a smaller group is kept only where it determines more cameras: none can once all but one are
-        if not candidates or len(names) <= 2 or len(stable_cameras(best[0], best[1])) >= len(names) - 1:
+        if not candidates or len(group) <= 2 or len(stable_cameras(best[0], best[1])) >= len(group) - 1:
             break
         worst = max(candidates, key=lambda n: _change(stability, n))
-        rest = [v for v in videos if v.name in names and v.name != worst]
-        if len(rest) == 2 and any(v.K is None for v in rest):
-            # two cameras' folds compare only their relative rotation, which a wrong self-calibrated focal moves
-            # consistently (docs/registration.md, "Videos set aside")
+        rest = [v for v in group if v.name != worst]
+        if pair_without_intrinsics(rest):  # refused by its folds' check whatever they show: no solve for it
             break
-        names.remove(worst)
+        group = rest
         aside[worst] = stability.unstable[worst]
         try:
-            current = trial([v for v in videos if v.name in names])
+            current = trial(group)
         except SubjectCalibrationError as error:
             log.info("subject path without %s: %s", ", ".join(aside), error)
             break

@@ -105,8 +105,8 @@ def check_stability(
     `solve` (fold's tracks, options) -> solution: how `result` was found (default `calibrate_from_subject` on
     `videos`). A similarity needs 3 cameras; with 2, their relative rotation is compared. `alone`: the cameras
     are posed from their own tracks (False: beside videos the background posed, which constrain their focals)."""
-    self_calibrated = {v.name for v in videos if v.K is None}
-    if alone and len(result.cameras) == 2 and any(c.name in self_calibrated for c in result.cameras):
+    posed = {c.name for c in result.cameras}
+    if alone and pair_without_intrinsics([v for v in videos if v.name in posed]):
         return Stability(unstable={c.name: f"not determined: {TWO_SELF_CALIBRATED}" for c in result.cameras})
     centres = np.array([c.centre for c in result.cameras]) if result.cameras else np.zeros((0, 3))
     spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max() * 2) if len(centres) else 0.0
@@ -178,6 +178,11 @@ def check_stability(
     return out
 
 
+def pair_without_intrinsics(videos: list[SubjectVideo]) -> bool:
+    """Two cameras of which one has a self-calibrated focal (TWO_SELF_CALIBRATED): not a group to trust alone."""
+    return len(videos) == 2 and any(v.K is None for v in videos)
+
+
 def _most(values: list[float], limit: float) -> str:
     return f" in {sum(v > limit for v in values)} of {len(values)} folds"
 
@@ -229,4 +234,4 @@ def _angle(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-__all__ = ["Stability", "check_stability"]
+__all__ = ["Stability", "check_stability", "pair_without_intrinsics"]

@@ -117,16 +117,15 @@ def make_rig(
     seen from another side) has on top of its `noise_px`; `motion` replaces the kind's subject (the same cameras:
     another person in the same room)."""
     rng = np.random.default_rng(seed)
-    chosen = motion
     if kind in ("skeleton", "sway"):
-        motion = skeleton_motion if kind == "skeleton" else sway_motion
+        default = skeleton_motion if kind == "skeleton" else sway_motion
         target, radius, height = np.array([0.0, 0.0, 1.0]), 5.0, 2.6
         width, hgt = 1920, 1080
     else:
-        motion = flight_motion if kind == "flight" else line_motion
+        default = flight_motion if kind == "flight" else line_motion
         target, radius, height = np.array([0.0, 0.0, 12.0]), 60.0, 1.7
         width, hgt = 1920, 1080
-    motion = chosen or motion
+    motion = motion or default
     names, Ks, dists, Rs, ts, periods = [], [], [], [], [], []
     rows: list[tuple[str, int, str, float, float]] = []
     videos: list[SubjectVideo] = []
