@@ -13,6 +13,9 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - caliscope-subject-intrinsics-scale: `--intrinsics camera_array.toml` and `--scale` on the board's two farthest
   corners: the rig's own intrinsics, scored like the board case (`board_mm`);
 - caliscope-auto: the desynchronized videos with the corner tracks, default options (background, then subject);
+- caliscope-markers: the desynchronized videos and nothing else (no tracks, no calibration, default options): the
+  background leaves videos out, and `register` takes the board's ArUco markers it finds as the subject's tracks;
+  `caliscope-markers-intrinsics` the same with `--intrinsics camera_array.toml`;
 - pose2sim-background: the 4 lab cameras, background only;
 - pose2sim-subject: the committed labels (tests/data/pose2sim) tracked through the videos, `--subject always`,
   with and without the lab intrinsics (`pose2sim-subject-intrinsics`);
@@ -87,6 +90,8 @@ CASES = (
     "caliscope-subject-board",
     "caliscope-subject-intrinsics-scale",
     "caliscope-auto",
+    "caliscope-markers",
+    "caliscope-markers-intrinsics",
     "pose2sim-background",
     "pose2sim-subject",
     "pose2sim-subject-intrinsics",
@@ -233,7 +238,7 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
         return plain_pycolmap(work / case)
     ws = work / case
     ws.mkdir(parents=True, exist_ok=True)
-    for stale in ("cameras.json", "register_report.json", "tracks.csv"):
+    for stale in ("cameras.json", "register_report.json", "tracks.csv", "marker_tracks.csv"):
         (ws / stale).unlink(missing_ok=True)
     args: list[str] = []
     true_offsets: dict[str, float] | None = None
@@ -245,6 +250,10 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             (ws / "tracks.csv").write_bytes(MEDIAPIPE["caliscope"].read_bytes())
             tracking_s = 0.0
             true_offsets = {v.stem: 0.0 for v in videos}
+        elif "markers" in case:  # nothing but the desynchronized videos: register finds the markers itself
+            videos = desynchronized_caliscope(work)
+            tracking_s = 0.0
+            true_offsets = caliscope_true_offsets()
         elif "subject" in case or case == "caliscope-auto":
             videos = desynchronized_caliscope(work)
             started = time.perf_counter()

@@ -144,7 +144,7 @@ class PipelineOptions:
     def background_register(self) -> RegisterOptions:
         """The `register` stage's options: without tracks, so that new labels never force a new registration."""
         # the board needs tracks; the pipeline names markers in view itself when no tracks come (Stages.register)
-        return dataclasses.replace(self.register, tracks=None, board=None, board_hint=False)
+        return dataclasses.replace(self.register, tracks=None, board=None, find_markers=False)
 
     def subject_register(self, tracks: Path) -> RegisterOptions:
         """The `subject` stage's options: the registration again, with the subject's tracks."""
@@ -426,7 +426,7 @@ class Stages:
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
-                hint = board_hint(self.videos) if options.register.board_hint else None
+                hint = board_hint(self.videos) if options.register.find_markers else None
                 if hint:
                     raise error.with_hint(hint) from None
                 raise

@@ -123,9 +123,10 @@ class RegisterOptions:
     # A ChArUco board (caliscope's charuco.toml / config.toml) whose corners are in the tracks: the subject path's
     # intrinsics (videos without --intrinsics) and scale (without --scale) come from it (sfm/board.py).
     board: Path | None = None
-    # Without tracks or a board: look for ArUco markers in the unposed static videos and name them in the error
-    # (sfm/board_hint.py); off where tracks will come anyway (the pipeline's background registration).
-    board_hint: bool = True
+    # Without tracks: where the background leaves a static video out, the corners of fiducial markers in view
+    # (ArUco, AprilTag) are the subject's tracks (sfm/register_markers.py); markers in one video only are named in
+    # the error (sfm/board_hint.py). Off where tracks will come anyway (the pipeline's background registration).
+    find_markers: bool = True
     tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
     masks: Path | None = None  # user masks folder (see sfm.masks)
     mask_radius: float = 40.0  # original pixels around tracked points

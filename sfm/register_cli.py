@@ -166,6 +166,12 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         "intrinsics (videos without --intrinsics) and scale; without tracks its corners are found in the videos "
         "(written to WS/tracks.csv)",
     )
+    static.add_argument(
+        "--no-markers",
+        action="store_true",
+        help="without tracks, do not take the corners of ArUco / AprilTag markers in view as the subject's tracks "
+        "(by default they pose the static videos the background left out; written to WS/marker_tracks.csv)",
+    )
 
 
 def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
@@ -235,6 +241,7 @@ def _run_register(args: argparse.Namespace) -> int:
         synchronized=args.synchronized,
         offsets=args.offsets,
         board=args.board,
+        find_markers=not args.no_markers,
         max_ratio=args.max_ratio,
         sequential_overlap=args.overlap,
         keyframes=args.keyframes,

@@ -61,7 +61,7 @@ def pose_from_subject(
             warnings.append(f"--board {options.board}: not used: {why}")
         return None
     if tracks is None:
-        hint = board_hint([v.info.path for v in unposed]) if unposed and options.board_hint else None
+        hint = board_hint([v.info.path for v in unposed]) if unposed and options.find_markers else None
         then = f"; {hint}" if hint else ""
         if unposed:
             warnings.append(

@@ -53,6 +53,7 @@ from sfm.per_video import (
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
 from sfm.register_check import TWO_VIEWS_WHY, background_left, check_background, refuse_two_view_focals
+from sfm.register_markers import tracks_from_markers
 from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
@@ -425,6 +426,10 @@ def finish_capture(
     _gather(notes, [p.notes for p in prepared], extracted, StepNotes.from_json(mapping), [n for _, n in localized])
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
+    markers = None
+    if tracks is None and _subject_wanted(plans, results, options):
+        with collected(notes), timed(notes, "markers"):
+            tracks, markers = tracks_from_markers(plans, out)
     with collected(notes), timed(notes, "people"):
         tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
@@ -437,6 +442,8 @@ def finish_capture(
         summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
+    if subject_report is not None and markers is not None:
+        subject_report["markers"] = markers
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
     moving_hint = _moving_hint(plans, registered_videos, tracks, options)
     if moving_hint and len(registered_videos) >= 2:  # a failure says it in its error instead
@@ -639,6 +646,17 @@ def _moving_hint(
         f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and not posed; the subject path "
         "poses static cameras only: if they stood still, register (or run) again with --camera-motion static"
     )
+
+
+def _subject_wanted(plans: list[VideoPlan], results: Results, options: RegisterOptions) -> bool:
+    """Whether the subject path would run given tracks: a static video the background left out (or every static
+    one, `--subject always`), and markers may be looked for (`find_markers`)."""
+    if not options.find_markers or options.subject is SubjectPath.NEVER:
+        return False
+    static = [p for p in plans if p.static]
+    if options.subject is SubjectPath.ALWAYS:
+        return bool(static)
+    return any(all(r.pose is None for r in results[p.info.name].values()) for p in static)
 
 
 def _background_hints(options: RegisterOptions, videos: list[VideoPlan]) -> list[str]:

@@ -443,7 +443,7 @@ def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
     Stages(videos, tmp_path / "ws", options).track()
     assert (tmp_path / "ws" / "tracks.csv").read_text() == "video,frame,point,x,y\ncam_b,1,nose,3,4\n"
     # the background registration of the pipeline never looks for markers: its tracks or board come later
-    assert not options.background_register().board_hint and options.register.board_hint
+    assert not options.background_register().find_markers and options.register.find_markers
     own = tmp_path / "own"
     own.mkdir()
     (own / "tracks.csv").write_text("video,frame,point,x,y\ncam_a,0,nose,1,2\n")

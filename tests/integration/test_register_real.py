@@ -2,8 +2,9 @@
 (`benchmarks/register_real.py` has the same cases with their timings).
 
 - caliscope office (4 static webcams, a person waving a ChArUco board): the background of the four views barely
-  overlaps (cam_1 faces the others across the room), so the board's corners, detected by OpenCV's aruco module and
-  desynchronized by dropping different leading frames per video, are the subject that poses the cameras;
+  overlaps (cam_1 faces the others across the room), so the board, detected by OpenCV's aruco module in the videos
+  desynchronized by dropping different leading frames per video, is the subject that poses the cameras: its
+  markers' corners found by register itself, or its chessboard corners with the board file (`--board`);
 - pose2sim lab (4 static cameras): the committed labels tracked by LK give only 3-5 slowly moving markers, which do
   not determine the cameras; the result must say so instead of reporting wrong poses. Pose2Sim's own OpenPose
   detections of the same person (tests/data/pose2sim/openpose_tracks.csv) do, with the lab's intrinsics.
@@ -42,12 +43,20 @@ def _register(videos: list[Path], ws: Path, tracks: Path, *extra: str) -> dict:
     return json.loads((ws / "register_report.json").read_text())
 
 
-def test_caliscope_static_rig_from_the_subject(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
-    videos, tracks = caliscope
-    report = _register(videos, tmp_path / "ws", tracks, "--intrinsics", str(real.CALISCOPE / "camera_array.toml"))
-    # Every webcam is found static; the background poses none of them, the board's corners pose all four.
+def test_caliscope_static_rig_from_the_markers_in_view(caliscope: tuple[list[Path], Path], tmp_path: Path) -> None:
+    videos, _ = caliscope
+    # No tracks given: the background poses none of the webcams, and register takes the corners of the board's
+    # ArUco markers it finds in the videos (no board file) as the subject's tracks; they pose all four.
+    ws = tmp_path / "ws"
+    argv = ["register", *(str(v) for v in videos), "--out", str(ws)]
+    assert main([*argv, "--intrinsics", str(real.CALISCOPE / "camera_array.toml")]) == 0
+    report = json.loads((ws / "register_report.json").read_text())
     assert [v["camera"] for v in report["videos"]] == ["static"] * 4
     assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
+    markers = report["subject"]["markers"]
+    assert markers["dictionary"] == "DICT_4X4_1000" and sorted(markers["frames"]) == [f"cam_{i}" for i in range(4)]
+    rows = read_tracks(ws / "marker_tracks.csv")
+    assert {p.rsplit("_", 2)[0] for p in rows.point} == {"marker"} and set(rows.extra["source"]) == {"marker"}
     assert all(v["registered"] == v["frames_in_video"] for v in report["videos"])  # every frame, one pose
     cameras = read_cameras(tmp_path / "ws" / "cameras.json")
     truth = real.truth_cameras(real.CALISCOPE / "camera_array.toml", [f"cam_{i}" for i in range(4)])
@@ -101,7 +110,8 @@ def test_caliscope_background_alone_says_what_is_missing(
     shared_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     videos = [real.CALISCOPE / "calibration" / "extrinsic" / f"cam_{i}.mp4" for i in range(4)]
-    assert main(["register", *(str(v) for v in videos), "--out", str(tmp_path / "ws")]) == 2
+    # the background alone (without it the board's markers pose the rig: the test above)
+    assert main(["register", *(str(v) for v in videos), "--out", str(tmp_path / "ws"), "--subject", "never"]) == 2
     err = capsys.readouterr().err
     assert "videos registered" in err and "cameras.json not written" in err
     report = json.loads((tmp_path / "ws" / "register_report.json").read_text())

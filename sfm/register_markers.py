@@ -1,0 +1,70 @@
+"""Tracks `register` finds itself: fiducial markers in view, when no tracks were given and the background left a
+static video out.
+
+A calibration board (ChArUco, an AprilTag grid) or markers on the subject name their corners alike in every video
+by the markers' ids: their corners are the subject's tracks without a board file (tracking/markers.py). The
+dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos; ids seen by one video only are
+left out (they pose nothing, and a mirrored marker can read as another id). The tracks go to
+WS/marker_tracks.csv, and the report's `subject.markers` says where the tracks came from.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sfm.board_hint import markers_in_view
+from sfm.plan import VideoPlan
+from tracking.markers import marker_tracks
+from tracking.tracks import Tracks, read_tracks, write_tracks
+
+log = logging.getLogger(__name__)
+
+MARKER_TRACKS = "marker_tracks.csv"
+MIN_VIDEOS = 2  # videos that must show the markers for them to pose anything
+
+
+def tracks_from_markers(videos: list[VideoPlan], out: Path) -> tuple[Tracks | None, dict[str, Any] | None]:
+    """The corners of the markers in view as tracks (written to `out`/marker_tracks.csv), and the report's note
+    on them; (None, None) when fewer than MIN_VIDEOS videos show markers of one dictionary."""
+    found = markers_in_view([v.info.path for v in videos])
+    if not found:
+        return None, None
+    dictionary = max(found, key=lambda name: len(found[name]))
+    if len(found[dictionary]) < MIN_VIDEOS:
+        return None, None
+    shown = [v for v in videos if v.info.name in found[dictionary]]
+    tracks = marker_tracks([v.info.path for v in shown], dictionary)
+    tracks = _shared(tracks)
+    if not len(tracks.video):
+        return None, None
+    path = out / MARKER_TRACKS
+    write_tracks(path, tracks)
+    # read back: this run sees the CSV's rounded positions, as a later run given the file will
+    tracks = read_tracks(path).canonical()
+    rows = np.asarray(tracks.video)
+    frames = {name: len(np.unique(tracks.frame[rows == name])) for name in tracks.video_names()}
+    log.info(
+        "no tracks given: the corners of the %s markers in %s are the subject's tracks (%s)",
+        dictionary,
+        ", ".join(sorted(frames)),
+        path,
+    )
+    note = {"dictionary": dictionary, "file": str(path), "frames": frames, "points": len(set(tracks.point))}
+    return tracks, note
+
+
+def _shared(tracks: Tracks) -> Tracks:
+    """Only the markers that two videos or more saw."""
+    marker = np.array([p.rsplit("_", 1)[0] for p in tracks.point])
+    videos = np.asarray(tracks.video)
+    seen_by: dict[str, set[str]] = {}
+    for m, v in zip(marker, videos, strict=True):
+        seen_by.setdefault(m, set()).add(v)
+    return tracks.take(np.flatnonzero([len(seen_by[m]) >= MIN_VIDEOS for m in marker]))
+
+
+__all__ = ["MARKER_TRACKS", "tracks_from_markers"]

@@ -1,0 +1,72 @@
+"""Tracks register finds itself: the corners of markers in view, against rendered videos we control."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from board_video import render_board, write_video
+
+from sfm.frames import Resize
+from sfm.plan import VideoPlan
+from sfm.register_markers import MARKER_TRACKS, tracks_from_markers
+from sfm.video import ProbedVideo
+from tracking.charuco import CharucoBoard
+from tracking.tracks import read_tracks
+
+BOARD = CharucoBoard(columns=4, rows=5, square_size=0.054, marker_size=0.040, dictionary="DICT_4X4_1000", inverted=True)
+SIZE = (640, 480)
+FRAMES = 6
+
+
+def _plan(path: Path) -> VideoPlan:
+    return VideoPlan(
+        info=ProbedVideo(
+            path=path,
+            name=path.stem,
+            width=SIZE[0],
+            height=SIZE[1],
+            times=np.arange(FRAMES) / 10.0,
+            nominal_fps=10.0,
+        ),
+        resize=Resize(scale=1.0, width=SIZE[0], height=SIZE[1]),
+        sfm_frames=np.zeros(0, dtype=np.int64),
+        wanted=np.arange(FRAMES),
+        static=True,
+    )
+
+
+def _board_video(path: Path, scale: float) -> Path:
+    moves = [np.array([[scale, 0, 100 + 12 * i], [0, scale, 40 + 5 * i], [0, 0, 1]]) for i in range(FRAMES)]
+    return write_video(path, render_board(BOARD, moves, SIZE))
+
+
+def test_markers_two_videos_share_are_the_tracks(tmp_path: Path) -> None:
+    """Two videos show the board, a third a lone marker only it sees, a fourth none: the tracks are the board's
+    10 markers x 4 corners in the two videos, every frame, written to marker_tracks.csv and read back."""
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_1000)
+    lone = np.full((SIZE[1], SIZE[0]), 255, dtype=np.uint8)
+    for k, marker_id in enumerate((500, 501, 502)):  # three markers: the dictionary is in view in cam_c too
+        lone[100:180, 60 + 150 * k : 140 + 150 * k] = cv2.aruco.generateImageMarker(dictionary, marker_id, 80)
+    texture = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (SIZE[1], SIZE[0]), dtype=np.uint8), (5, 5), 1)
+    paths = [
+        _board_video(tmp_path / "cam_a.avi", 1.3),
+        _board_video(tmp_path / "cam_b.avi", 1.1),
+        write_video(tmp_path / "cam_c.avi", [lone] * FRAMES),
+        write_video(tmp_path / "cam_d.avi", [texture] * FRAMES),
+    ]
+    tracks, note = tracks_from_markers([_plan(p) for p in paths], tmp_path)
+    assert tracks is not None and note is not None
+    assert note["dictionary"] == "DICT_4X4_1000" and note["frames"] == {"cam_a": FRAMES, "cam_b": FRAMES}
+    assert note["points"] == 40 and note["file"] == str(tmp_path / MARKER_TRACKS)
+    assert sorted(set(tracks.point)) == sorted(f"marker_{i}_{k}" for i in range(10) for k in range(4))
+    assert len(tracks) == 2 * FRAMES * 40
+    again = read_tracks(tmp_path / MARKER_TRACKS).canonical()
+    np.testing.assert_array_equal(again.xy, tracks.xy)  # this run uses what a later run reads
+
+
+def test_markers_in_one_video_are_no_tracks(tmp_path: Path) -> None:
+    paths = [_board_video(tmp_path / "cam_a.avi", 1.3), tmp_path / "missing.avi"]
+    assert tracks_from_markers([_plan(p) for p in paths], tmp_path) == (None, None)
+    assert not (tmp_path / MARKER_TRACKS).exists()
