@@ -119,6 +119,17 @@ def main() -> int:
     reference = _poses(cal)
     anipose = {c.name: (c.R, c.t) for c in read_calibration(session / "calibration.toml") if c.name != "side"}
     rows.append(("2 register the clips --board", code, seconds, _posed_by(cal), _compare(reference, anipose)))
+    markers = args.work / "cal_markers"  # nothing but the clips: register finds the board's markers itself
+    code, seconds = _run(["register", *clip_paths, "--out", str(markers)])
+    rows.append(
+        (
+            "2b register the clips (nothing else)",
+            code,
+            seconds,
+            _posed_by(markers),
+            _compare(_poses(markers), reference),
+        )
+    )
 
     def register(step: str, ws: Path) -> None:
         code, seconds = _run(["register", *video_paths, "--out", str(ws)])

@@ -143,8 +143,12 @@ class PipelineOptions:
 
     def background_register(self) -> RegisterOptions:
         """The `register` stage's options: without tracks, so that new labels never force a new registration."""
-        # the board needs tracks; the pipeline names markers in view itself when no tracks come (Stages.register)
-        return dataclasses.replace(self.register, tracks=None, board=None, find_markers=False)
+        # The board needs tracks. Markers in view are tracks register finds itself, unless the board's corners or
+        # given tracks come later: the subject stage's registration with them must not find every video posed.
+        coming = self.tracks is not None or self.register.board is not None
+        return dataclasses.replace(
+            self.register, tracks=None, board=None, find_markers=self.register.find_markers and not coming
+        )
 
     def subject_register(self, tracks: Path) -> RegisterOptions:
         """The `subject` stage's options: the registration again, with the subject's tracks."""

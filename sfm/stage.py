@@ -444,6 +444,11 @@ def finish_capture(
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
     if subject_report is not None and markers is not None:
         subject_report["markers"] = markers
+        if subject_report.get("why"):  # the tracks were not the user's: say whose they were
+            subject_report["why"] += (
+                f" (the tracks were the corners of the {markers['dictionary']} markers in view, {markers['file']}: "
+                "track the subject instead, dynrecon track WS or import-tracks)"
+            )
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
     moving_hint = _moving_hint(plans, registered_videos, tracks, options)
     if moving_hint and len(registered_videos) >= 2:  # a failure says it in its error instead

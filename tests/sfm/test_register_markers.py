@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from board_video import render_board, write_video
 
+from dynrecon.cli import main
 from sfm.frames import Resize
 from sfm.plan import VideoPlan
 from sfm.register_markers import MARKER_TRACKS, tracks_from_markers
@@ -70,3 +73,21 @@ def test_markers_in_one_video_are_no_tracks(tmp_path: Path) -> None:
     paths = [_board_video(tmp_path / "cam_a.avi", 1.3), tmp_path / "missing.avi"]
     assert tracks_from_markers([_plan(p) for p in paths], tmp_path) == (None, None)
     assert not (tmp_path / MARKER_TRACKS).exists()
+
+
+def test_markers_that_never_move_are_refused_naming_them(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A board that stands still in two views (static markers, no textured background): the subject path cannot
+    pose the cameras from one plane, and the one-line error says the tracks were the markers register found."""
+    views = (
+        np.array([[1.2, 0.1, 150], [0.05, 1.1, 40], [1e-4, 0, 1]]),
+        np.array([[1.0, -0.2, 200], [0.1, 1.2, 60], [-1e-4, 1e-4, 1]]),
+    )
+    videos = [
+        str(write_video(tmp_path / f"{name}.avi", render_board(BOARD, [H] * 20, SIZE)))
+        for name, H in zip("ab", views, strict=True)
+    ]
+    assert main(["register", *videos, "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "degenerate motion" in err and f"DICT_4X4_1000 markers in view, {tmp_path / 'ws' / MARKER_TRACKS}" in err
+    report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
+    assert report["subject"]["markers"]["frames"] == {"a": 20, "b": 20}
