@@ -29,7 +29,7 @@ def _folder(job: CaptureJob) -> Path:
 
 
 def _options(job: CaptureJob) -> RegisterOptions:
-    return job.options.background_register()
+    return job.stages().background_options()
 
 
 def _names(job: CaptureJob) -> list[str]:

@@ -141,11 +141,11 @@ class PipelineOptions:
     units: str | None = None
     force: bool = False  # redo every stage
 
-    def background_register(self) -> RegisterOptions:
-        """The `register` stage's options: without tracks, so that new labels never force a new registration."""
-        # The board needs tracks. Markers in view are tracks register finds itself, unless the board's corners or
-        # given tracks come later: the subject stage's registration with them must not find every video posed.
-        coming = self.tracks is not None or self.register.board is not None
+    def background_register(self, *, labels: bool = False) -> RegisterOptions:
+        """The `register` stage's options: without tracks, so that new tracks never force a new registration.
+        Markers in view are tracks register finds itself, unless the user's tracks come later (`labels` in WS,
+        --tracks, the board's corners): then the subject stage registers with those, as the user asked."""
+        coming = labels or self.tracks is not None or self.register.board is not None
         return dataclasses.replace(
             self.register, tracks=None, board=None, find_markers=self.register.find_markers and not coming
         )
@@ -423,7 +423,7 @@ class Stages:
                 lambda: import_registration(calibration, self.videos, folder, imported),
             )
             return None
-        register_options = options.background_register()
+        register_options = self.background_options()
         sfm = registrar or _register
         try:
             self.run("register", files, settings, outputs, lambda: sfm(self.videos, folder, register_options))
@@ -443,6 +443,10 @@ class Stages:
             return error
         return None
 
+    def background_options(self) -> RegisterOptions:
+        """The `register` stage's options for this workspace (markers only where no labels are in it)."""
+        return self.options.background_register(labels=self.labels is not None)
+
     def register_up_to_date(self) -> bool:
         """Whether `register()` would skip its stage (the batch's per-video registration tasks skip then too)."""
         files, settings, _ = self._register_inputs()
@@ -460,7 +464,7 @@ class Stages:
             if options.calibration_options.profile is not None:  # its contents, not only its name
                 files["profile"] = options.calibration_options.profile
             return files, settings, outputs
-        return self.video_files, {"register": options.background_register(), "videos": names}, outputs
+        return self.video_files, {"register": self.background_options(), "videos": names}, outputs
 
     def track(self, tracker: Tracker | None = None) -> Path | None:
         """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither.

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from sfm.board_hint import markers_in_view
+from sfm.options import ALL_CORES
 from sfm.plan import VideoPlan
 from tracking.markers import marker_tracks
 from tracking.tracks import Tracks, read_tracks, write_tracks
@@ -27,18 +28,21 @@ MARKER_TRACKS = "marker_tracks.csv"
 MIN_VIDEOS = 2  # videos that must show the markers for them to pose anything
 
 
-def tracks_from_markers(videos: list[VideoPlan], out: Path) -> tuple[Tracks | None, dict[str, Any] | None]:
+def tracks_from_markers(
+    videos: list[VideoPlan], out: Path, threads: int = ALL_CORES
+) -> tuple[Tracks | None, dict[str, Any] | None]:
     """The corners of the markers in view as tracks (written to `out`/marker_tracks.csv), and the report's note
-    on them; (None, None) when fewer than MIN_VIDEOS videos show markers of one dictionary."""
+    on them; (None, None) when fewer than MIN_VIDEOS videos show markers of one dictionary. Every video is searched
+    (a camera may see a waved board only between the look's samples), in `threads` threads (ALL_CORES: one per
+    core)."""
     found = markers_in_view([v.info.path for v in videos])
     if not found:
         return None, None
     dictionary = max(found, key=lambda name: len(found[name]))
     if len(found[dictionary]) < MIN_VIDEOS:
         return None, None
-    shown = [v for v in videos if v.info.name in found[dictionary]]
-    tracks = marker_tracks([v.info.path for v in shown], dictionary)
-    tracks = _shared(tracks)
+    workers = None if threads == ALL_CORES else threads
+    tracks = _shared(marker_tracks([v.info.path for v in videos], dictionary, workers=workers))
     if not len(tracks.video):
         return None, None
     path = out / MARKER_TRACKS

@@ -53,7 +53,7 @@ from sfm.per_video import (
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
 from sfm.register_check import TWO_VIEWS_WHY, background_left, check_background, refuse_two_view_focals
-from sfm.register_markers import tracks_from_markers
+from sfm.register_markers import MARKER_TRACKS, tracks_from_markers
 from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
@@ -426,12 +426,6 @@ def finish_capture(
     _gather(notes, [p.notes for p in prepared], extracted, StepNotes.from_json(mapping), [n for _, n in localized])
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
-    markers = None
-    if tracks is None and _subject_wanted(plans, results, options):
-        with collected(notes), timed(notes, "markers"):
-            tracks, markers = tracks_from_markers(plans, out)
-    with collected(notes), timed(notes, "people"):
-        tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         images = rec.num_reg_images() if rec is not None else None
@@ -439,6 +433,14 @@ def finish_capture(
         if summary.two_views:
             names = ", ".join(summary.two_views)
             notes.warnings.append(f"{names}: the background's poses are not used: {TWO_VIEWS_WHY}")
+    markers = None
+    (out / MARKER_TRACKS).unlink(missing_ok=True)  # an earlier run's: this run's report would not name it
+    if tracks is None and _subject_wanted(plans, results, options):
+        with collected(notes), timed(notes, "markers"):
+            tracks, markers = tracks_from_markers(plans, out, options.num_threads)
+    with collected(notes), timed(notes, "people"):
+        tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
+    with collected(notes), timed(notes, "background_check"):
         summary.background_check = check_background(plans, results, tracks, notes.warnings)
     with collected(notes), timed(notes, "subject"):
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
@@ -658,6 +660,8 @@ def _subject_wanted(plans: list[VideoPlan], results: Results, options: RegisterO
     one, `--subject always`), and markers may be looked for (`find_markers`)."""
     if not options.find_markers or options.subject is SubjectPath.NEVER:
         return False
+    if options.scale is not None and not all(p.startswith("marker_") for p in options.scale[:2]):
+        return False  # --scale names the points of other tracks: the user means to track the subject
     static = [p for p in plans if p.static]
     if options.subject is SubjectPath.ALWAYS:
         return bool(static)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from dynrecon import video_io
 from dynrecon.errors import InputError
@@ -55,12 +56,16 @@ def marker_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
     return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(value), cv2.aruco.DetectorParameters())
 
 
+LONG_SIDE = 1280  # frames are searched this large at most; corners are refined in the full frame
+MAX_SEARCHED = 3000  # frames searched per video, evenly spaced over a longer one (the search's cost)
+
+
 def detect_markers(
     gray: np.ndarray, detector: cv2.aruco.ArucoDetector, *, mirrored: bool = False, inverted: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Marker ids (M,) int64 and corner positions (M, 4, 2) in one (H, W) uint8 frame, ids found once only;
-    `mirrored`: searched in the frame flipped left-right, positions in the frame's own; `inverted`: a white on
-    black print, searched in 255 - frame."""
+    """Marker ids (M,) int64 and corner positions (M, 4, 2) in one (H, W) uint8 frame as the detector finds them
+    (unrefined; an id printed twice is there twice); `mirrored`: searched in the frame flipped left-right,
+    positions in the frame's own; `inverted`: a white on black print, searched in 255 - frame."""
     image = 255 - gray if inverted else gray
     corners, ids, _ = detector.detectMarkers(cv2.flip(image, 1) if mirrored else image)
     if ids is None or len(ids) == 0:
@@ -69,16 +74,14 @@ def detect_markers(
     xy = np.asarray(corners, dtype=float).reshape(-1, 4, 2)
     if mirrored:
         xy[..., 0] = gray.shape[1] - 1 - xy[..., 0]  # column c of the flipped frame is column W - 1 - c
-    values, counts = np.unique(ids, return_counts=True)
-    once = np.isin(ids, values[counts == 1])
-    return ids[once], _refine(gray, xy[once])
+    return ids, xy
 
 
 REFINE_PER_SIDE = 12  # the refinement's half window is the marker's side / this: inside its border cell
 MIN_WINDOW, MAX_WINDOW = 2, 8  # half window, pixels
 
 
-def _refine(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def refine_corners(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Each corner (M, 4, 2) moved to the gradients' corner (cv2.cornerSubPix) in a window that stays inside the
     marker's border: the detector's corners lie on the thresholded outline, up to 2 px inside a small marker."""
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.01)
@@ -93,55 +96,80 @@ def _refine(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return refined
 
 
-def _either_face(
+def find_markers(
     gray: np.ndarray, detector: cv2.aruco.ArucoDetector, inverted: bool
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The markers of the face that shows more of them: the frame searched as it is and mirrored, since a mirror
-    print reads as a few markers unmirrored, some with a real id and their corners in mirrored order. None when
-    neither finds one, or both as many (which face is seen is not known)."""
-    front = detect_markers(gray, detector, inverted=inverted)
-    back = detect_markers(gray, detector, mirrored=True, inverted=inverted)
+) -> tuple[np.ndarray, np.ndarray, set[int]] | None:
+    """The refined markers (ids (M,), corners (M, 4, 2)) of the face that shows more of them in a full-size frame,
+    and the ids it shows twice (left out). Searched as it is and mirrored (a mirror print reads as a few markers
+    unmirrored, some with a real id and their corners in mirrored order), in a copy at most LONG_SIDE large. None
+    when neither way finds one, or both as many (which face is seen is not known)."""
+    scale = min(1.0, LONG_SIDE / max(gray.shape))
+    small = gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    front = detect_markers(small, detector, inverted=inverted)
+    back = detect_markers(small, detector, mirrored=True, inverted=inverted)
     if len(front[0]) == len(back[0]):
         return None
-    return front if len(front[0]) > len(back[0]) else back
+    ids, xy = front if len(front[0]) > len(back[0]) else back
+    values, counts = np.unique(ids, return_counts=True)
+    once = np.isin(ids, values[counts == 1])
+    refined = refine_corners(gray, (xy[once] + 0.5) / scale - 0.5)  # pixel centres at integers in both sizes
+    return ids[once], refined, {int(v) for v in values[counts > 1]}
 
 
-def _detect_video(path: Path, dictionary: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(frame (N,), marker id (N,), corners (N, 4, 2), decoded frame count) for one video."""
+def _detect_video(
+    path: Path, dictionary: str, progress: tqdm | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, set[int]]:
+    """(frame (N,), marker id (N,), corners (N, 4, 2), decoded frame count, ids some frame showed twice) for one
+    video."""
     if not path.is_file():
         raise InputError(path, "video file not found" if not path.exists() else "not a video file")
     capture = video_io.open_video(path)
     detector = marker_detector(dictionary)
+    step = max(1, -(-(video_io.expected_frames(capture) or 0) // MAX_SEARCHED))
     frames: list[np.ndarray] = []
     ids: list[np.ndarray] = []
     xy: list[np.ndarray] = []
+    doubled: set[int] = set()
     index = 0
     inverted = False  # the print found last is searched first: a board is printed one way
     try:
-        while (image := video_io.read(capture)) is not None:
+        while True:
+            if index % step:
+                if not video_io.grab(capture):
+                    break
+                index += 1
+                continue
+            image = video_io.read(capture)
+            if image is None:
+                break
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
             for print_inverted in (inverted, not inverted):
-                found = _either_face(gray, detector, print_inverted)
+                found = find_markers(gray, detector, print_inverted)
                 if found is not None:
                     inverted = print_inverted
                     frames.append(np.full(len(found[0]), index, dtype=np.int64))
                     ids.append(found[0])
                     xy.append(found[1])
+                    doubled |= found[2]
                     break
             index += 1
+            if progress is not None:
+                progress.update(1)
     finally:
         capture.release()
     if index == 0:
         raise InputError(path, "no decodable frames", fix="check the file plays; convert it to H.264")
     if not frames:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 4, 2)), index
-    return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), index
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 4, 2)), index, doubled
+    return np.concatenate(frames), np.concatenate(ids), np.concatenate(xy), index, doubled
 
 
 def marker_tracks(videos: Sequence[Path | str], dictionary: str, *, workers: int | None = None) -> Tracks:
-    """The corners of every marker of `dictionary` in every frame of every video: one row per (video, frame,
-    marker, corner), point `marker_<id>_<k>`. Videos are decoded in `workers` threads (default: one per video, at
-    most the CPU count); OpenCV releases the GIL while decoding and detecting."""
+    """The corners of every marker of `dictionary` in every frame of every video (evenly spaced frames of a
+    video longer than MAX_SEARCHED): one row per (video, frame, marker, corner), point `marker_<id>_<k>`. An id
+    some frame shows twice (two boards printed with the same ids) is left out of every video: its name would
+    join two points. Videos are decoded in `workers` threads (default: one per video, at most the CPU count);
+    OpenCV releases the GIL while decoding and detecting."""
     paths = [Path(v) for v in videos]
     names = [p.stem for p in paths]
     twice = first_repeated(names)
@@ -149,13 +177,25 @@ def marker_tracks(videos: Sequence[Path | str], dictionary: str, *, workers: int
         raise InputError(paths[twice], f"two videos are named {names[twice]!r}", fix="video names must be unique")
     marker_detector(dictionary)  # an unknown dictionary fails before any decoding
     workers = workers or max(1, min(len(paths), os.cpu_count() or 1))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        results = list(pool.map(lambda p: _detect_video(p, dictionary), paths))
+    with (
+        tqdm(desc=f"finding {dictionary} markers", unit="frame", leave=False) as progress,
+        ThreadPoolExecutor(max_workers=workers) as pool,
+    ):
+        results = list(pool.map(lambda p: _detect_video(p, dictionary, progress), paths))
+    doubled: set[int] = set().union(*(result[4] for result in results))
+    if doubled:
+        log.warning(
+            "%s markers %s: seen twice in one frame (two boards with the same ids?): left out",
+            dictionary,
+            ", ".join(map(str, sorted(doubled)[:10])),
+        )
     video: list[str] = []
     frame: list[np.ndarray] = []
     point: list[str] = []
     xy: list[np.ndarray] = []
-    for name, path, (frames, ids, corners, count) in zip(names, paths, results, strict=True):
+    for name, path, (frames, ids, corners, count, _) in zip(names, paths, results, strict=True):
+        keep = ~np.isin(ids, sorted(doubled))
+        frames, ids, corners = frames[keep], ids[keep], corners[keep]
         log.info(
             "%s: %s markers in %d of %d frames (%d distinct)",
             path,
@@ -177,4 +217,12 @@ def marker_tracks(videos: Sequence[Path | str], dictionary: str, *, workers: int
     )
 
 
-__all__ = ["SOURCE_MARKERS", "detect_markers", "marker_detector", "marker_point", "marker_tracks"]
+__all__ = [
+    "SOURCE_MARKERS",
+    "detect_markers",
+    "find_markers",
+    "marker_detector",
+    "marker_point",
+    "marker_tracks",
+    "refine_corners",
+]

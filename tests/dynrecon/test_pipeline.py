@@ -442,10 +442,11 @@ def test_board_without_tracks_makes_the_track_stage(tmp_path: Path) -> None:
     (tmp_path / "ws" / "tracks.csv").write_text("video,frame,point,x,y\ncam_b,1,nose,3,4\n")
     Stages(videos, tmp_path / "ws", options).track()
     assert (tmp_path / "ws" / "tracks.csv").read_text() == "video,frame,point,x,y\ncam_b,1,nose,3,4\n"
-    # the background registration of the pipeline looks for markers only where no board or tracks come later
+    # the background registration of the pipeline looks for markers only where no board, tracks or labels come
     assert not options.background_register().find_markers and options.register.find_markers
     assert not PipelineOptions(tracks=tmp_path / "t.csv").background_register().find_markers
     assert PipelineOptions().background_register().find_markers
+    assert not PipelineOptions().background_register(labels=True).find_markers
     own = tmp_path / "own"
     own.mkdir()
     (own / "tracks.csv").write_text("video,frame,point,x,y\ncam_a,0,nose,1,2\n")

@@ -11,7 +11,7 @@ from board_video import PPM, render_board, write_video
 
 from dynrecon.errors import InputError
 from tracking.charuco import CharucoBoard
-from tracking.markers import detect_markers, marker_detector, marker_point, marker_tracks
+from tracking.markers import find_markers, marker_detector, marker_point, marker_tracks
 
 # markers of a whole number of printed pixels (PPM): a marker of 40.5 px is drawn 40 or 41 px wide
 BOARD = CharucoBoard(columns=4, rows=5, square_size=0.054, marker_size=0.040, dictionary="DICT_4X4_1000", inverted=True)
@@ -69,12 +69,39 @@ def test_the_mirror_print_of_a_two_sided_board_is_read_flipped(tmp_path: Path) -
     assert np.abs(error).max() < 0.5, error
 
 
-def test_a_marker_printed_twice_in_one_frame_is_left_out() -> None:
-    """Two copies of marker 7 cannot be told apart: neither is kept; marker 8 beside them is."""
+def test_a_marker_printed_twice_is_left_out_everywhere(tmp_path: Path) -> None:
+    """Two copies of marker 7 cannot be told apart: in a frame that shows both neither is kept, marker 8 beside
+    them is; a video that shows the copies one at a time in other frames loses marker 7 there too (its name would
+    join two points), with a warning."""
     dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_1000)
-    image = np.full((240, 480), 255, dtype=np.uint8)
-    for marker_id, x in ((7, 40), (7, 190), (8, 340)):
-        image[70:170, x : x + 100] = cv2.aruco.generateImageMarker(dictionary, marker_id, 100)
-    ids, corners = detect_markers(image, marker_detector("DICT_4X4_1000"))
-    assert ids.tolist() == [8] and corners.shape == (1, 4, 2)
-    np.testing.assert_allclose(corners[0, 0], [339.5, 69.5], atol=0.5)  # its top-left corner
+
+    def frame(markers: tuple[tuple[int, int], ...]) -> np.ndarray:
+        image = np.full((240, 480), 255, dtype=np.uint8)
+        for marker_id, x in markers:
+            image[70:170, x : x + 100] = cv2.aruco.generateImageMarker(dictionary, marker_id, 100)
+        return image
+
+    found = find_markers(frame(((7, 40), (7, 190), (8, 340))), marker_detector("DICT_4X4_1000"), False)
+    assert found is not None
+    ids, corners, doubled = found
+    assert ids.tolist() == [8] and doubled == {7}
+    np.testing.assert_allclose(corners[0, 0], [339.5, 69.5], atol=0.3)  # its top-left corner, refined
+    frames = [frame(((7, 40), (7, 190), (8, 340))), frame(((7, 40), (9, 190), (8, 340)))]
+    other = [frame(((7, 190), (9, 40), (8, 340)))] * 2
+    tracks = marker_tracks(
+        [write_video(tmp_path / "cam_a.avi", frames), write_video(tmp_path / "cam_b.avi", other)], "DICT_4X4_1000"
+    )
+    assert {p.rsplit("_", 1)[0] for p in tracks.point} == {"marker_8", "marker_9"}
+
+
+def test_large_frames_are_searched_small_and_refined_full_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 2560 x 1440 frame is searched at 1280 x 720 and its corners refined in the full frame: within half a pixel
+    of the truth. A video longer than MAX_SEARCHED frames is searched on evenly spaced frames."""
+    H = _homography(0.2, (600, 200)) @ np.diag([2.5, 2.5, 1.0])
+    path = write_video(tmp_path / "cam_4k.avi", render_board(BOARD, [H] * 5, (2560, 1440)))
+    monkeypatch.setattr("tracking.markers.MAX_SEARCHED", 2)  # 5 frames: every 3rd
+    tracks = marker_tracks([path], "DICT_4X4_1000")
+    assert sorted(set(tracks.frame.tolist())) == [0, 3]
+    expected = _expected(H)
+    error = tracks.xy - np.array([expected[p] for p in tracks.point])
+    assert len(set(tracks.point)) == 40 and np.abs(error).max() < 0.5, error
