@@ -3,8 +3,9 @@ static video out.
 
 A calibration board (ChArUco, an AprilTag grid) or markers on the subject name their corners alike in every video
 by the markers' ids: their corners are the subject's tracks without a board file (tracking/markers.py). The
-dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos; ids seen by one video only are
-left out (they pose nothing, and a mirrored marker can read as another id). The tracks go to
+dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos, and the markers those that its
+look found in two videos or more (a textured wall reads as stray markers of a large dictionary, each under a random
+id; a marker seen by one video poses nothing). The tracks go to
 WS/marker_tracks.csv, and the report's `subject.markers` says where the tracks came from.
 """
 
@@ -41,8 +42,11 @@ def tracks_from_markers(
     dictionary = max(found, key=lambda name: len(found[name]))
     if len(found[dictionary]) < MIN_VIDEOS:
         return None, None
+    # the board's ids: those two videos' looks found (textures read as stray markers under random ids)
+    seen = [i for ids in found[dictionary].values() for i in ids]
+    board = sorted({i for i in seen if seen.count(i) >= MIN_VIDEOS})
     workers = None if threads == ALL_CORES else threads
-    tracks = _shared(marker_tracks([v.info.path for v in videos], dictionary, workers=workers))
+    tracks = _shared(marker_tracks([v.info.path for v in videos], dictionary, ids=board, workers=workers))
     if not len(tracks.video):
         return None, None
     path = out / MARKER_TRACKS
