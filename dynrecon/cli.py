@@ -152,3 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say("interrupted", stopped=True)
         return 128 + signal.SIGINT
+
+
+if __name__ == "__main__":  # `python -m dynrecon.cli` as well as `python -m dynrecon`
+    raise SystemExit(main())

@@ -171,6 +171,7 @@ class PipelineResult:
     workspace: Path
     stages: list[StageRun]
     order_source: OrderSource | None = None
+    next_step: str | None = None  # what the user does next when the run stopped short (registration only)
 
     def seconds(self, name: str) -> float:
         return next((s.seconds for s in self.stages if s.name == name), 0.0)
@@ -495,11 +496,11 @@ class Stages:
                 lambda: board_tracks(self.videos, board, self.ws),
             )
         elif not tracks_path.is_file():
-            log.info(
-                "no labels and no tracks: registration only. Label the points with `dynrecon label %s "
-                "--videos ...`, then run this command again",
-                ws,
+            self.result.next_step = (
+                f"no labels and no tracks: registration only. Label the points with `dynrecon label {ws} "
+                "--videos ...`, then run this command again"
             )
+            log.info("%s", self.result.next_step)
             return None
         if not tracks_path.is_file():
             raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")

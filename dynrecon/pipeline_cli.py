@@ -230,6 +230,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"{len(seen.messages)} warning(s) in the log above, once each:")  # noqa: T201
         for message in seen.messages:
             print(f"  - {message}")  # noqa: T201
+    if result.next_step:
+        print(f"next: {result.next_step}")  # noqa: T201
     return 0
 
 

@@ -3,9 +3,9 @@ static video out.
 
 A calibration board (ChArUco, an AprilTag grid) or markers on the subject name their corners alike in every video
 by the markers' ids: their corners are the subject's tracks without a board file (tracking/markers.py). The
-dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos, and the markers those that its
-look found in two videos or more (a textured wall reads as stray markers of a large dictionary, each under a random
-id; a marker seen by one video poses nothing). The tracks go to
+dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos, cut to the smallest of its family
+that holds the ids it saw; ids seen by one video only are left out (they pose nothing, and a mirrored marker can
+read as another id). The tracks go to
 WS/marker_tracks.csv, and the report's `subject.markers` says where the tracks came from.
 """
 
@@ -42,11 +42,11 @@ def tracks_from_markers(
     dictionary = max(found, key=lambda name: len(found[name]))
     if len(found[dictionary]) < MIN_VIDEOS:
         return None, None
-    # the board's ids: those two videos' looks found (textures read as stray markers under random ids)
     seen = [i for ids in found[dictionary].values() for i in ids]
-    board = sorted({i for i in seen if seen.count(i) >= MIN_VIDEOS})
+    shared = [i for i in seen if seen.count(i) >= MIN_VIDEOS] or seen  # a stray or lone marker sets no size
+    dictionary = smallest_dictionary(dictionary, max(shared))
     workers = None if threads == ALL_CORES else threads
-    tracks = _shared(marker_tracks([v.info.path for v in videos], dictionary, ids=board, workers=workers))
+    tracks = _shared(marker_tracks([v.info.path for v in videos], dictionary, workers=workers))
     if not len(tracks.video):
         return None, None
     path = out / MARKER_TRACKS
@@ -65,6 +65,21 @@ def tracks_from_markers(
     return tracks, note
 
 
+SIZES = (50, 100, 250, 1000)  # OpenCV's predefined dictionaries of one family: each the first codes of the next
+ID_MARGIN = 1.5  # the look sees a few frames: a board's ids may run this far past the largest it saw
+
+
+def smallest_dictionary(dictionary: str, largest_id: int) -> str:
+    """The smallest dictionary of `dictionary`'s family (DICT_4X4_50 ... _1000) that holds ids up to ID_MARGIN x
+    `largest_id`: it reads the same markers up to 15x faster, corrects a bit more, and reads fewer textures as
+    stray markers. Other dictionaries (AprilTag, the original ArUco) are kept."""
+    family, _, size = dictionary.rpartition("_")
+    if not size.isdigit() or not family.startswith("DICT_") or "X" not in family:
+        return dictionary
+    needed = max(largest_id + 1, int(np.ceil(ID_MARGIN * (largest_id + 1))))
+    return next((f"{family}_{n}" for n in SIZES if n >= needed and n <= int(size)), dictionary)
+
+
 def _shared(tracks: Tracks) -> Tracks:
     """Only the markers that two videos or more saw."""
     marker = np.array([p.rsplit("_", 1)[0] for p in tracks.point])
@@ -75,4 +90,4 @@ def _shared(tracks: Tracks) -> Tracks:
     return tracks.take(np.flatnonzero([len(seen_by[m]) >= MIN_VIDEOS for m in marker]))
 
 
-__all__ = ["MARKER_TRACKS", "tracks_from_markers"]
+__all__ = ["MARKER_TRACKS", "smallest_dictionary", "tracks_from_markers"]

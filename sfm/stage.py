@@ -448,8 +448,7 @@ def finish_capture(
         subject_report["markers"] = markers
         if subject_report.get("why"):  # the tracks were not the user's: say whose they were
             subject_report["why"] += (
-                f" (the tracks were the corners of the {markers['dictionary']} markers in view, {markers['file']}: "
-                "track the subject instead, dynrecon track WS or import-tracks)"
+                f" (the tracks were the corners of the {markers['dictionary']} markers in view, {markers['file']})"
             )
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
     moving_hint = _moving_hint(plans, registered_videos, tracks, options)

@@ -9,8 +9,10 @@ A two-sided board's back face (its mirror print, aligned with the front) is seen
 searched flipped left-right, the corners found are flipped back and named as the front's, which lie in front of
 them. The way that finds more markers is kept: a mirror print read unflipped gives a few markers, some under a real
 id with their corners in mirrored order (a frame where both ways find as many is left out). An inverted print
-(white on black) is searched in the inverted frame where the frame as it is shows none. A marker id found twice in
-one frame (two copies printed) is left out of that frame: its corners cannot be told apart.
+(white on black) is searched in the inverted frame, the print found last first; a frame where that print shows
+fewer than ENOUGH markers is searched as the other print too, and the print that shows more is kept (a texture
+read as one stray marker of one print had won over the board in the other). A marker id some frame shows twice
+(two boards printed with the same ids) is left out everywhere: its name would join two points.
 
 Rows of the result: video = the file name without extension, frame = 0-based decoded frame index, point =
 `marker_<id>_<k>` (k = 0..3, OpenCV's corner order: clockwise from the marker's top-left), x, y in OpenCV pixels,
@@ -58,6 +60,7 @@ def marker_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
 
 LONG_SIDE = 1280  # frames are searched this large at most; corners are refined in the full frame
 MAX_SEARCHED = 3000  # frames searched per video, evenly spaced over a longer one (the search's cost)
+ENOUGH = 2  # markers of the print searched first that end a frame's search (fewer: the other print is tried too)
 
 
 def detect_markers(
@@ -153,15 +156,19 @@ def _detect_video(
             if image is None:
                 break
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            best = None
             for print_inverted in (inverted, not inverted):
                 found = find_markers(gray, detector, print_inverted, wanted)
-                if found is not None:
-                    inverted = print_inverted
-                    frames.append(np.full(len(found[0]), index, dtype=np.int64))
-                    ids.append(found[0])
-                    xy.append(found[1])
-                    doubled |= found[2]
+                if found is not None and (best is None or len(found[0]) > len(best[0][0])):
+                    best = (found, print_inverted)
+                if best is not None and len(best[0][0]) >= ENOUGH:  # one stray marker does not end the search
                     break
+            if best is not None:
+                (found_ids, found_xy, found_doubled), inverted = best
+                frames.append(np.full(len(found_ids), index, dtype=np.int64))
+                ids.append(found_ids)
+                xy.append(found_xy)
+                doubled |= found_doubled
             index += 1
             if progress is not None:
                 progress.update(1)

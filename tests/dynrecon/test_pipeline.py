@@ -467,3 +467,14 @@ def test_run_takes_dlt_calibrations_and_their_profiles(tmp_path: Path) -> None:
     missing = ImportCalibrationOptions(profile=tmp_path / "wand_profile.txt")
     with pytest.raises(InputError, match="camera profile not found"):
         _check_calibration(dlt, missing, RegisterOptions())
+
+
+def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> None:
+    """`run` with neither labels nor tracks only registers: the line saying what to do next is kept for the end of
+    the run (after the stage list and warnings), not only logged on the way."""
+    from board_video import write_video
+
+    videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
+    stages = Stages(videos, tmp_path / "ws")
+    assert stages.track() is None
+    assert stages.result.next_step is not None and f"dynrecon label {tmp_path / 'ws'}" in stages.result.next_step

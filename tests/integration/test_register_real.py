@@ -54,7 +54,7 @@ def test_caliscope_static_rig_from_the_markers_in_view(caliscope: tuple[list[Pat
     assert [v["camera"] for v in report["videos"]] == ["static"] * 4
     assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
     markers = report["subject"]["markers"]
-    assert markers["dictionary"] == "DICT_4X4_1000" and sorted(markers["frames"]) == [f"cam_{i}" for i in range(4)]
+    assert markers["dictionary"] == "DICT_4X4_50" and sorted(markers["frames"]) == [f"cam_{i}" for i in range(4)]
     rows = read_tracks(ws / "marker_tracks.csv")
     assert {p.rsplit("_", 2)[0] for p in rows.point} == {"marker"} and set(rows.extra["source"]) == {"marker"}
     assert all(v["registered"] == v["frames_in_video"] for v in report["videos"])  # every frame, one pose

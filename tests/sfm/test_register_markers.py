@@ -13,7 +13,7 @@ from board_video import render_board, write_video
 from dynrecon.cli import main
 from sfm.frames import Resize
 from sfm.plan import VideoPlan
-from sfm.register_markers import MARKER_TRACKS, tracks_from_markers
+from sfm.register_markers import MARKER_TRACKS, smallest_dictionary, tracks_from_markers
 from sfm.video import ProbedVideo
 from tracking.charuco import CharucoBoard
 from tracking.tracks import read_tracks
@@ -61,7 +61,8 @@ def test_markers_two_videos_share_are_the_tracks(tmp_path: Path) -> None:
     ]
     tracks, note = tracks_from_markers([_plan(p) for p in paths], tmp_path)
     assert tracks is not None and note is not None
-    assert note["dictionary"] == "DICT_4X4_1000" and note["frames"] == {"cam_a": FRAMES, "cam_b": FRAMES}
+    # searched with the smallest dictionary of the family that holds the board's ids 0-9 (the same markers)
+    assert note["dictionary"] == "DICT_4X4_50" and note["frames"] == {"cam_a": FRAMES, "cam_b": FRAMES}
     assert note["points"] == 40 and note["file"] == str(tmp_path / MARKER_TRACKS)
     assert sorted(set(tracks.point)) == sorted(f"marker_{i}_{k}" for i in range(10) for k in range(4))
     assert len(tracks) == 2 * FRAMES * 40
@@ -88,6 +89,13 @@ def test_markers_that_never_move_are_refused_naming_them(tmp_path: Path, capsys:
     ]
     assert main(["register", *videos, "--out", str(tmp_path / "ws")]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "degenerate motion" in err and f"DICT_4X4_1000 markers in view, {tmp_path / 'ws' / MARKER_TRACKS}" in err
+    assert "degenerate motion" in err and f"DICT_4X4_50 markers in view, {tmp_path / 'ws' / MARKER_TRACKS}" in err
     report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
     assert report["subject"]["markers"]["frames"] == {"a": 20, "b": 20}
+
+
+def test_the_smallest_dictionary_that_holds_the_ids_is_searched() -> None:
+    assert smallest_dictionary("DICT_4X4_1000", 9) == "DICT_4X4_50"
+    assert smallest_dictionary("DICT_5X5_1000", 45) == "DICT_5X5_100"  # ids past the largest seen: 1.5x margin
+    assert smallest_dictionary("DICT_6X6_1000", 900) == "DICT_6X6_1000"
+    assert smallest_dictionary("DICT_APRILTAG_36h11", 3) == "DICT_APRILTAG_36h11"  # no smaller one of its family
