@@ -25,7 +25,7 @@ from sfm.subject.noise import choose_scale
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
 from sfm.subject.set_aside import largest_determined
-from sfm.subject.stability import Stability, check_stability
+from sfm.subject.stability import TWO_SELF_CALIBRATED, Stability, check_stability, pair_without_intrinsics
 from tracking.charuco import board_corner_positions, read_charuco_board
 from tracking.tracks import Tracks
 
@@ -116,6 +116,11 @@ def pose_from_subject(
             "ones), or register the static videos without the others"
         )
         return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
+    if not by_posed and not anchors and pair_without_intrinsics(inputs):
+        # refused before any solve: the folds would refuse the pair (stability.check_stability), a minute later
+        why = f"{' and '.join(sorted(names))}: {TWO_SELF_CALIBRATED}"
+        warnings.append(f"subject path: {why}")
+        return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
     subject_tracks = tracks.of_videos(names)
     # a triggered rig (every static video on one clock) or known offsets: a claim each pair's tracks then test
     claimed = options.declared(names)
@@ -186,7 +191,7 @@ def pose_from_subject(
     section = {**_report(result, stability, posed, anchors, metric), "board": board}
     if claimed:
         section["declared"] = _declared(result, claimed, {v.info.name: v for v in videos}, warnings, options)
-    if not posed:
+    if not posed and any(v.name not in anchors for v in inputs):  # anchors alone: nothing was left to pose
         reasons = {k: v for k, v in {**result.failed, **stability.unstable}.items() if k not in anchors}
         section["why"] = (
             "it posed no video that its tracks determine ("

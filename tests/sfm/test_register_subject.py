@@ -82,6 +82,29 @@ def test_no_anchor_beside_background_cameras_is_refused(tmp_path: Path) -> None:
     assert all(r.pose is None for name in ("left", "right") for r in results[name].values())
 
 
+def test_two_self_calibrated_cameras_alone_are_refused_before_any_solve(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two static videos with no intrinsics and nothing else posed: the pair cannot fix its focals, so the path is
+    refused at once (no solve: the folds would refuse it a minute later) naming what to give; with one camera's
+    intrinsics known it is solved."""
+    import sfm.register_subject as register_subject
+
+    def no_solve(*_: object) -> None:
+        raise AssertionError("solved")
+
+    monkeypatch.setattr(register_subject, "choose_noise", no_solve)
+    plans = [_plan(tmp_path, name, True) for name in ("a", "b")]
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in "ab"}
+    warnings: list[str] = []
+    section = pose_from_subject(plans, results, _tracks(["a", "b"]), {}, RegisterOptions(), warnings)
+    assert section is not None and not section["used"] and "--intrinsics, --board, or a third video" in section["why"]
+    assert all("two cameras with self-calibrated focal" in r.reason for r in results["a"].values())
+    with pytest.raises(AssertionError, match="solved"):
+        known = {n: (np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), None) for n in "ab"}
+        pose_from_subject(plans, results, _tracks(["a", "b"]), known, RegisterOptions(), warnings)
+
+
 def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The subject path ran, but no camera it posed is determined by the tracks (e.g. a detector that follows other
     people in other views): the section says why, for the command's one-line error, and no frame is posed."""
@@ -227,7 +250,8 @@ def test_two_declared_cameras_are_judged_as_a_pair(tmp_path: Path, monkeypatch: 
         lambda *_: (SubjectResult(cameras=cameras, pairs=[], failed={}, metric=False), Stability(checked=True)),
     )
     warnings: list[str] = []
-    section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(synchronized=True), warnings)
+    known = {n: (np.eye(3), None) for n in names}  # two self-calibrated cameras would be refused before the solve
+    section = pose_from_subject(plans, results, _tracks(names), known, RegisterOptions(synchronized=True), warnings)
     assert section is not None and section["declared"]["agree"] is False
     rows = {row["name"]: row for row in section["declared"]["cameras"]}
     assert rows["b"]["difference_s"] == pytest.approx(0.05) and not rows["a"]["agree"] and not rows["b"]["agree"]
