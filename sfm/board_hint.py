@@ -33,15 +33,32 @@ LONG_SIDE = 1280  # frames are looked at this large at most (the probe's cost)
 MIN_MARKERS = 3  # distinct markers of one dictionary in one frame: a board, not a chance pattern
 
 
-def markers_in_view(paths: Sequence[Path]) -> dict[str, dict[str, list[int]]]:
-    """dictionary -> video name -> the marker ids seen, for the dictionaries some sampled frame of a video shows
-    MIN_MARKERS or more distinct markers of (printed either way: black on white or inverted)."""
+def _detectors() -> dict[str, cv2.aruco.ArucoDetector]:
     params = cv2.aruco.DetectorParameters()
-    params.detectInvertedMarker = True
-    detectors = {
+    params.detectInvertedMarker = True  # either print, in one pass: the look needs the ids, not the corners
+    return {
         name: cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)
         for name in DICTIONARIES
     }
+
+
+def ids_in_view(grays: Sequence[np.ndarray]) -> dict[str, list[int]]:
+    """dictionary -> the marker ids seen, for the dictionaries some of the (H, W) uint8 frames shows MIN_MARKERS
+    or more distinct markers of."""
+    found: dict[str, set[int]] = {}
+    for gray in grays:
+        for name, detector in _detectors().items():
+            _, ids, _ = detector.detectMarkers(gray)
+            seen = set() if ids is None else {int(i) for i in np.ravel(ids)}
+            if len(seen) >= MIN_MARKERS:
+                found.setdefault(name, set()).update(seen)
+    return {name: sorted(ids) for name, ids in found.items()}
+
+
+def markers_in_view(paths: Sequence[Path]) -> dict[str, dict[str, list[int]]]:
+    """dictionary -> video name -> the marker ids seen, for the dictionaries some sampled frame of a video shows
+    MIN_MARKERS or more distinct markers of (printed either way: black on white or inverted)."""
+    detectors = _detectors()
     found: dict[str, dict[str, set[int]]] = {}
     for path in paths:
         try:
@@ -90,4 +107,4 @@ def board_hint(paths: Sequence[Path]) -> str | None:
     )
 
 
-__all__ = ["board_hint", "markers_in_view"]
+__all__ = ["board_hint", "ids_in_view", "markers_in_view"]

@@ -51,6 +51,7 @@ from sfm.plan_io import (
     write_poses,
     write_prepared,
 )
+from sfm.register_markers import markers_in_samples
 from sfm.resume import StepLog, files_key, input_key
 from sfm.static import SAMPLES, background_image, measure_motion, sample_frames
 from sfm.video import ProbedVideo
@@ -141,7 +142,9 @@ def plan_video(
     with timed(notes, "motion_test"):
         # the tracked subject: where it hides the background, the samples say nothing about the camera
         subject = track_points(tracks, info.name) if tracks is not None else None
-        measured = measure_motion(info, subject, options.mask_radius)
+        # without tracks, markers in view are a subject to mask too (a board held up in front of a tripod)
+        finder = markers_in_samples if options.find_markers else None
+        measured = measure_motion(info, subject, options.mask_radius, finder)
         if options.camera_motion is CameraMotion.AUTO:
             motion = measured
             static = motion.static

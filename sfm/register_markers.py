@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from sfm.board_hint import markers_in_view
+from sfm.board_hint import ids_in_view, markers_in_view
 from sfm.options import ALL_CORES
 from sfm.plan import VideoPlan
-from tracking.markers import marker_tracks
+from tracking.markers import find_markers, marker_detector, marker_tracks
 from tracking.tracks import Tracks, read_tracks, write_tracks
 
 log = logging.getLogger(__name__)
@@ -80,6 +80,36 @@ def smallest_dictionary(dictionary: str, largest_id: int) -> str:
     return next((f"{family}_{n}" for n in SIZES if n >= needed and n <= int(size)), dictionary)
 
 
+LOOKS = 3  # sampled frames the motion test's look for markers tries the dictionaries on
+STILL = 0.01  # markers that move less over the samples (fraction of the long side) stand still
+
+
+def markers_in_samples(frames: np.ndarray, grays: np.ndarray, scale: float) -> dict[int, np.ndarray] | None:
+    """Where markers are in the motion test's sampled frames (`grays` (S, H, W) at `scale` of the original), as
+    frame -> (P, 2) corners in original pixels, so that the test masks them like a tracked subject: a board that
+    fills a tripod's view moves rigidly, and the test took its motion for the camera's (sleap-anipose's top
+    clip). None without markers in view. The frames are the test's own (small: a mask needs no subpixel corners)."""
+    found = ids_in_view([grays[k] for k in np.linspace(0, len(grays) - 1, LOOKS).round().astype(int)])
+    if not found:
+        return None
+    dictionary = max(found, key=lambda name: len(found[name]))
+    detector = marker_detector(smallest_dictionary(dictionary, max(found[dictionary])))
+    corners: dict[int, np.ndarray] = {}
+    where: dict[int, list[np.ndarray]] = {}  # marker id -> its first corner in each sample that shows it
+    for frame, gray in zip(frames, grays, strict=True):
+        prints = [find_markers(gray, detector, inverted) for inverted in (False, True)]
+        shown = [p for p in prints if p is not None]
+        if shown:
+            ids, xy, _ = max(shown, key=lambda p: len(p[0]))
+            corners[int(frame)] = (xy.reshape(-1, 2) + 0.5) / scale - 0.5
+            for marker, quad in zip(ids, xy, strict=True):
+                where.setdefault(int(marker), []).append(quad[0] / scale)
+    moved = [np.ptp(np.array(seen), axis=0).max() for seen in where.values() if len(seen) >= 2]
+    if not moved or max(moved) < STILL * grays.shape[2] / scale:
+        return None  # markers that stay put are background (a poster of tags), not a subject to mask
+    return corners
+
+
 def _shared(tracks: Tracks) -> Tracks:
     """Only the markers that two videos or more saw."""
     marker = np.array([p.rsplit("_", 1)[0] for p in tracks.point])
@@ -90,4 +120,4 @@ def _shared(tracks: Tracks) -> Tracks:
     return tracks.take(np.flatnonzero([len(seen_by[m]) >= MIN_VIDEOS for m in marker]))
 
 
-__all__ = ["MARKER_TRACKS", "smallest_dictionary", "tracks_from_markers"]
+__all__ = ["MARKER_TRACKS", "markers_in_samples", "smallest_dictionary", "tracks_from_markers"]

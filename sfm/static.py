@@ -15,6 +15,7 @@ tracked subject covers then are left out: a sample where it hides most of them s
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -121,15 +122,27 @@ def _subject_masks(
     return masks
 
 
-def measure_motion(info: ProbedVideo, subject: dict[int, np.ndarray] | None = None, radius: float = 40.0) -> MotionTest:
+SubjectFinder = Callable[[np.ndarray, np.ndarray, float], "dict[int, np.ndarray] | None"]
+
+
+def measure_motion(
+    info: ProbedVideo,
+    subject: dict[int, np.ndarray] | None = None,
+    radius: float = 40.0,
+    find_subject: SubjectFinder | None = None,
+) -> MotionTest:
     """Measure whether the camera of `info` moves (the sampled frame numbers are in the test's `frames`).
 
-    subject: the tracked subject's points per frame, (P, 2) original pixels (optional); `radius` around them."""
+    subject: the tracked subject's points per frame, (P, 2) original pixels (optional); `radius` around them.
+    find_subject(frames (S,), grays (S, H, W) at the work size, work scale): the subject's points found in the
+    sampled frames themselves, where none are given (markers in view: sfm/register_markers.py)."""
     frames = sample_frames(info, SAMPLES)
     work = Resize.for_video(info, WORK_LONG_SIDE)
     grays = np.stack([_gray(image, work) for _, image in read_frames(info.path, frames)])
     if len(frames) < 2:
         return MotionTest(static=False, reason="fewer than 2 frames: treated as moving", frames=frames.tolist())
+    if subject is None and find_subject is not None:
+        subject = find_subject(frames, grays, work.scale)
     median = np.median(grays, axis=0).astype(np.uint8)
     mask = np.where(_moving_pixels(grays, median), 0, 255).astype(np.uint8)
     covers = _subject_masks(subject, frames, work, radius)

@@ -13,7 +13,7 @@ from board_video import render_board, write_video
 from dynrecon.cli import main
 from sfm.frames import Resize
 from sfm.plan import VideoPlan
-from sfm.register_markers import MARKER_TRACKS, smallest_dictionary, tracks_from_markers
+from sfm.register_markers import MARKER_TRACKS, markers_in_samples, smallest_dictionary, tracks_from_markers
 from sfm.video import ProbedVideo
 from tracking.charuco import CharucoBoard
 from tracking.tracks import read_tracks
@@ -76,9 +76,11 @@ def test_markers_in_one_video_are_no_tracks(tmp_path: Path) -> None:
     assert not (tmp_path / MARKER_TRACKS).exists()
 
 
-def test_markers_that_never_move_are_refused_naming_them(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A board that stands still in two views (static markers, no textured background): the subject path cannot
-    pose the cameras from one plane, and the one-line error says the tracks were the markers register found."""
+def test_a_failure_on_markers_says_the_tracks_were_the_markers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A board that stands still in two views with no textured background: no background model, and the subject
+    path refuses two self-calibrated cameras; the one-line error says the tracks were the markers register found."""
     views = (
         np.array([[1.2, 0.1, 150], [0.05, 1.1, 40], [1e-4, 0, 1]]),
         np.array([[1.0, -0.2, 200], [0.1, 1.2, 60], [-1e-4, 1e-4, 1]]),
@@ -89,9 +91,12 @@ def test_markers_that_never_move_are_refused_naming_them(tmp_path: Path, capsys:
     ]
     assert main(["register", *videos, "--out", str(tmp_path / "ws")]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "degenerate motion" in err and f"DICT_4X4_50 markers in view, {tmp_path / 'ws' / MARKER_TRACKS}" in err
+    assert "two cameras with self-calibrated focal lengths" in err
+    assert f"DICT_4X4_50 markers in view, {tmp_path / 'ws' / MARKER_TRACKS}" in err
     report = json.loads((tmp_path / "ws" / "register_report.json").read_text())
     assert report["subject"]["markers"]["frames"] == {"a": 20, "b": 20}
+    # the markers stand still: the motion test keeps them as background (static), instead of masking all it sees
+    assert [v["camera"] for v in report["videos"]] == ["static", "static"]
 
 
 def test_the_smallest_dictionary_that_holds_the_ids_is_searched() -> None:
@@ -99,3 +104,18 @@ def test_the_smallest_dictionary_that_holds_the_ids_is_searched() -> None:
     assert smallest_dictionary("DICT_5X5_1000", 45) == "DICT_5X5_100"  # ids past the largest seen: 1.5x margin
     assert smallest_dictionary("DICT_6X6_1000", 900) == "DICT_6X6_1000"
     assert smallest_dictionary("DICT_APRILTAG_36h11", 3) == "DICT_APRILTAG_36h11"  # no smaller one of its family
+
+
+def test_the_motion_test_masks_markers_that_move_and_keeps_those_that_stand_still() -> None:
+    """A board waved in front of a tripod is a subject for the motion test to mask (its corners per sampled frame,
+    in original pixels at half the work scale); the same board standing still is background (None)."""
+    moving = [np.array([[1.3, 0, 100 + 20 * i], [0, 1.3, 40 + 8 * i], [0, 0, 1]]) for i in range(FRAMES)]
+    grays = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in render_board(BOARD, moving, SIZE)])
+    frames = np.arange(FRAMES) * 10
+    found = markers_in_samples(frames, grays, 0.5)
+    assert found is not None and sorted(found) == frames.tolist()
+    assert all(len(points) == 40 for points in found.values())
+    # frame 0's board spans x 100-380 at the work size: 200-760 px in the original
+    assert found[0][:, 0].min() > 190 and found[0][:, 0].max() < 770
+    still = np.stack([grays[0]] * FRAMES)
+    assert markers_in_samples(frames, still, 0.5) is None
