@@ -1,12 +1,12 @@
-"""Tracks `register` finds itself: fiducial markers in view, when no tracks were given and the background left a
-static video out.
+"""Tracks `register` finds itself: fiducial markers in view, where no tracks were given.
 
 A calibration board (ChArUco, an AprilTag grid) or markers on the subject name their corners alike in every video
-by the markers' ids: their corners are the subject's tracks without a board file (tracking/markers.py). The
-dictionary is the one `sfm.board_hint.markers_in_view` finds in the most videos, cut to the smallest of its family
-that holds the ids it saw; ids seen by one video only are left out (they pose nothing, and a mirrored marker can
-read as another id). The tracks go to
-WS/marker_tracks.csv, and the report's `subject.markers` says where the tracks came from.
+by the markers' ids: their corners are the subject's tracks without a board file (tracking/markers.py). Where the
+background left a static video out, `tracks_from_markers` searches every video with the dictionary that
+`sfm.board_hint.markers_in_view` finds in the most videos, cut to the smallest of its family that holds the ids it
+saw; ids seen by one video only are left out (they pose nothing, and a mirrored marker can read as another id). The
+tracks go to WS/marker_tracks.csv, and the report's `subject.markers` says where the tracks came from.
+`markers_in_samples` finds moving markers in the motion test's own sampled frames, for it to mask.
 """
 
 from __future__ import annotations
