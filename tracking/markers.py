@@ -190,10 +190,9 @@ def marker_tracks(
 ) -> Tracks:
     """The corners of every marker of `dictionary` (of `ids` only, when given) in every frame of every video
     (evenly spaced frames of a video longer than MAX_SEARCHED): one row per (video, frame, marker, corner), point
-    `marker_<id>_<k>`. An id
-    some frame shows twice (two boards printed with the same ids) is left out of every video: its name would
-    join two points. Videos are decoded in `workers` threads (default: one per video, at most the CPU count);
-    OpenCV releases the GIL while decoding and detecting."""
+    `marker_<id>_<k>`. An id some frame shows twice (two boards printed with the same ids) is left out of every
+    video: its name would join two points. Videos are decoded in `workers` threads (default: one per video, at
+    most the CPU count); OpenCV releases the GIL while decoding and detecting."""
     paths = [Path(v) for v in videos]
     names = [p.stem for p in paths]
     twice = first_repeated(names)
@@ -217,20 +216,20 @@ def marker_tracks(
     frame: list[np.ndarray] = []
     point: list[str] = []
     xy: list[np.ndarray] = []
-    for name, path, (frames, ids, corners, count, _) in zip(names, paths, results, strict=True):
-        keep = ~np.isin(ids, sorted(doubled))
-        frames, ids, corners = frames[keep], ids[keep], corners[keep]
+    for name, path, (frames, found, corners, count, _) in zip(names, paths, results, strict=True):
+        keep = ~np.isin(found, sorted(doubled))
+        frames, found, corners = frames[keep], found[keep], corners[keep]
         log.info(
             "%s: %s markers in %d of %d frames (%d distinct)",
             path,
             dictionary,
             len(np.unique(frames)),
             count,
-            len(np.unique(ids)),
+            len(np.unique(found)),
         )
         video += [name] * (4 * len(frames))
         frame.append(np.repeat(frames, 4))
-        point += [marker_point(int(i), k) for i in ids for k in range(4)]
+        point += [marker_point(int(i), k) for i in found for k in range(4)]
         xy.append(corners.reshape(-1, 2))
     return Tracks(
         video=video,
