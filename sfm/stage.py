@@ -31,7 +31,7 @@ from dynrecon.atomic import require_writable
 from dynrecon.errors import DynreconError, InputError
 from dynrecon.names import first_repeated
 from sfm import colmap_steps
-from sfm.cameras import CameraSet, FrameCamera, VideoCameras, read_cameras, write_cameras
+from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.export import write_ply
 from sfm.intrinsics import known_intrinsics
 from sfm.isolated import run_isolated
@@ -426,6 +426,7 @@ def finish_capture(
     _gather(notes, [p.notes for p in prepared], extracted, StepNotes.from_json(mapping), [n for _, n in localized])
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
+    _drop_implausible(results, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         images = rec.num_reg_images() if rec is not None else None
@@ -652,6 +653,25 @@ def _moving_hint(
         f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and not posed; the subject path "
         "poses static cameras only: if they stood still, register (or run) again with --camera-motion static"
     )
+
+
+def _drop_implausible(results: Results, warnings: list[str]) -> None:
+    """Unpose the frames whose background pose came with intrinsics or a position no camera has (a degenerate
+    model: a board-only scene gave k1 = 1452), one warning per video: cameras.json would refuse them unreported."""
+    for video, frames in results.items():
+        dropped, why = 0, ""
+        for frame, result in frames.items():
+            if result.pose is None or result.intrinsics is None:
+                continue
+            K, dist = result.intrinsics
+            try:
+                check_plausible(K, np.asarray(result.pose.translation), dist, None, f"frame {frame}")
+            except InputError as error:
+                why = why or error.what
+                dropped += 1
+                frames[frame] = FramePose(pose=None, reason=f"the background's pose is no camera's: {error.what}")
+        if dropped:
+            warnings.append(f"{video}: {dropped} frame(s) of the background model left unposed: {why}")
 
 
 def _subject_wanted(plans: list[VideoPlan], results: Results, options: RegisterOptions) -> bool:

@@ -264,3 +264,22 @@ def test_frames_without_texture_are_reported_and_the_rest_register(tmp_path: Pat
     assert set(range(7)) <= posed
     cameras = read_cameras(ws / "cameras.json")
     assert set(cameras.video("covered").frame_numbers().tolist()) == posed
+
+
+def test_a_background_pose_no_camera_has_is_left_unposed_and_said() -> None:
+    """A degenerate model (a board-only scene's gave k1 = 1452) would make cameras.json refuse itself with no
+    report: such frames are left unposed, with one warning per video naming the value."""
+    import pycolmap
+
+    from sfm.plan import FramePose
+    from sfm.stage import _drop_implausible
+
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    good = FramePose(pose=pycolmap.Rigid3d(), source="sfm", intrinsics=(K, np.array([0.1, 0, 0, 0])))
+    bad = FramePose(pose=pycolmap.Rigid3d(), source="sfm", intrinsics=(K, np.array([1452.3, 0, 0, 0])))
+    results = {"a": {0: good, 1: good}, "b": {0: bad, 1: good}}
+    warnings: list[str] = []
+    _drop_implausible(results, warnings)
+    assert results["a"][0].pose is not None and results["b"][1].pose is not None
+    assert results["b"][0].pose is None and "no camera's" in (results["b"][0].reason or "")
+    assert len(warnings) == 1 and warnings[0].startswith("b: 1 frame(s)") and "1452.3" in warnings[0]
