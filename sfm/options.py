@@ -124,8 +124,9 @@ class RegisterOptions:
     # intrinsics (videos without --intrinsics) and scale (without --scale) come from it (sfm/board.py).
     board: Path | None = None
     # Without tracks: where the background leaves a static video out, the corners of fiducial markers in view
-    # (ArUco, AprilTag) are the subject's tracks (sfm/register_markers.py); markers in one video only are named in
-    # the error (sfm/board_hint.py). Off where tracks will come anyway (the pipeline's background registration).
+    # (ArUco, AprilTag) are the subject's tracks, and the motion test masks markers that move
+    # (sfm/register_markers.py); markers in one video only are named in the error (sfm/board_hint.py). Off where
+    # the user's tracks come later (the pipeline's background registration with labels, --tracks or --board).
     find_markers: bool = True
     tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
     masks: Path | None = None  # user masks folder (see sfm.masks)
