@@ -135,14 +135,30 @@ def measure_motion(
 
     subject: the tracked subject's points per frame, (P, 2) original pixels (optional); `radius` around them.
     find_subject(frames (S,), grays (S, H, W) at the work size, work scale): the subject's points found in the
-    sampled frames themselves, where none are given (markers in view: sfm/register_markers.py)."""
+    sampled frames themselves, where none are given and the test without them says moving (markers in view, a
+    board that fills a tripod's view: sfm/register_markers.py); the test is then made again with them masked."""
     frames = sample_frames(info, SAMPLES)
     work = Resize.for_video(info, WORK_LONG_SIDE)
     grays = np.stack([_gray(image, work) for _, image in read_frames(info.path, frames)])
     if len(frames) < 2:
         return MotionTest(static=False, reason="fewer than 2 frames: treated as moving", frames=frames.tolist())
-    if subject is None and find_subject is not None:
-        subject = find_subject(frames, grays, work.scale)
+    measured = _measure(info, frames, grays, work, subject, radius)
+    if not measured.static and subject is None and find_subject is not None:
+        found = find_subject(frames, grays, work.scale)
+        if found is not None:
+            measured = _measure(info, frames, grays, work, found, radius)
+    return measured
+
+
+def _measure(
+    info: ProbedVideo,
+    frames: np.ndarray,
+    grays: np.ndarray,
+    work: Resize,
+    subject: dict[int, np.ndarray] | None,
+    radius: float,
+) -> MotionTest:
+    """The motion test on the sampled frames `grays` (S, H, W) at the work size, `subject` masked."""
     median = np.median(grays, axis=0).astype(np.uint8)
     mask = np.where(_moving_pixels(grays, median), 0, 255).astype(np.uint8)
     covers = _subject_masks(subject, frames, work, radius)
