@@ -45,9 +45,10 @@ def _detectors() -> dict[str, cv2.aruco.ArucoDetector]:
 def ids_in_view(grays: Sequence[np.ndarray]) -> dict[str, list[int]]:
     """dictionary -> the marker ids seen, for the dictionaries some of the (H, W) uint8 frames shows MIN_MARKERS
     or more distinct markers of."""
+    detectors = _detectors()
     found: dict[str, set[int]] = {}
     for gray in grays:
-        for name, detector in _detectors().items():
+        for name, detector in detectors.items():
             _, ids, _ = detector.detectMarkers(gray)
             seen = set() if ids is None else {int(i) for i in np.ravel(ids)}
             if len(seen) >= MIN_MARKERS:
@@ -58,13 +59,13 @@ def ids_in_view(grays: Sequence[np.ndarray]) -> dict[str, list[int]]:
 def markers_in_view(paths: Sequence[Path]) -> dict[str, dict[str, list[int]]]:
     """dictionary -> video name -> the marker ids seen, for the dictionaries some sampled frame of a video shows
     MIN_MARKERS or more distinct markers of (printed either way: black on white or inverted)."""
-    detectors = _detectors()
-    found: dict[str, dict[str, set[int]]] = {}
+    found: dict[str, dict[str, list[int]]] = {}
     for path in paths:
         try:
             capture = video_io.open_video(path)
         except InputError:  # a hint only: a video that does not open was reported by the probe already
             continue
+        grays = []
         try:
             count = video_io.expected_frames(capture) or 0
             for k in range(SAMPLES if count else 0):
@@ -76,14 +77,12 @@ def markers_in_view(paths: Sequence[Path]) -> dict[str, dict[str, list[int]]]:
                 scale = LONG_SIDE / max(gray.shape)
                 if scale < 1:
                     gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-                for name, detector in detectors.items():
-                    _, ids, _ = detector.detectMarkers(gray)
-                    seen = set() if ids is None else {int(i) for i in np.ravel(ids)}
-                    if len(seen) >= MIN_MARKERS:
-                        found.setdefault(name, {}).setdefault(path.stem, set()).update(seen)
+                grays.append(gray)
         finally:
             capture.release()
-    return {name: {video: sorted(ids) for video, ids in videos.items()} for name, videos in found.items()}
+        for name, ids in ids_in_view(grays).items():
+            found.setdefault(name, {})[path.stem] = ids
+    return found
 
 
 def board_hint(paths: Sequence[Path]) -> str | None:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Collection, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -100,17 +100,17 @@ def refine_corners(gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def find_markers(
-    gray: np.ndarray, detector: cv2.aruco.ArucoDetector, inverted: bool, ids: Collection[int] | None = None
+    gray: np.ndarray, detector: cv2.aruco.ArucoDetector, inverted: bool
 ) -> tuple[np.ndarray, np.ndarray, set[int]] | None:
     """The refined markers (ids (M,), corners (M, 4, 2)) of the face that shows more of them in a full-size frame,
-    and the ids it shows twice (left out); only the markers `ids` when given. Searched as it is and mirrored (a
+    and the ids it shows twice (left out). Searched as it is and mirrored (a
     mirror print reads as a few markers unmirrored, some with a real id and their corners in mirrored order), in a
     copy at most LONG_SIDE large. None when neither way finds one, or both as many (which face is seen is not
     known)."""
     scale = min(1.0, LONG_SIDE / max(gray.shape))
     small = gray if scale == 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    front = _only(detect_markers(small, detector, inverted=inverted), ids)
-    back = _only(detect_markers(small, detector, mirrored=True, inverted=inverted), ids)
+    front = detect_markers(small, detector, inverted=inverted)
+    back = detect_markers(small, detector, mirrored=True, inverted=inverted)
     if len(front[0]) == len(back[0]):
         return None
     ids, xy = front if len(front[0]) > len(back[0]) else back
@@ -120,17 +120,8 @@ def find_markers(
     return ids[once], refined, {int(v) for v in values[counts > 1]}
 
 
-def _only(found: tuple[np.ndarray, np.ndarray], ids: Collection[int] | None) -> tuple[np.ndarray, np.ndarray]:
-    """The detections whose id is among `ids` (all when None): textures read as stray markers of a large
-    dictionary, one now and then, each under a random id."""
-    if ids is None:
-        return found
-    keep = np.isin(found[0], list(ids))
-    return found[0][keep], found[1][keep]
-
-
 def _detect_video(
-    path: Path, dictionary: str, wanted: Collection[int] | None, progress: tqdm | None
+    path: Path, dictionary: str, progress: tqdm | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, set[int]]:
     """(frame (N,), marker id (N,), corners (N, 4, 2), decoded frame count, ids some frame showed twice) for one
     video."""
@@ -158,7 +149,7 @@ def _detect_video(
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
             best = None
             for print_inverted in (inverted, not inverted):
-                found = find_markers(gray, detector, print_inverted, wanted)
+                found = find_markers(gray, detector, print_inverted)
                 if found is not None and (best is None or len(found[0]) > len(best[0][0])):
                     best = (found, print_inverted)
                 if best is not None and len(best[0][0]) >= ENOUGH:  # one stray marker does not end the search
@@ -185,10 +176,9 @@ def marker_tracks(
     videos: Sequence[Path | str],
     dictionary: str,
     *,
-    ids: Collection[int] | None = None,
     workers: int | None = None,
 ) -> Tracks:
-    """The corners of every marker of `dictionary` (of `ids` only, when given) in every frame of every video
+    """The corners of every marker of `dictionary` in every frame of every video
     (evenly spaced frames of a video longer than MAX_SEARCHED): one row per (video, frame, marker, corner), point
     `marker_<id>_<k>`. An id some frame shows twice (two boards printed with the same ids) is left out of every
     video: its name would join two points. Videos are decoded in `workers` threads (default: one per video, at
@@ -204,7 +194,7 @@ def marker_tracks(
         tqdm(desc=f"finding {dictionary} markers", unit="frame", leave=False) as progress,
         ThreadPoolExecutor(max_workers=workers) as pool,
     ):
-        results = list(pool.map(lambda p: _detect_video(p, dictionary, ids, progress), paths))
+        results = list(pool.map(lambda p: _detect_video(p, dictionary, progress), paths))
     doubled: set[int] = set().union(*(result[4] for result in results))
     if doubled:
         log.warning(
