@@ -74,6 +74,7 @@ from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.people import per_video_people
 from sfm.register_check import refuted_in_folder
 from sfm.register_people import people_on_cameras
+from sfm.register_subject import TRACK_ADVICE
 from sfm.stage import Localize, RegisterOptions, RegistrationError, board_tracks, check_scale_points
 from sfm.stage import run as register_run
 from simulation.evaluate import ReconstructionAccuracy
@@ -90,6 +91,11 @@ SUBJECT_DIR = "register_subject"
 # "subject" runs only when the background left a static video out and there are tracks (see run_stages).
 STAGES = ("register", "track", "subject", "solve", "record", "export")
 Bones = tuple[tuple[str, str], ...]  # pairs of point names drawn as lines in the recording
+# register's advice without tracks (sfm.register_subject.TRACK_ADVICE), in `run`'s own options
+RUN_TRACK_ADVICE = (
+    "label the subject on a few frames (dynrecon label WS --videos VIDEO...; run then tracks WS/labels.csv), or give "
+    "a detector's tracks (--tracks FILE, from dynrecon import-tracks), and run again"
+)
 
 
 __all__ = [
@@ -431,10 +437,9 @@ class Stages:
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
+                error = error.advising(TRACK_ADVICE, RUN_TRACK_ADVICE)
                 hint = board_hint(self.videos) if options.register.find_markers else None
-                if hint:
-                    raise error.with_hint(hint) from None
-                raise
+                raise (error.with_hint(hint) if hint else error) from None
             log.warning(
                 "background SfM: %s (%s says why); the static videos will be posed from the subject's tracks "
                 "after tracking (the subject stage)",

@@ -20,7 +20,7 @@ from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_posed import posed_video
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, choose_noise
-from sfm.subject.model import ScalePointsError
+from sfm.subject.model import UNTESTED, ScalePointsError, reasons_text
 from sfm.subject.noise import choose_scale
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
@@ -31,6 +31,11 @@ from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
 
+# what to do without tracks; `dynrecon run` says its own options instead (dynrecon.pipeline)
+TRACK_ADVICE = (
+    "label the subject on a few frames (dynrecon label WS --videos VIDEO...) and track it (dynrecon track WS), or "
+    "import a detector's tracks (dynrecon import-tracks), and register again"
+)
 UNCERTAIN_DEG = 2.0  # a posed camera the folds turn by more than this is reported as uncertain (a warning)
 
 
@@ -63,16 +68,18 @@ def pose_from_subject(
     if tracks is None:
         hint = board_hint([v.info.path for v in unposed]) if unposed and options.find_markers else None
         then = f"; {hint}" if hint else ""
+        nothing_posed = all(_posed(frames) is None for frames in results.values())
+        if nothing_posed and len(unposed) == 2 and any(v.info.name not in intrinsics for v in unposed):
+            # the tracks alone would be refused a minute later (TWO_SELF_CALIBRATED): say both things at once
+            then += "; two static videos also need their intrinsics (--intrinsics FILE) or a third video"
         if unposed:
             warnings.append(
                 f"static videos {', '.join(v.info.name for v in unposed)} were not posed by the background; "
-                "2D tracks of the moving subject can pose them: run `dynrecon track WS` (or import-tracks) "
-                f"and register again{then}"
+                f"2D tracks of the moving subject can pose them: {TRACK_ADVICE}{then}"
             )
         return {
             "used": False,
-            "why": "no 2D tracks of the moving subject (WS/tracks.csv or --tracks): track it (dynrecon track WS, or "
-            f"import-tracks) and register again{then}",
+            "why": f"no 2D tracks of the moving subject (WS/tracks.csv or --tracks): {TRACK_ADVICE}{then}",
         }
     board: dict[str, Any] | None = None
     scale = options.scale
@@ -169,7 +176,7 @@ def pose_from_subject(
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     for pair in result.pairs:
-        if pair.claim not in (None, "held"):
+        if pair.claim not in (None, "held", UNTESTED):
             warnings.append(f"{options.declared_flag}: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
     _warn_uncertain(stability, posed, warnings)
@@ -195,7 +202,7 @@ def pose_from_subject(
         reasons = {k: v for k, v in {**result.failed, **stability.unstable}.items() if k not in anchors}
         section["why"] = (
             "it posed no video that its tracks determine ("
-            + ("; ".join(f"{name}: {why}" for name, why in reasons.items()) or "the videos to pose have no tracks")
+            + (reasons_text(reasons) or "the videos to pose have no tracks")
             + "); check that each tracked point follows the same subject in every video, and track more points or "
             "a longer, more varied motion"
         )
@@ -487,8 +494,10 @@ def _report(
                 "offset_s": round(float(p.offset), 6),
                 "inliers": int(p.inliers),
                 "shared": int(p.shared),
-                "runner_up_ratio": round(float(p.runner_up_ratio), 3),
+                # no shared observation at any offset: no score, so no ratio
+                "runner_up_ratio": round(float(p.runner_up_ratio), 3) if p.shared else None,
                 "degenerate": p.degenerate,
+                "reason": p.reason,
                 "claim": p.claim,
             }
             for p in result.pairs

@@ -85,6 +85,12 @@ class RegistrationError(DynreconError):
             f"{what}; cameras.json not written: {reason}. Details: {report}", what=what, report=report, reason=reason
         )
 
+    def advising(self, advice: str, instead: str) -> RegistrationError:
+        """The same failure with `advice` in its reason replaced by `instead` (another command's own options)."""
+        if advice not in self.reason or self.report is None:
+            return self
+        return RegistrationError.of(self.what, self.reason.replace(advice, instead), self.report)
+
     def with_hint(self, hint: str) -> RegistrationError:
         """The same failure with `hint` added to what to do."""
         if not self.reason or self.report is None:  # a message carried as text (the batch's tasks)

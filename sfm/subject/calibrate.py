@@ -19,6 +19,7 @@ from sfm.subject.model import (
     MIN_INLIERS,
     MIN_SHARED,
     SEED,
+    UNTESTED,
     Lens,
     PairResult,
     ScalePointsError,
@@ -28,9 +29,10 @@ from sfm.subject.model import (
     SubjectResult,
     SubjectVideo,
     max_residual_px,
+    reasons_text,
 )
 from sfm.subject.observations import VideoObs, build_observations, normalize
-from sfm.subject.offsets import solve_offsets
+from sfm.subject.offsets import components, solve_offsets
 from sfm.subject.pairs import DISTINCT, PairFit, fit_at, fit_pair, search_range
 from tracking.tracks import Tracks
 
@@ -68,11 +70,12 @@ def calibrate_from_subject(
         _no_usable_pair(fits, options)
 
     anchors = [i for i in with_tracks if videos[i].cam_from_world is not None]
-    reference = anchors[0] if anchors else with_tracks[0]
+    groups = components(len(obs), [(f.a, f.b) for f in usable])
+    reference = anchors[0] if anchors else _largest_group_first(groups, usable, with_tracks)
     offsets, kept = _chain_offsets(obs, usable, reference)
     for i in with_tracks:
         if not np.isfinite(offsets[i]):
-            failed[obs[i].name] = _why(obs, fits, i)
+            failed[obs[i].name] = _why(obs, fits, i, groups, reference)
 
     kept_fits = _refit_to_offsets(obs, usable, kept, offsets, inlier_px)
     if not kept_fits:
@@ -265,7 +268,8 @@ def _tested_claim(obs: list[VideoObs], searched: PairFit, shift: float, inlier_p
     if not declared.usable and searched.usable:
         searched.claim = f"not used: at the declared offset, {declared.reason or declared.degenerate}"
         return searched
-    declared.claim = "held"
+    # a pair without geometry at any offset (no shared observations) neither holds nor contradicts the claim
+    declared.claim = "held" if declared.usable else UNTESTED
     declared.runner_up_ratio = searched.runner_up_ratio  # the search's: how clearly the tracks alone fix it
     return declared
 
@@ -356,14 +360,14 @@ def _dist(o: VideoObs) -> np.ndarray:
 
 def _refuse_unsupported(bundle: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: float) -> None:
     """Drop the cameras the adjusted data do not support, and adjust the others again."""
-    cams = bundle.cams
     refused = _refuse(bundle, obs, failed, inlier_px)
     if refused:
         _drop(bundle, refused)
         if len(bundle.cams) < 2:
+            # every camera's reason, the ones left out before the adjustment too (two groups, no usable pair)
             raise SubjectCalibrationError(
                 "the bundle adjustment cannot support the cameras' poses: "
-                + "; ".join(f"{obs[c].name}: {failed[obs[c].name]}" for c in cams if obs[c].name in failed)
+                + reasons_text({name: why for name, why in failed.items() if why != "no tracks"})
             )
         adjust(bundle, obs, inlier_px, rounds=1)
 
@@ -441,7 +445,11 @@ def _refuse(b: Bundle, obs: list[VideoObs], failed: dict[str, str], inlier_px: f
         cells = np.floor(o.xy[f[good], p[good]] / (DISTINCT * max(o.video.width, o.video.height)))  # (M, 2)
         distinct = len(np.unique(cells, axis=0)) if len(cells) else 0
         if not len(res):
-            why = "none of its observations is of a point the other cameras place (no shared point at its times)"
+            # the adjustment's outlier rounds left none of its observations (or it had none at the others' times)
+            why = (
+                f"none of its observations lies within {3 * inlier_px:g} px of the trajectory the bundle adjustment "
+                "fits to all cameras (a pose or a point correspondence the tracks do not support)"
+            )
         elif median > limit:
             why = f"median reprojection error {median:.1f} px after the bundle adjustment (> {limit:g})"
         elif int(good.sum()) < MIN_INLIERS:
@@ -486,8 +494,28 @@ def _centre(b: Bundle, j: int) -> np.ndarray:
     return -rotation(b.rvec[j]).T @ b.t[j]
 
 
-def _why(obs: list[VideoObs], fits: list[PairFit], i: int) -> str:
+def _largest_group_first(groups: list[set[int]], usable: list[PairFit], with_tracks: list[int]) -> int:
+    """The reference video without anchors: the first tracked video of the largest group that usable pairs connect
+    (most inliers on a tie), so that two groups of cameras sharing no point pose the larger one."""
+
+    def size(group: set[int]) -> tuple[int, int]:
+        return len(group), sum(f.inliers for f in usable if f.a in group)
+
+    best = max((g for g in groups if g & set(with_tracks)), key=size)
+    return next(i for i in with_tracks if i in best)
+
+
+def _why(obs: list[VideoObs], fits: list[PairFit], i: int, groups: list[set[int]], reference: int) -> str:
     mine = [f for f in fits if i in (f.a, f.b)]
+    group = next(g for g in groups if i in g)
+    if len(group) > 1 and reference not in group:
+        mine_group = ", ".join(sorted(obs[j].name for j in group))
+        posed = ", ".join(sorted(obs[j].name for j in next(g for g in groups if reference in g)))
+        return (
+            f"its group of videos ({mine_group}) shares no tracked point at one time with the group the path poses "
+            f"({posed}): "
+            "track points that both groups see, or register each group on its own"
+        )
     if all(f.shared < 8 or (f.reason or "").startswith(("the videos never", "at most")) for f in mine):
         return "its tracks never overlap in time with another video's (within max_offset)"
     # the pairs that share observations say why; the others only that they share none

@@ -39,6 +39,7 @@ NOISE_SCALES_PX = (INLIER_PX, 2 * INLIER_PX)
 MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs to be trusted
 MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
 CLAIM_RATIO = 1.2  # a declared offset is contradicted when the searched one scores this much better, a frame away
+UNTESTED = "untested"  # a pair's `claim` where its tracks give no geometry to test the declared offsets with
 MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused (at INLIER_PX)
 MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
 
@@ -148,3 +149,12 @@ class SubjectResult:
 
     def camera(self, name: str) -> SubjectCamera | None:
         return next((c for c in self.cameras if c.name == name), None)
+
+
+def reasons_text(failed: dict[str, str]) -> str:
+    """`failed` (video -> why) as one text, the videos with the same reason named together (a group of cameras
+    refused for one cause reads once)."""
+    by_reason: dict[str, list[str]] = {}
+    for name, why in failed.items():
+        by_reason.setdefault(why, []).append(name)
+    return "; ".join(f"{', '.join(names)}: {why}" for why, names in by_reason.items())

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import re
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -83,7 +84,10 @@ def choose_scale(
     if not tried:
         # a scale whose poses stood but not its scale pair first (the caller may solve again without the pair)
         main = next((e for e in errors.values() if isinstance(e, ScalePointsError)), errors[NOISE_SCALES_PX[0]])
-        others = "; ".join(f"at {px:g} px: {e}" for px, e in errors.items() if e is not main)
+        # another scale's error that differs only in its numbers (the scale's px) adds nothing
+        others = "; ".join(
+            f"at {px:g} px: {e}" for px, e in errors.items() if e is not main and _wording(e) != _wording(main)
+        )
         raise type(main)(f"{main} ({others})" if others else str(main)) from main
     chosen = min(tried)
     for px in sorted(tried):
@@ -134,3 +138,8 @@ def _better(wide: tuple[SubjectResult, Stability], first: tuple[SubjectResult, S
     if len(stable_wide) != len(stable_first):
         return len(stable_wide) > len(stable_first)
     return _spread(wide[1], stable_wide) < SPREAD_GAIN * _spread(first[1], stable_first)
+
+
+def _wording(error: Exception) -> str:
+    """An error's text without its numbers."""
+    return re.sub(r"\d+(\.\d+)?", "#", str(error))

@@ -18,6 +18,7 @@ from synthetic_motion import simulated_phones
 from dynrecon import pipeline
 from dynrecon.errors import DynreconError
 from sfm.export import write_ply
+from sfm.register_subject import TRACK_ADVICE
 from sfm.stage import RegisterOptions, RegistrationError
 
 
@@ -63,15 +64,23 @@ def test_static_videos_left_out_are_registered_from_the_tracks(
 
 
 def test_without_tracks_the_registration_error_stands(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The error stands, and its advice is `run`'s own (labels in the workspace, --tracks), not register's
+    `dynrecon track WS`, which a run's workspace cannot take before it has labels."""
+    report = tmp_path / "register_report.json"
+    reason = f"the subject path could not pose them: no 2D tracks of the moving subject: {TRACK_ADVICE}"
+
     def register(videos: list[Path], register_dir: Path, options: RegisterOptions) -> None:
-        raise RegistrationError("only 0 of 2 videos registered (none)")
+        raise RegistrationError.of("only 0 of 2 videos registered (none)", reason, report)
 
     monkeypatch.setattr(pipeline, "_register", register)
     videos = [tmp_path / "a.mp4", tmp_path / "b.mp4"]
     for video in videos:
         video.write_bytes(b"x")
-    with pytest.raises(RegistrationError):
+    with pytest.raises(RegistrationError) as raised:
         pipeline.run_stages(videos, tmp_path / "ws", pipeline.PipelineOptions())
+    message = str(raised.value)
+    assert "--tracks FILE" in message and "dynrecon label WS" in message and "dynrecon track WS" not in message
+    assert message.startswith("only 0 of 2 videos registered (none)") and message.endswith(f"Details: {report}")
 
 
 def test_a_static_video_the_background_left_out_triggers_the_subject_stage(

@@ -105,6 +105,24 @@ def test_two_self_calibrated_cameras_alone_are_refused_before_any_solve(
         pose_from_subject(plans, results, _tracks(["a", "b"]), known, RegisterOptions(), warnings)
 
 
+def test_two_static_videos_without_tracks_are_told_both_things_they_need(tmp_path: Path) -> None:
+    """Two static videos that the background left out, with no tracks and no intrinsics (a two-camera sports
+    capture): the advice names labeling and tracking and, at once, the intrinsics the pair will also need; with
+    intrinsics given, or a third video, only the tracks."""
+    unposed = {f: FramePose(pose=None, reason="not in the background model") for f in range(30)}
+    options = RegisterOptions(find_markers=False)
+    plans = [_plan(tmp_path, name, True) for name in ("a", "b")]
+    section = pose_from_subject(plans, {n: dict(unposed) for n in "ab"}, None, {}, options, [])
+    assert section is not None and "dynrecon label" in section["why"] and "dynrecon track" in section["why"]
+    assert "two static videos also need their intrinsics (--intrinsics FILE)" in section["why"]
+    known = {n: (np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), None) for n in "ab"}
+    section = pose_from_subject(plans, {n: dict(unposed) for n in "ab"}, None, known, options, [])
+    assert section is not None and "dynrecon track" in section["why"] and "--intrinsics" not in section["why"]
+    three = [*plans, _plan(tmp_path, "c", True)]
+    section = pose_from_subject(three, {n: dict(unposed) for n in "abc"}, None, {}, options, [])
+    assert section is not None and "--intrinsics" not in section["why"]
+
+
 def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The subject path ran, but no camera it posed is determined by the tracks (e.g. a detector that follows other
     people in other views): the section says why, for the command's one-line error, and no frame is posed."""
@@ -128,7 +146,7 @@ def test_a_solve_whose_cameras_are_all_unstable_says_why(tmp_path: Path, monkeyp
     section = pose_from_subject(plans, results, _tracks(names), {}, RegisterOptions(), warnings)
 
     assert section is not None and section["posed"] == []
-    assert "posed no video that its tracks determine" in section["why"] and "b: not determined" in section["why"]
+    assert "posed no video that its tracks determine (a, b, c: not determined" in section["why"]  # one reason, once
     assert all(r.pose is None for name in names for r in results[name].values())
 
 

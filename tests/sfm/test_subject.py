@@ -274,3 +274,23 @@ def test_a_pair_logs_only_the_measures_that_apply() -> None:
     assert _pair_words(searched) == (
         "offset 0.250 s, 727/735 inliers, runner-up ratio 2.35, degenerate: line, too few inliers"
     )
+
+
+def test_two_groups_sharing_no_point_pose_the_larger_and_say_why_not_the_other() -> None:
+    """Cameras 0-1 track one half of the skeleton, cameras 2-4 the other half (DeepFly3D's fly rig: each side's
+    cameras see their own legs): no pair joins the groups, so the larger group is posed and the other's reason
+    says that the groups share no point (not an "inconsistent offset"); the pairs across the groups neither hold
+    nor contradict declared clocks, which the pairs within the groups test."""
+    tracks, videos, _ = make_rig(kind="skeleton", n_cameras=5, duration=4.0, seed=7)
+    points = tracks.point_names()
+    half = set(points[: len(points) // 2])
+    small = {"cam0", "cam1"}
+    keep = [i for i, (v, p) in enumerate(zip(tracks.video, tracks.point, strict=True)) if (v in small) == (p in half)]
+    claimed = SubjectOptions(claimed_offsets={v.name: 0.0 for v in videos})
+    result = calibrate_from_subject(tracks.take(np.array(keep)), videos, claimed)
+    assert sorted(c.name for c in result.cameras) == ["cam2", "cam3", "cam4"]
+    for name in small:
+        assert "shares no tracked point" in result.failed[name] and "offset" not in result.failed[name]
+    across = [p for p in result.pairs if len({p.a, p.b} & small) == 1]
+    assert len(across) == 6 and all(p.claim == "untested" for p in across)
+    assert all(p.claim not in (None, "untested") for p in result.pairs if len({p.a, p.b} & small) != 1)

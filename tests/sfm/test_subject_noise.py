@@ -92,6 +92,10 @@ def test_every_scale_failing_raises_the_first_reason_with_the_others() -> None:
     failures = {first: SubjectCalibrationError("too few"), wide: SubjectCalibrationError("unstable")}
     with pytest.raises(SubjectCalibrationError, match=r"too few \(at 6 px: unstable\)"):
         choose_scale(_trial(failures), SubjectOptions())
+    # the same reason at another scale's numbers is said once
+    failures = {first: SubjectCalibrationError("within 9 px"), wide: SubjectCalibrationError("within 18 px")}
+    with pytest.raises(SubjectCalibrationError, match=r"^within 9 px$"):
+        choose_scale(_trial(failures), SubjectOptions())
     # a scale pair never triangulated wins: the caller may solve again without it
     failures[wide] = ScalePointsError("never together")
     with pytest.raises(ScalePointsError, match="never together"):
