@@ -34,6 +34,7 @@ import numpy as np
 from dynrecon import video_io
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
+from tracking.markers import dictionary_id
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class CharucoBoard:
         return (self.columns - 1) * (self.rows - 1)
 
     def opencv(self) -> cv2.aruco.CharucoBoard:
-        dictionary = cv2.aruco.getPredefinedDictionary(_dictionary_id(self.dictionary, None))
+        dictionary = cv2.aruco.getPredefinedDictionary(dictionary_id(self.dictionary, what="aruco"))
         board = cv2.aruco.CharucoBoard((self.columns, self.rows), self.square_size, self.marker_size, dictionary)
         board.setLegacyPattern(self.legacy_pattern)
         return board
@@ -76,13 +77,6 @@ MIN_SQUARE_M, MAX_SQUARE_M = 1e-4, 10.0
 MIN_ARUCO_SCALE = 0.05
 INCH_UNITS = ("inch", "inches", "in")
 CM_UNITS = ("cm", "centimeter", "centimeters", "centimetre", "centimetres")
-
-
-def _dictionary_id(name: str, path: Path | None) -> int:
-    value = getattr(cv2.aruco, name.upper(), None) if name.upper().startswith("DICT_") else None
-    if not isinstance(value, int):
-        raise InputError(path, f"unknown aruco dictionary {name!r}", fix="use an OpenCV name such as DICT_4X4_50")
-    return value
 
 
 def read_charuco_board(path: str | Path) -> CharucoBoard:
@@ -255,7 +249,7 @@ def _checked_board(
             f"aruco_scale (marker edge / square edge) = {aruco_scale:g} must be from {MIN_ARUCO_SCALE} to below 1",
             where=where,
         )
-    markers = cv2.aruco.getPredefinedDictionary(_dictionary_id(dictionary, path)).bytesList.shape[0]
+    markers = cv2.aruco.getPredefinedDictionary(dictionary_id(dictionary, path, what="aruco")).bytesList.shape[0]
     needed = int(columns) * int(rows) // 2
     if needed > markers:
         raise InputError(

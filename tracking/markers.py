@@ -45,14 +45,19 @@ def marker_point(marker_id: int, corner: int) -> str:
     return f"marker_{marker_id}_{corner}"
 
 
+def dictionary_id(name: str, path: Path | None = None, what: str = "marker") -> int:
+    """OpenCV's id of the predefined dictionary `name` (DICT_4X4_50, ...); InputError (on `path`, the file that
+    named it) for another name."""
+    value = getattr(cv2.aruco, name.upper(), None) if name.upper().startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise InputError(path, f"unknown {what} dictionary {name!r}", fix="use an OpenCV name such as DICT_4X4_50")
+    return value
+
+
 def marker_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
     """OpenCV's detector for `dictionary` (a predefined name such as DICT_4X4_1000), markers as printed (black on
     white)."""
-    value = getattr(cv2.aruco, dictionary.upper(), None) if dictionary.upper().startswith("DICT_") else None
-    if not isinstance(value, int):
-        raise InputError(
-            None, f"unknown marker dictionary {dictionary!r}", fix="use an OpenCV name such as DICT_4X4_50"
-        )
+    value = dictionary_id(dictionary)
     # Corners are refined by `_refine` (OpenCV's own refinement measured worse); inverted prints are searched in
     # the inverted frame: OpenCV's detectInvertedMarker read a plain marker's inner outline as the marker.
     return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(value), cv2.aruco.DetectorParameters())
@@ -233,6 +238,7 @@ def marker_tracks(
 __all__ = [
     "SOURCE_MARKERS",
     "detect_markers",
+    "dictionary_id",
     "find_markers",
     "marker_detector",
     "marker_point",
