@@ -73,6 +73,7 @@ from sfm.export import read_ply, write_ply
 from sfm.options import CalibrationFormat, ImportCalibrationOptions
 from sfm.people import per_video_people
 from sfm.register_check import refuted_in_folder
+from sfm.register_markers import MARKER_TRACKS
 from sfm.register_people import people_on_cameras
 from sfm.register_subject import TRACK_ADVICE
 from sfm.stage import Localize, RegisterOptions, RegistrationError, board_tracks, check_scale_points
@@ -505,6 +506,11 @@ class Stages:
                 f"no labels and no tracks: registration only. Label the points with `dynrecon label {ws} "
                 "--videos ...`, then run this command again"
             )
+            markers = ws / REGISTER_DIR / MARKER_TRACKS
+            if markers.is_file():  # the markers register posed the cameras from may be the subject itself
+                self.result.next_step += (
+                    f"; or, to reconstruct the markers in view, run it again with --tracks {markers}"
+                )
             log.info("%s", self.result.next_step)
             return None
         if not tracks_path.is_file():

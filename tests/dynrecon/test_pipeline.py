@@ -478,3 +478,11 @@ def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> 
     stages = Stages(videos, tmp_path / "ws")
     assert stages.track() is None
     assert stages.result.next_step is not None and f"dynrecon label {tmp_path / 'ws'}" in stages.result.next_step
+    assert "--tracks" not in stages.result.next_step
+    # the corners of the markers register found in view: the other way on, when the markers are the subject
+    markers = tmp_path / "ws" / "register" / "marker_tracks.csv"
+    markers.parent.mkdir(parents=True, exist_ok=True)
+    markers.write_text("video,frame,point,x,y,source\n", encoding="utf-8")
+    stages = Stages(videos, tmp_path / "ws")
+    assert stages.track() is None and stages.result.next_step is not None
+    assert stages.result.next_step.endswith(f"run it again with --tracks {markers}")
