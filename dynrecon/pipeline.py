@@ -378,6 +378,12 @@ class Stages:
         _check(self.videos, self.options)
         self.ws = require_writable(workspace)  # a file in the way is a one-line error, not a traceback
         self.ws.mkdir(parents=True, exist_ok=True)
+        given_tracks = self.options.tracks
+        if given_tracks is not None and given_tracks.resolve().is_relative_to(self.ws.resolve()):
+            # a file of this workspace (register's marker_tracks.csv) that a stage may rewrite or remove: its copy
+            # in WS/tracks.csv, made before any stage runs, is the input
+            _copy_into(given_tracks, self.ws / "tracks.csv")
+            self.options = dataclasses.replace(self.options, tracks=self.ws / "tracks.csv")
         self.video_files = {f"video:{p.stem}": p for p in self.videos}
         self.state = State(self.ws)
         self.result = PipelineResult(workspace=self.ws, stages=[])

@@ -441,7 +441,9 @@ def finish_capture(
             names = ", ".join(summary.two_views)
             notes.warnings.append(f"{names}: the background's poses are not used: {TWO_VIEWS_WHY}")
     markers = None
-    (out / MARKER_TRACKS).unlink(missing_ok=True)  # an earlier run's: this run's report would not name it
+    stale = out / MARKER_TRACKS
+    if options.tracks is None or Path(options.tracks).resolve() != stale.resolve():  # never the input, once read
+        stale.unlink(missing_ok=True)  # an earlier run's: this run's report would not name it
     if tracks is None and _subject_wanted(plans, results, options):
         with collected(notes), timed(notes, "markers"):
             tracks, markers = tracks_from_markers(plans, out, options.num_threads)

@@ -469,6 +469,22 @@ def test_run_takes_dlt_calibrations_and_their_profiles(tmp_path: Path) -> None:
         _check_calibration(dlt, missing, RegisterOptions())
 
 
+def test_tracks_given_from_inside_the_workspace_are_copied_before_any_stage(tmp_path: Path) -> None:
+    """`run --tracks WS/register/marker_tracks.csv` (the next step `run` advises): the register stage, run again,
+    rewrites its folder, so the tracks are copied into WS/tracks.csv before it and read from there."""
+    from board_video import write_video
+
+    videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
+    markers = tmp_path / "ws" / "register" / "marker_tracks.csv"
+    markers.parent.mkdir(parents=True)
+    markers.write_text("video,frame,point,x,y,source\na,0,marker_0_0,1.0,2.0,marker\n", encoding="utf-8")
+    stages = Stages(videos, tmp_path / "ws", PipelineOptions(tracks=markers))
+    markers.unlink()  # as the register stage removes an earlier run's
+    assert stages.options.tracks == tmp_path / "ws" / "tracks.csv"
+    assert stages.track() == tmp_path / "ws" / "tracks.csv"
+    assert "marker_0_0" in (tmp_path / "ws" / "tracks.csv").read_text(encoding="utf-8")
+
+
 def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> None:
     """`run` with neither labels nor tracks only registers: the line saying what to do next is kept for the end of
     the run (after the stage list and warnings), not only logged on the way."""

@@ -97,6 +97,11 @@ def test_a_failure_on_markers_says_the_tracks_were_the_markers(
     assert report["subject"]["markers"]["frames"] == {"a": 20, "b": 20}
     # the markers stand still: the motion test keeps them as background (static), instead of masking all it sees
     assert [v["camera"] for v in report["videos"]] == ["static", "static"]
+    # given back as the tracks (what `run` advises), the file is read, and never removed as an earlier run's
+    markers = tmp_path / "ws" / MARKER_TRACKS
+    before = markers.read_bytes()
+    assert main(["register", *videos, "--out", str(tmp_path / "ws"), "--tracks", str(markers)]) == 2
+    assert markers.read_bytes() == before
 
 
 def test_the_smallest_dictionary_that_holds_the_ids_is_searched() -> None:
