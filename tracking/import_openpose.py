@@ -2,7 +2,8 @@
 
 Files are named `<video>_<12-digit frame>_keypoints.json`; the frame is the last number in the name (files
 without one are numbered in name order). A keypoint with confidence 0 is a missing detection. Names follow
-BODY_25 (25 triplets) or COCO (18 triplets); other counts are named `kp0`, `kp1`, ... With several people in a
+BODY_25 or BODY_25B (25 triplets each, told apart by where each has the eyes and ears) or COCO (18 triplets); other
+counts are named `kp0`, `kp1`, ... With several people in a
 frame, people are linked through the frames (tracking/people.py) and one person, or each, is imported.
 """
 
@@ -69,15 +70,73 @@ COCO_18 = (
     "REar",
     "LEar",
 )
+# OpenPose's experimental 25-keypoint model (Pose2Sim's default): as many triplets as BODY_25, other names
+BODY_25B = (
+    "Nose",
+    "LEye",
+    "REye",
+    "LEar",
+    "REar",
+    "LShoulder",
+    "RShoulder",
+    "LElbow",
+    "RElbow",
+    "LWrist",
+    "RWrist",
+    "LHip",
+    "RHip",
+    "LKnee",
+    "RKnee",
+    "LAnkle",
+    "RAnkle",
+    "Neck",
+    "Head",
+    "LBigToe",
+    "LSmallToe",
+    "LHeel",
+    "RBigToe",
+    "RSmallToe",
+    "RHeel",
+)
+# Both models have the eyes and ears near the nose, BODY_25 at keypoints 15-18 and BODY_25B at 1-4 (where BODY_25 has
+# the neck and the right arm): a pose's mean distance of one set to the nose over the other's, median over the poses,
+# is under this for the model that names them right (docs/formats.md), and over its inverse for the other.
+HEAD_RATIO = 0.5
 _FRAME = re.compile(r"(\d+)(?!.*\d)")
 
 
-def keypoint_names(count: int) -> tuple[str, ...]:
+def keypoint_names(count: int, poses: list[np.ndarray] | None = None, source: Path | None = None) -> tuple[str, ...]:
+    """The names of `count` keypoints; 25 are BODY_25's or BODY_25B's, whichever `poses` ((count, 3) x, y,
+    confidence) fit (`_head_ratio`); BODY_25 where they cannot tell, with a warning naming `source`."""
     if count == len(BODY_25):
+        ratio = _head_ratio(poses or [])
+        if ratio <= HEAD_RATIO:
+            log.info("%s: BODY_25B keypoints (eyes and ears at 1-4)", source)
+            return BODY_25B
+        if ratio < 1 / HEAD_RATIO:
+            log.warning(
+                "%s: 25 keypoints: BODY_25 or BODY_25B (Pose2Sim's default), which name them differently, cannot be "
+                "told apart from the poses; named as BODY_25: rename the points with --map if the model was BODY_25B",
+                source,
+            )
         return BODY_25
     if count == len(COCO_18):
         return COCO_18
     return tuple(f"kp{i}" for i in range(count))
+
+
+def _head_ratio(poses: list[np.ndarray]) -> float:
+    """Median over `poses` of the mean distance of keypoints 1-4 to the nose (0) over that of keypoints 15-18:
+    under 1 for BODY_25B (eyes and ears at 1-4), over 1 for BODY_25 (at 15-18); 1 without a pose that shows all."""
+    first, second = [1, 2, 3, 4], [15, 16, 17, 18]
+    ratios = []
+    for pose in poses:
+        if (pose[[0, *first, *second], 2] > 0).all():
+            near = np.linalg.norm(pose[first, :2] - pose[0, :2], axis=1).mean()
+            far = np.linalg.norm(pose[second, :2] - pose[0, :2], axis=1).mean()
+            if far > 0:
+                ratios.append(float(near / far))
+    return float(np.median(ratios)) if ratios else 1.0
 
 
 def openpose_files(path: Path) -> list[Path]:
@@ -144,8 +203,8 @@ def read_openpose(path: Path, video: str, person: int = 0, every_person: bool = 
             f"--person {person}: only {len(people)} people were linked through the frames",
             fix=f"give --person 0 to {len(people) - 1} (0 is the person seen most) or --person all",
         )
-    first = next((pose for _, _, poses in frames for pose in poses), None)
-    names = keypoint_names(len(first)) if first is not None else ()
+    every = [pose for _, _, poses in frames for pose in poses]
+    names = keypoint_names(len(every[0]), every, path) if every else ()
     detections: list[Detection] = []
     for (frame, file, poses), ids in zip(frames, identities, strict=True):
         for pose, identity in zip(poses, ids, strict=True):
@@ -206,8 +265,7 @@ def _read_frames(files: list[Path]) -> list[tuple[int, Path, list[np.ndarray]]]:
                 x, y, c = pose[k]
                 raise InputError(
                     file,
-                    f"people[{index}] keypoint {k} ({keypoint_names(len(pose))[k]}) is x, y, c = {x:g}, {y:g}, {c:g}: "
-                    "not finite",
+                    f"people[{index}] keypoint {k} is x, y, c = {x:g}, {y:g}, {c:g}: not finite",
                     fix="OpenPose writes finite numbers (0, 0, 0 where it found nothing); re-export the JSON",
                 )
             pose[pose[:, 2] <= 0.0, 2] = 0.0

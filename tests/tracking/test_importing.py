@@ -194,3 +194,39 @@ def test_imported_rows_are_float_exact(tmp_path: Path) -> None:
     src.write_text("video,frame,point,x,y\nv,3,a,0.1,1e-3\n")
     tracks = read_tracks(run_import([src], tmp_path / "o.csv", ImportOptions()))
     np.testing.assert_array_equal(tracks.xy, [[0.1, 1e-3]])
+
+
+def test_body_25b_keypoints_are_told_from_body_25(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Pose2Sim's default OpenPose model, BODY_25B, writes 25 triplets as BODY_25 does, in another order (eyes and
+    ears at 1-4, the neck at 17): a standing person written in either order is imported with the right names
+    (the nose above the neck), and poses that cannot tell them apart are named as BODY_25 with a warning."""
+    from tracking.import_openpose import BODY_25B
+
+    where = {  # a standing person, facing the camera (image y down)
+        "Nose": (100, 40), "LEye": (105, 35), "REye": (95, 35), "LEar": (110, 38), "REar": (90, 38),
+        "Neck": (100, 60), "Head": (100, 25), "LShoulder": (120, 62), "RShoulder": (80, 62),
+        "LElbow": (125, 90), "RElbow": (75, 90), "LWrist": (128, 115), "RWrist": (72, 115), "MidHip": (100, 120),
+        "LHip": (110, 120), "RHip": (90, 120), "LKnee": (110, 160), "RKnee": (90, 160), "LAnkle": (110, 200),
+        "RAnkle": (90, 200), "LBigToe": (115, 208), "LSmallToe": (118, 206), "LHeel": (108, 204),
+        "RBigToe": (85, 208), "RSmallToe": (82, 206), "RHeel": (92, 204),
+    }  # fmt: skip
+    for model in (BODY_25, BODY_25B):
+        folder = tmp_path / ("b" if model is BODY_25B else "a") / "cam01_json"
+        folder.mkdir(parents=True)
+        for frame in range(3):
+            flat = [v for name in model for v in (where[name][0] + frame, where[name][1], 0.9)]
+            (folder / f"cam01_{frame:012d}_keypoints.json").write_text(
+                json.dumps({"people": [{"pose_keypoints_2d": flat}]})
+            )
+        tracks = read_tracks(run_import([folder], folder.parent / "tracks.csv", ImportOptions()))
+        seen = {p: tracks.xy[i] for i, p in enumerate(tracks.point) if tracks.frame[i] == 0}
+        assert set(seen) == set(model) and seen["Nose"][1] < seen["Neck"][1] and seen["LEye"][0] == 105
+    caplog.clear()
+    folder = tmp_path / "c" / "cam01_json"
+    folder.mkdir(parents=True)
+    # every keypoint as far from the nose: no head to tell the models by
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    flat = [100.0, 100.0, 0.9] + [v for a in angles for v in (100 + 50 * np.cos(a), 100 + 50 * np.sin(a), 0.9)]
+    (folder / "cam01_000000000000_keypoints.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": flat}]}))
+    assert "Neck" in read_tracks(run_import([folder], folder.parent / "tracks.csv", ImportOptions())).point
+    assert "cannot be told apart" in caplog.text
