@@ -56,3 +56,19 @@ def within_name(name: str, names: Iterable[str]) -> list[str]:
         if words[: len(own)] == own or words[-len(own) :] == own:
             found.append(other)
     return found
+
+
+def holds_name(name: str, names: Iterable[str]) -> list[str]:
+    """Those of `names` whose key's words and numbers hold `name`'s as one whole run, anywhere: a calibration's
+    camera named around the video's ('int_cam01_img' holds 'cam01', Pose2Sim's intrinsics-board cameras); one is a
+    match. A name of numbers only matches nothing this way."""
+    words = name_key(name).split("-")
+    if all(w.isdigit() or not w for w in words):
+        return []
+    found = []
+    for other in names:
+        own = name_key(other).split("-")
+        runs = (own[i : i + len(words)] for i in range(len(own) - len(words) + 1))
+        if len(own) > len(words) and any(run == words for run in runs):
+            found.append(other)
+    return found

@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
-from dynrecon.names import first_repeated, spelled_alike, within_name
+from dynrecon.names import first_repeated, holds_name, spelled_alike, within_name
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.calibration_dlt import dlt_cameras, dlt_sizes, is_dlt
@@ -528,9 +528,10 @@ def read_calibration(
 def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
     """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
     zeros and a video suffix are ignored (None when several do: cam1 with both cam01 and cam_1), else the one
-    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix)."""
+    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix), else the one
+    camera whose name holds the video's (`int_cam01_img` for cam01.mp4)."""
     names = [c.name for c in cameras]
-    found = spelled_alike(name, names) or within_name(name, names)
+    found = spelled_alike(name, names) or within_name(name, names) or holds_name(name, names)
     return next(c for c in cameras if c.name == found[0]) if len(found) == 1 else None
 
 

@@ -45,10 +45,14 @@ class _Table:
 
 
 def video_name_from_dlc(path: Path) -> str:
-    """`cam01DLC_resnet50_projectJan1shuffle1_500000.csv` -> `cam01`; other names -> the file stem."""
+    """`cam01DLC_resnet50_projectJan1shuffle1_500000.csv` -> `cam01` (DeepLabCut 2.0's `cam01DeepCut_resnet50_...`
+    too); a labelled-data file, `labeled-data/cam01/CollectedData_<scorer>.csv` -> its folder's name, `cam01`;
+    other names -> the file stem."""
     stem = path.stem
-    index = stem.find("DLC_")
-    return stem[:index] if index > 0 else stem
+    if stem.startswith("CollectedData_") and path.parent.parent.name == "labeled-data":  # DeepLabCut's project layout
+        return path.parent.name
+    found = [i for i in (stem.find("DLC_"), stem.find("DeepCut_")) if i > 0]
+    return stem[: min(found)] if found else stem
 
 
 def read_dlc(path: Path, video: str, person: int | None = None, every_person: bool = False) -> list[Detection]:

@@ -643,3 +643,15 @@ def test_within_name_wants_one_whole_run_of_words() -> None:
     assert within_name("cam1_take2", ["1", "2"]) == []  # numbers alone: a take's number is no camera's
     assert within_name("background", ["back"]) == []  # words, not letters
     assert within_name("back", ["back"]) == []  # the same name is spelled_alike's
+
+
+def test_holds_name_finds_a_camera_named_around_the_video() -> None:
+    """Pose2Sim's Calib_scene.toml names its cameras int_cam01_img ...: cam01.mp4 is camera int_cam01_img."""
+    from dynrecon.names import holds_name
+
+    cameras = ["int_cam01_img", "int_cam02_img", "int_cam11_img"]
+    assert holds_name("cam01", cameras) == ["int_cam01_img"] and holds_name("cam_2", cameras) == ["int_cam02_img"]
+    assert holds_name("cam1", ["int_cam1_img", "ext_cam1_img"]) == ["int_cam1_img", "ext_cam1_img"]  # ambiguous
+    assert holds_name("01", cameras) == []  # numbers alone name no camera
+    assert holds_name("cam", cameras) == ["int_cam01_img", "int_cam02_img", "int_cam11_img"]
+    assert holds_name("int_cam01_img", cameras) == []  # the same name is spelled_alike's

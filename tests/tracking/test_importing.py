@@ -230,3 +230,15 @@ def test_body_25b_keypoints_are_told_from_body_25(tmp_path: Path, caplog: pytest
     (folder / "cam01_000000000000_keypoints.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": flat}]}))
     assert "Neck" in read_tracks(run_import([folder], folder.parent / "tracks.csv", ImportOptions())).point
     assert "cannot be told apart" in caplog.text
+
+
+def test_deeplabcut_file_names_give_the_video_name() -> None:
+    """The video a DeepLabCut file belongs to: its analysed-video names (DLC 2.x's `DLC_`, 2.0's `DeepCut_`), and a
+    project's labelled frames, `labeled-data/<video>/CollectedData_<scorer>.csv`."""
+    from tracking.import_dlc import video_name_from_dlc
+
+    assert video_name_from_dlc(Path("cam01DLC_resnet50_projectJan1shuffle1_500000.csv")) == "cam01"
+    assert video_name_from_dlc(Path("briefDeepCut_resnet50_TESTAug16shuffle1_5.csv")) == "brief"
+    assert video_name_from_dlc(Path("proj/labeled-data/reachingvideo1/CollectedData_Mackenzie.h5")) == "reachingvideo1"
+    assert video_name_from_dlc(Path("elsewhere/CollectedData_Mackenzie.csv")) == "CollectedData_Mackenzie"
+    assert video_name_from_dlc(Path("cam02.csv")) == "cam02"
