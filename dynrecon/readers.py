@@ -146,6 +146,9 @@ def header_error(path: Path, header: list[str], missing: list[str], where: str, 
         cased = [lower[name] for name in missing if name in lower]
         if cased:
             hint = f"; column names are lower case: found {', '.join(repr(name) for name in cased)}"
+        elif path is not None and path.stem.endswith("_skeleton") and ("DLC_" in path.stem or "DeepCut_" in path.stem):
+            hint = "; it is DeepLabCut's skeleton file (bone lengths and angles), not its points: import the CSV of "
+            hint += "the same name without _skeleton"
     return InputError(path, f"header lacks column(s) {', '.join(missing)}{hint}", where=where, fix=fix)
 
 

@@ -168,6 +168,22 @@ def _opens_as_hdf5(path: Path) -> bool:
         return False
 
 
+def _h5_contents(path: Path, tables: list[str]) -> str:
+    """What an HDF5 file without DeepLabCut's table holds, for the message: its pandas tables, else its top-level
+    groups and datasets (a JABS pose file holds `poseest`)."""
+    if tables:
+        return f"keys: {', '.join(tables)}"
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            names = list(f.keys())
+    except Exception:  # h5py raises many types for a damaged file: the message lists what it can
+        names = []
+    jabs = " (a JABS pose file?)" if "poseest" in names else ""
+    return f"no pandas table; top level: {', '.join(names[:8]) or 'nothing'}{jabs}"
+
+
 def _read_h5(path: Path) -> _Table:
     """DLC's .h5: a pandas table (PyTables), read with pandas."""
     try:
@@ -187,8 +203,9 @@ def _read_h5(path: Path) -> _Table:
             if key is None:
                 raise InputError(
                     path,
-                    f"no DeepLabCut table in it (keys: {', '.join(keys) or 'none'})",
-                    fix=f"DeepLabCut writes its points under {' or '.join(H5_KEYS)}",
+                    f"no DeepLabCut table in it ({_h5_contents(path, keys)})",
+                    fix=f"DeepLabCut writes its points under {' or '.join(H5_KEYS)}; another tool's points: export "
+                    "them as tracks.csv (video, frame, point, x, y; docs/formats.md)",
                 )
             frame = store[key]
     except InputError:

@@ -2,9 +2,9 @@
 
 Files are named `<video>_<12-digit frame>_keypoints.json`; the frame is the last number in the name (files
 without one are numbered in name order). A keypoint with confidence 0 is a missing detection. Names follow
-BODY_25 or BODY_25B (25 triplets each, told apart by where each has the eyes and ears) or COCO (18 triplets); other
-counts are named `kp0`, `kp1`, ... With several people in a
-frame, people are linked through the frames (tracking/people.py) and one person, or each, is imported.
+BODY_25 or BODY_25B (25 triplets each, told apart by which keypoints lie together in the head) or COCO (18
+triplets); other counts are named `kp0`, `kp1`, ... With several people in a frame, people are linked through the
+frames (tracking/people.py) and one person, or each, is imported.
 """
 
 from __future__ import annotations
@@ -98,9 +98,9 @@ BODY_25B = (
     "RSmallToe",
     "RHeel",
 )
-# Both models have the eyes and ears near the nose, BODY_25 at keypoints 15-18 and BODY_25B at 1-4 (where BODY_25 has
-# the neck and the right arm): a pose's mean distance of one set to the nose over the other's, median over the poses,
-# is under this for the model that names them right (docs/formats.md), and over its inverse for the other.
+# Keypoints 0-4 are BODY_25B's head (nose, eyes, ears) and BODY_25's nose, neck and right arm; 15-18 are BODY_25's
+# eyes and ears and BODY_25B's ankles, neck and head: the spread of the first set over the second's, median over the
+# poses, is under this for BODY_25B and over its inverse for BODY_25 (docs/formats.md).
 HEAD_RATIO = 0.5
 _FRAME = re.compile(r"(\d+)(?!.*\d)")
 
@@ -126,17 +126,24 @@ def keypoint_names(count: int, poses: list[np.ndarray] | None = None, source: Pa
 
 
 def _head_ratio(poses: list[np.ndarray]) -> float:
-    """Median over `poses` of the mean distance of keypoints 1-4 to the nose (0) over that of keypoints 15-18:
-    under 1 for BODY_25B (eyes and ears at 1-4), over 1 for BODY_25 (at 15-18); 1 without a pose that shows all."""
-    first, second = [1, 2, 3, 4], [15, 16, 17, 18]
+    """Median over `poses` of the mean distance between the seen keypoints of 0-4 over that between the seen
+    keypoints of 15-18 (two or more of each: a person seen from behind shows ears, not eyes): under 1 for BODY_25B,
+    over 1 for BODY_25; 1 without such a pose."""
     ratios = []
     for pose in poses:
-        if (pose[[0, *first, *second], 2] > 0).all():
-            near = np.linalg.norm(pose[first, :2] - pose[0, :2], axis=1).mean()
-            far = np.linalg.norm(pose[second, :2] - pose[0, :2], axis=1).mean()
-            if far > 0:
-                ratios.append(float(near / far))
+        first, second = (_spread(pose, keypoints) for keypoints in ((0, 1, 2, 3, 4), (15, 16, 17, 18)))
+        if first is not None and second:
+            ratios.append(first / second)
     return float(np.median(ratios)) if ratios else 1.0
+
+
+def _spread(pose: np.ndarray, keypoints: tuple[int, ...]) -> float | None:
+    """The mean distance between the seen ones of `keypoints` of `pose`; None with fewer than two seen."""
+    seen = pose[[k for k in keypoints if pose[k, 2] > 0], :2]
+    if len(seen) < 2:
+        return None
+    gaps = np.linalg.norm(seen[:, None] - seen[None], axis=-1)
+    return float(gaps.sum() / (len(seen) * (len(seen) - 1)))
 
 
 def openpose_files(path: Path) -> list[Path]:
@@ -194,7 +201,7 @@ def read_openpose(path: Path, video: str, person: int = 0, every_person: bool = 
             "%s: %d people linked through the frames (%s)%s; --person N imports another, --person all every one",
             path.name,
             len(people),
-            ", ".join(f"person {n}: {p.frames} frames" for n, p in enumerate(people)),
+            ", ".join(f"person {n}: {p.keypoints} keypoints in {p.frames} frames" for n, p in enumerate(people)),
             "" if every_person else f": person {person} imported",
         )
     if not every_person and people and person >= len(people):

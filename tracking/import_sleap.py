@@ -135,6 +135,14 @@ def read_sleap_slp(
             videos = [_video_stem(json.loads(_text(v))) for v in f["videos_json"][()]]
             frames, instances = f["frames"][()], f["instances"][()]
             points = {USER: f["points"][()], PREDICTED: f["pred_points"][()]}
+            plain = [n for n in ("frames", "instances", "points", "pred_points") if f[n].dtype.names is None]
+            if plain:  # a newer writer's plain-array tables, not the named columns read here
+                raise InputError(
+                    path,
+                    f"its {', '.join(plain)} tables are plain arrays, not the named columns of the SLEAP .slp layout "
+                    f"read here (format {format_id:g})",
+                    fix=EXPORT_FIX,
+                )
     except InputError:
         raise
     except (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeError) as error:

@@ -37,6 +37,9 @@ def tool_name(individual: str, part: str) -> str:
     return f"{individual}_{part}" if individual else part
 
 
+_SAID: set[tuple[str, tuple[str, ...]]] = set()  # the files whose individuals were warned about
+
+
 def individual_names(
     path: Path,
     detections: dict[tuple[str, str], int],
@@ -57,7 +60,9 @@ def individual_names(
     individuals = list(dict.fromkeys(i for i, _ in points if i))
     if person is None and not every_person:
         present = [i for i in individuals if seen.get(i, 0) > 0]
-        if len(present) > 1:
+        said = (str(path), tuple(present))
+        if len(present) > 1 and said not in _SAID:  # a file of several videos is read per video: said once
+            _SAID.add(said)
             log.warning(
                 "%s: %d %s seen (%s): each name is taken as the same animal in every video; where the tracker did "
                 "not learn to tell them apart, --person all lets register match them across the videos from their "

@@ -235,3 +235,19 @@ def test_many_guesses_are_pointed_out(tmp_path: Path, caplog) -> None:
     caplog.clear()
     run_import([csv], tmp_path / "tracks2.csv", ImportOptions(min_score=0.6))
     assert "under 0.5" not in caplog.text
+
+
+def test_files_that_are_not_deeplabcut_points_say_what_they_are(tmp_path: Path) -> None:
+    """A JABS pose file (HDF5, no pandas table) and DeepLabCut's own skeleton CSV (bone lengths): one-line errors
+    that say what the file looks like, not "keys: none" or a bare header complaint."""
+    import h5py
+
+    jabs = tmp_path / "example_pose_est_v2.h5"
+    with h5py.File(jabs, "w") as f:
+        f.create_dataset("poseest/points", data=np.zeros((3, 12, 2), dtype=np.uint16))
+    with pytest.raises(InputError, match=r"no pandas table; top level: poseest \(a JABS pose file\?\)"):
+        run_import([jabs], tmp_path / "o.csv", ImportOptions())
+    skeleton = tmp_path / "briefDeepCut_resnet50_TESTAug16shuffle1_5_skeleton.csv"
+    skeleton.write_text(",b1_b2,b1_b2,b1_b2\n,length,likelihood,orientation\n0,24.1,0.65,26.3\n", encoding="utf-8")
+    with pytest.raises(InputError, match="it is DeepLabCut's skeleton file"):
+        run_import([skeleton], tmp_path / "o.csv", ImportOptions())

@@ -187,6 +187,13 @@ def untrack(f, tracks_too: bool) -> None:
         del f["tracks_json"]
 
 
+def plain_instances(f) -> None:
+    """A newer writer's layout (sleap-io.js's format 1.9 files): the instances as a plain integer array."""
+    count = len(f["instances"])
+    del f["instances"]
+    f.create_dataset("instances", data=np.zeros((count, 8), dtype=np.int64))
+
+
 def test_slp_files_this_reader_does_not_know_are_refused(tmp_path: Path) -> None:
     cases = [
         ("old.slp", lambda f: f["metadata"].attrs.__setitem__("format_id", 1.0), r"SLEAP file format 1 is not read"),
@@ -198,6 +205,7 @@ def test_slp_files_this_reader_does_not_know_are_refused(tmp_path: Path) -> None
             r"two predicted instances with no track on frame 0 of cam1 \(track them in SLEAP",
         ),
         ("junk.slp", None, r"not a readable SLEAP .slp file"),
+        ("plain.slp", plain_instances, r"its instances tables are plain arrays, not the named columns"),
     ]
     for name, change, message in cases:
         if change is None:
