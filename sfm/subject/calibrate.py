@@ -509,12 +509,13 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int, groups: list[set[int]
     mine = [f for f in fits if i in (f.a, f.b)]
     group = next(g for g in groups if i in g)
     if len(group) > 1 and reference not in group:
-        mine_group = ", ".join(sorted(obs[j].name for j in group))
-        posed = ", ".join(sorted(obs[j].name for j in next(g for g in groups if reference in g)))
+        posed = next(g for g in groups if reference in g)
+        across = {f.reason or f.degenerate or "" for f in fits if {f.a, f.b} & group and {f.a, f.b} & posed}
+        said = "; ".join(sorted(r for r in across if r)) or "none fitted"
         return (
-            f"its group of videos ({mine_group}) shares no tracked point at one time with the group the path poses "
-            f"({posed}): "
-            "track points that both groups see, or register each group on its own"
+            f"no usable pair joins its group of videos ({', '.join(sorted(obs[j].name for j in group))}) to the group "
+            f"the path poses ({', '.join(sorted(obs[j].name for j in posed))}; their pairs: {said}): track points "
+            "that both groups see at one time, or register each group on its own"
         )
     if all(f.shared < 8 or (f.reason or "").startswith(("the videos never", "at most")) for f in mine):
         return "its tracks never overlap in time with another video's (within max_offset)"
