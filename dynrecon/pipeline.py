@@ -477,7 +477,9 @@ class Stages:
             if options.calibration_options.profile is not None:  # its contents, not only its name
                 files["profile"] = options.calibration_options.profile
             return files, settings, outputs
-        return self.video_files, {"register": self.background_options(), "videos": names}, outputs
+        # the files its options name, by content: an --intrinsics file edited in place registers again
+        files = {**self.video_files, **_option_files(self.background_options())}
+        return files, {"register": self.background_options(), "videos": names}, outputs
 
     def track(self, tracker: Tracker | None = None) -> Path | None:
         """The `track` stage (labels -> WS/tracks.csv), or a copy of the given tracks; None when there are neither.
@@ -512,8 +514,11 @@ class Stages:
                 f"no labels and no tracks: registration only. Label the points with `dynrecon label {ws} "
                 "--videos ...`, then run this command again"
             )
-            markers = ws / REGISTER_DIR / MARKER_TRACKS
-            if markers.is_file():  # the markers register posed the cameras from may be the subject itself
+            found = ws / REGISTER_DIR / MARKER_TRACKS
+            if found.is_file():  # the markers register posed the cameras from may be the subject itself
+                # a copy outside register/, which the register stage rewrites when it runs again (without markers)
+                markers = ws / MARKER_TRACKS
+                shutil.copyfile(found, markers)
                 self.result.next_step += (
                     f"; or, to reconstruct the markers in view, run it again with --tracks {markers}"
                 )

@@ -24,6 +24,7 @@ from dynrecon.pipeline import (
     run_stages,
     score_against_truth,
 )
+from dynrecon.pipeline_state import inputs_key
 from reconstruct.outputs.mocap import read_mocap
 from reconstruct.outputs.points import FramePoints, read_points, read_sequencing, write_points
 from sfm.calibration import read_calibration, write_toml
@@ -469,6 +470,22 @@ def test_run_takes_dlt_calibrations_and_their_profiles(tmp_path: Path) -> None:
         _check_calibration(dlt, missing, RegisterOptions())
 
 
+def test_an_intrinsics_file_edited_in_place_registers_again(tmp_path: Path) -> None:
+    """The register stage's key holds the --intrinsics file's contents, not only its path: a focal edited in the
+    same file must not leave the cameras registered with the old one (the subject stage already hashed it)."""
+    from board_video import write_video
+
+    videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
+    intrinsics = tmp_path / "intrinsics.toml"
+    intrinsics.write_text("[cam_a]\nmatrix = [[900.0, 0, 32], [0, 900, 24], [0, 0, 1]]\n", encoding="utf-8")
+    options = PipelineOptions(register=replace(default_register(), intrinsics=intrinsics))
+    files, settings, _ = Stages(videos, tmp_path / "ws", options)._register_inputs()
+    before = inputs_key(files, settings)
+    intrinsics.write_text("[cam_a]\nmatrix = [[1100.0, 0, 32], [0, 1100, 24], [0, 0, 1]]\n", encoding="utf-8")
+    files, settings, _ = Stages(videos, tmp_path / "ws", options)._register_inputs()
+    assert files["intrinsics"] == intrinsics and inputs_key(files, settings) != before
+
+
 def test_tracks_given_from_inside_the_workspace_are_copied_before_any_stage(tmp_path: Path) -> None:
     """`run --tracks WS/register/marker_tracks.csv` (the next step `run` advises): the register stage, run again,
     rewrites its folder, so the tracks are copied into WS/tracks.csv before it and read from there."""
@@ -501,4 +518,5 @@ def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> 
     markers.write_text("video,frame,point,x,y,source\n", encoding="utf-8")
     stages = Stages(videos, tmp_path / "ws")
     assert stages.track() is None and stages.result.next_step is not None
-    assert stages.result.next_step.endswith(f"run it again with --tracks {markers}")
+    assert stages.result.next_step.endswith(f"run it again with --tracks {tmp_path / 'ws' / 'marker_tracks.csv'}")
+    assert (tmp_path / "ws" / "marker_tracks.csv").read_bytes() == markers.read_bytes()
