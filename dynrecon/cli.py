@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import importlib
 import logging
 import os
@@ -145,6 +146,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except DynreconError as error:
         _say(f"dynrecon {args.command}: error: {error}")
+        return 2
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # the machine's state, not a bug: one line (files are written atomically, so none is left half-written)
+        where = error.filename or "the output folder"
+        _say(f"dynrecon {args.command}: error: {where}: no space left on the device (free some, then run again)")
         return 2
     except Terminated:
         _say("stopped (SIGTERM)", stopped=True)

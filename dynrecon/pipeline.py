@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import require_writable
+from dynrecon.atomic import atomic_open, require_writable
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import float_or_nan
 from dynrecon.pipeline_state import STATE_NAME, State, file_hash, inputs_key
@@ -291,14 +291,24 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
     tracks = matched_to_videos(read_tracks(tracks_path), [v.name for v in cameras.videos])
     posed = {v.name for v in cameras.videos if v.frames}
     left_out = sorted(set(tracks.video) - posed)
-    if left_out:
+    given = {v.name for v in cameras.videos}
+    absent = [name for name in left_out if name not in given]  # a video dropped from this run
+    if absent:
+        log.warning(
+            "%s: video(s) %s have tracks but are not among this run's videos: their tracks are left out of the solve",
+            tracks_path,
+            ", ".join(absent),
+        )
+    unposed = [name for name in left_out if name in given]
+    if unposed:
         log.warning(
             "%s: video(s) %s have tracks but registration posed none of their frames (%s says why): their tracks "
             "are left out of the solve",
             tracks_path,
-            ", ".join(left_out),
+            ", ".join(unposed),
             cameras_path.parent / "register_report.json",
         )
+    if left_out:
         tracks = tracks.take(np.flatnonzero([v in posed for v in tracks.video]))
     solve(cameras_path, tracks, options).write(out)  # the path: report.json names its inputs
 
@@ -317,7 +327,8 @@ def _copy_into(source: Path, target: Path) -> None:
             kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
         target.replace(kept)
         log.warning("%s differed from %s: it is kept as %s", target, source, kept.name)
-    shutil.copyfile(source, target)
+    with atomic_open(target, "wb") as out, source.open("rb") as given:  # never a half-copied file (a full disk)
+        shutil.copyfileobj(given, out)
 
 
 def run(videos: Sequence[str | Path], out_dir: str | Path, options: PipelineOptions | None = None) -> Path:

@@ -147,3 +147,30 @@ def test_progress_bars_follow_quiet_and_a_log_file(quiet: bool, seen: list[str])
     env = {k: v for k, v in os.environ.items() if not k.startswith("TQDM_")}
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert done.stdout.split() == seen
+
+
+def test_a_full_disk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]):
+    """No space left while a command writes: the machine's state, said in one line naming the file, not a
+    traceback; other OS errors (a bug's) still raise."""
+    import argparse
+    import errno
+
+    import dynrecon.cli as cli
+
+    failure = OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "points3d.csv"))
+
+    def fails(_: argparse.Namespace) -> int:
+        raise failure
+
+    class Parser:
+        def parse_args(self, argv: list[str]) -> argparse.Namespace:
+            return argparse.Namespace(command="export", func=fails, out=str(tmp_path), verbose=0, quiet=False)
+
+    monkeypatch.setattr(cli, "build_parser", lambda *_: Parser())
+    assert cli.main(["export"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"dynrecon export: error: {tmp_path / 'points3d.csv'}: no space left on the device (free some, then run again)"
+    )
+    failure = OSError(errno.EBADF, "Bad file descriptor")
+    with pytest.raises(OSError, match="Bad file descriptor"):
+        cli.main(["export"])
