@@ -200,7 +200,7 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         )
     for given in (options.labels, options.tracks, options.skeleton):
         if given is not None and not given.is_file():
-            raise InputError(given, "file not found")
+            raise InputError(given, "is a folder: a file was expected" if given.is_dir() else "file not found")
     # the user's own file is named in its errors, not the copy in WS that the stages read
     names = {video.stem for video in videos}
     points: set[str] | None = None

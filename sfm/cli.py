@@ -126,9 +126,13 @@ SYNCHRONIZED_HELP = (
 
 
 def _run_import(args: argparse.Namespace) -> int:
+    from dynrecon.errors import InputError
     from sfm.calibration import run
     from sfm.options import CalibrationFormat, DltPixels, ImportCalibrationOptions, Units
 
+    if Path(args.calibration).resolve() == (Path(args.out) / "cameras.json").resolve():
+        # written over, the user's file would lose what the import does not carry (its clock offsets)
+        raise InputError(args.calibration, "is the cameras.json this import would write", fix="give another --out")
     path = run(
         args.calibration,
         args.videos,

@@ -233,6 +233,9 @@ def _say_low_scores(path: Path, fmt: Format, detections: list[Detection], min_sc
 
 def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
+    for given in inputs:
+        if Path(given).resolve() == Path(out).resolve():  # rewritten in the importer's form, the user's file is lost
+            raise InputError(given, "is also the output (--out)", fix="write the imported tracks to another file")
     rows: dict[tuple[str, int, str], tuple[float, float, str, str]] = {}
     imported_videos: set[str] = set()
     if options.board is not None:  # videos: their names must differ (two phones' IMG_0001.MOV), checked first

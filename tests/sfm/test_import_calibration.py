@@ -655,3 +655,19 @@ def test_holds_name_finds_a_camera_named_around_the_video() -> None:
     assert holds_name("01", cameras) == []  # numbers alone name no camera
     assert holds_name("cam", cameras) == ["int_cam01_img", "int_cam02_img", "int_cam11_img"]
     assert holds_name("int_cam01_img", cameras) == []  # the same name is spelled_alike's
+
+
+def test_import_calibration_never_writes_over_the_file_it_reads(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`import-calibration WS/cameras.json VIDEO... --out WS` would write the cameras.json it reads, dropping what
+    the import does not carry (its clock offsets): a one-line refusal, the file untouched."""
+    from dynrecon.cli import main
+
+    cameras = tmp_path / "cameras.json"
+    cameras.write_text('{"videos": []}', encoding="utf-8")
+    video = tmp_path / "cam_0.mp4"
+    video.write_bytes(b"")
+    assert main(["import-calibration", str(cameras), str(video), "--out", str(tmp_path)]) == 2
+    assert "is the cameras.json this import would write" in capsys.readouterr().err
+    assert cameras.read_text(encoding="utf-8") == '{"videos": []}'

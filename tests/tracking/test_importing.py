@@ -242,3 +242,14 @@ def test_deeplabcut_file_names_give_the_video_name() -> None:
     assert video_name_from_dlc(Path("proj/labeled-data/reachingvideo1/CollectedData_Mackenzie.h5")) == "reachingvideo1"
     assert video_name_from_dlc(Path("elsewhere/CollectedData_Mackenzie.csv")) == "CollectedData_Mackenzie"
     assert video_name_from_dlc(Path("cam02.csv")) == "cam02"
+
+
+def test_an_import_never_writes_over_its_input(tmp_path: Path) -> None:
+    """`import-tracks t.csv --out t.csv` rewrote the user's file in the importer's form (source, score columns):
+    refused, the file untouched."""
+    given = tmp_path / "t.csv"
+    given.write_text("video,frame,point,x,y,source\na,0,p,1.0,2.0,marker\n", encoding="utf-8")
+    before = given.read_bytes()
+    with pytest.raises(InputError, match="is also the output"):
+        run_import([given], given, ImportOptions())
+    assert given.read_bytes() == before
