@@ -313,20 +313,27 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
     solve(cameras_path, tracks, options).write(out)  # the path: report.json names its inputs
 
 
+def _keep_aside(target: Path, why: str) -> Path:
+    """Copy `target` to <stem>.before-<time><suffix> beside it (a copy: it may also be the input the stage about to
+    write it reads), with a warning saying `why`; returns that path."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    kept = target.with_name(f"{target.stem}.before-{stamp}{target.suffix}")
+    n = 1
+    while kept.exists():
+        n += 1
+        kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
+    shutil.copy2(target, kept)
+    log.warning("%s %s: it is kept as %s", target, why, kept.name)
+    return kept
+
+
 def _copy_into(source: Path, target: Path) -> None:
     """Copy a user's file into the workspace unless it already is that file; a different file already there (the
     labeling page's clicks) is kept beside it, with a warning, never overwritten."""
     if source.resolve() == target.resolve():
         return
     if target.is_file() and target.read_bytes() != source.read_bytes():
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        kept = target.with_name(f"{target.stem}.before-{stamp}{target.suffix}")
-        n = 1
-        while kept.exists():
-            n += 1
-            kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
-        target.replace(kept)
-        log.warning("%s differed from %s: it is kept as %s", target, source, kept.name)
+        _keep_aside(target, f"differed from {source}")
     with atomic_open(target, "wb") as out, source.open("rb") as given:  # never a half-copied file (a full disk)
         shutil.copyfileobj(given, out)
 
@@ -445,13 +452,21 @@ class Stages:
                 files,
                 settings,
                 outputs,
-                lambda: import_registration(calibration, self.videos, folder, imported),
+                lambda: self._unrecorded_aside(
+                    folder, lambda: import_registration(calibration, self.videos, folder, imported)
+                ),
             )
             return None
         register_options = self.background_options()
         sfm = registrar or _register
         try:
-            self.run("register", files, settings, outputs, lambda: sfm(self.videos, folder, register_options))
+            self.run(
+                "register",
+                files,
+                settings,
+                outputs,
+                lambda: self._unrecorded_aside(folder, lambda: sfm(self.videos, folder, register_options)),
+            )
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():
@@ -538,6 +553,15 @@ class Stages:
         if not tracks_path.is_file():
             raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
         return tracks_path
+
+    def _unrecorded_aside(self, folder: Path, write: Callable[[], object]) -> None:
+        """`write` (the register stage's work) after a `folder`/cameras.json it did not write (a user's
+        import-calibration into WS/register/) is kept aside, not replaced unseen."""
+        cameras = folder / "cameras.json"
+        recorded = self.state.stages.get("register", {}).get("outputs", {}).get(str(cameras.relative_to(self.ws)))
+        if cameras.is_file() and (recorded is None or file_hash(cameras) != recorded):
+            _keep_aside(cameras, "was not written by the register stage, which writes it now")
+        write()
 
     def _tracks_are_ours(self, tracks_path: Path) -> bool:
         """Whether WS/tracks.csv may be (re)written by the track stage: missing, or the one it wrote last."""

@@ -520,3 +520,25 @@ def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> 
     assert stages.track() is None and stages.result.next_step is not None
     assert stages.result.next_step.endswith(f"run it again with --tracks {tmp_path / 'ws' / 'marker_tracks.csv'}")
     assert (tmp_path / "ws" / "marker_tracks.csv").read_bytes() == markers.read_bytes()
+
+
+def test_a_registration_the_register_stage_did_not_write_is_kept_aside(tmp_path: Path) -> None:
+    """A user's `import-calibration ... --out WS/register`, then `run` without --calibration: the register stage
+    writes WS/register/cameras.json again, and the user's is kept beside it with a warning, not replaced unseen;
+    the stage's own file, recorded, is replaced without a copy."""
+    from board_video import write_video
+
+    videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
+    stages = Stages(videos, tmp_path / "ws")
+    cameras = tmp_path / "ws" / "register" / "cameras.json"
+    cameras.parent.mkdir(parents=True)
+    cameras.write_text('{"users": true}', encoding="utf-8")
+    written: list[str] = []
+    stages._unrecorded_aside(cameras.parent, lambda: written.append(cameras.read_text(encoding="utf-8")))
+    kept = list(cameras.parent.glob("cameras.before-*.json"))
+    assert (
+        written == ['{"users": true}'] and len(kept) == 1 and kept[0].read_text(encoding="utf-8") == '{"users": true}'
+    )
+    stages.state.record("register", "key", [cameras], stages.ws, 1.0)
+    stages._unrecorded_aside(cameras.parent, lambda: None)
+    assert len(list(cameras.parent.glob("cameras.before-*.json"))) == 1
