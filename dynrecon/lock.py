@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 
 LOCK_NAME = ".labeling.lock"
 OUTPUT_LOCK_NAME = ".dynrecon.lock"
+NEARBY_LEVELS = 2  # folders above an output folder whose writers are refused beside it (WS of WS/register/...)
 
 
 class WorkspaceLockedError(DynreconError):
@@ -140,6 +141,20 @@ class OutputLock(WorkspaceLock):
         self.made = not folder.exists()
         folder.mkdir(parents=True, exist_ok=True)
         super().acquire(url)
+        # a command writing the workspace above (`run --out WS`) or a stage folder within (`register --out
+        # WS/register`) writes the same files: refused too
+        resolved = folder.resolve()
+        nearby = [p / OUTPUT_LOCK_NAME for p in list(resolved.parents)[:NEARBY_LEVELS]]
+        nearby += sorted(resolved.glob(f"*/{OUTPUT_LOCK_NAME}"))
+        for path in nearby:
+            other = WorkspaceLock(path.parent, OUTPUT_LOCK_NAME)
+            owner = other._read_owner() if path.is_file() else None
+            if owner is not None and not other._stale(owner):
+                self.release()
+                raise WorkspaceLockedError(
+                    f"{path}: another {self.holder} (pid {owner.get('pid', '?')}) is writing {path.parent}, which "
+                    f"{'holds' if path.parent in resolved.parents else 'is within'} this folder ({self.advice})"
+                )
 
     def release(self) -> None:
         super().release()

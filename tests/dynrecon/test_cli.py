@@ -133,6 +133,31 @@ def test_a_second_writer_of_one_folder_is_refused(tmp_path: Path, capsys: pytest
     assert not (tmp_path / "fresh").exists()
 
 
+def test_a_writer_of_the_folder_above_or_within_is_refused(tmp_path: Path) -> None:
+    """`register --out WS/register` beside a running `run --out WS` (and the other way round) wrote the same files,
+    both told they succeeded: the lock of the workspace above or a stage folder within refuses the second."""
+    from dynrecon.lock import OUTPUT_LOCK_NAME, OutputLock, WorkspaceLockedError
+
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live pid not ours
+    owner = json.dumps({"pid": holder.pid, "host": socket.gethostname(), "token": "x"})
+    try:
+        ws = tmp_path / "ws"
+        (ws / "register").mkdir(parents=True)
+        (ws / OUTPUT_LOCK_NAME).write_text(owner)
+        with pytest.raises(WorkspaceLockedError, match=r"is writing .*ws, which holds this folder"):
+            OutputLock(ws / "register").acquire()
+        assert not (ws / "register" / OUTPUT_LOCK_NAME).exists()  # its own lock released
+        (ws / OUTPUT_LOCK_NAME).unlink()
+        (ws / "register" / OUTPUT_LOCK_NAME).write_text(owner)
+        with pytest.raises(WorkspaceLockedError, match=r"is writing .*register, which is within this folder"):
+            OutputLock(ws).acquire()
+        with OutputLock(tmp_path / "elsewhere"):  # an unrelated folder
+            pass
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 @pytest.mark.parametrize(("quiet", "seen"), [(True, ["True", "-"]), (False, ["False", "10.0"])])
 def test_progress_bars_follow_quiet_and_a_log_file(quiet: bool, seen: list[str]) -> None:
     """tqdm reads its TQDM_* settings when it is imported: -q hides the bars, and into a file (stderr not a terminal)
