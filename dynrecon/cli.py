@@ -150,8 +150,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
-        # the machine's state, not a bug: one line (files are written atomically, so none is left half-written)
-        where = error.filename or "the output folder"
+        # the machine's state, not a bug: one line (a failed write or flush names no file: the output folder then)
+        where = error.filename or getattr(args, "out", None) or "the output folder"
         _say(f"dynrecon {args.command}: error: {where}: no space left on the device (free some, then run again)")
         return 2
     except Terminated:

@@ -24,6 +24,8 @@ log = logging.getLogger(__name__)
 LOCK_NAME = ".labeling.lock"
 OUTPUT_LOCK_NAME = ".dynrecon.lock"
 NEARBY_LEVELS = 2  # folders above an output folder whose writers are refused beside it (WS of WS/register/...)
+WORKSPACE_MARK = "pipeline.json"  # dynrecon.pipeline_state.STATE_NAME (the ground imports no other module)
+STAGE_FOLDERS = ("register", "register_subject")  # a workspace's folders that `register` may also be given
 
 
 class WorkspaceLockedError(DynreconError):
@@ -142,10 +144,13 @@ class OutputLock(WorkspaceLock):
         folder.mkdir(parents=True, exist_ok=True)
         super().acquire(url)
         # a command writing the workspace above (`run --out WS`) or a stage folder within (`register --out
-        # WS/register`) writes the same files: refused too
+        # WS/register`) writes the same files: refused too (only a workspace's: pipeline.json marks one)
         resolved = folder.resolve()
-        nearby = [p / OUTPUT_LOCK_NAME for p in list(resolved.parents)[:NEARBY_LEVELS]]
-        nearby += sorted(resolved.glob(f"*/{OUTPUT_LOCK_NAME}"))
+        nearby = [
+            p / OUTPUT_LOCK_NAME for p in list(resolved.parents)[:NEARBY_LEVELS] if (p / WORKSPACE_MARK).is_file()
+        ]
+        if (resolved / WORKSPACE_MARK).is_file():
+            nearby += [resolved / stage / OUTPUT_LOCK_NAME for stage in STAGE_FOLDERS]
         for path in nearby:
             other = WorkspaceLock(path.parent, OUTPUT_LOCK_NAME)
             owner = other._read_owner() if path.is_file() else None

@@ -445,6 +445,8 @@ class Stages:
         folder = self.ws / REGISTER_DIR
         files, settings, outputs = self._register_inputs()
         calibration = options.calibration
+        # what the stage last wrote, read before `run` forgets the stage (it does so before the work)
+        written = self.state.stages.get("register", {}).get("outputs", {}).get(f"{REGISTER_DIR}/cameras.json")
         if calibration is not None:
             imported = options.calibration_options
             self.run(
@@ -453,7 +455,7 @@ class Stages:
                 settings,
                 outputs,
                 lambda: self._unrecorded_aside(
-                    folder, lambda: import_registration(calibration, self.videos, folder, imported)
+                    folder, written, lambda: import_registration(calibration, self.videos, folder, imported)
                 ),
             )
             return None
@@ -465,7 +467,7 @@ class Stages:
                 files,
                 settings,
                 outputs,
-                lambda: self._unrecorded_aside(folder, lambda: sfm(self.videos, folder, register_options)),
+                lambda: self._unrecorded_aside(folder, written, lambda: sfm(self.videos, folder, register_options)),
             )
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
@@ -554,12 +556,12 @@ class Stages:
             raise InputError(tracks_path, "no 2D tracks were written", fix="check the labels")
         return tracks_path
 
-    def _unrecorded_aside(self, folder: Path, write: Callable[[], object]) -> None:
-        """`write` (the register stage's work) after a `folder`/cameras.json it did not write (a user's
-        import-calibration into WS/register/) is kept aside, not replaced unseen."""
+    def _unrecorded_aside(self, folder: Path, written: str | None, write: Callable[[], object]) -> None:
+        """`write` (the register stage's work) after a `folder`/cameras.json it did not write (its hash is not
+        `written`, the stage's last record: a user's import-calibration into WS/register/) is kept aside, not
+        replaced unseen."""
         cameras = folder / "cameras.json"
-        recorded = self.state.stages.get("register", {}).get("outputs", {}).get(str(cameras.relative_to(self.ws)))
-        if cameras.is_file() and (recorded is None or file_hash(cameras) != recorded):
+        if cameras.is_file() and (written is None or file_hash(cameras) != written):
             _keep_aside(cameras, "was not written by the register stage, which writes it now")
         write()
 

@@ -136,7 +136,10 @@ def test_a_second_writer_of_one_folder_is_refused(tmp_path: Path, capsys: pytest
 def test_a_writer_of_the_folder_above_or_within_is_refused(tmp_path: Path) -> None:
     """`register --out WS/register` beside a running `run --out WS` (and the other way round) wrote the same files,
     both told they succeeded: the lock of the workspace above or a stage folder within refuses the second."""
-    from dynrecon.lock import OUTPUT_LOCK_NAME, OutputLock, WorkspaceLockedError
+    from dynrecon.lock import OUTPUT_LOCK_NAME, WORKSPACE_MARK, OutputLock, WorkspaceLockedError
+    from dynrecon.pipeline_state import STATE_NAME
+
+    assert WORKSPACE_MARK == STATE_NAME
 
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live pid not ours
     owner = json.dumps({"pid": holder.pid, "host": socket.gethostname(), "token": "x"})
@@ -144,6 +147,9 @@ def test_a_writer_of_the_folder_above_or_within_is_refused(tmp_path: Path) -> No
         ws = tmp_path / "ws"
         (ws / "register").mkdir(parents=True)
         (ws / OUTPUT_LOCK_NAME).write_text(owner)
+        with OutputLock(ws / "register"):  # a folder above that is no workspace (no pipeline.json): unrelated
+            pass
+        (ws / "pipeline.json").write_text("{}")
         with pytest.raises(WorkspaceLockedError, match=r"is writing .*ws, which holds this folder"):
             OutputLock(ws / "register").acquire()
         assert not (ws / "register" / OUTPUT_LOCK_NAME).exists()  # its own lock released
@@ -195,6 +201,13 @@ def test_a_full_disk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert cli.main(["export"]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"dynrecon export: error: {tmp_path / 'points3d.csv'}: no space left on the device (free some, then run again)"
+    )
+    failure = OSError(errno.ENOSPC, "No space left on device")  # a failed write or flush: no file name
+    assert cli.main(["export"]) == 2
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(f"error: {tmp_path}: no space left on the device (free some, then run again)")
     )
     failure = OSError(errno.EBADF, "Bad file descriptor")
     with pytest.raises(OSError, match="Bad file descriptor"):

@@ -522,23 +522,32 @@ def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> 
     assert (tmp_path / "ws" / "marker_tracks.csv").read_bytes() == markers.read_bytes()
 
 
-def test_a_registration_the_register_stage_did_not_write_is_kept_aside(tmp_path: Path) -> None:
+def test_a_registration_the_register_stage_did_not_write_is_kept_aside(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A user's `import-calibration ... --out WS/register`, then `run` without --calibration: the register stage
     writes WS/register/cameras.json again, and the user's is kept beside it with a warning, not replaced unseen;
-    the stage's own file, recorded, is replaced without a copy."""
+    the stage's own file, run again (another key: --force), is replaced without a copy."""
     from board_video import write_video
 
+    import dynrecon.pipeline as pipeline
+    from sfm.stage import RegisterOptions
+
     videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
-    stages = Stages(videos, tmp_path / "ws")
     cameras = tmp_path / "ws" / "register" / "cameras.json"
     cameras.parent.mkdir(parents=True)
     cameras.write_text('{"users": true}', encoding="utf-8")
-    written: list[str] = []
-    stages._unrecorded_aside(cameras.parent, lambda: written.append(cameras.read_text(encoding="utf-8")))
+    seen: list[str] = []
+
+    def register(videos: list[Path], folder: Path, options: RegisterOptions) -> None:
+        seen.append(cameras.read_text(encoding="utf-8"))
+        cameras.write_text(f'{{"run": {len(seen)}}}', encoding="utf-8")
+        (folder / "background.ply").write_text("ply", encoding="utf-8")
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    Stages(videos, tmp_path / "ws").register()
     kept = list(cameras.parent.glob("cameras.before-*.json"))
-    assert (
-        written == ['{"users": true}'] and len(kept) == 1 and kept[0].read_text(encoding="utf-8") == '{"users": true}'
-    )
-    stages.state.record("register", "key", [cameras], stages.ws, 1.0)
-    stages._unrecorded_aside(cameras.parent, lambda: None)
-    assert len(list(cameras.parent.glob("cameras.before-*.json"))) == 1
+    assert seen == ['{"users": true}'] and len(kept) == 1
+    assert kept[0].read_text(encoding="utf-8") == '{"users": true}'
+    Stages(videos, tmp_path / "ws", PipelineOptions(force=True)).register()
+    assert len(seen) == 2 and len(list(cameras.parent.glob("cameras.before-*.json"))) == 1
