@@ -525,21 +525,25 @@ def read_calibration(
 # Matching calibrated cameras to videos
 
 
-def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
+def camera_named(cameras: list[StaticCamera], name: str, around: bool = False) -> StaticCamera | None:
     """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
     zeros and a video suffix are ignored (None when several do: cam1 with both cam01 and cam_1), else the one
-    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix), else the one
-    camera whose name holds the video's (`int_cam01_img` for cam01.mp4)."""
+    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix); `around`:
+    instead, the one camera whose name holds the video's (`int_cam01_img` for cam01.mp4)."""
     names = [c.name for c in cameras]
-    found = spelled_alike(name, names) or within_name(name, names) or holds_name(name, names)
+    found = holds_name(name, names) if around else spelled_alike(name, names) or within_name(name, names)
     return next(c for c in cameras if c.name == found[0]) if len(found) == 1 else None
 
 
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:
     """The camera for each video: by name (ignoring case, separators and leading zeros), else, when no name matches
-    at all, by order; some names matching and others not is an error (an order would give the matched cameras to
-    other videos)."""
+    at all, by cameras named around every video's name, else by order; some names matching and others not is an
+    error (an order would give the matched cameras to other videos)."""
     matched = [camera_named(cameras, v.name) for v in videos]
+    if all(m is None for m in matched):
+        around = [camera_named(cameras, v.name, around=True) for v in videos]
+        if all(m is not None for m in around) and len({id(m) for m in around}) == len(videos):
+            return [m for m in around if m is not None]  # every video, each its own camera: else as before
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
     if any(m is not None for m in matched):

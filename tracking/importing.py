@@ -231,6 +231,23 @@ def _say_low_scores(path: Path, fmt: Format, detections: list[Detection], min_sc
         )
 
 
+def _refuse_two_openpose_models(rows: dict[tuple[str, int, str], tuple[float, float, str, str]], out: Path) -> None:
+    """OpenPose videos named by BODY_25 (its MidHip) beside videos named by BODY_25B (its Head): one point name
+    would be different joints in different videos (a camera whose poses did not tell the models apart)."""
+    named: dict[str, set[str]] = {"BODY_25": set(), "BODY_25B": set()}
+    for (video, _, point), (_, _, source, _) in rows.items():
+        if source == Format.OPENPOSE.value and point in ("MidHip", "Head"):
+            named["BODY_25" if point == "MidHip" else "BODY_25B"].add(video)
+    if named["BODY_25"] and named["BODY_25B"]:
+        raise InputError(
+            out,
+            f"OpenPose keypoints named by two models: BODY_25 in {', '.join(sorted(named['BODY_25']))}, BODY_25B in "
+            f"{', '.join(sorted(named['BODY_25B']))} (one name would be different joints in different videos)",
+            fix="import every video of one model together (the importer tells BODY_25B apart from the poses), or "
+            "rename with --map",
+        )
+
+
 def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
     for given in inputs:
@@ -305,6 +322,7 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
                 rows[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i])
                 for name, values in others.items():
                     kept_extra[name][key] = values[i]
+    _refuse_two_openpose_models(rows, out)
     keys = list(rows)
     tracks = Tracks.from_rows(
         [(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],

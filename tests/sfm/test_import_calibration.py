@@ -671,3 +671,24 @@ def test_import_calibration_never_writes_over_the_file_it_reads(
     assert main(["import-calibration", str(cameras), str(video), "--out", str(tmp_path)]) == 2
     assert "is the cameras.json this import would write" in capsys.readouterr().err
     assert cameras.read_text(encoding="utf-8") == '{"videos": []}'
+
+
+def test_cameras_named_around_the_videos_match_only_all_of_them() -> None:
+    """Pose2Sim's int_cam01_img ... match cam01 ... by name; where only some videos' names lie inside camera
+    names (left, right against cam_left, cam_2), the order decides as before, not an error."""
+    from sfm.calibration import match_cameras
+    from sfm.video import ProbedVideo
+
+    def videos(*names: str) -> list[ProbedVideo]:
+        return [
+            ProbedVideo(path=Path(f"{n}.mp4"), name=n, width=64, height=48, times=np.arange(3) / 30, nominal_fps=30.0)
+            for n in names
+        ]
+
+    cameras = _random_cameras(["int_cam02_img", "int_cam01_img"])
+    assert [c.name for c in match_cameras(cameras, videos("cam01", "cam02"), Path("c.toml"))] == [
+        "int_cam01_img",
+        "int_cam02_img",
+    ]
+    cameras = _random_cameras(["cam_left", "cam_2"])
+    assert [c.name for c in match_cameras(cameras, videos("left", "right"), Path("c.toml"))] == ["cam_left", "cam_2"]

@@ -222,14 +222,17 @@ def test_body_25b_keypoints_are_told_from_body_25(tmp_path: Path, caplog: pytest
         seen = {p: tracks.xy[i] for i, p in enumerate(tracks.point) if tracks.frame[i] == 0}
         assert set(seen) == set(model) and seen["Nose"][1] < seen["Neck"][1] and seen["LEye"][0] == 105
     caplog.clear()
-    folder = tmp_path / "c" / "cam01_json"
+    folder = tmp_path / "c" / "cam02_json"
     folder.mkdir(parents=True)
     # every keypoint as far from the nose: no head to tell the models by
     angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     flat = [100.0, 100.0, 0.9] + [v for a in angles for v in (100 + 50 * np.cos(a), 100 + 50 * np.sin(a), 0.9)]
-    (folder / "cam01_000000000000_keypoints.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": flat}]}))
+    (folder / "cam02_000000000000_keypoints.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": flat}]}))
     assert "Neck" in read_tracks(run_import([folder], folder.parent / "tracks.csv", ImportOptions())).point
     assert "cannot be told apart" in caplog.text
+    # that camera beside a BODY_25B one in one file: refused, not one name for two joints
+    with pytest.raises(InputError, match="OpenPose keypoints named by two models: BODY_25 in cam02, BODY_25B in cam01"):
+        run_import([folder, tmp_path / "b" / "cam01_json"], tmp_path / "both.csv", ImportOptions(video=None))
 
 
 def test_deeplabcut_file_names_give_the_video_name() -> None:
