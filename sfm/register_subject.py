@@ -69,8 +69,8 @@ def pose_from_subject(
         hint = board_hint([v.info.path for v in unposed]) if unposed and options.find_markers else None
         then = f"; {hint}" if hint else ""
         nothing_posed = all(_posed(frames) is None for frames in results.values())
-        pair = len(videos) == 2 and len(unposed) == 2  # a third video (a moving one too) may fix the focals
-        if nothing_posed and pair and any(v.info.name not in intrinsics for v in unposed):
+        two_only = len(videos) == 2 and len(unposed) == 2  # a third video (a moving one too) may fix the focals
+        if nothing_posed and two_only and any(v.info.name not in intrinsics for v in unposed):
             # the tracks alone would be refused a minute later (TWO_SELF_CALIBRATED): say both things at once
             then += "; two static videos also need their intrinsics (--intrinsics FILE) or a third video"
         if unposed:
