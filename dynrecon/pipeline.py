@@ -446,7 +446,7 @@ class Stages:
         files, settings, outputs = self._register_inputs()
         calibration = options.calibration
         # what the stage last wrote, read before `run` forgets the stage (it does so before the work)
-        written = self.state.stages.get("register", {}).get("outputs", {}).get(f"{REGISTER_DIR}/cameras.json")
+        written = self.state.output_hash("register", folder / "cameras.json", self.ws)
         if calibration is not None:
             imported = options.calibration_options
             self.run(
@@ -569,7 +569,7 @@ class Stages:
         """Whether WS/tracks.csv may be (re)written by the track stage: missing, or the one it wrote last."""
         if not tracks_path.is_file():
             return True
-        recorded = self.state.stages.get("track", {}).get("outputs", {}).get(tracks_path.name)
+        recorded = self.state.output_hash("track", tracks_path, self.ws)
         return recorded is not None and file_hash(tracks_path) == recorded
 
     def subject(self, tracks: Path, background_failed: RegistrationError | None = None) -> Registration:

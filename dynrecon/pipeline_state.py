@@ -106,6 +106,10 @@ class State:
         }
         self.save()
 
+    def output_hash(self, name: str, path: Path, workspace: Path) -> str | None:
+        """The hash stage `name` recorded for its output `path` (in `workspace`), None without a record."""
+        return self.stages.get(name, {}).get("outputs", {}).get(str(path.relative_to(workspace)))
+
     def forget(self, name: str) -> None:
         if self.stages.pop(name, None) is not None:
             self.save()

@@ -23,6 +23,8 @@ from tracking.people import link_people, person_point
 
 log = logging.getLogger(__name__)
 
+# keypoints 19-24 of both 25-keypoint models, in the same order
+FEET = ("LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
 BODY_25 = (
     "Nose",
     "Neck",
@@ -43,12 +45,7 @@ BODY_25 = (
     "LEye",
     "REar",
     "LEar",
-    "LBigToe",
-    "LSmallToe",
-    "LHeel",
-    "RBigToe",
-    "RSmallToe",
-    "RHeel",
+    *FEET,
 )
 COCO_18 = (
     "Nose",
@@ -91,12 +88,7 @@ BODY_25B = (
     "RAnkle",
     "Neck",
     "Head",
-    "LBigToe",
-    "LSmallToe",
-    "LHeel",
-    "RBigToe",
-    "RSmallToe",
-    "RHeel",
+    *FEET,
 )
 # Keypoints 0-4 are BODY_25B's head (nose, eyes, ears) and BODY_25's nose, neck and right arm; 15-18 are BODY_25's
 # eyes and ears and BODY_25B's ankles, neck and head: the spread of the first set over the second's, median over the

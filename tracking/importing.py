@@ -24,7 +24,7 @@ from dynrecon.readers import check_video_name
 from tracking.detections import Detection
 from tracking.import_dlc import H5_SUFFIXES, read_dlc, video_name_from_dlc
 from tracking.import_dltdv import is_dltdv_points, read_dltdv_points
-from tracking.import_openpose import read_openpose, video_name_from_openpose
+from tracking.import_openpose import BODY_25, BODY_25B, read_openpose, video_name_from_openpose
 from tracking.import_sleap import is_sleap_analysis, read_sleap_analysis, read_sleap_slp, video_name_from_sleap
 from tracking.pixels import DltPixels
 from tracking.tracks import SOURCE_LABEL, Tracks, read_tracks, write_tracks
@@ -234,10 +234,12 @@ def _say_low_scores(path: Path, fmt: Format, detections: list[Detection], min_sc
 def _refuse_two_openpose_models(rows: dict[tuple[str, int, str], tuple[float, float, str, str]], out: Path) -> None:
     """OpenPose videos named by BODY_25 (its MidHip) beside videos named by BODY_25B (its Head): one point name
     would be different joints in different videos (a camera whose poses did not tell the models apart)."""
-    named: dict[str, set[str]] = {"BODY_25": set(), "BODY_25B": set()}
+    only = {"BODY_25": set(BODY_25) - set(BODY_25B), "BODY_25B": set(BODY_25B) - set(BODY_25)}  # MidHip, Head
+    named: dict[str, set[str]] = {model: set() for model in only}
     for (video, _, point), (_, _, source, _) in rows.items():
-        if source == Format.OPENPOSE.value and point in ("MidHip", "Head"):
-            named["BODY_25" if point == "MidHip" else "BODY_25B"].add(video)
+        for model, names in only.items():
+            if source == Format.OPENPOSE.value and point in names:
+                named[model].add(video)
     if named["BODY_25"] and named["BODY_25B"]:
         raise InputError(
             out,
