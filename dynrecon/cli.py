@@ -141,7 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with sigterm_as_stop():
             if args.command in WRITERS:  # two writers of one folder would mix their files, each told it succeeded
-                with OutputLock(Path(args.out)):
+                with OutputLock(Path(args.out), workspace=args.command == "run"):
                     return int(args.func(args) or 0)
             return int(args.func(args) or 0)
     except DynreconError as error:

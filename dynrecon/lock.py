@@ -55,6 +55,7 @@ class WorkspaceLock:
         self.path = workspace / name
         self.token = f"{os.getpid()}-{id(self)}"
         self.held = False
+        self.marks: dict[str, object] = {}  # more of the owner's facts for other processes to read
 
     def __enter__(self) -> WorkspaceLock:
         self.acquire()
@@ -64,7 +65,9 @@ class WorkspaceLock:
         self.release()
 
     def acquire(self, url: str = "") -> None:
-        body = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token})
+        body = json.dumps(
+            {"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token, **self.marks}
+        )
         for _ in range(3):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -92,7 +95,9 @@ class WorkspaceLock:
         """Record the final URL (known only after binding) for the refusal message of a second server."""
         if self.held:
             self.path.write_text(
-                json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token}),
+                json.dumps(
+                    {"pid": os.getpid(), "host": socket.gethostname(), "url": url, "token": self.token, **self.marks}
+                ),
                 encoding="utf-8",
             )
 
@@ -128,14 +133,18 @@ class WorkspaceLock:
 
 
 class OutputLock(WorkspaceLock):
-    """`OUT/.dynrecon.lock`: one writing command per output folder (made when missing)."""
+    """`OUT/.dynrecon.lock`: one writing command per output folder (made when missing). `workspace`: the command
+    writes a pipeline workspace (`run`), whose stage folders it owns from its start, before pipeline.json exists."""
 
     holder = "dynrecon command"
     advice = "wait for it to finish, or give another --out; delete the lock file only if no dynrecon runs"
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, *, workspace: bool = False):
         super().__init__(folder, OUTPUT_LOCK_NAME)
         self.made = False
+        self.workspace = workspace
+        if workspace:
+            self.marks["workspace"] = True
 
     def acquire(self, url: str = "") -> None:
         folder = self.path.parent
@@ -144,21 +153,23 @@ class OutputLock(WorkspaceLock):
         folder.mkdir(parents=True, exist_ok=True)
         super().acquire(url)
         # a command writing the workspace above (`run --out WS`) or a stage folder within (`register --out
-        # WS/register`) writes the same files: refused too (only a workspace's: pipeline.json marks one)
+        # WS/register`) writes the same files: refused too (only a workspace's: pipeline.json marks one, or the lock
+        # of a `run` that has not written it yet)
         resolved = folder.resolve()
-        nearby = [
-            p / OUTPUT_LOCK_NAME for p in list(resolved.parents)[:NEARBY_LEVELS] if (p / WORKSPACE_MARK).is_file()
-        ]
-        if (resolved / WORKSPACE_MARK).is_file():
+        nearby = [p / OUTPUT_LOCK_NAME for p in list(resolved.parents)[:NEARBY_LEVELS]]
+        if self.workspace or (resolved / WORKSPACE_MARK).is_file():
             nearby += [resolved / stage / OUTPUT_LOCK_NAME for stage in STAGE_FOLDERS]
         for path in nearby:
             other = WorkspaceLock(path.parent, OUTPUT_LOCK_NAME)
             owner = other._read_owner() if path.is_file() else None
+            above = path.parent in resolved.parents
+            if above and owner is not None and not (owner.get("workspace") or (path.parent / WORKSPACE_MARK).is_file()):
+                continue  # a folder above that is no workspace: an unrelated writer (`export --out .`)
             if owner is not None and not other._stale(owner):
                 self.release()
                 raise WorkspaceLockedError(
                     f"{path}: another {self.holder} (pid {owner.get('pid', '?')}) is writing {path.parent}, which "
-                    f"{'holds' if path.parent in resolved.parents else 'is within'} this folder ({self.advice})"
+                    f"{'holds' if above else 'is within'} this folder ({self.advice})"
                 )
 
     def release(self) -> None:

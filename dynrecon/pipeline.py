@@ -544,9 +544,10 @@ class Stages:
             )
             found = ws / REGISTER_DIR / MARKER_TRACKS
             if found.is_file():  # the markers register posed the cameras from may be the subject itself
-                # a copy outside register/, which the register stage rewrites when it runs again (without markers)
+                # a copy outside register/, which the register stage rewrites when it runs again (without markers);
+                # a user's edited copy from an earlier run is kept aside, not overwritten
                 markers = ws / MARKER_TRACKS
-                shutil.copyfile(found, markers)
+                _copy_into(found, markers)
                 self.result.next_step += (
                     f"; or, to reconstruct the markers in view, run it again with --tracks {markers}"
                 )

@@ -159,6 +159,18 @@ def test_a_writer_of_the_folder_above_or_within_is_refused(tmp_path: Path) -> No
             OutputLock(ws).acquire()
         with OutputLock(tmp_path / "elsewhere"):  # an unrelated folder
             pass
+        # a new workspace, before its run wrote pipeline.json: the run's lock says it writes a workspace
+        new = tmp_path / "new"
+        (new / "register").mkdir(parents=True)
+        (new / OUTPUT_LOCK_NAME).write_text(json.dumps({**json.loads(owner), "workspace": True}))
+        with pytest.raises(WorkspaceLockedError, match=r"is writing .*new, which holds this folder"):
+            OutputLock(new / "register").acquire()
+        (new / OUTPUT_LOCK_NAME).unlink()
+        (new / "register" / OUTPUT_LOCK_NAME).write_text(owner)
+        with OutputLock(new):  # a plain writer of the folder (`export --out new`) is no workspace's
+            pass
+        with pytest.raises(WorkspaceLockedError, match=r"is writing .*register, which is within this folder"):
+            OutputLock(new, workspace=True).acquire()
     finally:
         holder.kill()
         holder.wait()

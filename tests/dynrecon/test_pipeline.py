@@ -520,6 +520,12 @@ def test_without_labels_or_tracks_the_next_step_is_said_last(tmp_path: Path) -> 
     assert stages.track() is None and stages.result.next_step is not None
     assert stages.result.next_step.endswith(f"run it again with --tracks {tmp_path / 'ws' / 'marker_tracks.csv'}")
     assert (tmp_path / "ws" / "marker_tracks.csv").read_bytes() == markers.read_bytes()
+    # a copy the user edited since (a false corner deleted) is kept aside when the next run copies again
+    (tmp_path / "ws" / "marker_tracks.csv").write_text("video,frame,point,x,y,source\nedited\n", encoding="utf-8")
+    assert Stages(videos, tmp_path / "ws").track() is None
+    kept = list((tmp_path / "ws").glob("marker_tracks.before-*.csv"))
+    assert len(kept) == 1 and kept[0].read_text(encoding="utf-8").endswith("edited\n")
+    assert (tmp_path / "ws" / "marker_tracks.csv").read_bytes() == markers.read_bytes()
 
 
 def test_a_registration_the_register_stage_did_not_write_is_kept_aside(
