@@ -693,6 +693,8 @@ def run(
     if not videos:
         raise InputError(calibration, "no videos given", fix="list the videos the calibration belongs to")
     require_writable(out_dir)
+    # the file first: a mistake in it is said before every video is probed (seconds each)
+    calibrated = read_calibration(calibration, options.format, options.units, options.pixels, options.profile)
     tracks = options.tracks or (Path(out_dir) / "tracks.csv")
     given = options.tracks is not None or options.size is not None
     stand_ins = stand_in_videos(videos, tracks, options.fps, given)
@@ -711,11 +713,7 @@ def run(
             fix="video names (file names without extension) must be unique",
         )
     offsets = declared_offsets(options.synchronized, options.offsets, names)
-    cameras = match_cameras(
-        read_calibration(calibration, options.format, options.units, options.pixels, options.profile),
-        infos,
-        calibration,
-    )
+    cameras = match_cameras(calibrated, infos, calibration)
     for info, stand_in, camera in zip(infos, stand_ins, cameras, strict=True):
         if stand_in is not None:
             with_size(info, (camera.width, camera.height), options.size, calibration)

@@ -19,6 +19,14 @@ _TURNED: set[tuple[str, str]] = set()  # registration reads the intrinsics in se
 _MISSING: set[tuple[str, ...]] = set()  # ... and per file's missing videos
 
 
+def read_intrinsics_file(path: Path) -> None:
+    """Read an --intrinsics file only for its mistakes (a one-line InputError), before any video is probed."""
+    if path.suffix.lower() == ".json":
+        read_cameras(path)
+    else:
+        read_calibration(path, units=Units.M)
+
+
 def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
     if path.suffix.lower() == ".json":

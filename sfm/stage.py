@@ -33,7 +33,7 @@ from dynrecon.names import first_repeated
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.export import write_ply
-from sfm.intrinsics import known_intrinsics
+from sfm.intrinsics import known_intrinsics, read_intrinsics_file
 from sfm.isolated import run_isolated
 from sfm.layout import Layout
 from sfm.masks import check_mask_folder
@@ -112,6 +112,8 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     _check_videos(paths)
     if options.board is not None:
         read_charuco_board(options.board)  # a bad board file fails before any work
+    if options.intrinsics is not None:
+        read_intrinsics_file(options.intrinsics)  # the same, before every video is probed (seconds each)
     out = Path(out_dir)
     notes = StepNotes()
     unreadable: dict[str, str] = {}

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dynrecon.atomic import atomic_write_text
-from dynrecon.errors import DynreconError
+from dynrecon.errors import DynreconError, InputError
 from reconstruct.outputs.mocap import Mocap, drop_incomplete, read_mocap, select_window
 from reconstruct.outputs.points import FramePoints, write_points
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, write_cameras
@@ -294,6 +294,13 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
     rng = np.random.default_rng(options.seed)
     rig = place_cameras(xyz, options, rng)
     assignment = assign_cameras(T, options.cameras, options.unconstrained, rng)
+    if len(set(assignment.tolist())) < 2:  # the solve needs two videos: refused here, where the cause is known
+        raise InputError(
+            mocap.path,
+            f"{T} capture{'s' if T != 1 else ''} to simulate (after the window and the cleaning): at least two "
+            "cameras must each film one",
+            fix="give a trial with more frames (or a longer --length)",
+        )
     uv, observed = _observe(xyz, assignment, rig, options, rng)
 
     # Every virtual camera starts recording at the first capture; rounding hides the float noise of the

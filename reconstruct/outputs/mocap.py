@@ -31,6 +31,13 @@ UNIT_TO_MM = {
     "meters": 1000.0,
     "metres": 1000.0,
 }
+# POINT groups that list model outputs stored as points (Vicon Plug-in Gait: joint angles in degrees, forces,
+# moments, powers): not marker positions
+MODEL_OUTPUTS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
+# frames read wrong (a misplaced data section) jump back and forth: a median speed no body reaches, and steps
+# that reverse (second differences larger than the first) -- a fast single object moves smoothly
+MISREAD_SPEED_MM_S = 10_000.0
+MISREAD_JAGGED = 3.0
 
 
 @dataclass(kw_only=True)
@@ -79,7 +86,43 @@ def read_mocap(path: str | Path) -> Mocap:
         raise InputError(path, f"invalid sampling rate {mocap.rate!r}", fix="the point rate must be positive")
     if mocap.missing().all():
         raise InputError(path, "every sample is missing (all zero or NaN)")
+    if suffix == ".c3d":  # a binary layout the reader can misplace (a text file's rows cannot shift so)
+        _check_motion(mocap, path)
     return mocap
+
+
+def unit_scale(units: str) -> float | None:
+    """Millimetres per unit of a file's units label, None when unknown; a label cut short by its writer ('mete',
+    'milli') counts as the unit it begins."""
+    label = units.strip().lower()
+    if label in UNIT_TO_MM:
+        return UNIT_TO_MM[label]
+    if len(label) < 3:
+        return None
+    found = {UNIT_TO_MM[name] for name in ("millimeters", "millimetres", "meters", "metres") if name.startswith(label)}
+    return found.pop() if len(found) == 1 else None
+
+
+def _check_motion(mocap: Mocap, path: Path) -> None:
+    """Refuse trajectories whose frames were evidently not read as written (one line), rather than simulate them."""
+    if mocap.num_frames < 3:
+        return
+    x = mocap.xyz
+    with np.errstate(invalid="ignore"):
+        step = np.linalg.norm(np.diff(x, axis=0), axis=2)
+        turn = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=2)
+        span = np.linalg.norm(x[2:] - x[:-2], axis=2) / 2
+    if not (np.isfinite(step).any() and np.isfinite(turn).any()):
+        return
+    speed = float(np.nanmedian(step)) * mocap.rate
+    jagged = float(np.nanmedian(turn)) / max(float(np.nanmedian(span)), 1e-9)
+    if speed > MISREAD_SPEED_MM_S and jagged > MISREAD_JAGGED:
+        raise InputError(
+            path,
+            f"the markers jump back and forth between frames (median {speed / 1000:.0f} m/s): the file's frames are "
+            "not read as they were written (a C3D whose data section the reader misplaces)",
+            fix="export the trial again from the capture software (or as .trc), and check it in a viewer",
+        )
 
 
 def _unique_names(names: list[str], count: int) -> list[str]:
@@ -115,11 +158,8 @@ def _read_c3d(path: Path) -> Mocap:
     try:
         c3d = ezc3d.c3d(str(path))
     except Exception as error:  # ezc3d raises bare RuntimeError/IOError subclasses on corrupt files
-        raise InputError(
-            path,
-            f"not a readable C3D file ({str(error).strip() or type(error).__name__})",
-            fix="check that the file is complete",
-        ) from None
+        what, fix = _unreadable(str(error).strip() or type(error).__name__)
+        raise InputError(path, what, fix=fix) from None
     point = c3d["parameters"].get("POINT", {})
     points = np.asarray(c3d["data"]["points"], dtype=float)  # (4, M, T)
     if points.ndim != 3 or points.shape[1] == 0:
@@ -140,7 +180,7 @@ def _read_c3d(path: Path) -> Mocap:
     _mask_gaps(xyz)
 
     units = _c3d_value(point, "UNITS", "mm")
-    scale = UNIT_TO_MM.get(str(units).strip().lower())
+    scale = unit_scale(str(units))
     if scale is None:
         raise InputError(path, f"unknown POINT:UNITS {units!r}", fix="expected mm, cm or m")
     xyz *= scale
@@ -158,7 +198,37 @@ def _read_c3d(path: Path) -> Mocap:
     names = _unique_names(labels, xyz.shape[1])
     first = int(c3d["header"]["points"].get("first_frame", 0))
     times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
+    outputs = {str(v).strip() for key in MODEL_OUTPUTS if key in point for v in point[key]["value"]} - {""}
+    keep = [m for m, label in enumerate(labels[: xyz.shape[1]]) if label.strip() not in outputs]
+    keep += list(range(len(labels), xyz.shape[1]))  # points without a label are no listed output
+    if len(keep) < xyz.shape[1]:
+        dropped = [names[m] for m in range(xyz.shape[1]) if m not in set(keep)]
+        log.warning(
+            "%s: %d of its %d points are model outputs (POINT:%s: joint angles, forces, moments, powers), not "
+            "markers: left out (%s)",
+            path,
+            len(dropped),
+            xyz.shape[1],
+            "/".join(key for key in MODEL_OUTPUTS if key in point),
+            ", ".join(dropped[:6]) + (", ..." if len(dropped) > 6 else ""),
+        )
+        xyz, names = xyz[:, keep], [names[m] for m in keep]
     return Mocap(xyz=xyz, rate=rate, marker_names=names, times=times, path=path)
+
+
+def _unreadable(said: str) -> tuple[str, str]:
+    """What the reader's failure means for the user, and what to do."""
+    if "MIPS" in said:
+        return (
+            "a big-endian (SGI / MIPS) C3D file, which the C3D reader does not read",
+            "convert it to a PC (Intel) C3D or a .trc file (e.g. in Mokka or the capture software)",
+        )
+    if "ignoreBadFormatting" in said or "not an INT" in said or "Parameter type" in said:
+        return (
+            f"its parameter section is malformed for the C3D reader ({said.split(';')[0].split('.')[0]})",
+            "export the trial again from the capture software, or convert it to a .trc file",
+        )
+    return f"not a readable C3D file ({said})", "check that the file is complete"
 
 
 def _implausible(value: float, units: str) -> str:
@@ -218,7 +288,7 @@ def _read_trc(path: Path) -> Mocap:
             path, "lines 2-3 lack DataRate, NumFrames or NumMarkers", where="line 3", fix="see the OpenSim TRC format"
         ) from None
     units = header.get("Units", "mm")
-    scale = UNIT_TO_MM.get(units.strip().lower())
+    scale = unit_scale(units)
     if scale is None:
         raise InputError(path, f"unknown Units {units!r}", where="line 3", fix="expected mm, cm or m")
     # Marker names follow Frame# and Time; their column spacing varies between exporters: keep the order only.

@@ -692,3 +692,27 @@ def test_cameras_named_around_the_videos_match_only_all_of_them() -> None:
     ]
     cameras = _random_cameras(["cam_left", "cam_2"])
     assert [c.name for c in match_cameras(cameras, videos("left", "right"), Path("c.toml"))] == ["cam_left", "cam_2"]
+
+
+@pytest.mark.parametrize("command", ["import-calibration", "register"])
+def test_a_broken_calibration_file_is_said_before_the_videos_are_probed(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A typo in the calibration (or --intrinsics) file was said only after every video was probed (seconds each,
+    minutes for long videos): the file is read first."""
+    import sfm.calibration
+    import sfm.stage
+
+    def no_probe(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a video was probed before the calibration file was read")
+
+    monkeypatch.setattr(sfm.calibration, "probe_video", no_probe)
+    monkeypatch.setattr(sfm.stage, "_probe_all", no_probe)
+    broken = tmp_path / "calibration.toml"
+    broken.write_text("[cam_0]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]\n")
+    videos = [str(tmp_path / "cam_0.mp4"), str(tmp_path / "cam_1.mp4")]
+    given = [broken] if command == "import-calibration" else []
+    option = [] if command == "import-calibration" else ["--intrinsics", str(broken)]
+    assert main([command, *map(str, given), *videos, "--out", str(tmp_path / "out"), *option]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "calibration.toml: not valid TOML" in err

@@ -237,6 +237,17 @@ def test_run_writes_readable_files(tmp_path: Path) -> None:
         run(tmp_path / "walk.bvh", tmp_path / "bad")
 
 
+def test_a_one_frame_file_is_refused_where_the_cause_is_known(tmp_path: Path) -> None:
+    """A static trial of one frame (a calibration pose) simulated into one camera's one frame: `solve` later said
+    its video advice; `simulate` says it, naming the file."""
+    xyz = walking_body(frames=1)
+    mocap = Mocap(xyz=xyz, rate=50.0, marker_names=[f"m{i}" for i in range(12)], times=np.zeros(1))
+    source = write_trc(tmp_path / "pose.trc", mocap)
+    with pytest.raises(InputError, match=r"pose.trc: 1 capture to simulate .* at least two cameras"):
+        run(source, tmp_path / "sim")
+    assert not (tmp_path / "sim").exists()
+
+
 def test_hdm05_protocol(shared_dir: Path) -> None:
     capture, rig = simulate_mocap(
         read_mocap(shared_dir / "data/mocap/hdm05/HDM_dg_06-03_03_120.c3d"), SimulationOptions()

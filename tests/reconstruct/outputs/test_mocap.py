@@ -182,3 +182,61 @@ def test_a_file_complete_only_in_its_middle_names_that_stretch() -> None:
     assert complete_span(mocap) == (12, 25)
     with pytest.raises(InputError, match=r"present together in frames 12\.\.25 of the file: --start 12 --length 14"):
         drop_incomplete(mocap, max_missing=0.1, whole=mocap)
+
+
+def _smooth(frames: int, markers: int) -> np.ndarray:
+    """(T, M, 3) mm: markers circling at walking speed."""
+    t = np.arange(frames)[:, None] / 100
+    phase = np.arange(markers)[None, :]
+    return np.stack([500 * np.cos(2 * t + phase), 500 * np.sin(2 * t + phase), 900 + 10 * phase + 0 * t], axis=2)
+
+
+def _write_c3d(path: Path, xyz: np.ndarray, labels: list[str], units: str = "mm", **groups: list[str]) -> Path:
+    """A C3D as ezc3d writes it: `xyz` (T, M, 3) in `units`, POINT:LABELS, and label groups such as ANGLES."""
+    import ezc3d
+
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [100]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = tuple(labels)
+    c3d["parameters"]["POINT"]["UNITS"]["value"] = [units]
+    for key, names in groups.items():
+        c3d.add_parameter("POINT", key, names)
+    points = np.ones((4, *xyz.shape[1::-1]))
+    points[:3] = xyz.transpose(2, 1, 0)
+    c3d["data"]["points"] = points
+    c3d.write(str(path))
+    return path
+
+
+def test_model_outputs_stored_as_points_are_not_markers(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Vicon Plug-in Gait stores joint angles (degrees), forces, moments and powers as points, listed in POINT:ANGLES,
+    FORCES, MOMENTS, POWERS: simulated as markers they were scored as the worst 'markers' of a walk."""
+    xyz = _smooth(frames=30, markers=4)
+    labels = ["LASI", "RASI", "LKneeAngles", "LAnkleMoment"]
+    path = _write_c3d(tmp_path / "pig.c3d", xyz, labels, ANGLES=["LKneeAngles"], MOMENTS=["LAnkleMoment"])
+    mocap = read_mocap(path)
+    assert mocap.marker_names == ["LASI", "RASI"]
+    np.testing.assert_allclose(mocap.xyz, xyz[:, :2], atol=1e-3)
+    assert "2 of its 4 points are model outputs" in caplog.text
+
+
+def test_units_cut_short_by_the_writer_are_read(tmp_path: Path) -> None:
+    """Some writers keep 4 characters of the units ('mete'): metres, not an unknown unit."""
+    xyz = _smooth(frames=10, markers=2) / 1000
+    assert np.allclose(read_mocap(_write_c3d(tmp_path / "m.c3d", xyz, ["a", "b"], units="mete")).xyz, xyz * 1000)
+    with pytest.raises(InputError, match="unknown POINT:UNITS 'me'"):
+        read_mocap(_write_c3d(tmp_path / "me.c3d", xyz, ["a", "b"], units="me"))
+
+
+def test_frames_read_out_of_order_are_refused(tmp_path: Path) -> None:
+    """A C3D whose data section the reader misplaces gives every other frame as garbage (c3d.org's sample28 and a
+    Vicon Workstation file, a standing trial at a median 45 m/s): refused, not simulated as a motion."""
+    xyz = _smooth(frames=40, markers=5)
+    garbage = xyz.copy()
+    garbage[1::2] = np.random.default_rng(1).uniform(-3000, 3000, garbage[1::2].shape)
+    with pytest.raises(InputError, match="jump back and forth between frames"):
+        read_mocap(_write_c3d(tmp_path / "misread.c3d", garbage, list("abcde")))
+    # a fast single object (a ball at 30 m/s) moves smoothly: read
+    t = np.arange(40)[:, None] / 100
+    ball = np.concatenate([30_000 * t, 2_000 * t, 1_000 - 4_900 * t**2], axis=1)[:, None, :] + 1.0
+    assert read_mocap(_write_c3d(tmp_path / "ball.c3d", ball, ["ball"])).num_markers == 1
