@@ -1,9 +1,10 @@
 """Lock files that keep a second process off a folder it would write into at the same time.
 
 `WS/.labeling.lock` (`WorkspaceLock`) keeps a second labeling server off a workspace; `OUT/.dynrecon.lock`
-(`OutputLock`) keeps a second `run`, `register`, `solve` or `batch` off an output folder, whose files two writers
-would mix (each told it succeeded). A lock holds its owner's pid (and the server's URL); one whose pid no longer runs
-(a crashed or killed process) is taken over.
+(`OutputLock`) keeps a second `run`, `register`, `solve`, `batch` or `export` off an output folder, whose files two
+writers would mix (each told it succeeded), and a writer of a stage folder off a `run`'s workspace (marked by its
+pipeline.json, or by its lock's `"workspace": true`). A lock holds its owner's pid (and the server's URL); one
+whose pid no longer runs (a crashed or killed process) is taken over.
 """
 
 from __future__ import annotations
@@ -162,8 +163,12 @@ class OutputLock(WorkspaceLock):
         for path in nearby:
             other = WorkspaceLock(path.parent, OUTPUT_LOCK_NAME)
             owner = other._read_owner() if path.is_file() else None
+            if owner is None and path.is_file() and other._age() < 2.0:  # being written right now: read it settled
+                time.sleep(0.2)
+                owner = other._read_owner()
             above = path.parent in resolved.parents
-            if above and owner is not None and not (owner.get("workspace") or (path.parent / WORKSPACE_MARK).is_file()):
+            marked = owner is not None and owner.get("workspace") is True
+            if above and owner is not None and not (marked or (path.parent / WORKSPACE_MARK).is_file()):
                 continue  # a folder above that is no workspace: an unrelated writer (`export --out .`)
             if owner is not None and not other._stale(owner):
                 self.release()

@@ -348,9 +348,16 @@ def _seed_cost_hint(problem: Problem) -> str:
     count = int(reconstructable_points(problem).sum())
     if count > FEW_POINTS:
         return ""
+    counts = np.bincount(problem.video_index, minlength=len(problem.video_names))
+    alike = (
+        f"; the {len(counts)} videos have {counts[0]} posed frames each: a triggered rig?"
+        if len(counts) > 1 and (counts == counts[0]).all()
+        else ""
+    )
     return (
         f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
-        "clock offsets in cameras.json, register's or `import-calibration --synchronized`, avoid it)"
+        "clock offsets in cameras.json avoid it: register's, or declared for videos on one clock with "
+        f"--synchronized of `run`, `register` or `import-calibration`{alike})"
     )
 
 

@@ -299,7 +299,12 @@ def simulate_mocap(mocap: Mocap, options: SimulationOptions) -> tuple[SimulatedC
             mocap.path,
             f"{T} capture{'s' if T != 1 else ''} to simulate (after the window and the cleaning): at least two "
             "cameras must each film one",
-            fix="give a trial with more frames (or a longer --length)",
+            fix="give a trial with more frames (or a longer --length)"
+            + (
+                ", or leave out --unconstrained (its draw gave every capture to one camera)"
+                if options.unconstrained
+                else ""
+            ),
         )
     uv, observed = _observe(xyz, assignment, rig, options, rng)
 

@@ -27,6 +27,8 @@ UNIT_TO_MM = {
     "millimeters": 1.0,
     "millimetres": 1.0,
     "cm": 10.0,
+    "centimeters": 10.0,
+    "centimetres": 10.0,
     "m": 1000.0,
     "meters": 1000.0,
     "metres": 1000.0,
@@ -34,10 +36,10 @@ UNIT_TO_MM = {
 # POINT groups that list model outputs stored as points (Vicon Plug-in Gait: joint angles in degrees, forces,
 # moments, powers): not marker positions
 MODEL_OUTPUTS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
-# frames read wrong (a misplaced data section) jump back and forth: a median speed no body reaches, and steps
-# that reverse (second differences larger than the first) -- a fast single object moves smoothly
+# frames read wrong (a misplaced data section) jump back and forth: a median speed no body reaches, and second
+# differences far over half the two-frame step (white noise gives about 3.5) -- a fast single object moves smoothly
 MISREAD_SPEED_MM_S = 10_000.0
-MISREAD_JAGGED = 3.0
+MISREAD_JAGGED = 5.0
 
 
 @dataclass(kw_only=True)
@@ -99,7 +101,8 @@ def unit_scale(units: str) -> float | None:
         return UNIT_TO_MM[label]
     if len(label) < 3:
         return None
-    found = {UNIT_TO_MM[name] for name in ("millimeters", "millimetres", "meters", "metres") if name.startswith(label)}
+    whole = ("millimeters", "millimetres", "centimeters", "centimetres", "meters", "metres")
+    found = {UNIT_TO_MM[name] for name in whole if name.startswith(label)}
     return found.pop() if len(found) == 1 else None
 
 
@@ -120,7 +123,8 @@ def _check_motion(mocap: Mocap, path: Path) -> None:
         raise InputError(
             path,
             f"the markers jump back and forth between frames (median {speed / 1000:.0f} m/s): the file's frames are "
-            "not read as they were written (a C3D whose data section the reader misplaces)",
+            "not read as they were written (a C3D whose data section the reader misplaces), or its labels change "
+            "from frame to frame",
             fix="export the trial again from the capture software (or as .trc), and check it in a viewer",
         )
 
@@ -179,25 +183,12 @@ def _read_c3d(path: Path) -> Mocap:
         xyz[np.asarray(residuals)[0].T < 0] = np.nan
     _mask_gaps(xyz)
 
-    units = _c3d_value(point, "UNITS", "mm")
-    scale = unit_scale(str(units))
-    if scale is None:
-        raise InputError(path, f"unknown POINT:UNITS {units!r}", fix="expected mm, cm or m")
-    xyz *= scale
-    far = np.argwhere(np.abs(xyz) > MAX_MM)
-    if len(far):
-        t, m, k = far[0]
-        raise InputError(path, _implausible(float(xyz[t, m, k]) / scale, str(units)), where=f"frame {t} marker {m}")
-
-    rate = float(str(_c3d_value(point, "RATE", c3d["header"]["points"].get("frame_rate", 0.0))))
     labels: list[str] = []
     # C3D splits long label lists into LABELS2, LABELS3, ...
     for key in ("LABELS", *(f"LABELS{i}" for i in range(2, 10))):
         if key in point:
             labels.extend(str(v) for v in point[key]["value"])
     names = _unique_names(labels, xyz.shape[1])
-    first = int(c3d["header"]["points"].get("first_frame", 0))
-    times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
     outputs = {str(v).strip() for key in MODEL_OUTPUTS if key in point for v in point[key]["value"]} - {""}
     keep = [m for m, label in enumerate(labels[: xyz.shape[1]]) if label.strip() not in outputs]
     keep += list(range(len(labels), xyz.shape[1]))  # points without a label are no listed output
@@ -213,6 +204,19 @@ def _read_c3d(path: Path) -> Mocap:
             ", ".join(dropped[:6]) + (", ..." if len(dropped) > 6 else ""),
         )
         xyz, names = xyz[:, keep], [names[m] for m in keep]
+    units = _c3d_value(point, "UNITS", "mm")
+    scale = unit_scale(str(units))
+    if scale is None:
+        raise InputError(path, f"unknown POINT:UNITS {units!r}", fix="expected mm, cm or m")
+    xyz *= scale
+    far = np.argwhere(np.abs(xyz) > MAX_MM)
+    if len(far):
+        t, m, k = far[0]
+        raise InputError(path, _implausible(float(xyz[t, m, k]) / scale, str(units)), where=f"frame {t} {names[m]}")
+
+    rate = float(str(_c3d_value(point, "RATE", c3d["header"]["points"].get("frame_rate", 0.0))))
+    first = int(c3d["header"]["points"].get("first_frame", 0))
+    times = (first + np.arange(xyz.shape[0])) / rate if rate > 0 else np.arange(xyz.shape[0], dtype=float)
     return Mocap(xyz=xyz, rate=rate, marker_names=names, times=times, path=path)
 
 

@@ -24,3 +24,34 @@ def test_one_point_solves_within_bound(tmp_path: Path) -> None:
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["temporal"]["path"] == "tracks", report["temporal"].get("reason")
     assert set(report["timings"]) >= {"clocks", "refinement"}
+
+
+def test_the_slow_seed_solve_names_a_triggered_rig_and_the_run_option() -> None:
+    """Few points and no clocks: the seed solve's warning names --synchronized of each command (a user of `run
+    --calibration` was told only of import-calibration's), and videos of equal length suggest a triggered rig."""
+    import numpy as np
+
+    from reconstruct.solver.problem import Problem
+    from reconstruct.stage import _seed_cost_hint
+
+    def problem(counts: list[int]) -> Problem:
+        index = np.repeat(np.arange(len(counts)), counts)
+        frames = np.concatenate([np.arange(c) for c in counts])
+        F = len(index)
+        return Problem(
+            video_names=[f"cam{i}" for i in range(len(counts))],
+            video_index=index,
+            frames=frames,
+            times=np.full(F, np.nan),
+            point_names=["ball"],
+            K=np.tile(np.eye(3), (F, 1, 1)),
+            R=np.tile(np.eye(3), (F, 1, 1)),
+            t=np.zeros((F, 3)),
+            dist=[None] * F,
+            uv=np.zeros((F, 1, 2)),
+        )
+
+    hint = _seed_cost_hint(problem([40, 40, 40]))
+    assert "--synchronized of `run`, `register` or `import-calibration`" in hint
+    assert "the 3 videos have 40 posed frames each: a triggered rig?" in hint
+    assert "triggered" not in _seed_cost_hint(problem([40, 38, 40]))

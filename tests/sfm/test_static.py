@@ -189,6 +189,7 @@ def test_a_subject_hiding_a_tripods_view_does_not_make_it_moving(mixed: list, tm
         ("RD", True),  # one odd sample
         ("RRRRDD", False),  # displaced twice
         ("RRRRDU", False),  # displaced once, unmeasured once
+        ("RRRRRRRRRRRDRRRRRRRRURRR", True),  # the same among many at rest: an arm close to a desk webcam
         ("RRRRRRRRUURRRRRR", True),  # a person passing close to a tripod: the background comes back
         ("RRRRRRRRRRRRRUUU", False),  # the last samples lost: carried off or turned away
         ("UUURRRRRRRRRRRRR", False),  # the same at the start
@@ -227,3 +228,18 @@ def test_sample_kinds() -> None:
         "unmeasured",
         "hidden",
     ]
+    # displaced in two samples that lost half the corners the others track, the rest at the same place: an arm
+    # passing close to a desk webcam (AlternateMoCap's cam 3), not the camera moving
+    shifts = np.array([0.1, 0.4, 6.1, 5.9, 0.2, 0.3])
+    tracked = np.array([0.8, 0.8, 0.42, 0.4, 0.8, 0.78])
+    kinds = _sample_kinds(shifts, tracked, np.zeros(6, bool), 3.8)
+    assert kinds == ["rest", "rest", "unmeasured", "unmeasured", "rest", "rest"]
+    # the same displacement with the corners tracked as well as at rest: the camera moved
+    assert _sample_kinds(shifts, np.full(6, 0.8), np.zeros(6, bool), 3.8)[2:4] == ["displaced", "displaced"]
+    # corners lost in the last samples, or in three in a row: moved for good (a knock at the end), not an arm
+    end = _sample_kinds(np.array([0.1, 0.2, 0.1, 0.3, 80.0, 82.0]), tracked[[0, 1, 4, 5, 2, 3]], np.zeros(6, bool), 3.8)
+    assert end[4:] == ["displaced", "displaced"]
+    run = _sample_kinds(
+        np.array([0.1, 6.0, 6.1, 5.9, 0.2, 0.3]), np.array([0.8, 0.4, 0.4, 0.4, 0.8, 0.8]), np.zeros(6, bool), 3.8
+    )
+    assert run[1:4] == ["displaced"] * 3

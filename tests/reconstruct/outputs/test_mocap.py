@@ -191,12 +191,14 @@ def _smooth(frames: int, markers: int) -> np.ndarray:
     return np.stack([500 * np.cos(2 * t + phase), 500 * np.sin(2 * t + phase), 900 + 10 * phase + 0 * t], axis=2)
 
 
-def _write_c3d(path: Path, xyz: np.ndarray, labels: list[str], units: str = "mm", **groups: list[str]) -> Path:
+def _write_c3d(
+    path: Path, xyz: np.ndarray, labels: list[str], units: str = "mm", rate: int = 100, **groups: list[str]
+) -> Path:
     """A C3D as ezc3d writes it: `xyz` (T, M, 3) in `units`, POINT:LABELS, and label groups such as ANGLES."""
     import ezc3d
 
     c3d = ezc3d.c3d()
-    c3d["parameters"]["POINT"]["RATE"]["value"] = [100]
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [rate]
     c3d["parameters"]["POINT"]["LABELS"]["value"] = tuple(labels)
     c3d["parameters"]["POINT"]["UNITS"]["value"] = [units]
     for key, names in groups.items():
@@ -224,6 +226,9 @@ def test_units_cut_short_by_the_writer_are_read(tmp_path: Path) -> None:
     """Some writers keep 4 characters of the units ('mete'): metres, not an unknown unit."""
     xyz = _smooth(frames=10, markers=2) / 1000
     assert np.allclose(read_mocap(_write_c3d(tmp_path / "m.c3d", xyz, ["a", "b"], units="mete")).xyz, xyz * 1000)
+    assert np.allclose(
+        read_mocap(_write_c3d(tmp_path / "c.c3d", xyz * 100, ["a", "b"], units="centimeters")).xyz, xyz * 1000
+    )
     with pytest.raises(InputError, match="unknown POINT:UNITS 'me'"):
         read_mocap(_write_c3d(tmp_path / "me.c3d", xyz, ["a", "b"], units="me"))
 
@@ -240,3 +245,6 @@ def test_frames_read_out_of_order_are_refused(tmp_path: Path) -> None:
     t = np.arange(40)[:, None] / 100
     ball = np.concatenate([30_000 * t, 2_000 * t, 1_000 - 4_900 * t**2], axis=1)[:, None, :] + 1.0
     assert read_mocap(_write_c3d(tmp_path / "ball.c3d", ball, ["ball"])).num_markers == 1
+    # a standing trial's noise (white: second differences about 3.5 times half the two-frame step) at 1 kHz: read
+    still = 1000 + np.random.default_rng(2).normal(0, 5, (200, 3, 3))
+    assert read_mocap(_write_c3d(tmp_path / "still.c3d", still, ["a", "b", "c"], rate=1000)).num_frames == 200
