@@ -8,6 +8,7 @@ import math
 from typing import NoReturn
 
 import numpy as np
+from tqdm import tqdm
 
 from sfm.subject.bundle import Bundle, adjust, camera_residuals, held_out_px, residuals_px, rotation, supported
 from sfm.subject.chain import Knots, initial_poses, make_knots
@@ -220,17 +221,17 @@ def _fit_pairs(
     """Every pair of tracked videos: its time offset (searched, or at the known offsets) and epipolar geometry."""
     fits: list[PairFit] = []
     known, claimed = options.offsets or {}, options.claimed_offsets or {}
-    for n, a in enumerate(with_tracks):
-        for b in with_tracks[n + 1 :]:
-            if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
-                fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], inlier_px)
-            else:
-                fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng, inlier_px)
-                if obs[a].name in claimed and obs[b].name in claimed:
-                    shift = claimed[obs[a].name] - claimed[obs[b].name]
-                    fit = _tested_claim(obs, fit, shift, inlier_px, options.max_offset)
-            log.info("pair %s-%s: %s", obs[a].name, obs[b].name, _pair_words(fit))
-            fits.append(fit)
+    pairs = [(a, b) for n, a in enumerate(with_tracks) for b in with_tracks[n + 1 :]]
+    for a, b in tqdm(pairs, desc="subject path: pairs' offsets and geometry", unit="pair", leave=False):
+        if obs[a].name in known and obs[b].name in known:  # own_b = own_a + shift at one instant
+            fit = fit_at(obs[a], obs[b], a, b, known[obs[a].name] - known[obs[b].name], inlier_px)
+        else:
+            fit = fit_pair(obs[a], obs[b], a, b, options.max_offset, rng, inlier_px)
+            if obs[a].name in claimed and obs[b].name in claimed:
+                shift = claimed[obs[a].name] - claimed[obs[b].name]
+                fit = _tested_claim(obs, fit, shift, inlier_px, options.max_offset)
+        log.info("pair %s-%s: %s", obs[a].name, obs[b].name, _pair_words(fit))
+        fits.append(fit)
     return fits
 
 
