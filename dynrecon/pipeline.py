@@ -461,14 +461,27 @@ class Stages:
             return None
         register_options = self.background_options()
         sfm = registrar or _register
+        key = inputs_key(files, settings)
         try:
-            self.run(
-                "register",
-                files,
-                settings,
-                outputs,
-                lambda: self._unrecorded_aside(folder, written, lambda: sfm(self.videos, folder, register_options)),
-            )
+            failure = None if options.force else self.state.failed_before("register", key, self.ws)
+            if failure is not None:  # SfM fails again on the same inputs: minutes of mapping for the same answer
+                log.info("[1/%d] register: failed on these inputs before (pipeline.json), not redone", len(STAGES))
+                self.result.stages.append(StageRun(name="register", skipped=True, seconds=0.0))
+                raise RegistrationError.of(failure["what"], failure["reason"], self.ws / failure["report"])
+            try:
+                self.run(
+                    "register",
+                    files,
+                    settings,
+                    outputs,
+                    lambda: self._unrecorded_aside(folder, written, lambda: sfm(self.videos, folder, register_options)),
+                )
+            except RegistrationError as failed:
+                report, ws = (failed.report or folder).resolve(), self.ws.resolve()
+                if report.is_file() and failed.reason and report.is_relative_to(ws):  # its own words and report
+                    said = {"what": failed.what, "reason": failed.reason, "report": str(report.relative_to(ws))}
+                    self.state.record_failure("register", key, said, [report], ws)
+                raise
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None
             if not tracks_coming and not (self.ws / "tracks.csv").is_file():

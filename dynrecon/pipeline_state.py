@@ -89,7 +89,7 @@ class State:
 
     def up_to_date(self, name: str, key: str, workspace: Path) -> bool:
         entry = self.stages.get(name)
-        if not entry or entry.get("inputs") != key:
+        if not entry or entry.get("inputs") != key or "failed" in entry:
             return False
         for relative, digest in entry.get("outputs", {}).items():
             path = workspace / relative
@@ -105,6 +105,31 @@ class State:
             "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         self.save()
+
+    def record_failure(
+        self, name: str, key: str, failure: dict[str, str], outputs: list[Path], workspace: Path
+    ) -> None:
+        """Stage `name` failed on inputs `key` (`failure`: what it said); `outputs`: the files saying why, whose
+        hashes tie the record to them."""
+        self.stages[name] = {
+            "inputs": key,
+            "outputs": {str(p.relative_to(workspace)): file_hash(p) for p in outputs if p.is_file()},
+            "failed": failure,
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        self.save()
+
+    def failed_before(self, name: str, key: str, workspace: Path) -> dict[str, str] | None:
+        """What stage `name` said when it failed on these same inputs, its files unchanged since; else None."""
+        entry = self.stages.get(name)
+        failure = entry.get("failed") if entry and entry.get("inputs") == key else None
+        if not isinstance(failure, dict) or not all(isinstance(v, str) for v in failure.values()):
+            return None
+        for relative, digest in entry.get("outputs", {}).items() if entry else ():
+            path = workspace / relative
+            if not path.is_file() or file_hash(path) != digest:
+                return None
+        return failure
 
     def output_hash(self, name: str, path: Path, workspace: Path) -> str | None:
         """The hash stage `name` recorded for its output `path` (in `workspace`), None without a record."""

@@ -557,3 +557,42 @@ def test_a_registration_the_register_stage_did_not_write_is_kept_aside(
     assert kept[0].read_text(encoding="utf-8") == '{"users": true}'
     Stages(videos, tmp_path / "ws", PipelineOptions(force=True)).register()
     assert len(seen) == 2 and len(list(cameras.parent.glob("cameras.before-*.json"))) == 1
+
+
+def test_a_background_that_failed_is_not_mapped_again_on_the_same_inputs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A rig whose background gives no model (the subject's tracks pose it): each later `run` (new labels, a new
+    solve option) mapped the background again for minutes to fail the same way. The failure is recorded with its
+    inputs and report; the same inputs say it again at once, and --force, other inputs or a changed report redo it."""
+    from board_video import write_video
+
+    import dynrecon.pipeline as pipeline
+    from sfm.stage import RegisterOptions, RegistrationError
+
+    videos = [write_video(tmp_path / f"{name}.avi", [np.full((48, 64, 3), 90, dtype=np.uint8)] * 2) for name in "ab"]
+    calls: list[int] = []
+
+    def register(videos: list[Path], folder: Path, options: RegisterOptions) -> None:
+        calls.append(1)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "register_report.json").write_text('{"ok": false}', encoding="utf-8")
+        raise RegistrationError.of("only 0 of 2 videos registered", "no model", folder / "register_report.json")
+
+    monkeypatch.setattr(pipeline, "_register", register)
+    tracks = tmp_path / "tracks.csv"
+    tracks.write_text("video,frame,point,x,y\na,0,p,1.0,2.0\n", encoding="utf-8")
+    options = PipelineOptions(tracks=tracks)
+    first = Stages(videos, tmp_path / "ws", options).register()
+    again = Stages(videos, tmp_path / "ws", options).register()
+    assert calls == [1] and first is not None and again is not None and str(again) == str(first)
+    Stages(videos, tmp_path / "ws", replace(options, force=True)).register()
+    assert len(calls) == 2
+    (tmp_path / "ws" / "register" / "register_report.json").write_text('{"ok": false, "edited": 1}', encoding="utf-8")
+    Stages(videos, tmp_path / "ws", options).register()
+    assert len(calls) == 3
+    with pytest.raises(RegistrationError, match="only 0 of 2 videos registered"):  # no tracks coming: said again
+        Stages(videos, tmp_path / "ws2", PipelineOptions()).register()
+    with pytest.raises(RegistrationError, match="only 0 of 2 videos registered"):
+        Stages(videos, tmp_path / "ws2", PipelineOptions()).register()
+    assert len(calls) == 4
