@@ -265,8 +265,15 @@ def _run_register(args: argparse.Namespace) -> int:
         # a video left unposed for one reason says it here; several reasons are the report's to list
         reasons = {run["reason"] for run in video["failed"]} if not video["registered"] else set()
         why = f"; {next(iter(reasons))}" if len(reasons) == 1 else ""
+        total = video.get("frames_in_video")
+        # with tracks only their frames are wanted: a count of wanted frames alone read as the whole video
+        of = (
+            f" of {total} in the video (--localize all poses the others)"
+            if total and total > video["frames_given"]
+            else ""
+        )
         print(  # noqa: T201
-            f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered "
+            f"{video['name']}: {video['registered']}/{video['frames_given']} frames registered{of} "
             f"({video['camera']} camera; posed by {video['posed_by']}{why})"
         )
     print(path)  # noqa: T201

@@ -58,6 +58,7 @@ from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
 from sfm.report import write_report
 from sfm.resume import StepLog, input_key
+from sfm.subject.agreement import no_lens
 from sfm.video import ProbedVideo, probe_video, video_name
 from tracking.charuco import charuco_tracks, read_charuco_board
 from tracking.tracks import Tracks, matched_to_videos, read_tracks, write_tracks
@@ -435,6 +436,7 @@ def finish_capture(
     rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"])) if mapping["model"] is not None else None
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
     _drop_implausible(results, notes.warnings)
+    _drop_no_lens(plans, results, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         images = rec.num_reg_images() if rec is not None else None
@@ -682,6 +684,33 @@ def _drop_implausible(results: Results, warnings: list[str]) -> None:
                 frames[frame] = FramePose(pose=None, reason=f"the background's pose is no camera's: {error.what}")
         if dropped:
             warnings.append(f"{video}: {dropped} frame(s) of the background model left unposed: {why}")
+
+
+def _drop_no_lens(plans: list[VideoPlan], results: Results, warnings: list[str]) -> None:
+    """Unpose the videos whose background pose came with a focal no lens has for their image size (62 px for a
+    910 px wide GoPro: a model fitted to false matches), and warn that the videos the same model still poses come
+    from it. Checked with or without the subject's tracks (their check refutes such poses too)."""
+    refuted: dict[str, str] = {}
+    for plan in plans:
+        name = plan.info.name
+        first = next((r for r in results[name].values() if r.pose is not None and r.source != "subject"), None)
+        if first is None or first.intrinsics is None:
+            continue
+        why = no_lens(first.intrinsics[0], plan.info.width, plan.info.height)
+        if why is None:
+            continue
+        refuted[name] = why
+        results[name] = {
+            f: FramePose(pose=None, reason=f"background SfM: {why}") if r.source != "subject" else r
+            for f, r in results[name].items()
+        }
+        warnings.append(f"{name}: the background's pose is not used: {why}")
+    rest = [p.info.name for p in plans if any(r.pose is not None for r in results[p.info.name].values())]
+    if refuted and rest:
+        warnings.append(
+            f"{', '.join(rest)}: posed by the same background model as {', '.join(refuted)}, whose intrinsics are no "
+            "lens: check them (known intrinsics, --intrinsics, make such a model less likely)"
+        )
 
 
 def _subject_wanted(plans: list[VideoPlan], results: Results, options: RegisterOptions) -> bool:

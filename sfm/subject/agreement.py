@@ -118,7 +118,13 @@ def check_agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: floa
 def _no_lens(video: SubjectVideo) -> str | None:
     """Why the video's intrinsics cannot be a camera's (a focal far outside any lens's), or None."""
     assert video.K is not None
-    focal, side = float(np.sqrt(abs(video.K[0, 0] * video.K[1, 1]))), float(max(video.width, video.height))
+    return no_lens(video.K, video.width, video.height)
+
+
+def no_lens(K: np.ndarray, width: int, height: int) -> str | None:
+    """Why intrinsics `K` cannot be those of a camera whose images are `width` x `height` (a focal far outside any
+    lens's, from fisheye to long telephoto), or None."""
+    focal, side = float(np.sqrt(abs(K[0, 0] * K[1, 1]))), float(max(width, height))
     if FOCAL_RANGE[0] * side <= focal <= FOCAL_RANGE[1] * side:
         return None
     return (

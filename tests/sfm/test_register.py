@@ -235,7 +235,10 @@ def test_a_camera_that_never_sees_the_background_is_reported_and_the_others_regi
     assert all(v["registered"] == v["frames_in_video"] for v in report["videos"] if v["name"] != "elsewhere")
     captured = capsys.readouterr()
     said = [line for line in (captured.out + captured.err).splitlines() if "elsewhere" in line and "%" not in line]
-    assert said == ["elsewhere: 0/6 frames registered (moving camera; posed by none; video not in the kept model)"]
+    assert said == [  # its 6 SfM frames of 8: it has no tracks to ask for the others
+        "elsewhere: 0/6 frames registered of 8 in the video (--localize all poses the others) (moving camera; "
+        "posed by none; video not in the kept model)"
+    ]
     assert alone["failed"][0]["reason"] == "video not in the kept model"
 
 
@@ -283,3 +286,39 @@ def test_a_background_pose_no_camera_has_is_left_unposed_and_said() -> None:
     assert results["a"][0].pose is not None and results["b"][1].pose is not None
     assert results["b"][0].pose is None and "no camera's" in (results["b"][0].reason or "")
     assert len(warnings) == 1 and warnings[0].startswith("b: 1 frame(s)") and "1452.3" in warnings[0]
+
+
+def test_a_background_pose_with_no_lens_focal_is_not_used() -> None:
+    """A background model of a head-worn camera and two GoPros (EgoHumans' badminton clips, one at 5 fps) posed the
+    GoPros with focals of 62 and 81 px for 910 px wide images (fields of view near 165 degrees) and exited 0 without
+    a word, the head-worn camera's path 23 degrees off: such poses are dropped (each frame says why), and the videos
+    the same model still poses are named in a warning. Without the subject's tracks too."""
+    import pycolmap
+
+    from sfm.frames import Resize
+    from sfm.plan import FramePose, VideoPlan
+    from sfm.stage import _drop_no_lens
+    from sfm.video import ProbedVideo
+
+    def plan(name: str, width: int, height: int, static: bool) -> VideoPlan:
+        info = ProbedVideo(
+            path=Path(f"{name}.mp4"), name=name, width=width, height=height, times=np.arange(3) / 10, nominal_fps=10
+        )
+        resize = Resize(scale=1.0, width=width, height=height)
+        return VideoPlan(info=info, resize=resize, sfm_frames=np.zeros(0, np.int64), wanted=np.arange(3), static=static)
+
+    def posed(focal: float, cx: float, source: str = "sfm") -> dict[int, FramePose]:
+        K = np.array([[focal, 0, cx], [0, focal, 256.0], [0, 0, 1]])
+        return {f: FramePose(pose=pycolmap.Rigid3d(), source=source, intrinsics=(K, None)) for f in range(3)}
+
+    plans = [plan("cam02", 910, 512, True), plan("cam14", 910, 512, True), plan("aria04", 512, 512, False)]
+    results = {"cam02": posed(62.0, 455), "cam14": posed(433.0, 455), "aria04": posed(150.0, 256)}
+    warnings: list[str] = []
+    _drop_no_lens(plans, results, warnings)
+    assert all(r.pose is None and "no lens" in (r.reason or "") for r in results["cam02"].values())
+    assert all(r.pose is not None for name in ("cam14", "aria04") for r in results[name].values())
+    assert warnings[0].startswith("cam02: the background's pose is not used: its intrinsics are no lens")
+    assert warnings[1].startswith("cam14, aria04: posed by the same background model as cam02")
+    untouched = {"cam02": posed(433.0, 455), "cam14": posed(433.0, 455), "aria04": posed(150.0, 256)}
+    _drop_no_lens(plans, untouched, warnings := [])
+    assert not warnings and all(r.pose is not None for frames in untouched.values() for r in frames.values())
