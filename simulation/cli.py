@@ -33,6 +33,7 @@ MODE_OPTIONS = {
     "times": ("paper",),
     "start": ("paper", "phones"),
     "length": ("paper", "phones"),
+    "max_missing": ("paper", "phones"),
     "distance": ("paper", "phones"),
     "fps": ("phones", "flight"),
     "offsets": ("phones", "flight"),
@@ -170,6 +171,15 @@ def _add_capture_arguments(sim: argparse.ArgumentParser, defaults: SimulationOpt
         default=defaults.length,
         action=_Store,
         help="window length in mocap frames, before --step (default: to the end)",
+    )
+    sim.add_argument(
+        "--max-missing",
+        type=float,
+        default=defaults.max_marker_missing,
+        metavar="FRACTION",
+        action=_Store,
+        help="markers missing in more of the window's frames are left out, then frames missing a kept marker "
+        "(default %(default)s)",
     )
     sim.add_argument(
         "--distance",
@@ -318,6 +328,8 @@ def _check_mode(args: argparse.Namespace) -> set[str]:
         raise DynreconError(f"--mode {args.mode} needs a MOCAP file (.c3d or .trc), or use --mode flight")
     if getattr(args, "distance", None) is not None and not (math.isfinite(args.distance) and args.distance > 0):
         raise DynreconError(f"--distance {args.distance}: give the cameras' distance in mm, above 0")
+    if not 0 <= args.max_missing <= 1:
+        raise DynreconError(f"--max-missing {args.max_missing}: give a fraction of the frames, 0 to 1")
     if args.seed < 0:  # numpy's generators take seeds >= 0 only
         raise DynreconError(f"--seed {args.seed}: give a whole number >= 0")
     return given
@@ -341,6 +353,7 @@ def _capture_fields(args: argparse.Namespace, given: set[str]) -> dict[str, Any]
         "false_fraction": "false_fraction",
         "start": "start",
         "length": "length",
+        "max_missing": "max_marker_missing",
     }
     for dest, name in plain.items():
         if dest in given:
@@ -374,6 +387,7 @@ def _simulate(args: argparse.Namespace) -> int:
             start=args.start,
             length=args.length,
             camera_distance_mm=args.distance,
+            max_marker_missing=args.max_missing,
         )
         out = simulate_module.run(args.mocap, args.out, options)
     elif args.mode == "phones":

@@ -449,12 +449,15 @@ def drop_incomplete(mocap: Mocap, max_missing: float = 0.1, whole: Mocap | None 
         raise InputError(mocap.path, "no frame has all the usable markers", fix=fix)
     dropped_markers = [n for n, k in zip(mocap.marker_names, keep_markers, strict=True) if not k]
     if dropped_markers:  # a warning: the simulation's truth then lacks them, which -q would hide
+        most = 2 * len(dropped_markers) > mocap.num_markers  # what is left may not be the motion the user meant
         log.warning(
-            "%s: dropped %d marker(s) missing in more than %.0f%% of the frames: %s",
+            "%s: dropped %d of %d markers, missing in more than %.0f%% of the frames: %s%s",
             mocap.path,
             len(dropped_markers),
+            mocap.num_markers,
             100 * max_missing,
             ", ".join(dropped_markers),
+            f" (to keep more: --max-missing, or a window: {fix})" if most else "",
         )
     if not keep_frames.all():
         log.warning(

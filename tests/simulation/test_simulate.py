@@ -274,6 +274,23 @@ def test_cli_mode_paper_is_the_default(tmp_path: Path) -> None:
     assert read_cameras(tmp_path / "paper" / "cameras.json").videos[0].fps is None
 
 
+def test_max_missing_keeps_markers_with_gaps(tmp_path: Path) -> None:
+    """`--max-missing` (paper and phones): markers missing in more of the frames are left out; a file whose markers
+    have gaps keeps them at a looser bound, the frames with a gap then dropped."""
+    from dynrecon.cli import main
+
+    xyz = walking_body(frames=60)
+    xyz[:12, 5] = np.nan  # 20 % of the frames
+    mocap = Mocap(xyz=xyz, rate=120.0, marker_names=[f"m{i}" for i in range(12)], times=np.arange(60) / 120.0)
+    source = write_trc(tmp_path / "walk.trc", mocap)
+    assert main(["simulate", str(source), "--out", str(tmp_path / "strict")]) == 0
+    assert main(["simulate", str(source), "--max-missing", "0.25", "--out", str(tmp_path / "loose")]) == 0
+    assert "m5" not in json.loads((tmp_path / "strict" / "simulation.json").read_text())["points"]
+    loose = json.loads((tmp_path / "loose" / "simulation.json").read_text())
+    assert "m5" in loose["points"] and loose["captures"] == 48 and loose["options"]["max_marker_missing"] == 0.25
+    assert main(["simulate", str(source), "--max-missing", "2", "--out", str(tmp_path / "bad")]) == 2
+
+
 def test_a_new_simulation_removes_an_earlier_solve(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from simulation.simulate import SOLVE_OUTPUTS, clear_solve_outputs
 

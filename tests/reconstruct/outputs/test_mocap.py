@@ -184,6 +184,22 @@ def test_a_file_complete_only_in_its_middle_names_that_stretch() -> None:
         drop_incomplete(mocap, max_missing=0.1, whole=mocap)
 
 
+def test_dropping_most_markers_says_how_to_keep_them(caplog: pytest.LogCaptureFixture) -> None:
+    """A Plug-in Gait file kept 3 of its 54 markers (the rest missing in over 10 % of the frames) and was scored at
+    100 %: the warning says how to keep more (--max-missing, or the window where they are present together)."""
+    mocap = _synthetic(frames=30, markers=4)
+    mocap.xyz[:6, 1:] = np.nan  # three of four markers missing in 20 % of the frames
+    clean = drop_incomplete(mocap, max_missing=0.1, whole=mocap)
+    assert clean.marker_names == ["m0"]
+    assert "dropped 3 of 4 markers" in caplog.text
+    assert "(to keep more: --max-missing, or a window: the markers are present together in frames 6..29" in caplog.text
+    caplog.clear()
+    mocap.xyz[:, 1:] = _synthetic(frames=30, markers=4).xyz[:, 1:]
+    mocap.xyz[:6, 3] = np.nan  # one of four: said, without the advice
+    drop_incomplete(mocap, max_missing=0.1, whole=mocap)
+    assert "dropped 1 of 4 markers" in caplog.text and "to keep more" not in caplog.text
+
+
 def _smooth(frames: int, markers: int) -> np.ndarray:
     """(T, M, 3) mm: markers circling at walking speed."""
     t = np.arange(frames)[:, None] / 100
