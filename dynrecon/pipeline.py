@@ -464,7 +464,9 @@ class Stages:
         key = inputs_key(files, settings)
         try:
             failure = None if options.force else self.state.failed_before("register", key, self.ws)
-            if failure is not None:  # SfM fails again on the same inputs: minutes of mapping for the same answer
+            # SfM would fail again on the same inputs: minutes of mapping for the same answer (a record edited by
+            # hand that lacks a field is redone)
+            if failure is not None and {"what", "reason", "report"} <= failure.keys():
                 log.info("[1/%d] register: failed on these inputs before (pipeline.json), not redone", len(STAGES))
                 self.result.stages.append(StageRun(name="register", skipped=True, seconds=0.0))
                 raise RegistrationError.of(failure["what"], failure["reason"], self.ws / failure["report"])

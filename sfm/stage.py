@@ -709,7 +709,7 @@ def _drop_no_lens(plans: list[VideoPlan], results: Results, warnings: list[str])
     if refuted and rest:
         warnings.append(
             f"{', '.join(rest)}: posed by the same background model as {', '.join(refuted)}, whose intrinsics are no "
-            "lens: check them (known intrinsics, --intrinsics, make such a model less likely)"
+            "lens: check them (known intrinsics, --intrinsics, make such a false model less likely)"
         )
 
 

@@ -193,7 +193,8 @@ def _read_c3d(path: Path) -> Mocap:
     keep = [m for m, label in enumerate(labels[: xyz.shape[1]]) if label.strip() not in outputs]
     keep += list(range(len(labels), xyz.shape[1]))  # points without a label are no listed output
     if len(keep) < xyz.shape[1]:
-        dropped = [names[m] for m in range(xyz.shape[1]) if m not in set(keep)]
+        kept = set(keep)
+        dropped = [names[m] for m in range(xyz.shape[1]) if m not in kept]
         log.warning(
             "%s: %d of its %d points are model outputs (POINT:%s: joint angles, forces, moments, powers), not "
             "markers: left out (%s)",
