@@ -58,6 +58,15 @@ def within_name(name: str, names: Iterable[str]) -> list[str]:
     return found
 
 
+def numbered_name(name: str, names: Iterable[str]) -> list[str]:
+    """Those of `names` that are a number alone, the number `name` ends on after one word ('cam10' for anipose's
+    camera '10'); one is a match. Only for a name of one word and one number: 'cam1_take2' is not camera '2'."""
+    words = name_key(name).split("-")
+    if len(words) != 2 or not words[0].isalpha() or not words[1].isdigit():
+        return []
+    return [other for other in names if name_key(other) == words[1]]
+
+
 def holds_name(name: str, names: Iterable[str]) -> list[str]:
     """Those of `names` whose key's words and numbers hold `name`'s as one whole run, anywhere: a calibration's
     camera named around the video's ('int_cam01_img' holds 'cam01', Pose2Sim's intrinsics-board cameras); one is a

@@ -295,7 +295,7 @@ def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSe
             seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
             return seed, temporal
     if tried is not None:
-        log.warning("solving with the seed solve%s", _seed_cost_hint(problem))
+        log.warning("solving with the seed solve%s", _seed_cost_hint(problem, cameras))
     result = solve_problem(problem, options.solver)
     t0 = time.perf_counter()
     temporal = recover_and_refine(problem, result, temporal_options)
@@ -343,11 +343,20 @@ def _on_given_offsets(
     return given.seed, given.temporal
 
 
-def _seed_cost_hint(problem: Problem) -> str:
-    """What the seed solve costs where its W-step is singular (few points), and how to avoid it."""
+def _seed_cost_hint(problem: Problem, cameras: CameraSet | None = None) -> str:
+    """What the seed solve costs where its W-step is singular (few points), and how to avoid it: clock offsets,
+    unless cameras.json gave them (they were tried and refuted: the cameras or the tracks are then in question)."""
     count = int(reconstructable_points(problem).sum())
     if count > FEW_POINTS:
         return ""
+    videos = [] if cameras is None else [v for v in cameras.videos if v.name in problem.video_names]
+    if videos and all(v.clock_offset is not None for v in videos):
+        said = "declared" if all(v.clock_declared for v in videos) else "registered"
+        return (
+            f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
+            f"cameras.json's {said} clock offsets did not fit the tracks (above): where they are right, the "
+            "cameras do not fit these tracks: check the calibration, and that each video has its own camera)"
+        )
     counts = np.bincount(problem.video_index, minlength=len(problem.video_names))
     alike = (
         f"; the {len(counts)} videos have {counts[0]} posed frames each: a triggered rig?"

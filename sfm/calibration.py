@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from dynrecon.atomic import require_writable
 from dynrecon.errors import InputError
-from dynrecon.names import first_repeated, holds_name, spelled_alike, within_name
+from dynrecon.names import first_repeated, holds_name, numbered_name, spelled_alike, within_name
 from dynrecon.readers import read_text, shown
 from sfm.calibration_dannce import is_dannce, read_dannce
 from sfm.calibration_dlt import dlt_cameras, dlt_sizes, is_dlt
@@ -525,13 +525,12 @@ def read_calibration(
 # Matching calibrated cameras to videos
 
 
-def camera_named(cameras: list[StaticCamera], name: str, around: bool = False) -> StaticCamera | None:
+def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
     """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
     zeros and a video suffix are ignored (None when several do: cam1 with both cam01 and cam_1), else the one
-    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix); `around`:
-    instead, the one camera whose name holds the video's (`int_cam01_img` for cam01.mp4)."""
+    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix)."""
     names = [c.name for c in cameras]
-    found = holds_name(name, names) if around else spelled_alike(name, names) or within_name(name, names)
+    found = spelled_alike(name, names) or within_name(name, names)
     return next(c for c in cameras if c.name == found[0]) if len(found) == 1 else None
 
 
@@ -541,9 +540,11 @@ def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: 
     error (an order would give the matched cameras to other videos)."""
     matched = [camera_named(cameras, v.name) for v in videos]
     if all(m is None for m in matched):
-        around = [camera_named(cameras, v.name, around=True) for v in videos]
-        if all(m is not None for m in around) and len({id(m) for m in around}) == len(videos):
-            return [m for m in around if m is not None]  # every video, each its own camera: else as before
+        for rule in (holds_name, numbered_name):  # the video named around the camera's name, or cam10 for '10'
+            found = [rule(v.name, [c.name for c in cameras]) for v in videos]
+            chosen = [next(c for c in cameras if c.name == f[0]) if len(f) == 1 else None for f in found]
+            if all(m is not None for m in chosen) and len({id(m) for m in chosen}) == len(videos):
+                return [m for m in chosen if m is not None]  # every video, each its own camera: else as before
     if all(m is not None for m in matched) and len({id(m) for m in matched}) == len(videos):
         return [m for m in matched if m is not None]
     if any(m is not None for m in matched):

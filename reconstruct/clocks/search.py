@@ -680,14 +680,17 @@ def _pairs_and_chain(
         if (p := search_pair(tracks, v, u, options, periods, sources)) is not None
     ]
     for p in pairs:
+        # a best offset no better than the runner-up, or one whose rays stay apart, identifies nothing: said so
+        unsure = p.distinctness < 1.05 or p.cost >= MISFIT_SHARE * options.inlier_px**2
         log.info(
-            "clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f",
+            "clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f%s",
             names[p.v],
             names[p.u],
             p.alpha,
             p.beta,
             p.cost,
             p.distinctness,
+            " (not identified)" if unsure else "",
         )
     said: tuple[str | float, ...] = (*names, *(round(p.cost, 3) for p in pairs))  # searched again later: said once
     if pairs and all(p.cost >= MISFIT_SHARE * options.inlier_px**2 for p in pairs) and said not in _MISFITS_SAID:

@@ -55,3 +55,14 @@ def test_the_slow_seed_solve_names_a_triggered_rig_and_the_run_option() -> None:
     assert "--synchronized of `run`, `register` or `import-calibration`" in hint
     assert "the 3 videos have 40 posed frames each: a triggered rig?" in hint
     assert "triggered" not in _seed_cost_hint(problem([40, 38, 40]))
+    # the user declared the clocks (--synchronized) and the tracks refuted them: no advice to declare them
+    from sfm.cameras import CameraSet, VideoCameras
+
+    declared = CameraSet(
+        videos=[
+            VideoCameras(name=f"cam{i}", width=64, height=48, frames=[], clock_offset=0.0, clock_declared=True)
+            for i in range(3)
+        ]
+    )
+    hint = _seed_cost_hint(problem([40, 40, 40]), declared)
+    assert "--synchronized" not in hint and "cameras.json's declared clock offsets did not fit the tracks" in hint

@@ -692,6 +692,17 @@ def test_cameras_named_around_the_videos_match_only_all_of_them() -> None:
     ]
     cameras = _random_cameras(["cam_left", "cam_2"])
     assert [c.name for c in match_cameras(cameras, videos("left", "right"), Path("c.toml"))] == ["cam_left", "cam_2"]
+    # anipose names its cameras by number ('10' ... '21'): videos cam10 ... match them, some cameras unused
+    cameras = _random_cameras(["10", "11", "12"])
+    assert [c.name for c in match_cameras(cameras, videos("cam12", "cam10"), Path("c.toml"))] == ["12", "10"]
+
+
+def test_numbered_name_is_one_word_and_the_camera_number() -> None:
+    from dynrecon.names import numbered_name
+
+    assert numbered_name("cam10", ["10", "11"]) == ["10"] and numbered_name("Camera_07", ["7", "07x"]) == ["7"]
+    assert numbered_name("cam1_take2", ["1", "2"]) == []  # a take's number is no camera's
+    assert numbered_name("10", ["10"]) == [] and numbered_name("cam10", ["cam10"]) == []
 
 
 @pytest.mark.parametrize("command", ["import-calibration", "register"])
