@@ -468,7 +468,8 @@ def finish_capture(
     if moving_hint and len(registered_videos) >= 2:  # a failure says it in its error instead
         notes.warnings.append(moving_hint)
     if len(registered_videos) < 2:
-        names = ", ".join(v.info.name for v in registered_videos) or "none"
+        # a video with some frames posed says how many: "registered" alone read as the whole video
+        names = ", ".join(_posed_share(v, results[v.info.name]) for v in registered_videos) or "none"
         _fail(
             out,
             options,
@@ -684,6 +685,12 @@ def _drop_implausible(results: Results, warnings: list[str]) -> None:
                 frames[frame] = FramePose(pose=None, reason=f"the background's pose is no camera's: {error.what}")
         if dropped:
             warnings.append(f"{video}: {dropped} frame(s) of the background model left unposed: {why}")
+
+
+def _posed_share(video: VideoPlan, frames: dict[int, FramePose]) -> str:
+    """`name`, or `name: 4 of 27 frames` where some of the frames it was to pose have none."""
+    posed = sum(r.pose is not None for r in frames.values())
+    return video.info.name if posed == len(frames) else f"{video.info.name}: {posed} of {len(frames)} frames"
 
 
 def _drop_no_lens(plans: list[VideoPlan], results: Results, warnings: list[str]) -> None:

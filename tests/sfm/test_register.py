@@ -322,3 +322,21 @@ def test_a_background_pose_with_no_lens_focal_is_not_used() -> None:
     untouched = {"cam02": posed(433.0, 455), "cam14": posed(433.0, 455), "aria04": posed(150.0, 256)}
     _drop_no_lens(plans, untouched, warnings := [])
     assert not warnings and all(r.pose is not None for frames in untouched.values() for r in frames.values())
+
+
+def test_a_video_posed_in_part_says_how_many_frames() -> None:
+    """A head-worn camera posed in 4 of its 27 frames was named "registered" in the failure, like a whole video."""
+    import pycolmap
+
+    from sfm.frames import Resize
+    from sfm.plan import FramePose, VideoPlan
+    from sfm.stage import _posed_share
+    from sfm.video import ProbedVideo
+
+    info = ProbedVideo(path=Path("aria.mp4"), name="aria", width=64, height=64, times=np.arange(3) / 5, nominal_fps=5)
+    plan = VideoPlan(
+        info=info, resize=Resize(scale=1.0, width=64, height=64), sfm_frames=np.zeros(0, np.int64), wanted=np.arange(3)
+    )
+    some = {0: FramePose(pose=pycolmap.Rigid3d()), 1: FramePose(pose=None), 2: FramePose(pose=None)}
+    assert _posed_share(plan, some) == "aria: 1 of 3 frames"
+    assert _posed_share(plan, {f: FramePose(pose=pycolmap.Rigid3d()) for f in range(3)}) == "aria"
