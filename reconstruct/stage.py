@@ -25,6 +25,7 @@ from dynrecon.beside import beside
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.camera_order import check_camera_order
+from reconstruct.clocks.overlap import lonely_videos
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.fit import check_fit
 from reconstruct.inputs import build_problem_checked
@@ -210,6 +211,10 @@ def solve(
     report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
     report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
+    lonely = lonely_videos(temporal.clocks) if temporal.report.get("path") != TimePath.SEED.value else []
+    for warning in lonely:
+        log.warning("%s", warning)
+    report["clocks"]["warnings"] = [*report["clocks"].get("warnings", []), *lonely]
     _say_unused_clocks(report["clocks"], temporal.report)
     report["temporal"] = temporal.report
     report["trust"] = trust.summary()

@@ -232,9 +232,8 @@ def refine_on_clocks(
         # A polish started from a seed solve far off can stretch clocks while its cost rises: keep the estimated
         # clocks.
         log.warning(
-            "the clock polish of the refinement was rejected (its cost rose or a rate moved by more than "
-            "%.0f %%): refining on the estimated clocks",
-            100 * MAX_RATE_CORRECTION,
+            "the clock polish of the refinement was rejected (%s): refining on the estimated clocks",
+            _rejection(polished.cost, correction.rate, MAX_RATE_CORRECTION),
         )
         report["clock_polish_rejected"] = True
         # the polish's own first refinement had these inputs
@@ -267,6 +266,15 @@ def _finish(
     return Temporal(
         clocks=clocks, points=points, times=clocks.global_time.copy(), refined=True, report=report, trajectories=refined
     )
+
+
+def _rejection(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> str:
+    """Which of `_plausible`'s conditions a rejected polish failed, in words."""
+    if not np.all(np.isfinite(cost)):
+        return "its cost was not finite"
+    if max(cost) > POLISH_COST_SLACK * cost[0]:
+        return f"its cost rose from {cost[0]:.4g} to {max(cost):.4g}"
+    return f"a rate moved by {100 * float(np.max(np.abs(rates))):.1f} %, over {100 * max_rate_correction:.0f} %"
 
 
 def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> bool:

@@ -88,3 +88,14 @@ def test_a_track_clock_a_cycle_off_loses_to_the_links_clock(monkeypatch):
     expected = truth_array(problem, truth)
     error = np.nanmedian(np.linalg.norm(chosen.points - expected, axis=-1))
     assert error < 1.2 * np.nanmedian(np.linalg.norm(right.points - expected, axis=-1))
+
+
+def test_a_rejected_clock_polish_says_which_condition_failed() -> None:
+    """The warning said "its cost rose or a rate moved" on offset-only clocks, where no rate can move."""
+    import numpy as np
+
+    from reconstruct.temporal import _rejection
+
+    assert _rejection([10.0, 12.0], np.zeros(3), 0.05) == "its cost rose from 10 to 12"
+    assert _rejection([10.0, 9.0], np.array([0.0, 0.08]), 0.05) == "a rate moved by 8.0 %, over 5 %"
+    assert _rejection([10.0, float("nan")], np.zeros(3), 0.05) == "its cost was not finite"
