@@ -479,10 +479,11 @@ class Stages:
                     lambda: self._unrecorded_aside(folder, written, lambda: sfm(self.videos, folder, register_options)),
                 )
             except RegistrationError as failed:
-                report, ws = (failed.report or folder).resolve(), self.ws.resolve()
-                if report.is_file() and failed.reason and report.is_relative_to(ws):  # its own words and report
+                ws = self.ws.resolve()
+                report = failed.report.resolve() if failed.report is not None else None
+                if report is not None and report.is_file() and failed.reason and report.is_relative_to(ws):
                     said = {"what": failed.what, "reason": failed.reason, "report": str(report.relative_to(ws))}
-                    self.state.record_failure("register", key, said, [report], ws)
+                    self.state.record_failure("register", key, said, [report], ws)  # its own words and report
                 raise
         except RegistrationError as error:
             tracks_coming = options.tracks is not None or self.labels is not None or options.register.board is not None

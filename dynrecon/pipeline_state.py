@@ -57,6 +57,15 @@ def inputs_key(files: dict[str, Path], settings: Any) -> str:
     return hashlib.sha256(json.dumps(document, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _outputs_intact(entry: dict[str, Any], workspace: Path) -> bool:
+    """Whether every output file a stage's record names is there with the hash it recorded."""
+    for relative, digest in entry.get("outputs", {}).items():
+        path = workspace / relative
+        if not path.is_file() or file_hash(path) != digest:
+            return False
+    return True
+
+
 class State:
     """`WS/pipeline.json`: per stage, the inputs key, output hashes, seconds and when it ran."""
 
@@ -91,11 +100,7 @@ class State:
         entry = self.stages.get(name)
         if not entry or entry.get("inputs") != key or "failed" in entry:
             return False
-        for relative, digest in entry.get("outputs", {}).items():
-            path = workspace / relative
-            if not path.is_file() or file_hash(path) != digest:
-                return False
-        return True
+        return _outputs_intact(entry, workspace)
 
     def record(self, name: str, key: str, outputs: list[Path], workspace: Path, seconds: float) -> None:
         self.stages[name] = {
@@ -125,11 +130,7 @@ class State:
         failure = entry.get("failed") if entry and entry.get("inputs") == key else None
         if not isinstance(failure, dict) or not all(isinstance(v, str) for v in failure.values()):
             return None
-        for relative, digest in entry.get("outputs", {}).items() if entry else ():
-            path = workspace / relative
-            if not path.is_file() or file_hash(path) != digest:
-                return None
-        return failure
+        return failure if entry is not None and _outputs_intact(entry, workspace) else None
 
     def output_hash(self, name: str, path: Path, workspace: Path) -> str | None:
         """The hash stage `name` recorded for its output `path` (in `workspace`), None without a record."""

@@ -354,12 +354,12 @@ def _seed_cost_hint(problem: Problem, cameras: CameraSet | None = None) -> str:
     count = int(reconstructable_points(problem).sum())
     if count > FEW_POINTS:
         return ""
+    cost = f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
     videos = [] if cameras is None else [v for v in cameras.videos if v.name in problem.video_names]
     if videos and all(v.clock_offset is not None for v in videos):
         said = "declared" if all(v.clock_declared for v in videos) else "registered"
         return (
-            f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
-            f"cameras.json's {said} clock offsets did not fit the tracks (above): where they are right, the "
+            f"{cost}cameras.json's {said} clock offsets did not fit the tracks (above): where they are right, the "
             "cameras do not fit these tracks: check the calibration, and that each video has its own camera)"
         )
     counts = np.bincount(problem.video_index, minlength=len(problem.video_names))
@@ -369,8 +369,7 @@ def _seed_cost_hint(problem: Problem, cameras: CameraSet | None = None) -> str:
         else ""
     )
     return (
-        f" (with {count} point(s) its W-step is singular and {problem.num_frames} frames may take many minutes; "
-        "clock offsets in cameras.json avoid it: register's, or declared for videos on one clock with "
+        f"{cost}clock offsets in cameras.json avoid it: register's, or declared for videos on one clock with "
         f"--synchronized of `run`, `register` or `import-calibration`{alike})"
     )
 

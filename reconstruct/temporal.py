@@ -221,7 +221,8 @@ def refine_on_clocks(
     )
     correction = polished.correction
     cost = [float(c) for c in polished.cost]
-    if _plausible(polished.cost, correction.rate, MAX_RATE_CORRECTION):
+    rejection = _rejection(polished.cost, correction.rate, MAX_RATE_CORRECTION)
+    if rejection is None:
         clocks = clocks.refit(problem.video_index, polished.times)
         refined = polished.result
         report["clock_corrections"] = [
@@ -233,7 +234,7 @@ def refine_on_clocks(
         # clocks.
         log.warning(
             "the clock polish of the refinement was rejected (%s): refining on the estimated clocks",
-            _rejection(polished.cost, correction.rate, MAX_RATE_CORRECTION),
+            rejection,
         )
         report["clock_polish_rejected"] = True
         # the polish's own first refinement had these inputs
@@ -268,18 +269,18 @@ def _finish(
     )
 
 
-def _rejection(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> str:
-    """Which of `_plausible`'s conditions a rejected polish failed, in words."""
+def _rejection(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> str | None:
+    """Why a clock polish is rejected, in words, or None where it is kept: its trajectory cost never rose above its
+    start and no rate moved far."""
     if not np.all(np.isfinite(cost)):
         return "its cost was not finite"
     if max(cost) > POLISH_COST_SLACK * cost[0]:
         return f"its cost rose from {cost[0]:.4g} to {max(cost):.4g}"
+    if np.all(np.abs(rates) <= max_rate_correction):
+        return None
     return f"a rate moved by {100 * float(np.max(np.abs(rates))):.1f} %, over {100 * max_rate_correction:.0f} %"
 
 
 def _plausible(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> bool:
-    """A clock polish is kept when its trajectory cost never rose above its start and no rate moved far."""
-    finite = np.isfinite(cost)
-    return bool(
-        np.all(finite) and max(cost) <= POLISH_COST_SLACK * cost[0] and np.all(np.abs(rates) <= max_rate_correction)
-    )
+    """A clock polish is kept when `_rejection` finds nothing against it."""
+    return _rejection(cost, rates, max_rate_correction) is None

@@ -40,6 +40,14 @@ TWO_VIEWS_WHY = (
 )
 
 
+def unpose_background(results: dict[str, dict[int, FramePose]], name: str, why: str) -> None:
+    """Video `name` loses every pose the background gave it, each frame saying `why` (the subject path's stay)."""
+    results[name] = {
+        f: r if r.source == "subject" else FramePose(pose=None, reason=f"background SfM: {why}")
+        for f, r in results[name].items()
+    }
+
+
 def refuse_two_view_focals(
     model_images: int | None, known: set[str], results: dict[str, dict[int, FramePose]]
 ) -> list[str]:
@@ -50,10 +58,7 @@ def refuse_two_view_focals(
     if model_images != 2 or set(posed) <= known:
         return []
     for name in posed:
-        results[name] = {
-            f: r if r.source == "subject" else FramePose(pose=None, reason=f"background SfM: {TWO_VIEWS_WHY}")
-            for f, r in results[name].items()
-        }
+        unpose_background(results, name, TWO_VIEWS_WHY)
     return posed
 
 
@@ -95,7 +100,7 @@ def check_background(
     agreement = _agreement(tracks, inputs)
     for name, why in agreement.refuted.items():
         warnings.append(f"{name}: the background's pose is not used: {why}")
-        results[name] = {f: FramePose(pose=None, reason=f"background SfM: {why}") for f in results[name]}
+        unpose_background(results, name, why)
     if agreement.refuted:
         log.warning("the subject's tracks refute the background's poses of %s", ", ".join(sorted(agreement.refuted)))
         moving = sorted(v.info.name for v in videos if not v.static and _background_pose(results[v.info.name]))

@@ -52,7 +52,13 @@ from sfm.per_video import (
 )
 from sfm.plan import FramePose, VideoPlan
 from sfm.plan_io import StepNotes, read_poses, read_prepared
-from sfm.register_check import TWO_VIEWS_WHY, background_left, check_background, refuse_two_view_focals
+from sfm.register_check import (
+    TWO_VIEWS_WHY,
+    background_left,
+    check_background,
+    refuse_two_view_focals,
+    unpose_background,
+)
 from sfm.register_markers import MARKER_TRACKS, tracks_from_markers
 from sfm.register_people import match_people
 from sfm.register_subject import pose_from_subject
@@ -707,10 +713,7 @@ def _drop_no_lens(plans: list[VideoPlan], results: Results, warnings: list[str])
         if why is None:
             continue
         refuted[name] = why
-        results[name] = {
-            f: FramePose(pose=None, reason=f"background SfM: {why}") if r.source != "subject" else r
-            for f, r in results[name].items()
-        }
+        unpose_background(results, name, why)
         warnings.append(f"{name}: the background's pose is not used: {why}")
     rest = [p.info.name for p in plans if any(r.pose is not None for r in results[p.info.name].values())]
     if refuted and rest:

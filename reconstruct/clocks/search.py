@@ -679,9 +679,10 @@ def _pairs_and_chain(
         for u in range(v + 1, N)
         if (p := search_pair(tracks, v, u, options, periods, sources)) is not None
     ]
+    misfit = MISFIT_SHARE * options.inlier_px**2  # a pair's cost at which its rays stay apart
     for p in pairs:
         # a best offset no better than the runner-up, or one whose rays stay apart, identifies nothing: said so
-        unsure = p.distinctness < 1.05 or p.cost >= MISFIT_SHARE * options.inlier_px**2
+        unsure = p.distinctness < 1.05 or p.cost >= misfit
         log.info(
             "clock search %s -> %s: own_u = %.4f + %.6f own_v, cost %.2f px^2, runner-up x%.2f%s",
             names[p.v],
@@ -693,7 +694,7 @@ def _pairs_and_chain(
             " (not identified)" if unsure else "",
         )
     said: tuple[str | float, ...] = (*names, *(round(p.cost, 3) for p in pairs))  # searched again later: said once
-    if pairs and all(p.cost >= MISFIT_SHARE * options.inlier_px**2 for p in pairs) and said not in _MISFITS_SAID:
+    if pairs and all(p.cost >= misfit for p in pairs) and said not in _MISFITS_SAID:
         _MISFITS_SAID.add(said)
         best = min(pairs, key=lambda p: p.cost)
         log.warning(
