@@ -779,14 +779,17 @@ def triggered_rate(times: np.ndarray, videos: list[str]) -> float | None:
 
 def export_rate(cameras: CameraSet, frames: int) -> float:
     """Rows per second of an interleaved export: the sum of the videos' frame rates (nominal, or measured from
-    decoder times); 30 Hz per video when neither is known."""
+    decoder times: the median frame step, which gaps of dropped or untracked frames do not lengthen); 30 Hz per
+    video when neither is known."""
     total = 0.0
     for video in cameras.videos:
-        times = [f.time for f in video.frames if f.time is not None]
+        times = np.array(sorted(f.time for f in video.frames if f.time is not None))
+        steps = np.diff(times)
+        steps = steps[steps > 0]
         if video.fps:
             total += float(video.fps)
-        elif len(times) > 1 and max(times) > min(times):
-            total += (len(times) - 1) / (max(times) - min(times))
+        elif steps.size:
+            total += 1.0 / float(np.median(steps))
         else:
             total += 30.0
     return total if total > 0 else 30.0 * max(1, frames)

@@ -38,7 +38,15 @@ from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
 from reconstruct.time_checks import Check, TimePath
-from reconstruct.tracks_path import FEW_POINTS, TracksAttempt, clocks_seed, solve_on_given_clocks, solve_on_tracks
+from reconstruct.tracks_path import (
+    FEW_POINTS,
+    Clocked,
+    TracksAttempt,
+    clocks_seed,
+    solve_on_given_clocks,
+    solve_on_tracks,
+    solve_without_unclocked,
+)
 from reconstruct.tracks_path import applies as tracks_path_applies
 from reconstruct.tracks_path import refereed as tracks_path_refereed
 from reconstruct.trajectory import predicted_px
@@ -178,7 +186,7 @@ def solve(
         problem.num_points,
         int(problem.observed.sum()),
     )
-    result, temporal = _solve_and_refine(problem, options, camera_set)
+    problem, result, temporal = _solve_and_refine(problem, options, camera_set)
     result.timings["read_inputs"] = read_inputs
     # the split of clocks and refinement, where reconstruct/temporal.py reports one
     result.timings.update(temporal.report.get("timings", {}))
@@ -277,10 +285,13 @@ def _only_videos(
     return chosen, tracks.of_videos(names)
 
 
-def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSet) -> tuple[SolveResult, Temporal]:
+def _solve_and_refine(
+    problem: Problem, options: SolveOptions, cameras: CameraSet
+) -> tuple[Problem, SolveResult, Temporal]:
     """The tracks path (for few points, or refereed beyond) when it passes its checks (reconstruct/tracks_path.py),
-    else, for at most FEW_POINTS points, cameras.json's clock offsets when they fit (the seed solve is singular
-    there), else the seed solve and the clocks and refinement after it; the report says which and why."""
+    else, for at most FEW_POINTS points, cameras.json's clock offsets when they fit, else the tracks path on the
+    videos it clocked, the others left out (the seed solve is singular there), else the seed solve and the clocks
+    and refinement after it; the report says which and why. The problem returned is the one solved."""
     temporal_options = options.temporal
     tried: dict[str, Any] | None = None
     attempt_seconds = 0.0
@@ -291,14 +302,21 @@ def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSe
         attempt = solve_on_tracks(problem, temporal_options, referee=options.solver if refereed else None)
         if attempt.temporal is not None and attempt.seed is not None:
             attempt.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
-            return attempt.seed, attempt.temporal
+            return problem, attempt.seed, attempt.temporal
         tried, attempt_seconds = attempt.report, time.perf_counter() - t0
         given = _on_given_offsets(problem, cameras, attempt, temporal_options)
         if given is not None:
             seed, temporal = given
             seed.timings["tracks_path_attempt"] = attempt_seconds
             seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
-            return seed, temporal
+            return problem, seed, temporal
+        clocked = _without_unclocked(problem, attempt, temporal_options)
+        if clocked is not None:
+            seed, temporal = clocked.attempt.seed, clocked.attempt.temporal
+            assert seed is not None and temporal is not None  # solve_without_unclocked returns passed attempts
+            seed.timings["tracks_path_attempt"] = attempt_seconds
+            seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
+            return clocked.problem, seed, temporal
     if tried is not None:
         log.warning("solving with the seed solve%s", _seed_cost_hint(problem, cameras))
     result = solve_problem(problem, options.solver)
@@ -312,7 +330,36 @@ def _solve_and_refine(problem: Problem, options: SolveOptions, cameras: CameraSe
             result.timings["referee"] = tried["referee"]["seconds"]
         result.timings["tracks_path_attempt"] = attempt_seconds  # what the failed attempt cost, referee included
         temporal.report["reason"] = f"tracks path failed its check {tried['failed']!r}: the seed solve was run"
-    return result, temporal
+    return problem, result, temporal
+
+
+def _without_unclocked(problem: Problem, attempt: TracksAttempt, options: TemporalOptions) -> Clocked | None:
+    """Few points whose tracks clock some videos only: the tracks path on those (`solve_without_unclocked`), said in
+    a warning and report.json `temporal.left_out`; None where it does not apply or fails."""
+    if int(reconstructable_points(problem).sum()) > FEW_POINTS:
+        return None
+    clocked = solve_without_unclocked(problem, attempt, options)
+    if clocked is None or clocked.attempt.temporal is None:
+        return None
+    left = ", ".join(clocked.left_out)
+    log.warning(
+        "the tracks give no clock for video(s) %s (check %r failed): left out of the solve (no rows in "
+        "points3d.csv); the other %d videos are solved on their clocks from the tracks, without the seed solve, "
+        "which is singular for %d point(s). To keep them: their clock offsets in cameras.json (register's, or "
+        "--synchronized), or tracks that overlap the others' in time",
+        left,
+        attempt.report["failed"],
+        len(clocked.problem.video_names),
+        int(reconstructable_points(problem).sum()),
+    )
+    report = clocked.attempt.temporal.report
+    report["tracks_path"] = _tried(attempt.report)
+    report["left_out"] = clocked.left_out
+    report["reason"] = (
+        f"tracks path failed its check {attempt.report['failed']!r}; with {FEW_POINTS} or fewer points the seed "
+        f"solve is singular: the tracks path on the videos it clocked, {left} left out"
+    )
+    return clocked
 
 
 def _on_given_offsets(

@@ -274,8 +274,9 @@ def _rejection(cost: list[float], rates: np.ndarray, max_rate_correction: float)
     start and no rate moved far."""
     if not np.all(np.isfinite(cost)):
         return "its cost was not finite"
-    if max(cost) > POLISH_COST_SLACK * cost[0]:
-        return f"its cost rose from {cost[0]:.4g} to {max(cost):.4g}"
+    # the slack is a share of the start's size: a trajectory cost can be negative (exact data)
+    if max(cost) > cost[0] + (POLISH_COST_SLACK - 1.0) * abs(cost[0]):
+        return f"its cost rose from {cost[0]:.6g} to {max(cost):.6g}"
     if np.all(np.abs(rates) <= max_rate_correction):
         return None
     return f"a rate moved by {100 * float(np.max(np.abs(rates))):.1f} %, over {100 * max_rate_correction:.0f} %"

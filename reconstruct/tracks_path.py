@@ -39,6 +39,7 @@ from reconstruct.solver.blas import one_blas_thread
 from reconstruct.solver.initialize import PairInit
 from reconstruct.solver.problem import Problem, reconstructable_points
 from reconstruct.solver.rays import camera_normalization, viewing_rays
+from reconstruct.solver.unseen_frames import take_frames
 from reconstruct.solver.wstep import SparseW
 from reconstruct.temporal import OnClocks, Temporal, TemporalOptions, refine_on_clocks
 from reconstruct.time_checks import MIN_DISTINCTNESS, Check, clock_checks, given_offsets_check
@@ -216,6 +217,38 @@ def solve_on_given_clocks(problem: Problem, clocks: Clocks, options: TemporalOpt
     placed = int((np.isfinite(start).all(axis=-1).any(axis=0)).sum())
     reason = f"{placed} reconstructable point(s) on cameras.json's clock offsets, no self-expressive solve"
     return _accepted(problem, start, on_clocks, checks, report, reason, path)
+
+
+def solve_without_unclocked(problem: Problem, attempt: TracksAttempt, options: TemporalOptions) -> Clocked | None:
+    """Few points whose tracks clock some videos but not all (the path's `identified` check failed): the path on the
+    clocked videos alone, each of the others left out of the solve, instead of the seed solve, which is singular
+    for so few points; None where fewer than two videos were clocked or the path fails a check there too."""
+    if attempt.clocks is None or attempt.report.get("failed") != "identified":
+        return None
+    clocked = np.array([video.identified for video in attempt.clocks.videos])
+    if clocked.sum() < 2 or clocked.all():
+        return None
+    kept = take_frames(problem, clocked[problem.video_index])
+    if not reconstructable_points(kept).any():
+        return None
+    again = solve_on_tracks(kept, options)
+    left_out = [name for name, ok in zip(problem.video_names, clocked, strict=True) if not ok]
+    if again.temporal is None:
+        attempt.report["without_unclocked"] = {
+            key: again.report[key] for key in ("checks", "failed") if key in again.report
+        }
+        return None
+    return Clocked(problem=kept, attempt=again, left_out=left_out)
+
+
+@dataclass(kw_only=True)
+class Clocked:
+    """`solve_without_unclocked`'s result: the problem on the clocked videos, the path's attempt on it, and the
+    videos left out."""
+
+    problem: Problem
+    attempt: TracksAttempt
+    left_out: list[str]
 
 
 def _refine(

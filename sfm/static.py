@@ -186,7 +186,7 @@ def _measure(
         "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
     }
     to_original = 1.0 / work.scale
-    shifts, tracked, hidden = [], [], []
+    shifts, tracked, hidden, good_counts = [], [], [], []
     pixels = np.clip(np.round(corners.reshape(-1, 2)).astype(np.int64), 0, [median.shape[1] - 1, median.shape[0] - 1])
     for k, gray in enumerate(grays):
         moved, status, _ = cv2.calcOpticalFlowPyrLK(median, gray, corners, None, **lk)  # type: ignore[call-overload]
@@ -197,11 +197,15 @@ def _measure(
         hidden.append(bool(visible.mean() < 1.0 - HIDDEN))
         good &= visible
         tracked.append(float(good.sum() / max(1, visible.sum())))
+        good_counts.append(int(good.sum()))
         shifts.append(_camera_shift(corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good], gray.shape) * to_original)
     limit = MAX_SHIFT * max(info.width, info.height)
-    kinds = _sample_kinds(np.array(shifts), np.array(tracked), np.array(hidden, dtype=bool), limit)
-    static, reason = _decide(kinds, frames, shifts, tracked, count, limit)
     long_side = max(info.width, info.height)
+    # a few corners, too few a share to measure, yet MIN_CORNERS of them where the camera rests: the rest hidden
+    # (a person walking away from the camera at the start of a take), not a camera carried
+    at_rest = (np.array(good_counts) >= MIN_CORNERS) & (np.array(shifts) <= SETTLED * long_side)
+    kinds = _sample_kinds(np.array(shifts), np.array(tracked), np.array(hidden, dtype=bool), limit, at_rest)
+    static, reason = _decide(kinds, frames, shifts, tracked, count, limit)
     settled = [
         int(f)
         for f, shift, kind in zip(frames, shifts, kinds, strict=True)
@@ -235,17 +239,22 @@ UNMEASURED = "unmeasured"  # too few corners tracked to measure (occluded, blurr
 HIDDEN_KIND = "hidden"  # the tracked subject covers most corners: not evidence either way
 
 
-def _sample_kinds(shifts: np.ndarray, tracked: np.ndarray, hidden: np.ndarray, limit: float) -> list[str]:
+def _sample_kinds(
+    shifts: np.ndarray, tracked: np.ndarray, hidden: np.ndarray, limit: float, at_rest: np.ndarray | None = None
+) -> list[str]:
     """A measured displacement is evidence even where the tracked subject hides most corners; tracked corners
-    with no rigid group among them (an infinite shift) count as displaced, as before the subject was known."""
+    with no rigid group among them (an infinite shift) count as displaced, as before the subject was known.
+    `at_rest` (S,): samples whose tracked corners, under MIN_TRACKED of them, are enough to place the camera at its
+    main position: at rest, partly hidden."""
+    rest = np.zeros(len(shifts), dtype=bool) if at_rest is None else at_rest
     kinds = []
-    for shift, share, h in zip(shifts, tracked, hidden, strict=True):
+    for shift, share, h, placed in zip(shifts, tracked, hidden, rest, strict=True):
         if share >= MIN_TRACKED and shift > limit and (np.isfinite(shift) or not h):
             kinds.append(DISPLACED)
         elif h:
             kinds.append(HIDDEN_KIND)
         else:
-            kinds.append(REST if share >= MIN_TRACKED else UNMEASURED)
+            kinds.append(REST if share >= MIN_TRACKED or placed else UNMEASURED)
     return _occlusions(kinds, tracked, hidden)
 
 

@@ -550,7 +550,10 @@ def estimate_clocks_from_tracks(problem: Problem, options: ClockOptions | None =
     model = _usable_model(options.model, sources, problem.video_names)
     periods = frame_periods(own, problem.video_index, N)
     centers = video_centers(own, problem.video_index, N)
-    search = search_clocks(problem, own, ref, model, sources, options.track_search)
+    search = search_clocks(
+        problem, own, ref, model, sources, options.track_search, movable_reference=options.reference is None
+    )
+    ref = search.reference
     no_links = LinkFit(
         params=ClockSet.reference_only(centers, ref),
         scale=math.nan,

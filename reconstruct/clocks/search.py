@@ -94,6 +94,7 @@ class SearchResult:
     timing_spread: np.ndarray  # (N,) s, frames' capture-time spread around their clock (jitter), NaN if unknown
     start: str  # "tracks" or "links": the start the refinement kept
     warnings: list[str]
+    reference: int  # the gauge video: the one asked for, unless `search_clocks` could move it
 
 
 @dataclass
@@ -638,9 +639,13 @@ def search_clocks(
     sources: list[TimeSource] | None = None,
     options: SearchOptions | None = None,
     start: ClockSet | None = None,
+    movable_reference: bool = False,
 ) -> SearchResult:
     """Clocks of all videos from the tracks (`sources`: each video's own time source, NOMINAL ones search frame
-    rates; default DECODER); `start` (link clocks of W) is tried as a second start."""
+    rates; default DECODER); `start` (link clocks of W) is tried as a second start. `movable_reference`: where no
+    distinct pair links `ref` to the largest group of videos that distinct pairs link, that group's first video is
+    the reference instead (`SearchResult.reference`), so that a video with a few samples does not leave every other
+    clock unidentified."""
     options = options or SearchOptions()
     N = len(problem.video_names)
     sources = sources or [TimeSource.DECODER] * N
@@ -649,12 +654,39 @@ def search_clocks(
     periods = frame_periods(own, problem.video_index, N)
     centers = video_centers(own, problem.video_index, N)
     pairs, coef, reached = _pairs_and_chain(problem, own, ref, sources, options, counts, periods, centers)
+    if movable_reference:
+        moved = linked_reference(pairs, ref, N, sources)
+        if moved != ref:
+            log.info(
+                "clock search: no distinct pair links %s to the others: %s is the clock reference",
+                problem.video_names[ref],
+                problem.video_names[moved],
+            )
+            ref = moved
+            coef, reached = _chain(pairs, ref, N, centers)
     full_tracks = video_tracks(problem, own, np.flatnonzero(counts > 0))
     starts: list[tuple[str, np.ndarray, np.ndarray]] = [("tracks", coef, reached)]
     if start is not None and start.identified.sum() > 1:
         starts.append(("links", start.coef.copy(), start.identified.copy()))
     best = _best_start(starts, full_tracks, centers, ref, model, sources, options, periods)
     return _search_result(best, pairs, centers, ref, periods, problem.video_names)
+
+
+def linked_reference(pairs: list[PairHypothesis], ref: int, num_videos: int, sources: list[TimeSource]) -> int:
+    """`ref`, unless the distinct pairs link a larger group of videos without it: then that group's first video with
+    decoder times (else its first)."""
+    label = np.arange(num_videos)
+    for p in pairs:
+        if p.distinctness >= MIN_DISTINCTNESS and np.isfinite(p.cost):
+            a, b = label[p.v], label[p.u]
+            label[label == max(a, b)] = min(a, b)
+    sizes = np.bincount(label, minlength=num_videos)
+    largest = int(np.argmax(sizes))  # ties: the group of the lowest-numbered video
+    if sizes[label[ref]] >= sizes[largest]:
+        return ref
+    group = np.flatnonzero(label == largest)
+    decoder = [int(v) for v in group if sources[v] is TimeSource.DECODER]
+    return decoder[0] if decoder else int(group[0])
 
 
 def _pairs_and_chain(
@@ -798,4 +830,5 @@ def _search_result(
         timing_spread=spread,
         start=label,
         warnings=warnings,
+        reference=ref,
     )

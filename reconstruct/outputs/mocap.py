@@ -280,9 +280,12 @@ def _read_trc(path: Path) -> Mocap:
         raise InputError(
             path, f"only {len(lines)} line(s); a TRC file has 5 header lines", fix="check that the file is complete"
         )
+    # OpenSim writes tabs; some tools (pyomeca's test files, spreadsheet exports) write commas, padded with empty
+    # columns to the data's width.
+    separator = "," if "\t" not in lines[1] and "," in lines[1] else "\t"
     # Columns of lines 2-3 are padded with extra tabs in some exports: pair the non-empty tokens instead.
-    keys = lines[1].split()
-    values = lines[2].split()
+    keys = lines[1].replace(separator, " ").split()
+    values = lines[2].replace(separator, " ").split()
     header = dict(zip(keys, values, strict=False))
     try:
         rate = float(header["DataRate"])
@@ -297,7 +300,7 @@ def _read_trc(path: Path) -> Mocap:
     if scale is None:
         raise InputError(path, f"unknown Units {units!r}", where="line 3", fix="expected mm, cm or m")
     # Marker names follow Frame# and Time; their column spacing varies between exporters: keep the order only.
-    names = [n.strip() for n in lines[3].split("\t")[2:] if n.strip()]
+    names = [n.strip() for n in lines[3].split(separator)[2:] if n.strip()]
     if declared_markers == 0 or not names:
         raise InputError(path, "the file has no markers", where="line 4")
     if len(names) != declared_markers:
@@ -311,13 +314,13 @@ def _read_trc(path: Path) -> Mocap:
     rows: list[list[float]] = []
     first_time = math.nan
     for number, line in enumerate(lines[5:], start=6):
-        if not line.strip():
+        if not line.replace(separator, "").strip():  # blank, or empty columns only (commas)
             continue
-        fields = line.split("\t")
+        fields = line.split(separator)
         if len(fields) < width:
             raise InputError(
                 path,
-                f"expected {width} tab-separated fields, found {len(fields)}",
+                f"expected {width} {'comma' if separator == ',' else 'tab'}-separated fields, found {len(fields)}",
                 where=f"line {number}",
                 fix="the file may be truncated",
             )

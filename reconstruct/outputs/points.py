@@ -65,7 +65,7 @@ def write_points(path: str | Path, points: FramePoints) -> Path:
         [prefix + name for prefix in prefixes for name in names],
         *(_column(points.xyz[..., axis]) for axis in range(3)),
         np.where(points.observed.astype(bool).ravel(), "1", "0").tolist(),
-        *(_column(points.extra[e]) for e in extra_names),
+        *(_column(points.extra[e], integer=e in COUNT_COLUMNS) for e in extra_names),
     ]
     lines = map(",".join, zip(*columns, strict=True))
     with atomic_open(path, "w", newline="") as handle:
@@ -87,8 +87,12 @@ def _cell(text: str) -> str:
     return buffer.getvalue()[:-2]
 
 
-def _column(values: np.ndarray) -> list[str]:
-    """`_format` of every value of an (F, P) array, frame-major."""
+# Extra columns that hold counts or 0/1 (docs/formats.md): written as integers, so that `flag == 1` matches as text.
+COUNT_COLUMNS = frozenset({"flag", "views", "component"})
+
+
+def _column(values: np.ndarray, integer: bool = False) -> list[str]:
+    """`_format` of every value of an (F, P) array, frame-major; `integer`: whole values without ".0"."""
     flat = np.ascontiguousarray(values, dtype=float).ravel()
     bits = flat.view(np.int64)  # distinct bit patterns: -0.0 and 0.0 are written differently
     if len(bits) > 4096 and any(
@@ -96,14 +100,17 @@ def _column(values: np.ndarray) -> list[str]:
         for sample in (bits[:1024], bits[:: len(bits) // 1024])  # a frame's run of points, and across frames
     ):
         distinct, inverse = np.unique(bits, return_inverse=True)
-        texts = _texts(distinct.view(float))
+        texts = _texts(distinct.view(float), integer)
         return list(map(texts.__getitem__, inverse.ravel().tolist()))
-    return _texts(flat)
+    return _texts(flat, integer)
 
 
-def _texts(values: np.ndarray) -> list[str]:
-    """repr of each (N,) value, "" where not finite."""
+def _texts(values: np.ndarray, integer: bool = False) -> list[str]:
+    """repr of each (N,) value, "" where not finite; `integer`: whole values as integers."""
     texts = list(map(float.__repr__, values.tolist()))
+    if integer:
+        for i in np.flatnonzero(np.isfinite(values) & (values == np.round(values))).tolist():
+            texts[i] = str(int(values[i]))
     for i in np.flatnonzero(~np.isfinite(values)).tolist():
         texts[i] = ""
     return texts

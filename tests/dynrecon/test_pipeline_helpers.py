@@ -74,3 +74,20 @@ def test_a_triggered_rig_is_exported_at_its_own_rate() -> None:
     mixed = np.concatenate([np.arange(120) / 30, np.arange(100) / 25 + 0.013])
     assert triggered_rate(mixed, ["a"] * 120 + ["b"] * 100) is None
     assert triggered_rate(np.arange(5) / 30, ["a"] * 5) is None  # one video
+
+
+def test_the_export_rate_is_not_lowered_by_dropped_frames() -> None:
+    """A video's rate from decoder times is its median frame step: frames dropped (incomplete motion-capture frames,
+    untracked stretches) leave gaps that a rate over the whole span would count as a slower camera."""
+    from dynrecon.pipeline import export_rate
+    from sfm.cameras import CameraSet, FrameCamera, VideoCameras
+
+    def video(name: str, times: np.ndarray) -> VideoCameras:
+        frames = [
+            FrameCamera(frame=i, K=np.eye(3), R=np.eye(3), t=np.zeros(3), time=float(t)) for i, t in enumerate(times)
+        ]
+        return VideoCameras(name=name, width=640, height=480, frames=frames)
+
+    steady = np.arange(120) / 60.0
+    gapped = np.delete(steady, np.arange(30, 70))  # 40 frames dropped in the middle
+    assert export_rate(CameraSet(videos=[video("a", steady), video("b", gapped)]), 200) == pytest.approx(120.0)

@@ -109,17 +109,19 @@ def test_one_point_is_fitted_on_the_given_offsets_without_the_seed_solve(flight:
     assert not given.seed.stages and "w_step" not in given.report["timings"]  # no seed solve
     checks = {c["name"]: c for c in report["checks"]}
     assert checks["given_offsets"]["passed"] and checks["tracks_fit"]["passed"]
-    # against the seed solve, the path without offsets: several times closer to the truth
-    seed = solve(read_cameras(flight / "cameras.json"), flight / "tracks.csv", options)
-    assert seed.report["temporal"]["path"] != PATH and seed.seed.stages
+    # without the offsets the tracks clock four videos only: cam0 (4 samples) is left out of the solve; the given
+    # offsets keep all five, as close to the truth
+    none = solve(read_cameras(flight / "cameras.json"), flight / "tracks.csv", options)
+    assert none.report["temporal"]["left_out"] == ["cam0"] and not none.seed.stages
+    assert len(given.problem.video_names) == 5 and "cam0" not in none.problem.video_names
     mine, theirs = (
         _error(flight, given.temporal.points, given.problem),
-        _error(flight, seed.temporal.points, seed.problem),
+        _error(flight, none.temporal.points, none.problem),
     )
-    assert mine < 0.5 * theirs, (mine, theirs)
+    assert mine < 1.2 * theirs, (mine, theirs)
 
 
-def test_wrong_given_offsets_are_refused_and_the_seed_solve_decides(flight: Path) -> None:
+def test_wrong_given_offsets_are_refused_and_the_tracks_decide(flight: Path) -> None:
     result = solve(_cameras(flight, wrong=WRONG_S), flight / "tracks.csv", SolveOptions(recording=None))
     report = result.report["temporal"]
     assert report["path"] != PATH
@@ -127,7 +129,7 @@ def test_wrong_given_offsets_are_refused_and_the_seed_solve_decides(flight: Path
     assert tried["failed"] == "given_offsets"
     # nor taken after the seed solve: the same pairs refute them there
     assert report[PATH]["criterion"] == "given_offsets" and report[PATH]["kept"] == "solve"
-    assert result.seed.stages
+    assert report["left_out"] == ["cam0"]  # the videos the tracks clock, solved on their clocks
 
 
 def test_a_pair_refutes_only_with_a_clearly_distinct_search_outside_the_basin() -> None:

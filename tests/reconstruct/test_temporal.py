@@ -53,6 +53,9 @@ def test_a_clock_polish_whose_cost_rises_or_rate_runs_away_is_rejected():
     assert not _plausible([10.0, 9.0, 1e6], np.array([0.0, 1e-4]), 0.01)  # the cost exploded
     assert not _plausible([10.0, 9.0], np.array([0.0, 0.24]), 0.01)  # a clock stretched by 24 %
     assert not _plausible([10.0, float("nan")], np.array([0.0, 0.0]), 0.01)
+    # exact data: a negative cost that stays where it was is no rise (FreeMoCap's rig, projected without noise)
+    assert _plausible([-0.008739, -0.008739], np.array([0.0, 0.0]), 0.01)
+    assert not _plausible([-1.0, -0.5], np.array([0.0, 0.0]), 0.01)
 
 
 def test_a_track_clock_a_cycle_off_loses_to_the_links_clock(monkeypatch):

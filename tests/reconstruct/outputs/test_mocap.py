@@ -86,6 +86,21 @@ def test_trc_with_padded_header_and_crlf(tmp_path: Path) -> None:
     assert back.missing().tolist() == [[False, False], [False, True]]
 
 
+def test_a_comma_separated_trc_reads_as_its_tab_separated_twin(tmp_path: Path) -> None:
+    # pyomeca's test files: the OpenSim layout with commas, padded with empty columns to the data's width
+    mocap = _synthetic(frames=5, markers=2)
+    tabbed = write_trc(tmp_path / "tabs.trc", mocap)
+    lines = tabbed.read_text().splitlines()
+    width = 2 + 3 * 2
+    commas = [",".join((line.split("\t") + [""] * width)[: max(width, len(line.split("\t")))]) for line in lines]
+    path = tmp_path / "commas.trc"
+    path.write_text("\n".join(commas) + "\n")
+    back = read_mocap(path)
+    assert back.rate == 100.0 and back.marker_names == mocap.marker_names
+    np.testing.assert_allclose(back.xyz, mocap.xyz, rtol=1e-12)
+    np.testing.assert_allclose(back.times, mocap.times, atol=1e-12)
+
+
 @pytest.mark.parametrize(
     ("name", "content", "message"),
     [

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
+from reconstruct.outputs.points import COUNT_COLUMNS, FramePoints, Sequencing, write_points, write_sequencing
 
 AWKWARD = [0.0, -0.0, 1e16, 1e-5, 1e-4, 123456789012345678.0, 5e-324, -1.5, math.nan, math.inf, -math.inf, 0.1]
 
@@ -26,10 +26,17 @@ def _csv_reference(points: FramePoints) -> str:
                     name,
                     *("" if not math.isfinite(v) else repr(float(v)) for v in points.xyz[f, p]),
                     int(bool(points.observed[f, p])),
-                    *("" if not math.isfinite(v) else repr(float(v)) for v in (e[f, p] for e in points.extra.values())),
+                    *(_cell(e[f, p], name in COUNT_COLUMNS) for name, e in points.extra.items()),
                 ]
             )
     return buffer.getvalue()
+
+
+def _cell(value: float, count: bool) -> str:
+    """An extra column's cell: counts and 0/1 flags whole (`flag == 1` matches as text), other values by repr."""
+    if not math.isfinite(value):
+        return ""
+    return str(int(value)) if count and value == round(value) else repr(float(value))
 
 
 def _points(F: int, P: int, seed: int) -> FramePoints:
@@ -44,7 +51,12 @@ def _points(F: int, P: int, seed: int) -> FramePoints:
         point_names=[f"p{p}" if p % 3 else f"p,{p}" for p in range(P)],
         xyz=xyz,
         observed=rng.random((F, P)) < 0.5,
-        extra={"repeated": repeated, "flag": (rng.random((F, P)) < 0.1).astype(float), "ints": np.ones((F, P), int)},
+        extra={
+            "repeated": repeated,
+            "flag": np.where(rng.random((F, P)) < 0.05, np.nan, (rng.random((F, P)) < 0.1).astype(float)),
+            "views": rng.choice([1.0, 2.0, 3.5, -0.0, math.nan], (F, P)),
+            "ints": np.ones((F, P), int),
+        },
     )
 
 
