@@ -312,11 +312,9 @@ def _solve_and_refine(
             return problem, seed, temporal
         clocked = _without_unclocked(problem, attempt, temporal_options)
         if clocked is not None:
-            seed, temporal = clocked.attempt.seed, clocked.attempt.temporal
-            assert seed is not None and temporal is not None  # solve_without_unclocked returns passed attempts
-            seed.timings["tracks_path_attempt"] = attempt_seconds
-            seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
-            return clocked.problem, seed, temporal
+            clocked.seed.timings["tracks_path_attempt"] = attempt_seconds
+            clocked.seed.timings["clocks_and_refinement"] = time.perf_counter() - t0
+            return clocked.problem, clocked.seed, clocked.temporal
     if tried is not None:
         log.warning("solving with the seed solve%s", _seed_cost_hint(problem, cameras))
     result = solve_problem(problem, options.solver)
@@ -339,7 +337,7 @@ def _without_unclocked(problem: Problem, attempt: TracksAttempt, options: Tempor
     if int(reconstructable_points(problem).sum()) > FEW_POINTS:
         return None
     clocked = solve_without_unclocked(problem, attempt, options)
-    if clocked is None or clocked.attempt.temporal is None:
+    if clocked is None:
         return None
     left = ", ".join(clocked.left_out)
     log.warning(
@@ -352,7 +350,7 @@ def _without_unclocked(problem: Problem, attempt: TracksAttempt, options: Tempor
         len(clocked.problem.video_names),
         int(reconstructable_points(problem).sum()),
     )
-    report = clocked.attempt.temporal.report
+    report = clocked.temporal.report
     report["tracks_path"] = _tried(attempt.report)
     report["left_out"] = clocked.left_out
     report["reason"] = (

@@ -219,10 +219,22 @@ def solve_on_given_clocks(problem: Problem, clocks: Clocks, options: TemporalOpt
     return _accepted(problem, start, on_clocks, checks, report, reason, path)
 
 
+@dataclass(kw_only=True)
+class Clocked:
+    """`solve_without_unclocked`'s result: the problem on the clocked videos, the path's result on it (as
+    `TracksAttempt`'s when it passes), and the videos left out."""
+
+    problem: Problem
+    seed: SolveResult
+    temporal: Temporal
+    left_out: list[str]
+
+
 def solve_without_unclocked(problem: Problem, attempt: TracksAttempt, options: TemporalOptions) -> Clocked | None:
     """Few points whose tracks clock some videos but not all (the path's `identified` check failed): the path on the
     clocked videos alone, each of the others left out of the solve, instead of the seed solve, which is singular
-    for so few points; None where fewer than two videos were clocked or the path fails a check there too."""
+    for so few points; None where fewer than two videos were clocked or the path fails a check there too (said in
+    `attempt.report["without_unclocked"]`)."""
     if attempt.clocks is None or attempt.report.get("failed") != "identified":
         return None
     clocked = np.array([video.identified for video in attempt.clocks.videos])
@@ -232,23 +244,13 @@ def solve_without_unclocked(problem: Problem, attempt: TracksAttempt, options: T
     if not reconstructable_points(kept).any():
         return None
     again = solve_on_tracks(kept, options)
-    left_out = [name for name, ok in zip(problem.video_names, clocked, strict=True) if not ok]
-    if again.temporal is None:
+    if again.temporal is None or again.seed is None:
         attempt.report["without_unclocked"] = {
             key: again.report[key] for key in ("checks", "failed") if key in again.report
         }
         return None
-    return Clocked(problem=kept, attempt=again, left_out=left_out)
-
-
-@dataclass(kw_only=True)
-class Clocked:
-    """`solve_without_unclocked`'s result: the problem on the clocked videos, the path's attempt on it, and the
-    videos left out."""
-
-    problem: Problem
-    attempt: TracksAttempt
-    left_out: list[str]
+    left_out = [name for name, ok in zip(problem.video_names, clocked, strict=True) if not ok]
+    return Clocked(problem=kept, seed=again.seed, temporal=again.temporal, left_out=left_out)
 
 
 def _refine(
