@@ -34,7 +34,9 @@ MIN_VIEWS = 10  # views a camera needs
 MAX_VIEWS = 80  # evenly spaced views kept at most (the fit's cost grows with them)
 MAX_RMS_PX = 1.5  # reprojection rms of the board fit
 MAX_FOCAL_STD = 0.03  # standard deviation of the focal length / focal length
-MAX_PP_STD = 0.03  # standard deviation of the principal point / long side
+# standard deviation of the principal point / long side: real principal points lie within a few % of the image
+# centre, which the subject path holds where it has no intrinsics; a less certain estimate is no better than that
+MAX_PP_STD = 0.015
 # A view whose rms exceeds this x the median and MAX_RMS_PX (a misread corner id, not an oblique view) is left out
 # and the fit redone once.
 OUTLIER_VIEW = 3.0
@@ -160,9 +162,11 @@ def calibrate_from_board(tracks: Tracks, video: str, size: tuple[int, int], boar
             f"{MIN_TILT_SPREAD_DEG:.0f} needed): tilt it towards and away from the camera"
         )
     elif not (focal_std <= MAX_FOCAL_STD and pp_std <= MAX_PP_STD * long_side):
+        more = "at more angles and distances" if focal_std > MAX_FOCAL_STD else "near every edge of the image too"
         result.why = (
             f"the views do not determine the intrinsics (focal +-{100 * focal_std:.1f} %, principal point "
-            f"+-{pp_std:.0f} px): show the board at more angles and distances"
+            f"+-{pp_std:.0f} px, of at most {100 * MAX_FOCAL_STD:g} % and {MAX_PP_STD * long_side:.0f}): show the "
+            f"board {more}"
         )
     elif not inside:
         result.why = f"implausible intrinsics (focal {K[0, 0]:.0f} px, principal point {K[0, 2]:.0f}, {K[1, 2]:.0f})"

@@ -470,10 +470,11 @@ def finish_capture(
                 f" (the tracks were the corners of the {markers['dictionary']} markers in view, {markers['file']})"
             )
     registered_videos = [v for v in plans if any(r.pose is not None for r in results[v.info.name].values())]
-    moving_hint = _moving_hint(plans, registered_videos, tracks, options)
-    if moving_hint and len(registered_videos) >= 2:  # a failure says it in its error instead
+    failing = len(registered_videos) < 2
+    moving_hint = _moving_hint(plans, registered_videos, tracks, options, failing)
+    if moving_hint and not failing:  # a failure says it in its error instead
         notes.warnings.append(moving_hint)
-    if len(registered_videos) < 2:
+    if failing:
         # a video with some frames posed says how many: "registered" alone read as the whole video
         names = ", ".join(_posed_share(v, results[v.info.name]) for v in registered_videos) or "none"
         _fail(
@@ -656,21 +657,28 @@ def _repeat(warnings: list[str]) -> None:
 
 
 def _moving_hint(
-    plans: list[VideoPlan], registered: list[VideoPlan], tracks: Tracks | None, options: RegisterOptions
+    plans: list[VideoPlan],
+    registered: list[VideoPlan],
+    tracks: Tracks | None,
+    options: RegisterOptions,
+    failing: bool = False,
 ) -> str | None:
-    """One line for tracked videos that the motion test found moving and nothing posed: the subject path poses
-    only static cameras, and a subject filling a tripod's view (a board held close) can look like camera motion."""
+    """One line for tracked videos that the motion test found moving and nothing posed (`failing`: also those the
+    background posed, in a registration that fails): the subject path poses only static cameras, and a subject
+    filling a tripod's view (a board held close, a person walking away from it) can look like camera motion."""
     if options.camera_motion is not CameraMotion.AUTO or tracks is None:
         return None
     tracked = set(tracks.video_names())
     posed = {v.info.name for v in registered}
-    lost = [v for v in plans if not v.static and v.info.name not in posed and v.info.name in tracked]
+    lost = [v for v in plans if not v.static and (failing or v.info.name not in posed) and v.info.name in tracked]
     if not lost:
         return None
     reasons = "; ".join(f"{v.info.name}: {v.motion.reason}" for v in lost if v.motion is not None)
+    unposed = all(v.info.name not in posed for v in lost)
     return (
-        f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and not posed; the subject path "
-        "poses static cameras only: if they stood still, register (or run) again with --camera-motion static"
+        f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and "
+        f"{'not posed' if unposed else 'left to the background'}; the subject path poses static cameras only: if "
+        "they stood still, register (or run) again with --camera-motion static"
     )
 
 

@@ -117,6 +117,24 @@ def test_views_that_do_not_determine_the_focal_are_refused() -> None:
     assert not found.used and "one orientation" in (found.why or ""), found.to_json()
 
 
+def test_views_on_one_side_of_the_image_leave_the_principal_point_undetermined() -> None:
+    """Every view in the right third of the image: the focal is determined (under 3 %) but the principal point is
+    not, and one further than real principal points lie from the image centre is no better than the centre that the
+    subject path holds (caliscope's older office session: +-35 px and 96 px off, its rotations 2.5 x the centre's)."""
+    rng = np.random.default_rng(2)
+    centre = np.array([0.108, 0.135, 0.0])
+    poses = []
+    for _ in range(60):
+        R = cv2.Rodrigues(np.radians(rng.uniform(-30, 30, 3) * np.array([1, 1, 0.5])))[0]
+        depth = rng.uniform(0.9, 1.4)
+        t = np.array([rng.uniform(0.28, 0.38) * depth, rng.uniform(-0.1, 0.1) * depth, depth]) - R @ centre
+        poses.append((cv2.Rodrigues(R)[0], t))
+    found = calibrate_from_board(_tracks("cam", poses, noise_px=0.6, seed=2), "cam", SIZE, BOARD)
+    report = found.to_json()
+    assert report["focal_std_pct"] < 3.0 and report["pp_std_px"] > 0.015 * max(SIZE), report
+    assert not found.used and "principal point" in (found.why or ""), report
+
+
 def test_too_few_views_say_how_many() -> None:
     tracks = _tracks("cam", _board_poses(np.random.default_rng(4), MIN_VIEWS - 1, tilt_deg=35), noise_px=0.3)
     found = calibrate_from_board(tracks, "cam", SIZE, BOARD)

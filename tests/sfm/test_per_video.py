@@ -159,6 +159,10 @@ def test_a_tracked_video_found_moving_and_left_unposed_is_named_with_the_way_out
     assert hint.endswith("register (or run) again with --camera-motion static")
     assert _moving_hint([plan], [], tracks, RegisterOptions(camera_motion=CameraMotion.MOVING)) is None
     assert _moving_hint([plan], [plan], tracks, RegisterOptions()) is None
+    # posed by the background alone in a registration that fails (caliscope's port_1, which a person walking away
+    # hid in its first samples, posed from its own frames): named, as the way out may be static
+    failing = _moving_hint([plan], [plan], tracks, RegisterOptions(), failing=True)
+    assert failing is not None and "left to the background" in failing and "--camera-motion static" in failing
     assert _moving_hint([plan], [], Tracks.from_rows([("cam1", 0, "a", 1.0, 2.0)]), RegisterOptions()) is None
     assert _moving_hint([plan], [], None, RegisterOptions()) is None
 
