@@ -94,13 +94,22 @@ def evaluate(
                 f"video {key[0]!r} frame {key[1]} is not in the truth",
                 fix=f"evaluate against the truth of the same capture ({truth_path or 'truth'})",
             )
+    # a video without one row was left out of the solve (report.json temporal.left_out): its rows are unreconstructed
+    solved_videos = set(estimate.videos)
     for key in truth_rows:
-        if key not in estimate_rows:
+        if key not in estimate_rows and key[0] in solved_videos:
             raise InputError(
                 estimate_path,
                 f"video {key[0]!r} frame {key[1]} of the truth has no row",
                 fix="the estimate must have one row for every posed frame and point",
             )
+    left_out = sorted(set(truth.videos) - solved_videos)
+    if left_out:
+        log.warning(
+            "video(s) %s have no rows in the estimate (left out of the solve): their truth rows count as "
+            "unreconstructed",
+            ", ".join(left_out),
+        )
     extra_points = sorted(set(estimate.point_names) - set(truth.point_names))
     if extra_points:
         raise InputError(
@@ -118,9 +127,10 @@ def evaluate(
         )
 
     # Estimate rearranged into the truth's frame and point order.
-    frame_order = np.array([estimate_rows[key] for key in truth_rows], dtype=np.int64)
+    frame_order = np.array([estimate_rows.get(key, -1) for key in truth_rows], dtype=np.int64)
     point_order = np.array([estimate_points[name] for name in truth.point_names], dtype=np.int64)
     guess = estimate.xyz[frame_order][:, point_order]  # (F, P, 3)
+    guess[frame_order < 0] = np.nan
     has_truth = np.isfinite(truth.xyz).all(axis=2)  # (F, P)
     reconstructed = np.isfinite(guess).all(axis=2)
     errors_fp = np.where(reconstructed, np.linalg.norm(np.nan_to_num(guess - truth.xyz), axis=2), np.inf)

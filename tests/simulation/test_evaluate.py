@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -128,6 +129,30 @@ def test_mismatched_rows_are_errors() -> None:
     )
     with pytest.raises(InputError, match="point 'p1' of the truth has no rows"):
         evaluate(one_point, truth)
+
+
+def test_a_video_left_out_of_the_solve_counts_as_unreconstructed(caplog: pytest.LogCaptureFixture) -> None:
+    """A solve that left a video out (its clock not found: report.json temporal.left_out) writes no row for it: its
+    truth rows are scored as unreconstructed, not refused and not dropped from the count."""
+    _, truth = frame_points([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    two = FramePoints(
+        videos=["a", "a", "b"],
+        frames=np.array([0, 1, 0]),
+        point_names=truth.point_names,
+        xyz=truth.xyz,
+        observed=truth.observed,
+    )
+    without_b = FramePoints(
+        videos=["a", "a"],
+        frames=np.array([0, 1]),
+        point_names=truth.point_names,
+        xyz=truth.xyz[:2] + 0.5,
+        observed=truth.observed[:2],
+    )
+    with caplog.at_level(logging.WARNING):
+        accuracy = evaluate(without_b, two)
+    assert accuracy.count == 6 and accuracy.unreconstructed == 2
+    assert any("video(s) b have no rows" in r.getMessage() for r in caplog.records)
 
 
 def test_run_reads_files_and_reports_missing_ones(tmp_path: Path) -> None:
