@@ -71,16 +71,19 @@ def pnp(c: VideoObs, offset: float, knots: Knots, inlier_px: float) -> tuple[np.
     if ok.sum() < 6:
         return None
     obj, img = X[ok].astype(np.float64), c.norm[ok].astype(np.float64)
-    found, rvec, tvec, inl = cv2.solvePnPRansac(
-        obj,
-        img,
-        np.eye(3),
-        None,
-        iterationsCount=2000,
-        reprojectionError=2 * inlier_px / c.focal,
-        confidence=0.9999,
-        flags=cv2.SOLVEPNP_EPNP,
-    )
+    try:
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj,
+            img,
+            np.eye(3),
+            None,
+            iterationsCount=2000,
+            reprojectionError=2 * inlier_px / c.focal,
+            confidence=0.9999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
+    except cv2.error:  # degenerate samples (a few positions repeated) can assert inside OpenCV: no pose
+        return None
     if not found or inl is None or len(inl) < 6:
         return None
     inl = inl.ravel()
@@ -101,14 +104,17 @@ def initial_poses(
     best = max(usable, key=lambda f: (not f.ambiguous, f.inliers))  # a trusted offset first
     E = best.E
     # re-estimate E in the current normalized coordinates (focal estimates may have changed since the search)
-    E2, _mask = cv2.findEssentialMat(
-        best.xa,
-        best.xb,
-        np.eye(3),
-        method=cv2.USAC_MAGSAC,
-        prob=0.9999,
-        threshold=inlier_px / np.sqrt(obs[best.a].focal * obs[best.b].focal),
-    )
+    try:
+        E2, _mask = cv2.findEssentialMat(
+            best.xa,
+            best.xb,
+            np.eye(3),
+            method=cv2.USAC_MAGSAC,
+            prob=0.9999,
+            threshold=inlier_px / np.sqrt(obs[best.a].focal * obs[best.b].focal),
+        )
+    except cv2.error:  # USAC asserts on some degenerate samples: the search's model stands
+        E2 = None
     if E2 is not None and E2.shape == (3, 3):
         E = E2
     assert E is not None  # usable pairs have a model

@@ -278,14 +278,19 @@ def _geometry(
     f_mean = float(np.sqrt(oa.focal * ob.focal))
     thr = inlier_px / f_mean
     F: np.ndarray | None = None
-    if essential:
-        E, mask = cv2.findEssentialMat(
-            xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=iterations
-        )
-    else:
-        # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
-        pa, pb = xa * oa.focal, xb * ob.focal
-        F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, inlier_px, 0.9999, iterations)
+    try:
+        if essential:
+            E, mask = cv2.findEssentialMat(
+                xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=iterations
+            )
+        else:
+            # an F in centred pixels of the focal guesses (their principal points), then Bougnoux's focals
+            pa, pb = xa * oa.focal, xb * ob.focal
+            F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, inlier_px, 0.9999, iterations)
+    except cv2.error as error:  # USAC asserts on some degenerate samples (a few positions repeated) instead
+        fit.reason = f"no epipolar geometry found (OpenCV: {str(error).strip().splitlines()[-1]})"
+        return fit
+    if not essential:
         if F is not None and F.shape == (3, 3):
             fa, fb = bougnoux(F)
             fit.focals = (fa, fb)
@@ -334,7 +339,10 @@ def _degeneracy(xa: np.ndarray, xb: np.ndarray, thr: float) -> str | None:
         s = np.linalg.svd(x - x.mean(0), compute_uv=False)
         if s[1] < 0.01 * s[0] or s[1] < 3 * thr * np.sqrt(len(x)):  # thickness within noise of a line
             return "line"
-    H, mask = cv2.findHomography(xa, xb, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
+    try:
+        H, mask = cv2.findHomography(xa, xb, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
+    except cv2.error:  # degenerate samples can assert inside OpenCV: no homography found
+        return None
     if H is not None and mask is not None and mask.sum() >= 0.9 * len(xa):
         return "plane"
     return None

@@ -22,3 +22,34 @@ def test_a_singular_sample_scores_nothing_and_the_others_are_fitted() -> None:
     F = eight_point(np.stack([xa, bad_a]), np.stack([xb, bad_b]), essential=True)
     assert np.isfinite(F).all()
     assert float(sampson(F[0][None], xa, xb).max()) < 1e-12  # the good sample's exact geometry
+
+
+def test_an_opencv_assertion_in_a_pair_fit_is_a_pair_without_geometry(monkeypatch) -> None:
+    """OpenCV's USAC asserts (`!model.empty()` in setModelParameters) on some degenerate correspondences (Pose2Sim's
+    multi-person lab, 3 points, two nearly still): `register` ended in a traceback without its report. The pair now
+    has no geometry, with OpenCV's words as its reason, and the path goes on with the others."""
+    import cv2
+
+    from sfm.subject.model import SubjectVideo
+    from sfm.subject.observations import build_observations
+    from sfm.subject.pairs import fit_at
+    from tracking.tracks import Tracks
+
+    rng = np.random.default_rng(1)
+    frames = np.arange(60)
+    X = np.c_[np.sin(frames / 9.0), np.cos(frames / 7.0), 5.0 + 0.3 * np.sin(frames / 5.0)]
+    rows = []
+    for name, shift in (("a", 0.0), ("b", 0.8)):
+        x = (X[:, 0] + shift) / X[:, 2] * 800 + 640 + rng.normal(0, 0.3, 60)
+        y = X[:, 1] / X[:, 2] * 800 + 360 + rng.normal(0, 0.3, 60)
+        rows += [(name, int(f), "p", float(u), float(v)) for f, u, v in zip(frames, x, y, strict=True)]
+    videos = [SubjectVideo(name=n, width=1280, height=720, times=frames / 30.0) for n in ("a", "b")]
+    _, obs = build_observations(Tracks.from_rows(rows), videos)
+
+    def assertion(*args: object, **kwargs: object) -> None:
+        raise cv2.error("OpenCV(5.0.0) estimator.cpp:418: error: (-215:Assertion failed) !model.empty()")
+
+    monkeypatch.setattr(cv2, "findFundamentalMat", assertion)
+    monkeypatch.setattr(cv2, "findEssentialMat", assertion)
+    fit = fit_at(obs[0], obs[1], 0, 1, 0.0)
+    assert fit.E is None and fit.reason is not None and "no epipolar geometry found (OpenCV" in fit.reason
