@@ -67,6 +67,12 @@ def _add_track(subparsers: argparse._SubParsersAction) -> None:
         default=defaults.win_size,
         help=f"LK window side in pixels (default {defaults.win_size})",
     )
+    parser.add_argument(
+        "--no-closure-check",
+        action="store_true",
+        help="keep a track that reaches the point's next label far from it (by default its frames count only where "
+        "the track from the other label confirms them: drift)",
+    )
     parser.set_defaults(func=_run_track)
 
 
@@ -87,6 +93,7 @@ def _run_track(args: argparse.Namespace) -> int:
         min_score=args.min_score,
         fb_threshold=args.fb_threshold,
         win_size=args.win_size,
+        closure_check=not args.no_closure_check,
     )
     path = run(args.workspace, args.out, options, videos=args.videos)
     print(path)  # noqa: T201

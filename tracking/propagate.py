@@ -102,14 +102,53 @@ def track_video(
 
     forward, failed_forward = _sweep(frames, clean, options, +1, tick)
     backward, failed_backward = _sweep(frames, clean, options, -1, tick)
-    if options.closure_check:
-        # A track that arrives at the next label far from it drifted somewhere on the way: its positions count
-        # only where the track from the other side confirms them.
-        forward, backward = (
-            _confirmed_only(forward, failed_forward, backward, options),
-            _confirmed_only(backward, failed_backward, forward, options),
+    if not options.closure_check:
+        return _combine(clean, forward, backward, options, num_frames)
+    # A track that arrives at the next label far from it drifted somewhere on the way: its positions count only
+    # where the track from the other side confirms them.
+    confirmed_forward = _confirmed_only(forward, failed_forward, backward, options)
+    confirmed_backward = _confirmed_only(backward, failed_backward, forward, options)
+    _say_unconfirmed(name, forward, backward, confirmed_forward, confirmed_backward)
+    return _combine(clean, confirmed_forward, confirmed_backward, options, num_frames)
+
+
+def _say_unconfirmed(name: str, forward: _Sweep, backward: _Sweep, kept_forward: _Sweep, kept_backward: _Sweep) -> None:
+    """One warning per point whose tracked frames the closure check dropped, with the frames and how far apart the
+    two sweeps were there: a label placed on another spot of the point (a drag correction) drops a whole stretch."""
+    for point in sorted(set(forward) | set(backward)):
+        fwd, bwd = forward.get(point, {}), backward.get(point, {})
+        kept = set(kept_forward.get(point, {})) | set(kept_backward.get(point, {}))
+        dropped = sorted((set(fwd) | set(bwd)) - kept)
+        if not dropped:
+            continue
+        apart = [
+            float(np.hypot(*(np.asarray(fwd[f][:2]) - np.asarray(bwd[f][:2]))))
+            for f in dropped
+            if f in fwd and f in bwd
+        ]
+        how = f"median {np.median(apart):.0f} px apart" if apart else "one side lost it"
+        log.warning(
+            "%s: point %r: tracked frames %s dropped: the tracks from its labels on either side disagree there (%s, "
+            "over %g px): one drifted, or the labels mark different spots of it; look at those frames in `dynrecon "
+            "label` and move a label or add one between (or track with --no-closure-check)",
+            name,
+            point,
+            _runs(dropped),
+            how,
+            AGREE_PX,
         )
-    return _combine(clean, forward, backward, options, num_frames)
+
+
+def _runs(frames: list[int], shown: int = 3) -> str:
+    """'1-59, 70-72' for sorted frames, the first `shown` runs."""
+    runs: list[list[int]] = []
+    for frame in frames:
+        if runs and frame == runs[-1][1] + 1:
+            runs[-1][1] = frame
+        else:
+            runs.append([frame, frame])
+    text = ", ".join(f"{a}-{b}" if b > a else str(a) for a, b in runs[:shown])
+    return text + (f" and {len(runs) - shown} more stretch(es)" if len(runs) > shown else "")
 
 
 def _confirmed_only(sweep: _Sweep, failed: _Failed, other: _Sweep, options: TrackOptions) -> _Sweep:

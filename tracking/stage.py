@@ -79,9 +79,37 @@ def run(
             frames.close()
         tracked = sum(1 for pts in results[name].values() for p in pts.values() if p.source != SOURCE_LABEL)
         log.info("%s: %d labels, %d tracked positions", name, sum(len(v) for v in marks.values()), tracked)
+        _say_lost(name, results[name], marks, len(frames))
     rows = _rows(results)
     rows += _kept_rows(old, set(results), labels)
     return write_tracks(out, _to_tracks(rows))
+
+
+# A labeled point found on fewer than this share of its video's frames is named in a warning (the page's timeline
+# shows where; the log alone gave totals over all points)
+LOST_SHARE = 0.5
+
+
+def _say_lost(name: str, tracked: dict[str, dict[int, TrackedPoint]], marks: dict, num_frames: int) -> None:
+    """One warning for the points of video `name` found (labels included) on under LOST_SHARE of its frames, each
+    with its frames found and its longest stretch without a position."""
+    lost = []
+    for point in sorted(marks):
+        if not any(xy is not None for xy in marks[point].values()):
+            continue  # marked hidden only: nothing was asked of the tracker
+        frames = sorted(tracked.get(point, {}))
+        if len(frames) >= LOST_SHARE * num_frames:
+            continue
+        edges = [-1, *frames, num_frames]
+        gap, at = max((b - a - 1, a + 1) for a, b in zip(edges[:-1], edges[1:], strict=True))
+        lost.append(f"{point!r} on {len(frames)} of {num_frames} frames (none in {at}-{at + gap - 1})")
+    if lost:
+        log.warning(
+            "%s: tracked %s: lost by the tracker (too little texture, hidden, or fast): label it on more frames "
+            "(`dynrecon label`), or mark the frames where it is hidden",
+            name,
+            "; ".join(lost),
+        )
 
 
 def _grouped(raw: dict[labels_csv.Key, labels_csv.Label]) -> AllLabels:

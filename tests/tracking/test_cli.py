@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -165,3 +166,29 @@ def test_import_tracks_command(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert "--map: 'broken' is not old=new" in capsys.readouterr().err
     assert main(["import-tracks", str(tmp_path / "nope.csv"), "--out", str(out)]) == 2
     assert "nope.csv: file not found" in capsys.readouterr().err
+
+
+def test_a_point_the_tracker_loses_is_named_with_its_frames(
+    tmp_path: Path, small_video: SyntheticVideo, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A label on a spot without texture (Pose2Sim's swim cap): the tracker finds it on no other frame. The log gave
+    only the video's totals; now a warning names the point, its frames found and the stretch without it."""
+    import logging
+
+    ws = _workspace(tmp_path, small_video)
+    assert small_video.frames is not None
+    first = small_video.frames[0]
+    gray = first if first.ndim == 2 else first.mean(axis=2)
+    # the flattest 9x9 patch of the first frame, away from the border
+    variance = np.array(
+        [[gray[y - 4 : y + 5, x - 4 : x + 5].var() for x in range(20, 300, 4)] for y in range(20, 220, 4)]
+    )
+    y, x = np.unravel_index(int(np.argmin(variance)), variance.shape)
+    with (ws / "labels.csv").open("a") as handle:
+        handle.write(f"cam0,0,ghost,{20 + 4 * x},{20 + 4 * y},label\n")
+    with caplog.at_level(logging.WARNING):
+        assert main(["track", str(ws)]) == 0
+    said = [r.getMessage() for r in caplog.records if "lost by the tracker" in r.getMessage()]
+    found = re.search(r"'ghost' on (\d+) of 40 frames \(none in (\d+)-39\)", said[0]) if len(said) == 1 else None
+    assert found is not None and int(found[1]) < 20, said
+    assert not any(f"'{name}'" in said[0] for name in small_video.names)  # the tracked markers are not named

@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import logging
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -138,14 +141,20 @@ def test_brightness_normalization_survives_auto_exposure_flicker() -> None:
     assert abs(float(a.mean()) - float(b.mean())) < 1.0 and abs(float(a.std()) - float(b.std())) < 1.0
 
 
-def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(small_video: SyntheticVideo) -> None:
+def test_tracks_that_miss_the_next_label_are_dropped_unless_confirmed(
+    small_video: SyntheticVideo, caplog: pytest.LogCaptureFixture
+) -> None:
     uv = small_video.uv
     p = int(np.flatnonzero(small_video.visible[:12].all(axis=0))[0])
     # Two labels 5 px apart from what the video shows between them: each track arrives 5 px off the other
     # label, so neither can be trusted and the frames between stay unobserved.
     labels = {"m": {0: (float(uv[0, p, 0]), float(uv[0, p, 1])), 10: (float(uv[10, p, 0]) + 5, float(uv[10, p, 1]))}}
-    checked = track_video(_frames(small_video), labels, TrackOptions())["m"]
+    with caplog.at_level(logging.WARNING):
+        checked = track_video(_frames(small_video), labels, TrackOptions(), name="cam0")["m"]
     assert not any(f in checked for f in range(1, 10))
+    # said, with the frames and how far apart the two sides were (a drag correction dropped 59 frames silently)
+    said = [r.getMessage() for r in caplog.records if "point 'm': tracked frames 1-9 dropped" in r.getMessage()]
+    assert len(said) == 1 and "cam0" in said[0] and re.search(r"median [3-6] px apart", said[0]), said
     assert 11 in checked  # after the last label nothing can be checked: tracked as usual
     unchecked = track_video(_frames(small_video), labels, TrackOptions(closure_check=False))["m"]
     assert all(f in unchecked for f in range(1, 10))
