@@ -42,7 +42,10 @@ log = logging.getLogger(__name__)
 COMMON_FPS = (23.976, 24.0, 25.0, 29.97, 30.0, 48.0, 50.0, 59.94, 60.0, 120.0)
 MAD_TO_SIGMA = 1.4826
 COARSE_STEP_PERIODS = 0.5  # final grid step in frame periods of the slower video of a pair
-MAX_HYPOTHESES = 600  # offsets on the first, coarser grid of a pair (then the fine step around the best)
+MAX_HYPOTHESES = 600  # offsets on the first, coarser grid of a pair (then the fine step around the best) ...
+# ... unless the subject's image speed makes a basin narrower than that grid's step: then one step per basin (the
+# time the tracks take to move `inlier_px`), up to this many offsets
+MAX_DENSE_HYPOTHESES = 20_000
 MIN_OVERLAP = 12  # interpolated samples a hypothesis needs
 MIN_OVERLAP_SHARE = 0.15  # ... and this share of the shorter video's observed samples
 MAX_GAP_PERIODS = 2.5  # no interpolation across a gap longer than this (missing frames)
@@ -294,6 +297,20 @@ def pair_cost(tracks: list[VideoRays], v: int, u: int, alpha: float, beta: float
     return float(_grid_cost(tracks, v, u, qv, qu, np.array([alpha]), beta, need, options.inlier_px**2)[0])
 
 
+def _image_speed(*tracks: VideoRays) -> float:
+    """The median speed (px/s) of the tracks' points in their images between consecutive observed samples of each
+    video (0 without any)."""
+    speeds = []
+    for track in tracks:
+        dt = np.diff(track.own)
+        near = (dt > 0) & (dt <= track.max_gap)
+        moved = np.linalg.norm(track.rays[1:] - track.rays[:-1], axis=-1)  # (n-1, P) chord ~ angle (rad)
+        px = moved * track.focal[1:, None] / np.where(near, dt, np.inf)[:, None]
+        speeds.append(px[np.isfinite(px) & near[:, None]])
+    values = np.concatenate(speeds) if speeds else np.zeros(0)
+    return float(np.median(values)) if values.size else 0.0
+
+
 def search_pair(
     tracks: list[VideoRays], v: int, u: int, options: SearchOptions, periods: np.ndarray, sources: list[TimeSource]
 ) -> PairHypothesis | None:
@@ -304,13 +321,14 @@ def search_pair(
         return None  # videos of one timed frame each have no frame period to step a search by
     step = COARSE_STEP_PERIODS * float(np.nanmax(periods[[v, u]]))
     c2 = options.inlier_px**2
+    basin = options.inlier_px / max(_image_speed(tv, tu), 1e-9)  # s: a fast ball's offsets are sharp
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
     best: PairHypothesis | None = None
     for beta in betas:
         # own_u = alpha + beta own_v overlaps when alpha spans [u start - beta v end, u end - beta v start].
         lo = tu.own[0] - beta * tv.own[-1]
         hi = tu.own[-1] - beta * tv.own[0]
-        coarse = max(step, (hi - lo) / MAX_HYPOTHESES)
+        coarse = max(step, min((hi - lo) / MAX_HYPOTHESES, basin), (hi - lo) / MAX_DENSE_HYPOTHESES)
         alphas = np.arange(lo, hi + coarse, coarse)
         cost = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
         if not np.isfinite(cost).any():
@@ -584,6 +602,29 @@ def _refine(joint: _Joint, theta: np.ndarray, options: SearchOptions, steps: np.
     return _Refined(theta=theta, cov=cov, scale=scale, cost=cost, coverage=len(values))
 
 
+def _weakly_supported(
+    identified: np.ndarray, pairs: list[PairHypothesis], ref: int, names: list[str], misfit: float
+) -> list[str]:
+    """A warning per clocked video none of whose pairs is distinct and brings its rays together at its best offset,
+    where other pairs do (every pair at the misfit level is said once by `_pairs_and_chain`): its clock rests on
+    pairs that single nothing out, and one point's trajectory bends to meet its rays on a wrong clock too."""
+    if not any(p.cost < misfit for p in pairs):
+        return []
+    out = []
+    for v in np.flatnonzero(identified):
+        mine = [p for p in pairs if v in (p.v, p.u)]
+        if v == ref or not mine or any(p.distinctness >= MIN_DISTINCTNESS and p.cost < misfit for p in mine):
+            continue
+        closest = min(mine, key=lambda p: p.cost)
+        out.append(
+            f"video {names[v]!r}: no pair of videos with it brings the rays together at a distinct offset "
+            f"(closest: {names[closest.v]}-{names[closest.u]}, {closest.cost:.0f} px^2, of {misfit:.0f} at which "
+            f"rays stay apart, runner-up x{closest.distinctness:.2f}): its clock is weakly supported; check its "
+            "points, or give its clock offset"
+        )
+    return out
+
+
 def cluster_covariance(J: np.ndarray, r: np.ndarray, weights: np.ndarray, clusters: np.ndarray) -> np.ndarray:
     """Cluster-robust (sandwich) covariance of a weighted least-squares estimate: H^-1 M H^-1 with H = J^T W J and
     M = sum over clusters of (J_c^T W_c r_c)(J_c^T W_c r_c)^T, times n / (n - p).
@@ -669,7 +710,8 @@ def search_clocks(
     if start is not None and start.identified.sum() > 1:
         starts.append(("links", start.coef.copy(), start.identified.copy()))
     best = _best_start(starts, full_tracks, centers, ref, model, sources, options, periods)
-    return _search_result(best, pairs, centers, ref, periods, problem.video_names)
+    misfit = MISFIT_SHARE * options.inlier_px**2
+    return _search_result(best, pairs, centers, ref, periods, problem.video_names, misfit)
 
 
 def linked_reference(pairs: list[PairHypothesis], ref: int, num_videos: int, sources: list[TimeSource]) -> int:
@@ -794,6 +836,7 @@ def _search_result(
     ref: int,
     periods: np.ndarray,
     names: list[str],
+    misfit: float = math.inf,
 ) -> SearchResult:
     """The refined clocks (identified with a finite covariance and a positive rate), residuals and jitter."""
     N = len(centers)
@@ -822,6 +865,7 @@ def _search_result(
         for v in range(N)
         if not params.identified[v]
     ]
+    warnings += _weakly_supported(params.identified, pairs, ref, names, misfit)
     return SearchResult(
         params=params,
         pairs=pairs,
