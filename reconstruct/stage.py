@@ -421,7 +421,8 @@ def _seed_cost_hint(problem: Problem, cameras: CameraSet | None = None) -> str:
 
 def _tried(report: dict[str, Any]) -> dict[str, Any]:
     """report.json `temporal.tracks_path`: the failed attempt's checks (and referee, offsets tried after it)."""
-    return {key: report[key] for key in ("checks", "failed", "referee", "registered_offsets") if key in report}
+    keys = ("checks", "failed", "referee", "registered_offsets", "without_unclocked")
+    return {key: report[key] for key in keys if key in report}
 
 
 def run(

@@ -68,3 +68,23 @@ def test_a_video_the_tracks_cannot_clock_is_left_out_and_the_others_solved_on_th
     assert seed.seed.stages
     mine, theirs = _median_error(flight, result), _median_error(flight, seed)
     assert mine < 0.4 * theirs, (mine, theirs)
+
+
+def test_where_the_clocked_videos_fail_too_the_seed_solve_runs_and_says_why(
+    flight: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import reconstruct.tracks_path as tracks_path
+
+    original = tracks_path.solve_on_tracks
+
+    def failing_without_cam0(problem, options, referee=None):  # type: ignore[no-untyped-def]
+        if "cam0" in problem.video_names:
+            return original(problem, options, referee)
+        report = {"checks": [{"name": "tracks_fit", "passed": False}], "failed": "tracks_fit"}
+        return tracks_path.TracksAttempt(temporal=None, seed=None, report=report)
+
+    monkeypatch.setattr(tracks_path, "solve_on_tracks", failing_without_cam0)
+    result = solve(flight / "cameras.json", flight / "tracks.csv", SolveOptions(recording=None))
+    temporal = result.report["temporal"]
+    assert result.seed.stages and "left_out" not in temporal
+    assert temporal["tracks_path"]["without_unclocked"]["failed"] == "tracks_fit"
