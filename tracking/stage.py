@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 from pathlib import Path
 
@@ -101,7 +102,7 @@ def _say_lost(name: str, tracked: dict[str, dict[int, TrackedPoint]], marks: dic
         if len(frames) >= LOST_SHARE * num_frames:
             continue
         edges = [-1, *frames, num_frames]
-        gap, at = max((b - a - 1, a + 1) for a, b in zip(edges[:-1], edges[1:], strict=True))
+        gap, at = max((b - a - 1, a + 1) for a, b in itertools.pairwise(edges))
         lost.append(f"{point!r} on {len(frames)} of {num_frames} frames (none in {at}-{at + gap - 1})")
     if lost:
         log.warning(

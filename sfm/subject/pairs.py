@@ -278,6 +278,7 @@ def _geometry(
     f_mean = float(np.sqrt(oa.focal * ob.focal))
     thr = inlier_px / f_mean
     F: np.ndarray | None = None
+    E: np.ndarray | None = None
     try:
         if essential:
             E, mask = cv2.findEssentialMat(
