@@ -96,6 +96,8 @@ class StaticCamera:
     # K[1, 2] still lacks the image height (a DLT whose rows count up from the bottom: the file gives no height);
     # intrinsics_at_video_size adds the video's
     cy_plus_height: bool = False
+    # other names the file gives the camera (caliscope's older sessions: `port = N` of [cam_N], videos port_N.mp4)
+    aliases: tuple[str, ...] = ()
 
     @property
     def has_pose(self) -> bool:
@@ -351,7 +353,13 @@ def read_toml(path: str | Path, units: Units = Units.AUTO) -> list[StaticCamera]
                 raise InputError(path, "has one of rotation / translation but not the other", where=where)
             R = _toml_rotation(section, path, where)
             t = _toml_array(section, "translation", (3,), path, where) * metres
-        cameras.append(StaticCamera(name=name, width=round(size[0]), height=round(size[1]), K=K, dist=dist, R=R, t=t))
+        port = section.get("port")
+        aliases = (f"port_{port}",) if isinstance(port, int) and not isinstance(port, bool) else ()
+        cameras.append(
+            StaticCamera(
+                name=name, width=round(size[0]), height=round(size[1]), K=K, dist=dist, R=R, t=t, aliases=aliases
+            )
+        )
     if not cameras:
         raise InputError(
             path,
@@ -528,10 +536,17 @@ def read_calibration(
 def camera_named(cameras: list[StaticCamera], name: str) -> StaticCamera | None:
     """The camera named `name` exactly, else the one camera whose name matches it when case, separators, leading
     zeros and a video suffix are ignored (None when several do: cam1 with both cam01 and cam_1), else the one
-    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix)."""
+    camera whose name begins or ends the video's (minimal_back.mp4 for `back`: a session's prefix), else the one
+    camera the file also names so (`StaticCamera.aliases`: caliscope's port_1.mp4 for `port = 1`)."""
     names = [c.name for c in cameras]
     found = spelled_alike(name, names) or within_name(name, names)
-    return next(c for c in cameras if c.name == found[0]) if len(found) == 1 else None
+    if len(found) == 1:
+        return next(c for c in cameras if c.name == found[0])
+    if not found:  # a name the file gives besides the camera's own (caliscope's port_N)
+        aliases = {alias: camera for camera in cameras for alias in camera.aliases}
+        alike = spelled_alike(name, list(aliases))
+        return aliases[alike[0]] if len(alike) == 1 else None
+    return None
 
 
 def match_cameras(cameras: list[StaticCamera], videos: list[ProbedVideo], path: Path) -> list[StaticCamera]:

@@ -293,6 +293,26 @@ def test_caliscope_round_trip(tmp_path: Path, config: bool) -> None:
     _assert_same(read_calibration(path), [cameras[0], cameras[2]])  # cam_1 has ignore = true
 
 
+def test_an_older_caliscope_sessions_port_videos_find_their_cameras(tmp_path: Path) -> None:
+    """caliscope's older sessions write [cam_N] with `port = N` and record port_N.mp4: each video takes the camera
+    of its port, also where the file has more cameras than the session has videos."""
+    cameras = _random_cameras(["cam_0", "cam_1", "cam_2"])
+    text = _write_caliscope(tmp_path / "config.toml", cameras, config=True).read_text(encoding="utf-8")
+    # ports in another order than the tables: the port decides, not the position
+    for index, port in enumerate((2, 0, 1)):
+        text = text.replace(f"cam_id = {index}\n", f"port = {port}\n", 1)
+    (tmp_path / "config.toml").write_text(text, encoding="utf-8")
+    videos = []
+    for port in (1, 2):
+        _write_video(tmp_path / f"port_{port}.mp4", 5, (64, 48))
+        videos.append(str(tmp_path / f"port_{port}.mp4"))
+    assert main(["import-calibration", str(tmp_path / "config.toml"), *videos, "--out", str(tmp_path / "ws")]) == 0
+    written = read_cameras(tmp_path / "ws" / "cameras.json")
+    # port 1 is the third table's camera (cam_2), port 2 the first's (cam_0)
+    for video, table in zip(written.videos, (2, 0), strict=True):
+        np.testing.assert_allclose(video.frames[0].K, cameras[table].K)
+
+
 def test_freemocap_round_trip_millimetres(tmp_path: Path) -> None:
     """FreeMoCap: camera names are the video stems; [metadata] charuco_square_size means mm translations."""
     cameras = _random_cameras(["Camera_000_synchronized", "Camera_001_synchronized"])
