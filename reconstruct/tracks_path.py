@@ -145,6 +145,7 @@ def _attempt(
     problem: Problem, options: TemporalOptions, referee: SolverOptions | None, stack: ExitStack
 ) -> TracksAttempt:
     t0 = time.perf_counter()
+    what = f"the tracks path on the {len(problem.video_names)} videos was"  # a second try may take fewer
     clock_options = options.clock_options(problem)
     index = subsample_without_clocks(problem) if referee is not None else None
     running, beside_what = None, ""
@@ -157,7 +158,7 @@ def _attempt(
     many = int(reconstructable_points(problem).sum()) > FEW_POINTS
     checks = clock_checks(problem, clocks, MANY_POINTS_DISTINCTNESS if many else MIN_DISTINCTNESS)
     if not all(c.passed for c in checks):
-        return _failed(checks, report, clocks)  # leaving the stack stops a referee still running
+        return _failed(checks, report, clocks, what)  # leaving the stack stops a referee still running
     if referee is not None and running is None:
         index = subsample(problem, clocks.global_time)
         running = stack.enter_context(beside(_timed_referee, problem, index, referee, clock_options))
@@ -169,7 +170,7 @@ def _attempt(
     on_clocks = _refine(problem, start, clocks, clock_options.model, options, checks)
     if on_clocks is None:
         # clocks that passed the track checks but break the refinement: the seed solve decides, as on a failed check
-        return _failed(checks, report, clocks)
+        return _failed(checks, report, clocks, what)
     timings["refinement"] = time.perf_counter() - t0
     if running is not None and index is not None:
         t0 = time.perf_counter()
@@ -182,11 +183,11 @@ def _attempt(
         timings["referee_wait"] = time.perf_counter() - t0
         checks.append(check)
         if not check.passed:
-            return _failed(checks, report, clocks)
+            return _failed(checks, report, clocks, what)
     gap = clocks.diagnostics.get("track_residual_px")
     checks.append(_fit_check(problem, on_clocks, gap if isinstance(gap, float) else math.nan, "the tracks' clocks"))
     if not all(c.passed for c in checks):
-        return _failed(checks, report, clocks)
+        return _failed(checks, report, clocks, what)
     placed = int((np.isfinite(start).all(axis=-1).any(axis=0)).sum())
     reason = f"{placed} reconstructable point(s): clocks from the tracks, no self-expressive solve"
     return _accepted(problem, start, on_clocks, checks, report, reason, PATH)
