@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from sfm.subject.bundle import Bundle, adjust, camera_residuals, held_out_px, residuals_px, rotation, supported
 from sfm.subject.chain import Knots, initial_poses, make_knots
-from sfm.subject.focals import division_to_opencv, estimate_distortion, self_calibrate
+from sfm.subject.focals import RANGE, division_to_opencv, estimate_distortion, self_calibrate
 from sfm.subject.model import (
     CLAIM_RATIO,
     INLIER_PX,
@@ -40,6 +40,7 @@ from tracking.tracks import Tracks
 log = logging.getLogger(__name__)
 
 PP_SIGMA = 0.0  # principal point prior around the image centre (fraction of the long side); 0 = held there
+BOUND_TOLERANCE = 0.01  # a self-calibrated focal within this (log) of the search's bound sits at it
 HELD_OUT_GAIN = 0.95  # radial distortion is kept where it predicts held-out observations this much better
 BLOCK_S = 0.5  # seconds of a camera's own time per held-out block
 FOCAL_SIGMA = 0.1  # relative prior on the self-calibrated focal (weighted like all of a camera's observations)
@@ -568,6 +569,7 @@ def _estimate_focals(
         return False
     lam = estimate_distortion(obs, fits) if radial else {}
     focals = self_calibrate(obs, fits)
+    _refuse_bounded(obs, {i: f for i, f in focals.items() if obs[i].name not in (given or {})})
     for i in unknown:
         new = (given or {}).get(obs[i].name, focals.get(i))
         if new is None:
@@ -585,6 +587,23 @@ def _estimate_focals(
                 f.xb = _renormalized(f.xb * old, o, new)
         o.set_focal(new)
     return any(v != 0.0 for v in lam.values())
+
+
+def _refuse_bounded(obs: list[VideoObs], focals: dict[int, float]) -> None:
+    """Self-calibrated focals at the search's bounds (RANGE x the long side) are no measurement: the pairs'
+    geometry does not determine them (blob tracks of a mouse in a lab's arena gave 0.25 and 4 x, then the path ran
+    for minutes on those lenses), or the lens lies outside the range (a telephoto): refused, naming them."""
+    at = []
+    for i, focal in focals.items():
+        ratio = focal / max(obs[i].video.width, obs[i].video.height)
+        if min(abs(np.log(ratio / bound)) for bound in RANGE) < BOUND_TOLERANCE:
+            at.append(f"{obs[i].name} ({focal:.0f} px, {ratio:.2g} x its image's long side)")
+    if at:
+        raise SubjectCalibrationError(
+            f"the tracks do not determine the focal length of {', '.join(at)}: self-calibration stopped at the "
+            f"bound of its range ({RANGE[0]:g}-{RANGE[1]:g} x the long side); give the cameras' intrinsics "
+            "(--intrinsics, or --board with a calibration board's corners), or track points spread in depth"
+        )
 
 
 def _renormalized(centred: np.ndarray, o: VideoObs, focal: float) -> np.ndarray:

@@ -53,3 +53,22 @@ def test_an_opencv_assertion_in_a_pair_fit_is_a_pair_without_geometry(monkeypatc
     monkeypatch.setattr(cv2, "findEssentialMat", assertion)
     fit = fit_at(obs[0], obs[1], 0, 1, 0.0)
     assert fit.E is None and fit.reason is not None and "no epipolar geometry found (OpenCV" in fit.reason
+
+
+def test_self_calibrated_focals_at_the_search_bound_are_refused() -> None:
+    """DANNCE's mouse arena, blob tracks of 2 points: self-calibration put every focal at 0.25 or 4 x the long side,
+    and the path ran past 9 minutes on those lenses. A focal at the bound is no measurement: refused, named."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from sfm.subject.calibrate import _refuse_bounded
+    from sfm.subject.model import SubjectCalibrationError
+
+    def camera(name: str) -> SimpleNamespace:
+        return SimpleNamespace(name=name, video=SimpleNamespace(width=1328, height=1048))
+
+    obs = [camera("CameraE"), camera("CameraL"), camera("CameraR")]
+    _refuse_bounded(obs, {0: 1100.0, 1: 900.0, 2: 1400.0})  # measured focals pass
+    with pytest.raises(SubjectCalibrationError, match=r"focal length of CameraE \(5312 px, 4 x .*CameraR \(332 px"):
+        _refuse_bounded(obs, {0: 4.0 * 1328, 1: 900.0, 2: 0.25 * 1328})
