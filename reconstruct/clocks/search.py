@@ -46,6 +46,7 @@ MAX_HYPOTHESES = 600  # offsets on the first, coarser grid of a pair (then the f
 # ... unless the subject's image speed makes a basin narrower than that grid's step: then one step per basin (the
 # time the tracks take to move `inlier_px`), up to this many offsets
 MAX_DENSE_HYPOTHESES = 20_000
+DENSE_RATIOS = 2  # where frame rates are unknown, the rate ratios (of the coarse grid's best) searched densely
 MIN_OVERLAP = 12  # interpolated samples a hypothesis needs
 MIN_OVERLAP_SHARE = 0.15  # ... and this share of the shorter video's observed samples
 MAX_GAP_PERIODS = 2.5  # no interpolation across a gap longer than this (missing frames)
@@ -323,16 +324,17 @@ def search_pair(
     c2 = options.inlier_px**2
     basin = options.inlier_px / max(_image_speed(tv, tu), 1e-9)  # s: a fast ball's offsets are sharp
     betas = np.unique(np.round(np.outer(_rate_scales(sources[v]), 1.0 / _rate_scales(sources[u])).ravel(), 9))
-    best: PairHypothesis | None = None
-    for beta in betas:
+
+    def hypothesis(beta: float, dense: bool) -> PairHypothesis | None:
         # own_u = alpha + beta own_v overlaps when alpha spans [u start - beta v end, u end - beta v start].
         lo = tu.own[0] - beta * tv.own[-1]
         hi = tu.own[-1] - beta * tv.own[0]
-        coarse = max(step, min((hi - lo) / MAX_HYPOTHESES, basin), (hi - lo) / MAX_DENSE_HYPOTHESES)
+        narrow = min((hi - lo) / MAX_HYPOTHESES, basin) if dense else (hi - lo) / MAX_HYPOTHESES
+        coarse = max(step, narrow, (hi - lo) / MAX_DENSE_HYPOTHESES)
         alphas = np.arange(lo, hi + coarse, coarse)
         cost = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
         if not np.isfinite(cost).any():
-            continue
+            return None
         i = int(np.argmin(cost))
         far = np.abs(np.arange(len(alphas)) - i) > DISTINCT_STEPS
         runner = float(np.min(cost[far])) if far.any() else np.inf
@@ -343,21 +345,24 @@ def search_pair(
             j = int(np.argmin(fine_cost))
             if fine_cost[j] < best_cost:
                 alpha, best_cost = float(fine[j]), float(fine_cost[j])
-        hypothesis = PairHypothesis(
-            v=v,
-            u=u,
-            alpha=alpha,
-            beta=float(beta),
-            cost=best_cost,
-            runner_up=runner,
-            samples=int(np.sum(np.isfinite(cost))),
+        samples = int(np.sum(np.isfinite(cost)))
+        return PairHypothesis(
+            v=v, u=u, alpha=alpha, beta=float(beta), cost=best_cost, runner_up=runner, samples=samples
         )
-        if best is None or hypothesis.cost < best.cost:
-            if best is not None:
-                hypothesis.runner_up = min(hypothesis.runner_up, best.cost)
-            best = hypothesis
-        else:
-            best.runner_up = min(best.runner_up, hypothesis.cost)
+
+    # Unknown frame rates try many ratios: each on the coarse grid, the dense one (fast points) on the likeliest few.
+    many = len(betas) > 1
+    found = {float(b): h for b in betas if (h := hypothesis(float(b), dense=not many)) is not None}
+    if many:
+        for beta in sorted(found, key=lambda b: found[b].cost)[:DENSE_RATIOS]:
+            dense = hypothesis(beta, dense=True)
+            if dense is not None and dense.cost < found[beta].cost:
+                found[beta] = dense
+    if not found:
+        return None
+    best = min(found.values(), key=lambda h: h.cost)
+    others = [h.cost for h in found.values() if h is not best]
+    best.runner_up = min([best.runner_up, *others])
     return best
 
 
