@@ -777,12 +777,14 @@ def triggered_rate(times: np.ndarray, videos: list[str]) -> float | None:
     return round(1.0 / float(np.nanmin(periods)), 6) if together >= 0.9 * int(known.sum()) else None
 
 
-def export_rate(cameras: CameraSet, frames: int) -> float:
-    """Rows per second of an interleaved export: the sum of the videos' frame rates (nominal, or measured from
-    decoder times: the median frame step, which gaps of dropped or untracked frames do not lengthen); 30 Hz per
-    video when neither is known."""
+def export_rate(cameras: CameraSet, frames: int, videos: set[str] | None = None) -> float:
+    """Rows per second of an interleaved export: the sum of the frame rates of `videos` (default: every video of
+    `cameras`; nominal, or measured from decoder times: the median frame step, which gaps of dropped or untracked
+    frames do not lengthen); 30 Hz per video when neither is known."""
     total = 0.0
     for video in cameras.videos:
+        if videos is not None and video.name not in videos:
+            continue  # left out of the solve: no rows
         times = np.array(sorted(f.time for f in video.frames if f.time is not None))
         steps = np.diff(times)
         steps = steps[steps > 0]
@@ -808,7 +810,7 @@ def _record(
         times = frame_times(points, cameras) if source is OrderSource.TIME else None
     if times is None:
         times = np.empty(points.num_frames)
-        times[order] = np.arange(points.num_frames) / export_rate(cameras, points.num_frames)
+        times[order] = np.arange(points.num_frames) / export_rate(cameras, points.num_frames, set(points.videos))
     xyz, rgb = read_ply(background_path)
     keys = [(v, int(f)) for v, f in zip(points.videos, points.frames, strict=True)]
     known = set(points.point_names)
@@ -851,7 +853,7 @@ def export_points(ws: Path, cameras_path: Path, units: str) -> None:
     cameras = read_cameras(cameras_path)
     sequencing = read_sequencing(ws / "sequencing.json")
     order, source = global_order(points, cameras, sequencing)
-    rate = export_rate(cameras, points.num_frames)
+    rate = export_rate(cameras, points.num_frames, set(points.videos))
     times = clock_times(points, sequencing) if source is OrderSource.CLOCKS else None
     if times is not None:
         rate = triggered_rate(times, points.videos) or rate

@@ -80,10 +80,17 @@ def align_to_truth(points: FramePoints, cameras: CameraSet, truth_cameras: Camer
     return dataclasses.replace(points, xyz=similarity_to_truth(cameras, truth_cameras).apply(points.xyz))
 
 
-def truth_of_frames(truth: FramePoints, points: FramePoints) -> FramePoints:
-    """The rows of `truth` whose (video, frame) `points` has: frames the registration lost are not scored."""
+def truth_of_frames(
+    truth: FramePoints, points: FramePoints, left_out: frozenset[tuple[str, int]] = frozenset()
+) -> FramePoints:
+    """The rows of `truth` whose (video, frame) `points` has: frames the registration lost are not scored; and those
+    of `left_out`, posed (video, frame)s of videos the solve left out, which the score counts as unreconstructed."""
     index = points.index()
-    keep = [i for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True)) if (v, int(f)) in index]
+    keep = [
+        i
+        for i, (v, f) in enumerate(zip(truth.videos, truth.frames, strict=True))
+        if (v, int(f)) in index or (v, int(f)) in left_out
+    ]
     return FramePoints(
         videos=[truth.videos[i] for i in keep],
         frames=truth.frames[keep],
@@ -100,9 +107,15 @@ def score_points(
     true ones, against `truth_path` (same layout as points3d.csv). Truth rows of frames the registration lost are
     left out (the log says how many)."""
     points = read_points(points_path)
-    aligned = align_to_truth(points, read_cameras(cameras_path), read_cameras(truth_cameras_path))
+    cameras = read_cameras(cameras_path)
+    aligned = align_to_truth(points, cameras, read_cameras(truth_cameras_path))
     truth = read_points(truth_path)
-    subset = truth_of_frames(truth, points)
+    solved = set(points.videos)
+    # posed, but left out of the solve (its clock not found: report.json temporal.left_out): unreconstructed
+    left_out = frozenset(
+        (video.name, frame.frame) for video in cameras.videos if video.name not in solved for frame in video.frames
+    )
+    subset = truth_of_frames(truth, points, left_out)
     if subset.num_frames < truth.num_frames:
         log.warning(
             "%d of %d truth frames have no registered camera; not scored",

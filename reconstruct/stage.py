@@ -343,8 +343,8 @@ def _without_unclocked(problem: Problem, attempt: TracksAttempt, options: Tempor
     log.warning(
         "the tracks give no clock for video(s) %s (check %r failed): left out of the solve (no rows in "
         "points3d.csv); the other %d videos are solved on their clocks from the tracks, without the seed solve, "
-        "which is singular for %d point(s). To keep them: their clock offsets in cameras.json (register's, or "
-        "--synchronized), or tracks that overlap the others' in time",
+        "which is singular for %d point(s). To keep them: their clock offsets in cameras.json (`register --offsets "
+        "NAME=S`, or --synchronized for a triggered rig), or tracks that overlap the others' in time",
         left,
         attempt.report["failed"],
         len(clocked.problem.video_names),

@@ -165,7 +165,7 @@ def calibrate_from_board(tracks: Tracks, video: str, size: tuple[int, int], boar
         more = "at more angles and distances" if focal_std > MAX_FOCAL_STD else "near every edge of the image too"
         result.why = (
             f"the views do not determine the intrinsics (focal +-{100 * focal_std:.1f} %, principal point "
-            f"+-{pp_std:.0f} px, of at most {100 * MAX_FOCAL_STD:g} % and {MAX_PP_STD * long_side:.0f}): show the "
+            f"+-{pp_std:.0f} px, of at most {100 * MAX_FOCAL_STD:g} % and {MAX_PP_STD * long_side:.0f} px): show the "
             f"board {more}"
         )
     elif not inside:

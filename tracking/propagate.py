@@ -130,7 +130,7 @@ def _say_unconfirmed(name: str, forward: _Sweep, backward: _Sweep, kept_forward:
         log.warning(
             "%s: point %r: tracked frames %s dropped: the tracks from its labels on either side disagree there (%s, "
             "over %g px): one drifted, or the labels mark different spots of it; look at those frames in `dynrecon "
-            "label` and move a label or add one between (or track with --no-closure-check)",
+            "label` and move a label or add one between (or `dynrecon track --no-closure-check`)",
             name,
             point,
             _runs(dropped),

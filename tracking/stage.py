@@ -92,13 +92,14 @@ LOST_SHARE = 0.5
 
 
 def _say_lost(name: str, tracked: dict[str, dict[int, TrackedPoint]], marks: dict, num_frames: int) -> None:
-    """One warning for the points of video `name` found (labels included) on under LOST_SHARE of its frames, each
-    with its frames found and its longest stretch without a position."""
+    """One warning for the points of video `name` found (labels and frames marked hidden included) on under
+    LOST_SHARE of its frames, each with its frames found and its longest stretch without a position."""
     lost = []
     for point in sorted(marks):
         if not any(xy is not None for xy in marks[point].values()):
             continue  # marked hidden only: nothing was asked of the tracker
-        frames = sorted(tracked.get(point, {}))
+        # frames marked hidden are accounted for: the tracker was asked nothing there
+        frames = sorted(set(tracked.get(point, {})) | {f for f, xy in marks[point].items() if xy is None})
         if len(frames) >= LOST_SHARE * num_frames:
             continue
         edges = [-1, *frames, num_frames]
@@ -107,7 +108,7 @@ def _say_lost(name: str, tracked: dict[str, dict[int, TrackedPoint]], marks: dic
     if lost:
         log.warning(
             "%s: tracked %s: lost by the tracker (too little texture, hidden, or fast): label it on more frames "
-            "(`dynrecon label`), or mark the frames where it is hidden",
+            "(`dynrecon label`)",
             name,
             "; ".join(lost),
         )

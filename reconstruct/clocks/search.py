@@ -625,7 +625,7 @@ def _weakly_supported(
             f"video {names[v]!r}: no pair of videos with it brings the rays together at a distinct offset "
             f"(closest: {names[closest.v]}-{names[closest.u]}, {closest.cost:.0f} px^2, of {misfit:.0f} at which "
             f"rays stay apart, runner-up x{closest.distinctness:.2f}): its clock is weakly supported; check its "
-            "points, or give its clock offset"
+            "points, or give its clock offset (`register --offsets`)"
         )
     return out
 

@@ -289,7 +289,8 @@ def _geometry(
             pa, pb = xa * oa.focal, xb * ob.focal
             F, mask = cv2.findFundamentalMat(pa, pb, cv2.USAC_MAGSAC, inlier_px, 0.9999, iterations)
     except cv2.error as error:  # USAC asserts on some degenerate samples (a few positions repeated) instead
-        fit.reason = f"no epipolar geometry found (OpenCV: {str(error).strip().splitlines()[-1]})"
+        said = str(error).strip().splitlines()
+        fit.reason = f"no epipolar geometry found (OpenCV: {said[-1] if said else type(error).__name__})"
         return fit
     if not essential:
         if F is not None and F.shape == (3, 3):

@@ -91,3 +91,6 @@ def test_the_export_rate_is_not_lowered_by_dropped_frames() -> None:
     steady = np.arange(120) / 60.0
     gapped = np.delete(steady, np.arange(30, 70))  # 40 frames dropped in the middle
     assert export_rate(CameraSet(videos=[video("a", steady), video("b", gapped)]), 200) == pytest.approx(120.0)
+    # a video the solve left out has no rows: its rate is not the export's
+    cameras = CameraSet(videos=[video("a", steady), video("b", gapped)])
+    assert export_rate(cameras, 120, {"a"}) == pytest.approx(60.0)

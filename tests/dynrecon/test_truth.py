@@ -54,3 +54,22 @@ def test_only_the_truth_of_frames_the_estimate_has_is_scored() -> None:
     subset = truth_of_frames(truth, estimate)
     assert subset.num_frames == len(keep) and subset.videos == estimate.videos
     np.testing.assert_array_equal(subset.xyz, truth.xyz[keep])
+
+
+def test_a_video_the_solve_left_out_is_scored_as_unreconstructed() -> None:
+    """Its frames have cameras but no rows (the solve found no clock for it): kept for the score, as `evaluate`
+    counts them, not dropped as frames the registration lost."""
+    truth = read_points(SAMPLE / "truth.csv")
+    first = truth.videos[0]
+    keep = [i for i, v in enumerate(truth.videos) if v != first]
+    estimate = replace(
+        truth,
+        videos=[truth.videos[i] for i in keep],
+        frames=truth.frames[keep],
+        xyz=truth.xyz[keep],
+        observed=truth.observed[keep],
+    )
+    left_out = frozenset((v, int(f)) for v, f in zip(truth.videos, truth.frames, strict=True) if v == first)
+    subset = truth_of_frames(truth, estimate, left_out)
+    assert subset.num_frames == truth.num_frames
+    assert truth_of_frames(truth, estimate).num_frames == len(keep)
