@@ -39,6 +39,7 @@ from sfm.layout import Layout
 from sfm.masks import check_mask_folder
 from sfm.options import ALL_CORES, CameraMotion, Localize, Mapper, RegisterOptions, SubjectPath, declared_offsets
 from sfm.pairs import build_pairs, word_vectors
+from sfm.path_check import drop_spikes
 from sfm.per_video import (
     capture_facts,
     clear_outputs,
@@ -73,6 +74,9 @@ log = logging.getLogger(__name__)
 
 Results = dict[str, dict[int, FramePose]]  # video name -> frame -> its outcome
 MERGE_STEP = "merge"
+# A background model needs this many 3D points to be kept: fewer pose its images on next to nothing, and a frame's
+# localization needs `RegisterOptions.min_inliers` (30) 2D-3D matches
+MIN_MODEL_POINTS = 30
 _wanted_frames = wanted_frames  # its older name (tests)
 
 
@@ -286,7 +290,7 @@ def map_capture(out: Path, videos: list[str], options: RegisterOptions) -> dict[
             infos = [p.plan.info for p in prepared]
             intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
             models = _map(len(videos), names_of, intrinsics, layout, options, steps, notes)
-        model = _largest_model(models, notes)
+        model = _largest_model(models, notes, _model_points(layout, models))
     notes.reused = steps.reused
     mapping = {
         "model": model,
@@ -396,8 +400,22 @@ def _map(
     return models
 
 
-def _largest_model(models: dict[str, int], notes: StepNotes) -> str | None:
-    """The name of the model with the most images (None without a model); the others are named in a warning."""
+def _model_points(layout: Layout, models: dict[str, int]) -> dict[str, int]:
+    """Each model's 3D points."""
+    return {name: int(pycolmap.Reconstruction(str(layout.model_dir / name)).num_points3D()) for name in models}
+
+
+def _largest_model(models: dict[str, int], notes: StepNotes, points: dict[str, int] | None = None) -> str | None:
+    """The name of the model with the most images among those with MIN_MODEL_POINTS 3D points or more (None
+    without one); the others are named in a warning. A model without points poses its images on nothing and
+    localizes no frame: a helper's handheld pan kept one of 13 images and 0 points, exit 0."""
+    thin = {k: n for k, n in (points or {}).items() if n < MIN_MODEL_POINTS}
+    if thin:
+        notes.warnings.append(
+            f"background SfM model(s) {', '.join(f'{k} ({models[k]} images, {n} points)' for k, n in thin.items())} "
+            f"have under {MIN_MODEL_POINTS} 3D points: not kept"
+        )
+    models = {k: v for k, v in models.items() if k not in thin}
     if not models:
         notes.warnings.append(
             "background SfM found no model: no pair of images gave an initial model (too few matches, too narrow "
@@ -443,6 +461,7 @@ def finish_capture(
     summary = _Summary(pairs=mapping["pairs"], matching=mapping["matching"], rec=rec)
     _drop_implausible(results, notes.warnings)
     _drop_no_lens(plans, results, notes.warnings)
+    drop_spikes(plans, results, notes.warnings)
     with collected(notes), timed(notes, "background_check"):
         intrinsics = known_intrinsics(options.intrinsics, [p.info for p in plans]) if options.intrinsics else {}
         images = rec.num_reg_images() if rec is not None else None

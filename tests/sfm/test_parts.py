@@ -299,3 +299,19 @@ def test_public_front_is_lazy() -> None:
     assert all(hasattr(sfm, name) for name in sfm.__all__)
     with pytest.raises(AttributeError):
         _ = sfm.no_such_name
+
+
+def test_a_background_model_without_points_is_not_kept() -> None:
+    """A handheld pan gave 4 models and kept one of 13 images and 0 points: every frame localized against it failed,
+    and the 13 images' poses rested on nothing, exit 0. Models under MIN_MODEL_POINTS points are not kept."""
+    from sfm.plan_io import StepNotes
+    from sfm.stage import MIN_MODEL_POINTS, _largest_model
+
+    models = {"0": 2, "1": 3, "2": 3, "3": 13}
+    notes = StepNotes()
+    assert _largest_model(models, notes, {"0": 40, "1": 500, "2": 90, "3": 0}) == "1"
+    assert any("3 (13 images, 0 points)" in w and f"under {MIN_MODEL_POINTS}" in w for w in notes.warnings)
+    none = StepNotes()
+    assert _largest_model({"0": 13}, none, {"0": 5}) is None
+    assert any("found no model" in w for w in none.warnings)
+    assert _largest_model(models, StepNotes()) == "3"  # without point counts: the most images, as before
