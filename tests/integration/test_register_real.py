@@ -157,13 +157,16 @@ def test_caliscope_false_two_image_model_is_dropped_and_the_board_poses_the_rig(
     caliscope: tuple[list[Path], Path], tmp_path: Path
 ) -> None:
     """With the mapper's initial pair allowed 8 inliers, the office backgrounds give a two-image model from false
-    matches. Without intrinsics a two-image model fixes no focal length, so its poses are dropped before the
-    board's check (which refuted both before, 169 px against 1.9: tests/sfm/test_agreement.py covers that check),
-    and the subject path poses all four webcams."""
+    matches. It has under 30 points (8 here), so it is not kept (since 2026-11-30); where such a model had more,
+    without intrinsics a two-image model fixes no focal length, so its poses are dropped before the board's check
+    (which refuted both before, 169 px against 1.9: tests/sfm/test_agreement.py covers those checks, test_parts.py
+    the points). Either way the
+    subject path poses all four webcams."""
     videos, tracks = caliscope
     report = _register(videos, tmp_path / "ws", tracks, "--init-min-inliers", "8")
-    assert report["model"] is not None and report["model"]["images"] == 2, report["model"]
-    assert any("two views of unknown focal lengths do not fix them" in w for w in report["warnings"]), report
+    thin = any("3D points: not kept" in w for w in report["warnings"])
+    two_views = any("two views of unknown focal lengths do not fix them" in w for w in report["warnings"])
+    assert thin or (report["model"] is not None and report["model"]["images"] == 2 and two_views), report
     assert report["background_check"] is None  # nothing the background posed is left to check
     assert [v["posed_by"] for v in report["videos"]] == ["subject"] * 4
     from sfm.export import read_ply
