@@ -72,3 +72,34 @@ def test_self_calibrated_focals_at_the_search_bound_are_refused() -> None:
     _refuse_bounded(obs, {0: 1100.0, 1: 900.0, 2: 1400.0})  # measured focals pass
     with pytest.raises(SubjectCalibrationError, match=r"focal length of CameraE \(5312 px, 4 x .*CameraR \(332 px"):
         _refuse_bounded(obs, {0: 4.0 * 1328, 1: 900.0, 2: 0.25 * 1328})
+
+
+def test_an_opencv_assertion_in_pnp_or_the_homography_test_is_no_pose_and_no_plane(monkeypatch) -> None:
+    """The same OpenCV assertions in a camera's PnP (no pose: the camera is left to the others) and in the plane
+    test (no homography: not called planar), not a traceback."""
+    import cv2
+
+    from sfm.subject.chain import Knots, pnp
+    from sfm.subject.model import SubjectVideo
+    from sfm.subject.observations import build_observations
+    from sfm.subject.pairs import _degeneracy
+    from tracking.tracks import Tracks
+
+    def assertion(*args: object, **kwargs: object) -> None:
+        raise cv2.error("OpenCV(5.0.0) estimator.cpp:418: error: (-215:Assertion failed) !model.empty()")
+
+    rng = np.random.default_rng(0)
+    frames = np.arange(30)
+    X = np.c_[np.sin(frames / 4.0), np.cos(frames / 3.0), 5.0 + np.sin(frames / 5.0)][:, None, :]  # (30, 1, 3)
+    rows = [
+        ("a", int(f), "p", float(640 + 800 * x / z), float(360 + 800 * y / z))
+        for f, (x, y, z) in zip(frames, X[:, 0], strict=True)
+    ]
+    video = SubjectVideo(name="a", width=1280, height=720, times=frames / 30.0)
+    _, obs = build_observations(Tracks.from_rows(rows), [video])
+    knots = Knots(t0=0.0, h=1 / 30.0, X=X)
+    monkeypatch.setattr(cv2, "solvePnPRansac", assertion)
+    assert pnp(obs[0], 0.0, knots, 2.0) is None
+    monkeypatch.setattr(cv2, "findHomography", assertion)
+    xa = rng.uniform(-0.5, 0.5, (50, 2))
+    assert _degeneracy(xa, xa + rng.normal(0, 0.01, (50, 2)), 0.001) is None
