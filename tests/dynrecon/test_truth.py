@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dynrecon.truth import Similarity, similarity_to_truth, truth_of_frames
-from reconstruct.outputs.points import read_points
+from reconstruct.outputs.points import FramePoints, read_points
 from sfm.cameras import read_cameras
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data_samples" / "video_sample"
@@ -40,17 +40,22 @@ def test_similarity_to_truth_recovers_a_known_similarity():
     assert np.allclose(found.apply(inverse.apply(xyz)), xyz, atol=1e-6)
 
 
+def _rows(points: FramePoints, keep: list[int]) -> FramePoints:
+    """`points` with only the rows `keep`: an estimate that lacks the others."""
+    return replace(
+        points,
+        videos=[points.videos[i] for i in keep],
+        frames=points.frames[keep],
+        xyz=points.xyz[keep],
+        observed=points.observed[keep],
+    )
+
+
 def test_only_the_truth_of_frames_the_estimate_has_is_scored() -> None:
     truth = read_points(SAMPLE / "truth.csv")
     assert truth_of_frames(truth, truth).num_frames == truth.num_frames
     keep = [i for i in range(truth.num_frames) if i not in (0, 3)]  # frames the registration lost
-    estimate = replace(
-        truth,
-        videos=[truth.videos[i] for i in keep],
-        frames=truth.frames[keep],
-        xyz=truth.xyz[keep],
-        observed=truth.observed[keep],
-    )
+    estimate = _rows(truth, keep)
     subset = truth_of_frames(truth, estimate)
     assert subset.num_frames == len(keep) and subset.videos == estimate.videos
     np.testing.assert_array_equal(subset.xyz, truth.xyz[keep])
@@ -62,13 +67,7 @@ def test_a_video_the_solve_left_out_is_scored_as_unreconstructed() -> None:
     truth = read_points(SAMPLE / "truth.csv")
     first = truth.videos[0]
     keep = [i for i, v in enumerate(truth.videos) if v != first]
-    estimate = replace(
-        truth,
-        videos=[truth.videos[i] for i in keep],
-        frames=truth.frames[keep],
-        xyz=truth.xyz[keep],
-        observed=truth.observed[keep],
-    )
+    estimate = _rows(truth, keep)
     left_out = frozenset((v, int(f)) for v, f in zip(truth.videos, truth.frames, strict=True) if v == first)
     subset = truth_of_frames(truth, estimate, left_out)
     assert subset.num_frames == truth.num_frames
