@@ -785,13 +785,12 @@ def export_rate(cameras: CameraSet, frames: int, videos: set[str] | None = None)
     for video in cameras.videos:
         if videos is not None and video.name not in videos:
             continue  # left out of the solve: no rows
-        times = np.array(sorted(f.time for f in video.frames if f.time is not None))
-        steps = np.diff(times)
-        steps = steps[steps > 0]
+        times = np.array([f.time for f in video.frames if f.time is not None], dtype=float)
+        period = frame_periods(times, np.zeros(len(times), dtype=np.int64), 1)[0]
         if video.fps:
             total += float(video.fps)
-        elif steps.size:
-            total += 1.0 / float(np.median(steps))
+        elif np.isfinite(period):
+            total += 1.0 / float(period)
         else:
             total += 30.0
     return total if total > 0 else 30.0 * max(1, frames)
