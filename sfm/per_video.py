@@ -138,27 +138,25 @@ def plan_video(
 ) -> VideoPlan:
     """Which frames the video sends to SfM and which need a pose; static or moving camera, measured. The keyframe
     choice is kept in `steps` (the video's own step log) for a later run."""
-    motion = None
     with timed(notes, "motion_test"):
         # the tracked subject: where it hides the background, the samples say nothing about the camera
         subject = track_points(tracks, info.name) if tracks is not None else None
         # without tracks, markers in view are a subject to mask too (a board held up in front of a tripod)
         finder = markers_in_samples if options.find_markers else None
-        measured = measure_motion(info, subject, options.mask_radius, finder)
+        motion = measure_motion(info, subject, options.mask_radius, finder)
         if options.camera_motion is CameraMotion.AUTO:
-            motion = measured
             static = motion.static
             log.info("%s: %s", info.name, motion.reason)
             if motion.moved:
                 log.warning(motion.moved)
         else:
             static = options.camera_motion is CameraMotion.STATIC
-            if measured.static != static:  # the user's word is kept, but an assumption the data contradicts is said
+            if motion.static != static:  # the user's word is kept, but an assumption the data contradicts is said
                 log.warning(
                     "%s: --camera-motion %s given, but the motion test says %s; %s",
                     info.name,
                     options.camera_motion.value,
-                    measured.reason,
+                    motion.reason,
                     "all its frames take one pose: if the camera moved, register again with --camera-motion auto"
                     if static
                     else "its frames go to SfM one by one (slower; pairs of one position have no baseline)",
@@ -171,7 +169,14 @@ def plan_video(
     if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
         wanted = np.arange(info.num_frames, dtype=np.int64)
     return VideoPlan(
-        info=info, resize=resize, sfm_frames=sfm_frames, wanted=wanted, motion=motion, static=static, keyframes=choice
+        info=info,
+        resize=resize,
+        sfm_frames=sfm_frames,
+        wanted=wanted,
+        motion=motion,
+        motion_given=options.camera_motion is not CameraMotion.AUTO,
+        static=static,
+        keyframes=choice,
     )
 
 

@@ -21,7 +21,8 @@ class VideoPlan:
     resize: Resize
     sfm_frames: np.ndarray  # (S,) decoded frame numbers sent to SfM (empty for a static video)
     wanted: np.ndarray  # (W,) every frame that should get a pose (includes sfm_frames)
-    motion: MotionTest | None = None  # the measured static/moving decision (None when the user chose)
+    motion: MotionTest | None = None  # the measured static/moving decision (also when the user chose)
+    motion_given: bool = False  # `static` set by --camera-motion, not by the measurement
     static: bool = False  # one camera pose for every frame, from one background image
     keyframes: KeyframeChoice | None = None  # how sfm_frames were chosen (None for a static video)
 

@@ -139,6 +139,7 @@ def write_prepared(path: Path, video: PreparedVideo) -> Path:
         "video": _info_to_json(plan.info),
         "resize": {"scale": plan.resize.scale, "width": plan.resize.width, "height": plan.resize.height},
         "static": plan.static,
+        "motion_given": plan.motion_given,
         "sfm_frames": [int(f) for f in plan.sfm_frames],
         "wanted": [int(f) for f in plan.wanted],
         "motion": _motion_to_json(plan.motion) if plan.motion is not None else None,
@@ -162,6 +163,7 @@ def read_prepared(path: Path) -> PreparedVideo:
         sfm_frames=np.asarray(d["sfm_frames"], dtype=np.int64),
         wanted=np.asarray(d["wanted"], dtype=np.int64),
         motion=_motion_from_json(d["motion"]) if d["motion"] is not None else None,
+        motion_given=bool(d.get("motion_given", False)),  # absent from the plans of earlier runs
         static=bool(d["static"]),
         keyframes=choice_from_json(d["keyframes"]) if d["keyframes"] is not None else None,
     )

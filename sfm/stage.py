@@ -693,11 +693,30 @@ def _moving_hint(
     if not lost:
         return None
     reasons = "; ".join(f"{v.info.name}: {v.motion.reason}" for v in lost if v.motion is not None)
-    unposed = all(v.info.name not in posed for v in lost)
+    unposed = [v.info.name for v in lost if v.info.name not in posed]
+    background = [v.info.name for v in lost if v.info.name in posed]
+    fates = [f"{', '.join(unposed)} not posed"] if unposed else []  # each video's own fate, not the first one's
+    fates += [f"{', '.join(background)} left to the background"] if background else []
     return (
-        f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}) and "
-        f"{'not posed' if unposed else 'left to the background'}; the subject path poses static cameras only: if "
-        "they stood still, register (or run) again with --camera-motion static"
+        f"{', '.join(v.info.name for v in lost)} measured as moving ({reasons}); {', '.join(fates)}; the subject "
+        "path poses static cameras only: if they stood still, register (or run) again with --camera-motion static"
+    )
+
+
+def _given_motion_hint(videos: list[VideoPlan], options: RegisterOptions) -> str | None:
+    """The videos whose --camera-motion the motion test measured otherwise (the user's word was kept, but a failed
+    registration names it as a cause); a test without a single shift measured is no evidence."""
+    contradicted = [
+        (v.info.name, v.motion.reason)
+        for v in videos
+        if v.motion_given and v.motion is not None and v.motion.shifts and v.motion.static != v.static
+    ]
+    if not contradicted:
+        return None
+    measured = "; ".join(f"{name}: {reason}" for name, reason in contradicted)
+    return (
+        f"--camera-motion {options.camera_motion.value} was given, but the motion test measured otherwise "
+        f"({measured}): register again with --camera-motion auto"
     )
 
 
@@ -808,6 +827,9 @@ def _fail(
         hint = "try " + ", ".join(_background_hints(options, videos))
     if moving_hint:
         hint += f"; {moving_hint}"
+    given = _given_motion_hint(videos, options)
+    if given:
+        hint += f"; {given}"
     previous = Layout(out).previous_dir
     if (previous / "cameras.json").is_file():
         hint += f"; the last successful run's cameras.json is kept in {previous}"

@@ -3,6 +3,7 @@ the serial stage, and the file forms that carry a video's plan and poses from on
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
@@ -58,7 +59,7 @@ def _plan(tmp_path: Path) -> VideoPlan:
 
 
 def test_a_plan_file_reads_back_as_the_plan(tmp_path: Path) -> None:
-    plan = _plan(tmp_path)
+    plan = dataclasses.replace(_plan(tmp_path), motion_given=True)
     notes = StepNotes(warnings=["a warning"], timings={"decode": 0.25}, reused=["keyframes cam0"])
     path = write_prepared(tmp_path / "plan.json", PreparedVideo(plan=plan, images=["cam0/a.jpg"], masks=2, notes=notes))
     back = read_prepared(path)
@@ -68,6 +69,7 @@ def test_a_plan_file_reads_back_as_the_plan(tmp_path: Path) -> None:
         k: v for k, v in vars(plan.info).items() if k != "times"
     }
     assert back.plan.resize == plan.resize and back.plan.motion == plan.motion
+    assert back.plan.motion_given == plan.motion_given
     assert back.plan.sfm_frames.tolist() == [0, 4, 6] and back.plan.wanted.tolist() == list(range(7))
     assert back.plan.keyframes is not None and plan.keyframes is not None
     assert back.plan.keyframes.to_json() == plan.keyframes.to_json()
@@ -163,8 +165,33 @@ def test_a_tracked_video_found_moving_and_left_unposed_is_named_with_the_way_out
     # hid in its first samples, posed from its own frames): named, as the way out may be static
     failing = _moving_hint([plan], [plan], tracks, RegisterOptions(), failing=True)
     assert failing is not None and "left to the background" in failing and "--camera-motion static" in failing
+    # in one failing registration, each video is said with its own fate
+    other = dataclasses.replace(plan, info=dataclasses.replace(plan.info, name="cam1"))
+    both = Tracks.from_rows([("cam0", 0, "a", 1.0, 2.0), ("cam1", 0, "a", 1.0, 2.0)])
+    mixed = _moving_hint([plan, other], [plan], both, RegisterOptions(), failing=True)
+    assert mixed is not None and "cam1 not posed, cam0 left to the background;" in mixed
     assert _moving_hint([plan], [], Tracks.from_rows([("cam1", 0, "a", 1.0, 2.0)]), RegisterOptions()) is None
     assert _moving_hint([plan], [], None, RegisterOptions()) is None
+
+
+def test_a_failure_names_a_camera_motion_the_motion_test_measured_otherwise(tmp_path: Path) -> None:
+    """--camera-motion static on a video measured moving: a failed registration names it and --camera-motion auto;
+    not where the user's word agrees, nor where nothing was measured (an untextured view)."""
+    from sfm.options import CameraMotion
+    from sfm.stage import _given_motion_hint
+
+    plan = _plan(tmp_path)  # measured moving
+    static = RegisterOptions(camera_motion=CameraMotion.STATIC)
+    forced = dataclasses.replace(plan, static=True, motion_given=True)
+    hint = _given_motion_hint([forced], static)
+    assert hint == (
+        "--camera-motion static was given, but the motion test measured otherwise (cam0: moved): register again "
+        "with --camera-motion auto"
+    )
+    assert _given_motion_hint([dataclasses.replace(forced, static=False)], static) is None
+    assert _given_motion_hint([dataclasses.replace(plan, static=True)], RegisterOptions()) is None
+    unmeasured = dataclasses.replace(plan.motion, shifts=[], frames=[]) if plan.motion is not None else None
+    assert _given_motion_hint([dataclasses.replace(forced, motion=unmeasured)], static) is None
 
 
 def test_a_declared_clock_goes_into_cameras_json_when_the_subject_path_found_none(tmp_path: Path) -> None:
@@ -208,7 +235,8 @@ def test_a_camera_motion_the_motion_test_contradicts_is_kept_and_warned(
     notes = StepNotes()
     with collected(notes):
         plan = plan_video(info, None, RegisterOptions(camera_motion=CameraMotion.STATIC), StepLog(tmp_path), notes)
-    assert plan.static and plan.motion is None and len(plan.sfm_frames) == 0
+    assert plan.static and plan.motion_given and len(plan.sfm_frames) == 0
+    assert plan.motion is not None and not plan.motion.static  # the measurement is kept for the report
     warned = [w for w in notes.warnings if "--camera-motion static given" in w]
     assert len(warned) == 1 and warned[0].startswith("cam0: ") and "moving" in warned[0] and "auto" in warned[0]
     notes = StepNotes()
