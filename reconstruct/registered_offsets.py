@@ -141,7 +141,7 @@ def prefer_registered_offsets(
         theirs, mine, verdict = _compared(problem, temporal, on_clocks.clocks.global_time, options, residual, entry)
         # disagreeing offsets must predict clearly better to replace the solve's clocks; declared ones that agree
         # are kept unless the solve's clocks predict clearly better; what cannot be compared keeps the solve's
-        comparable = math.isfinite(theirs) and math.isfinite(mine)
+        comparable = not (math.isnan(theirs) or math.isnan(mine))  # inf: no shared time under those clocks
         kept = comparable and (not (mine < BETTER * theirs) if declared else theirs < BETTER * mine)
     else:
         # The seed's points sit on their rays (no residual to compare): registration's offsets are the only clocks
@@ -241,6 +241,12 @@ def _compared(
                 f"each video's rays predicted from the others' to {theirs:.3g} px against the solve's {mine:.3g} px"
             )
             return theirs, mine, sentence
+        # clocks under which no video's rays can be predicted from the others' put the videos apart in time, where
+        # each is fitted alone (offsets typed in milliseconds): they lose to clocks that can, whatever the residual
+        if math.isfinite(mine) or math.isfinite(theirs):
+            apart = "cameras.json's" if math.isfinite(mine) else "the solve's"
+            sentence = f"under {apart} clocks no video's rays can be predicted from the others' (no shared time)"
+            return (math.inf, mine, sentence) if math.isfinite(mine) else (theirs, math.inf, sentence)
     mine, theirs = residual["solve"], residual["registered"]
     entry["criterion"] = "residual_px"
     return theirs, mine, f"median residual {theirs:.3g} px against the solve's {mine:.3g} px"

@@ -728,7 +728,8 @@ def run(
             f"video name {names[twice]!r} is used twice",
             fix="video names (file names without extension) must be unique",
         )
-    offsets = declared_offsets(options.synchronized, options.offsets, names)
+    spans = {info.name: info.span for info in infos if info.num_frames}
+    offsets = declared_offsets(options.synchronized, options.offsets, names, spans)
     cameras = match_cameras(calibrated, infos, calibration)
     for info, stand_in, camera in zip(infos, stand_ins, cameras, strict=True):
         if stand_in is not None:

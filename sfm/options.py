@@ -241,9 +241,16 @@ class ImportCalibrationOptions:
     size: tuple[int, int] | None = None
 
 
-def declared_offsets(synchronized: bool, offsets: dict[str, float], names: list[str]) -> dict[str, float]:
+def declared_offsets(
+    synchronized: bool,
+    offsets: dict[str, float],
+    names: list[str],
+    spans: dict[str, tuple[float, float]] | None = None,
+) -> dict[str, float]:
     """The clock offsets the user declared for the videos `names`: 0 for all with `synchronized` (a triggered rig),
-    else `offsets` (a clap, a timecode); a one-line InputError for both at once, an unknown name or a non-number."""
+    else `offsets` (a clap, a timecode); a one-line InputError for both at once, an unknown name, a non-number, or
+    (given each video's own time span, `spans`: first and last frame's time, s) offsets under which a declared
+    video shares no time with any other declared one."""
     if synchronized and offsets:
         raise InputError(
             None, "--synchronized and --offsets both given", fix="give one: --synchronized means every offset is 0"
@@ -259,7 +266,27 @@ def declared_offsets(synchronized: bool, offsets: dict[str, float], names: list[
             )
         if not math.isfinite(offset):
             raise InputError(None, f"--offsets {name}={offset}: not a finite number of seconds", fix="give seconds")
+    if spans is not None:
+        _refuse_disjoint(offsets, spans)
     return dict(offsets)
+
+
+def _refuse_disjoint(offsets: dict[str, float], spans: dict[str, tuple[float, float]]) -> None:
+    """A declared video whose frames share no time with any other declared video's: no point is seen twice at one
+    time, and a solve on those clocks would fit each video alone (offsets typed in milliseconds do this)."""
+    placed = {name: (spans[name][0] + t, spans[name][1] + t) for name, t in offsets.items() if name in spans}
+    for name, (start, end) in placed.items():
+        others = [(s, e) for other, (s, e) in placed.items() if other != name]
+        if others and not any(s <= end and start <= e for s, e in others):
+            length = spans[name][1] - spans[name][0]
+            raise InputError(
+                None,
+                f"--offsets {name}={offsets[name]:g} puts its {length:.3g} s at {start:.6g}-{end:.6g} s, sharing no "
+                "time with any other video given an offset ("
+                + ", ".join(f"{other} {s:.6g}-{e:.6g} s" for other, (s, e) in placed.items() if other != name)
+                + ")",
+                fix="offsets are seconds (33 ms is 0.033), global time = the video's own time + offset",
+            )
 
 
 OFFSETS_HELP = (

@@ -153,7 +153,8 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
 def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tracks | None) -> None:
     """The inputs registration reads late (`--intrinsics`, `--scale`, `--offsets`), checked before any work or any
     removal."""
-    declared_offsets(options.synchronized, options.offsets, [info.name for info in infos])
+    spans = {info.name: info.span for info in infos if info.num_frames}
+    declared_offsets(options.synchronized, options.offsets, [info.name for info in infos], spans)
     if options.masks is not None:
         check_mask_folder(options.masks, [info.name for info in infos])
     if options.intrinsics is not None:

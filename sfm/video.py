@@ -58,6 +58,11 @@ class ProbedVideo:
         return self.nominal_fps
 
     @property
+    def span(self) -> tuple[float, float]:
+        """The video's own time span: its first and last decoded frame's time (s)."""
+        return float(self.times[0]), float(self.times[-1])
+
+    @property
     def frame_period(self) -> float:
         """Seconds per frame: 1 / `fps`, else the decoder's median step (inf for one frame)."""
         return 1.0 / self.fps if self.fps else self.median_step

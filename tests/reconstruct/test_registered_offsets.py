@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +186,54 @@ def test_declared_offsets_that_predict_clearly_worse_leave_the_solve(
     entry = checked.temporal.report[PATH]
     assert entry["declared"] and entry["kept"] == "solve"
     assert checked.temporal.report["path"] != PATH
+
+
+def test_clocks_under_which_no_ray_is_predicted_lose_whatever_the_residual(
+    phones: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Offsets that put every video apart in time (milliseconds typed for seconds) fit each video alone: a small
+    residual (2.2 px against the solve's 9.1 px on the Pose2Sim lab), and no video's rays predictable from the
+    others'. They lose to clocks that predict, whatever the residual (before: kept, points metres off)."""
+    import reconstruct.registered_offsets as module
+    from reconstruct.heldout import HeldOut
+
+    _, options, good, _ = _right(phones)
+    apart = good.temporal.times + 100.0 * good.problem.video_index
+    N = len(good.problem.video_names)
+
+    def held(problem, times, options):  # type: ignore[no-untyped-def]
+        if np.array_equal(times, apart):
+            return HeldOut(per_video_px=np.full(N, np.nan), rays_px=np.zeros(0))
+        return HeldOut(per_video_px=np.full(N, 3.0), rays_px=np.full(5, 3.0))
+
+    monkeypatch.setattr(module, "heldout_px", held)
+    entry: dict = {}
+    residual = {"solve": 9.1, "registered": 2.2}
+    theirs, mine, sentence = module._compared(
+        good.problem, good.temporal, apart, options.temporal.refine, residual, entry
+    )
+    assert (theirs, mine) == (math.inf, 3.0) and "no shared time" in sentence
+    assert entry["heldout_px"] == {"solve": 3.0, "registered": None}
+    # the other way round: the solve's clocks are the ones that predict nothing
+    theirs, mine, _ = module._compared(
+        good.problem, good.temporal, good.temporal.times, options.temporal.refine, residual, entry
+    )
+    assert (theirs, mine) == (3.0, 3.0)
+
+
+def test_a_cameras_file_with_every_video_apart_in_time_leaves_the_solve(phones: Path) -> None:
+    """End to end: declared offsets 10 s apart per video are tried and not kept; the polish on them, where no point
+    is refined, keeps its clocks instead of failing."""
+    names = [video.name for video in read_cameras(phones / "cameras.json").videos]
+    cameras = _cameras(phones, {name: 10.0 * i for i, name in enumerate(names)})
+    for video in cameras.videos:
+        video.clock_declared = True
+    plain = solve(read_cameras(phones / "cameras.json"), phones / "tracks.csv", SolveOptions(recording=None))
+    checked = solve(cameras, phones / "tracks.csv", SolveOptions(recording=None))
+    entry = checked.temporal.report[PATH]
+    assert entry["tried"] and entry["kept"] == "solve" and entry["heldout_px"]["registered"] is None
+    assert checked.temporal.report["path"] == plain.temporal.report["path"]
+    np.testing.assert_array_equal(checked.temporal.points, plain.temporal.points)
 
 
 def test_kept_offsets_rebuild_the_tracks_paths_w(phones: Path, monkeypatch: pytest.MonkeyPatch) -> None:

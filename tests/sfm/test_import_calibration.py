@@ -81,9 +81,14 @@ def test_known_clock_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str])
         _write_video(tmp_path / f"cam{i}.mp4", 3, (64, 48))
         videos.append(str(tmp_path / f"cam{i}.mp4"))
     args = ["import-calibration", str(toml), *videos, "--out", str(tmp_path / "ws")]
-    assert main([*args, "--offsets", "cam1=0, cam2=-0.25"]) == 0
+    assert main([*args, "--offsets", "cam1=0, cam2=-0.04"]) == 0
     capsys.readouterr()
-    assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, -0.25]
+    assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [0.0, -0.04]
+    # milliseconds typed for seconds: the two videos' 0.08 s would share no time, and a solve would fit each alone
+    assert main([*args, "--offsets", "cam1=0,cam2=33"]) == 2
+    err = capsys.readouterr().err
+    assert "--offsets cam1=0 puts its 0.08 s at 0-0.08 s, sharing no time with any other video given an offset" in err
+    assert "(cam2 33-33.08 s)" in err and "33 ms is 0.033" in err
     assert main([*args, "--offsets", "cam2=0.5"]) == 0  # a video left out gets none
     assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [None, 0.5]
     assert [v.clock_declared for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [False, True]
