@@ -89,6 +89,7 @@ def _batch(args: argparse.Namespace) -> int:
             num_threads=args.sfm_threads,
             synchronized=args.synchronized,  # a capture without a calibration: its subject path
             offsets=args.offsets,  # the same names in every capture (a rig's fixed trigger delays)
+            max_offset=args.max_offset,
         ),
         track=TrackOptions(win_size=args.track_window, patch=args.track_patch),
         calibration=args.calibration,

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dynrecon.arguments import out_path
+from dynrecon.arguments import out_path, positive_seconds
 
 if TYPE_CHECKING:
     from dynrecon.pipeline import PipelineOptions
@@ -153,7 +153,7 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
     """`--calibration FILE` with import-calibration's `--format` and `--units` as `--calibration-format` and
     `--calibration-units` (`dynrecon run` and `dynrecon batch`)."""
     from sfm.cli import SYNCHRONIZED_HELP
-    from sfm.options import OFFSETS_HELP, CalibrationFormat, DltPixels, Units, parse_offsets
+    from sfm.options import OFFSETS_HELP, CalibrationFormat, DltPixels, RegisterOptions, Units, parse_offsets
 
     parser.add_argument("--calibration", type=Path, metavar="FILE", help=help_calibration)
     parser.add_argument(
@@ -187,6 +187,14 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         "pair of videos at offset 0 unless its tracks clearly prefer another",
     )
     parser.add_argument("--offsets", type=parse_offsets, default={}, metavar="NAME=S,...", help=OFFSETS_HELP)
+    parser.add_argument(
+        "--max-offset",
+        type=positive_seconds,
+        default=RegisterOptions().max_offset,
+        metavar="SECONDS",
+        help="how far apart (each way) register's subject path searches two videos' start times: give more when the "
+        "cameras were started further apart",
+    )
 
 
 def check_track_flags(args: argparse.Namespace) -> None:
@@ -252,6 +260,7 @@ def pipeline_options(args: argparse.Namespace) -> PipelineOptions:
         board=args.board,
         synchronized=args.synchronized and args.calibration is None,
         offsets=args.offsets if args.calibration is None else {},
+        max_offset=args.max_offset,
         camera_motion=CameraMotion(args.camera_motion),
     )
     track = TrackOptions(win_size=args.track_window, patch=args.track_patch)

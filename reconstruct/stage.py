@@ -54,6 +54,7 @@ from reconstruct.trust import Trust, TrustOptions, TrustPreset, preset_options
 from reconstruct.trust import trust_measures as measure_trust
 from sfm.cameras import CameraSet, read_cameras
 from sfm.people import check_people_mapped, people_maps, renumber_people
+from sfm.report_read import unposed_videos
 from tracking.tracks import Tracks, matched_to_videos, read_tracks
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,8 @@ def solve(
     every_video = [video.name for video in camera_set.videos]  # before --videos takes some
     track_set = tracks if isinstance(tracks, Tracks) else read_tracks(tracks)
     track_set = matched_to_videos(track_set, [video.name for video in camera_set.videos])
+    if not isinstance(cameras, CameraSet):
+        track_set = _without_unregistered(track_set, camera_set, Path(cameras))
     if options.videos:  # after the names are matched: `--videos` names the cameras file's videos
         camera_set, track_set = _only_videos(camera_set, track_set, options.videos, cameras)
     # people numbered per video, as registration matched them across videos (cameras.json `people`)
@@ -265,6 +268,23 @@ def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None
         f"not used: {why}, and the points are the self-expressive solve's; the offsets are the clock estimate's "
         "best guess, not a result the points rest on",
     ]
+
+
+def _without_unregistered(tracks: Tracks, cameras: CameraSet, cameras_path: Path) -> Tracks:
+    """`tracks` without the videos that the registration beside `cameras_path` could not pose (not in cameras.json,
+    listed unposed in register_report.json), with a warning each: the tracks register read name them too."""
+    known = {video.name for video in cameras.videos}
+    unposed = unposed_videos(cameras_path)
+    left = sorted(name for name in set(tracks.video_names()) - known if name in unposed)
+    for name in left:
+        log.warning(
+            "%s: video %r is left out: registration did not pose it (%s: %s)",
+            tracks.path or "tracks",
+            name,
+            cameras_path.parent / "register_report.json",
+            unposed[name],
+        )
+    return tracks.of_videos(set(tracks.video_names()) - set(left)) if left else tracks
 
 
 def _only_videos(

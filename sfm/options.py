@@ -109,6 +109,8 @@ class RegisterOptions:
     synchronized: bool = False
     # Known clock offsets per video name (s, global = own time + offset): claimed and tested as --synchronized's 0s
     offsets: dict[str, float] = field(default_factory=dict)
+    # Seconds the subject path searches each way for a pair's clock offset: videos started further apart need more
+    max_offset: float = 10.0
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video, evenly spaced; each is matched with every one of the other videos

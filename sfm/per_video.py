@@ -151,7 +151,9 @@ def plan_video(
                 log.warning(motion.moved)
         else:
             static = options.camera_motion is CameraMotion.STATIC
-            if motion.static != static:  # the user's word is kept, but an assumption the data contradicts is said
+            # the user's word is kept, but an assumption the data contradicts is said (a test that measured no
+            # shift, an untextured or stand-in view, contradicts nothing)
+            if motion.static != static and motion.shifts:
                 log.warning(
                     "%s: --camera-motion %s given, but the motion test says %s; %s",
                     info.name,

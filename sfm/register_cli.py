@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dynrecon.arguments import out_path
+from dynrecon.arguments import out_path, positive_seconds
 
 if TYPE_CHECKING:
     from sfm.options import RegisterOptions
@@ -158,6 +158,14 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
         "and cameras.json carries them where it found no clock, for the solve to test",
     )
     static.add_argument(
+        "--max-offset",
+        type=positive_seconds,
+        default=defaults.max_offset,
+        metavar="SECONDS",
+        help=f"how far apart (each way) the subject path searches two videos' start times (default "
+        f"{defaults.max_offset:g}): give more when the cameras were started further apart",
+    )
+    static.add_argument(
         "--board",
         type=Path,
         default=None,
@@ -240,6 +248,7 @@ def _run_register(args: argparse.Namespace) -> int:
         scale=parse_scale(args.scale),
         synchronized=args.synchronized,
         offsets=args.offsets,
+        max_offset=args.max_offset,
         board=args.board,
         find_markers=not args.no_markers,
         max_ratio=args.max_ratio,

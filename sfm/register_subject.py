@@ -8,6 +8,7 @@ or the report says that the units are arbitrary.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -132,7 +133,7 @@ def pose_from_subject(
     subject_tracks = tracks.of_videos(names)
     # a triggered rig (every static video on one clock) or known offsets: a claim each pair's tracks then test
     claimed = options.declared(names)
-    subject_options = SubjectOptions(scale=scale, claimed_offsets=claimed or None)
+    subject_options = SubjectOptions(scale=scale, claimed_offsets=claimed or None, max_offset=options.max_offset)
     try:
         if by_posed:
             if subject_options.scale is not None:
@@ -170,16 +171,20 @@ def pose_from_subject(
                 subject_options = replace(subject_options, scale=None)
                 result, stability = _determined(subject_tracks, inputs, anchors, subject_options)
     except SubjectCalibrationError as error:
-        warnings.append(f"subject path: {error}")
-        return _refuse(
-            unposed, results, str(error), {"used": False, "why": str(error), "anchors": anchors, "board": board}
-        )
+        why = str(error)
+        farther = _farther_hint(inputs, set(anchors), options.max_offset)
+        why += f"; {farther}" if farther else ""
+        warnings.append(f"subject path: {why}")
+        return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     for pair in result.pairs:
         if pair.claim not in (None, "held", UNTESTED):
             warnings.append(f"{options.declared_flag}: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
+    farther = _farther_hint(inputs, set(posed) | set(anchors), options.max_offset)
+    if farther:
+        warnings.append(f"subject path: {farther}")
     _warn_uncertain(stability, posed, warnings)
     guessed = [v.name for v in inputs if v.K is None and v.name in posed]
     if guessed:
@@ -252,6 +257,20 @@ def _solve_with_posed(
         return result, check_stability(subject_tracks, inputs, result, scaled, solve=fold, alone=False), aligned
 
     return choose_scale(trial, options)
+
+
+def _farther_hint(inputs: list[SubjectVideo], posed: set[str], max_offset: float) -> str | None:
+    """For videos the subject path left unposed: the clock offsets it searched (±`max_offset`) against how long the
+    videos run, where cameras started further apart than that would never be found (a drone filmed for minutes)."""
+    left = sorted(v.name for v in inputs if v.name not in posed)
+    longest = max((float(np.ptp(v.times)) for v in inputs if len(v.times) > 1), default=0.0)
+    if not left or longest <= max_offset:
+        return None
+    return (
+        f"{', '.join(left)} not posed, and two videos' clock offset is searched within ±{max_offset:g} s while the "
+        f"videos run up to {longest:.0f} s: if their cameras were started further apart, register again with "
+        f"--max-offset {math.ceil(longest):d}"
+    )
 
 
 def _refuse(

@@ -124,6 +124,29 @@ def test_user_error_is_one_line_and_exit_code_2(tmp_path, capsys):
     assert not (tmp_path / "out" / "points3d.csv").exists()
 
 
+def test_a_video_registration_left_unposed_is_left_out_of_the_solve(tmp_path, capsys, caplog):
+    """The tracks register read name a video it could not pose (absent from cameras.json, unposed in
+    register_report.json beside it): the solve leaves its rows out and says why, instead of refusing the file."""
+    import logging
+
+    capture = _capture(tmp_path, frames=40, points=4)
+    rows = tmp_path / "tracks.csv"
+    rows.write_text(rows.read_text() + "ghost,0,p0,1,2\nghost,1,p0,1,2\n")
+    report = {"videos": [{"name": "ghost", "registered": 0, "failed": [{"reason": "no usable pair"}]}]}
+    report["videos"] += [{"name": v.name, "registered": len(v.frames), "failed": []} for v in capture.cameras.videos]
+    report["subject"] = {"failed": {"ghost": "not determined by the tracks"}}
+    (tmp_path / "register_report.json").write_text(json.dumps(report))
+    caplog.set_level(logging.WARNING)
+    assert _solve(tmp_path, tmp_path / "out", "--no-recording") == 0
+    said = [r.getMessage() for r in caplog.records if "'ghost' is left out" in r.getMessage()]
+    assert len(said) == 1 and "registration did not pose it" in said[0] and "not determined by the tracks" in said[0]
+    # without the report (or with the video posed there) the unknown name is still refused
+    (tmp_path / "register_report.json").unlink()
+    capsys.readouterr()
+    assert _solve(tmp_path, tmp_path / "out2", "--no-recording") == 2
+    assert "video 'ghost' is not in the cameras file" in capsys.readouterr().err
+
+
 def test_solve_recovers_clocks_refines_and_adds_time_and_trust_columns(tmp_path):
     capture = _capture(tmp_path)
     out = tmp_path / "out"

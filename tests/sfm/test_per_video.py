@@ -243,3 +243,18 @@ def test_a_camera_motion_the_motion_test_contradicts_is_kept_and_warned(
     with collected(notes):
         plan_video(info, None, RegisterOptions(camera_motion=CameraMotion.MOVING), StepLog(tmp_path), notes)
     assert not [w for w in notes.warnings if "--camera-motion" in w]  # the test agrees: nothing said
+    # an untextured view (a grey stand-in for a video one has only detections of): nothing measured, nothing said
+    import cv2
+
+    grey = tmp_path / "grey.mp4"
+    writer = cv2.VideoWriter(str(grey), cv2.VideoWriter.fourcc(*"mp4v"), 10.0, (96, 64))
+    for _ in range(6):
+        writer.write(np.full((64, 96, 3), 90, np.uint8))
+    writer.release()
+    notes = StepNotes()
+    with collected(notes):
+        flat = plan_video(
+            probe_video(grey), None, RegisterOptions(camera_motion=CameraMotion.STATIC), StepLog(tmp_path), notes
+        )
+    assert flat.static and flat.motion is not None and not flat.motion.shifts
+    assert not [w for w in notes.warnings if "--camera-motion" in w]

@@ -194,6 +194,55 @@ def test_a_video_set_aside_is_unposed_and_said(tmp_path: Path, monkeypatch: pyte
     assert any(w.startswith("d: subject path: set aside: solved with the other videos") for w in warnings)
 
 
+def test_videos_left_unposed_name_the_offset_search_and_max_offset(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Clock offsets are searched within ±max_offset: videos that run longer than that (a drone filmed for minutes,
+    cameras started 33 s apart) may be unposed for it; the warning names --max-offset, which the path receives."""
+    import dataclasses
+
+    import sfm.register_subject as register_subject
+
+    names = ["a", "b", "c"]
+    plans = []
+    for name in names:
+        plan = _plan(tmp_path, name, True)
+        plans.append(dataclasses.replace(plan, info=dataclasses.replace(plan.info, times=np.arange(900) / 30.0)))
+    results = {n: {f: FramePose(pose=None, reason="not in the background model") for f in range(30)} for n in names}
+    seen: list[float] = []
+
+    def solved(tracks: Tracks, videos: list, options: object) -> tuple[SubjectResult, Stability]:
+        seen.append(options.max_offset)  # type: ignore[attr-defined]
+        cameras = [
+            SubjectCamera(
+                name=n,
+                K=np.eye(3),
+                dist=None,
+                R=np.eye(3),
+                t=np.full(3, float(i)),
+                offset=0.0,
+                inliers=50,
+                residual_px=1,
+            )
+            for i, n in enumerate(["a", "b"])
+        ]
+        return SubjectResult(cameras=cameras, pairs=[], failed={"c": "no usable pair"}, metric=False), Stability()
+
+    monkeypatch.setattr(register_subject, "choose_noise", solved)
+    known = {n: (np.diag([500.0, 500.0, 1.0]), None) for n in names}
+    warnings: list[str] = []
+    section = pose_from_subject(plans, results, _tracks(names), known, RegisterOptions(), warnings)
+    assert section is not None and section["posed"] == ["a", "b"] and seen == [10.0]
+    hint = [w for w in warnings if "--max-offset" in w]
+    assert hint == [
+        "subject path: c not posed, and two videos' clock offset is searched within ±10 s while the videos run up "
+        "to 30 s: if their cameras were started further apart, register again with --max-offset 30"
+    ]
+    warnings.clear()
+    pose_from_subject(plans, results, _tracks(names), known, RegisterOptions(max_offset=40.0), warnings)
+    assert seen[-1] == 40.0 and not [w for w in warnings if "--max-offset" in w]
+
+
 def test_posed_cameras_the_folds_turn_by_degrees_are_said_to_be_uncertain() -> None:
     from sfm.register_subject import UNCERTAIN_DEG, _warn_uncertain
 
