@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import logging
 import os
+import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
 from dynrecon.errors import InputError
+
+log = logging.getLogger(__name__)
 
 
 @contextmanager
@@ -109,3 +114,17 @@ def require_writable(folder: str | Path) -> Path:
             with contextlib.suppress(OSError):
                 path.rmdir()
     return folder
+
+
+def keep_aside(target: Path, why: str) -> Path:
+    """Copy `target` to <stem>.before-<time><suffix> beside it (a copy: it may also be the input the stage about to
+    write it reads), with a warning saying `why`; returns that path."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    kept = target.with_name(f"{target.stem}.before-{stamp}{target.suffix}")
+    n = 1
+    while kept.exists():
+        n += 1
+        kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
+    shutil.copy2(target, kept)
+    log.warning("%s %s: it is kept as %s", target, why, kept.name)
+    return kept

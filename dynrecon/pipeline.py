@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from dynrecon.atomic import atomic_open, require_writable
+from dynrecon.atomic import atomic_open, keep_aside, require_writable
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import float_or_nan
 from dynrecon.pipeline_state import STATE_NAME, State, file_hash, inputs_key
@@ -313,27 +313,13 @@ def _solve_posed_videos(cameras_path: Path, tracks_path: Path, out: Path, option
     solve(cameras_path, tracks, options).write(out)  # the path: report.json names its inputs
 
 
-def _keep_aside(target: Path, why: str) -> Path:
-    """Copy `target` to <stem>.before-<time><suffix> beside it (a copy: it may also be the input the stage about to
-    write it reads), with a warning saying `why`; returns that path."""
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    kept = target.with_name(f"{target.stem}.before-{stamp}{target.suffix}")
-    n = 1
-    while kept.exists():
-        n += 1
-        kept = target.with_name(f"{target.stem}.before-{stamp}-{n}{target.suffix}")
-    shutil.copy2(target, kept)
-    log.warning("%s %s: it is kept as %s", target, why, kept.name)
-    return kept
-
-
 def _copy_into(source: Path, target: Path) -> None:
     """Copy a user's file into the workspace unless it already is that file; a different file already there (the
     labeling page's clicks) is kept beside it, with a warning, never overwritten."""
     if source.resolve() == target.resolve():
         return
     if target.is_file() and target.read_bytes() != source.read_bytes():
-        _keep_aside(target, f"differed from {source}")
+        keep_aside(target, f"differed from {source}")
     with atomic_open(target, "wb") as out, source.open("rb") as given:  # never a half-copied file (a full disk)
         shutil.copyfileobj(given, out)
 
@@ -579,7 +565,7 @@ class Stages:
         replaced unseen."""
         cameras = folder / "cameras.json"
         if cameras.is_file() and (written is None or file_hash(cameras) != written):
-            _keep_aside(cameras, "was not written by the register stage, which writes it now")
+            keep_aside(cameras, "was not written by the register stage, which writes it now")
         write()
 
     def _tracks_are_ours(self, tracks_path: Path) -> bool:

@@ -37,6 +37,12 @@ def loads_json(text: str, path: Path, *, fix: str | None = None) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as error:
+        header = text.lstrip().split("\n", 1)[0].strip().lower()
+        if error.pos == len(text) - len(text.lstrip()) and "," in header and header[:1] not in "{[":
+            # a spreadsheet CSV given where JSON was wanted (the tracks for the cameras): say what it is
+            raise InputError(
+                path, f"is a CSV file (its first line: {header[:60]!r}), not JSON", fix=fix or "give the JSON file"
+            ) from None
         raise InputError(
             path, f"invalid JSON: {error.msg}", where=f"{error.lineno}:{error.colno}", fix=fix or "fix the JSON syntax"
         ) from None

@@ -292,15 +292,15 @@ def _only_videos(
 ) -> tuple[CameraSet, Tracks]:
     """The cameras and tracks of the videos `names` (`SolveOptions.videos`)."""
     known = [video.name for video in cameras.videos]
-    if len(set(names)) < 2:
-        raise InputError(None, f"--videos names {len(set(names))} video: a solve needs at least two")
-    unknown = [name for name in names if name not in known]
+    unknown = [name for name in names if name not in known]  # first: a typo is the likelier mistake
     if unknown:
         raise InputError(
             source if isinstance(source, (str, Path)) else None,
             f"--videos names {', '.join(unknown)}, not in the cameras file",
             fix=f"its videos: {', '.join(known)}",
         )
+    if len(set(names)) < 2:
+        raise InputError(None, f"--videos names {len(set(names))} video: a solve needs at least two")
     chosen = dataclasses.replace(cameras, videos=[video for video in cameras.videos if video.name in names])
     return chosen, tracks.of_videos(names)
 

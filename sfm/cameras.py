@@ -139,7 +139,11 @@ def write_cameras(path: str | Path, cameras: CameraSet) -> Path:
 def read_cameras(path: str | Path) -> CameraSet:
     """Read and validate `cameras.json`; every problem is an InputError naming the video and frame."""
     path = Path(path)
-    data = read_json(path, missing_fix="run `dynrecon register` or give the right path")
+    data = read_json(
+        path,
+        missing_fix="run `dynrecon register` or give the right path",
+        fix="give the cameras.json that register or import-calibration wrote",
+    )
     cameras = cameras_from_json(data, path)
     validate_cameras(cameras, path)
     return cameras

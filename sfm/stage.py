@@ -178,9 +178,15 @@ def check_scale_points(scale: tuple[str, str, float], points: set[str], path: Pa
     if missing:
         raise InputError(
             path,
-            f"--scale point(s) {', '.join(missing)} not in the tracks (points: {', '.join(sorted(points)[:10])})",
+            f"--scale point(s) {', '.join(missing)} not in the tracks (points: {_listed(sorted(points))})",
             fix="give two different tracked points and their distance in metres, e.g. --scale l_knee,l_ankle,0.42",
         )
+
+
+def _listed(names: list[str], most: int = 30) -> str:
+    """`names` joined, the first `most` of a longer list and how many there are (never cut short unsaid)."""
+    shown = ", ".join(names[:most])
+    return shown if len(names) <= most else f"{shown}, ... ({len(names)} in all)"
 
 
 def _probe_all(paths: list[Path], unreadable: dict[str, str]) -> list[ProbedVideo]:

@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 # Relative spread of frame intervals above which a video counts as variable-frame-rate (a recorded warning).
 VFR_TOLERANCE = 0.05
+TIME_BASE_S = 0.001 + 1e-9  # the coarsest container time base of constant-rate videos (Matroska's millisecond)
 RATE_TOLERANCE = 0.05  # the nominal rate is kept when the decoder's median step is 1 / rate within this share
 
 
@@ -76,7 +77,12 @@ class ProbedVideo:
     def variable_frame_rate(self) -> bool:
         if self.num_frames < 3:
             return False
-        return bool(np.ptp(np.diff(self.times)) > VFR_TOLERANCE * max(self.median_step, 1e-9))
+        if np.ptp(np.diff(self.times)) <= VFR_TOLERANCE * max(self.median_step, 1e-9):
+            return False
+        # Matroska / WebM store times in milliseconds: a constant rate's frames then sit within a time base of an
+        # even grid (16 and 17 ms steps at 60 fps), where a dropped frame moves them by a whole period
+        grid = np.linspace(self.times[0], self.times[-1], self.num_frames)
+        return bool(np.max(np.abs(self.times - grid)) > min(TIME_BASE_S, 0.25 * self.median_step))
 
 
 def video_name(path: Path) -> str:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dynrecon.atomic import keep_aside
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, first_repeated
 from dynrecon.readers import check_video_name
@@ -250,6 +251,24 @@ def _refuse_two_openpose_models(rows: dict[tuple[str, int, str], tuple[float, fl
         )
 
 
+def _keep_replaced(
+    out: Path,
+    replaced: dict[tuple[str, int, str], tuple[float, float]],
+    rows: dict[tuple[str, int, str], tuple[float, float, str, str]],
+    videos: set[str],
+) -> None:
+    """Keep a copy of `out` where the import replaces rows of its videos by others (a mistyped --video would wipe
+    another video's tracks without a word); importing the same detections again changes nothing and keeps none."""
+    new = {key: (x, y) for key, (x, y, source, _) in rows.items() if key[0] in videos and source != SOURCE_LABEL}
+    if not replaced or (all(new.get(key) == xy for key, xy in replaced.items()) and len(new) == len(replaced)):
+        return
+    counts: dict[str, int] = {}
+    for video, _, _ in replaced:
+        counts[video] = counts.get(video, 0) + 1
+    said = ", ".join(f"{count} of {video}" for video, count in sorted(counts.items()))
+    keep_aside(out, f"had rows of the imported videos, which the import replaces ({said})")
+
+
 def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
     """Import every input into `out`; returns `out`."""
     for given in inputs:
@@ -273,11 +292,13 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
                 f"video name {names[twice]!r} is used twice",
                 fix="video names (file names without extension) must be unique: rename one of the videos",
             )
+    named: set[str] = set()  # every point name the files give, for --map's check
     for path in inputs:
         fmt, detections = read_detections(Path(path), options)
         kept = 0
         for d in detections:
             _check_detection(d, Path(path))
+            named.add(d.point)
             point = options.mapping.get(d.point, None if options.drop_unmapped and options.mapping else d.point)
             # a NaN score is no confidence: left out whenever a minimum is asked for
             if point is None or (d.score is not None and options.min_score > 0 and not d.score >= options.min_score):
@@ -301,6 +322,13 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
             log.warning("%s: no detection in the file", path)
         elif not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
+    unmatched = sorted(set(options.mapping) - named)
+    if unmatched and named:  # a typo: the rename would not happen, and the names would differ later in the solve
+        raise InputError(
+            None,
+            f"--map renames {', '.join(map(repr, unmatched))}, which no imported file names",
+            fix=f"the files' point names: {', '.join(sorted(named))}",
+        )
     if options.board is not None and not rows and inputs:
         from tracking.charuco import board_not_found, read_charuco_board
 
@@ -318,12 +346,16 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         scores = old.extra.get("score", [""] * len(old))
         others = {name: values for name, values in old.extra.items() if name not in ("source", "score")}
         kept_extra = {name: {} for name in others}
+        replaced: dict[tuple[str, int, str], tuple[float, float]] = {}
         for i in range(len(old)):
             key = (old.video[i], int(old.frame[i]), old.point[i])
             if sources[i] == SOURCE_LABEL or old.video[i] not in imported_videos:
                 rows[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]), sources[i], scores[i])
                 for name, values in others.items():
                     kept_extra[name][key] = values[i]
+            else:
+                replaced[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]))
+        _keep_replaced(out, replaced, rows, imported_videos)
     _refuse_two_openpose_models(rows, out)
     keys = list(rows)
     tracks = Tracks.from_rows(

@@ -89,6 +89,18 @@ def test_scale_points_missing_from_the_tracks(tmp_path: Path, capsys: pytest.Cap
     _one_line_error(capsys, main([*args, "--scale", "knee,ankle,0.4"]), "ankle", "not in the tracks", "knee")
 
 
+def test_a_long_point_list_in_an_error_says_it_is_cut() -> None:
+    """The points named beside a missing --scale point: never cut short without saying so (18 points showed 10)."""
+    from dynrecon.errors import InputError
+    from sfm.stage import check_scale_points
+
+    points = {f"p{i:02d}" for i in range(40)}
+    with pytest.raises(InputError, match=r"points: p00, p01, .*, p29, \.\.\. \(40 in all\)"):
+        check_scale_points(("p00", "nose", 0.4), points, None)
+    with pytest.raises(InputError, match=r"points: a, b, c\)"):
+        check_scale_points(("a", "nose", 0.4), {"a", "b", "c"}, None)
+
+
 def test_partly_matching_camera_names_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Three of four names match: by file order the matched cameras would go to other videos."""
     calibration = _calibration(tmp_path / "calib.toml", ["cam_0", "cam_1", "one"])

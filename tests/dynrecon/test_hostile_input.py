@@ -130,6 +130,14 @@ def test_hostile_cameras_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     _one_line_error(capsys, status, str(cameras), "invalid JSON")
 
 
+def test_tracks_given_for_the_cameras_are_named_a_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tracks = _tracks(tmp_path / "tracks.csv")
+    status = _solve(tracks, tracks, tmp_path / "out")
+    _one_line_error(
+        capsys, status, str(tracks), "is a CSV file (its first line: 'video,frame,point,x,y", "cameras.json"
+    )
+
+
 @pytest.mark.parametrize(
     "text",
     [LONG_NUMBER_JSON, DEEP_JSON, '{"points": ["a"], "connections": [' + "[" * 900 + "]" * 900 + "]}"],

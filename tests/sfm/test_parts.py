@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -279,6 +280,11 @@ def test_frame_rate_follows_the_contract() -> None:
     assert _info(np.arange(10) / 30.0).fps == 30.0
     irregular = _info(np.array([0.0, 0.033, 0.070, 0.100, 0.150, 0.166]))
     assert irregular.variable_frame_rate and irregular.fps is None
+    # Matroska's millisecond times of a constant 60 fps (16 and 17 ms steps): constant, the nominal rate kept
+    milliseconds = dataclasses.replace(_info(np.round(np.arange(100) / 60.0, 3)), nominal_fps=60.0)
+    assert not milliseconds.variable_frame_rate and milliseconds.fps == 60.0
+    dropped = _info(np.round(np.delete(np.arange(101), 50) / 60.0, 3))  # one frame lost: variable
+    assert dropped.variable_frame_rate and dropped.fps is None
 
 
 def test_public_front_is_lazy() -> None:

@@ -117,6 +117,12 @@ def test_plain_csv_with_score_column_and_merge_keeps_labels_and_other_videos(tmp
         ("a", 2, "p"): (7.0, 8.0, "csv", "0.900"),  # the old tracked row of video a is replaced
         ("b", 0, "p"): (5.0, 6.0, "track", "0.7"),  # other videos are untouched
     }
+    # the replaced row (a, 1) is in a copy kept beside the file, with a warning; the same import again replaces
+    # nothing new and keeps no other copy
+    kept = sorted(tmp_path.glob("tracks.before-*.csv"))
+    assert len(kept) == 1 and ("a", 1, "p") in _rows(read_tracks(kept[0]))
+    run_import([src], out, ImportOptions(min_score=0.5))
+    assert len(sorted(tmp_path.glob("tracks.before-*.csv"))) == 1
 
 
 @pytest.mark.parametrize(
@@ -187,6 +193,10 @@ def test_mapping_parser_and_collisions(tmp_path: Path) -> None:
     src.write_text("video,frame,point,x,y\nv,0,a,1,1\nv,0,b,2,2\n")
     with pytest.raises(InputError, match="two detections of point 'z'"):
         run_import([src], tmp_path / "o.csv", ImportOptions(mapping={"a": "z", "b": "z"}))
+    # a name no file gives (a typo): refused, naming the files' names, before anything is written
+    with pytest.raises(InputError, match=r"--map renames 'foo', which no imported file names.*names: a, b"):
+        run_import([src], tmp_path / "o.csv", ImportOptions(mapping={"foo": "bar", "a": "z"}))
+    assert not (tmp_path / "o.csv").exists()
 
 
 def test_imported_rows_are_float_exact(tmp_path: Path) -> None:
