@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from dynrecon import video_io
 from dynrecon.atomic import atomic_open, keep_aside, require_writable
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import float_or_nan
@@ -214,6 +215,9 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         points = {key[2] for key in labels}
     if options.register.scale is not None and points is not None:
         check_scale_points(options.register.scale, points, options.tracks or options.labels)
+    given = options.tracks or options.labels
+    if given is not None:
+        _say_rotated(videos, given)
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()
@@ -223,6 +227,18 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
         read_charuco_board(options.register.board)  # a bad board file fails before any stage runs
     if options.skeleton is not None:
         read_skeleton(options.skeleton)  # ... and so does a bad skeleton, read only at the recording
+
+
+def _say_rotated(videos: list[Path], given: Path) -> None:
+    """A warning per video with a rotation flag: the pixels of the user's labels or tracks must be upright ones."""
+    for video in videos:
+        capture = video_io.open_video(video)
+        try:
+            degrees = video_io.rotation(capture)
+        finally:
+            capture.release()
+        if degrees:
+            log.warning(video_io.rotated_pixels_message(video.stem, degrees, given))
 
 
 def _check_video_names(path: Path, used: list[str], videos: set[str]) -> None:

@@ -91,6 +91,15 @@ def rotation(capture: cv2.VideoCapture) -> int:
     return int(value) % 360 if value and value > 0 else 0
 
 
+def rotated_pixels_message(name: str, degrees: int, source: Path | str) -> str:
+    """One line for a video with a rotation flag whose pixels come from a file: they must be the upright frame's."""
+    return (
+        f"{name}: the video carries a rotation flag of {degrees} degrees, so its frames are read upright (as OpenCV, "
+        f"DeepLabCut and ffmpeg show them): the pixels in {source} must be those of the upright frames, not of the "
+        "stored ones"
+    )
+
+
 def count_message(
     path: Path, decoded: int, expected: int | None, where: str = "", *, at_end: bool = False
 ) -> str | None:

@@ -170,6 +170,11 @@ def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tra
             )
         if tracks is not None:
             check_scale_points(options.scale, set(tracks.point), tracks.path)
+    named = set(tracks.video_names()) if tracks is not None else set()
+    source = (tracks.path if tracks is not None else None) or "the tracks"
+    for info in infos:
+        if info.rotation and info.name in named:  # a tool that ignores the flag would give the stored frame's pixels
+            log.warning(video_io.rotated_pixels_message(info.name, info.rotation, source))
 
 
 def check_scale_points(scale: tuple[str, str, float], points: set[str], path: Path | None) -> None:

@@ -215,6 +215,29 @@ def test_rotated_portrait_video_is_upright_and_identical_in_every_reader(
     )  # as ffmpeg shows it
 
 
+def test_tracks_of_a_rotated_video_are_said_to_be_upright_pixels(
+    videos: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Labels or tracks of a phone video with a rotation flag, from a tool that ignores it, would be in the stored
+    frame's pixels: register and run say once per such video that the pixels are read as upright ones."""
+    import logging
+
+    from dynrecon.pipeline import PipelineOptions, _check
+    from sfm.options import RegisterOptions
+    from sfm.stage import check_inputs
+    from tracking.tracks import Tracks, write_tracks
+
+    tracks = Tracks.from_rows([("rotated", 0, "p", 10.0, 20.0), ("upright", 0, "p", 10.0, 20.0)])
+    path = write_tracks(tmp_path / "tracks.csv", tracks)
+    caplog.set_level(logging.WARNING)
+    infos = [probe_video(videos["rotated"]), probe_video(videos["upright"])]
+    check_inputs(RegisterOptions(), infos, tracks)
+    _check([videos["rotated"], videos["upright"]], PipelineOptions(tracks=path))
+    said = [r.getMessage() for r in caplog.records if "rotation flag" in r.getMessage()]
+    assert len(said) == 2 and all(m.startswith("rotated: the video carries a rotation flag of") for m in said)
+    assert f"the pixels in {path} must be those of the upright frames" in said[1]
+
+
 def test_variable_frame_rate_times_are_the_container_timestamps(videos: dict[str, Path]) -> None:
     info = probe_video(videos["vfr.mp4"])
     pts = _pts(videos["vfr.mp4"])
