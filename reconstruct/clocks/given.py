@@ -102,7 +102,7 @@ def pair_verdicts(problem: Problem, own: np.ndarray, offsets: np.ndarray, option
             if best is None:
                 continue
             given = float(offsets[v] - offsets[u])  # own_u = own_v + offset_v - offset_u
-            cost = pair_cost(tracks, v, u, given, 1.0, options)
+            cost = pair_cost(tracks, v, u, given, 1.0, options, best.count)  # judged on the best's samples
             verdicts.append(
                 PairVerdict(
                     v=problem.video_names[v],

@@ -49,6 +49,7 @@ MAX_DENSE_HYPOTHESES = 20_000
 DENSE_RATIOS = 2  # where frame rates are unknown, the rate ratios (of the coarse grid's best) searched densely
 MIN_OVERLAP = 12  # interpolated samples a hypothesis needs
 MIN_OVERLAP_SHARE = 0.15  # ... and this share of the shorter video's observed samples
+MIN_SUPPORT_SHARE = 0.5  # ... and this share of the pair's best support (summed margins under the truncation)
 MAX_GAP_PERIODS = 2.5  # no interpolation across a gap longer than this (missing frames)
 DISTINCT_STEPS = 4  # the runner-up minimum lies more than this many grid steps away
 MIN_DISTINCTNESS = 1.15  # runner-up cost / best cost of a pair usable for the chain
@@ -81,8 +82,10 @@ class PairHypothesis:
     alpha: float
     beta: float
     cost: float  # px^2, mean truncated squared gap
-    runner_up: float  # cost of the best hypothesis more than `distinct_steps` away
+    runner_up: float  # rival cost (`rival_cost`) of the best hypothesis more than `distinct_steps` away
     samples: int
+    support: float = math.inf  # px^2, summed margins of its samples under the truncation (MSAC's)
+    count: float = math.inf  # samples at the best offset
 
     @property
     def distinctness(self) -> float:
@@ -259,13 +262,15 @@ def _grid_cost(
     need: int,
     c2: float,
     chunk_samples: int = 400_000,
-) -> np.ndarray:
-    """(A,) mean truncated squared gap of each hypothesis alpha (inf with fewer than `need` samples), vectorized
+) -> tuple[np.ndarray, np.ndarray]:
+    """(A,) mean truncated squared gap of each hypothesis alpha (inf with fewer than `need` samples) and (A,) its
+    support, the summed margin of its samples under the truncation (c2 - gap^2, 0 for an outlier: MSAC's), vectorized
     over chunks of hypotheses."""
     tv, tu = tracks[v], tracks[u]
     P = tv.rays.shape[1]
     per = max(1, chunk_samples // max(1, (len(qv) + len(qu)) * P))
     cost = np.full(len(alphas), np.inf)
+    support = np.zeros(len(alphas))
     for start in range(0, len(alphas), per):
         a = alphas[start : start + per]
         A = len(a)
@@ -278,7 +283,8 @@ def _grid_cost(
             np.nan_to_num(g2, nan=0.0) ** 2, c2
         ).sum(axis=1)
         cost[start : start + per] = np.where(n >= need, total / np.maximum(n, 1), np.inf)
-    return cost
+        support[start : start + per] = np.where(n >= need, n * c2 - total, 0.0)
+    return cost, support
 
 
 def _pair_queries(
@@ -292,10 +298,15 @@ def _pair_queries(
     return qv, qu, max(MIN_OVERLAP, int(MIN_OVERLAP_SHARE * min(seen_v.sum(), seen_u.sum())))
 
 
-def pair_cost(tracks: list[VideoRays], v: int, u: int, alpha: float, beta: float, options: SearchOptions) -> float:
-    """The pair search's cost (px^2) of one hypothesis own_u = alpha + beta own_v (inf: too little overlap)."""
+def pair_cost(
+    tracks: list[VideoRays], v: int, u: int, alpha: float, beta: float, options: SearchOptions, count: float = math.inf
+) -> float:
+    """The pair search's cost (px^2) of one hypothesis own_u = alpha + beta own_v (inf: too little overlap), as a
+    rival of a best hypothesis of `count` samples (`rival_cost`; its own mean by default)."""
     qv, qu, need = _pair_queries(tracks, v, u, options)
-    return float(_grid_cost(tracks, v, u, qv, qu, np.array([alpha]), beta, need, options.inlier_px**2)[0])
+    c2 = options.inlier_px**2
+    cost, support = _grid_cost(tracks, v, u, qv, qu, np.array([alpha]), beta, need, c2)
+    return float(rival_cost(cost, support, count, c2)[0])
 
 
 def _image_speed(*tracks: VideoRays) -> float:
@@ -332,22 +343,36 @@ def search_pair(
         narrow = min((hi - lo) / MAX_HYPOTHESES, basin) if dense else (hi - lo) / MAX_HYPOTHESES
         coarse = max(step, narrow, (hi - lo) / MAX_DENSE_HYPOTHESES)
         alphas = np.arange(lo, hi + coarse, coarse)
-        cost = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
+        cost, support = _grid_cost(tracks, v, u, qv, qu, alphas, beta, need, c2)
         if not np.isfinite(cost).any():
             return None
-        i = int(np.argmin(cost))
+        # the lowest mean among the hypotheses with a fair share of the best support: a few samples of a subject at
+        # rest, met at an offset that overlaps the videos' ends alone, have a low mean and say nothing
+        floor = MIN_SUPPORT_SHARE * float(support.max())
+        i = int(np.argmin(np.where(support >= floor, cost, np.inf)))
+        alpha, best_cost, best_support = float(alphas[i]), float(cost[i]), float(support[i])
+        count = _count(best_cost, best_support, c2)
         far = np.abs(np.arange(len(alphas)) - i) > DISTINCT_STEPS
-        runner = float(np.min(cost[far])) if far.any() else np.inf
-        alpha, best_cost = float(alphas[i]), float(cost[i])
+        runner = float(np.min(rival_cost(cost[far], support[far], count, c2))) if far.any() else np.inf
         if coarse > step:  # the basin is wider than the coarse step: settle the offset on the fine step
             fine = alpha + np.arange(-coarse, coarse + step, step)
-            fine_cost = _grid_cost(tracks, v, u, qv, qu, fine, beta, need, c2)
+            fine_cost, fine_support = _grid_cost(tracks, v, u, qv, qu, fine, beta, need, c2)
+            fine_cost = np.where(fine_support >= floor, fine_cost, np.inf)
             j = int(np.argmin(fine_cost))
             if fine_cost[j] < best_cost:
-                alpha, best_cost = float(fine[j]), float(fine_cost[j])
+                alpha, best_cost, best_support = float(fine[j]), float(fine_cost[j]), float(fine_support[j])
+                count = _count(best_cost, best_support, c2)
         samples = int(np.sum(np.isfinite(cost)))
         return PairHypothesis(
-            v=v, u=u, alpha=alpha, beta=float(beta), cost=best_cost, runner_up=runner, samples=samples
+            v=v,
+            u=u,
+            alpha=alpha,
+            beta=float(beta),
+            cost=best_cost,
+            runner_up=runner,
+            samples=samples,
+            support=best_support,
+            count=count,
         )
 
     # Unknown frame rates try many ratios: each on the coarse grid, the dense one (fast points) on the likeliest few.
@@ -360,10 +385,29 @@ def search_pair(
                 found[beta] = dense
     if not found:
         return None
-    best = min(found.values(), key=lambda h: h.cost)
-    others = [h.cost for h in found.values() if h is not best]
+    floor = MIN_SUPPORT_SHARE * max(h.support for h in found.values())  # across the rate ratios too
+    best = min((h for h in found.values() if h.support >= floor), key=lambda h: h.cost)
+    others = [
+        float(rival_cost(np.array([h.cost]), np.array([h.support]), best.count, c2)[0])
+        for h in found.values()
+        if h is not best
+    ]
     best.runner_up = min([best.runner_up, *others])
     return best
+
+
+def _count(cost: float, support: float, c2: float) -> float:
+    """The samples of a hypothesis from its mean truncated cost and support (support = count x (c2 - cost))."""
+    return support / (c2 - cost) if c2 - cost > 0 else math.inf
+
+
+def rival_cost(cost: np.ndarray, support: np.ndarray, count: float, c2: float) -> np.ndarray:
+    """A rival hypothesis's cost on the best's `count` samples: its own mean, or higher where it has fewer samples,
+    the missing ones counted as outliers (MSAC): a stretch that overlaps the videos' resting ends alone rivals
+    nothing, while a rival with as many samples keeps its mean."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        on_count = c2 - support / count if math.isfinite(count) and count > 0 else cost
+    return np.maximum(cost, np.nan_to_num(on_count, nan=np.inf))
 
 
 def _chain(
@@ -625,7 +669,7 @@ def _weakly_supported(
             f"video {names[v]!r}: no pair of videos with it brings the rays together at a distinct offset "
             f"(closest: {names[closest.v]}-{names[closest.u]}, {closest.cost:.0f} px^2, of {misfit:.0f} at which "
             f"rays stay apart, runner-up x{closest.distinctness:.2f}): its clock is weakly supported; check its "
-            "points, or give its clock offset (`register --offsets`)"
+            "points, or give its clock offset (`--offsets` of register or import-calibration)"
         )
     return out
 
