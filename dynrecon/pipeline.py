@@ -205,19 +205,22 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
     # the user's own file is named in its errors, not the copy in WS that the stages read
     names = {video.stem for video in videos}
     points: set[str] | None = None
+    named: list[str] = []  # the videos the user's tracks or labels give pixels of
     if options.tracks is not None:
         tracks = matched_to_videos(read_tracks(options.tracks), names)  # back.mp4 for back: what register reads
-        _check_video_names(options.tracks, tracks.video_names(), names)
+        named = tracks.video_names()
+        _check_video_names(options.tracks, named, names)
         points = set(tracks.point)
     if options.labels is not None:
         labels = read_labels(options.labels)
-        _check_video_names(options.labels, list(dict.fromkeys(key[0] for key in labels)), names)
+        named = list(dict.fromkeys(key[0] for key in labels))
+        _check_video_names(options.labels, named, names)
         points = {key[2] for key in labels}
     if options.register.scale is not None and points is not None:
         check_scale_points(options.register.scale, points, options.tracks or options.labels)
     given = options.tracks or options.labels
     if given is not None:
-        _say_rotated(videos, given)
+        _say_rotated([video for video in videos if video.stem in named], given)
     if options.calibration is not None:
         _check_calibration(options.calibration, options.calibration_options, options.register)
     options.register.check()
@@ -232,7 +235,10 @@ def _check(videos: list[Path], options: PipelineOptions) -> None:
 def _say_rotated(videos: list[Path], given: Path) -> None:
     """A warning per video with a rotation flag: the pixels of the user's labels or tracks must be upright ones."""
     for video in videos:
-        capture = video_io.open_video(video)
+        try:
+            capture = video_io.open_video(video)
+        except InputError:
+            continue  # an unreadable video is left out by register, which names it
         try:
             degrees = video_io.rotation(capture)
         finally:

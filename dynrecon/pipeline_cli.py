@@ -192,8 +192,8 @@ def add_calibration_arguments(parser: argparse.ArgumentParser, help_calibration:
         type=positive_seconds,
         default=RegisterOptions().max_offset,
         metavar="SECONDS",
-        help="how far apart (each way) register's subject path searches two videos' start times: give more when the "
-        "cameras were started further apart",
+        help=f"how far apart (each way) register's subject path searches two videos' start times (default "
+        f"{RegisterOptions().max_offset:g}): give more when the cameras were started further apart",
     )
 
 

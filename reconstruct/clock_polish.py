@@ -113,8 +113,7 @@ def _clock_round(
     middle = np.array([np.median(times[problem.video_index == v]) if counts[v] else 0.0 for v in range(N)])
     correction = ClockCorrection.none(middle)
     if not np.isfinite(first.smoothness).any():  # no point refined (times with every video apart): no cost to search
-        log.info("clock polish: no point was refined at these times; the clocks are kept")
-        return ClockRefineResult(times=times, correction=correction, cost=[math.nan], result=first, at_input=first)
+        return ClockRefineResult(times=times, correction=correction, cost=[], result=first, at_input=first)
     with trajectory.worker_pool() as pool:
         cost = _PolishCost(problem, first, times, pool)
         history = _coordinate_descent(cost, times, problem.video_index, correction, rates)

@@ -272,6 +272,8 @@ def _finish(
 def _rejection(cost: list[float], rates: np.ndarray, max_rate_correction: float) -> str | None:
     """Why a clock polish is rejected, in words, or None where it is kept: its trajectory cost never rose above its
     start and no rate moved far."""
+    if not cost:
+        return "no point was refined at the clocks it started from (every video apart in time?)"
     if not np.all(np.isfinite(cost)):
         return "its cost was not finite"
     # the slack is a share of the start's size: a trajectory cost can be negative (exact data)

@@ -274,21 +274,36 @@ def declared_offsets(
 
 
 def _refuse_disjoint(offsets: dict[str, float], spans: dict[str, tuple[float, float]]) -> None:
-    """A declared video whose frames share no time with any other declared video's: no point is seen twice at one
-    time, and a solve on those clocks would fit each video alone (offsets typed in milliseconds do this)."""
+    """Declared videos that share no time with the others (alone, or in groups apart from each other): no point is
+    seen twice at one time across them, and a solve on those clocks would fit each apart (offsets typed in
+    milliseconds do this). The error names the video of the smaller group whose offset is largest."""
     placed = {name: (spans[name][0] + t, spans[name][1] + t) for name, t in offsets.items() if name in spans}
-    for name, (start, end) in placed.items():
-        others = [(s, e) for other, (s, e) in placed.items() if other != name]
-        if others and not any(s <= end and start <= e for s, e in others):
-            length = spans[name][1] - spans[name][0]
-            raise InputError(
-                None,
-                f"--offsets {name}={offsets[name]:g} puts its {length:.3g} s at {start:.6g}-{end:.6g} s, sharing no "
-                "time with any other video given an offset ("
-                + ", ".join(f"{other} {s:.6g}-{e:.6g} s" for other, (s, e) in placed.items() if other != name)
-                + ")",
-                fix="offsets are seconds (33 ms is 0.033), global time = the video's own time + offset",
-            )
+    group = {name: name for name in placed}
+
+    def root(name: str) -> str:
+        while group[name] != name:
+            name = group[name]
+        return name
+
+    for a, (sa, ea) in placed.items():
+        for b, (sb, eb) in placed.items():
+            if a < b and sa <= eb and sb <= ea:
+                group[root(a)] = root(b)
+    members: dict[str, list[str]] = {}
+    for name in placed:
+        members.setdefault(root(name), []).append(name)
+    if len(members) < 2:
+        return
+    largest = max(members.values(), key=len)
+    name = max((n for n in placed if n not in largest), key=lambda n: abs(offsets[n]))
+    start, end = placed[name]
+    apart = [n for n in placed if root(n) != root(name)]
+    raise InputError(
+        None,
+        f"--offsets {name}={offsets[name]:g} puts its {spans[name][1] - spans[name][0]:.3g} s at {start:.6g}-{end:.6g} "
+        "s, sharing no time with " + ", ".join(f"{n} ({placed[n][0]:.6g}-{placed[n][1]:.6g} s)" for n in apart),
+        fix="offsets are seconds (33 ms is 0.033), global time = the video's own time + offset",
+    )
 
 
 OFFSETS_HELP = (

@@ -67,6 +67,7 @@ def check_background(
     results: dict[str, dict[int, FramePose]],
     tracks: Tracks | None,
     warnings: list[str],
+    max_offset: float = 10.0,
 ) -> dict[str, Any] | None:
     """Check the static videos the background posed against the subject's tracks; a refuted video's frames lose
     their pose (in `results`). Returns the report's `background_check` section, None where the background posed
@@ -97,7 +98,7 @@ def check_background(
                 cam_from_world=(known.pose.rotation.matrix(), np.asarray(known.pose.translation)),
             )
         )
-    agreement = _agreement(tracks, inputs)
+    agreement = _agreement(tracks, inputs, max_offset)
     for name, why in agreement.refuted.items():
         warnings.append(f"{name}: the background's pose is not used: {why}")
         unpose_background(results, name, why)
@@ -181,8 +182,10 @@ def static_times(video: VideoCameras, path: Path | None) -> np.ndarray:
     return probe_video(path).times
 
 
-def _agreement(tracks: Tracks, videos: list[SubjectVideo]) -> Agreement:
+def _agreement(
+    tracks: Tracks, videos: list[SubjectVideo], max_offset: float = SubjectOptions().max_offset
+) -> Agreement:
     """`check_agreement` of `videos` on their own rows of `tracks`."""
     names = {v.name for v in videos}
     rows = tracks.of_videos(names)
-    return check_agreement(rows, videos, SubjectOptions().max_offset)
+    return check_agreement(rows, videos, max_offset)

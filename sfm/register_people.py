@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 
 def match_people(
-    plans: list[VideoPlan], tracks: Tracks | None, warnings: list[str]
+    plans: list[VideoPlan], tracks: Tracks | None, warnings: list[str], max_offset: float = 10.0
 ) -> tuple[Tracks | None, dict[str, dict[int, int]], dict[str, Any] | None]:
     """The tracks renumbered across the static videos, each video's map (own number -> number across videos; every
     video with people gets one, so that people matched with nobody, and those of moving videos, leave the solve as
@@ -47,7 +47,7 @@ def match_people(
         videos = [
             SubjectVideo(name=p.info.name, width=p.info.width, height=p.info.height, times=p.info.times) for p in static
         ]
-        found = associate_people(tracks, videos)
+        found = associate_people(tracks, videos, max_offset=max_offset)
         maps = found.maps
         section = {"matched": bool(found.groups), **found.to_json()}
         if found.groups:

@@ -489,9 +489,9 @@ def finish_capture(
         with collected(notes), timed(notes, "markers"):
             tracks, markers = tracks_from_markers(plans, out, options.num_threads)
     with collected(notes), timed(notes, "people"):
-        tracks, people, summary.people = match_people(plans, tracks, notes.warnings)
+        tracks, people, summary.people = match_people(plans, tracks, notes.warnings, options.max_offset)
     with collected(notes), timed(notes, "background_check"):
-        summary.background_check = check_background(plans, results, tracks, notes.warnings)
+        summary.background_check = check_background(plans, results, tracks, notes.warnings, options.max_offset)
     with collected(notes), timed(notes, "subject"):
         subject_report = pose_from_subject(plans, results, tracks, intrinsics, options, notes.warnings)
     if subject_report is not None and markers is not None:

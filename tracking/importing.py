@@ -323,11 +323,12 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
         elif not kept:
             log.warning("%s: every detection was dropped (check --min-score and --map)", path)
     unmatched = sorted(set(options.mapping) - named)
-    if unmatched and named:  # a typo: the rename would not happen, and the names would differ later in the solve
-        raise InputError(
-            None,
-            f"--map renames {', '.join(map(repr, unmatched))}, which no imported file names",
-            fix=f"the files' point names: {', '.join(sorted(named))}",
+    if unmatched and named:  # a typo leaves names that differ later in the solve; a point never detected, nothing
+        log.warning(
+            "--map renames %s, which no imported detection names (a typo, or a point never detected); the names "
+            "detected: %s",
+            ", ".join(map(repr, unmatched)),
+            ", ".join(sorted(named)),
         )
     if options.board is not None and not rows and inputs:
         from tracking.charuco import board_not_found, read_charuco_board
@@ -340,13 +341,13 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
             fix="check that the detector wrote its output there, and --min-score and --map",
         )
     kept_extra: dict[str, dict[tuple[str, int, str], str]] = {}  # the user's own columns of the rows kept
+    replaced: dict[tuple[str, int, str], tuple[float, float]] = {}
     if out.is_file():
         old = read_tracks(out)
         sources = old.extra.get("source", [""] * len(old))
         scores = old.extra.get("score", [""] * len(old))
         others = {name: values for name, values in old.extra.items() if name not in ("source", "score")}
         kept_extra = {name: {} for name in others}
-        replaced: dict[tuple[str, int, str], tuple[float, float]] = {}
         for i in range(len(old)):
             key = (old.video[i], int(old.frame[i]), old.point[i])
             if sources[i] == SOURCE_LABEL or old.video[i] not in imported_videos:
@@ -355,8 +356,8 @@ def run_import(inputs: list[Path], out: Path, options: ImportOptions) -> Path:
                     kept_extra[name][key] = values[i]
             else:
                 replaced[key] = (float(old.xy[i, 0]), float(old.xy[i, 1]))
-        _keep_replaced(out, replaced, rows, imported_videos)
     _refuse_two_openpose_models(rows, out)
+    _keep_replaced(out, replaced, rows, imported_videos)  # only where the import goes on to write
     keys = list(rows)
     tracks = Tracks.from_rows(
         [(k[0], k[1], k[2], rows[k][0], rows[k][1]) for k in keys],

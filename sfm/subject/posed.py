@@ -340,7 +340,11 @@ def _search(
     if video.offset is not None:
         candidates = np.array([video.offset])
     else:
-        candidates = np.arange(-max_offset, max_offset + 0.5 * period, period)
+        # offsets where the video's observations can meet the trajectory at all (a huge --max-offset stays cheap)
+        end = trajectory.t0 + trajectory.h * (len(trajectory.X) - 1)
+        low = max(-max_offset, trajectory.t0 - float(rows.own.max()))
+        high = min(max_offset, end - float(rows.own.min()))
+        candidates = np.arange(low, high + 0.5 * period, period) if high >= low else np.zeros(1)
     coarse = _subset(rows, COARSE_OBSERVATIONS)
     scores = np.array([_score(coarse, trajectory.at(coarse.own + o, coarse.point), px)[0] for o in candidates])
     k = int(np.argmax(scores))

@@ -192,8 +192,8 @@ def test_clocks_under_which_no_ray_is_predicted_lose_whatever_the_residual(
     phones: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Offsets that put every video apart in time (milliseconds typed for seconds) fit each video alone: a small
-    residual (2.2 px against the solve's 9.1 px on the Pose2Sim lab), and no video's rays predictable from the
-    others'. They lose to clocks that predict, whatever the residual (before: kept, points metres off)."""
+    residual, and no video's rays predictable from the others'. They lose to clocks that predict, whatever the
+    residual (before: kept, on the Pose2Sim lab with points metres off; docs/refinement.md)."""
     import reconstruct.registered_offsets as module
     from reconstruct.heldout import HeldOut
 

@@ -87,8 +87,8 @@ def test_known_clock_offsets(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     # milliseconds typed for seconds: the two videos' 0.08 s would share no time, and a solve would fit each alone
     assert main([*args, "--offsets", "cam1=0,cam2=33"]) == 2
     err = capsys.readouterr().err
-    assert "--offsets cam1=0 puts its 0.08 s at 0-0.08 s, sharing no time with any other video given an offset" in err
-    assert "(cam2 33-33.08 s)" in err and "33 ms is 0.033" in err
+    assert "--offsets cam2=33 puts its 0.08 s at 33-33.08 s, sharing no time with cam1 (0-0.08 s)" in err
+    assert "33 ms is 0.033" in err
     assert main([*args, "--offsets", "cam2=0.5"]) == 0  # a video left out gets none
     assert [v.clock_offset for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [None, 0.5]
     assert [v.clock_declared for v in read_cameras(tmp_path / "ws" / "cameras.json").videos] == [False, True]
