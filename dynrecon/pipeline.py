@@ -611,7 +611,7 @@ class Stages:
                 log.info("the tracks number people per video: registering again with them, which matches the people")
             else:
                 # the background registered without tracks: its static poses are checked against them now
-                refuted = refuted_in_folder(background, track_set, self.videos)
+                refuted = refuted_in_folder(background, track_set, self.videos, self.options.register.max_offset)
                 if not refuted:
                     return Registration.in_folder(background)
                 log.warning(

@@ -118,7 +118,9 @@ def background_left(videos: list[VideoPlan], results: dict[str, dict[int, FrameP
     return any(_from_background(r) for v in videos for r in results[v.info.name].values())
 
 
-def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[str, str]:
+def refuted_in_folder(
+    folder: Path, tracks: Tracks, videos: list[Path], max_offset: float = SubjectOptions().max_offset
+) -> dict[str, str]:
     """The check of an earlier registration (WS/register/: cameras.json and register_report.json, made without the
     tracks) now that `tracks` exist: video -> why its background pose is refuted. Empty where the report is missing,
     the check already ran there, or fewer than two tracked static videos were posed by the background."""
@@ -160,7 +162,7 @@ def refuted_in_folder(folder: Path, tracks: Tracks, videos: list[Path]) -> dict[
     inputs = [v for v in inputs if v.name in tracked]
     if len(inputs) < 2:
         return {}
-    agreement = _agreement(tracks, inputs)
+    agreement = _agreement(tracks, inputs, max_offset)
     if not agreement.refuted:
         checked = [p for p in agreement.pairs if p.checked]
         log.info(

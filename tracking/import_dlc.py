@@ -124,9 +124,15 @@ def _read_csv(path: Path) -> _Table:
     coords = header.get("coords", [])
     # Leading index columns have no coordinate name (DLC writes 1 to 3 of them).
     first = next((i for i, c in enumerate(coords) if i > 0 and c in ("x", "y", "likelihood")), None)
+    if not rows:
+        raise InputError(path, "the file is empty", fix="export the detections again (DeepLabCut's analyze_videos)")
     for name in ("bodyparts", "coords"):
         if name not in header:
-            raise InputError(path, f"no '{name}' header row", where=f"line {line + 1}", fix=_FIX)
+            first_cell = rows[0][0] if rows[0] else ""
+            # another separator leaves each header row one cell: say so rather than name a row
+            separator = next((sep for sep in (";", "\t", "|") if len(rows[0]) == 1 and sep in first_cell), None)
+            said = f"; the file seems separated by {separator!r}: save it comma-separated" if separator else ""
+            raise InputError(path, f"no '{name}' header row{said}", where=f"line {line + 1}", fix=_FIX)
     if first is None:
         raise InputError(path, "the coords row names no x/y columns", where=f"line {line}", fix=_FIX)
     columns = _columns(path, header, first, f"line {line}")

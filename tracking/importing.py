@@ -13,6 +13,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,7 +96,7 @@ def detect_format(path: Path) -> Format:
         raise InputError(path, "not UTF-8 text", fix="give a CSV or OpenPose JSON file") from None
     except OSError as error:  # no permission, a special file
         raise InputError(path, f"cannot read: {error.strerror or error}") from None
-    head = first.split(",")[0].strip().lower()
+    head = re.split(r"[,;\t|]", first)[0].strip().lower()  # another separator is said by the DLC reader
     if head in ("scorer", "individuals", "bodyparts"):
         return Format.DLC
     if is_dltdv_points(first):

@@ -54,10 +54,14 @@ def workspace_videos(workspace: Path, given: list[Path] | None = None) -> dict[s
     listed = sorted(folder.iterdir()) if folder.is_dir() else []
     files = [p for p in listed if p.suffix.lower() in VIDEO_SUFFIXES]
     if not files:
+        unlabeled = not (workspace / "labels.csv").is_file()  # not a labeling workspace at all: say what comes first
         raise InputError(
             workspace,
-            "no videos found (no labeling.json, no videos/ folder)",
-            fix="pass --videos V1 V2 ... or put them in WS/videos/",
+            "no videos found (no labeling.json, no videos/ folder" + (", no labels.csv)" if unlabeled else ")"),
+            fix="label the subject first (dynrecon label WS --videos V1 V2 ...), or import tracks (dynrecon "
+            "import-tracks)"
+            if unlabeled
+            else "pass --videos V1 V2 ... or put them in WS/videos/",
         )
     return _by_stem(files)
 

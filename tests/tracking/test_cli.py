@@ -95,7 +95,11 @@ def test_track_command_errors_are_one_line(
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(["track", str(empty)]) == 2
-    assert "no videos found" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no videos found" in err and "no labels.csv" in err and "label the subject first" in err
+    (empty / "labels.csv").write_text("video,frame,point,x,y\n")  # labels, but the videos elsewhere
+    assert main(["track", str(empty)]) == 2
+    assert "pass --videos V1 V2" in capsys.readouterr().err
     ws = _workspace(tmp_path, small_video)
     (ws / "labels.csv").write_text("video,frame,point,x,y,source\ncam0,zero,m0,1,2,label\n")
     assert main(["track", str(ws)]) == 2

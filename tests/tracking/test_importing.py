@@ -130,6 +130,7 @@ def test_plain_csv_with_score_column_and_merge_keeps_labels_and_other_videos(tmp
     [
         ("bad.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1.0,oops\n", r"bad.csv:line 4: 'oops' in column 3"),
         ("nohead.csv", "scorer,a,a\ncoords,x,y\n0,1,2\n", r"nohead.csv:line 3: no 'bodyparts' header row"),
+        ("semi.csv", "scorer;a;a\nbodyparts;n;n\ncoords;x;y\n0;1;2\n", r"semi.csv:line 1: .*separated by ';'"),
         ("noy.csv", "scorer,a\nbodyparts,n\ncoords,x\n0,1\n", r"noy.csv:coords row: point 'n' lacks an x or y"),
         ("short.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\n0,1\n", r"short.csv:line 4: expected at least 3 fields"),
         ("frame.csv", "scorer,a,a\nbodyparts,n,n\ncoords,x,y\nabc,1,2\n", r"frame.csv:line 4: cannot tell the frame"),
@@ -200,6 +201,15 @@ def test_mapping_parser_and_collisions(tmp_path: Path, caplog: pytest.LogCapture
         run_import([src], tmp_path / "o.csv", ImportOptions(mapping={"foo": "bar", "a": "z"}))
     said = [r.getMessage() for r in caplog.records if "--map renames" in r.getMessage()]
     assert len(said) == 1 and "'foo', which no imported detection names" in said[0] and said[0].endswith("a, b")
+
+
+def test_an_empty_deeplabcut_file_is_said_empty(tmp_path: Path) -> None:
+    from tracking.importing import Format
+
+    empty = tmp_path / "camDLC_resnet50.csv"
+    empty.write_text("")
+    with pytest.raises(InputError, match="the file is empty"):
+        run_import([empty], tmp_path / "o.csv", ImportOptions(format=Format.DLC, video="cam"))
 
 
 def test_imported_rows_are_float_exact(tmp_path: Path) -> None:
