@@ -72,7 +72,7 @@ def run(
         frames = VideoFrames(path)
         try:
             _check_inside(raw_labels, labels_path, name, frames.shape)
-            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False, disable=None) as bar:
+            with tqdm(total=2 * len(frames), desc=f"track {name}", unit="frame", leave=False) as bar:
                 results[name] = track_video(
                     frames, marks, options, progress=lambda done, total: bar.update(done - bar.n), name=name
                 )

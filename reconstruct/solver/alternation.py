@@ -356,12 +356,9 @@ def _run_stage(
     flat = 0  # consecutive alternations whose cost changed by less than COST_TOLERANCE, either way
     mixer = AndersonMixer(options.anderson_memory) if options.anderson_memory > 0 else None
     candidate = points  # where the next W-step starts: the last X-step's points or an Anderson mix of them
-    bar = tqdm(
-        range(options.max_iterations),
-        desc=f"solve ({stage.name})",
-        disable=None if options.progress else True,
-        leave=False,
-    )
+    # off a terminal too (the CLI thins redraws to one per 10 s there), and -q's TQDM_DISABLE still applies
+    hidden = {} if options.progress else {"disable": True}
+    bar = tqdm(range(options.max_iterations), desc=f"solve ({stage.name})", leave=False, **hidden)
     for _ in bar:
         t0 = time.perf_counter()
         W, W_matrix, w_stats, candidate = _w_step(

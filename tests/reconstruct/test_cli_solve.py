@@ -42,7 +42,9 @@ def test_solve_writes_every_output(tmp_path, capsys):
         ]
     )
     assert code == 0
-    assert "recording.rrd" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "recording.rrd" in said.out
+    assert "solve (smooth)" in said.err  # the seed solve's progress, off a terminal too (minutes on long captures)
     points = read_points(out / "points3d.csv")
     assert points.xyz.shape == (capture.truth.num_frames, 4, 3)
     index = capture.truth.index()
