@@ -171,11 +171,10 @@ def pose_from_subject(
                 subject_options = replace(subject_options, scale=None)
                 result, stability = _determined(subject_tracks, inputs, anchors, subject_options)
     except SubjectCalibrationError as error:
-        why = str(error)
-        farther = _farther_hint(inputs, set(anchors), options.max_offset)
-        why += f"; {farther}" if farther else ""
-        warnings.append(f"subject path: {why}")
-        return _refuse(unposed, results, why, {"used": False, "why": why, "anchors": anchors, "board": board})
+        warnings.append(f"subject path: {error}")
+        return _refuse(
+            unposed, results, str(error), {"used": False, "why": str(error), "anchors": anchors, "board": board}
+        )
     if not stability.checked:
         warnings.append(f"subject path: poses unverified ({stability.why_unchecked})")
     for pair in result.pairs:

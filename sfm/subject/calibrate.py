@@ -302,8 +302,8 @@ def _no_usable_pair(fits: list[PairFit], options: SubjectOptions) -> NoReturn:
     most = max(f.shared for f in fits)
     raise SubjectCalibrationError(
         f"no pair of videos shares {MIN_SHARED} observations at any time offset "
-        f"within ±{options.max_offset:g} s (best {most}); record longer overlapping "
-        "motion or track more points"
+        f"within ±{options.max_offset:g} s (best {most}); record longer overlapping motion or track more points, "
+        "or give --max-offset where the cameras were started further apart"
     )
 
 
