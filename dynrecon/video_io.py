@@ -45,7 +45,14 @@ CANNOT_OPEN_FIX = (
 def check_video_file(path: Path) -> None:
     """One-line errors for a path that cannot be a video, before OpenCV is asked."""
     if path.is_dir():
-        raise InputError(path, "is a directory, not a video file", fix="give the video files themselves")
+        images = any(p.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp") for p in path.iterdir())
+        raise InputError(
+            path,
+            "is a directory, not a video file" + (" (it holds images: a frame sequence?)" if images else ""),
+            fix=f"make a video of the frames first, e.g. ffmpeg -framerate 30 -i {path}/%05d.jpg {path}.mp4"
+            if images
+            else "give the video files themselves",
+        )
     if not path.exists():
         raise InputError(path, "video file not found", fix="check the path")
     if path.stat().st_size == 0:

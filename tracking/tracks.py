@@ -276,6 +276,7 @@ def _read_checked(path: Path) -> Tracks:
                 path,
                 f"x, y = {shown(row[index['x']])}, {shown(row[index['y']])} are not numbers",
                 where=f"line {number}",
+                fix="a point not seen in a frame has no row: leave the row out",
             ) from None
         if not (math.isfinite(x) and math.isfinite(y)):
             raise InputError(

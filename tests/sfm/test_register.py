@@ -134,6 +134,12 @@ def test_bad_video_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "'a' is used twice" in capsys.readouterr().err
     assert main(["register", str(video), str(tmp_path / "b"), "--out", str(tmp_path / "ws")]) == 2
     assert "is a directory" in capsys.readouterr().err
+    frames = tmp_path / "frames"  # a phone app's or a camera's frame sequence
+    frames.mkdir()
+    cv2.imwrite(str(frames / "00001.jpg"), np.zeros((8, 8, 3), np.uint8))
+    assert main(["register", str(video), str(frames), "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err
+    assert "it holds images: a frame sequence?" in err and f"ffmpeg -framerate 30 -i {frames}/%05d.jpg" in err
     other = _flat_video(tmp_path / "c.mp4", frames=2)
     two = ["register", str(video), str(other), "--out", str(tmp_path / "ws")]
     assert main([*two, "--offsets", "a=0,d=0.1"]) == 2
