@@ -15,6 +15,8 @@ from pathlib import Path
 from dynrecon.errors import InputError
 from tracking.pixels import DltPixels
 
+MAX_OFFSET_S = 10.0  # seconds searched each way for two videos' clock offset, unless --max-offset says otherwise
+
 ALL_CORES = -1  # COLMAP's num_threads for one thread per core
 MAX_COUNT = 10**7  # no count flag of registration is sensibly larger
 # pycolmap's CameraModelId names (without INVALID), kept here so that the options stay cheap to import
@@ -110,7 +112,7 @@ class RegisterOptions:
     # Known clock offsets per video name (s, global = own time + offset): claimed and tested as --synchronized's 0s
     offsets: dict[str, float] = field(default_factory=dict)
     # Seconds the subject path searches each way for a pair's clock offset: videos started further apart need more
-    max_offset: float = 10.0
+    max_offset: float = MAX_OFFSET_S
     max_ratio: float = 0.8  # SIFT ratio test
     sequential_overlap: int = 5  # pairs (i, i+1..i+overlap) within a video
     keyframes: int = 10  # per video, evenly spaced; each is matched with every one of the other videos

@@ -16,8 +16,9 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from sfm.cameras import VideoCameras, read_cameras
+from sfm.options import MAX_OFFSET_S
 from sfm.plan import FramePose, VideoPlan
-from sfm.subject import SubjectOptions, SubjectVideo
+from sfm.subject import SubjectVideo
 from sfm.subject.agreement import Agreement, check_agreement
 from sfm.video import probe_video
 from tracking.tracks import Tracks
@@ -67,7 +68,7 @@ def check_background(
     results: dict[str, dict[int, FramePose]],
     tracks: Tracks | None,
     warnings: list[str],
-    max_offset: float = 10.0,
+    max_offset: float = MAX_OFFSET_S,
 ) -> dict[str, Any] | None:
     """Check the static videos the background posed against the subject's tracks; a refuted video's frames lose
     their pose (in `results`). Returns the report's `background_check` section, None where the background posed
@@ -119,7 +120,7 @@ def background_left(videos: list[VideoPlan], results: dict[str, dict[int, FrameP
 
 
 def refuted_in_folder(
-    folder: Path, tracks: Tracks, videos: list[Path], max_offset: float = SubjectOptions().max_offset
+    folder: Path, tracks: Tracks, videos: list[Path], max_offset: float = MAX_OFFSET_S
 ) -> dict[str, str]:
     """The check of an earlier registration (WS/register/: cameras.json and register_report.json, made without the
     tracks) now that `tracks` exist: video -> why its background pose is refuted. Empty where the report is missing,
@@ -184,9 +185,7 @@ def static_times(video: VideoCameras, path: Path | None) -> np.ndarray:
     return probe_video(path).times
 
 
-def _agreement(
-    tracks: Tracks, videos: list[SubjectVideo], max_offset: float = SubjectOptions().max_offset
-) -> Agreement:
+def _agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: float = MAX_OFFSET_S) -> Agreement:
     """`check_agreement` of `videos` on their own rows of `tracks`."""
     names = {v.name for v in videos}
     rows = tracks.of_videos(names)

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from sfm.cameras import read_cameras, write_cameras
+from sfm.options import MAX_OFFSET_S
 from sfm.people import per_video_people, renumber_people
 from sfm.plan import VideoPlan
 from sfm.register_check import static_times
@@ -20,7 +21,7 @@ log = logging.getLogger(__name__)
 
 
 def match_people(
-    plans: list[VideoPlan], tracks: Tracks | None, warnings: list[str], max_offset: float = 10.0
+    plans: list[VideoPlan], tracks: Tracks | None, warnings: list[str], max_offset: float = MAX_OFFSET_S
 ) -> tuple[Tracks | None, dict[str, dict[int, int]], dict[str, Any] | None]:
     """The tracks renumbered across the static videos, each video's map (own number -> number across videos; every
     video with people gets one, so that people matched with nobody, and those of moving videos, leave the solve as

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.jsonvalues import finite_or_none
+from sfm.options import MAX_OFFSET_S
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_SHARED, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
@@ -96,7 +97,7 @@ class Agreement:
         }
 
 
-def check_agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: float = 10.0) -> Agreement:
+def check_agreement(tracks: Tracks, videos: list[SubjectVideo], max_offset: float = MAX_OFFSET_S) -> Agreement:
     """Check every pair of `videos` (each with `K` and `cam_from_world`) against the subject's `tracks`."""
     for video in videos:
         if video.K is None or video.cam_from_world is None:

@@ -8,6 +8,7 @@ from enum import Enum
 import numpy as np
 
 from dynrecon.errors import DynreconError
+from sfm.options import MAX_OFFSET_S
 
 
 class SubjectCalibrationError(DynreconError):
@@ -59,7 +60,7 @@ class Lens(Enum):
 
 @dataclass(kw_only=True)
 class SubjectOptions:
-    max_offset: float = 10.0  # seconds searched each way for a pair's time offset
+    max_offset: float = MAX_OFFSET_S  # seconds searched each way for a pair's time offset
     scale: tuple[str, str, float] | None = None  # (point A, point B, metres): mean |A-B| sets the scale
     # Known clock offsets (s, global = own + offset; e.g. from an earlier solve): pairs are fitted at the offsets
     # they imply instead of searched.

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from dynrecon.beside import map_beside
+from sfm.options import MAX_OFFSET_S
 from sfm.subject.geometry import sampson
 from sfm.subject.model import MIN_INLIERS, NOISE_SCALES_PX, SEED, SubjectVideo
 from sfm.subject.observations import VideoObs, build_observations
@@ -62,7 +63,7 @@ class PeopleAssociation:
 
 
 def associate_people(
-    tracks: Tracks, videos: list[SubjectVideo], inlier_px: float = NOISE_SCALES_PX[-1], max_offset: float = 10.0
+    tracks: Tracks, videos: list[SubjectVideo], inlier_px: float = NOISE_SCALES_PX[-1], max_offset: float = MAX_OFFSET_S
 ) -> PeopleAssociation:
     """Number the people of `videos` (static cameras, with their times) consistently across them: each video's map
     from its own person numbers to the numbers across videos (`renumber_people` applies it: people no other video's

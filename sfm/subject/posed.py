@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
+from sfm.options import MAX_OFFSET_S
 from sfm.subject.geometry import rodrigues
 from sfm.subject.model import MIN_INLIERS, MIN_RATIO, SubjectCalibrationError, SubjectResult
 from tracking.tracks import Tracks
@@ -161,7 +162,7 @@ class _Rows:
     frame: np.ndarray  # (N,)
 
 
-def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: float = 10.0) -> Alignment:
+def align_to_posed(result: SubjectResult, posed: list[PosedVideo], max_offset: float = MAX_OFFSET_S) -> Alignment:
     """The similarity (and the searched clock offsets) that best reproject the subject path's trajectory onto the
     posed videos' tracks, at the noise scale `result` was solved with. Raises SubjectCalibrationError when no posed
     video agrees with the trajectory or the scale is not fixed; the message says why."""
