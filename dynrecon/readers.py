@@ -140,14 +140,17 @@ def csv_records(path: Path, *, missing_fix: str | None = None) -> Iterator[tuple
             raise InputError(path, f"cannot read: {error.strerror or error}") from None
 
 
+def separator_hint(row: list[str]) -> str:
+    """The hint for a CSV row read as one cell that holds another separator (`;`, tab, `|`), else an empty string."""
+    separator = next((sep for sep in (";", "\t", "|") if len(row) == 1 and sep in row[0]), None)
+    return f"; the file seems separated by {separator!r}: save it comma-separated" if separator else ""
+
+
 def header_error(path: Path, header: list[str], missing: list[str], where: str, fix: str) -> InputError:
     """The error for a CSV header without the `missing` columns, with what most likely went wrong: another
     separator, or the names' case."""
-    hint = ""
-    separator = next((sep for sep in (";", "\t", "|") if len(header) == 1 and sep in header[0]), None)
-    if separator is not None:
-        hint = f"; the file seems separated by {separator!r}: save it comma-separated"
-    else:
+    hint = separator_hint(header)
+    if not hint:
         lower = {name.lower(): name for name in header}
         cased = [lower[name] for name in missing if name in lower]
         if cased:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from dynrecon.errors import InputError
-from dynrecon.readers import csv_records, parse_frame, shown
+from dynrecon.readers import csv_records, parse_frame, separator_hint, shown
 from tracking.detections import Detection
 from tracking.people import individual_names, tool_name
 
@@ -128,10 +128,8 @@ def _read_csv(path: Path) -> _Table:
         raise InputError(path, "the file is empty", fix="export the detections again (DeepLabCut's analyze_videos)")
     for name in ("bodyparts", "coords"):
         if name not in header:
-            first_cell = rows[0][0] if rows[0] else ""
             # another separator leaves each header row one cell: say so rather than name a row
-            separator = next((sep for sep in (";", "\t", "|") if len(rows[0]) == 1 and sep in first_cell), None)
-            said = f"; the file seems separated by {separator!r}: save it comma-separated" if separator else ""
+            said = separator_hint(rows[0])
             raise InputError(path, f"no '{name}' header row{said}", where=f"line {line + 1}", fix=_FIX)
     if first is None:
         raise InputError(path, "the coords row names no x/y columns", where=f"line {line}", fix=_FIX)
