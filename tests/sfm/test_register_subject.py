@@ -41,6 +41,16 @@ def _tracks(videos: list[str]) -> Tracks:
     )
 
 
+def _cameras_apart(names: list[str]) -> list[SubjectCamera]:
+    """A stand-in subject path's cameras, one metre apart along the diagonal."""
+    return [
+        SubjectCamera(
+            name=n, K=np.eye(3), dist=None, R=np.eye(3), t=np.full(3, float(i)), offset=0.0, inliers=50, residual_px=1
+        )
+        for i, n in enumerate(names)
+    ]
+
+
 def test_one_anchor_among_other_background_cameras_is_refused(tmp_path: Path) -> None:
     """One background-posed static video fixes the subject path's frame but not its scale, and the handheld video
     the background posed has no tracks: the subject path's cameras would sit at another scale than the background's,
@@ -164,19 +174,7 @@ def test_a_video_set_aside_is_unposed_and_said(tmp_path: Path, monkeypatch: pyte
 
     def solved(tracks: Tracks, videos: list, options: object) -> tuple[SubjectResult, Stability]:
         group = [v.name for v in videos]
-        cameras = [
-            SubjectCamera(
-                name=n,
-                K=np.eye(3),
-                dist=None,
-                R=np.eye(3),
-                t=np.full(3, float(i)),
-                offset=0.0,
-                inliers=50,
-                residual_px=1,
-            )
-            for i, n in enumerate(group)
-        ]
+        cameras = _cameras_apart(group)
         moves = {n: [(0.9 if n == "d" else 0.4) if "d" in group else 0.01] for n in group}
         unstable = {n: "not determined by the tracks: its centre moves by 40 %" for n in group if "d" in group}
         stability = Stability(centre_folds=moves, rotation_folds={n: [0.5] for n in group}, unstable=unstable)
@@ -213,19 +211,7 @@ def test_videos_left_unposed_name_the_offset_search_and_max_offset(
 
     def solved(tracks: Tracks, videos: list, options: object) -> tuple[SubjectResult, Stability]:
         seen.append(options.max_offset)  # type: ignore[attr-defined]
-        cameras = [
-            SubjectCamera(
-                name=n,
-                K=np.eye(3),
-                dist=None,
-                R=np.eye(3),
-                t=np.full(3, float(i)),
-                offset=0.0,
-                inliers=50,
-                residual_px=1,
-            )
-            for i, n in enumerate(["a", "b"])
-        ]
+        cameras = _cameras_apart(["a", "b"])
         return SubjectResult(cameras=cameras, pairs=[], failed={"c": "no usable pair"}, metric=False), Stability()
 
     monkeypatch.setattr(register_subject, "choose_noise", solved)
