@@ -8,11 +8,13 @@ a Dask worker's event loop holds its own) stays held in the child forever. The c
 monitor off (`quiet_tqdm_monitor`) so that it never starts. Everywhere else, when fork fails, and with
 DYNRECON_NO_FORK set, the function runs in a thread.
 
-The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory), or
-whose result cannot be brought back, is not trusted for anything, and the function is run again in the caller
-(`redone`). A child stopped early (the caller failed first) gets SIGTERM, which its function sees as SystemExit,
-so that its own cleanup (temporary files) runs; SIGKILL follows if it does not end. The warnings a child logs
-reach the caller's `warnings_seen` collectors with its result.
+The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory), whose
+result cannot be brought back, or that uses no CPU time for STALL_S (stuck on a lock a native thread held at the
+fork), is not trusted for anything, and the function is run again in the caller (`redone`). The child's progress
+bars take a lock of its own: tqdm's default lock is shared across fork, and a child ending while it held it would
+stop every later bar of the caller. A child stopped early (the caller failed first) gets SIGTERM, which its function
+sees as SystemExit, so that its own cleanup (temporary files) runs; SIGKILL follows if it does not end. The warnings
+a child logs reach the caller's `warnings_seen` collectors with its result.
 """
 
 from __future__ import annotations
@@ -22,12 +24,14 @@ import ctypes
 import logging
 import os
 import pickle
+import select
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from dynrecon.warnings_seen import WarningsSeen
@@ -38,6 +42,8 @@ T = TypeVar("T")
 A = TypeVar("A")
 NO_FORK = "DYNRECON_NO_FORK"  # set to anything: always a thread
 STOP_GRACE_S = 5.0  # a child stopped early has this long to clean up after SIGTERM (a loaded machine delays it)
+STALL_S = 120.0  # a child that used no CPU time for this long is stuck (computing children never wait this long)
+_WATCH_S = 5.0  # how often the caller, waiting for the result, looks at the child's CPU time
 _PR_SET_PDEATHSIG = 1
 
 
@@ -126,10 +132,22 @@ class Beside(Generic[T]):
         """The child's (failed, value, warnings it logged), or None when it gave none. Reaps it."""
         assert self._read is not None
         chunks = []
-        with os.fdopen(self._read, "rb") as pipe:
+        with os.fdopen(self._read, "rb", buffering=0) as pipe:
             self._read = None
-            while chunk := pipe.read(1 << 20):
-                chunks.append(chunk)
+            busy, still_since = _cpu_ticks(self._pid), time.monotonic()
+            while True:
+                if select.select([pipe], [], [], _WATCH_S)[0]:
+                    if not (chunk := pipe.read(1 << 20)):
+                        break
+                    chunks.append(chunk)
+                    continue
+                ticks = _cpu_ticks(self._pid)
+                if ticks != busy:
+                    busy, still_since = ticks, time.monotonic()
+                elif time.monotonic() - still_since > STALL_S:
+                    log.warning("a worker process used no CPU time for %.0f s (stuck): it is stopped", STALL_S)
+                    self.close()
+                    return None
         exit_code = self._reap()
         if not chunks or exit_code not in (0, None):
             return None
@@ -217,6 +235,7 @@ def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> N
         signal.signal(signal.SIGTERM, _exit_on_signal)
         signal.signal(signal.SIGINT, signal.SIG_DFL)
         end_with_parent(signal.SIGTERM)
+        _private_progress_lock()
         # the warnings it logs go back to the caller's collectors (`dynrecon run` repeats them at its end)
         collectors = _collectors()
         before = [len(h.messages) for h in collectors]
@@ -234,6 +253,24 @@ def _child(write: int, function: Callable[..., Any], args: tuple[Any, ...]) -> N
         code = 1
     finally:
         os._exit(code)
+
+
+def _private_progress_lock() -> None:
+    """Give this child's tqdm bars a lock of their own, and no monitor thread (see the module)."""
+    with contextlib.suppress(ImportError):
+        from tqdm import tqdm
+
+        tqdm.monitor_interval = 0
+        tqdm.set_lock(threading.RLock())
+
+
+def _cpu_ticks(pid: int | None) -> int | None:
+    """The CPU time (clock ticks, all its threads) process `pid` has used; None where Linux's /proc does not tell."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime, stime
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _collectors() -> list[WarningsSeen]:

@@ -96,6 +96,49 @@ def test_a_child_that_dies_without_a_result_is_redone_here(single_threaded: None
         assert running.redone
 
 
+def stuck_in_a_child(values: np.ndarray) -> float:
+    if os.getpid() != PARENT:
+        held = threading.Lock()  # as a lock that a thread gone with the fork held: no CPU time, no end
+        held.acquire()
+        held.acquire(timeout=60)
+    return float(values.sum())
+
+
+def test_a_stuck_child_is_stopped_and_its_work_redone_here(
+    single_threaded: None, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(beside_module, "STALL_S", 1.0)
+    monkeypatch.setattr(beside_module, "_WATCH_S", 0.1)
+    values = np.arange(4.0)
+    started = time.perf_counter()
+    with beside(stuck_in_a_child, values) as running:
+        pid = running._pid
+        assert running.result() == values.sum() and running.redone
+    assert time.perf_counter() - started < 20  # not the child's 60 s
+    assert "used no CPU time for 1 s (stuck)" in caplog.text
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)  # stopped and reaped
+
+
+def hides_a_progress_lock(values: np.ndarray) -> float:
+    from tqdm import tqdm
+
+    tqdm.get_lock().acquire()  # a bar's lock, never released: the child ends holding it
+    return float(values.sum())
+
+
+def test_a_child_ending_inside_a_progress_bar_leaves_the_caller_s_bars_free(single_threaded: None) -> None:
+    from tqdm import tqdm
+
+    for _ in tqdm(range(2), disable=False):  # the caller's lock exists before the fork, as after any bar
+        pass
+    with beside(hides_a_progress_lock, np.arange(3.0)) as running:
+        assert running.result() == 3.0 and running.forked
+    lock = tqdm.get_lock()
+    assert all(inner.acquire(timeout=5) for inner in lock.locks)  # with tqdm's shared lock: stuck forever
+    lock.release()
+
+
 def test_an_unpicklable_exception_is_raised_by_the_rerun(single_threaded: None) -> None:
     with beside(raises_unpicklable) as running, pytest.raises(UnpicklableError, match="kept"):
         running.result()
