@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from dynrecon import __version__
+from dynrecon.bar_lines import bar_lines
 from dynrecon.beside import quiet_tqdm_monitor
 from dynrecon.errors import DynreconError
 from dynrecon.lock import OutputLock
@@ -137,6 +138,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    with bar_lines():  # off a terminal, a log record never continues a progress bar's line
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     configure_logging(args.verbose, args.quiet)
     try:
         with sigterm_as_stop():

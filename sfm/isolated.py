@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dynrecon.bar_lines import LineStream
 from dynrecon.beside import end_with_parent
 from dynrecon.errors import DynreconError
 
@@ -66,7 +67,8 @@ def _child(call: Path, result: Path, log_path: Path, parent: int) -> None:
     progress = os.dup(2)
     with open(log_path, "a", encoding="utf-8") as handle:
         os.dup2(handle.fileno(), 2)  # glog (COLMAP's log) writes to fd 2
-    sys.stderr = os.fdopen(progress, "w", buffering=1)  # tqdm writes to sys.stderr: the user's terminal
+    stream = os.fdopen(progress, "w", buffering=1)  # tqdm writes to sys.stderr: the user's terminal, or log file
+    sys.stderr = stream if stream.isatty() else LineStream(stream)
     import pycolmap
 
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a stop, not a crash: no native stack trace in the log

@@ -23,7 +23,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dynrecon", "sfm", "tracking", "labeling", "reconstruct", "simulation", "batch")
 # The shared ground: user errors, atomic writes, folder locks, bounded readers, video opening and names, JSON
-# numbers, argument types, the lens model's inverse. Every package may import it; it imports no package.
+# numbers, argument types, the lens model's inverse, progress bars in log files. Every package may import it; it
+# imports no package.
 GROUND = (
     "dynrecon.errors",
     "dynrecon.names",
@@ -37,6 +38,7 @@ GROUND = (
     "dynrecon.arguments",
     "dynrecon.lens",
     "dynrecon.warnings_seen",
+    "dynrecon.bar_lines",
 )
 GROUND_NODE = "ground"
 # Nodes of the package graph: a module belongs to the longest of these that prefixes it.
