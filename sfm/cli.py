@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dynrecon.arguments import out_path
+from dynrecon.arguments import frame_rates, image_size, out_path
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -91,9 +91,11 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--fps",
-        type=float,
+        type=frame_rates,
+        metavar="FPS|NAME=FPS,...",
         help="the frame rate of videos that are not here (a calibration and 2D tracks shared without them): each "
-        "VIDEO that is no file is a name, its frames those of the tracks (--tracks) of that name",
+        "VIDEO that is no file is a name, its frames those of the tracks (--tracks) of that name; one rate, or one "
+        "per video (cam0=59.94,cam1=30)",
     )
     parser.add_argument(
         "--tracks",
@@ -103,20 +105,11 @@ def _add_import(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--size",
-        type=_size,
+        type=image_size,
         metavar="WxH",
         help="with --fps: the missing videos' image size (default: their cameras' calibrated size)",
     )
     parser.set_defaults(func=_run_import)
-
-
-def _size(value: str) -> tuple[int, int]:
-    from sfm.video_standin import parse_size
-
-    try:
-        return parse_size(value)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 SYNCHRONIZED_HELP = (

@@ -73,6 +73,22 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
     return result
 
 
+def intrinsics_sizes(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[int, int]]:
+    """video name -> the image size (width, height) that `path` (an --intrinsics file) gives its camera, for videos
+    that are not here (`--fps`); videos it does not name are left out."""
+    if path.suffix.lower() == ".json":
+        videos = read_cameras(path).videos
+        sizes = {}
+        for info in infos:
+            found = spelled_alike(info.name, [v.name for v in videos])
+            if len(found) == 1:
+                video = next(v for v in videos if v.name == found[0])
+                sizes[info.name] = (video.width, video.height)
+        return sizes
+    matched = match_cameras(read_calibration(path, units=Units.M), infos, path)
+    return {info.name: (camera.width, camera.height) for info, camera in zip(infos, matched, strict=True)}
+
+
 def _at_video_size(
     K: np.ndarray, size: tuple[int, int], info: ProbedVideo, name: str, path: Path, cy_plus_height: bool = False
 ) -> np.ndarray | None:

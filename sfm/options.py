@@ -133,6 +133,12 @@ class RegisterOptions:
     # the user's tracks come later (the pipeline's background registration with labels, --tracks or --board).
     find_markers: bool = True
     tracks: Path | None = None  # tracks.csv for masks (default: WS/tracks.csv when it exists)
+    # Videos that are not here (2D tracks shared without them): each VIDEO that is no file is a name, its frames
+    # those of the tracks of that name at `fps` (one rate, or one per name), its image size `size` or its camera's
+    # in --intrinsics. A camera
+    # with no pixels is taken as static and posed from the subject's tracks (sfm/video_standin.py).
+    fps: float | dict[str, float] | None = None
+    size: tuple[int, int] | None = None
     masks: Path | None = None  # user masks folder (see sfm.masks)
     mask_radius: float = 40.0  # original pixels around tracked points
     use_masks: bool = True
@@ -201,6 +207,19 @@ class RegisterOptions:
                 f"--camera-model {self.camera_model!r} is not a COLMAP camera model",
                 fix=f"one of {', '.join(CAMERA_MODELS)}",
             )
+        if self.fps is not None and self.camera_motion is CameraMotion.MOVING:
+            raise InputError(
+                None,
+                "--fps poses videos that are not here from the subject's tracks, which needs static cameras: not with "
+                "--camera-motion moving",
+                fix="give the moving videos' files",
+            )
+        if self.fps is not None and self.subject is SubjectPath.NEVER:
+            raise InputError(
+                None,
+                "--fps poses videos that are not here from the subject's tracks: not with --subject never",
+                fix="leave --subject out",
+            )
 
 
 class CalibrationFormat(enum.Enum):
@@ -239,8 +258,8 @@ class ImportCalibrationOptions:
     offsets: dict[str, float] = field(default_factory=dict)
     # Videos that are not here (a lab's calibration and tracks shared without them): a VIDEO that is no file is a
     # name, with frames 0 to its last tracked frame in `tracks` (default: the workspace's tracks.csv) at `fps`, and
-    # its camera's calibrated image size or `size` (width, height)
-    fps: float | None = None
+    # its camera's calibrated image size or `size` (width, height); `fps`: one rate, or one per name
+    fps: float | dict[str, float] | None = None
     tracks: Path | None = None
     size: tuple[int, int] | None = None
 

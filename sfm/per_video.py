@@ -53,11 +53,14 @@ from sfm.plan_io import (
 )
 from sfm.register_markers import markers_in_samples
 from sfm.resume import StepLog, files_key, input_key
-from sfm.static import SAMPLES, background_image, measure_motion, sample_frames
+from sfm.static import SAMPLES, MotionTest, background_image, measure_motion, sample_frames
 from sfm.video import ProbedVideo
 from tracking.tracks import Tracks
 
 log = logging.getLogger(__name__)
+
+# A video given by name with --fps (not here): the camera is taken as static, for the subject's tracks to pose
+STAND_IN_MOTION = "not here (--fps): no pixels to test, taken as a static camera posed from the subject's tracks"
 
 MIN_KEYPOINTS = 50  # fewer SIFT features in an image: warn that it is untextured or blurred
 LISTED_IMAGES = 3  # images a few-features warning names before it only counts the rest
@@ -138,6 +141,35 @@ def plan_video(
 ) -> VideoPlan:
     """Which frames the video sends to SfM and which need a pose; static or moving camera, measured. The keyframe
     choice is kept in `steps` (the video's own step log) for a later run."""
+    if info.stand_in:  # no pixels to test or to match: a static camera, for the subject's tracks to pose
+        motion = MotionTest(static=True, reason=STAND_IN_MOTION)
+        log.info("%s: %s", info.name, motion.reason)
+        static = True
+    else:
+        motion, static = _motion(info, tracks, options, notes)
+    resize = Resize.for_video(info, options.long_side)
+    with timed(notes, "keyframes"):
+        choice = None if static else _keyframes(info, options, steps, tracks)
+    sfm_frames = np.zeros(0, np.int64) if choice is None else choice.frames
+    wanted = wanted_frames(info, sfm_frames, tracks, options.localize)  # also checks the tracks' frames
+    if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
+        wanted = np.arange(info.num_frames, dtype=np.int64)
+    return VideoPlan(
+        info=info,
+        resize=resize,
+        sfm_frames=sfm_frames,
+        wanted=wanted,
+        motion=motion,
+        motion_given=options.camera_motion is not CameraMotion.AUTO,
+        static=static,
+        keyframes=choice,
+    )
+
+
+def _motion(
+    info: ProbedVideo, tracks: Tracks | None, options: RegisterOptions, notes: StepNotes
+) -> tuple[MotionTest, bool]:
+    """The motion test of one video, and whether it is taken as static (measured, or --camera-motion)."""
     with timed(notes, "motion_test"):
         # the tracked subject: where it hides the background, the samples say nothing about the camera
         subject = track_points(tracks, info.name) if tracks is not None else None
@@ -163,23 +195,7 @@ def plan_video(
                     if static
                     else "its frames go to SfM one by one (slower; pairs of one position have no baseline)",
                 )
-    resize = Resize.for_video(info, options.long_side)
-    with timed(notes, "keyframes"):
-        choice = None if static else _keyframes(info, options, steps, tracks)
-    sfm_frames = np.zeros(0, np.int64) if choice is None else choice.frames
-    wanted = wanted_frames(info, sfm_frames, tracks, options.localize)  # also checks the tracks' frames
-    if static:  # a static video's pose costs nothing per frame: every frame gets it, whatever --localize says
-        wanted = np.arange(info.num_frames, dtype=np.int64)
-    return VideoPlan(
-        info=info,
-        resize=resize,
-        sfm_frames=sfm_frames,
-        wanted=wanted,
-        motion=motion,
-        motion_given=options.camera_motion is not CameraMotion.AUTO,
-        static=static,
-        keyframes=choice,
-    )
+    return motion, static
 
 
 def _keyframes(info: ProbedVideo, options: RegisterOptions, steps: StepLog, tracks: Tracks | None) -> KeyframeChoice:
@@ -245,6 +261,8 @@ def write_video_images(
     video_masks = layout.mask_dir / sfm_folder(video.info.name)
     if video_masks.exists():
         shutil.rmtree(video_masks)
+    if video.info.stand_in:
+        return [], 0
     masked = 0
     if options.use_masks and not video.static:
         masked = _write_masks(video, tracks, options, layout.mask_dir)

@@ -87,6 +87,7 @@ def _info_to_json(info: ProbedVideo) -> dict[str, Any]:
         "rotation": info.rotation,
         "expected_frames": info.expected_frames,
         "missing": info.missing,
+        "stand_in": info.stand_in,
     }
 
 
@@ -101,6 +102,7 @@ def _info_from_json(d: dict[str, Any]) -> ProbedVideo:
         rotation=int(d["rotation"]),
         expected_frames=d["expected_frames"],
         missing=d["missing"],
+        stand_in=bool(d.get("stand_in", False)),
     )
 
 

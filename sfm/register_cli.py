@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dynrecon.arguments import out_path, positive_seconds
+from dynrecon.arguments import frame_rates, image_size, out_path, positive_seconds
 
 if TYPE_CHECKING:
     from sfm.options import RegisterOptions
@@ -185,7 +185,28 @@ def _add_static_arguments(static: argparse._ArgumentGroup, defaults: RegisterOpt
 def _add_mask_arguments(masks: argparse._ArgumentGroup, defaults: RegisterOptions) -> None:
     from sfm.options import InBetween, Localize
 
-    masks.add_argument("--tracks", type=Path, default=None, help="tracks.csv for masks (default: WS/tracks.csv)")
+    masks.add_argument(
+        "--tracks",
+        type=Path,
+        default=None,
+        help="tracks.csv: the subject path's tracks and the masks' (default: WS/tracks.csv)",
+    )
+    masks.add_argument(
+        "--fps",
+        type=frame_rates,
+        metavar="FPS|NAME=FPS,...",
+        default=None,
+        help="the frame rate of videos that are not here (2D tracks shared without them): each VIDEO that is no file "
+        "is a name, its frames those of the tracks of that name; such a camera is taken as static and posed from "
+        "the subject's tracks; one rate, or one per video (cam0=59.94,cam1=30)",
+    )
+    masks.add_argument(
+        "--size",
+        type=image_size,
+        default=None,
+        metavar="WxH",
+        help="with --fps: the missing videos' image size (default: their cameras' size in --intrinsics)",
+    )
     masks.add_argument(
         "--masks",
         type=Path,
@@ -259,6 +280,8 @@ def _run_register(args: argparse.Namespace) -> int:
         camera_model=args.camera_model,
         intrinsics=args.intrinsics,
         tracks=args.tracks,
+        fps=args.fps,
+        size=args.size,
         masks=args.masks,
         mask_radius=args.mask_radius,
         use_masks=not args.no_masks,

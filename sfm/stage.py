@@ -33,7 +33,7 @@ from dynrecon.names import first_repeated
 from sfm import colmap_steps
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras, check_plausible, read_cameras, write_cameras
 from sfm.export import write_ply
-from sfm.intrinsics import known_intrinsics, read_intrinsics_file
+from sfm.intrinsics import intrinsics_sizes, known_intrinsics, read_intrinsics_file
 from sfm.isolated import run_isolated
 from sfm.layout import Layout
 from sfm.masks import check_mask_folder
@@ -67,6 +67,7 @@ from sfm.report import write_report
 from sfm.resume import StepLog, input_key
 from sfm.subject.agreement import no_lens
 from sfm.video import ProbedVideo, probe_video, video_name
+from sfm.video_standin import stand_in_videos, with_size
 from tracking.charuco import charuco_tracks, read_charuco_board
 from tracking.tracks import Tracks, matched_to_videos, read_tracks, write_tracks
 
@@ -128,8 +129,9 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     out = Path(out_dir)
     notes = StepNotes()
     unreadable: dict[str, str] = {}
+    stand_ins = _stand_ins(paths, out, options)
     with collected(notes), timed(notes, "probe"):
-        infos = _probe_all(paths, unreadable)
+        infos = _probe_all(paths, unreadable, stand_ins)
     with collected(notes), timed(notes, "motion_test"):
         tracks = capture_tracks(options, out, [info.name for info in infos])
     if tracks is None and options.board is not None:
@@ -194,11 +196,43 @@ def _listed(names: list[str], most: int = 30) -> str:
     return shown if len(names) <= most else f"{shown}, ... ({len(names)} in all)"
 
 
-def _probe_all(paths: list[Path], unreadable: dict[str, str]) -> list[ProbedVideo]:
-    """Probe every video. One that cannot be read is left out with its one-line reason (a warning and the report),
-    and the others go on; with fewer than two readable videos, the first reason is the error."""
+def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[ProbedVideo | None]:
+    """With --fps, each VIDEO that is no file stands for a video that is not here: its frames are its tracks' (the
+    given tracks or WS/tracks.csv), its size --size or its camera's in --intrinsics; None for the files."""
+    if options.fps is None:
+        if options.size is not None:
+            log.warning("--size only serves videos that are not here, given with --fps: ignored")
+        return [None] * len(paths)
+    tracks = options.tracks or out / "tracks.csv"
+    stand_ins = stand_in_videos(paths, tracks, options.fps)
+    missing = [video for video in stand_ins if video is not None]
+    if not missing:
+        log.warning("--fps only serves videos that are not here: every video given is a file, so it is ignored")
+        return stand_ins
+    sizes = intrinsics_sizes(options.intrinsics, missing) if options.intrinsics is not None else {}
+    for video in missing:
+        with_size(video, sizes.get(video.name, (0, 0)), options.size, options.intrinsics or tracks)
+    log.info(
+        "%d of %d videos are not here (%s): static cameras posed from the subject's tracks",
+        len(missing),
+        len(paths),
+        _listed([video.name for video in missing]),
+    )
+    return stand_ins
+
+
+def _probe_all(
+    paths: list[Path], unreadable: dict[str, str], stand_ins: list[ProbedVideo | None] | None = None
+) -> list[ProbedVideo]:
+    """Probe every video (`stand_ins`: those not here, already known). One that cannot be read is left out with its
+    one-line reason (a warning and the report), and the others go on; with fewer than two readable videos, the
+    first reason is the error."""
     infos, errors = [], []
-    for path in tqdm(paths, desc="probing videos", unit="video", leave=False):
+    known = stand_ins or [None] * len(paths)
+    for path, stand_in in tqdm(zip(paths, known, strict=True), total=len(paths), desc="probing videos", leave=False):
+        if stand_in is not None:
+            infos.append(stand_in)
+            continue
         try:
             infos.append(probe_video(path))
         except InputError as error:
@@ -298,11 +332,14 @@ def map_capture(out: Path, videos: list[str], options: RegisterOptions) -> dict[
             merge_key = _merge(layout, videos, [e["key"] for e in extracted], steps)
         with timed(notes, "match"):
             pairs, matching = _match(names_of, layout, options, steps, merge_key)
-        with timed(notes, "map"):
-            infos = [p.plan.info for p in prepared]
-            intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
-            models = _map(len(videos), names_of, intrinsics, layout, options, steps, notes)
-        model = _largest_model(models, notes, _model_points(layout, models))
+        if any(names_of.values()):
+            with timed(notes, "map"):
+                infos = [p.plan.info for p in prepared]
+                intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
+                models = _map(len(videos), names_of, intrinsics, layout, options, steps, notes)
+            model = _largest_model(models, notes, _model_points(layout, models))
+        else:  # every video is a name (--fps): no image for background SfM, nothing to warn about
+            models, model = {}, None
     notes.reused = steps.reused
     mapping = {
         "model": model,

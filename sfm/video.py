@@ -42,6 +42,7 @@ class ProbedVideo:
     rotation: int = 0
     expected_frames: int | None = None  # the container's frame count; more than num_frames when frames are lost
     missing: str | None = None  # the one-line warning saying how many frames are missing and where
+    stand_in: bool = False  # not here: its frames and times from the tracks and --fps, no pixels
 
     @property
     def num_frames(self) -> int:

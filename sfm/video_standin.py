@@ -2,7 +2,8 @@
 from the tracks and the user, for a lab that shares its calibration and 2D tracks without the videos.
 
 A video given by name (no such file) with `--fps` gets frames 0 to the last tracked frame of that name in the
-tracks, at frame / fps (a constant-rate decoder's times), and its camera's calibrated image size, or `--size`.
+tracks, at frame / fps (a constant-rate decoder's times; one rate for all, or one per name), and its camera's
+calibrated image size, or `--size`.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dynrecon.arguments import parse_size
 from dynrecon.errors import InputError
 from dynrecon.names import VIDEO_SUFFIXES, video_name
 from sfm.video import ProbedVideo
@@ -23,20 +25,8 @@ __all__ = ["parse_size", "stand_in_videos", "with_size"]
 log = logging.getLogger(__name__)
 
 
-def parse_size(value: str) -> tuple[int, int]:
-    """--size WxH: positive integers."""
-    parts = value.lower().split("x")
-    try:
-        width, height = (int(p) for p in parts)
-    except ValueError:
-        raise ValueError(f"{value!r} is not WIDTHxHEIGHT (e.g. 1280x1024)") from None
-    if width <= 0 or height <= 0:
-        raise ValueError(f"{value!r}: width and height must be positive")
-    return width, height
-
-
 def stand_in_videos(
-    values: Sequence[str | Path], tracks: Path | None, fps: float | None, tracks_given: bool = False
+    values: Sequence[str | Path], tracks: Path | None, fps: float | dict[str, float] | None, tracks_given: bool = False
 ) -> list[ProbedVideo | None]:
     """For each VIDEO value: None where it is a file (probed as usual), else a stand-in of that name with its
     frames from `tracks` at `fps` (width and height 0 until `with_size`). One-line errors name what is missing;
@@ -54,8 +44,9 @@ def stand_in_videos(
                     "the frames are the tracks' of that name",
                 )
         return [None] * len(values)
-    if not (math.isfinite(fps) and fps > 0):
-        raise InputError(None, f"--fps {fps:g}: a frame rate must be a positive number of frames per second")
+    for rate in fps.values() if isinstance(fps, dict) else [fps]:
+        if not (math.isfinite(rate) and rate > 0):
+            raise InputError(None, f"--fps {rate:g}: a frame rate must be a positive number of frames per second")
     missing = [Path(v) for v in values if not Path(v).is_file()]
     if not missing:
         return [None] * len(values)
@@ -85,10 +76,29 @@ def stand_in_videos(
                 f"no such video, and {tracks} has no tracks of a video {name!r}",
                 fix=f"name the videos as the tracks do: {', '.join(sorted(last)) or 'none'}",
             )
+        rate = _rate_of(name, fps, path)
         frames = last[name] + 1
-        log.info("%s: not here; %d frames at %g fps from %s", name, frames, fps, tracks)
-        out.append(ProbedVideo(path=path, name=name, width=0, height=0, times=np.arange(frames) / fps, nominal_fps=fps))
+        log.info("%s: not here; %d frames at %g fps from %s", name, frames, rate, tracks)
+        out.append(
+            ProbedVideo(
+                path=path, name=name, width=0, height=0, times=np.arange(frames) / rate, nominal_fps=rate, stand_in=True
+            )
+        )
     return out
+
+
+def _rate_of(name: str, fps: float | dict[str, float], path: Path) -> float:
+    """The frame rate --fps gives video `name`: the one rate, or its own."""
+    if not isinstance(fps, dict):
+        return fps
+    if name not in fps:
+        given = ", ".join(sorted(fps)) or "none"
+        raise InputError(
+            path,
+            f"no such video, and --fps gives no rate for {name!r} (rates for: {given})",
+            fix=f"add {name}=FPS to --fps",
+        )
+    return fps[name]
 
 
 def with_size(video: ProbedVideo, camera_size: tuple[int, int], size: tuple[int, int] | None, source: Path) -> None:

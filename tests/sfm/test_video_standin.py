@@ -81,7 +81,6 @@ def test_the_workspace_tracks_and_a_size_for_a_file_without_one(tmp_path: Path) 
         ([], "cam0: no such video (give the video file; where the videos are not here, give --fps"),
         (["--fps", "30"], "no such video, and its frames cannot come from the tracks ("),
         (["--fps", "30", "--tracks", "TRACKS"], "has no tracks of a video 'cam5' (name the videos as the tracks do"),
-        (["--fps", "0", "--tracks", "TRACKS"], "--fps 0: a frame rate must be a positive number"),
     ],
 )
 def test_what_is_missing_is_said_in_one_line(

@@ -1,0 +1,112 @@
+"""`register --fps` without the videos (2D tracks shared without them, a drone's or a DLTdv user's detections):
+each VIDEO that is no file is a name, its frames the tracks', taken as a static camera and posed from the
+subject's tracks, against synthetic ground truth."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynrecon.cli import main
+from dynrecon.errors import InputError
+from sfm.calibration import StaticCamera, write_toml
+from sfm.cameras import read_cameras
+from sfm.evaluate import similarity
+from sfm.subject.synthetic import Truth, make_rig
+from tracking.tracks import Tracks, write_tracks
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Truth]:
+    """A skeleton filmed by 4 static cameras at 30 fps started at different times: tracks.csv and a calib.toml of
+    their intrinsics (its poses are not read: --intrinsics takes K and the size only)."""
+    folder = tmp_path_factory.mktemp("standin")
+    tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=6.0, fps=(FPS,) * 5, distortion=False, seed=0)
+    write_tracks(folder / "tracks.csv", tracks)
+    cameras = [
+        StaticCamera(name=n, width=1920, height=1080, K=K, dist=np.zeros(4), R=R, t=t)
+        for n, K, R, t in zip(truth.names, truth.K, truth.R, truth.t, strict=True)
+    ]
+    write_toml(folder / "calib.toml", cameras)
+    return folder, truth
+
+
+def test_names_with_fps_are_posed_from_the_tracks(rig: tuple[Path, Truth], tmp_path: Path) -> None:
+    folder, truth = rig
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "tracks.csv").write_bytes((folder / "tracks.csv").read_bytes())  # WS/tracks.csv, as after import-tracks
+    args = ["register", *truth.names, "--out", str(ws), "--fps", str(FPS), "--intrinsics", str(folder / "calib.toml")]
+    assert main(args) == 0
+    report = json.loads((ws / "register_report.json").read_text())
+    assert [(v["name"], v["camera"], v["camera_set_by"], v["posed_by"]) for v in report["videos"]] == [
+        (name, "static", "--fps", "subject") for name in truth.names
+    ]
+    videos = {v.name: v for v in read_cameras(ws / "cameras.json").videos}
+    assert all((v.width, v.height, v.fps) == (1920, 1080, FPS) for v in videos.values())
+    centres = np.array([-videos[n].frames[0].R.T @ videos[n].frames[0].t for n in truth.names])
+    scale, R, t = similarity(centres, truth.centres())  # arbitrary units without --scale: one similarity
+    spread = np.linalg.norm(truth.centres() - truth.centres().mean(0), axis=1).max()
+    aligned = scale * centres @ R.T + t
+    assert np.linalg.norm(aligned - truth.centres(), axis=1).max() < 0.02 * spread
+    for name, R_true in zip(truth.names, truth.R, strict=True):
+        turned = videos[name].frames[0].R @ R.T @ R_true.T
+        assert np.degrees(np.arccos(np.clip((np.trace(turned) - 1) / 2, -1, 1))) < 1.0
+    offsets = np.array([videos[n].clock_offset - videos[truth.names[0]].clock_offset for n in truth.names])
+    np.testing.assert_allclose(offsets, np.array(truth.offsets[:4]) - truth.offsets[0], atol=1 / FPS)
+
+
+@pytest.mark.parametrize(
+    ("extra", "what"),
+    [
+        ([], "calibration gives no image size for its camera (give the videos' size with --size WIDTHxHEIGHT)"),
+        (["--size", "1920x1080", "--camera-motion", "moving"], "needs static cameras: not with --camera-motion moving"),
+        (["--size", "1920x1080", "--subject", "never"], "not with --subject never"),
+    ],
+)
+def test_what_a_name_cannot_give_is_said_in_one_line(
+    rig: tuple[Path, Truth], tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], what: str
+) -> None:
+    folder, truth = rig
+    ws = tmp_path / "ws"
+    args = ["register", *truth.names, "--out", str(ws), "--fps", str(FPS), "--tracks", str(folder / "tracks.csv")]
+    assert main([*args, *extra]) == 2
+    error = capsys.readouterr().err
+    assert what in error and error.count("\n") == 1, error
+    assert not (ws / "cameras.json").exists()
+
+
+def test_a_name_the_tracks_lack_is_said(rig: tuple[Path, Truth], tmp_path: Path, capsys) -> None:
+    folder, truth = rig
+    args = ["register", *truth.names[:3], "cam9", "--out", str(tmp_path / "ws"), "--fps", str(FPS)]
+    assert main([*args, "--tracks", str(folder / "tracks.csv"), "--size", "1920x1080"]) == 2
+    error = capsys.readouterr().err
+    assert "cam9: no such video, and" in error and "has no tracks of a video 'cam9'" in error, error
+
+
+def test_rates_per_video(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Cameras at different rates (a drone filmed by phones at 25-60 fps): --fps NAME=FPS per video; a name without
+    one, or a rate that is none, is said in one line."""
+    from dynrecon.arguments import frame_rates
+    from sfm.video_standin import stand_in_videos
+
+    tracks = write_tracks(tmp_path / "t.csv", Tracks.from_rows([("a", 9, "p", 1.0, 2.0), ("b", 4, "p", 1.0, 2.0)]))
+    rates = frame_rates("a=59.94, b=25")
+    assert rates == {"a": 59.94, "b": 25.0} and frame_rates("30") == 30.0
+    a, b = stand_in_videos(["a", "b"], tracks, rates)
+    assert a is not None and b is not None and (a.num_frames, a.fps, b.num_frames, b.fps) == (10, 59.94, 5, 25.0)
+    np.testing.assert_allclose(b.times, np.arange(5) / 25.0)
+    with pytest.raises(InputError, match=r"--fps gives no rate for 'b' \(rates for: a\)"):
+        stand_in_videos(["a", "b"], tracks, {"a": 30.0})
+    for bad in ("0", "-30", "inf", "a=0", "a=x", "a=30,a=25", "=30", "fast"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            frame_rates(bad)
+    with pytest.raises(SystemExit):
+        main(["register", "a", "b", "--out", str(tmp_path / "ws"), "--fps", "a=30,b"])
+    assert "'b': give NAME=FPS once per video" in capsys.readouterr().err
