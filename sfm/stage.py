@@ -330,16 +330,16 @@ def map_capture(out: Path, videos: list[str], options: RegisterOptions) -> dict[
     with collected(notes):
         with timed(notes, "merge"):
             merge_key = _merge(layout, videos, [e["key"] for e in extracted], steps)
-        with timed(notes, "match"):
-            pairs, matching = _match(names_of, layout, options, steps, merge_key)
         if any(names_of.values()):
+            with timed(notes, "match"):
+                pairs, matching = _match(names_of, layout, options, steps, merge_key)
             with timed(notes, "map"):
                 infos = [p.plan.info for p in prepared]
                 intrinsics = known_intrinsics(options.intrinsics, infos) if options.intrinsics else {}
                 models = _map(len(videos), names_of, intrinsics, layout, options, steps, notes)
             model = _largest_model(models, notes, _model_points(layout, models))
         else:  # every video is a name (--fps): no image for background SfM, nothing to warn about
-            models, model = {}, None
+            pairs, matching, models, model = [], {"verified_pairs": 0, "inlier_matches": 0}, {}, None
     notes.reused = steps.reused
     mapping = {
         "model": model,
