@@ -25,6 +25,8 @@ Cases (each a fresh workspace; `register` as a user runs it, with its defaults u
 - pose2sim-openpose-markers-intrinsics: the same desynchronized videos and detections, plus the committed labels
   (renumbered like the frames; labels on dropped frames left out) tracked through the desynchronized videos, with
   the lab intrinsics: the user's few precise markers next to the detections;
+- pose2sim-openpose-names-intrinsics: the same desynchronized detections with the lab intrinsics, but without the
+  videos: each given by its name with `--fps 60` (detections shared without their footage);
 - caliscope-mediapipe-intrinsics, pose2sim-mediapipe-intrinsics: another detector on both rigs: MediaPipe Pose's 33
   keypoints of the person (committed tests/data/*/mediapipe_tracks.csv, made by benchmarks/mediapipe_tracks.py) on
   the original videos, with the rig's intrinsics, `--subject always`;
@@ -98,6 +100,7 @@ CASES = (
     "pose2sim-openpose",
     "pose2sim-openpose-intrinsics",
     "pose2sim-openpose-markers-intrinsics",
+    "pose2sim-openpose-names-intrinsics",
     "caliscope-mediapipe-intrinsics",
     "pose2sim-mediapipe-intrinsics",
     "caliscope-plain",
@@ -302,6 +305,9 @@ def run_case(case: str, work: Path) -> dict[str, Any]:
             true_offsets = {name: drop / 60.0 for name, drop in DROPPED_POSE2SIM.items()}
         if "intrinsics" in case:
             args += ["--intrinsics", str(POSE2SIM / "calibration" / "Calib.qca.txt")]
+    if "names" in case:  # the videos are not here: names, their frames the tracks' at the lab's 60 fps
+        videos = [Path(v.stem) for v in videos]
+        args += ["--fps", str(round(1 / frame_period))]
     if "background" in case:
         args += ["--subject", "never"]
     elif "subject" in case or "openpose" in case or "mediapipe" in case:

@@ -1,9 +1,9 @@
 """Progress bars written into a log file: each redraw a line of its own, never the start of a log record's line.
 
 On a terminal tqdm redraws a bar in place (a carriage return, then the bar); in a file the redraws pile up on one
-line, and the next log record or error message continues that line. `LineStream` wraps such a stream: a write with
-a carriage return is a redraw, written as its last state on a line of its own; a blank redraw (a bar clearing
-itself) and tqdm's moves between bar rows are dropped; all other text passes unchanged.
+line, and the next log record or error message continues that line. `LineStream` wraps such a stream: a write
+that begins with a carriage return is a redraw, written as its last state on a line of its own; a blank redraw (a
+bar clearing itself) and tqdm's moves between bar rows are dropped; other text passes (CRLF line ends as LF).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import re
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from typing import Any, TextIO
 
 __all__ = ["LineStream", "bar_lines"]
@@ -25,19 +25,36 @@ class LineStream:
     def __init__(self, stream: TextIO) -> None:
         self.stream = stream
         self._after_bar = False  # the last text written was a bar's line: a newline that closes it is dropped
+        self._line_start = True  # the last text written ended its line
+        self._held = (
+            ""  # line ends written at a line's start: tqdm's move down to a lower bar's row, unless text follows
+        )
 
     def write(self, text: str) -> int:
-        if "\r" in text:
+        if text.startswith("\r"):  # tqdm's redraws and clears begin with a carriage return; a message's CRLF does not
+            self._held = ""
             last = _CURSOR.sub("", text.rsplit("\r", 1)[-1]).rstrip()
             if last:
                 self.stream.write(last + "\n")
-                self._after_bar = True
+                self._after_bar = self._line_start = True
             return len(text)
         if _CURSOR.search(text) or (self._after_bar and not text.strip("\n")):
             return len(text)  # a move between bar rows, or the line end of a bar kept on close
+        if text and not text.strip("\n") and self._line_start:
+            self._held += text
+            return len(text)
+        if self._held:
+            self.stream.write(self._held)
+            self._held = ""
+        text = text.replace("\r\n", "\n")
         if text:
             self._after_bar = False
+            self._line_start = text.endswith("\n")
         return self.stream.write(text)
+
+    def writelines(self, lines: Iterable[str]) -> None:
+        for line in lines:
+            self.write(line)
 
     def flush(self) -> None:
         self.stream.flush()

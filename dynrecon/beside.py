@@ -42,7 +42,9 @@ T = TypeVar("T")
 A = TypeVar("A")
 NO_FORK = "DYNRECON_NO_FORK"  # set to anything: always a thread
 STOP_GRACE_S = 5.0  # a child stopped early has this long to clean up after SIGTERM (a loaded machine delays it)
-STALL_S = 120.0  # a child that used no CPU time for this long is stuck (computing children never wait this long)
+# A child that used no CPU time for this long is stuck (computing children never wait this long; a child's own
+# children's time is not counted: nothing run beside waits on one)
+STALL_S = 120.0
 _WATCH_S = 5.0  # how often the caller, waiting for the result, looks at the child's CPU time
 _PR_SET_PDEATHSIG = 1
 
@@ -135,14 +137,16 @@ class Beside(Generic[T]):
         with os.fdopen(self._read, "rb", buffering=0) as pipe:
             self._read = None
             busy, still_since = _cpu_ticks(self._pid), time.monotonic()
+            ready = select.poll()  # not select(): it refuses descriptors above 1023
+            ready.register(pipe.fileno(), select.POLLIN)
             while True:
-                if select.select([pipe], [], [], _WATCH_S)[0]:
+                if ready.poll(_WATCH_S * 1000):  # data, or the end (POLLHUP)
                     if not (chunk := pipe.read(1 << 20)):
                         break
                     chunks.append(chunk)
                     continue
                 ticks = _cpu_ticks(self._pid)
-                if ticks != busy:
+                if ticks is None or ticks != busy:  # unknown (no /proc) is never taken for stuck
                     busy, still_since = ticks, time.monotonic()
                 elif time.monotonic() - still_since > STALL_S:
                     log.warning("a worker process used no CPU time for %.0f s (stuck): it is stopped", STALL_S)

@@ -118,8 +118,9 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     # tqdm reads its TQDM_* settings when it is imported: set before quiet_tqdm_monitor imports it
     if quiet:  # -q: only warnings and errors, no progress bars either
         os.environ.setdefault("TQDM_DISABLE", "1")
-    if not sys.stderr.isatty():  # a log file keeps every redraw of a bar: one every 10 s is a record enough
+    if not sys.stderr.isatty():  # a log file keeps every redraw of a bar: one every 10 s is a record enough,
         os.environ.setdefault("TQDM_MININTERVAL", "10")
+        os.environ.setdefault("TQDM_DELAY", "10")  # and a step shorter than that leaves no bar in it
     quiet_tqdm_monitor()  # its thread would keep dynrecon/beside.py from forking
 
 

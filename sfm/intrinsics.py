@@ -74,8 +74,9 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
 
 
 def intrinsics_sizes(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[int, int]]:
-    """video name -> the image size (width, height) that `path` (an --intrinsics file) gives its camera, for videos
-    that are not here (`--fps`); videos it does not name are left out."""
+    """video name -> the image size (width, height) that `path` (an --intrinsics file) gives its camera, the cameras
+    matched over all of `infos` as `known_intrinsics` matches them (for the videos that are not here, `--fps`);
+    videos it does not name are left out."""
     if path.suffix.lower() == ".json":
         videos = read_cameras(path).videos
         sizes = {}

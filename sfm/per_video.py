@@ -61,6 +61,7 @@ log = logging.getLogger(__name__)
 
 # A video given by name with --fps (not here): the camera is taken as static, for the subject's tracks to pose
 STAND_IN_MOTION = "not here (--fps): no pixels to test, taken as a static camera posed from the subject's tracks"
+STAND_IN_UNPOSED = "not here (--fps): only the subject's tracks can pose it"
 
 MIN_KEYPOINTS = 50  # fewer SIFT features in an image: warn that it is untextured or blurred
 LISTED_IMAGES = 3  # images a few-features warning names before it only counts the rest
@@ -346,7 +347,7 @@ def capture_facts(out: Path, videos: list[str], options: RegisterOptions | None 
     given = options.intrinsics if options is not None else None
     intrinsics = known_intrinsics(given, [p.plan.info for p in prepared]) if given else {}
     return CaptureFacts(
-        wide_baseline=any(p.plan.static for p in prepared),
+        wide_baseline=any(p.plan.static and p.images for p in prepared),  # a name (--fps) sends no image
         masked=sum(p.masks for p in prepared) > 0,
         intrinsics=intrinsics,
     )
@@ -531,7 +532,9 @@ def localize_video(out: Path, video: str, options: RegisterOptions) -> dict[int,
     plan = read_prepared(layout.plan(video)).plan
     mapping = json.loads(layout.mapping.read_text(encoding="utf-8"))
     with collected(notes), timed(notes, "localize"):
-        if mapping["model"] is None:
+        if plan.info.stand_in:
+            poses = {int(f): FramePose(pose=None, reason=STAND_IN_UNPOSED) for f in plan.wanted}
+        elif mapping["model"] is None:
             poses = {int(f): FramePose(pose=None, reason=NO_MODEL) for f in plan.wanted}
         else:
             rec = pycolmap.Reconstruction(str(layout.model_dir / mapping["model"]))

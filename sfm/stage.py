@@ -129,9 +129,10 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     out = Path(out_dir)
     notes = StepNotes()
     unreadable: dict[str, str] = {}
-    stand_ins = _stand_ins(paths, out, options)
     with collected(notes), timed(notes, "probe"):
+        stand_ins = _stand_ins(paths, out, options)
         infos = _probe_all(paths, unreadable, stand_ins)
+        _size_stand_ins(infos, options)
     with collected(notes), timed(notes, "motion_test"):
         tracks = capture_tracks(options, out, [info.name for info in infos])
     if tracks is None and options.board is not None:
@@ -197,28 +198,35 @@ def _listed(names: list[str], most: int = 30) -> str:
 
 
 def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[ProbedVideo | None]:
-    """With --fps, each VIDEO that is no file stands for a video that is not here: its frames are its tracks' (the
-    given tracks or WS/tracks.csv), its size --size or its camera's in --intrinsics; None for the files."""
+    """With --fps, each VIDEO that is a bare name and no file stands for a video that is not here: its frames are its
+    tracks' (the given tracks or WS/tracks.csv); None for the files. Sizes come later (`_size_stand_ins`)."""
     if options.fps is None:
         if options.size is not None:
             log.warning("--size only serves videos that are not here, given with --fps: ignored")
         return [None] * len(paths)
-    tracks = options.tracks or out / "tracks.csv"
-    stand_ins = stand_in_videos(paths, tracks, options.fps)
-    missing = [video for video in stand_ins if video is not None]
-    if not missing:
+    stand_ins = stand_in_videos(paths, options.tracks or out / "tracks.csv", options.fps)
+    missing = [video.name for video in stand_ins if video is not None]
+    if missing:
+        log.info(
+            "%d of %d videos are not here (%s): static cameras posed from the subject's tracks",
+            len(missing),
+            len(paths),
+            _listed(missing),
+        )
+    else:
         log.warning("--fps only serves videos that are not here: every video given is a file, so it is ignored")
-        return stand_ins
-    sizes = intrinsics_sizes(options.intrinsics, missing) if options.intrinsics is not None else {}
-    for video in missing:
-        with_size(video, sizes.get(video.name, (0, 0)), options.size, options.intrinsics or tracks)
-    log.info(
-        "%d of %d videos are not here (%s): static cameras posed from the subject's tracks",
-        len(missing),
-        len(paths),
-        _listed([video.name for video in missing]),
-    )
     return stand_ins
+
+
+def _size_stand_ins(infos: list[ProbedVideo], options: RegisterOptions) -> None:
+    """Each stand-in's image size: --size, else its camera's in --intrinsics, matched over every video (by name,
+    else by order, as the intrinsics are)."""
+    if not any(info.stand_in for info in infos):
+        return
+    sizes = intrinsics_sizes(options.intrinsics, infos) if options.intrinsics is not None else {}
+    for info in infos:
+        if info.stand_in:
+            with_size(info, sizes.get(info.name, (0, 0)), options.size, options.intrinsics)
 
 
 def _probe_all(
@@ -863,15 +871,20 @@ def _fail(
     what: str,
     moving_hint: str | None = None,
 ) -> NoReturn:
+    named = all(v.info.stand_in for v in videos)  # every video a name (--fps): the subject path was the only one
     if subject is not None and subject.get("why"):
         background = (
-            f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
+            "the videos are not here (--fps)"
+            if named
+            else f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
             "--intrinsics)"
             if summary.two_views
             else "the static videos' backgrounds gave no model (too few matches between their views: little shared "
             "background, or views too far apart)"
         )
         hint = f"{background}, and the subject path could not pose them: {subject['why']}"
+    elif named:
+        hint = "the videos are not here (--fps): the subject's tracks must be seen by two videos at once"
     else:
         hint = "try " + ", ".join(_background_hints(options, videos))
     if moving_hint:

@@ -48,6 +48,21 @@ def stand_in_videos(
         if not (math.isfinite(rate) and rate > 0):
             raise InputError(None, f"--fps {rate:g}: a frame rate must be a positive number of frames per second")
     missing = [Path(v) for v in values if not Path(v).is_file()]
+    for path in missing:  # a path or a file name that is no file is a typo, not a video that is not here
+        if path.parent != Path(".") or path.suffix.lower() in VIDEO_SUFFIXES:
+            raise InputError(
+                path,
+                "no such video file",
+                fix=f"check the path; a video that is not here is given by its bare name ({video_name(path)}) with "
+                "--fps",
+            )
+    if isinstance(fps, dict):
+        fps = {video_name(Path(key)): rate for key, rate in fps.items()}  # cam0.mp4=30 is cam0's rate
+        unused = sorted(set(fps) - {video_name(p) for p in missing})
+        if unused:
+            log.warning(
+                "--fps %s: no video of that name is missing (a file's own rate is read from it)", ", ".join(unused)
+            )
     if not missing:
         return [None] * len(values)
     if tracks is None or not tracks.is_file():
@@ -57,9 +72,10 @@ def stand_in_videos(
             f"no such video, and its frames cannot come from the tracks ({where})",
             fix="give the tracks with --tracks (or put tracks.csv in --out's workspace first: import-tracks)",
         )
-    from tracking.tracks import read_tracks  # pandas: only where videos are stood in
+    from tracking.tracks import matched_to_videos, read_tracks  # pandas: only where videos are stood in
 
-    track_set = read_tracks(tracks)
+    # the tracks' names spelled like the videos' (Cam_0 for cam0) are theirs, as registration takes them
+    track_set = matched_to_videos(read_tracks(tracks), [video_name(Path(v)) for v in values])
     last: dict[str, int] = {}
     for video, frame in zip(track_set.video, track_set.frame, strict=True):
         last[video] = max(last.get(video, -1), int(frame))
@@ -101,13 +117,18 @@ def _rate_of(name: str, fps: float | dict[str, float], path: Path) -> float:
     return fps[name]
 
 
-def with_size(video: ProbedVideo, camera_size: tuple[int, int], size: tuple[int, int] | None, source: Path) -> None:
-    """A stand-in's image size: --size, else its camera's calibrated size; an error where neither is known."""
+def with_size(
+    video: ProbedVideo, camera_size: tuple[int, int], size: tuple[int, int] | None, source: Path | None
+) -> None:
+    """A stand-in's image size: --size, else its camera's calibrated size; an error where neither is known (`source`:
+    the calibration file, None where none was given)."""
     width, height = size or camera_size
     if width <= 0 or height <= 0:
         raise InputError(
             source,
-            f"video {video.name!r} is not here and the calibration gives no image size for its camera",
-            fix="give the videos' size with --size WIDTHxHEIGHT",
+            f"video {video.name!r} is not here and "
+            + ("the calibration gives no image size for its camera" if source else "nothing gives its image size"),
+            fix="give the videos' size with --size WIDTHxHEIGHT"
+            + ("" if source else " (or --intrinsics, a calibration file with the cameras' sizes)"),
         )
     video.width, video.height = width, height

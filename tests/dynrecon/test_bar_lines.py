@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -46,6 +47,22 @@ def test_redraws_become_lines_and_records_start_their_own() -> None:
     assert bars[-2].startswith("outer: 100%") and bars[-1] == "the last line"  # the kept bar's last state
 
 
+def test_a_lower_bar_s_row_move_is_no_blank_line_but_a_message_s_line_end_is_kept() -> None:
+    file = io.StringIO()
+    stream = LineStream(file)
+    for text in ("I record\n", "\n", "\rinner: 50%", "\x1b[A", "I next", "\n", "\n", "I after a blank line\n"):
+        stream.write(text)
+    assert file.getvalue() == "I record\ninner: 50%\nI next\n\nI after a blank line\n"
+
+
+def test_a_message_with_carriage_returns_is_kept_whole() -> None:
+    file = io.StringIO()
+    stream = LineStream(file)
+    stream.write("E a line of a Windows file\r\n")
+    stream.writelines(["a\rb\n", "\rbar: 10%"])
+    assert file.getvalue() == "E a line of a Windows file\na\rb\nbar: 10%\n"
+
+
 def test_a_command_s_log_file_has_no_bar_in_a_record_s_line(tmp_path: Path) -> None:
     """A command with bars and log records, its stderr a file: each record begins its line."""
     code = (
@@ -65,8 +82,10 @@ def test_a_command_s_log_file_has_no_bar_in_a_record_s_line(tmp_path: Path) -> N
         "sys.exit(main(['export']))\n"
     )
     log_file = tmp_path / "run.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TQDM_")}  # (a -q command here sets TQDM_DISABLE)
+    env |= {"TQDM_DELAY": "0", "TQDM_MININTERVAL": "0"}  # bars drawn at once (after 10 s in a log by default)
     with open(log_file, "w") as err:
-        done = subprocess.run([sys.executable, "-c", code], stderr=err, cwd=ROOT, check=False)
+        done = subprocess.run([sys.executable, "-c", code], stderr=err, cwd=ROOT, check=False, env=env)
     assert done.returncode == 2
     lines = log_file.read_text().splitlines()
     assert [line for line in lines if "step" in line] == [f"I dynrecon.x: step {k}" for k in range(3)], lines

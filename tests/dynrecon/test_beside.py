@@ -120,6 +120,22 @@ def test_a_stuck_child_is_stopped_and_its_work_redone_here(
         os.waitpid(pid, os.WNOHANG)  # stopped and reaped
 
 
+def test_without_proc_a_long_child_is_never_taken_for_stuck(
+    single_threaded: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(beside_module, "STALL_S", 0.3)
+    monkeypatch.setattr(beside_module, "_WATCH_S", 0.05)
+    monkeypatch.setattr(beside_module, "_cpu_ticks", lambda pid: None)  # no /proc to read
+    with beside(where_and_sum_slowly, np.arange(3.0)) as running:
+        pid, total = running.result()
+    assert running.forked and not running.redone and pid != os.getpid() and total == 3.0
+
+
+def where_and_sum_slowly(values: np.ndarray) -> tuple[int, float]:
+    time.sleep(1.0)
+    return os.getpid(), float(values.sum())
+
+
 def hides_a_progress_lock(values: np.ndarray) -> float:
     from tqdm import tqdm
 

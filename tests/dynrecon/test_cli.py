@@ -176,16 +176,16 @@ def test_a_writer_of_the_folder_above_or_within_is_refused(tmp_path: Path) -> No
         holder.wait()
 
 
-@pytest.mark.parametrize(("quiet", "seen"), [(True, ["True", "-"]), (False, ["False", "10.0"])])
+@pytest.mark.parametrize(("quiet", "seen"), [(True, ["True", "-", "-"]), (False, ["False", "10.0", "10.0"])])
 def test_progress_bars_follow_quiet_and_a_log_file(quiet: bool, seen: list[str]) -> None:
     """tqdm reads its TQDM_* settings when it is imported: -q hides the bars, and into a file (stderr not a terminal)
-    they redraw every 10 s, in the command's own process (set too late, neither held there)."""
+    they show after 10 s and redraw every 10 s, in the command's own process (set too late, neither held there)."""
     code = (
         "from dynrecon.cli import configure_logging\n"
         f"configure_logging(0, {quiet})\n"
         "from tqdm import tqdm\n"
         "bar = tqdm(range(3))\n"
-        "print(bar.disable, getattr(bar, 'mininterval', '-'))\n"
+        "print(bar.disable, getattr(bar, 'mininterval', '-'), getattr(bar, 'delay', '-'))\n"
     )
     env = {k: v for k, v in os.environ.items() if not k.startswith("TQDM_")}
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
