@@ -237,7 +237,9 @@ def _probe_all(
     first reason is the error."""
     infos, errors = [], []
     known = stand_ins or [None] * len(paths)
-    for path, stand_in in tqdm(zip(paths, known, strict=True), total=len(paths), desc="probing videos", leave=False):
+    for path, stand_in in tqdm(
+        zip(paths, known, strict=True), total=len(paths), desc="probing videos", unit="video", leave=False
+    ):
         if stand_in is not None:
             infos.append(stand_in)
             continue
