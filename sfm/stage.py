@@ -173,11 +173,31 @@ def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tra
             )
         if tracks is not None:
             check_scale_points(options.scale, set(tracks.point), tracks.path)
+    if tracks is not None:
+        _check_stand_in_sizes(infos, tracks, options)
     named = set(tracks.video_names()) if tracks is not None else set()
     source = (tracks.path if tracks is not None else None) or "the tracks"
     for info in infos:
         if info.rotation and info.name in named:  # a tool that ignores the flag would give the stored frame's pixels
             log.warning(video_io.rotated_pixels_message(info.name, info.rotation, source))
+
+
+def _check_stand_in_sizes(infos: list[ProbedVideo], tracks: Tracks, options: RegisterOptions) -> None:
+    """A name's tracks lie within the image size it was given (--size is one size for every name): pixels beyond it
+    would be taken for a lens's edge."""
+    for info in infos:
+        rows = [k for k, video in enumerate(tracks.video) if video == info.name] if info.stand_in else []
+        if not rows:
+            continue
+        x, y = tracks.xy[rows, 0].max(), tracks.xy[rows, 1].max()
+        if x > 1.02 * info.width or y > 1.02 * info.height:
+            given = "--size" if options.size is not None else str(options.intrinsics)
+            raise InputError(
+                tracks.path,
+                f"video {info.name!r}'s tracks reach x, y = {x:.0f}, {y:.0f} px, beyond its image size "
+                f"{info.width}x{info.height} ({given})",
+                fix="give each camera's size: --intrinsics with the cameras' calibrated sizes (one --size fits all)",
+            )
 
 
 def check_scale_points(scale: tuple[str, str, float], points: set[str], path: Path | None) -> None:
@@ -203,7 +223,7 @@ def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[P
     if options.fps is None:
         if options.size is not None:
             log.warning("--size only serves videos that are not here, given with --fps: ignored")
-        return [None] * len(paths)
+        return stand_in_videos(paths, None, None)  # a bare name that is no file: "no such video", --fps named
     stand_ins = stand_in_videos(paths, options.tracks or out / "tracks.csv", options.fps)
     missing = [video.name for video in stand_ins if video is not None]
     if missing:
@@ -211,6 +231,12 @@ def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[P
             "%d of %d videos are not here (%s): static cameras posed from the subject's tracks",
             len(missing),
             len(paths),
+            _listed(missing),
+        )
+        # their frame times are --fps's, not a decoder's: `dynrecon solve` takes given times as exact
+        log.warning(
+            "%s: frame times from --fps, not measured: a camera's true rate may differ a little (phones do); solve "
+            "with --clock-model affine to fit each video's rate",
             _listed(missing),
         )
     else:

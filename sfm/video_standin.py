@@ -61,7 +61,8 @@ def stand_in_videos(
         unused = sorted(set(fps) - {video_name(p) for p in missing})
         if unused:
             log.warning(
-                "--fps %s: no video of that name is missing (a file's own rate is read from it)", ", ".join(unused)
+                "--fps %s: no video given by that name is missing: ignored (a file's rate is read from it)",
+                ", ".join(unused),
             )
     if not missing:
         return [None] * len(values)

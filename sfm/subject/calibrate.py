@@ -524,10 +524,18 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int, groups: list[set[int]
     # the pairs that share observations say why; the others only that they share none
     sharing = [f for f in mine if f.shared >= 8 and not (f.reason or "").startswith(("the videos never", "at most"))]
     reasons = [
-        f"with {obs[f.b if f.a == i else f.a].name}: {f.degenerate or f.reason or 'inconsistent offset'}"
+        f"with {obs[f.b if f.a == i else f.a].name}: "
+        + (_DEGENERATE.get(f.degenerate, f.degenerate) if f.degenerate else f.reason or "inconsistent offset")
         for f in sharing
     ]
     return "no usable pair: " + "; ".join(reasons)
+
+
+# What a degenerate pair's word means, in its refusal (at a wrong offset the few agreeing positions often lie so)
+_DEGENERATE = {
+    "line": "line (the agreeing positions lie near one line in a view, at the best offset searched)",
+    "plane": "plane (the agreeing positions lie on one plane, at the best offset searched)",
+}
 
 
 def _refit_to_offsets(

@@ -45,6 +45,7 @@ def test_names_with_fps_are_posed_from_the_tracks(rig: tuple[Path, Truth], tmp_p
     args = ["register", *truth.names, "--out", str(ws), "--fps", str(FPS), "--intrinsics", str(folder / "calib.toml")]
     assert main(args) == 0
     report = json.loads((ws / "register_report.json").read_text())
+    assert any("--clock-model affine" in w for w in report["warnings"])  # the times are --fps's, not measured
     assert [(v["name"], v["camera"], v["camera_set_by"], v["posed_by"]) for v in report["videos"]] == [
         (name, "static", "--fps", "subject") for name in truth.names
     ]
@@ -68,6 +69,7 @@ def test_names_with_fps_are_posed_from_the_tracks(rig: tuple[Path, Truth], tmp_p
         ([], "nothing gives its image size (give the videos' size with --size WIDTHxHEIGHT (or --intrinsics"),
         (["--size", "1920x1080", "--camera-motion", "moving"], "needs static cameras: not with --camera-motion moving"),
         (["--size", "1920x1080", "--subject", "never"], "not with --subject never"),
+        (["--size", "640x480"], "tracks reach x, y = "),  # one --size for cameras of another size
     ],
 )
 def test_what_a_name_cannot_give_is_said_in_one_line(
@@ -155,4 +157,11 @@ def test_a_path_that_is_no_file_is_a_typo_and_names_are_matched_as_the_tracks_sp
             stand_in_videos([typo, "cam1"], tracks, 30.0)
     cam0, cam1 = stand_in_videos(["cam0", "cam1"], tracks, {"cam0.mp4": 50.0, "cam1": 25.0, "cam7": 30.0})
     assert cam0 is not None and cam1 is not None and (cam0.num_frames, cam0.fps, cam1.fps) == (3, 50.0, 25.0)
-    assert "'Cam_0' taken as the video 'cam0'" in caplog.text and "--fps cam7: no video of that name" in caplog.text
+    assert "'Cam_0' taken as the video 'cam0'" in caplog.text
+    assert "--fps cam7: no video given by that name is missing: ignored" in caplog.text
+
+
+def test_a_bare_name_without_fps_says_how_to_use_one(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["register", "cam0", "cam1", "--out", str(tmp_path / "ws")]) == 2
+    error = capsys.readouterr().err.splitlines()[-1]
+    assert "cam0: no such video" in error and "give --fps" in error, error
