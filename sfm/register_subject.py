@@ -181,7 +181,7 @@ def pose_from_subject(
         if pair.claim not in (None, "held", UNTESTED):
             warnings.append(f"{options.declared_flag}: pair {pair.a}-{pair.b}: {pair.claim}")
     posed = _apply(result, stability, anchors, {v.info.name: v for v in videos}, results, warnings)
-    farther = _farther_hint(inputs, set(posed) | set(anchors), options.max_offset)
+    farther = _farther_hint(inputs, set(posed) | set(anchors), options.max_offset, result.failed)
     if farther:
         warnings.append(f"subject path: {farther}")
     _warn_uncertain(stability, posed, warnings)
@@ -258,10 +258,16 @@ def _solve_with_posed(
     return choose_scale(trial, options)
 
 
-def _farther_hint(inputs: list[SubjectVideo], posed: set[str], max_offset: float) -> str | None:
-    """For videos the subject path left unposed: the clock offsets it searched (±`max_offset`) against how long the
-    videos run, where cameras started further apart than that would never be found (a drone filmed for minutes)."""
-    left = sorted(v.name for v in inputs if v.name not in posed)
+def _farther_hint(inputs: list[SubjectVideo], posed: set[str], max_offset: float, failed: dict[str, str]) -> str | None:
+    """For videos the subject path left unposed because no pair with them held (`failed`: their reasons): the clock
+    offsets it searched (±`max_offset`) against how long the videos run, where cameras started further apart than
+    that would never be found (a drone filmed for minutes). Videos refused for another reason (too few positions,
+    poses that moved between folds) get no such hint: a farther search would not help them."""
+    left = sorted(
+        v.name
+        for v in inputs
+        if v.name not in posed and failed.get(v.name, "").startswith(("no usable pair", "its tracks never overlap"))
+    )
     longest = max((float(np.ptp(v.times)) for v in inputs if len(v.times) > 1), default=0.0)
     if not left or longest <= max_offset:
         return None

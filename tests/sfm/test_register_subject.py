@@ -228,6 +228,17 @@ def test_videos_left_unposed_name_the_offset_search_and_max_offset(
     pose_from_subject(plans, results, _tracks(names), known, RegisterOptions(max_offset=40.0), warnings)
     assert seen[-1] == 40.0 and not [w for w in warnings if "--max-offset" in w]
 
+    # refused for another reason than its pairs (its poses moved between folds): a farther search would not help
+    def unstable(tracks: Tracks, videos: list, options: object) -> tuple[SubjectResult, Stability]:
+        cameras = _cameras_apart(["a", "b"])
+        failed = {"c": "not determined by the tracks: its pose moves 30 deg between folds"}
+        return SubjectResult(cameras=cameras, pairs=[], failed=failed, metric=False), Stability()
+
+    monkeypatch.setattr(register_subject, "choose_noise", unstable)
+    warnings.clear()
+    pose_from_subject(plans, results, _tracks(names), known, RegisterOptions(), warnings)
+    assert not [w for w in warnings if "--max-offset" in w]
+
 
 def test_posed_cameras_the_folds_turn_by_degrees_are_said_to_be_uncertain() -> None:
     from sfm.register_subject import UNCERTAIN_DEG, _warn_uncertain
