@@ -507,6 +507,7 @@ def _report(
         "cameras": [
             {
                 "name": c.name,
+                "posed": c.name in posed,  # false: solved, then refused (its pose moved between folds)
                 "offset_s": round(float(c.offset), 6),
                 "inliers": int(c.inliers),
                 "residual_px": round(float(c.residual_px), 3),

@@ -46,6 +46,7 @@ def test_names_with_fps_are_posed_from_the_tracks(rig: tuple[Path, Truth], tmp_p
     assert main(args) == 0
     report = json.loads((ws / "register_report.json").read_text())
     assert any("--clock-model affine" in w for w in report["warnings"])  # the times are --fps's, not measured
+    assert [(c["name"], c["posed"]) for c in report["subject"]["cameras"]] == [(n, True) for n in truth.names]
     assert [(v["name"], v["camera"], v["camera_set_by"], v["posed_by"]) for v in report["videos"]] == [
         (name, "static", "--fps", "subject") for name in truth.names
     ]
