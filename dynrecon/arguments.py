@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["frame_rates", "image_size", "out_path", "parse_size", "positive_seconds"]
+__all__ = ["frame_rates", "image_size", "named_values", "out_path", "parse_size", "positive_seconds"]
 
 
 def out_path(text: str) -> Path:
@@ -51,13 +52,19 @@ def frame_rates(text: str) -> float | dict[str, float]:
     """--fps: one rate for every video (30), or one per video (cam0=59.94,cam1=30)."""
     if "=" not in text:
         return _rate(text, text)
-    rates: dict[str, float] = {}
+    return {name: _rate(value, item) for name, value, item in named_values(text, "NAME=FPS", "cam0=59.94,cam1=30")}
+
+
+def named_values(text: str, form: str, example: str) -> Iterator[tuple[str, str, str]]:
+    """NAME=VALUE,... -> (name, value's text, the item) per item, in order; an argparse error for an item without a
+    name or `=`, or a name given twice (`form`, `example`: e.g. NAME=SECONDS, cam2=0.033, for its message)."""
+    seen: set[str] = set()
     for item in filter(None, (part.strip() for part in text.split(","))):
         name, sep, value = item.partition("=")
-        if not sep or not name.strip() or name.strip() in rates:
-            raise argparse.ArgumentTypeError(f"{item!r}: give NAME=FPS once per video, e.g. cam0=59.94,cam1=30")
-        rates[name.strip()] = _rate(value, item)
-    return rates
+        if not sep or not name.strip() or name.strip() in seen:
+            raise argparse.ArgumentTypeError(f"{item!r}: give {form} once per video, e.g. {example}")
+        seen.add(name.strip())
+        yield name.strip(), value, item
 
 
 def _rate(value: str, item: str) -> float:

@@ -26,9 +26,8 @@ class LineStream:
         self.stream = stream
         self._after_bar = False  # the last text written was a bar's line: a newline that closes it is dropped
         self._line_start = True  # the last text written ended its line
-        self._held = (
-            ""  # line ends written at a line's start: tqdm's move down to a lower bar's row, unless text follows
-        )
+        # line ends written at a line's start: tqdm's move down to a lower bar's row, unless text follows
+        self._held = ""
 
     def write(self, text: str) -> int:
         if text.startswith("\r"):  # tqdm's redraws and clears begin with a carriage return; a message's CRLF does not

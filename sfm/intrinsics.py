@@ -10,8 +10,15 @@ import numpy as np
 
 from dynrecon.errors import InputError
 from dynrecon.names import spelled_alike
-from sfm.calibration import Units, VideoSizeError, intrinsics_at_video_size, match_cameras, read_calibration
-from sfm.cameras import read_cameras
+from sfm.calibration import (
+    StaticCamera,
+    Units,
+    VideoSizeError,
+    intrinsics_at_video_size,
+    match_cameras,
+    read_calibration,
+)
+from sfm.cameras import VideoCameras, read_cameras
 from sfm.video import ProbedVideo
 
 log = logging.getLogger(__name__)
@@ -30,16 +37,12 @@ def read_intrinsics_file(path: Path) -> None:
 def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """video name -> (K (3, 3), dist or None) in the video's original pixels (OpenCV convention)."""
     if path.suffix.lower() == ".json":
-        # a cameras.json may hold more or fewer videos than this capture: those named alike are taken
-        videos = read_cameras(path).videos
+        named = _json_videos(path, infos)
         result: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
-        named: set[str] = set()
         for info in infos:
-            found = spelled_alike(info.name, [v.name for v in videos])
-            if len(found) != 1:
+            video = named.get(info.name)
+            if video is None:
                 continue
-            named.add(info.name)
-            video = next(v for v in videos if v.name == found[0])
             if not video.frames:
                 log.warning("%s: video %r has no posed frame to take intrinsics from", path, video.name)
                 continue
@@ -63,10 +66,8 @@ def known_intrinsics(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[np
                 ", ".join(missing),
             )
         return result
-    # only the intrinsics are taken: the translations' unit does not matter (no guess, no warning about it)
-    matched = match_cameras(read_calibration(path, units=Units.M), infos, path)
     result = {}
-    for info, camera in zip(infos, matched, strict=True):
+    for info, camera in zip(infos, _matched_cameras(path, infos), strict=True):
         K = _at_video_size(camera.K, (camera.width, camera.height), info, camera.name, path, camera.cy_plus_height)
         if K is not None:
             result[info.name] = (K, camera.dist)
@@ -78,16 +79,26 @@ def intrinsics_sizes(path: Path, infos: list[ProbedVideo]) -> dict[str, tuple[in
     matched over all of `infos` as `known_intrinsics` matches them (for the videos that are not here, `--fps`);
     videos it does not name are left out."""
     if path.suffix.lower() == ".json":
-        videos = read_cameras(path).videos
-        sizes = {}
-        for info in infos:
-            found = spelled_alike(info.name, [v.name for v in videos])
-            if len(found) == 1:
-                video = next(v for v in videos if v.name == found[0])
-                sizes[info.name] = (video.width, video.height)
-        return sizes
-    matched = match_cameras(read_calibration(path, units=Units.M), infos, path)
-    return {info.name: (camera.width, camera.height) for info, camera in zip(infos, matched, strict=True)}
+        return {name: (video.width, video.height) for name, video in _json_videos(path, infos).items()}
+    return {info.name: (c.width, c.height) for info, c in zip(infos, _matched_cameras(path, infos), strict=True)}
+
+
+def _json_videos(path: Path, infos: list[ProbedVideo]) -> dict[str, VideoCameras]:
+    """video name -> the video of the cameras.json `path` named alike, for each of `infos` that one is (a
+    cameras.json may hold more or fewer videos than this capture: those named alike are taken)."""
+    videos = read_cameras(path).videos
+    named = {}
+    for info in infos:
+        found = spelled_alike(info.name, [v.name for v in videos])
+        if len(found) == 1:
+            named[info.name] = next(v for v in videos if v.name == found[0])
+    return named
+
+
+def _matched_cameras(path: Path, infos: list[ProbedVideo]) -> list[StaticCamera]:
+    """The cameras of the calibration file `path`, one per video of `infos` (by name, else by order)."""
+    # only the intrinsics are taken: the translations' unit does not matter (no guess, no warning about it)
+    return match_cameras(read_calibration(path, units=Units.M), infos, path)
 
 
 def _at_video_size(

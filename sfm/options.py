@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from dynrecon.arguments import named_values
 from dynrecon.errors import InputError
 from tracking.pixels import DltPixels
 
@@ -339,17 +340,16 @@ def parse_offsets(text: str) -> dict[str, float]:
     from sfm.cameras import MAX_SECONDS  # numpy: not for the command list
 
     out: dict[str, float] = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        name, sep, value = item.partition("=")
+    for name, value, item in named_values(text, "NAME=SECONDS", "cam2=0.033"):
         try:
             seconds = float(value)
         except ValueError:
             seconds = math.nan
-        if not sep or not name.strip() or not math.isfinite(seconds) or name.strip() in out:
+        if not math.isfinite(seconds):
             raise argparse.ArgumentTypeError(f"{item!r}: give NAME=SECONDS once per video, e.g. cam2=0.033")
         if abs(seconds) >= MAX_SECONDS:
             raise argparse.ArgumentTypeError(f"{item!r}: clock offsets are seconds below {MAX_SECONDS:g} in magnitude")
-        out[name.strip()] = seconds
+        out[name] = seconds
     return out
 
 

@@ -185,11 +185,11 @@ def check_inputs(options: RegisterOptions, infos: list[ProbedVideo], tracks: Tra
 def _check_stand_in_sizes(infos: list[ProbedVideo], tracks: Tracks, options: RegisterOptions) -> None:
     """A name's tracks lie within the image size it was given (--size is one size for every name): pixels beyond it
     would be taken for a lens's edge."""
-    for info in infos:
-        rows = [k for k, video in enumerate(tracks.video) if video == info.name] if info.stand_in else []
-        if not rows:
+    for info in (info for info in infos if info.stand_in):
+        xy = tracks.of_videos([info.name]).xy
+        if not len(xy):
             continue
-        x, y = tracks.xy[rows, 0].max(), tracks.xy[rows, 1].max()
+        x, y = xy.max(axis=0)
         if x > 1.02 * info.width or y > 1.02 * info.height:
             given = "--size" if options.size is not None else str(options.intrinsics)
             raise InputError(
@@ -900,16 +900,19 @@ def _fail(
     moving_hint: str | None = None,
 ) -> NoReturn:
     named = all(v.info.stand_in for v in videos)  # every video a name (--fps): the subject path was the only one
-    if subject is not None and subject.get("why"):
+    if named:
+        background = "the videos are not here (--fps)"
+    elif summary.two_views:
         background = (
-            "the videos are not here (--fps)"
-            if named
-            else f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
+            f"the background's model of two images ({', '.join(summary.two_views)}) fixes no focal length (give "
             "--intrinsics)"
-            if summary.two_views
-            else "the static videos' backgrounds gave no model (too few matches between their views: little shared "
+        )
+    else:
+        background = (
+            "the static videos' backgrounds gave no model (too few matches between their views: little shared "
             "background, or views too far apart)"
         )
+    if subject is not None and subject.get("why"):
         hint = f"{background}, and the subject path could not pose them: {subject['why']}"
     elif named:
         hint = "the videos are not here (--fps): the subject's tracks must be seen by two videos at once"
