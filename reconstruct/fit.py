@@ -7,15 +7,19 @@ The measure: the written points' median reprojection error over the observed poi
 solve is the output (its points lie on their rays by construction), its median self-expression residual in pixels
 instead. Refined trajectories may bend through every ray (one point seen by one video per instant: a flight with
 two cameras of another session fits its rays to a thousandth of a pixel): where their reprojection is a small share
-(`BENT_SHARE`) of their error predicted for an unseen ray (GCV, `trajectory.predicted_px`), that prediction is
-judged instead (docs/formats.md). Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for large images)
-the solve warns, and report.json `fit` says which measure and how far.
+(`BENT_SHARE`) of their error predicted for an unseen ray (GCV, `trajectory.predicted_px`), each video's rays
+predicted by the trajectories the other videos alone give (`heldout.heldout_px`) are judged instead, or GCV's
+prediction where fewer than three videos see the points (docs/formats.md). GCV's own prediction barely moves with
+cameras of another session (the trajectory bends between rays of different videos as it does through noise); rays
+held out are met only where the cameras agree. Above `WARN_PX` (or `WARN_DIAGONAL` of the image diagonal, for
+large images) the solve warns, and report.json `fit` says which measure and how far.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,11 +36,17 @@ BENT_SHARE = 0.1  # refined points whose reprojection is under this share of GCV
 
 
 def check_fit(
-    problem: Problem, points: np.ndarray, trust: Trust, refined: bool, predicted: float | None = None
+    problem: Problem,
+    points: np.ndarray,
+    trust: Trust,
+    refined: bool,
+    predicted: float | None = None,
+    heldout: Callable[[], float | None] | None = None,
 ) -> dict[str, Any]:
     """report.json `fit`: the median miss of the written `points (F, P, 3)` against the observations (`refined`;
-    where they pass through their rays, `predicted`, their error predicted for an unseen ray), or the seed solve's
-    median self-expression residual (not refined), and whether it exceeds the limit."""
+    where they pass through their rays, `heldout()`, each video's rays predicted from the others' (None where it
+    cannot be measured), else `predicted`, their error predicted for an unseen ray), or the seed solve's median
+    self-expression residual (not refined), and whether it exceeds the limit."""
     observed = problem.observed & np.isfinite(points).all(axis=-1)
     if refined:
         focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -64,7 +74,14 @@ def check_fit(
             "limit_px": None,
             "fits": None,
         }
-    if bent:
+    held = heldout() if bent and heldout is not None else None
+    if held is not None and math.isfinite(held):
+        median = held
+        measure = (
+            "each video's rays predicted by the other videos' trajectories (held out, median over rays): the"
+            " trajectories pass through their rays"
+        )
+    elif bent:
         median = float(predicted)  # type: ignore[arg-type]
         measure = (
             "error the trajectories predict for an unseen ray (GCV, median over points): they pass through their rays"
@@ -80,7 +97,7 @@ def check_fit(
             "capture's (another session's calibration, another image size, a mirrored world, or given to the wrong "
             "videos: import-calibration matches cameras to videos by order where their names differ) or the tracks "
             "follow another subject; the trust flag, relative to the capture's own medians, does not show this",
-            "trajectories predicted for an unseen ray" if bent else "written points",
+            "trajectories predicted for rays held out" if bent else "written points",
             median,
             limit,
             "" if bent else "; " + ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),
@@ -90,6 +107,7 @@ def check_fit(
         "median_px": median,
         "reprojection_px": reprojection if refined else None,
         "predicted_px": float(predicted) if refined and predicted is not None and math.isfinite(predicted) else None,
+        "heldout_px": held if held is not None and math.isfinite(held) else None,
         "p90_px": None if bent else float(np.percentile(values, 90)),  # GCV gives no distribution over rays
         "per_video_px": per_video,
         "limit_px": limit,

@@ -38,7 +38,7 @@ from reconstruct.heldout import heldout_px, holds_out
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
 from reconstruct.temporal import Temporal, refine_on_clocks
-from reconstruct.time_checks import Check, RefinementJudge, given_offsets_check, spacing_assumed
+from reconstruct.time_checks import Check, RefinementJudge, given_offsets_check, rate_unknown
 from reconstruct.tracks_path import start_points
 from reconstruct.trajectory import RefineOptions, predicted_pair
 from sfm.cameras import CameraSet
@@ -148,7 +148,7 @@ def prefer_registered_offsets(
         # for the videos the solve could not time, or the independent confirmation of the clocks it found but did
         # not trust; held to the checks the solve's clocks meet (with decoder times clock_fit reports without
         # judging, as for the solve's own clocks).
-        checks = RefinementJudge(problem, seed, options).clock_fit(on_clocks.result, spacing_assumed(clocks))
+        checks = RefinementJudge(problem, seed, options).clock_fit(on_clocks.result, rate_unknown(clocks))
         kept = all(c.passed for c in checks)
         entry.update(criterion="clock_fit", checks=[c.to_json() for c in checks], limit=None)
     entry["kept"] = "registered" if kept else "solve"

@@ -25,9 +25,12 @@ from dynrecon.beside import beside
 from dynrecon.errors import InputError
 from dynrecon.jsonvalues import finite_or_none
 from reconstruct.camera_order import check_camera_order
+from reconstruct.clocks.model import ClockModel
 from reconstruct.clocks.overlap import lonely_videos
+from reconstruct.clocks.rates import RateCheck, check_given_rates
 from reconstruct.clocks.registered import check_registered_clocks
 from reconstruct.fit import check_fit
+from reconstruct.heldout import heldout_px, holds_out
 from reconstruct.inputs import build_problem_checked
 from reconstruct.outputs.points import FramePoints, Sequencing, write_points, write_sequencing
 from reconstruct.outputs.recording_options import RecordingOptions
@@ -176,6 +179,7 @@ def solve(
     track_set = renumber_people(track_set, people_maps(camera_set))
     cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
     problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
+    options, rates = _with_given_rates(options, camera_set, problem)
     clock_options = options.temporal.clocks
     check_camera_order(problem, cameras_path, clock_options.fps, clock_options.track_search, every_video)
     unknown = sorted({n for bone in options.skeleton for n in bone} - set(problem.point_names))
@@ -222,6 +226,7 @@ def solve(
     report = build_report(problem, result, options, inputs, seed_solved=bool(result.stages))
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
     report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
+    report["clocks"]["given_rates"] = rates.to_json() if rates is not None else None
     lonely = lonely_videos(temporal.clocks) if temporal.report.get("path") != TimePath.SEED.value else []
     for warning in lonely:
         log.warning("%s", warning)
@@ -231,7 +236,9 @@ def solve(
     report["trust"] = trust.summary()
     refined = temporal.report.get("path") not in (None, "seed")
     predicted = predicted_px(temporal.trajectories) if temporal.trajectories is not None else None
-    report["fit"] = check_fit(problem, temporal.points, trust, refined, predicted)
+    report["fit"] = check_fit(
+        problem, temporal.points, trust, refined, predicted, lambda: _heldout_px(problem, temporal, options)
+    )
     report["rejected_observations"] = rejected.to_json()
     points, frames_sequencing = frame_points(problem, result, temporal, trust), sequencing(problem, result, temporal)
     report["timings"]["outputs"] = time.perf_counter() - t0
@@ -248,6 +255,37 @@ def solve(
         options=options,
         started=started,
     )
+
+
+def _with_given_rates(
+    options: SolveOptions, cameras: CameraSet, problem: Problem
+) -> tuple[SolveOptions, RateCheck | None]:
+    """`options` with cameras.json's frame rate of each video whose frames have no times (`register --fps`'s
+    names, `import-calibration --fps`): own time frame / fps; with `--clock-model auto`, the clock model the
+    tracks choose for those rates (`reconstruct.clocks.rates`), and that check."""
+    given = options.temporal.clocks.fps
+    rates = {
+        video.name: float(video.fps)
+        for video in cameras.videos
+        if video.fps and video.name not in given and video.frames and all(f.time is None for f in video.frames)
+    }
+    if not rates:
+        return options, None
+    clocks = dataclasses.replace(options.temporal.clocks, fps={**given, **rates})
+    temporal = dataclasses.replace(options.temporal, clocks=clocks)
+    check = check_given_rates(problem, clocks) if temporal.clock_model is None else None
+    if check is not None:
+        (log.warning if check.model is ClockModel.AFFINE else log.info)("clock model: %s", check.reason)
+        temporal = dataclasses.replace(temporal, clock_model=check.model)
+    return dataclasses.replace(options, temporal=temporal), check
+
+
+def _heldout_px(problem: Problem, temporal: Temporal, options: SolveOptions) -> float | None:
+    """The median error of each video's rays predicted by the trajectories the other videos give, at the solve's
+    times; None where fewer than three videos see the points or some frame has no time."""
+    if not holds_out(problem) or not np.all(np.isfinite(temporal.times)):
+        return None
+    return heldout_px(problem, temporal.times, options.temporal.refine).median_px
 
 
 def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None:

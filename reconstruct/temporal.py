@@ -27,7 +27,7 @@ from reconstruct.clocks.estimate import ClockOptions, estimate_clocks
 from reconstruct.clocks.model import ClockModel, Clocks
 from reconstruct.solver.alternation import SolveResult
 from reconstruct.solver.problem import Problem
-from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, spacing_assumed
+from reconstruct.time_checks import Check, RefinementJudge, TimePath, clock_checks, rate_unknown
 from reconstruct.trajectory import RefineOptions, RefineResult, predicted_pair, predicted_px, refine
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,7 @@ def _recover_and_refine(
         chosen, on_clocks = _tracks_or_links(problem, judge, clocks, on_clocks, clock_options.model, options, report)
         if chosen is not clocks:  # the links' clocks pass the same checks before they are used
             clocks, checks = chosen, clock_checks(problem, chosen)
-        checks.extend(judge.clock_fit(on_clocks.result, spacing_assumed(clocks)))
+        checks.extend(judge.clock_fit(on_clocks.result, rate_unknown(clocks)))
         if all(c.passed for c in checks):
             report.update(on_clocks.report)
             return _finish(problem, result, on_clocks.clocks, on_clocks.result, TimePath.CLOCKS, checks, report)

@@ -74,8 +74,16 @@ class Check:
 
 
 def spacing_assumed(clocks: Clocks) -> bool:
-    """Whether some video has no decoder times, so that its clock assumes evenly spaced frames."""
+    """Whether some video has no decoder times, so that its clock assumes evenly spaced frames (W's links test it)."""
     return any(c.time_source is not TimeSource.DECODER for c in clocks.videos)
+
+
+def rate_unknown(clocks: Clocks) -> bool:
+    """Whether some video has neither decoder times nor a given frame rate: its clock's rate is the model's guess,
+    which trajectories on free per-frame times judge. A given rate is judged as decoder times are: on real rigs free
+    times absorb calibration and tracking errors that no clock explains (Pose2Sim's detections by name: 7.0 px on
+    the clocks against 3.65 px on free times, the clocks within a millisecond)."""
+    return any(c.time_source is TimeSource.NOMINAL for c in clocks.videos)
 
 
 def clock_checks(problem: Problem, clocks: Clocks, min_distinctness: float = MIN_DISTINCTNESS) -> list[Check]:
@@ -187,7 +195,8 @@ class RefinementJudge:
         """The clock model costs no residual: its trajectories fit the rays to FIT_PX, or about as well as
         trajectories on free per-frame times. Only where the model assumes the frames' spacing (`assumed`): with
         decoder times, free times also absorb calibration and tracking errors that no clock explains, so the
-        comparison would refuse good clocks on real rigs; the residual is then reported, not judged."""
+        comparison would refuse good clocks on real rigs; the residual is then reported, not judged (so with a
+        given frame rate: `rate_unknown`)."""
         residual = self.residual(refined.points)
         if not assumed:
             return [
@@ -196,7 +205,10 @@ class RefinementJudge:
                     value=residual,
                     limit=math.inf,
                     passed=True,
-                    meaning="median reprojection residual (px) on the clocks (decoder times: reported, not judged)",
+                    meaning=(
+                        "median reprojection residual (px) on the clocks (decoder times or given rates: reported,"
+                        " not judged)"
+                    ),
                 )
             ]
         if residual <= FIT_PX:

@@ -233,10 +233,9 @@ def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[P
             len(paths),
             _listed(missing),
         )
-        # their frame times are --fps's, not a decoder's: `dynrecon solve` takes given times as exact
-        log.warning(
-            "%s: frame times from --fps, not measured: a camera's true rate may differ a little (phones do); solve "
-            "with --clock-model affine to fit each video's rate",
+        log.info(
+            "%s: frame times from --fps, not measured: cameras.json gives their rate, not times, and the solve fits "
+            "each one's true rate (a phone's may differ a little)",
             _listed(missing),
         )
     else:
@@ -699,7 +698,7 @@ def _video_cameras(
         frames.append(
             FrameCamera(
                 frame=frame,
-                time=float(video.info.times[frame]),
+                time=None if video.info.stand_in else float(video.info.times[frame]),
                 K=K,
                 R=result.pose.rotation.matrix(),
                 t=np.asarray(result.pose.translation),

@@ -596,7 +596,8 @@ def estimate_clocks_from_tracks(problem: Problem, options: ClockOptions | None =
 
 
 def _usable_model(model: ClockModel, sources: list[TimeSource], names: list[str]) -> ClockModel:
-    """The requested model, or AFFINE where an offset-only clock cannot hold (a video without decoder times)."""
+    """The requested model, or AFFINE where an offset-only clock cannot hold (a video with neither decoder times
+    nor a given frame rate)."""
     for name, source in zip(names, sources, strict=True):
         if source is TimeSource.NOMINAL:
             log.warning(
@@ -605,8 +606,8 @@ def _usable_model(model: ClockModel, sources: list[TimeSource], names: list[str]
                 name,
                 DEFAULT_FPS,
             )
-    if model is ClockModel.OFFSET and any(s is not TimeSource.DECODER for s in sources):
-        log.warning("clock model 'offset' needs decoder times for every video; using 'affine'")
+    if model is ClockModel.OFFSET and TimeSource.NOMINAL in sources:
+        log.warning("clock model 'offset' needs decoder times or a frame rate for every video; using 'affine'")
         return ClockModel.AFFINE
     return model
 

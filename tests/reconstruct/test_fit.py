@@ -56,7 +56,8 @@ def test_a_flight_whose_trajectory_bends_through_every_ray_is_judged_by_its_pred
 ) -> None:
     """One drone, one video per instant: the refined trajectory can pass through every ray, so the written points'
     reprojection said 0.007 px with two cameras of another session (a real drone rig's report, 2026-11-30, showed
-    0.0003 px whatever the cameras); the error predicted for an unseen ray (GCV) shows the miss."""
+    0.0003 px whatever the cameras); each video's rays predicted from the other videos' trajectories show the miss
+    (GCV's error predicted for an unseen ray moved from 6.1 to 8.9 px only, under the limit on some machines)."""
     from simulation.flight import FlightOptions
     from simulation.flight import run as simulate_flight
 
@@ -80,5 +81,6 @@ def test_a_flight_whose_trajectory_bends_through_every_ray_is_judged_by_its_pred
         bad = reconstruct.solve(out / "bad.json", out / "tracks.csv", reconstruct.SolveOptions(recording=None))
     fit = bad.report["fit"]
     assert fit["reprojection_px"] < 1.0  # the written points sit on their rays
-    assert not fit["fits"] and fit["median_px"] == fit["predicted_px"] > fit["limit_px"]
-    assert "the trajectories predicted for an unseen ray miss the tracks" in caplog.text
+    assert fit["measure"].startswith("each video's rays predicted by the other videos' trajectories")
+    assert not fit["fits"] and fit["median_px"] == fit["heldout_px"] > fit["limit_px"]
+    assert "the trajectories predicted for rays held out miss the tracks" in caplog.text

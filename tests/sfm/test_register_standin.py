@@ -45,13 +45,14 @@ def test_names_with_fps_are_posed_from_the_tracks(rig: tuple[Path, Truth], tmp_p
     args = ["register", *truth.names, "--out", str(ws), "--fps", str(FPS), "--intrinsics", str(folder / "calib.toml")]
     assert main(args) == 0
     report = json.loads((ws / "register_report.json").read_text())
-    assert any("--clock-model affine" in w for w in report["warnings"])  # the times are --fps's, not measured
     assert [(c["name"], c["posed"]) for c in report["subject"]["cameras"]] == [(n, True) for n in truth.names]
     assert [(v["name"], v["camera"], v["camera_set_by"], v["posed_by"]) for v in report["videos"]] == [
         (name, "static", "--fps", "subject") for name in truth.names
     ]
     videos = {v.name: v for v in read_cameras(ws / "cameras.json").videos}
     assert all((v.width, v.height, v.fps) == (1920, 1080, FPS) for v in videos.values())
+    # --fps's rate, not measured times: the solve fits each one's true rate (tests/reconstruct/test_given_rates.py)
+    assert all(f.time is None for v in videos.values() for f in v.frames)
     centres = np.array([-videos[n].frames[0].R.T @ videos[n].frames[0].t for n in truth.names])
     scale, R, t = similarity(centres, truth.centres())  # arbitrary units without --scale: one similarity
     spread = np.linalg.norm(truth.centres() - truth.centres().mean(0), axis=1).max()
