@@ -108,9 +108,32 @@ def chosen_command(argv: Sequence[str]) -> str:
     return next((word for word in argv if not word.startswith("-")), "")
 
 
+class _OnceEach(logging.Filter):
+    """Each distinct warning once: a step that runs again (the clocks of every path the solve tries, a fold of
+    the tracks) repeats its warnings word for word, which buried the few that differ."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[tuple[str, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        key = (record.name, record.getMessage())
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
+
+
 def configure_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else logging.DEBUG if verbose >= 2 else logging.INFO
+    root = logging.getLogger()
+    configured = bool(root.handlers)  # by a caller of main() (a test's capture): its handlers are left as they are
     logging.basicConfig(level=level, format="%(levelname).1s %(name)s: %(message)s", stream=sys.stderr)
+    if not configured:
+        for handler in root.handlers:
+            handler.addFilter(_OnceEach())
     # Third-party chatter stays at warning level unless the user asks for debug output.
     if verbose < 2:
         for noisy in ("PIL", "matplotlib", "urllib3"):

@@ -844,12 +844,22 @@ def _world_units(options: PipelineOptions, registration: Registration) -> str:
     if options.calibration is not None:
         named = {1.0: "m", 100.0: "cm", 1000.0: "mm"}
         return named.get(float(options.calibration_options.scale), "mm")
-    report = registration.cameras.parent / "register_report.json"
+    return "m" if registered_in_metres(registration.cameras) else "mm"
+
+
+def registered_in_metres(cameras_path: Path) -> bool | None:
+    """Whether `register` gave the cameras of `cameras_path` metres (`--scale`, `--board`): its
+    register_report.json beside them, written with them, says so; False where it gave an arbitrary scale (an SfM
+    world, the subject's tracks alone); None where no registration's report belongs to them (a calibration
+    imported, or a report older than the cameras)."""
+    report = cameras_path.parent / "register_report.json"
     try:
+        if report.stat().st_mtime < cameras_path.stat().st_mtime - 2.0:  # register writes its report last
+            return None
         subject = json.loads(report.read_text(encoding="utf-8")).get("subject") or {}
     except (OSError, ValueError, AttributeError):
-        return "mm"
-    return "m" if subject.get("units") == "m" else "mm"
+        return None
+    return subject.get("units") == "m"
 
 
 def export_points(ws: Path, cameras_path: Path, units: str) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,6 +19,8 @@ from dynrecon.arguments import out_path, positive_seconds
 if TYPE_CHECKING:
     from dynrecon.pipeline import PipelineOptions
     from sfm.options import ImportCalibrationOptions
+
+log = logging.getLogger(__name__)
 
 COMMANDS = {
     "demo": "run the whole job on the embedded video sample and score it",
@@ -53,7 +56,7 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
 
 def _export_command(args: argparse.Namespace) -> int:
     from dynrecon.errors import InputError
-    from dynrecon.pipeline import export_points
+    from dynrecon.pipeline import export_points, registered_in_metres
     from reconstruct.outputs.export import check_units
 
     check_units(args.units)  # before anything is read
@@ -62,6 +65,15 @@ def _export_command(args: argparse.Namespace) -> int:
             raise InputError(
                 path, "file not found", fix="give the folder `dynrecon solve --out` wrote, and its cameras"
             )
+    if registered_in_metres(args.cameras) is False:  # a label the user chose, which would read as a measurement
+        log.warning(
+            "%s: register gave these cameras an arbitrary scale (its register_report.json: no --scale or --board): "
+            "--units %s labels the exports, it does not make them %s (register with --scale A,B,METRES or --board "
+            "for metres)",
+            args.cameras,
+            args.units,
+            args.units,
+        )
     export_points(args.out, args.cameras, args.units)
     print(f"wrote {args.out / 'points.trc'} and {args.out / 'points.c3d'}")  # noqa: T201
     return 0

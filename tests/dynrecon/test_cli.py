@@ -192,6 +192,31 @@ def test_progress_bars_follow_quiet_and_a_log_file(quiet: bool, seen: list[str])
     assert done.stdout.split() == seen
 
 
+def test_a_warning_repeated_word_for_word_is_said_once() -> None:
+    """The solve's clocks run once per path it tries, each repeating its warnings: a command says each once (a
+    5-video solve printed 25 warnings for 2 causes); other warnings, and information, are all said."""
+    code = (
+        "import logging\n"
+        "from dynrecon.cli import configure_logging\n"
+        "configure_logging(0, False)\n"
+        "log = logging.getLogger('reconstruct.clocks.estimate')\n"
+        "for _ in range(3):\n"
+        "    log.warning('video %r has no times', 'cam0')\n"
+        "    log.info('searching')\n"
+        "log.warning('video %r has no times', 'cam1')\n"
+        "logging.getLogger('sfm.stage').warning('video %r has no times', 'cam0')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stderr.splitlines() == [
+        "W reconstruct.clocks.estimate: video 'cam0' has no times",
+        "I reconstruct.clocks.estimate: searching",
+        "I reconstruct.clocks.estimate: searching",
+        "I reconstruct.clocks.estimate: searching",
+        "W reconstruct.clocks.estimate: video 'cam1' has no times",
+        "W sfm.stage: video 'cam0' has no times",
+    ]
+
+
 def test_a_full_disk_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]):
     """No space left while a command writes: the machine's state, said in one line naming the file, not a
     traceback; other OS errors (a bug's) still raise."""

@@ -26,6 +26,28 @@ def test_export_writes_what_run_writes(tmp_path: Path, capsys: pytest.CaptureFix
     assert (solved / "points.trc").read_text().splitlines()[2].split("\t")[4] == "mm"
 
 
+def test_units_given_to_an_arbitrary_scale_are_said_to_be_a_label(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Cameras `register` posed without --scale or --board have an arbitrary scale: `--units m` labels the
+    exports, and a warning says they are not metres (a helper's LED wand was 1.28 calibration-metres per unit)."""
+    import json
+
+    sim = simulated_phones(tmp_path / "phones")
+    solved = tmp_path / "solved"
+    solve = ["solve", "--cameras", str(sim / "cameras.json"), "--tracks", str(sim / "tracks.csv"), "--out", str(solved)]
+    assert main([*solve, "--no-recording"]) == 0
+    export = ["export", str(solved), "--cameras", str(sim / "cameras.json"), "--units", "m"]
+    assert main(export) == 0
+    assert "arbitrary scale" not in caplog.text  # no registration's report: a calibration's cameras
+    for units, warned in ((None, True), ("m", False)):
+        caplog.clear()
+        (sim / "register_report.json").write_text(json.dumps({"subject": {"units": units}}))
+        assert main(export) == 0
+        assert ("register gave these cameras an arbitrary scale" in caplog.text) is warned, caplog.text
+    capsys.readouterr()
+
+
 def test_export_names_what_is_missing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["export", str(tmp_path), "--cameras", str(tmp_path / "cameras.json"), "--units", "m"]) == 2
     err = capsys.readouterr().err.strip()
