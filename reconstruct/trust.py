@@ -526,14 +526,16 @@ def trust_measures(
         },
     )
     off = flag_off_videos(options, flag, reconstructed, problem.observed, residual_px, problem.video_index)
+    # a person's tracks may be another person's; one tracked object (a ball, a marker) has no --person to choose
+    other = "another object" if problem.num_points == 1 else "another subject (import-tracks --person)"
     for v, (median, limit) in off.items():
         log.warning(
-            "trust: %s: its points miss the shapes the other videos see by %.1f px (median residual), over %.1f px: "
-            "its tracks may follow another subject (import-tracks --person), or its camera or clock is wrong; "
-            "every point of it is flagged",
+            "trust: %s: its points miss what the other videos see by %.1f px (median residual), over %.1f px: "
+            "its tracks may follow %s, or its camera or clock is wrong; every point of it is flagged",
             problem.video_names[v],
             median,
             limit,
+            other,
         )
     log.info(
         "trust: %d of %d reconstructed points flagged (%s)",

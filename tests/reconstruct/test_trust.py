@@ -403,7 +403,8 @@ def test_a_video_whose_points_name_other_things_is_flagged_whole_and_reported(so
     assert trust.flag[own][trust.reconstructed[own]].all()
     assert trust.flag[~own].mean() < 0.5
     assert json.loads(json.dumps(trust.summary()))["off_videos"] == trust.off_videos
-    assert "cam0: its points miss the shapes the other videos see" in caplog.text
+    assert "cam0: its points miss what the other videos see" in caplog.text
+    assert "another subject (import-tracks --person)" in caplog.text  # several points: a person's
 
 
 def test_off_videos_needs_three_videos_and_follows_the_others_median():
