@@ -6,7 +6,8 @@ result crosses (pickled, through a pipe). Fork is used only on Linux, from the m
 Python thread runs: a lock held by another thread at the fork (tqdm's monitor takes tqdm's lock every few seconds,
 a Dask worker's event loop holds its own) stays held in the child forever. The command line switches tqdm's
 monitor off (`quiet_tqdm_monitor`) so that it never starts. Everywhere else, when fork fails, and with
-DYNRECON_NO_FORK set, the function runs in a thread.
+DYNRECON_NO_FORK set, the function runs in a thread. Within `one_core()` (`register --threads 1`: a user sharing
+the machine) nothing runs beside: the function runs in the caller when its result is asked for.
 
 The result is the function's, whichever way it ran: a child that dies without one (killed, out of memory), whose
 result cannot be brought back, or that uses no CPU time for STALL_S (stuck on a lock a native thread held at the
@@ -29,7 +30,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -47,6 +48,20 @@ STOP_GRACE_S = 5.0  # a child stopped early has this long to clean up after SIGT
 STALL_S = 120.0
 _WATCH_S = 5.0  # how often the caller, waiting for the result, looks at the child's CPU time
 _PR_SET_PDEATHSIG = 1
+
+
+_one_core = threading.local()  # per thread: how many `one_core` blocks are open
+
+
+@contextlib.contextmanager
+def one_core() -> Iterator[None]:
+    """Within the block, `beside` runs nothing beside the caller: each function runs in the caller when its
+    result is asked for (one core, as `--threads 1` asks)."""
+    _one_core.depth = getattr(_one_core, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _one_core.depth -= 1
 
 
 def fork_is_safe() -> bool:
@@ -88,8 +103,9 @@ class Beside(Generic[T]):
         self._pool: ThreadPoolExecutor | None = None
         self._future: Future[T] | None = None
         self.redone = False
-        self.forked = fork_is_safe() and self._start_child()
-        if not self.forked:
+        self._inline = getattr(_one_core, "depth", 0) > 0
+        self.forked = not self._inline and fork_is_safe() and self._start_child()
+        if not self.forked and not self._inline:
             self._pool = ThreadPoolExecutor(1)
             self._future = self._pool.submit(function, *args)
 
@@ -115,6 +131,8 @@ class Beside(Generic[T]):
 
     def result(self) -> T:
         """The function's return value (waits); its exception is raised here."""
+        if self._inline:
+            return self._function(*self._args)
         if self._future is not None:
             return self._future.result()
         payload = self._collect()

@@ -117,7 +117,7 @@ class _OnceEach(logging.Filter):
         self.seen: set[tuple[str, str]] = set()
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno < logging.WARNING:
+        if record.levelno != logging.WARNING:
             return True
         key = (record.name, record.getMessage())
         if key in self.seen:
@@ -131,8 +131,11 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     root = logging.getLogger()
     configured = bool(root.handlers)  # by a caller of main() (a test's capture): its handlers are left as they are
     logging.basicConfig(level=level, format="%(levelname).1s %(name)s: %(message)s", stream=sys.stderr)
-    if not configured:
-        for handler in root.handlers:
+    for handler in root.handlers:
+        once = [f for f in handler.filters if isinstance(f, _OnceEach)]
+        for each in once:  # a command run again in the same process (a benchmark's) says its warnings again
+            each.seen.clear()
+        if not configured and not once:
             handler.addFilter(_OnceEach())
     # Third-party chatter stays at warning level unless the user asks for debug output.
     if verbose < 2:

@@ -844,17 +844,17 @@ def _world_units(options: PipelineOptions, registration: Registration) -> str:
     if options.calibration is not None:
         named = {1.0: "m", 100.0: "cm", 1000.0: "mm"}
         return named.get(float(options.calibration_options.scale), "mm")
-    return "m" if registered_in_metres(registration.cameras) else "mm"
+    return "m" if registered_in_metres(registration.cameras, written_with=False) else "mm"
 
 
-def registered_in_metres(cameras_path: Path) -> bool | None:
+def registered_in_metres(cameras_path: Path, *, written_with: bool = True) -> bool | None:
     """Whether `register` gave the cameras of `cameras_path` metres (`--scale`, `--board`): its
-    register_report.json beside them, written with them, says so; False where it gave an arbitrary scale (an SfM
-    world, the subject's tracks alone); None where no registration's report belongs to them (a calibration
-    imported, or a report older than the cameras)."""
+    register_report.json beside them says so; False where it gave an arbitrary scale (an SfM world, the subject's
+    tracks alone); None where there is no report, or with `written_with` where the report is older than the
+    cameras (a calibration imported over a registration; a pipeline's own workspace need not check)."""
     report = cameras_path.parent / "register_report.json"
     try:
-        if report.stat().st_mtime < cameras_path.stat().st_mtime - 2.0:  # register writes its report last
+        if written_with and report.stat().st_mtime < cameras_path.stat().st_mtime - 2.0:  # register writes it last
             return None
         subject = json.loads(report.read_text(encoding="utf-8")).get("subject") or {}
     except (OSError, ValueError, AttributeError):

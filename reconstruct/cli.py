@@ -62,7 +62,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         choices=["auto", *(m.value for m in ClockModel)],
         default="auto",
         help="per-video clock: offset only, offset and rate, or with drift (auto: offset when every "
-        "frame has a decoder time, else affine)",
+        "frame has a decoder time; for videos at a rate given (register --fps), offset unless the tracks show one "
+        "running off it; else affine)",
     )
     parser.add_argument(
         "--trust",

@@ -41,12 +41,12 @@ def check_fit(
     trust: Trust,
     refined: bool,
     predicted: float | None = None,
-    heldout: Callable[[], float | None] | None = None,
+    heldout: Callable[[], tuple[float, dict[str, float]] | None] | None = None,
 ) -> dict[str, Any]:
     """report.json `fit`: the median miss of the written `points (F, P, 3)` against the observations (`refined`;
-    where they pass through their rays, `heldout()`, each video's rays predicted from the others' (None where it
-    cannot be measured), else `predicted`, their error predicted for an unseen ray), or the seed solve's median
-    self-expression residual (not refined), and whether it exceeds the limit."""
+    where they pass through their rays, `heldout()`: the median error of each video's rays predicted from the
+    others', and per video (None where it cannot be measured), else `predicted`, their error predicted for an unseen
+    ray), or the seed solve's median self-expression residual (not refined), and whether it exceeds the limit."""
     observed = problem.observed & np.isfinite(points).all(axis=-1)
     if refined:
         focal = 0.5 * (problem.K[:, 0, 0] + problem.K[:, 1, 1])
@@ -75,8 +75,10 @@ def check_fit(
             "fits": None,
         }
     held = heldout() if bent and heldout is not None else None
-    if held is not None and math.isfinite(held):
-        median = held
+    if held is not None and not math.isfinite(held[0]):
+        held = None
+    if held is not None:
+        median = held[0]
         measure = (
             "each video's rays predicted by the other videos' trajectories (held out, median over rays): the"
             " trajectories pass through their rays"
@@ -86,11 +88,15 @@ def check_fit(
         measure = (
             "error the trajectories predict for an unseen ray (GCV, median over points): they pass through their rays"
         )
-    per_video = {
-        name: float(np.median(px[(problem.video_index == v)[:, None] & observed & np.isfinite(px)]))
-        for v, name in enumerate(problem.video_names)
-        if np.any(observed[problem.video_index == v])
-    }
+    per_video = (
+        held[1]
+        if held is not None
+        else {
+            name: float(np.median(px[(problem.video_index == v)[:, None] & observed & np.isfinite(px)]))
+            for v, name in enumerate(problem.video_names)
+            if np.any(observed[problem.video_index == v])
+        }
+    )
     if median > limit:
         log.warning(
             "the %s miss the tracks by a median of %.1f px (over %.0f px%s): the cameras may not be this "
@@ -100,16 +106,18 @@ def check_fit(
             "trajectories predicted for rays held out" if bent else "written points",
             median,
             limit,
-            "" if bent else "; " + ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),
+            ""
+            if bent and held is None
+            else "; " + ", ".join(f"{name} {value:.1f} px" for name, value in per_video.items()),
         )
     return {
         "measure": measure,
         "median_px": median,
         "reprojection_px": reprojection if refined else None,
         "predicted_px": float(predicted) if refined and predicted is not None and math.isfinite(predicted) else None,
-        "heldout_px": held if held is not None and math.isfinite(held) else None,
+        "heldout_px": held[0] if held is not None else None,
         "p90_px": None if bent else float(np.percentile(values, 90)),  # GCV gives no distribution over rays
-        "per_video_px": per_video,
+        "per_video_px": per_video,  # of the measure judged: the held-out rays' where those are
         "limit_px": limit,
         "fits": median <= limit,
     }

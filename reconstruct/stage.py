@@ -39,6 +39,7 @@ from reconstruct.registered_offsets import prefer_registered_offsets, registered
 from reconstruct.solver.alternation import SolveResult, SolverOptions
 from reconstruct.solver.alternation import solve as solve_problem
 from reconstruct.solver.problem import Problem, reconstructable_points
+from reconstruct.solver.unseen_frames import take_frames
 from reconstruct.temporal import Refinement, Temporal, TemporalOptions, recover_and_refine
 from reconstruct.time_checks import Check, TimePath
 from reconstruct.tracks_path import (
@@ -179,7 +180,9 @@ def solve(
     track_set = renumber_people(track_set, people_maps(camera_set))
     cameras_path = None if isinstance(cameras, CameraSet) else Path(cameras)
     problem, rejected = build_problem_checked(camera_set, track_set, cameras_path=cameras_path)
-    options, rates = _with_given_rates(options, camera_set, problem)
+    started_rates = time.perf_counter()
+    problem, options, rates = _with_given_rates(problem, options, camera_set)
+    rates_seconds = time.perf_counter() - started_rates
     clock_options = options.temporal.clocks
     check_camera_order(problem, cameras_path, clock_options.fps, clock_options.track_search, every_video)
     unknown = sorted({n for bone in options.skeleton for n in bone} - set(problem.point_names))
@@ -194,7 +197,9 @@ def solve(
         int(problem.observed.sum()),
     )
     problem, result, temporal = _solve_and_refine(problem, options, camera_set)
-    result.timings["read_inputs"] = read_inputs
+    result.timings["read_inputs"] = read_inputs - rates_seconds
+    if rates is not None:
+        result.timings["given_rates"] = rates_seconds
     # the split of clocks and refinement, where reconstruct/temporal.py reports one
     result.timings.update(temporal.report.get("timings", {}))
     registration_check = check_registered_clocks(camera_set, temporal.clocks)
@@ -227,6 +232,8 @@ def solve(
     report["clocks"] = {key: value for key, value in temporal.clocks.to_json().items() if key != "frames"}
     report["clocks"]["registration_check"] = registration_check  # of the solve's own clocks
     report["clocks"]["given_rates"] = rates.to_json() if rates is not None else None
+    if rates is not None and rates.model is ClockModel.AFFINE:  # logged as a warning: the report keeps it too
+        report["clocks"]["warnings"] = [*report["clocks"].get("warnings", []), f"clock model: {rates.reason}"]
     lonely = lonely_videos(temporal.clocks) if temporal.report.get("path") != TimePath.SEED.value else []
     for warning in lonely:
         log.warning("%s", warning)
@@ -258,34 +265,47 @@ def solve(
 
 
 def _with_given_rates(
-    options: SolveOptions, cameras: CameraSet, problem: Problem
-) -> tuple[SolveOptions, RateCheck | None]:
-    """`options` with cameras.json's frame rate of each video whose frames have no times (`register --fps`'s
-    names, `import-calibration --fps`): own time frame / fps; with `--clock-model auto`, the clock model the
-    tracks choose for those rates (`reconstruct.clocks.rates`), and that check."""
-    given = options.temporal.clocks.fps
-    rates = {
-        video.name: float(video.fps)
-        for video in cameras.videos
-        if video.fps and video.name not in given and video.frames and all(f.time is None for f in video.frames)
-    }
-    if not rates:
-        return options, None
-    clocks = dataclasses.replace(options.temporal.clocks, fps={**given, **rates})
-    temporal = dataclasses.replace(options.temporal, clocks=clocks)
-    check = check_given_rates(problem, clocks) if temporal.clock_model is None else None
+    problem: Problem, options: SolveOptions, cameras: CameraSet
+) -> tuple[Problem, SolveOptions, RateCheck | None]:
+    """The videos whose frames are at a given rate (cameras.json `fps` and no times: `register --fps`'s and
+    `import-calibration --fps`'s names; or `ClockOptions.fps`): `problem` with their times at frame / fps (the seed
+    solve's windows and the trust flag's jumps read them), `options` whose clocks take them as given rates, and
+    with `--clock-model auto` the model the tracks choose for those rates (`reconstruct.clocks.rates`)."""
+    given = dict(options.temporal.clocks.fps)
+    for video in cameras.videos:  # as `own_times`: under two decoder times, a video has none
+        if video.fps and video.name not in given and sum(f.time is not None for f in video.frames) < 2:
+            given[video.name] = float(video.fps)
+    given = {name: rate for name, rate in given.items() if name in problem.video_names and rate > 0}
+    if not given:
+        return problem, options, None
+    times = problem.times.copy()
+    for v, name in enumerate(problem.video_names):
+        if name in given:
+            rows = problem.video_index == v
+            times[rows] = problem.frames[rows] / given[name]
+    problem = dataclasses.replace(problem, times=times)
+    temporal = dataclasses.replace(options.temporal, clocks=dataclasses.replace(options.temporal.clocks, fps=given))
+    check = None
+    if temporal.clock_model is None and temporal.refinement is not Refinement.NONE:
+        check = check_given_rates(problem, temporal.clocks)
     if check is not None:
         (log.warning if check.model is ClockModel.AFFINE else log.info)("clock model: %s", check.reason)
         temporal = dataclasses.replace(temporal, clock_model=check.model)
-    return dataclasses.replace(options, temporal=temporal), check
+    return problem, dataclasses.replace(options, temporal=temporal), check
 
 
-def _heldout_px(problem: Problem, temporal: Temporal, options: SolveOptions) -> float | None:
+def _heldout_px(problem: Problem, temporal: Temporal, options: SolveOptions) -> tuple[float, dict[str, float]] | None:
     """The median error of each video's rays predicted by the trajectories the other videos give, at the solve's
-    times; None where fewer than three videos see the points or some frame has no time."""
-    if not holds_out(problem) or not np.all(np.isfinite(temporal.times)):
+    times (on the frames that have one), and per video; None where fewer than three videos see those frames."""
+    timed = np.isfinite(temporal.times)
+    sub = take_frames(problem, timed)
+    if not timed.any() or not holds_out(sub):
         return None
-    return heldout_px(problem, temporal.times, options.temporal.refine).median_px
+    held = heldout_px(sub, temporal.times[timed], options.temporal.refine)
+    per_video = {
+        name: float(px) for name, px in zip(sub.video_names, held.per_video_px, strict=True) if np.isfinite(px)
+    }
+    return held.median_px, per_video
 
 
 def _say_unused_clocks(clocks: dict[str, Any], temporal: dict[str, Any]) -> None:

@@ -47,8 +47,9 @@ class Refinement(enum.Enum):
 @dataclass(kw_only=True)
 class TemporalOptions:
     clocks: ClockOptions = field(default_factory=ClockOptions)
-    # None: offset-only clocks when every frame has a decoder time (phones' timestamps carry the rate, and a free
-    # rate can lock onto a wrong period of a periodic motion), else `clocks.model`.
+    # None: offset-only clocks when every frame has a time (phones' timestamps carry the rate, and a free rate can
+    # lock onto a wrong period of a periodic motion), else `clocks.model`; `stage.solve` resolves it first where
+    # videos have a given rate (`clocks.rates`).
     clock_model: ClockModel | None = None
     refinement: Refinement = Refinement.CLOCKS
     refine: RefineOptions = field(default_factory=RefineOptions)

@@ -81,8 +81,7 @@ def spacing_assumed(clocks: Clocks) -> bool:
 def rate_unknown(clocks: Clocks) -> bool:
     """Whether some video has neither decoder times nor a given frame rate: its clock's rate is the model's guess,
     which trajectories on free per-frame times judge. A given rate is judged as decoder times are: on real rigs free
-    times absorb calibration and tracking errors that no clock explains (Pose2Sim's detections by name: 7.0 px on
-    the clocks against 3.65 px on free times, the clocks within a millisecond)."""
+    times absorb calibration and tracking errors that no clock explains (docs/clocks.md, "Given frame rates")."""
     return any(c.time_source is TimeSource.NOMINAL for c in clocks.videos)
 
 

@@ -37,7 +37,12 @@ def add_register_command(subparsers: argparse._SubParsersAction) -> None:
     _add_sfm_arguments(parser.add_argument_group("features, matching, mapping"), defaults)
     _add_static_arguments(parser.add_argument_group("static cameras and the subject path"), defaults)
     _add_mask_arguments(parser.add_argument_group("masks and localization"), defaults)
-    parser.add_argument("--threads", type=int, default=defaults.num_threads, help="-1: all cores")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=defaults.num_threads,
+        help="COLMAP's threads, -1: all cores; 1: one core (nothing else runs beside either)",
+    )
     parser.set_defaults(func=_run_register)
 
 

@@ -12,6 +12,7 @@ pycolmap stages run in child processes (`sfm.isolated`) so that a fatal COLMAP e
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import filecmp
 import json
@@ -28,6 +29,7 @@ from tqdm import tqdm
 
 from dynrecon import video_io
 from dynrecon.atomic import require_writable
+from dynrecon.beside import one_core
 from dynrecon.errors import DynreconError, InputError
 from dynrecon.names import first_repeated
 from sfm import colmap_steps
@@ -117,8 +119,13 @@ def run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOpti
     """Register `videos` into one world frame; returns the path of the written `cameras.json`.
 
     The per-video steps (`sfm.per_video`) run one video after the other here; `dynrecon batch` runs the same
-    functions as parallel tasks."""
+    functions as parallel tasks. With `num_threads` 1 nothing runs beside the caller either (`one_core`)."""
     options = options or RegisterOptions()
+    with one_core() if options.num_threads == 1 else contextlib.nullcontext():
+        return _run(videos, out_dir, options)
+
+
+def _run(videos: Sequence[str | Path], out_dir: str | Path, options: RegisterOptions) -> Path:
     paths = [Path(v) for v in videos]
     options.check()
     _check_videos(paths)
@@ -234,8 +241,8 @@ def _stand_ins(paths: list[Path], out: Path, options: RegisterOptions) -> list[P
             _listed(missing),
         )
         log.info(
-            "%s: frame times from --fps, not measured: cameras.json gives their rate, not times, and the solve fits "
-            "each one's true rate (a phone's may differ a little)",
+            "%s: frame times from --fps, not measured: cameras.json gives their rate, not times, and the solve tests "
+            "each rate against the tracks (a phone's true rate may differ a little: its rate is then fitted)",
             _listed(missing),
         )
     else:

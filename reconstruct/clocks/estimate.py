@@ -88,7 +88,7 @@ class ClockOptions:
     # ALWAYS by default: the search is cheap next to the solve, and on simulated phones W's links alone were
     # several times farther off than the tracks (docs/clocks.md).
     search: SearchMode = SearchMode.ALWAYS
-    fps: dict[str, float] = field(default_factory=dict)  # frame rate of videos without decoder times
+    fps: dict[str, float] = field(default_factory=dict)  # videos whose own time is frame / fps: a rate given
     reference: str | None = None  # gauge video; default: the first video with decoder times
     track_search: SearchOptions = field(default_factory=SearchOptions)
 

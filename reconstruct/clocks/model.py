@@ -210,8 +210,10 @@ class ClockCorrection:
 def own_times(problem: Problem, fps: Mapping[str, float] | None = None) -> tuple[np.ndarray, list[TimeSource]]:
     """(F,) own time of every frame in s, and the source per video.
 
-    Decoder times where given; a frame missing its time in a video that has times elsewhere is placed on the line
-    time ~ frame fitted to that video's times (registration may drop frames, decoders do not skip timestamps).
+    frame / fps for a video `fps` gives a rate (a rate given, not measured: its problem times, if any, are that
+    rate's); else decoder times where given, a frame missing its time in a video that has times elsewhere placed on
+    the line time ~ frame fitted to that video's times (registration may drop frames, decoders do not skip
+    timestamps); else frame / DEFAULT_FPS.
     """
     fps = fps or {}
     own = np.full(problem.num_frames, np.nan)
@@ -221,13 +223,13 @@ def own_times(problem: Problem, fps: Mapping[str, float] | None = None) -> tuple
         frames = problem.frames[rows].astype(float)
         times = problem.times[rows]
         known = np.isfinite(times)
-        if known.sum() >= 2 and np.ptp(frames[known]) > 0:
+        if name in fps and fps[name] > 0:
+            own[rows] = frames / fps[name]
+            sources.append(TimeSource.FPS)
+        elif known.sum() >= 2 and np.ptp(frames[known]) > 0:
             slope, intercept = np.polyfit(frames[known], times[known], 1)
             own[rows] = np.where(known, times, intercept + slope * frames)
             sources.append(TimeSource.DECODER)
-        elif name in fps and fps[name] > 0:
-            own[rows] = frames / fps[name]
-            sources.append(TimeSource.FPS)
         else:
             own[rows] = frames / DEFAULT_FPS
             sources.append(TimeSource.NOMINAL)

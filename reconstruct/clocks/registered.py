@@ -20,6 +20,22 @@ from sfm.cameras import CameraSet
 log = logging.getLogger(__name__)
 
 
+def _middle(cameras: CameraSet, name: str) -> float:
+    """The video's middle own time (s): decoder times, else frame / fps; 0 where neither is known."""
+    video = cameras.video(name)
+    times = [f.time for f in video.frames if f.time is not None]
+    if len(times) < 2 and video.fps:
+        times = [f.frame / video.fps for f in video.frames]
+    return float(np.median(times)) if times else 0.0
+
+
+def _offset_at(clock: VideoClockReport, own: float) -> float:
+    """global - own at own time `own`: the clock's offset where the video's frames are (a fitted rate moves the
+    offset at own time 0 away from registration's, whose rate is 1, without any disagreement in the middle)."""
+    rate = clock.rate if math.isfinite(clock.rate) else 1.0
+    return clock.offset + (rate - 1.0) * own + clock.drift * own**2
+
+
 def _frame_period(cameras: CameraSet, name: str) -> float:
     video = cameras.video(name)
     times = np.array([f.time for f in video.frames if f.time is not None], dtype=float)
@@ -30,8 +46,8 @@ def _frame_period(cameras: CameraSet, name: str) -> float:
 
 def check_registered_clocks(cameras: CameraSet, clocks: Clocks) -> dict[str, Any] | None:
     """None when fewer than two videos have both a registered offset and a recovered clock; else per video the
-    registered and recovered offsets relative to a common reference video, their difference and whether they
-    agree."""
+    registered and recovered offsets (each in the middle of its video's frames) relative to a common reference
+    video, their difference and whether they agree."""
     registered: dict[str, float] = {v.name: v.clock_offset for v in cameras.videos if v.clock_offset is not None}
     solved = {c.name: c for c in clocks.videos if c.identified and math.isfinite(c.offset)}
     common = [name for name in registered if name in solved]
@@ -41,7 +57,9 @@ def check_registered_clocks(cameras: CameraSet, clocks: Clocks) -> dict[str, Any
     videos: list[dict[str, Any]] = []
     for name in common[1:]:
         expected = registered[name] - registered[reference]
-        found = solved[name].offset - solved[reference].offset
+        found = _offset_at(solved[name], _middle(cameras, name)) - _offset_at(
+            solved[reference], _middle(cameras, reference)
+        )
         std = math.hypot(_estimate_std(solved[name]), _estimate_std(solved[reference]))
         period = _frame_period(cameras, name)
         tolerance = max(period if math.isfinite(period) else 0.0, 3 * std if math.isfinite(std) else 0.0)

@@ -257,3 +257,17 @@ def test_the_fork_tests_run_somewhere() -> None:
     )
     assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
     assert "fork is not used here" not in result.stdout, result.stdout[-4000:]
+
+
+def test_within_one_core_the_work_runs_in_the_caller_when_asked_for() -> None:
+    """`register --threads 1` (a user sharing the machine): nothing beside, neither a child nor a thread; the
+    function runs in the caller at `result()`, its exception raised there; outside the block, beside again."""
+    from dynrecon.beside import one_core
+
+    ran: list[int] = []
+    with one_core(), beside(lambda: ran.append(threading.get_ident()) or os.getpid()) as running:
+        assert ran == []  # not started: nothing runs beside the caller
+        assert running.result() == os.getpid() and ran == [threading.get_ident()] and not running.forked
+    with one_core(), pytest.raises(ZeroDivisionError), beside(lambda: 1 / 0) as failing:
+        failing.result()
+    assert map_beside(abs, [-1, 2, -3]) == [1, 2, 3]

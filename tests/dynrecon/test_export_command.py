@@ -32,6 +32,7 @@ def test_units_given_to_an_arbitrary_scale_are_said_to_be_a_label(
     """Cameras `register` posed without --scale or --board have an arbitrary scale: `--units m` labels the
     exports, and a warning says they are not metres (a helper's LED wand was 1.28 calibration-metres per unit)."""
     import json
+    import os
 
     sim = simulated_phones(tmp_path / "phones")
     solved = tmp_path / "solved"
@@ -45,6 +46,13 @@ def test_units_given_to_an_arbitrary_scale_are_said_to_be_a_label(
         (sim / "register_report.json").write_text(json.dumps({"subject": {"units": units}}))
         assert main(export) == 0
         assert ("register gave these cameras an arbitrary scale" in caplog.text) is warned, caplog.text
+    # a report older than the cameras is another registration's (a calibration imported over it): nothing said
+    (sim / "register_report.json").write_text(json.dumps({"subject": {"units": None}}))
+    stamp = (sim / "cameras.json").stat().st_mtime
+    os.utime(sim / "register_report.json", (stamp - 60, stamp - 60))
+    caplog.clear()
+    assert main(export) == 0
+    assert "arbitrary scale" not in caplog.text
     capsys.readouterr()
 
 

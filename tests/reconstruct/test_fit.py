@@ -84,3 +84,4 @@ def test_a_flight_whose_trajectory_bends_through_every_ray_is_judged_by_its_pred
     assert fit["measure"].startswith("each video's rays predicted by the other videos' trajectories")
     assert not fit["fits"] and fit["median_px"] == fit["heldout_px"] > fit["limit_px"]
     assert "the trajectories predicted for rays held out miss the tracks" in caplog.text
+    assert set(fit["per_video_px"]) == {f"cam{i}" for i in range(5)} and "cam1 " in caplog.text  # per video held out

@@ -16,25 +16,35 @@ GIVEN_FPS = 30.0
 
 
 @pytest.mark.parametrize(
-    ("true_fps", "model"),
+    ("true_fps", "timed", "model"),
     [
-        ((30.0, 29.85, 30.0, 30.0), "affine"),  # cam1 runs 0.5 % slow: 50 ms behind its nominal times after 10 s
-        ((30.0, 30.0, 30.0, 30.0), "offset"),  # a free rate where the given one holds trades offset against rate
+        ((30.0, 29.85, 30.0, 30.0), (), "affine"),  # cam1 runs 0.5 % slow: 50 ms behind its nominal times after 10 s
+        ((30.0, 30.0, 30.0, 30.0), (), "offset"),  # a free rate where the given one holds trades offset against rate
+        ((30.0, 29.85, 30.0, 30.0), (0, 2), "affine"),  # videos here (decoder times) beside names
     ],
 )
-def test_a_given_rate_is_tested_against_the_tracks(true_fps: tuple[float, ...], model: str) -> None:
+def test_a_given_rate_is_tested_against_the_tracks(
+    true_fps: tuple[float, ...], timed: tuple[int, ...], model: str
+) -> None:
     tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=20.0, fps=true_fps, distortion=False, seed=0)
     videos = np.asarray(tracks.video)
     cameras = CameraSet()
     for v, name in enumerate(truth.names):
         frames = int(np.max(np.asarray(tracks.frame)[videos == name])) + 1
-        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v]) for k in range(frames)]
+        time = (lambda k, v=v: k / true_fps[v]) if v in timed else (lambda k: None)
+        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v], time=time(k)) for k in range(frames)]
         cameras.videos.append(VideoCameras(name=name, width=1920, height=1080, fps=GIVEN_FPS, frames=posed))
     result = solve(cameras, tracks)
     assert result.report["clocks"]["given_rates"]["model"] == model
     assert result.report["clocks"]["model"] == model
+    said = any(w.startswith("clock model: ") for w in result.report["clocks"]["warnings"])
+    assert said is (model == "affine")  # a rate running off the given one is said, in the report too
     problem, times = result.problem, result.temporal.times
-    assert all(c.time_source is TimeSource.FPS for c in result.temporal.clocks.videos)
+    sources = [c.time_source for c in result.temporal.clocks.videos]
+    assert sources == [TimeSource.DECODER if v in timed else TimeSource.FPS for v in range(4)]
+    # the seed solve's windows and the trust flag's jumps read the problem's times: the given rate's
+    named = np.isin(problem.video_index, [v for v in range(4) if v not in timed])
+    np.testing.assert_allclose(problem.times[named], problem.frames[named] / GIVEN_FPS)
     for v, name in enumerate(problem.video_names):
         rows = problem.video_index == v
         true = truth.offsets[v] + problem.frames[rows] / true_fps[v]  # cam0 is the reference: global = its own time

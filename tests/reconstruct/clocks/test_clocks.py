@@ -416,3 +416,40 @@ def test_a_refit_widens_the_uncertainty_by_its_move() -> None:
     )
     check = check_registered_clocks(cameras, clocks)
     assert check is not None and not check["agree"] and check["videos"][0]["tolerance_s"] == pytest.approx(0.001)
+
+
+def test_registered_offsets_are_compared_where_the_frames_are() -> None:
+    """A fitted rate moves a clock's offset at own time 0 away from registration's (rate 1) without any
+    disagreement where the video's frames are: a phone 0.1 % slow over 8-10 min differs 0.5 s at own time 0."""
+    from reconstruct.clocks.model import ClockModel, Clocks, TimeSource, VideoClockReport
+    from reconstruct.clocks.registered import check_registered_clocks
+    from sfm.cameras import CameraSet, FrameCamera, VideoCameras
+
+    def clock(name: str, offset: float, rate: float) -> VideoClockReport:
+        return VideoClockReport(
+            name=name, time_source=TimeSource.FPS, offset=offset, rate=rate, offset_std=0.001, identified=True
+        )
+
+    middle = 500.0  # own s: frames 0-30,000 at 30 fps
+    frames = [FrameCamera(frame=k, K=np.eye(3), R=np.eye(3), t=np.zeros(3)) for k in (0, 15_000, 30_000)]
+    cameras = CameraSet(
+        videos=[
+            VideoCameras(name=n, width=10, height=10, fps=30.0, frames=frames, clock_offset=o)
+            for n, o in (("a", 0.0), ("b", 2.0))
+        ]
+    )
+    slow = clock("b", 2.0 - 0.001 * middle, 1.001)  # the same offset as registration's in the middle
+    empty = np.zeros(0)
+    clocks = Clocks(
+        model=ClockModel.AFFINE,
+        reference="a",
+        videos=[clock("a", 0.0, 1.0), slow],
+        frame_videos=[],
+        frames=empty,
+        own_time=empty,
+        global_time=empty,
+        global_std=empty,
+    )
+    check = check_registered_clocks(cameras, clocks)
+    assert check is not None and check["agree"], check
+    assert check["videos"][0]["difference_s"] == pytest.approx(0.0, abs=1e-9)
