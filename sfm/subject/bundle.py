@@ -29,11 +29,17 @@ log = logging.getLogger(__name__)
 # slowly, so the default stays there (docs/registration.md, "Speed of the subject path").
 LSMR_TOL_KNOWN_K = 1e-4
 LSMR_TOL_UNKNOWN_K = 1e-6
+# Evaluations per round. The first rounds only find the outliers (false detections slow the robust loss down: it
+# did not converge in 1,000); the last one, on the inliers, must converge: stopped at 30 it left a noisy rig's
+# cameras degrees from its optimum, wherever the RANSAC draw had started them (docs/registration.md).
+NFEV_KNOWN_K, NFEV_UNKNOWN_K = 30, 50
+NFEV_LAST = 100
+FTOL_LAST = 1e-6
 
 
 def adjust(b: Bundle, obs: list[VideoObs], inlier_px: float, rounds: int = 2) -> None:
     for r in range(rounds):
-        _solve(b, obs, inlier_px)
+        _solve(b, obs, inlier_px, last=r == rounds - 1)
         if r < rounds - 1:
             n = 0
             for j, (res, f, p) in enumerate(_residuals_px(b, obs)):
@@ -57,7 +63,7 @@ def _fill_knots(X: np.ndarray) -> np.ndarray:
     return out
 
 
-def _solve(b: Bundle, obs: list[VideoObs], inlier_px: float) -> None:
+def _solve(b: Bundle, obs: list[VideoObs], inlier_px: float, last: bool = True) -> None:
     b.knots.X = _fill_knots(b.knots.X)
     arrays = obs_arrays(b, obs)
     x0 = pack(b, obs)
@@ -69,7 +75,7 @@ def _solve(b: Bundle, obs: list[VideoObs], inlier_px: float) -> None:
         return jacobian(b, obs, x, arrays)
 
     with threadpool_limits(1, user_api="blas"):  # lsmr's many small vector products only lose with BLAS threads
-        sol = _least_squares(fun, jac, x0, inlier_px, all(obs[c].known_K for c in b.cams))
+        sol = _least_squares(fun, jac, x0, inlier_px, all(obs[c].known_K for c in b.cams), last)
     rvec, t, focal, k1, k2, pp, off, X = unpack(b, obs, sol.x)
     b.rvec, b.t, b.focal, b.k1, b.k2, b.pp, b.knots.X = rvec, t, focal, k1, k2, pp, X
     for j, c in enumerate(b.cams):
@@ -85,6 +91,7 @@ def _least_squares(
     x0: np.ndarray,
     inlier_px: float,
     known: bool,
+    last: bool,
 ) -> OptimizeResult:
     return least_squares(
         fun,
@@ -93,9 +100,9 @@ def _least_squares(
         loss="soft_l1",
         f_scale=inlier_px,
         x_scale="jac",
-        max_nfev=30 if known else 50,
+        max_nfev=NFEV_LAST if last else NFEV_KNOWN_K if known else NFEV_UNKNOWN_K,
         xtol=1e-8,
-        ftol=1e-5,
+        ftol=FTOL_LAST if last else 1e-5,
         method="trf",
         tr_solver="lsmr",
         tr_options=dict.fromkeys(("atol", "btol"), LSMR_TOL_KNOWN_K if known else LSMR_TOL_UNKNOWN_K),

@@ -26,8 +26,8 @@ from sfm.subject.synthetic import compare, make_rig
 def test_detector_keypoints_get_the_wider_scale() -> None:
     # 5 px of noise and 3 % false detections: the wider scale's folds are steadier. The poses' error depends on the
     # RANSAC samples, which differ between machines (their floating point): seed 4, where 3 px leaves a camera
-    # unstable, chooses 6 px on every machine measured; seed 2 chose 6 px on one and 3 px on another (docs/
-    # registration.md, "The noise scale"). Held to the issue's 1 deg and 2 %
+    # unstable, chose 6 px on every machine measured, before and after the bundle's last round was let converge
+    # (docs/registration.md, "The noise scale"). Held to the issue's 1 deg and 2 %
     tracks, videos, truth = make_rig(kind="skeleton", n_cameras=4, duration=10.0, noise_px=5.0, false_rate=0.03, seed=4)
     result, stability = choose_noise(tracks, videos, SubjectOptions())
     err = compare(result, truth)
