@@ -94,7 +94,8 @@ def quiet_tqdm_monitor() -> None:
 class Beside(Generic[T]):
     """The handle of a call started by `beside`: `result()` waits for it and returns its value or raises its
     exception. Use it as a context manager, so that a child is never left behind when the caller fails.
-    `forked`: it ran in a child process; `redone`: the child gave no result and the caller ran it again."""
+    `forked`: it ran in a child process; `inline`: within `one_core`, in the caller at `result()`; `redone`: the
+    child gave no result and the caller ran it again."""
 
     def __init__(self, function: Callable[..., T], args: tuple[Any, ...]) -> None:
         self._function, self._args = function, args
@@ -103,7 +104,7 @@ class Beside(Generic[T]):
         self._pool: ThreadPoolExecutor | None = None
         self._future: Future[T] | None = None
         self.redone = False
-        self._inline = getattr(_one_core, "depth", 0) > 0
+        self._inline = self.inline = getattr(_one_core, "depth", 0) > 0
         self.forked = not self._inline and fork_is_safe() and self._start_child()
         if not self.forked and not self._inline:
             self._pool = ThreadPoolExecutor(1)
@@ -131,8 +132,14 @@ class Beside(Generic[T]):
 
     def result(self) -> T:
         """The function's return value (waits); its exception is raised here."""
-        if self._inline:
-            return self._function(*self._args)
+        if self._inline:  # run once, at the first call, as the other ways run once
+            if self._future is None:
+                self._future = Future()
+                try:
+                    self._future.set_result(self._function(*self._args))
+                except BaseException as error:
+                    self._future.set_exception(error)
+            return self._future.result()
         if self._future is not None:
             return self._future.result()
         payload = self._collect()
@@ -301,3 +308,6 @@ def _collectors() -> list[WarningsSeen]:
 
 def _exit_on_signal(signum: int, frame: object) -> None:
     raise SystemExit(128 + signum)
+
+
+__all__ = ["STALL_S", "Beside", "beside", "fork_is_safe", "map_beside", "one_core"]

@@ -275,7 +275,15 @@ def _with_given_rates(
     for video in cameras.videos:  # as `own_times`: under two decoder times, a video has none
         if video.fps and video.name not in given and sum(f.time is not None for f in video.frames) < 2:
             given[video.name] = float(video.fps)
-    given = {name: rate for name, rate in given.items() if name in problem.video_names and rate > 0}
+    timed = {
+        name
+        for v, name in enumerate(problem.video_names)
+        if np.isfinite(problem.times[problem.video_index == v]).sum() >= 2
+    }
+    # a rate given for a video with decoder times would replace them (`own_times`): its decoder measured them
+    given = {
+        name: rate for name, rate in given.items() if name in problem.video_names and name not in timed and rate > 0
+    }
     if not given:
         return problem, options, None
     times = problem.times.copy()
@@ -285,9 +293,7 @@ def _with_given_rates(
             times[rows] = problem.frames[rows] / given[name]
     problem = dataclasses.replace(problem, times=times)
     temporal = dataclasses.replace(options.temporal, clocks=dataclasses.replace(options.temporal.clocks, fps=given))
-    check = None
-    if temporal.clock_model is None and temporal.refinement is not Refinement.NONE:
-        check = check_given_rates(problem, temporal.clocks)
+    check = check_given_rates(problem, temporal.clocks) if temporal.clock_model is None else None
     if check is not None:
         (log.warning if check.model is ClockModel.AFFINE else log.info)("clock model: %s", check.reason)
         temporal = dataclasses.replace(temporal, clock_model=check.model)

@@ -4,7 +4,7 @@ imported with `--fps`: frames at frame / fps, a rate somebody typed, not one a d
 A lab camera runs at its rate; a phone's true rate may miss its nominal one by a little, which over minutes moves
 its frames by many periods. The given rate is kept (offset-only clocks, as for decoder times) unless the tracks
 say otherwise: the clocks are searched once with a free rate per video, and a video whose rate differs from the
-given one by more than `SIGMAS` standard deviations and `RATE_FLOOR`, and by enough to move its last frame
+given one by more than `SIGMAS` standard deviations and the search's rate prior, and by enough to move its last frame
 `DRIFT_PERIODS` frame periods, makes the solve fit every video's rate (affine clocks). A free rate where the given
 one holds costs accuracy: it trades offset against rate on a short capture.
 """
@@ -25,10 +25,9 @@ from reconstruct.solver.problem import Problem
 
 log = logging.getLogger(__name__)
 
-SIGMAS = 3.0  # a rate this many standard deviations from the given one is not the given one
-# ... nor within this share of it: a quartz clock's error, the search's own rate prior (`SearchOptions.rate_prior`);
-# the search's standard deviations undershoot its scatter on cameras whose rate is the given one (docs/clocks.md)
-RATE_FLOOR = 2e-4
+SIGMAS = 3.0  # a rate this many standard deviations from the given one is not the given one, nor one within the
+# search's own rate prior (`SearchOptions.rate_prior`: a quartz clock's error), since the search's standard
+# deviations undershoot its scatter on cameras whose rate is the given one (docs/clocks.md, "Given frame rates")
 DRIFT_PERIODS = 0.25  # ... and moves the video's frames by at least this share of a frame over its span
 
 __all__ = ["RateCheck", "check_given_rates"]
@@ -76,6 +75,7 @@ def check_given_rates(problem: Problem, options: ClockOptions) -> RateCheck | No
         movable_reference=options.reference is None,
     )
     params = search.params
+    floor = options.track_search.rate_prior
     periods = frame_periods(own, problem.video_index, N)
     videos = []
     for v, name in enumerate(problem.video_names):
@@ -85,7 +85,7 @@ def check_given_rates(problem: Problem, options: ClockOptions) -> RateCheck | No
         std = math.sqrt(variance) if math.isfinite(variance) and variance > 0 else math.inf
         span = float(np.ptp(own[problem.video_index == v]))
         drift = (rate - 1.0) * span / float(periods[v]) if np.isfinite(periods[v]) and periods[v] > 0 else 0.0
-        differs = bool(abs(rate - 1.0) > max(SIGMAS * std, RATE_FLOOR) and abs(drift) > DRIFT_PERIODS)
+        differs = bool(abs(rate - 1.0) > max(SIGMAS * std, floor) and abs(drift) > DRIFT_PERIODS)
         rate_std = std if math.isfinite(std) else None
         videos.append({"video": name, "rate": rate, "rate_std": rate_std, "drift_periods": drift, "differs": differs})
     model = ClockModel.AFFINE if any(v["differs"] for v in videos) else ClockModel.OFFSET

@@ -29,17 +29,20 @@ log = logging.getLogger(__name__)
 # slowly, so the default stays there (docs/registration.md, "Speed of the subject path").
 LSMR_TOL_KNOWN_K = 1e-4
 LSMR_TOL_UNKNOWN_K = 1e-6
-# Evaluations per round. The first rounds only find the outliers (false detections slow the robust loss down: it
-# did not converge in 1,000); the last one, on the inliers, must converge: stopped at 30 it left a noisy rig's
-# cameras degrees from its optimum, wherever the RANSAC draw had started them (docs/registration.md).
+# Evaluations per round. The first rounds only find the outliers (false detections keep the robust loss from
+# converging soon); the last one, on the inliers, runs longer: stopped early it left a noisy rig's cameras where
+# the pair fits' RANSAC draw had started them (docs/registration.md, "The noise scale"). A held-out trial only
+# compares, at the first rounds' cap.
 NFEV_KNOWN_K, NFEV_UNKNOWN_K = 30, 50
 NFEV_LAST = 100
 FTOL_LAST = 1e-6
 
 
-def adjust(b: Bundle, obs: list[VideoObs], inlier_px: float, rounds: int = 2) -> None:
+def adjust(b: Bundle, obs: list[VideoObs], inlier_px: float, rounds: int = 2, converge: bool = True) -> None:
+    """`rounds` robust solves, the outliers of each but the last removed; the last one runs up to NFEV_LAST
+    evaluations unless `converge` is False (a trial that only compares)."""
     for r in range(rounds):
-        _solve(b, obs, inlier_px, last=r == rounds - 1)
+        _solve(b, obs, inlier_px, last=converge and r == rounds - 1)
         if r < rounds - 1:
             n = 0
             for j, (res, f, p) in enumerate(_residuals_px(b, obs)):
@@ -134,7 +137,7 @@ def held_out_px(b: Bundle, obs: list[VideoObs], inlier_px: float, block: float, 
         trial.keep[j] = trial.keep[j] & ~out
         held.append(out)
     try:
-        adjust(trial, obs, inlier_px, rounds=1)
+        adjust(trial, obs, inlier_px, rounds=1, converge=False)
         trial.keep = held
         errors = [r for r, _, _ in _residuals_px(trial, obs)]
     finally:

@@ -75,7 +75,8 @@ def choose_scale(
         ]
         outcomes = [_attempt(trial, dataclasses.replace(options, inlier_px=first))] + [r.result() for r in running]
     if running:
-        log.info("noise scales solved side by side (%s)", "forked" if all(r.forked for r in running) else "threads")
+        how = "forked" if all(r.forked for r in running) else "one after the other" if running[0].inline else "threads"
+        log.info("noise scales solved side by side (%s)", how)
     for px, outcome in zip(NOISE_SCALES_PX, outcomes, strict=True):
         if isinstance(outcome, SubjectCalibrationError):  # ScalePointsError too: another scale may triangulate the pair
             errors[px] = outcome

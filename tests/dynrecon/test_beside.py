@@ -271,3 +271,11 @@ def test_within_one_core_the_work_runs_in_the_caller_when_asked_for() -> None:
     with one_core(), pytest.raises(ZeroDivisionError), beside(lambda: 1 / 0) as failing:
         failing.result()
     assert map_beside(abs, [-1, 2, -3]) == [1, 2, 3]
+
+
+def test_within_one_core_the_work_runs_once() -> None:
+    from dynrecon.beside import one_core
+
+    calls: list[int] = []
+    with one_core(), beside(lambda: calls.append(1) or len(calls)) as running:
+        assert (running.result(), running.result(), calls, running.inline) == (1, 1, [1], True)

@@ -50,3 +50,27 @@ def test_a_given_rate_is_tested_against_the_tracks(
         true = truth.offsets[v] + problem.frames[rows] / true_fps[v]  # cam0 is the reference: global = its own time
         # the 0.5 % slow camera's rate taken as given (offset-only clocks), its frames were 23 ms off (median)
         assert np.nanmedian(np.abs(times[rows] - true)) < 0.005, name
+
+
+def test_decoder_times_are_kept_and_the_rates_tested_without_refinement() -> None:
+    """A rate given through the API for a video with decoder times does not replace them (its decoder measured
+    them); without refinement the rates are tested too (the clocks still time the written points)."""
+    import dataclasses
+
+    from reconstruct import SolveOptions
+    from reconstruct.clocks.estimate import ClockOptions
+    from reconstruct.temporal import Refinement, TemporalOptions
+
+    true_fps = (30.0, 29.85, 30.0, 30.0)
+    tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=20.0, fps=true_fps, distortion=False, seed=0)
+    videos = np.asarray(tracks.video)
+    cameras = CameraSet()
+    for v, name in enumerate(truth.names):
+        frames = int(np.max(np.asarray(tracks.frame)[videos == name])) + 1
+        time = (lambda k: k / 30.0) if v == 0 else (lambda k: None)
+        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v], time=time(k)) for k in range(frames)]
+        cameras.videos.append(VideoCameras(name=name, width=1920, height=1080, fps=GIVEN_FPS, frames=posed))
+    temporal = TemporalOptions(clocks=ClockOptions(fps={"cam0": 25.0}), refinement=Refinement.NONE)
+    result = solve(cameras, tracks, dataclasses.replace(SolveOptions(recording=None), temporal=temporal))
+    assert [c.time_source for c in result.temporal.clocks.videos] == [TimeSource.DECODER] + [TimeSource.FPS] * 3
+    assert result.report["clocks"]["given_rates"]["model"] == "affine"
