@@ -25,9 +25,10 @@ from reconstruct.solver.problem import Problem
 
 log = logging.getLogger(__name__)
 
-SIGMAS = 3.0  # a rate this many standard deviations from the given one is not the given one, nor one within the
-# search's own rate prior (`SearchOptions.rate_prior`: a quartz clock's error), since the search's standard
-# deviations undershoot its scatter on cameras whose rate is the given one (docs/clocks.md, "Given frame rates")
+# A rate differs from the given one beyond this many of its standard deviations and beyond the search's own rate
+# prior (`SearchOptions.rate_prior`, a quartz clock's error): the standard deviations undershoot the scatter of
+# rates fitted to cameras that run at their given rate (docs/clocks.md, "Given frame rates").
+SIGMAS = 3.0
 DRIFT_PERIODS = 0.25  # ... and moves the video's frames by at least this share of a frame over its span
 
 __all__ = ["RateCheck", "check_given_rates"]
