@@ -742,7 +742,7 @@ def run(
         frames = [
             FrameCamera(
                 frame=i,
-                time=None if info.stand_in else float(time),  # --fps's rate, not measured: the solve fits it
+                time=None if info.stand_in else float(time),  # --fps's rate, not measured: the solve tests it
                 K=K.copy(),
                 R=R.copy(),
                 t=t * options.scale,
