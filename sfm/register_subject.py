@@ -21,7 +21,7 @@ from sfm.options import RegisterOptions, SubjectPath
 from sfm.plan import FramePose, VideoPlan
 from sfm.register_posed import posed_video
 from sfm.subject import SubjectCalibrationError, SubjectOptions, SubjectResult, SubjectVideo, choose_noise
-from sfm.subject.model import UNTESTED, ScalePointsError, reasons_text
+from sfm.subject.model import UNPAIRED, UNTESTED, ScalePointsError, reasons_text
 from sfm.subject.noise import choose_scale
 from sfm.subject.posed import Alignment
 from sfm.subject.posed_bundle import solve_with_posed
@@ -263,11 +263,7 @@ def _farther_hint(inputs: list[SubjectVideo], posed: set[str], max_offset: float
     offsets it searched (±`max_offset`) against how long the videos run, where cameras started further apart than
     that would never be found (a drone filmed for minutes). Videos refused for another reason (too few positions,
     poses that moved between folds) get no such hint: a farther search would not help them."""
-    left = sorted(
-        v.name
-        for v in inputs
-        if v.name not in posed and failed.get(v.name, "").startswith(("no usable pair", "its tracks never overlap"))
-    )
+    left = sorted(v.name for v in inputs if v.name not in posed and failed.get(v.name, "").startswith(UNPAIRED))
     longest = max((float(np.ptp(v.times)) for v in inputs if len(v.times) > 1), default=0.0)
     if not left or longest <= max_offset:
         return None

@@ -19,6 +19,8 @@ from sfm.subject.model import (
     MIN_DISTINCT,
     MIN_INLIERS,
     MIN_SHARED,
+    NEVER_OVERLAP,
+    NO_USABLE_PAIR,
     SEED,
     UNTESTED,
     Lens,
@@ -515,12 +517,12 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int, groups: list[set[int]
         across = {f.reason or f.degenerate or "" for f in fits if {f.a, f.b} & group and {f.a, f.b} & posed}
         said = "; ".join(sorted(r for r in across if r)) or "none fitted"
         return (
-            f"no usable pair joins its group of videos ({', '.join(sorted(obs[j].name for j in group))}) to the group "
-            f"the path poses ({', '.join(sorted(obs[j].name for j in posed))}; their pairs: {said}): track points "
-            "that both groups see at one time, or register each group on its own"
+            f"{NO_USABLE_PAIR} joins its group of videos ({', '.join(sorted(obs[j].name for j in group))}) to the "
+            f"group the path poses ({', '.join(sorted(obs[j].name for j in posed))}; their pairs: {said}): track "
+            "points that both groups see at one time, or register each group on its own"
         )
     if all(f.shared < 8 or (f.reason or "").startswith(("the videos never", "at most")) for f in mine):
-        return "its tracks never overlap in time with another video's (within max_offset)"
+        return f"{NEVER_OVERLAP} (within max_offset)"
     # the pairs that share observations say why; the others only that they share none
     sharing = [f for f in mine if f.shared >= 8 and not (f.reason or "").startswith(("the videos never", "at most"))]
     reasons = [
@@ -528,7 +530,7 @@ def _why(obs: list[VideoObs], fits: list[PairFit], i: int, groups: list[set[int]
         + (_DEGENERATE.get(f.degenerate, f.degenerate) if f.degenerate else f.reason or "inconsistent offset")
         for f in sharing
     ]
-    return "no usable pair: " + "; ".join(reasons)
+    return f"{NO_USABLE_PAIR}: " + "; ".join(reasons)
 
 
 # What a degenerate pair's word means, in its refusal (at a wrong offset the few agreeing positions often lie so)

@@ -41,6 +41,11 @@ MIN_DISTINCT = 25  # distinct positions (2 % cells in both images) a pair needs 
 MIN_RATIO = 1.05  # runner-up ratio below which a pair's time offset is ambiguous
 CLAIM_RATIO = 1.2  # a declared offset is contradicted when the searched one scores this much better, a frame away
 UNTESTED = "untested"  # a pair's `claim` where its tracks give no geometry to test the declared offsets with
+# How a camera's refusal begins where no pair with it held (`calibrate._why`): the reasons a wider offset search
+# (--max-offset) could mend, which `register` hints at
+NO_USABLE_PAIR = "no usable pair"
+NEVER_OVERLAP = "its tracks never overlap in time with another video's"
+UNPAIRED = (NO_USABLE_PAIR, NEVER_OVERLAP)
 MAX_RESIDUAL_PX = 6.0  # a camera whose median reprojection error ends above this is refused (at INLIER_PX)
 MIN_INLIERS = 30  # a camera whose pose rests on fewer agreeing observations is refused
 

@@ -10,9 +10,24 @@ import pytest
 from reconstruct import solve
 from reconstruct.clocks.model import TimeSource
 from sfm.cameras import CameraSet, FrameCamera, VideoCameras
-from sfm.subject.synthetic import make_rig
+from sfm.subject.synthetic import Truth, make_rig
+from tracking.tracks import Tracks
 
 GIVEN_FPS = 30.0
+
+
+def _rig(true_fps: tuple[float, ...], timed: tuple[int, ...]) -> tuple[Tracks, CameraSet, Truth]:
+    """A skeleton seen by 4 static cameras at `true_fps`, 20 s: its tracks, its true cameras with `fps`
+    GIVEN_FPS and, for the videos `timed`, their frames' true decoder times (the others none: names), and the truth."""
+    tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=20.0, fps=true_fps, distortion=False, seed=0)
+    videos = np.asarray(tracks.video)
+    cameras = CameraSet()
+    for v, name in enumerate(truth.names):
+        frames = int(np.max(np.asarray(tracks.frame)[videos == name])) + 1
+        times = [k / true_fps[v] if v in timed else None for k in range(frames)]
+        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v], time=times[k]) for k in range(frames)]
+        cameras.videos.append(VideoCameras(name=name, width=1920, height=1080, fps=GIVEN_FPS, frames=posed))
+    return tracks, cameras, truth
 
 
 @pytest.mark.parametrize(
@@ -26,14 +41,7 @@ GIVEN_FPS = 30.0
 def test_a_given_rate_is_tested_against_the_tracks(
     true_fps: tuple[float, ...], timed: tuple[int, ...], model: str
 ) -> None:
-    tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=20.0, fps=true_fps, distortion=False, seed=0)
-    videos = np.asarray(tracks.video)
-    cameras = CameraSet()
-    for v, name in enumerate(truth.names):
-        frames = int(np.max(np.asarray(tracks.frame)[videos == name])) + 1
-        time = (lambda k, v=v: k / true_fps[v]) if v in timed else (lambda k: None)
-        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v], time=time(k)) for k in range(frames)]
-        cameras.videos.append(VideoCameras(name=name, width=1920, height=1080, fps=GIVEN_FPS, frames=posed))
+    tracks, cameras, truth = _rig(true_fps, timed)
     result = solve(cameras, tracks)
     assert result.report["clocks"]["given_rates"]["model"] == model
     assert result.report["clocks"]["model"] == model
@@ -61,15 +69,7 @@ def test_decoder_times_are_kept_and_the_rates_tested_without_refinement() -> Non
     from reconstruct.clocks.estimate import ClockOptions
     from reconstruct.temporal import Refinement, TemporalOptions
 
-    true_fps = (30.0, 29.85, 30.0, 30.0)
-    tracks, _, truth = make_rig(kind="skeleton", n_cameras=4, duration=20.0, fps=true_fps, distortion=False, seed=0)
-    videos = np.asarray(tracks.video)
-    cameras = CameraSet()
-    for v, name in enumerate(truth.names):
-        frames = int(np.max(np.asarray(tracks.frame)[videos == name])) + 1
-        time = (lambda k: k / 30.0) if v == 0 else (lambda k: None)
-        posed = [FrameCamera(frame=k, K=truth.K[v], R=truth.R[v], t=truth.t[v], time=time(k)) for k in range(frames)]
-        cameras.videos.append(VideoCameras(name=name, width=1920, height=1080, fps=GIVEN_FPS, frames=posed))
+    tracks, cameras, _ = _rig((30.0, 29.85, 30.0, 30.0), timed=(0,))
     temporal = TemporalOptions(clocks=ClockOptions(fps={"cam0": 25.0}), refinement=Refinement.NONE)
     result = solve(cameras, tracks, dataclasses.replace(SolveOptions(recording=None), temporal=temporal))
     assert [c.time_source for c in result.temporal.clocks.videos] == [TimeSource.DECODER] + [TimeSource.FPS] * 3
